@@ -1,0 +1,23 @@
+"""demq engine: DEM of granular gases (rough spheres, smooth spheroids) on the CPU and the GPU.
+
+Usable alone::
+
+    from engine import SimulationSpec, run
+    summary = run(SimulationSpec(n_particles=512, t_end=0.01), "out.h5")
+"""
+
+from engine.errors import BackendUnavailable, Cancelled, EngineError, InstabilityError, SpecError
+from engine.spec import SimulationSpec, load_spec
+
+__version__ = "0.1.0"
+
+
+def run(*args, **kwargs):
+    """Run a spec and write its HDF5 result; see :func:`engine.simulate.run`."""
+    from engine.simulate import run as _run
+
+    return _run(*args, **kwargs)
+
+
+__all__ = ["SimulationSpec", "load_spec", "run", "EngineError", "SpecError", "InstabilityError",
+           "Cancelled", "BackendUnavailable", "__version__"]

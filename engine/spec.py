@@ -1,0 +1,230 @@
+"""The simulation spec: one pydantic model, the public JSON contract of demq.
+
+Every key here is part of the contract shared by the engine, the job queue, the HTTP API and the
+result files (the spec is stored verbatim in ``/parameters@spec``). SI units throughout.
+
+Defaults reproduce the setup of paper 001 (Hidalgo et al. 2013): N = 4096 rough spheres in a
+periodic cube of L = 2 m at volume fraction 0.008, k_n = 1e8 N/m, density 2000 kg/m^3,
+e_n = e_t = 0.8. The default ``velocity_rms`` keeps the largest overlap near 1 % of the radius and
+the default ``t_end`` keeps a default run to about a minute on a laptop CPU.
+
+Every check that fails names the field, the value and the allowed range, so an invalid spec is
+rejected before it costs anything.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+#: Random close packing of monodisperse spheres; no homogeneous gas start exists above it.
+RANDOM_CLOSE_PACKING = 0.64
+
+#: A contact must span at least this many time steps (t_c / dt); coarser steps cannot resolve it.
+MIN_STEPS_PER_CONTACT = 10.0
+
+
+class SimulationSpec(BaseModel):
+    """A granular-gas simulation: particles, contact law, protocol, output and numerics."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=False)
+
+    shape: Literal["sphere", "ellipsoid"] = Field(
+        "sphere", description="Particle shape: 'sphere' or 'ellipsoid' (prolate spheroid, paper 003).")
+    n_particles: int = Field(
+        4096, description="Number of particles N (2 ... 2**31-1).")
+    volume_fraction: float = Field(
+        0.008, description="Solid volume fraction phi = N v_particle / L^3, in (0, 0.64).")
+    e_n: float = Field(
+        0.8, description="Normal coefficient of restitution, in (0, 1]; 1 = elastic.")
+    e_t: float = Field(
+        0.8, description="Tangential coefficient of restitution, in [-1, 1]; -1 = smooth, 1 = perfectly rough.")
+    elongation: float = Field(
+        1.0, description="Aspect ratio xi = a/b of a prolate spheroid (>= 1); must be 1 for spheres.")
+    friction: Optional[float] = Field(
+        None, description="Coulomb friction coefficient mu >= 0; null = no sliding limit "
+                          "(Luding's constant-e_t model of paper 001).")
+    stiffness: float = Field(1.0e8, description="Normal spring constant k_n in N/m (> 0).")
+    density: float = Field(2000.0, description="Material density in kg/m^3 (> 0).")
+    box_length: float = Field(
+        2.0, description="Edge L of the periodic cubic box in m; the particle size follows from N, "
+                         "phi and L at equal particle volume.")
+    velocity_rms: float = Field(
+        2.0, description="Root-mean-square translational speed sqrt(<|v|^2>) at the start, in m/s; "
+                         "the rotational temperature starts equal to the translational one.")
+    thermalization: float = Field(
+        2.0, description="Collisions per particle run without dissipation before t = 0 (>= 0).")
+    t_end: float = Field(0.1, description="Length of the cooling run in s (> 0).")
+    dt: Optional[float] = Field(
+        None, description="Time step in s; null = contact_time / 50.")
+    output_interval: Optional[float] = Field(
+        None, description="Interval between observable records in s; null = t_end / 200.")
+    snapshots: int = Field(
+        5, description="Number of full particle snapshots, evenly spaced over [0, t_end] (0 ... 10000).")
+    precision: Literal["float64", "float32"] = Field(
+        "float64", description="Floating-point precision of the state and the arithmetic.")
+    seed: int = Field(0, description="Seed of the random initial state (0 ... 2**63-1).")
+    backend: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="'auto' = CUDA when a GPU is present, else CPU.")
+    verlet_skin: float = Field(
+        0.4, description="Verlet-list skin L_v in units of the particle radius (0 < L_v <= 4); the "
+                         "list is rebuilt when a particle has moved more than L_v/2 (paper 004).")
+    overlap_limit: float = Field(
+        0.05, description="Largest allowed overlap as a fraction of the radius; a run that exceeds it "
+                          "stops with an error (0 < limit <= 0.5).")
+
+    # ---- field checks: each message names the value and the allowed range ------------------------
+
+    @field_validator("n_particles")
+    @classmethod
+    def _n(cls, v: int) -> int:
+        if not 2 <= v <= 2**31 - 1:
+            raise ValueError(f"n_particles = {v} is outside the allowed range 2 ... 2147483647")
+        return v
+
+    @field_validator("volume_fraction")
+    @classmethod
+    def _phi(cls, v: float) -> float:
+        if not (0.0 < v < RANDOM_CLOSE_PACKING):
+            raise ValueError(
+                f"volume_fraction = {v} is outside (0, {RANDOM_CLOSE_PACKING}): "
+                f"a homogeneous start above random close packing does not exist")
+        return v
+
+    @field_validator("e_n")
+    @classmethod
+    def _en(cls, v: float) -> float:
+        if not (0.0 < v <= 1.0):
+            raise ValueError(f"e_n = {v} is outside the allowed range (0, 1]")
+        return v
+
+    @field_validator("e_t")
+    @classmethod
+    def _et(cls, v: float) -> float:
+        if not (-1.0 <= v <= 1.0):
+            raise ValueError(f"e_t = {v} is outside the allowed range [-1, 1]")
+        return v
+
+    @field_validator("elongation")
+    @classmethod
+    def _xi(cls, v: float) -> float:
+        if not (1.0 <= v <= 10.0):
+            raise ValueError(f"elongation = {v} is outside the allowed range [1, 10]")
+        return v
+
+    @field_validator("friction")
+    @classmethod
+    def _mu(cls, v: Optional[float]) -> Optional[float]:
+        if v is not None and not (0.0 <= v < math.inf):
+            raise ValueError(f"friction = {v} is outside the allowed range [0, inf) (or null)")
+        return v
+
+    @field_validator("stiffness", "density", "box_length", "velocity_rms", "t_end")
+    @classmethod
+    def _positive(cls, v: float, info) -> float:
+        if not (0.0 < v < math.inf):
+            raise ValueError(f"{info.field_name} = {v} must be a finite number > 0")
+        return v
+
+    @field_validator("thermalization")
+    @classmethod
+    def _therm(cls, v: float) -> float:
+        if not (0.0 <= v <= 1.0e4):
+            raise ValueError(f"thermalization = {v} is outside the allowed range [0, 10000] collisions per particle")
+        return v
+
+    @field_validator("dt", "output_interval")
+    @classmethod
+    def _opt_positive(cls, v: Optional[float], info) -> Optional[float]:
+        if v is not None and not (0.0 < v < math.inf):
+            raise ValueError(f"{info.field_name} = {v} must be a finite number > 0 (or null)")
+        return v
+
+    @field_validator("snapshots")
+    @classmethod
+    def _snap(cls, v: int) -> int:
+        if not 0 <= v <= 10000:
+            raise ValueError(f"snapshots = {v} is outside the allowed range 0 ... 10000")
+        return v
+
+    @field_validator("seed")
+    @classmethod
+    def _seed(cls, v: int) -> int:
+        if not 0 <= v <= 2**63 - 1:
+            raise ValueError(f"seed = {v} is outside the allowed range 0 ... 2**63-1")
+        return v
+
+    @field_validator("verlet_skin")
+    @classmethod
+    def _skin(cls, v: float) -> float:
+        if not (0.0 < v <= 4.0):
+            raise ValueError(f"verlet_skin = {v} is outside the allowed range (0, 4] radii")
+        return v
+
+    @field_validator("overlap_limit")
+    @classmethod
+    def _ovl(cls, v: float) -> float:
+        if not (0.0 < v <= 0.5):
+            raise ValueError(f"overlap_limit = {v} is outside the allowed range (0, 0.5] radii")
+        return v
+
+    # ---- checks that need several fields (derived parameters) ---------------------------------------
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "SimulationSpec":
+        from engine.params import derive  # local import: params imports this module
+
+        if self.shape == "sphere" and self.elongation != 1.0:
+            raise ValueError(f"elongation = {self.elongation} but shape is 'sphere': elongation must be 1 for spheres")
+        p = derive(self)
+        if self.dt is not None and self.dt > p.contact_time / MIN_STEPS_PER_CONTACT:
+            raise ValueError(
+                f"dt = {self.dt:.6g} s cannot resolve a contact: the contact time is {p.contact_time:.6g} s, "
+                f"so dt must be <= contact_time/{MIN_STEPS_PER_CONTACT:g} = "
+                f"{p.contact_time / MIN_STEPS_PER_CONTACT:.6g} s")
+        if self.output_interval is not None and self.output_interval < p.dt:
+            raise ValueError(
+                f"output_interval = {self.output_interval:.6g} s is shorter than the time step dt = {p.dt:.6g} s")
+        cutoff = 2.0 * p.radius_max * (1.0 + 0.5 * self.verlet_skin)
+        if self.box_length < 3.0 * cutoff and self.n_particles > 2:
+            # The minimum-image convention and the cell list need L > 2 * cutoff; keep a margin.
+            raise ValueError(
+                f"box_length = {self.box_length:g} m is too small for particles of radius {p.radius_max:.4g} m: "
+                f"it must be at least {3.0 * cutoff:.4g} m (3 x the neighbour cutoff)")
+        # A typical head-on collision compresses by v_rel/omega_0; reject specs whose *typical* overlap
+        # already exceeds the limit (the run-time guard catches the rare tails).
+        typical = math.sqrt(2.0) * self.velocity_rms / p.omega0
+        if typical > self.overlap_limit * p.radius_min:
+            vmax = self.overlap_limit * p.radius_min * p.omega0 / math.sqrt(2.0)
+            raise ValueError(
+                f"velocity_rms = {self.velocity_rms:g} m/s is too fast for stiffness = {self.stiffness:g} N/m: "
+                f"a typical collision would overlap {typical / p.radius_min:.3g} radii, above "
+                f"overlap_limit = {self.overlap_limit:g}; use velocity_rms <= {vmax:.4g} m/s or a stiffer contact")
+        return self
+
+    # ---- helpers -----------------------------------------------------------------------------------
+
+    def to_json(self) -> str:
+        """Canonical JSON of the full spec (all keys, defaults filled in)."""
+        return json.dumps(self.model_dump(mode="json"), sort_keys=True)
+
+    @property
+    def smooth(self) -> bool:
+        """True when contacts carry no tangential force (e_t = -1 or mu = 0)."""
+        return self.e_t == -1.0 or self.friction == 0.0
+
+
+def load_spec(source) -> SimulationSpec:
+    """Validate a spec from a dict, a JSON string or a path to a JSON file."""
+    from pathlib import Path
+
+    if isinstance(source, SimulationSpec):
+        return source
+    if isinstance(source, dict):
+        return SimulationSpec.model_validate(source)
+    if isinstance(source, Path) or (isinstance(source, str) and not source.lstrip().startswith("{")):
+        return SimulationSpec.model_validate_json(Path(source).read_text())
+    return SimulationSpec.model_validate_json(source)
