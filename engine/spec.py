@@ -56,7 +56,7 @@ class SimulationSpec(BaseModel):
         2.0, description="Root-mean-square translational speed sqrt(<|v|^2>) at the start, in m/s; "
                          "the rotational temperature starts equal to the translational one.")
     thermalization: float = Field(
-        2.0, description="Collisions per particle run without dissipation before t = 0 (>= 0).")
+        1.0, description="Collisions per particle run without dissipation before t = 0 (>= 0).")
     t_end: float = Field(0.1, description="Length of the cooling run in s (> 0).")
     dt: Optional[float] = Field(
         None, description="Time step in s; null = contact_time / 50.")

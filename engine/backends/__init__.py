@@ -1,0 +1,9 @@
+"""Backends own memory layout, loops and launches; the physics comes from engine.physics.
+
+``make_backend(name, system, contact)`` returns a backend for 'cpu', 'cuda' or 'auto'
+(CUDA when a GPU is present, else CPU).
+"""
+
+from engine.backends.base import ContactParams, SphereSystem, cuda_available, make_backend
+
+__all__ = ["ContactParams", "SphereSystem", "make_backend", "cuda_available"]

@@ -1,0 +1,99 @@
+"""What every backend receives and returns: the system (state arrays in id order) and contact constants.
+
+A backend is constructed from a :class:`SphereSystem` (host arrays) and a :class:`ContactParams`, and
+offers ``advance(nsteps)``, ``observe()``, ``state()``, ``contacts()``, ``set_contact(params)``.
+Host copies happen only in ``observe``/``state``/``contacts`` (output steps).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, replace
+from typing import Optional
+
+import numpy as np
+
+from engine.errors import BackendUnavailable
+
+
+@dataclass
+class SphereSystem:
+    """Host-side state of N spheres in a periodic cube, SI units, rows in particle-id order.
+
+    position (N,3) m in [0, L); velocity (N,3) m/s; angular_velocity (N,3) rad/s (space frame);
+    orientation (N,4) unit quaternions (w,x,y,z), body -> space; radius, mass, inertia (N,) m, kg, kg m^2.
+    contact_pairs (M,2) int64 ids (i, j) and contact_springs (M,3) m: tangential springs of contacts
+    carried over from a checkpoint (both orderings present); empty for a fresh start.
+    """
+
+    box_length: float
+    position: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    orientation: np.ndarray
+    radius: np.ndarray
+    mass: np.ndarray
+    inertia: np.ndarray
+    contact_pairs: Optional[np.ndarray] = None
+    contact_springs: Optional[np.ndarray] = None
+
+    @property
+    def n(self) -> int:
+        return self.position.shape[0]
+
+
+@dataclass(frozen=True)
+class ContactParams:
+    """Contact constants and numerics. k_t = None: smooth (no tangential force, no torque).
+
+    friction = None: no Coulomb limit. gamma_n of a pair is gamma_n_coef * sqrt(m12) (kg/s).
+    orientation: integrate quaternions (only needed for output or non-spherical shapes).
+    """
+
+    k_n: float
+    gamma_n_coef: float
+    k_t: Optional[float]
+    friction: Optional[float]
+    dt: float
+    skin: float
+    precision: str = "float64"
+    orientation: bool = True
+    overlap_limit: float = 0.05
+
+    @property
+    def rough(self) -> bool:
+        return self.k_t is not None
+
+    def with_(self, **kw) -> "ContactParams":
+        return replace(self, **kw)
+
+
+def cuda_available() -> bool:
+    """True when a real CUDA GPU can be used (the simulator does not count)."""
+    if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
+        return False
+    try:
+        from numba import cuda
+
+        return bool(cuda.is_available())
+    except Exception:  # numba-cuda missing or no driver
+        return False
+
+
+def make_backend(name: str, system: SphereSystem, contact: ContactParams):
+    """Backend instance for 'cpu', 'cuda' or 'auto'."""
+    if name == "auto":
+        name = "cuda" if cuda_available() else "cpu"
+    if name == "cpu":
+        from engine.backends.cpu import CpuBackend
+
+        return CpuBackend(system, contact)
+    if name == "cuda":
+        sim = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+        if not sim and not cuda_available():
+            raise BackendUnavailable(
+                "backend = 'cuda' but no CUDA GPU is available here; use backend 'cpu' or 'auto'")
+        from engine.backends.cuda import CudaBackend
+
+        return CudaBackend(system, contact)
+    raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")

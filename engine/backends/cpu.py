@@ -1,0 +1,578 @@
+"""CPU backend: Numba ``parallel=True`` loops over particles, the whole time loop compiled.
+
+Layout: arrays of shape (N, 3) (and (N, 4) for quaternions) in the working precision; a full Verlet
+neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` per particle with one
+tangential spring per list slot, so every thread writes only its own particle (no atomics) and the
+spring of (j, i) is exactly minus the spring of (i, j). The list is built from linked cells of edge
+>= 2 a_max + L_v and rebuilt when any particle has moved more than L_v/2 since the last build
+(paper 004); springs of surviving pairs are carried into the new list. No allocation in the time loop:
+the scratch list is preallocated and grown (rarely) from Python when a build overflows it.
+
+Compile-time specialisation: ``k_t``/``torque`` = None (smooth spheres: no spring, no torque, no spin
+update), ``mu`` = None (no Coulomb limit) and ``quat`` = None (orientation not needed) are pruned by
+Numba when the functions are compiled for those argument types. Everything is ``cache=True``, so a
+new process (a job's child, a test run) loads the compiled code from disk.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numba import prange
+
+from engine.backends.base import ContactParams, SphereSystem
+from engine.errors import InstabilityError
+from engine.physics.contact import min_image, sphere_contact
+from engine.physics.integrate import drift_wrap, kick
+from engine.physics.rotation import fincham_quat_step_space
+
+OK, BAD_VALUE, OVERLAP, OVERFLOW = 0, 1, 2, 3
+
+
+@numba.njit(parallel=True, cache=True)
+def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, hk, dt, box, inv_box, half,
+               chunk_disp, chunk_bad):
+    """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; max displacement since the build."""
+    n = pos.shape[0]
+    nch = chunk_disp.shape[0]
+    for c in prange(nch):
+        i0 = c * n // nch
+        i1 = (c + 1) * n // nch
+        m = 0.0
+        bad = -1
+        for i in range(i0, i1):
+            im = inv_m[i]
+            for k in range(3):
+                v = kick(vel[i, k], force[i, k], im, hk)
+                vel[i, k] = v
+                pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+            if torque is not None:
+                ii = inv_i[i]
+                for k in range(3):
+                    omega[i, k] = kick(omega[i, k], torque[i, k], ii, hk)
+            if quat is not None:
+                q0, q1, q2, q3 = fincham_quat_step_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+                                                         omega[i, 0], omega[i, 1], omega[i, 2], dt, half)
+                quat[i, 0] = q0
+                quat[i, 1] = q1
+                quat[i, 2] = q2
+                quat[i, 3] = q3
+            dx = min_image(pos[i, 0] - x_ref[i, 0], box, inv_box, half)
+            dy = min_image(pos[i, 1] - x_ref[i, 1], box, inv_box, half)
+            dz = min_image(pos[i, 2] - x_ref[i, 2], box, inv_box, half)
+            d2 = dx * dx + dy * dy + dz * dz
+            if not (d2 < 1e300) or not (abs(vel[i, 0]) + abs(vel[i, 1]) + abs(vel[i, 2]) < 1e300) \
+                    or not (abs(omega[i, 0]) + abs(omega[i, 1]) + abs(omega[i, 2]) < 1e300):
+                if bad < 0:
+                    bad = i
+            elif d2 > m:
+                m = d2
+        chunk_disp[c] = m
+        chunk_bad[c] = bad
+
+
+@numba.njit(parallel=True, cache=True)
+def half_kick(vel, omega, force, torque, inv_m, inv_i, hk):
+    """Closing half kick that makes velocities synchronous with positions."""
+    for i in prange(vel.shape[0]):
+        for k in range(3):
+            vel[i, k] = kick(vel[i, k], force[i, k], inv_m[i], hk)
+        if torque is not None:
+            for k in range(3):
+                omega[i, k] = kick(omega[i, k], torque[i, k], inv_i[i], hk)
+
+
+@numba.njit(cache=True)
+def bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor):
+    """Counting sort of the particles into nc^3 cells (cell_start has nc^3 + 1 entries)."""
+    n = pos.shape[0]
+    ncell = nc * nc * nc
+    for c in range(ncell + 1):
+        cell_start[c] = 0
+    for i in range(n):
+        cx = min(max(int(pos[i, 0] * inv_cell), 0), nc - 1)
+        cy = min(max(int(pos[i, 1] * inv_cell), 0), nc - 1)
+        cz = min(max(int(pos[i, 2] * inv_cell), 0), nc - 1)
+        c = (cx * nc + cy) * nc + cz
+        cell_of[i] = c
+        cell_start[c + 1] += 1
+    for c in range(ncell):
+        cell_start[c + 1] += cell_start[c]
+    for c in range(ncell):
+        cursor[c] = cell_start[c]
+    for i in range(n):
+        c = cell_of[i]
+        cell_list[cursor[c]] = i
+        cursor[c] += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
+               nbr_old, nn_old, hist_old, nbr, nn, hist, x_ref):
+    """Full Verlet list: j is a neighbour of i when |r_ij| < a_i + a_j + L_v; springs carried over.
+
+    nn[i] receives the true neighbour count even when it exceeds the stride (the caller then grows
+    the list and builds again); slots beyond the stride are not written.
+    """
+    n = pos.shape[0]
+    max_nb = nbr.shape[1]
+    lo = -1 if nc >= 3 else 0
+    hi = 2 if nc >= 2 else 1
+    for i in prange(n):
+        c = cell_of[i]
+        cx = c // (nc * nc)
+        cy = (c // nc) % nc
+        cz = c % nc
+        xi = pos[i, 0]
+        yi = pos[i, 1]
+        zi = pos[i, 2]
+        ri = radius[i]
+        cnt = 0
+        for ox in range(lo, hi):
+            ax = (cx + ox + nc) % nc
+            for oy in range(lo, hi):
+                ay = (cy + oy + nc) % nc
+                for oz in range(lo, hi):
+                    az = (cz + oz + nc) % nc
+                    cc = (ax * nc + ay) * nc + az
+                    for s in range(cell_start[cc], cell_start[cc + 1]):
+                        j = cell_list[s]
+                        if j == i:
+                            continue
+                        dx = min_image(xi - pos[j, 0], box, inv_box, half)
+                        dy = min_image(yi - pos[j, 1], box, inv_box, half)
+                        dz = min_image(zi - pos[j, 2], box, inv_box, half)
+                        rc = ri + radius[j] + skin
+                        if dx * dx + dy * dy + dz * dz < rc * rc:
+                            if cnt < max_nb:
+                                nbr[i, cnt] = j
+                                hist[i, cnt, 0] = 0
+                                hist[i, cnt, 1] = 0
+                                hist[i, cnt, 2] = 0
+                                for kk in range(nn_old[i]):
+                                    if nbr_old[i, kk] == j:
+                                        hist[i, cnt, 0] = hist_old[i, kk, 0]
+                                        hist[i, cnt, 1] = hist_old[i, kk, 1]
+                                        hist[i, cnt, 2] = hist_old[i, kk, 2]
+                                        break
+                            cnt += 1
+        nn[i] = cnt
+        x_ref[i, 0] = xi
+        x_ref[i, 1] = yi
+        x_ref[i, 2] = zi
+
+
+@numba.njit(parallel=True, cache=True)
+def copy_list(nbr_src, nn_src, hist_src, nbr_dst, nn_dst, hist_dst):
+    for i in prange(nn_src.shape[0]):
+        m = nn_src[i]
+        nn_dst[i] = m
+        for k in range(m):
+            nbr_dst[i, k] = nbr_src[i, k]
+            hist_dst[i, k, 0] = hist_src[i, k, 0]
+            hist_dst[i, k, 1] = hist_src[i, k, 1]
+            hist_dst[i, k, 2] = hist_src[i, k, 2]
+
+
+@numba.njit(parallel=True, cache=True)
+def compute_forces(pos, vel, omega, radius, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                   k_n, gn_coef, k_t, mu, dt, chunk_ovl, chunk_ovl_idx):
+    """Contact forces and torques on every particle from its list; springs advanced in place.
+
+    Records per chunk the largest overlap relative to the smaller radius, for the stability guard.
+    """
+    n = pos.shape[0]
+    nch = chunk_ovl.shape[0]
+    for c in prange(nch):
+        i0 = c * n // nch
+        i1 = (c + 1) * n // nch
+        worst = 0.0
+        worst_i = -1
+        for i in range(i0, i1):
+            fx = 0.0
+            fy = 0.0
+            fz = 0.0
+            tx = 0.0
+            ty = 0.0
+            tz = 0.0
+            xi = pos[i, 0]
+            yi = pos[i, 1]
+            zi = pos[i, 2]
+            ri = radius[i]
+            for kk in range(nn[i]):
+                j = nbr[i, kk]
+                rx = min_image(xi - pos[j, 0], box, inv_box, half)
+                ry = min_image(yi - pos[j, 1], box, inv_box, half)
+                rz = min_image(zi - pos[j, 2], box, inv_box, half)
+                d2 = rx * rx + ry * ry + rz * rz
+                rj = radius[j]
+                s = ri + rj
+                if d2 < s * s:
+                    m12 = 1 / (inv_m[i] + inv_m[j])
+                    g = sphere_contact(rx, ry, rz, math.sqrt(d2),
+                                       vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
+                                       omega[i, 0], omega[i, 1], omega[i, 2],
+                                       omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
+                                       hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2],
+                                       k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, half)
+                    fx += g[0]
+                    fy += g[1]
+                    fz += g[2]
+                    if k_t is not None:
+                        tx += g[3]
+                        ty += g[4]
+                        tz += g[5]
+                        hist[i, kk, 0] = g[6]
+                        hist[i, kk, 1] = g[7]
+                        hist[i, kk, 2] = g[8]
+                    ov = g[9] / min(ri, rj)
+                    if ov > worst:
+                        worst = ov
+                        worst_i = i
+                elif k_t is not None:
+                    hist[i, kk, 0] = 0
+                    hist[i, kk, 1] = 0
+                    hist[i, kk, 2] = 0
+            force[i, 0] = fx
+            force[i, 1] = fy
+            force[i, 2] = fz
+            if torque is not None:
+                torque[i, 0] = tx
+                torque[i, 1] = ty
+                torque[i, 2] = tz
+        chunk_ovl[c] = worst
+        chunk_ovl_idx[c] = worst_i
+
+
+@numba.njit(cache=True)
+def _worst(values, idx):
+    k = 0
+    for c in range(values.shape[0]):
+        if values[c] > values[k]:
+            k = c
+    return values[k], idx[k]
+
+
+@numba.njit(cache=True)
+def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius, x_ref,
+              nbr, nn, hist, nbr_new, nn_new, hist_new,
+              nc, inv_cell, cell_start, cell_list, cell_of, cursor,
+              box, inv_box, half, dt, skin, k_n, gn_coef, k_t, mu, overlap_limit,
+              chunk_a, chunk_b):
+    """Advance up to nsteps velocity-Verlet steps; velocities are synchronous on entry and on exit.
+
+    Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
+    current step have been drifted but its forces not computed: the caller grows the list, calls
+    :func:`finish_step` and goes on. On BAD_VALUE / OVERLAP the state is left as it is for the error.
+    """
+    builds = 0
+    if nsteps <= 0:
+        return OK, 0, -1, 0.0, builds
+    limit2 = (skin * half) * (skin * half)
+    for s in range(nsteps):
+        hk = dt * half if s == 0 else dt
+        kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, hk, dt, box, inv_box, half,
+                   chunk_a, chunk_b)
+        for c in range(chunk_b.shape[0]):
+            if chunk_b[c] >= 0:
+                return BAD_VALUE, s, chunk_b[c], 0.0, builds
+        disp2 = 0.0
+        for c in range(chunk_a.shape[0]):
+            if chunk_a[c] > disp2:
+                disp2 = chunk_a[c]
+        if disp2 > limit2:
+            bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
+            build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
+                       nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+            builds += 1
+            need = 0
+            for i in range(nn_new.shape[0]):
+                if nn_new[i] > need:
+                    need = nn_new[i]
+            if need > nbr_new.shape[1]:
+                return OVERFLOW, s, -1, float(need), builds
+            copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
+        compute_forces(pos, vel, omega, radius, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                       k_n, gn_coef, k_t, mu, dt, chunk_a, chunk_b)
+        worst, who = _worst(chunk_a, chunk_b)
+        if worst > overlap_limit:
+            return OVERLAP, s, who, worst, builds
+    half_kick(vel, omega, force, torque, inv_m, inv_i, dt * half)
+    return OK, nsteps, -1, 0.0, builds
+
+
+@numba.njit(cache=True)
+def observe_kernel(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, inv_box, half, k_n_val, k_t_val):
+    """(E_tr, E_rot, contacts, elastic energy, max overlap/radius, P_x, P_y, P_z) in SI units.
+
+    The elastic energy is that of the normal springs (k_n delta^2 / 2) and of the tangential springs
+    (k_t |xi|^2 / 2) of the contacts; each pair appears twice in the full list, hence the factors 1/4.
+    """
+    n = pos.shape[0]
+    e_tr = 0.0
+    e_rot = 0.0
+    contacts = 0
+    e_spring = 0.0
+    px = 0.0
+    py = 0.0
+    pz = 0.0
+    worst = 0.0
+    for i in range(n):
+        m = mass[i]
+        e_tr += 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
+        e_rot += 0.5 * inertia[i] * (omega[i, 0] ** 2 + omega[i, 1] ** 2 + omega[i, 2] ** 2)
+        px += m * vel[i, 0]
+        py += m * vel[i, 1]
+        pz += m * vel[i, 2]
+        ci = 0
+        es = 0.0
+        wi = 0.0
+        for kk in range(nn[i]):
+            j = nbr[i, kk]
+            rx = min_image(pos[i, 0] - pos[j, 0], box, inv_box, half)
+            ry = min_image(pos[i, 1] - pos[j, 1], box, inv_box, half)
+            rz = min_image(pos[i, 2] - pos[j, 2], box, inv_box, half)
+            s = radius[i] + radius[j]
+            d2 = rx * rx + ry * ry + rz * rz
+            if d2 < s * s:
+                ci += 1
+                delta = s - math.sqrt(d2)
+                es += 0.25 * k_t_val * (hist[i, kk, 0] ** 2 + hist[i, kk, 1] ** 2 + hist[i, kk, 2] ** 2)
+                es += 0.25 * k_n_val * delta * delta
+                ov = delta / min(radius[i], radius[j])
+                wi = max(wi, ov)
+        contacts += ci
+        e_spring += es
+        worst = max(worst, wi)
+    return e_tr, e_rot, contacts // 2, e_spring, worst, px, py, pz
+
+
+class CpuBackend:
+    """The CPU time loop; see the module docstring for layout and specialisation."""
+
+    name = "cpu"
+
+    def __init__(self, system: SphereSystem, contact: ContactParams):
+        self.dtype = np.float64 if contact.precision == "float64" else np.float32
+        dt_ = self.dtype
+        n = system.n
+        self.n = n
+        self.box = float(system.box_length)
+        self.pos = np.ascontiguousarray(system.position, dtype=dt_)
+        self.vel = np.ascontiguousarray(system.velocity, dtype=dt_)
+        self.omega = np.ascontiguousarray(system.angular_velocity, dtype=dt_)
+        self.quat = np.ascontiguousarray(system.orientation, dtype=dt_)
+        self.radius = np.ascontiguousarray(system.radius, dtype=dt_)
+        self.mass = np.ascontiguousarray(system.mass, dtype=dt_)
+        self.inertia = np.ascontiguousarray(system.inertia, dtype=dt_)
+        self.inv_m = (1.0 / self.mass).astype(dt_)
+        self.inv_i = (1.0 / self.inertia).astype(dt_)
+        self.force = np.zeros((n, 3), dt_)
+        self.torque = np.zeros((n, 3), dt_)
+        self.x_ref = self.pos.copy()
+        self.device = _cpu_name()
+        self.steps_done = 0
+        self.builds = 0
+        threads = numba.get_num_threads()
+        nch = max(1, min(n, 8 * threads))
+        self.chunk_a = np.zeros(nch, np.float64)
+        self.chunk_b = np.zeros(nch, np.int64)
+        self._setup_cells(float(np.max(system.radius)), contact.skin)
+        self._alloc_lists(8)
+        self.set_contact(contact)
+        self._prime(system)
+
+    # ---- set-up -----------------------------------------------------------------------------------
+
+    def _setup_cells(self, rmax: float, skin: float) -> None:
+        cutoff = 2.0 * rmax + skin
+        nc = max(1, int(self.box / cutoff))
+        # Keep the cell count near N: very dilute scenes would otherwise spend memory and build time
+        # on empty cells (cells may be larger than the cutoff, never smaller).
+        nc = max(1, min(nc, int(round((2.0 * self.n) ** (1.0 / 3.0))) + 1))
+        while nc > 1 and self.box / nc < cutoff:
+            nc -= 1
+        self.nc = nc
+        self.inv_cell = nc / self.box
+        self.cell_start = np.zeros(nc**3 + 1, np.int64)
+        self.cursor = np.zeros(nc**3, np.int64)
+        self.cell_list = np.zeros(self.n, np.int64)
+        self.cell_of = np.zeros(self.n, np.int64)
+
+    def _alloc_lists(self, max_nb: int) -> None:
+        n, dt_ = self.n, self.dtype
+        self.max_nb = max_nb
+        self.nbr = np.zeros((n, max_nb), np.int32)
+        self.nn = np.zeros(n, np.int32)
+        self.hist = np.zeros((n, max_nb, 3), dt_)
+        self.nbr_new = np.zeros_like(self.nbr)
+        self.nn_new = np.zeros_like(self.nn)
+        self.hist_new = np.zeros_like(self.hist)
+
+    def _grow_lists(self, need: int) -> None:
+        old = (self.nbr, self.nn, self.hist)
+        self._alloc_lists(int(math.ceil(max(need, 2 * self.max_nb) / 4.0)) * 4)
+        copy_list(old[0], old[1], old[2], self.nbr, self.nn, self.hist)
+
+    def set_contact(self, contact: ContactParams) -> None:
+        """Switch contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
+        self.contact = contact
+        c = self.dtype
+        self.k_n = c(contact.k_n)
+        self.gn_coef = c(contact.gamma_n_coef)
+        self.k_t = None if contact.k_t is None else c(contact.k_t)
+        self.mu = None if contact.friction is None else c(contact.friction)
+        self.dt = c(contact.dt)
+        self.skin = c(contact.skin)
+        self.half = c(0.5)
+        self.box_c = c(self.box)
+        self.inv_box = c(1.0 / self.box)
+        self.overlap_limit = float(contact.overlap_limit)
+        self._torque_arg = self.torque if contact.rough else None
+        self._quat_arg = self.quat if contact.orientation else None
+
+    def _build(self) -> None:
+        while True:
+            bin_particles(self.pos, self.nc, self.inv_cell, self.cell_start, self.cell_list, self.cell_of,
+                          self.cursor)
+            build_list(self.pos, self.radius, self.skin, self.box_c, self.inv_box, self.half, self.nc,
+                       self.cell_start, self.cell_list, self.cell_of, self.nbr, self.nn, self.hist,
+                       self.nbr_new, self.nn_new, self.hist_new, self.x_ref)
+            need = int(self.nn_new.max()) if self.n else 0
+            if need <= self.max_nb:
+                break
+            self._grow_lists(need)
+        copy_list(self.nbr_new, self.nn_new, self.hist_new, self.nbr, self.nn, self.hist)
+        self.builds += 1
+
+    def _prime(self, system: SphereSystem) -> None:
+        """First list build (restoring checkpointed springs) and forces at t = 0."""
+        self._build()
+        if system.contact_pairs is not None and len(system.contact_pairs):
+            _restore_springs(self.nbr, self.nn, self.hist, np.asarray(system.contact_pairs, np.int64),
+                             np.asarray(system.contact_springs, self.dtype))
+        self._forces()
+
+    def _forces(self) -> None:
+        compute_forces(self.pos, self.vel, self.omega, self.radius, self.inv_m, self.nbr, self.nn, self.hist,
+                       self.force, self._torque_arg, self.box_c, self.inv_box, self.half, self.k_n,
+                       self.gn_coef, self.k_t, self.mu, self.dt, self.chunk_a, self.chunk_b)
+        if self._torque_arg is None:
+            self.torque[:] = 0
+
+    # ---- time loop ---------------------------------------------------------------------------------
+
+    def warmup(self) -> None:
+        """Compile (or load from the disk cache) the time loop for the current contact parameters."""
+        self.advance(0, _compile_only=True)
+
+    def advance(self, nsteps: int, _compile_only: bool = False) -> None:
+        """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
+        left = int(nsteps)
+        while left > 0 or _compile_only:
+            _compile_only = False
+            status, done, who, value, builds = run_steps(
+                left, self.pos, self.vel, self.omega, self._quat_arg, self.force, self._torque_arg,
+                self.inv_m, self.inv_i, self.radius, self.x_ref, self.nbr, self.nn, self.hist,
+                self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell, self.cell_start,
+                self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half, self.dt,
+                self.skin, self.k_n, self.gn_coef, self.k_t, self.mu, self.overlap_limit,
+                self.chunk_a, self.chunk_b)
+            self.builds += builds
+            if status == OK:
+                self.steps_done += done
+                return
+            step = self.steps_done + done
+            if status == OVERFLOW:
+                # finish the interrupted step with a larger list, then continue
+                self._grow_lists(int(value))
+                self._build()
+                self._forces()
+                half_kick(self.vel, self.omega, self.force, self._torque_arg, self.inv_m, self.inv_i,
+                          self.dt * self.half)
+                self.steps_done += done + 1
+                left -= done + 1
+                continue
+            self.steps_done = step
+            raise _instability(status, step, int(who), value, self)
+
+    # ---- host copies (output steps only) -----------------------------------------------------------
+
+    def observe(self) -> dict:
+        k_t = 0.0 if self.k_t is None else float(self.k_t)
+        e_tr, e_rot, contacts, e_spring, worst, px, py, pz = observe_kernel(
+            self.pos, self.vel, self.omega, self.radius, self.mass, self.inertia, self.nbr, self.nn,
+            self.hist, self.box_c, self.inv_box, self.half, float(self.k_n), k_t)
+        return {"kinetic_energy_translational": float(e_tr), "kinetic_energy_rotational": float(e_rot),
+                "contacts": int(contacts), "elastic_energy": float(e_spring), "max_overlap": float(worst),
+                "momentum": (float(px), float(py), float(pz))}
+
+    def state(self) -> dict:
+        """Copies of the state arrays in id order."""
+        return {"position": self.pos.copy(), "velocity": self.vel.copy(),
+                "angular_velocity": self.omega.copy(), "orientation": self.quat.copy()}
+
+    def contacts(self):
+        """(pairs (M,2) int64, springs (M,3)) of the list slots in contact, for checkpoints."""
+        return _collect_springs(self.pos, self.radius, self.nbr, self.nn, self.hist, self.box_c,
+                                self.inv_box, self.half)
+
+
+@numba.njit(cache=True)
+def _collect_springs(pos, radius, nbr, nn, hist, box, inv_box, half):
+    n = pos.shape[0]
+    total = 0
+    for i in range(n):
+        total += nn[i]
+    pairs = np.empty((total, 2), np.int64)
+    springs = np.empty((total, 3), hist.dtype)
+    m = 0
+    for i in range(n):
+        for kk in range(nn[i]):
+            if hist[i, kk, 0] != 0 or hist[i, kk, 1] != 0 or hist[i, kk, 2] != 0:
+                pairs[m, 0] = i
+                pairs[m, 1] = nbr[i, kk]
+                springs[m, 0] = hist[i, kk, 0]
+                springs[m, 1] = hist[i, kk, 1]
+                springs[m, 2] = hist[i, kk, 2]
+                m += 1
+    return pairs[:m].copy(), springs[:m].copy()
+
+
+@numba.njit(cache=True)
+def _restore_springs(nbr, nn, hist, pairs, springs):
+    for p in range(pairs.shape[0]):
+        i = pairs[p, 0]
+        for kk in range(nn[i]):
+            if nbr[i, kk] == pairs[p, 1]:
+                hist[i, kk, 0] = springs[p, 0]
+                hist[i, kk, 1] = springs[p, 1]
+                hist[i, kk, 2] = springs[p, 2]
+                break
+
+
+def _instability(status: int, step: int, who: int, value: float, backend) -> InstabilityError:
+    if status == BAD_VALUE:
+        msg = (f"non-finite position or velocity of particle {who} at step {step}: the run blew up; "
+               f"likely cause: a time step too large for the contact (dt = {float(backend.dt):.3g} s) "
+               f"or overlapping particles at the start")
+    else:
+        msg = (f"overlap of {value:.3g} radii at particle {who} at step {step} exceeds the limit "
+               f"{backend.overlap_limit:g}: likely cause: impact speeds too high for the stiffness "
+               f"(lower velocity_rms or raise stiffness) or a time step too large (dt = {float(backend.dt):.3g} s)")
+    return InstabilityError(msg, step=step, particle=who)
+
+
+def _cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return f"{line.split(':', 1)[1].strip()} x{numba.get_num_threads()} threads"
+    except OSError:
+        pass
+    import platform
+
+    return f"{platform.processor() or 'cpu'} x{numba.get_num_threads()} threads"

@@ -1,0 +1,107 @@
+"""Engine commands of the `demq` CLI: `demq run`, `demq validate`, `demq bench`.
+
+The console script itself lives in service/cli.py (it also offers the queue commands); it calls
+:func:`register` so the engine stays importable and runnable without jobs/ or service/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run one spec locally and write an HDF5 result")
+    p.add_argument("spec", nargs="?", default=None,
+                   help="spec JSON file ('-' = stdin); omitted = the default spec (paper 001 setup)")
+    p.add_argument("-o", "--output", default="demq-run.h5", help="output HDF5 path")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a spec key (JSON value), e.g. --set n_particles=512")
+    p.add_argument("--backend", choices=["auto", "cpu", "cuda"], default=None)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_run)
+
+    v = sub.add_parser("validate", help="physics validation runs that write a report")
+    v.add_argument("case", choices=["hcs-spheres"], help="which validation to run")
+    v.add_argument("-o", "--out-dir", default="reports/hcs-spheres")
+    v.add_argument("--seeds", type=int, default=4)
+    v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
+    v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
+    v.set_defaults(func=cmd_validate)
+
+
+def _spec_from_args(args):
+    from engine.spec import SimulationSpec
+
+    data = {}
+    if args.spec == "-":
+        data = json.load(sys.stdin)
+    elif args.spec:
+        with open(args.spec) as fh:
+            data = json.load(fh)
+    for item in args.set:
+        key, _, raw = item.partition("=")
+        try:
+            data[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            data[key] = raw
+    if getattr(args, "backend", None):
+        data["backend"] = args.backend
+    return SimulationSpec.model_validate(data)
+
+
+class ProgressBar:
+    """One-line progress bar on stderr: fraction of the run, ETA, particle-steps per second."""
+
+    def __init__(self, stream=sys.stderr, width: int = 30):
+        self.stream, self.width, self.last = stream, width, 0.0
+
+    def __call__(self, pr) -> None:
+        now = time.monotonic()
+        if now - self.last < 0.2 and pr.fraction < 1.0:
+            return
+        self.last = now
+        filled = int(self.width * pr.fraction)
+        bar = "#" * filled + "-" * (self.width - filled)
+        self.stream.write(f"\r[{bar}] {100 * pr.fraction:5.1f}% {pr.phase:<14s} t={pr.time:.4g}s "
+                          f"ETA {pr.eta_s:6.1f}s  {pr.cundall:.3g} particle-steps/s ")
+        self.stream.flush()
+
+    def close(self) -> None:
+        self.stream.write("\n")
+
+
+def cmd_run(args) -> int:
+    from pydantic import ValidationError
+
+    from engine.errors import EngineError
+    from engine.simulate import run
+
+    try:
+        spec = _spec_from_args(args)
+    except ValidationError as exc:
+        for err in exc.errors():
+            loc = ".".join(str(x) for x in err["loc"]) or "spec"
+            print(f"invalid spec: {loc}: {err['msg']}", file=sys.stderr)
+        return 2
+    bar = None if args.quiet else ProgressBar()
+    try:
+        s = run(spec, args.output, progress=bar)
+    except EngineError as exc:
+        if bar:
+            bar.close()
+        print(f"run failed: {exc}", file=sys.stderr)
+        return 1
+    if bar:
+        bar.close()
+    print(f"wrote {s.output}: N={s.n_particles} steps={s.steps} backend={s.backend} ({s.device}) "
+          f"wall={s.wall_s:.2f}s Cundall={s.cundall:.3g} particle-steps/s")
+    return 0
+
+
+def cmd_validate(args) -> int:
+    from engine.validation import hcs_spheres
+
+    return hcs_spheres.main(out_dir=args.out_dir, seeds=args.seeds, quick=args.quick, backend=args.backend)

@@ -1,0 +1,205 @@
+"""HDF5 result files in the H5MD 1.1 layout (nongnu.org/h5md), with a declared `dem` module.
+
+Layout (DESIGN §4)::
+
+    /h5md                      version=[1,1]; author/@name; creator/@name,@version; modules/dem/@version
+    /particles/all/box         @dimension=3, @boundary=[periodic]*3, edges=[L,L,L]
+    /particles/all/<element>   {step, time, value[T][N][D]} for position, velocity, orientation,
+                               angular_velocity (resizable, one frame per chunk)
+    /particles/all/id, species, mass, radius | semi_axes       fixed per-particle data
+    /observables/<name>        {step, time, value[T]} scalar time series
+    /parameters                @spec (JSON), derived parameters, engine version, backend, device,
+                               wall time, Cundall number
+
+The `dem` module: quaternions are scalar-first (w, x, y, z) and rotate body into space frame;
+angular velocity is given in the space frame; spheres carry `radius`, spheroids `semi_axes` (a, b, c)
+with a along the body x axis.
+
+The writer works on ``<path>.part`` and renames it to ``<path>`` only in :meth:`H5MDWriter.finish`:
+a reader never sees a half-written result. Non-finite values are refused before they are written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from engine.errors import InstabilityError
+
+UNITS = {
+    "position": "m", "velocity": "m s-1", "orientation": "", "angular_velocity": "s-1",
+    "kinetic_energy_translational": "J", "kinetic_energy_rotational": "J",
+    "temperature_translational": "J", "temperature_rotational": "J", "contacts": "",
+    "elastic_energy": "J", "max_overlap": "", "momentum": "kg m s-1",
+}
+SNAPSHOT_ELEMENTS = ("position", "velocity", "orientation", "angular_velocity")
+DEM_MODULE_VERSION = [1, 0]
+
+
+def partial_path(path) -> Path:
+    return Path(str(path) + ".part")
+
+
+class H5MDWriter:
+    """Appends observables and snapshots to ``<path>.part``; :meth:`finish` renames it to ``path``."""
+
+    def __init__(self, path, *, n: int, box_length: float, spec_json: str, derived: dict,
+                 radius=None, semi_axes=None, mass=None, creator_version: str = "",
+                 author: str = "demq", dtype=np.float64, resume: bool = False):
+        self.path = Path(path)
+        self.tmp = partial_path(self.path)
+        self.n = n
+        self.dtype = np.dtype(dtype)
+        if resume:
+            self.f = h5py.File(self.tmp, "a")
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.f = f = h5py.File(self.tmp, "w")
+        h5 = f.create_group("h5md")
+        h5.attrs["version"] = np.array([1, 1], dtype=np.int32)
+        h5.create_group("author").attrs["name"] = author
+        cr = h5.create_group("creator")
+        cr.attrs["name"] = "demq"
+        cr.attrs["version"] = creator_version
+        dem = h5.create_group("modules").create_group("dem")
+        dem.attrs["version"] = np.array(DEM_MODULE_VERSION, dtype=np.int32)
+        dem.attrs["quaternion_order"] = "wxyz"
+        dem.attrs["quaternion_convention"] = "body-to-space, scalar first"
+        dem.attrs["angular_velocity_frame"] = "space"
+        dem.attrs["shape_data"] = "radius" if semi_axes is None else "semi_axes"
+        part = f.create_group("particles").create_group("all")
+        box = part.create_group("box")
+        box.attrs["dimension"] = 3
+        box.attrs["boundary"] = np.array([b"periodic"] * 3)
+        edges = box.create_dataset("edges", data=np.full(3, box_length, dtype=np.float64))
+        edges.attrs["unit"] = "m"
+        part.create_dataset("id", data=np.arange(n, dtype=np.int64))
+        part.create_dataset("species", data=np.zeros(n, dtype=np.int32))
+        if mass is not None:
+            part.create_dataset("mass", data=np.asarray(mass, dtype=np.float64)).attrs["unit"] = "kg"
+        if semi_axes is not None:
+            part.create_dataset("semi_axes", data=np.asarray(semi_axes, dtype=np.float64)).attrs["unit"] = "m"
+        elif radius is not None:
+            part.create_dataset("radius", data=np.asarray(radius, dtype=np.float64)).attrs["unit"] = "m"
+        f.create_group("observables")
+        par = f.create_group("parameters")
+        par.attrs["spec"] = spec_json
+        for key, value in derived.items():
+            par.attrs[key] = _attr(value)
+
+    # ---- appending ---------------------------------------------------------------------------------
+
+    def _series(self, group: h5py.Group, name: str, shape_tail: tuple, dtype) -> h5py.Group:
+        if name in group:
+            return group[name]
+        g = group.create_group(name)
+        g.create_dataset("step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,))
+        t = g.create_dataset("time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,))
+        t.attrs["unit"] = "s"
+        chunks = (1,) + shape_tail if shape_tail else (1024,)
+        v = g.create_dataset("value", shape=(0,) + shape_tail, maxshape=(None,) + shape_tail,
+                             dtype=dtype, chunks=chunks)
+        unit = UNITS.get(name, "")
+        if unit:
+            v.attrs["unit"] = unit
+        return g
+
+    @staticmethod
+    def _append(g: h5py.Group, step: int, time: float, value) -> None:
+        k = g["step"].shape[0]
+        for key in ("step", "time", "value"):
+            g[key].resize(k + 1, axis=0)
+        g["step"][k] = step
+        g["time"][k] = time
+        g["value"][k] = value
+
+    def observables(self, step: int, time: float, values: dict) -> None:
+        """Append one record of scalar (or small vector) observables."""
+        obs = self.f["observables"]
+        for name, value in values.items():
+            arr = np.asarray(value)
+            if not np.all(np.isfinite(arr)):
+                raise InstabilityError(f"observable {name} is not finite at step {step} (t = {time:g} s): "
+                                       f"the run blew up; nothing non-finite is written", step=step)
+            dtype = np.int64 if arr.dtype.kind in "iu" else np.float64
+            self._append(self._series(obs, name, arr.shape, dtype), step, time, arr)
+
+    def snapshot(self, step: int, time: float, arrays: dict) -> None:
+        """Append one frame of the per-particle elements (arrays in id order)."""
+        part = self.f["particles/all"]
+        for name in SNAPSHOT_ELEMENTS:
+            if name not in arrays:
+                continue
+            a = np.asarray(arrays[name])
+            if not np.all(np.isfinite(a)):
+                raise InstabilityError(f"{name} is not finite at step {step} (t = {time:g} s): the run "
+                                       f"blew up; nothing non-finite is written", step=step)
+            self._append(self._series(part, name, a.shape, self.dtype), step, time, a)
+
+    def frame_counts(self) -> dict:
+        """Number of records of every time series (for checkpoints)."""
+        out = {}
+        for root in ("observables", "particles/all"):
+            for name, g in self.f[root].items():
+                if isinstance(g, h5py.Group) and "step" in g:
+                    out[f"{root}/{name}"] = int(g["step"].shape[0])
+        return out
+
+    def truncate(self, counts: dict) -> None:
+        """Cut every time series back to the given record counts (resume from a checkpoint)."""
+        for key, k in counts.items():
+            if key in self.f:
+                for ds in ("step", "time", "value"):
+                    self.f[key][ds].resize(k, axis=0)
+
+    def flush(self) -> None:
+        self.f.flush()
+
+    # ---- closing -----------------------------------------------------------------------------------
+
+    def finish(self, run_info: dict) -> Path:
+        """Write the run attributes, close, and atomically rename the file to its final name."""
+        par = self.f["parameters"]
+        for key, value in run_info.items():
+            par.attrs[key] = _attr(value)
+        self.f.close()
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Close and delete the partial file."""
+        try:
+            self.f.close()
+        finally:
+            if self.tmp.exists():
+                self.tmp.unlink()
+
+
+def _attr(value):
+    if value is None:
+        return "null"
+    if isinstance(value, (dict, list)) and not (isinstance(value, list) and value and
+                                                 all(isinstance(x, (int, float)) for x in value)):
+        return json.dumps(value)
+    if isinstance(value, tuple):
+        return np.asarray(value, dtype=np.float64)
+    return value
+
+
+def read_series(path, name: str) -> dict:
+    """{step, time, value} arrays of one observable of a result file."""
+    with h5py.File(path, "r") as f:
+        g = f["observables"][name]
+        return {"step": g["step"][()], "time": g["time"][()], "value": g["value"][()]}
+
+
+def read_parameters(path) -> dict:
+    """The /parameters attributes, with `spec` parsed from JSON."""
+    with h5py.File(path, "r") as f:
+        out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f["parameters"].attrs.items()}
+    out["spec"] = json.loads(out["spec"])
+    return out

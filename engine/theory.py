@@ -1,0 +1,95 @@
+"""Mean-field references for homogeneous cooling (paper 001 Eqs. 1-2; paper 003 Eqs. 27-29).
+
+Temperatures are per degree of freedom in J (k_B = 1): T = 2 E_tr/(3N), R = 2 E_rot/(3N) for spheres.
+Luding, Huthmann, McNamara & Zippelius, PRE 58, 3416 (1998), as quoted by paper 001:
+
+    dT/dtau = -A T^(3/2) + B T^(1/2) R,      dR/dtau = B T^(3/2) - C T^(1/2) R,
+    A = (1 - e_n^2)/4 + eta (1 - eta),  B = eta^2/q,  C = (eta/q)(1 - eta/q),  eta = q (1 + e_t)/(2q + 2),
+    tau = (2/3) G T(0)^(1/2) t,  G = 8 (2a)^2 (N/V) sqrt(pi/m) g(2a)  (Carnahan-Starling g).
+
+with T and R normalised by T(0). The equations were checked against an independent derivation and
+the LSODA values of PHYSICS-NOTES §2.2 (tests/engine/test_theory.py).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from engine.params import Q_SPHERE, carnahan_starling_g
+
+
+def luding_coefficients(e_n: float, e_t: float, q: float = Q_SPHERE) -> tuple[float, float, float]:
+    """(A, B, C) of paper 001 Eqs. 1-2."""
+    eta = q * (1.0 + e_t) / (2.0 * q + 2.0)
+    a = (1.0 - e_n**2) / 4.0 + eta * (1.0 - eta)
+    b = eta**2 / q
+    c = (eta / q) * (1.0 - eta / q)
+    return a, b, c
+
+
+def r_infinity(e_n: float, e_t: float, q: float = Q_SPHERE) -> float:
+    """Asymptotic R/T of the homogeneous cooling state, h + sqrt(1 + h^2), h = (A - C)/(2B)."""
+    a, b, c = luding_coefficients(e_n, e_t, q)
+    if b == 0.0:
+        return math.inf
+    h = (a - c) / (2.0 * b)
+    return h + math.sqrt(1.0 + h * h)
+
+
+def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q: float = Q_SPHERE):
+    """T(tau)/T(0) and R(tau)/T(0) solving paper 001 Eqs. 1-2 (LSODA, rtol 1e-10).
+
+    tau: increasing array of scaled times starting anywhere >= 0; returns two arrays like tau.
+    """
+    from scipy.integrate import solve_ivp
+
+    tau = np.asarray(tau, dtype=float)
+    a, b, c = luding_coefficients(e_n, e_t, q)
+
+    def rhs(_, y):
+        t, r = max(y[0], 0.0), y[1]
+        st = math.sqrt(t)
+        return [-a * t * st + b * st * r, b * t * st - c * st * r]
+
+    if tau.size == 0:
+        return tau.copy(), tau.copy()
+    span = (0.0, float(max(tau.max(), 0.0)))
+    if span[1] == 0.0:
+        return np.full_like(tau, t0), np.full_like(tau, r0)
+    sol = solve_ivp(rhs, span, [t0, r0], method="LSODA", t_eval=np.clip(tau, 0.0, None),
+                    rtol=1e-10, atol=1e-13)
+    return sol.y[0], sol.y[1]
+
+
+def collision_g(radius: float, number_density: float, mass: float, volume_fraction: float) -> float:
+    """G = 8 (2a)^2 n sqrt(pi/m) g(2a) in s^-1 J^-1/2 (paper 001)."""
+    return 8.0 * (2.0 * radius) ** 2 * number_density * math.sqrt(math.pi / mass) * \
+        carnahan_starling_g(volume_fraction)
+
+
+def tau_factor(radius: float, number_density: float, mass: float, volume_fraction: float,
+               temperature0: float) -> float:
+    """d tau / d t = (2/3) G T(0)^(1/2) in 1/s (paper 001)."""
+    return 2.0 / 3.0 * collision_g(radius, number_density, mass, volume_fraction) * math.sqrt(temperature0)
+
+
+def tau_factor_for(spec) -> float:
+    """tau = tau_factor_for(spec) * t for a sphere spec at its starting temperature."""
+    from engine.params import derive
+
+    p = derive(spec)
+    return tau_factor(p.radius, p.number_density, p.mass, spec.volume_fraction, p.temperature0)
+
+
+def haff(t, t0_inverse: float):
+    """Haff's law T(t)/T(0) = (1 + t/t0)^-2 (paper 003 Eq. 27 with 1/t0 = t0_inverse)."""
+    return (1.0 + np.asarray(t, dtype=float) * t0_inverse) ** -2
+
+
+def haff_rate_smooth_spheres(e_n: float, radius: float, number_density: float, mass: float,
+                             volume_fraction: float, temperature0: float) -> float:
+    """1/t0 = (2/3)(1 - e^2)(2a)^2 n g sqrt(pi T0/m) for smooth spheres (PHYSICS-NOTES §2.3)."""
+    return 2.0 / 3.0 * (1.0 - e_n**2) * (2.0 * radius) ** 2 * number_density * \
+        carnahan_starling_g(volume_fraction) * math.sqrt(math.pi * temperature0 / mass)
