@@ -1,0 +1,54 @@
+"""The job table: one SQL schema (SQLAlchemy Core) shared by the SQLite and PostgreSQL stores.
+
+Times are UNIX seconds (float) taken from the clock of the process that writes them; workers on
+several hosts therefore need synchronised clocks (NTP) for leases to mean the same everywhere.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import Boolean, Column, Float, Index, Integer, MetaData, String, Table, Text
+
+#: Job states. ``queued`` and ``running`` are live; the other three are final.
+QUEUED, RUNNING, DONE, FAILED, CANCELLED = "queued", "running", "done", "failed", "cancelled"
+STATES = (QUEUED, RUNNING, DONE, FAILED, CANCELLED)
+FINAL_STATES = (DONE, FAILED, CANCELLED)
+
+
+def job_table(metadata: MetaData, prefix: str = "") -> Table:
+    """Define ``<prefix>jobs`` on ``metadata``."""
+    name = f"{prefix}jobs"
+    return Table(
+        name, metadata,
+        Column("seq", Integer, primary_key=True, autoincrement=True),   # FIFO order within a priority
+        Column("id", String(32), nullable=False, unique=True),
+        Column("state", String(16), nullable=False),
+        Column("spec", Text, nullable=False),               # canonical JSON of the validated spec
+        Column("batch_id", String(32)),
+        Column("priority", Integer, nullable=False, default=0),
+        # progress, written by the worker (rate-limited)
+        Column("progress", Float, nullable=False, default=0.0),
+        Column("phase", String(32)),
+        Column("step", Integer),
+        Column("sim_time", Float),
+        Column("eta_s", Float),
+        # timings and result
+        Column("created_at", Float, nullable=False),
+        Column("started_at", Float),                        # first claim
+        Column("finished_at", Float),
+        Column("wall_s", Float),                            # engine time loop of the successful attempt
+        Column("cundall", Float),                           # particle-steps per wall second
+        Column("backend", String(32)),
+        Column("device", String(200)),
+        Column("resumed_from_step", Integer),
+        Column("error", Text),
+        Column("result_path", Text),
+        # lease
+        Column("attempts", Integer, nullable=False, default=0),
+        Column("max_attempts", Integer, nullable=False),
+        Column("lease_owner", String(200)),
+        Column("lease_expires_at", Float),
+        Column("heartbeat_at", Float),
+        Column("cancel_requested", Boolean, nullable=False, default=False),
+        Index(f"ix_{name}_claim", "state", "priority", "seq"),
+        Index(f"ix_{name}_batch", "batch_id"),
+    )

@@ -1,0 +1,153 @@
+"""All configuration of the queue, the worker, the HTTP service and the client, in one place.
+
+Every setting is read from an environment variable with the ``DEMQ_`` prefix; command-line flags
+override the environment (``Settings.from_env(**overrides)``, where ``None`` means "not given").
+
+=============================  ==================================  =================================================
+Variable                       Default                             Meaning
+=============================  ==================================  =================================================
+DEMQ_DATA_DIR                  ``./demq-data``                     Data directory: ``results/<job_id>.h5``,
+                                                                   ``checkpoints/<job_id>/`` and the SQLite file.
+DEMQ_DATABASE_URL              ``sqlite:///<data_dir>/demq.sqlite3``  Job table: ``sqlite:///PATH`` (embedded, WAL) or
+                                                                   ``postgresql://user@host:port/db`` (several workers).
+DEMQ_TABLE_PREFIX              (empty)                             Prefix of the table name (``<prefix>jobs``), so
+                                                                   several queues can share one database.
+DEMQ_TOKEN                     (unset: auth off)                   Bearer token required on every route but /healthz.
+DEMQ_MAX_PARTICLE_STEPS        ``1e12``                            Refuse (422) a spec whose N x steps exceeds this.
+DEMQ_MAX_MEMORY_BYTES          ``68719476736`` (64 GiB)            Refuse (422) a spec whose estimated memory exceeds this.
+DEMQ_MAX_BODY_BYTES            ``1048576`` (1 MiB)                 Refuse (413) request bodies larger than this.
+DEMQ_MAX_BATCH_JOBS            ``1000``                            Refuse (422) a batch that expands to more jobs.
+DEMQ_MAX_ATTEMPTS              ``3``                               Claims of a job before a lost lease fails it.
+DEMQ_LEASE_SECONDS             ``60``                              Lease of a claimed job; an unrenewed lease expires
+                                                                   and the reaper returns the job to the queue.
+DEMQ_HEARTBEAT_SECONDS         ``10``                              Interval of lease renewals (must be < lease).
+DEMQ_POLL_SECONDS              ``1.0``                             Idle worker: wait between claim attempts.
+DEMQ_PROGRESS_SECONDS          ``1.0``                             Least interval between progress writes to the row.
+DEMQ_CANCEL_GRACE_SECONDS      ``10``                              Time a simulation gets to stop on cancel/shutdown
+                                                                   before the worker kills its process.
+DEMQ_CHECKPOINT_INTERVAL       ``60``                              Wall seconds between engine checkpoints.
+DEMQ_ENGINE_RUN                ``engine.simulate:run``             ``module:function`` the simulation process calls
+                                                                   (same signature as engine.simulate.run); tests and
+                                                                   the load bench point it at a fake engine.
+DEMQ_HOST / DEMQ_PORT          ``127.0.0.1`` / ``8000``            Where ``demq serve`` listens.
+DEMQ_URL                       ``http://127.0.0.1:8000``           Service that ``demq submit/status/fetch`` talk to.
+DEMQ_WORKER_ID                 ``<hostname>:<pid>:<random>``       Lease owner name of a worker.
+=============================  ==================================  =================================================
+
+Test hook (not a setting): ``DEMQ_TEST_CRASH=<seed>`` makes the simulation process of a job whose
+spec has that seed kill itself with SIGSEGV at its first progress report (see jobs/runner.py).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import uuid
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Optional
+
+_ENV = {
+    "data_dir": "DEMQ_DATA_DIR",
+    "database_url": "DEMQ_DATABASE_URL",
+    "table_prefix": "DEMQ_TABLE_PREFIX",
+    "token": "DEMQ_TOKEN",
+    "max_particle_steps": "DEMQ_MAX_PARTICLE_STEPS",
+    "max_memory_bytes": "DEMQ_MAX_MEMORY_BYTES",
+    "max_body_bytes": "DEMQ_MAX_BODY_BYTES",
+    "max_batch_jobs": "DEMQ_MAX_BATCH_JOBS",
+    "max_attempts": "DEMQ_MAX_ATTEMPTS",
+    "lease_s": "DEMQ_LEASE_SECONDS",
+    "heartbeat_s": "DEMQ_HEARTBEAT_SECONDS",
+    "poll_s": "DEMQ_POLL_SECONDS",
+    "progress_s": "DEMQ_PROGRESS_SECONDS",
+    "cancel_grace_s": "DEMQ_CANCEL_GRACE_SECONDS",
+    "checkpoint_interval": "DEMQ_CHECKPOINT_INTERVAL",
+    "engine_run": "DEMQ_ENGINE_RUN",
+    "host": "DEMQ_HOST",
+    "port": "DEMQ_PORT",
+    "url": "DEMQ_URL",
+    "worker_id": "DEMQ_WORKER_ID",
+}
+
+
+def _default_worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Resolved configuration; see the module docstring for the environment variables."""
+
+    data_dir: Path = Path("demq-data")
+    database_url: Optional[str] = None
+    table_prefix: str = ""
+    token: Optional[str] = None
+    max_particle_steps: float = 1.0e12
+    max_memory_bytes: int = 64 * 2**30
+    max_body_bytes: int = 2**20
+    max_batch_jobs: int = 1000
+    max_attempts: int = 3
+    lease_s: float = 60.0
+    heartbeat_s: float = 10.0
+    poll_s: float = 1.0
+    progress_s: float = 1.0
+    cancel_grace_s: float = 10.0
+    checkpoint_interval: float = 60.0
+    engine_run: str = "engine.simulate:run"
+    host: str = "127.0.0.1"
+    port: int = 8000
+    url: str = "http://127.0.0.1:8000"
+    worker_id: str = ""
+
+    @classmethod
+    def from_env(cls, environ=None, **overrides) -> "Settings":
+        """Defaults, then ``DEMQ_*`` variables, then the non-None ``overrides`` (command-line flags)."""
+        env = os.environ if environ is None else environ
+        values = {}
+        for f in fields(cls):
+            raw = env.get(_ENV[f.name])
+            if raw is not None and raw != "":
+                try:
+                    values[f.name] = _convert(f.default, raw)
+                except ValueError:
+                    raise ValueError(f"{_ENV[f.name]}={raw!r} is not a valid {type(f.default).__name__}") from None
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        s = cls(**values)
+        return s.resolved()
+
+    def resolved(self) -> "Settings":
+        """Fill the derived defaults (database URL in the data directory, worker id) and check."""
+        data_dir = Path(self.data_dir).expanduser().absolute()
+        url = self.database_url or f"sqlite:///{data_dir / 'demq.sqlite3'}"
+        s = replace(self, data_dir=data_dir, database_url=url, worker_id=self.worker_id or _default_worker_id(),
+                    token=self.token or None)
+        if not 0 < s.heartbeat_s < s.lease_s:
+            raise ValueError(f"heartbeat ({s.heartbeat_s} s) must be positive and shorter than the lease ({s.lease_s} s)")
+        if s.max_attempts < 1:
+            raise ValueError(f"max_attempts = {s.max_attempts} must be >= 1")
+        return s
+
+    @property
+    def results_dir(self) -> Path:
+        return self.data_dir / "results"
+
+    @property
+    def checkpoints_dir(self) -> Path:
+        return self.data_dir / "checkpoints"
+
+    def result_path(self, job_id: str) -> Path:
+        return self.results_dir / f"{job_id}.h5"
+
+    def checkpoint_dir(self, job_id: str) -> Path:
+        return self.checkpoints_dir / job_id
+
+
+def _convert(default, raw: str):
+    if isinstance(default, int):
+        return int(float(raw))
+    if isinstance(default, float):
+        return float(raw)
+    if isinstance(default, Path):
+        return Path(raw)
+    return raw

@@ -1,0 +1,183 @@
+"""The body of both stores: SQLAlchemy Core statements on the one job table.
+
+Subclasses supply the engine (connection set-up) and :meth:`SqlJobStore._lock_next`, the only
+dialect-specific piece of the claim.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from contextlib import contextmanager
+from typing import Any, Iterator, Optional, Sequence
+
+from sqlalchemy import Connection, Engine, MetaData, String, Select, case, cast, func, literal, select, text, update
+
+from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING, job_table
+from jobs.store import Job, JobStore, LeaseLost, NewJob
+
+#: Columns a heartbeat may write as progress.
+PROGRESS_COLUMNS = ("progress", "phase", "step", "sim_time", "eta_s", "cundall")
+#: Columns a worker may set when it finishes a job.
+FINISH_COLUMNS = ("error", "result_path", "wall_s", "cundall", "backend", "device", "resumed_from_step",
+                  "progress", "phase", "step", "sim_time", "eta_s")
+
+
+class SqlJobStore(JobStore):
+    """A :class:`JobStore` on a SQLAlchemy engine."""
+
+    def __init__(self, engine: Engine, table_prefix: str = ""):
+        self.engine = engine
+        self.metadata = MetaData()
+        self.table = job_table(self.metadata, table_prefix)
+
+    # ---- transactions (SQLite overrides _write to take the write lock up front) ---------------------
+    @contextmanager
+    def _write(self) -> Iterator[Connection]:
+        with self.engine.begin() as conn:
+            yield conn
+
+    @contextmanager
+    def _read(self) -> Iterator[Connection]:
+        with self.engine.connect() as conn:
+            yield conn
+
+    def _lock_next(self, query: Select) -> Select:
+        """Make the 'next queued job' subquery safe against concurrent claimers."""
+        return query
+
+    # ---- schema and health ------------------------------------------------------------------------
+    def create_tables(self) -> None:
+        with self._write() as conn:
+            self.metadata.create_all(conn, checkfirst=True)
+
+    def drop_tables(self) -> None:
+        with self._write() as conn:
+            self.metadata.drop_all(conn, checkfirst=True)
+
+    def ping(self) -> None:
+        with self._read() as conn:
+            conn.execute(text("SELECT 1"))
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    # ---- submitting and reading -------------------------------------------------------------------
+    def submit(self, jobs: Sequence[NewJob], batch_id: Optional[str] = None,
+               max_attempts: int = 3) -> list[Job]:
+        if not jobs:
+            return []
+        t, now = self.table, time.time()
+        rows = [dict(id=uuid.uuid4().hex, state=QUEUED, spec=j.spec_json, batch_id=batch_id,
+                     priority=j.priority, progress=0.0, created_at=now, attempts=0,
+                     max_attempts=max_attempts, cancel_requested=False) for j in jobs]
+        with self._write() as conn:
+            conn.execute(t.insert(), rows)
+            ids = [r["id"] for r in rows]
+            found = conn.execute(select(t).where(t.c.id.in_(ids)).order_by(t.c.seq)).all()
+        return [Job.from_row(r) for r in found]
+
+    def get(self, job_id: str) -> Optional[Job]:
+        with self._read() as conn:
+            row = conn.execute(select(self.table).where(self.table.c.id == job_id)).first()
+        return Job.from_row(row) if row is not None else None
+
+    def list(self, state: Optional[str] = None, batch_id: Optional[str] = None,
+             limit: int = 50, offset: int = 0) -> tuple[list[Job], int]:
+        t = self.table
+        where = []
+        if state is not None:
+            where.append(t.c.state == state)
+        if batch_id is not None:
+            where.append(t.c.batch_id == batch_id)
+        with self._read() as conn:
+            total = conn.execute(select(func.count()).select_from(t).where(*where)).scalar_one()
+            rows = conn.execute(select(t).where(*where).order_by(t.c.seq).limit(limit).offset(offset)).all()
+        return [Job.from_row(r) for r in rows], total
+
+    def counts(self) -> dict[str, int]:
+        t = self.table
+        with self._read() as conn:
+            rows = conn.execute(select(t.c.state, func.count()).group_by(t.c.state)).all()
+        return {state: n for state, n in rows}
+
+    def request_cancel(self, job_id: str) -> Optional[Job]:
+        t, now = self.table, time.time()
+        with self._write() as conn:
+            conn.execute(update(t).where(t.c.id == job_id, t.c.state == QUEUED)
+                         .values(state=CANCELLED, cancel_requested=True, finished_at=now))
+            conn.execute(update(t).where(t.c.id == job_id, t.c.state == RUNNING).values(cancel_requested=True))
+            row = conn.execute(select(t).where(t.c.id == job_id)).first()
+        return Job.from_row(row) if row is not None else None
+
+    # ---- the worker side --------------------------------------------------------------------------
+    def claim(self, owner: str, lease_s: float, job_id: Optional[str] = None) -> Optional[Job]:
+        t, now = self.table, time.time()
+        if job_id is None:
+            nxt = select(t.c.seq).where(t.c.state == QUEUED).order_by(t.c.priority.desc(), t.c.seq).limit(1)
+            target = t.c.seq == self._lock_next(nxt).scalar_subquery()
+        else:
+            target = t.c.id == job_id
+        stmt = (update(t).where(target, t.c.state == QUEUED)
+                .values(state=RUNNING, lease_owner=owner, lease_expires_at=now + lease_s, heartbeat_at=now,
+                        attempts=t.c.attempts + 1, started_at=func.coalesce(t.c.started_at, now))
+                .returning(*t.c))
+        with self._write() as conn:
+            row = conn.execute(stmt).first()
+        return Job.from_row(row) if row is not None else None
+
+    def heartbeat(self, job_id: str, owner: str, lease_s: float,
+                  progress: Optional[dict[str, Any]] = None) -> bool:
+        t, now = self.table, time.time()
+        values: dict[str, Any] = dict(lease_expires_at=now + lease_s, heartbeat_at=now)
+        values.update({k: v for k, v in (progress or {}).items() if k in PROGRESS_COLUMNS})
+        stmt = (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
+                .values(**values).returning(t.c.cancel_requested))
+        with self._write() as conn:
+            row = conn.execute(stmt).first()
+        if row is None:
+            raise LeaseLost(f"job {job_id} is no longer leased to {owner}")
+        return bool(row[0])
+
+    def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
+        if state not in (DONE, FAILED, CANCELLED):
+            raise ValueError(f"finish() needs a final state, got {state!r}")
+        unknown = set(fields) - set(FINISH_COLUMNS)
+        if unknown:
+            raise ValueError(f"finish() cannot set {sorted(unknown)}")
+        t = self.table
+        stmt = (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
+                .values(state=state, finished_at=time.time(), lease_owner=None, lease_expires_at=None, **fields))
+        with self._write() as conn:
+            return conn.execute(stmt).rowcount == 1
+
+    def release(self, job_id: str, owner: str) -> bool:
+        t = self.table
+        stmt = (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
+                .values(state=case((t.c.cancel_requested, CANCELLED), else_=QUEUED),
+                        finished_at=case((t.c.cancel_requested, time.time()), else_=None),
+                        attempts=t.c.attempts - 1, lease_owner=None, lease_expires_at=None))
+        with self._write() as conn:
+            return conn.execute(stmt).rowcount == 1
+
+    def reap_expired(self, now: Optional[float] = None) -> tuple[list[str], list[str]]:
+        t = self.table
+        now = time.time() if now is None else now
+        expired = (t.c.state == RUNNING, t.c.lease_expires_at < now)
+        cleared = dict(lease_owner=None, lease_expires_at=None)
+        attempts = cast(t.c.attempts, String) + literal(" of ") + cast(t.c.max_attempts, String)
+        with self._write() as conn:
+            conn.execute(update(t).where(*expired, t.c.cancel_requested)
+                         .values(state=CANCELLED, finished_at=now, **cleared))
+            requeued = conn.execute(
+                update(t).where(*expired, t.c.attempts < t.c.max_attempts)
+                .values(state=QUEUED, error=literal("its worker was lost (lease expired) on attempt ") + attempts
+                        + literal("; requeued"), **cleared)
+                .returning(t.c.id)).scalars().all()
+            failed = conn.execute(
+                update(t).where(*expired, t.c.attempts >= t.c.max_attempts)
+                .values(state=FAILED, finished_at=now,
+                        error=literal("its worker was lost (lease expired) on every attempt, ") + attempts
+                        + literal(": the simulation may be killing its worker (out of memory?)"), **cleared)
+                .returning(t.c.id)).scalars().all()
+        return list(requeued), list(failed)

@@ -1,0 +1,158 @@
+"""The store interface: everything the API and the workers do to the job table.
+
+Two implementations share one SQL schema (jobs/schema.py) and one SQLAlchemy-Core body
+(jobs/sql_store.py) and differ only where the databases do: the claim.
+
+- :class:`jobs.sqlite_store.SQLiteJobStore` — embedded default, WAL, claims inside ``BEGIN IMMEDIATE``.
+- :class:`jobs.postgres_store.PostgresJobStore` — several workers on several hosts, claims with
+  ``SELECT ... FOR UPDATE SKIP LOCKED``.
+
+Every transition that belongs to a worker (heartbeat, finish, release) is conditional on the lease
+owner, so a worker that lost its lease can no longer write to the job.
+"""
+
+from __future__ import annotations
+
+import json
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, Optional, Sequence
+
+
+class LeaseLost(Exception):
+    """The job is no longer leased to this worker (the reaper requeued it, or it was finished)."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One row of the job table."""
+
+    id: str
+    state: str
+    spec: dict
+    batch_id: Optional[str]
+    priority: int
+    progress: float
+    phase: Optional[str]
+    step: Optional[int]
+    sim_time: Optional[float]
+    eta_s: Optional[float]
+    created_at: float
+    started_at: Optional[float]
+    finished_at: Optional[float]
+    wall_s: Optional[float]
+    cundall: Optional[float]
+    backend: Optional[str]
+    device: Optional[str]
+    resumed_from_step: Optional[int]
+    error: Optional[str]
+    result_path: Optional[str]
+    attempts: int
+    max_attempts: int
+    lease_owner: Optional[str]
+    lease_expires_at: Optional[float]
+    heartbeat_at: Optional[float]
+    cancel_requested: bool
+
+    @classmethod
+    def from_row(cls, row) -> "Job":
+        data = dict(row._mapping)
+        data.pop("seq", None)
+        data["spec"] = json.loads(data["spec"])
+        data["cancel_requested"] = bool(data["cancel_requested"])
+        return cls(**data)
+
+
+@dataclass(frozen=True)
+class NewJob:
+    """A job to enqueue: the canonical spec JSON (already validated) and its priority."""
+
+    spec_json: str
+    priority: int = 0
+
+
+class JobStore(ABC):
+    """The job table. All methods are safe to call from several threads and processes."""
+
+    # ---- schema and health ------------------------------------------------------------------------
+    @abstractmethod
+    def create_tables(self) -> None:
+        """Create the table and its indexes if missing (idempotent)."""
+
+    @abstractmethod
+    def drop_tables(self) -> None:
+        """Drop the table (tests)."""
+
+    @abstractmethod
+    def ping(self) -> None:
+        """Raise if the database cannot be reached."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the connections."""
+
+    # ---- submitting and reading -------------------------------------------------------------------
+    @abstractmethod
+    def submit(self, jobs: Sequence[NewJob], batch_id: Optional[str] = None,
+               max_attempts: int = 3) -> list[Job]:
+        """Insert queued jobs in one transaction (all or none) and return them."""
+
+    @abstractmethod
+    def get(self, job_id: str) -> Optional[Job]:
+        """The job, or None."""
+
+    @abstractmethod
+    def list(self, state: Optional[str] = None, batch_id: Optional[str] = None,
+             limit: int = 50, offset: int = 0) -> tuple[list[Job], int]:
+        """A page of jobs in submission order, and the total count that matches the filters."""
+
+    @abstractmethod
+    def counts(self) -> dict[str, int]:
+        """Number of jobs per state."""
+
+    @abstractmethod
+    def request_cancel(self, job_id: str) -> Optional[Job]:
+        """Cancel a queued job at once; mark a running one for its worker. None if unknown."""
+
+    # ---- the worker side --------------------------------------------------------------------------
+    @abstractmethod
+    def claim(self, owner: str, lease_s: float, job_id: Optional[str] = None) -> Optional[Job]:
+        """Atomically lease the next queued job (or exactly ``job_id``) to ``owner``; None if none."""
+
+    @abstractmethod
+    def heartbeat(self, job_id: str, owner: str, lease_s: float,
+                  progress: Optional[dict[str, Any]] = None) -> bool:
+        """Renew the lease (and write progress); return whether a cancel was requested.
+
+        Raises :class:`LeaseLost` when the job is no longer running under ``owner``.
+        """
+
+    @abstractmethod
+    def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
+        """End a leased job as done, failed or cancelled with the given columns; False if not leased."""
+
+    @abstractmethod
+    def release(self, job_id: str, owner: str) -> bool:
+        """Give a leased job back to the queue without counting the attempt (worker shutdown)."""
+
+    @abstractmethod
+    def reap_expired(self, now: Optional[float] = None) -> tuple[list[str], list[str]]:
+        """Requeue running jobs whose lease expired while attempts remain, fail the others.
+
+        Returns (requeued ids, failed ids). A job whose cancel was requested ends cancelled instead.
+        """
+
+
+def open_store(url: str, table_prefix: str = "", create: bool = True) -> JobStore:
+    """The store for a database URL: ``sqlite:///path`` or ``postgresql://...``."""
+    if url.startswith("sqlite"):
+        from jobs.sqlite_store import SQLiteJobStore
+        store: JobStore = SQLiteJobStore(url, table_prefix)
+    elif url.startswith(("postgresql", "postgres")):
+        from jobs.postgres_store import PostgresJobStore
+        store = PostgresJobStore(url, table_prefix)
+    else:
+        raise ValueError(f"unsupported database URL {url!r}: use sqlite:///PATH or postgresql://...")
+    if create:
+        store.create_tables()
+    return store

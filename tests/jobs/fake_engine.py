@@ -1,0 +1,82 @@
+"""A fake engine with the contract of ``engine.simulate.run``, for worker and API tests.
+
+It takes wall time instead of computing physics, so tests can exercise the queue while the real
+engine is elsewhere (or too slow for a test): ``N_STEPS`` steps, each sleeping ``spec.t_end / N_STEPS``
+wall seconds, a progress report and a cancel check per step, a checkpoint (JSON) whenever
+``checkpoint_interval`` has passed, resumption from that checkpoint, and an HDF5 result with the
+observables layout written to a temporary name and renamed. ``seed == FAIL_SEED`` raises an
+InstabilityError half-way. Selected with ``DEMQ_ENGINE_RUN=tests.jobs.fake_engine:run``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from engine.errors import Cancelled, InstabilityError
+from engine.params import derive
+from engine.simulate import Progress, RunSummary
+
+N_STEPS = 20
+FAIL_SEED = 13
+TARGET = "tests.jobs.fake_engine:run"
+
+
+def write_result(path, spec, n_records: int = 21) -> Path:
+    """Write an HDF5 result with the engine's observables layout (Haff-like cooling curves)."""
+    path = Path(path)
+    p = derive(spec)
+    time_ = np.linspace(0.0, spec.t_end, n_records)
+    step = np.round(time_ / p.dt).astype(np.int64)
+    decay = (1.0 + time_ / (0.5 * spec.t_end)) ** -2
+    temps = {"temperature_translational": p.temperature0 * decay,
+             "temperature_rotational": p.temperature0 * decay * 0.8}
+    series = {**temps,
+              "kinetic_energy_translational": 1.5 * spec.n_particles * temps["temperature_translational"],
+              "kinetic_energy_rotational": 1.5 * spec.n_particles * temps["temperature_rotational"],
+              "contacts": np.zeros(n_records, dtype=np.int64)}
+    tmp = path.with_name(path.name + ".part")
+    with h5py.File(tmp, "w") as f:
+        for name, value in series.items():
+            g = f.create_group(f"observables/{name}")
+            g["step"], g["time"], g["value"] = step, time_, value
+        params = f.create_group("parameters")
+        params.attrs["spec"] = spec.to_json()
+        for key in ("dt", "contact_time", "radius", "mass", "collision_rate0", "temperature0"):
+            params.attrs[key] = getattr(p, key)
+    os.replace(tmp, path)
+    return path
+
+
+def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None, checkpoint_interval=60.0,
+        backend=None) -> RunSummary:
+    ckpt = Path(checkpoint_dir) / "fake.ckpt" if checkpoint_dir else None
+    start = 0
+    if ckpt is not None and ckpt.exists():
+        saved = json.loads(ckpt.read_text())
+        if saved["spec"] == spec.to_json():
+            start = saved["step"]
+    t0 = last_ckpt = time.monotonic()
+    for k in range(start, N_STEPS):
+        if should_cancel is not None and should_cancel():
+            raise Cancelled(f"cancelled at step {k}")
+        if spec.seed == FAIL_SEED and k == N_STEPS // 2:
+            raise InstabilityError(f"overlap of particle 7 exceeds the limit at step {k}: dt too large?", k, 7)
+        time.sleep(spec.t_end / N_STEPS)
+        if ckpt is not None and time.monotonic() - last_ckpt >= checkpoint_interval:
+            ckpt.write_text(json.dumps({"spec": spec.to_json(), "step": k + 1}))
+            last_ckpt = time.monotonic()
+        wall = time.monotonic() - t0
+        if progress is not None:
+            progress(Progress(phase="cooling", fraction=(k + 1) / N_STEPS, step=k + 1, time=spec.t_end * (k + 1) / N_STEPS,
+                              eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, wall_s=wall))
+    write_result(output, spec)
+    wall = max(time.monotonic() - t0, 1e-9)
+    return RunSummary(output=Path(output), backend="fake", device="test double", n_particles=spec.n_particles,
+                      steps=N_STEPS - start, wall_s=wall, cundall=spec.n_particles * (N_STEPS - start) / wall,
+                      resumed_from_step=start or None)
