@@ -1,0 +1,322 @@
+"""The ``demq`` command line: the engine's commands plus the queue's.
+
+    demq run | validate                  engine commands (engine/cli.py)
+    demq serve                           HTTP API + one embedded worker (SQLite in the data directory)
+    demq worker                          a worker on the configured job table
+    demq submit [SPEC.json] [--local --wait -o OUT.h5]
+    demq status [ID]                     one job, or a list of jobs (submission order)
+    demq fetch ID -o OUT.h5              download a result
+
+Flags override ``DEMQ_*`` environment variables (jobs/settings.py lists them all).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+
+from jobs.settings import Settings
+
+QUEUE_FLAGS = ("data_dir", "database_url", "table_prefix")
+
+
+def _add_queue_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-dir", type=Path, help="data directory (DEMQ_DATA_DIR, default ./demq-data)")
+    p.add_argument("--database-url", help="sqlite:///PATH or postgresql://... (DEMQ_DATABASE_URL)")
+    p.add_argument("--table-prefix", help="table name prefix (DEMQ_TABLE_PREFIX)")
+
+
+def _add_worker_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--lease", dest="lease_s", type=float, help="lease seconds (DEMQ_LEASE_SECONDS)")
+    p.add_argument("--heartbeat", dest="heartbeat_s", type=float, help="heartbeat seconds (DEMQ_HEARTBEAT_SECONDS)")
+    p.add_argument("--max-attempts", type=int, help="attempts per job (DEMQ_MAX_ATTEMPTS)")
+    p.add_argument("--checkpoint-interval", type=float, help="seconds between checkpoints (DEMQ_CHECKPOINT_INTERVAL)")
+    p.add_argument("--worker-id", help="lease owner name (DEMQ_WORKER_ID)")
+
+
+def _add_client_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--url", help="service URL (DEMQ_URL, default http://127.0.0.1:8000)")
+    p.add_argument("--token", help="bearer token (DEMQ_TOKEN)")
+    p.add_argument("--local", action="store_true", help="use the embedded SQLite queue in the data directory, no server")
+    _add_queue_flags(p)
+
+
+def _settings(args) -> Settings:
+    names = Settings.__dataclass_fields__
+    return Settings.from_env(**{k: v for k, v in vars(args).items() if k in names})
+
+
+def _logging(verbose: bool = True) -> None:
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+def _on_signals(stop) -> None:
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop())
+
+
+# ---- serve and worker ---------------------------------------------------------------------------------
+def cmd_serve(args) -> int:
+    import uvicorn
+
+    from service.app import create_app
+
+    s = _settings(args)
+    _logging()
+    app = create_app(s, embedded_worker=not args.no_worker)
+    uvicorn.run(app, host=s.host, port=s.port, log_level="info")
+    return 0
+
+
+def cmd_worker(args) -> int:
+    from jobs.store import open_store
+    from jobs.worker import Worker
+
+    s = _settings(args)
+    _logging()
+    store = open_store(s.database_url, s.table_prefix)
+    worker = Worker(store, s)
+    _on_signals(worker.stop)
+    worker.run_forever()
+    store.close()
+    return 0
+
+
+# ---- client commands ----------------------------------------------------------------------------------
+def _read_spec(args) -> dict:
+    data = {}
+    if args.spec == "-":
+        data = json.load(sys.stdin)
+    elif args.spec:
+        data = json.loads(Path(args.spec).read_text())
+    for item in args.set:
+        key, _, raw = item.partition("=")
+        try:
+            data[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            data[key] = raw
+    return data
+
+
+class _ProgressLine:
+    """One progress line on stderr, at most five updates per second."""
+
+    def __init__(self):
+        self.last = 0.0
+
+    def __call__(self, job, p: dict) -> None:
+        now = time.monotonic()
+        if now - self.last < 0.2:
+            return
+        self.last = now
+        eta = p.get("eta_s")
+        sys.stderr.write(f"\rjob {job.id[:8]} {100 * (p.get('fraction') or 0):5.1f}% {p.get('phase') or '':<14s} "
+                         f"ETA {eta if eta is not None else float('nan'):7.1f} s ")
+        sys.stderr.flush()
+
+
+def _submit_local(args, data: dict) -> int:
+    from jobs.specs import SpecRejected, check_limits, parse_spec
+    from jobs.store import NewJob, open_store
+    from jobs.worker import Worker
+
+    s = _settings(args)
+    try:
+        spec = parse_spec(data)
+        check_limits(spec, s.max_particle_steps, s.max_memory_bytes)
+    except SpecRejected as exc:
+        for e in exc.errors:
+            print(f"invalid spec: {'.'.join(map(str, e['loc'])) or 'spec'}: {e['msg']}", file=sys.stderr)
+        return 2
+    store = open_store(s.database_url, s.table_prefix)
+    (job,) = store.submit([NewJob(spec.to_json(), args.priority)], max_attempts=s.max_attempts)
+    print(job.id)
+    if not args.wait:
+        return 0
+    worker = Worker(store, s, on_progress=_ProgressLine())
+    _on_signals(worker.stop)
+    final = worker.run_job(job.id)
+    sys.stderr.write("\n")
+    if final is None or final.state != "done":
+        state = final.state if final else "unknown"
+        if worker.stopping and state == "queued":
+            print(f"job {job.id} interrupted; it stays queued in {s.data_dir}", file=sys.stderr)
+            return 130
+        print(f"job {job.id} {state}: {final.error if final else ''}", file=sys.stderr)
+        return 1
+    if args.output:
+        shutil.copyfile(final.result_path, args.output)
+        print(f"wrote {args.output} (Cundall number {final.cundall:.3g} particle-steps/s)")
+    return 0
+
+
+def _submit_remote(args, data: dict) -> int:
+    from service.client import Client, ServiceError
+
+    s = _settings(args)
+    client = Client(s.url, s.token)
+    try:
+        job = client.submit(data, args.priority)
+        print(job["id"])
+        if not args.wait:
+            return 0
+        while job["state"] in ("queued", "running"):
+            sys.stderr.write(f"\rjob {job['id'][:8]} {job['state']:<8s} {100 * job['progress']:5.1f}% ")
+            sys.stderr.flush()
+            time.sleep(1.0)
+            job = client.get(job["id"])
+        sys.stderr.write("\n")
+        if job["state"] != "done":
+            print(f"job {job['id']} {job['state']}: {job['error'] or ''}", file=sys.stderr)
+            return 1
+        if args.output:
+            client.fetch(job["id"], args.output)
+            print(f"wrote {args.output}")
+        return 0
+    except ServiceError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+
+
+def cmd_submit(args) -> int:
+    if args.output and not args.wait:
+        print("-o/--output needs --wait", file=sys.stderr)
+        return 2
+    try:
+        data = _read_spec(args)
+    except (OSError, json.JSONDecodeError) as exc:
+        print(f"cannot read the spec: {exc}", file=sys.stderr)
+        return 2
+    return _submit_local(args, data) if args.local else _submit_remote(args, data)
+
+
+def _print_job(job: dict) -> None:
+    keys = ("id", "state", "progress", "eta_s", "attempts", "created_at", "started_at", "finished_at",
+            "wall_s", "cundall", "backend", "device", "error", "batch_id")
+    for k in keys:
+        if job.get(k) is not None:
+            print(f"{k:>12s}: {job[k]}")
+
+
+def cmd_status(args) -> int:
+    if args.local:
+        from jobs.store import open_store
+        from service.schemas import JobOut
+
+        s = _settings(args)
+        store = open_store(s.database_url, s.table_prefix)
+        if args.id:
+            job = store.get(args.id)
+            if job is None:
+                print(f"no job with id {args.id!r}", file=sys.stderr)
+                return 1
+            _print_job(JobOut.of(job).model_dump(mode="json"))
+        else:
+            items, _ = store.list(state=args.state, limit=args.limit)
+            for j in items:
+                print(f"{j.id}  {j.state:<9s} {100 * j.progress:5.1f}%  {j.error or ''}")
+        return 0
+    from service.client import Client, ServiceError
+
+    s = _settings(args)
+    client = Client(s.url, s.token)
+    try:
+        if args.id:
+            _print_job(client.get(args.id))
+        else:
+            for j in client.list(args.state, args.limit)["items"]:
+                print(f"{j['id']}  {j['state']:<9s} {100 * j['progress']:5.1f}%  {j['error'] or ''}")
+    except ServiceError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_fetch(args) -> int:
+    if args.local:
+        from jobs.store import open_store
+
+        s = _settings(args)
+        job = open_store(s.database_url, s.table_prefix).get(args.id)
+        if job is None or job.state != "done":
+            print(f"job {args.id}: no result ({job.state if job else 'unknown id'})", file=sys.stderr)
+            return 1
+        shutil.copyfile(job.result_path, args.output)
+        return 0
+    from service.client import Client, ServiceError
+
+    s = _settings(args)
+    try:
+        Client(s.url, s.token).fetch(args.id, args.output)
+    except ServiceError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    print(f"wrote {args.output}")
+    return 0
+
+
+# ---- the parser ---------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from engine.cli import register
+
+    parser = argparse.ArgumentParser(prog="demq", description="GPU DEM simulations of granular gases, "
+                                                              "run from a durable job queue.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    register(sub)
+
+    p = sub.add_parser("serve", help="HTTP API with one embedded worker")
+    _add_queue_flags(p)
+    _add_worker_flags(p)
+    p.add_argument("--host", help="listen address (DEMQ_HOST)")
+    p.add_argument("--port", type=int, help="listen port (DEMQ_PORT)")
+    p.add_argument("--token", help="require this bearer token (DEMQ_TOKEN)")
+    p.add_argument("--max-particle-steps", type=float, help="DEMQ_MAX_PARTICLE_STEPS")
+    p.add_argument("--max-memory-bytes", type=float, help="DEMQ_MAX_MEMORY_BYTES")
+    p.add_argument("--max-body-bytes", type=int, help="DEMQ_MAX_BODY_BYTES")
+    p.add_argument("--no-worker", action="store_true", help="API only (run workers separately)")
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("worker", help="claim and run jobs until SIGTERM")
+    _add_queue_flags(p)
+    _add_worker_flags(p)
+    p.set_defaults(func=cmd_worker)
+
+    p = sub.add_parser("submit", help="queue a spec (default spec if none given)")
+    p.add_argument("spec", nargs="?", help="spec JSON file ('-' = stdin); omitted = the default spec")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a spec key")
+    p.add_argument("--priority", type=int, default=0)
+    p.add_argument("--wait", action="store_true", help="wait for the job to finish, printing progress")
+    p.add_argument("-o", "--output", help="with --wait: write the HDF5 result here")
+    _add_client_flags(p)
+    _add_worker_flags(p)
+    p.set_defaults(func=cmd_submit)
+
+    p = sub.add_parser("status", help="one job's status, or a list of jobs")
+    p.add_argument("id", nargs="?")
+    p.add_argument("--state", choices=["queued", "running", "done", "failed", "cancelled"])
+    p.add_argument("--limit", type=int, default=20)
+    _add_client_flags(p)
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("fetch", help="download a job's HDF5 result")
+    p.add_argument("id")
+    p.add_argument("-o", "--output", required=True)
+    _add_client_flags(p)
+    p.set_defaults(func=cmd_fetch)
+    return parser
+
+
+def main(argv=None) -> None:
+    args = build_parser().parse_args(argv)
+    sys.exit(args.func(args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,43 @@
+"""Typed FastAPI dependencies: the settings, the store, the bearer-token check, job lookup."""
+
+from __future__ import annotations
+
+import secrets
+from typing import Annotated, Optional
+
+from fastapi import Depends, HTTPException, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from jobs.settings import Settings
+from jobs.store import Job, JobStore
+
+_bearer = HTTPBearer(auto_error=False, description="Required only when the server has a token (DEMQ_TOKEN).")
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_store(request: Request) -> JobStore:
+    return request.app.state.store
+
+
+def require_token(settings: Annotated[Settings, Depends(get_settings)],
+                  credentials: Annotated[Optional[HTTPAuthorizationCredentials], Depends(_bearer)]) -> None:
+    """Bearer-token auth, on when a token is configured."""
+    if settings.token is None:
+        return
+    if credentials is None or not secrets.compare_digest(credentials.credentials.encode(), settings.token.encode()):
+        raise HTTPException(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
+
+
+def get_job(job_id: str, store: Annotated[JobStore, Depends(get_store)]) -> Job:
+    job = store.get(job_id)
+    if job is None:
+        raise HTTPException(404, f"no job with id {job_id!r}")
+    return job
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+StoreDep = Annotated[JobStore, Depends(get_store)]
+JobDep = Annotated[Job, Depends(get_job)]

@@ -1,0 +1,41 @@
+"""Error bodies: 422 with the field and the limit, JSON-safe (a spec may hold NaN or huge numbers)."""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+from fastapi import Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from jobs.specs import SpecRejected
+
+
+class InvalidRequest(Exception):
+    """A request the service refuses with 422; ``errors`` as in :class:`jobs.specs.SpecRejected`."""
+
+    def __init__(self, errors: list[dict]):
+        self.errors = errors
+
+
+@contextmanager
+def rejected():
+    """Turn :class:`SpecRejected` raised inside into a 422 answer."""
+    try:
+        yield
+    except SpecRejected as exc:
+        raise InvalidRequest(exc.errors) from None
+
+
+def _clean(errors) -> list[dict]:
+    return [{"loc": [str(x) if not isinstance(x, int) else x for x in e.get("loc", ())],
+             "msg": str(e.get("msg", "")), "type": str(e.get("type", ""))} for e in errors]
+
+
+async def on_validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+    """FastAPI's own validation errors (body, query, path), without echoing the input back."""
+    return JSONResponse({"detail": _clean(exc.errors())}, status_code=422)
+
+
+async def on_invalid_request(_request: Request, exc: InvalidRequest) -> JSONResponse:
+    return JSONResponse({"detail": _clean(exc.errors)}, status_code=422)
