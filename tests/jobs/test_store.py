@@ -1,0 +1,135 @@
+"""The store contract, run against SQLite and the real PostgreSQL."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import pytest
+
+from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING
+from jobs.store import LeaseLost, NewJob, open_store
+
+
+def _submit(store, n=1, priority=0, batch_id=None):
+    return store.submit([NewJob(json.dumps({"seed": i}), priority) for i in range(n)], batch_id=batch_id)
+
+
+def test_submit_get_list_counts(store):
+    a = _submit(store, 3, batch_id="b1")
+    b = _submit(store, 2)
+    assert [j.state for j in a + b] == [QUEUED] * 5
+    assert store.get(a[0].id).spec == {"seed": 0}
+    assert store.get("nope") is None
+    items, total = store.list(batch_id="b1")
+    assert total == 3 and [j.id for j in items] == [j.id for j in a]
+    page, total = store.list(limit=2, offset=2)
+    assert total == 5 and [j.id for j in page] == [a[2].id, b[0].id]
+    store.claim("w", 10)
+    assert store.counts() == {QUEUED: 4, RUNNING: 1}
+    assert store.list(state=RUNNING)[1] == 1
+
+
+def test_claim_order_priority_then_fifo_and_specific(store):
+    low = _submit(store, 2)
+    high = _submit(store, 1, priority=5)
+    picked = store.claim("w", 10, job_id=low[1].id)
+    assert picked.id == low[1].id and picked.state == RUNNING and picked.attempts == 1
+    assert store.claim("w", 10).id == high[0].id
+    assert store.claim("w", 10).id == low[0].id
+    assert store.claim("w", 10) is None
+    assert store.claim("w", 10, job_id=low[0].id) is None  # already running
+
+
+def test_heartbeat_progress_cancel_and_lease_owner(store):
+    (job,) = _submit(store)
+    store.claim("w1", 10)
+    assert store.heartbeat(job.id, "w1", 10, {"progress": 0.25, "eta_s": 3.0}) is False
+    got = store.get(job.id)
+    assert got.progress == 0.25 and got.eta_s == 3.0 and got.lease_expires_at > time.time() + 5
+    with pytest.raises(LeaseLost):
+        store.heartbeat(job.id, "w2", 10)
+    assert store.request_cancel(job.id).state == RUNNING
+    assert store.heartbeat(job.id, "w1", 10) is True
+    assert store.finish(job.id, "w2", CANCELLED) is False
+    assert store.finish(job.id, "w1", CANCELLED) is True
+    assert store.get(job.id).state == CANCELLED and store.get(job.id).lease_owner is None
+
+
+def test_cancel_queued_is_immediate(store):
+    (job,) = _submit(store)
+    assert store.request_cancel(job.id).state == CANCELLED
+    assert store.claim("w", 10) is None
+    assert store.request_cancel("nope") is None
+
+
+def test_release_returns_job_without_counting_the_attempt(store):
+    a, b = _submit(store, 2)
+    store.claim("w", 10)
+    assert store.release(a.id, "w") is True
+    got = store.get(a.id)
+    assert got.state == QUEUED and got.attempts == 0 and got.lease_owner is None
+    store.claim("w", 10)  # a again (FIFO)
+    store.request_cancel(a.id)
+    store.release(a.id, "w")
+    assert store.get(a.id).state == CANCELLED  # a cancel that arrived while running is honoured
+
+
+def test_finish_done_records_result(store):
+    (job,) = _submit(store)
+    store.claim("w", 10)
+    assert store.finish(job.id, "w", DONE, result_path="/r.h5", wall_s=2.0, cundall=1e6, error=None, progress=1.0)
+    got = store.get(job.id)
+    assert (got.state, got.result_path, got.cundall, got.progress) == (DONE, "/r.h5", 1e6, 1.0)
+    assert got.finished_at >= got.started_at >= got.created_at
+    with pytest.raises(ValueError):
+        store.finish(job.id, "w", RUNNING)
+
+
+def test_reaper_requeues_then_fails_with_reason(store):
+    (job,) = store.submit([NewJob("{}")], max_attempts=2)
+    store.claim("w1", 0.01)
+    assert store.reap_expired(now=time.time() - 60) == ([], [])  # lease not expired yet at that time
+    assert store.reap_expired(now=time.time() + 1) == ([job.id], [])
+    got = store.get(job.id)
+    assert got.state == QUEUED and got.lease_owner is None and "attempt 1 of 2" in got.error
+    store.claim("w2", 0.01)
+    assert store.reap_expired(now=time.time() + 1) == ([], [job.id])
+    got = store.get(job.id)
+    assert got.state == FAILED and got.attempts == 2 and "lost" in got.error and "every attempt" in got.error
+
+
+def test_reaper_honours_cancel_of_lost_job(store):
+    (job,) = _submit(store)
+    store.claim("w", 0.01)
+    store.request_cancel(job.id)
+    store.reap_expired(now=time.time() + 1)
+    assert store.get(job.id).state == CANCELLED
+
+
+def test_two_claimers_take_each_of_50_jobs_exactly_once(store, store_url):
+    """Two workers (separate connections) race for 50 jobs: each job is claimed once, none lost."""
+    url, prefix = store_url
+    jobs = _submit(store, 50)
+    claims: dict[str, list[str]] = {"a": [], "b": []}
+    second = open_store(url, prefix)
+    start = threading.Barrier(2)
+
+    def drain(name, st):
+        start.wait()
+        while (job := st.claim(name, 30)) is not None:
+            claims[name].append(job.id)
+            st.finish(job.id, name, DONE, error=None)
+
+    threads = [threading.Thread(target=drain, args=(n, s)) for n, s in (("a", store), ("b", second))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    second.close()
+    claimed = claims["a"] + claims["b"]
+    assert sorted(claimed) == sorted(j.id for j in jobs)  # every job once, no duplicates
+    assert len(set(claimed)) == 50
+    assert store.counts() == {DONE: 50}
+    assert all(store.get(j.id).attempts == 1 for j in jobs)

@@ -1,0 +1,204 @@
+"""The HTTP contract with FastAPI's TestClient; no worker runs (the engine is not involved)."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import h5py
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from tests.jobs.conftest import make_settings
+from tests.service.conftest import TINY, finish_with_fake_result
+
+
+def test_submit_returns_201_with_id_and_state(client):
+    r = client.post("/jobs", json=TINY, params={"priority": 3})
+    assert r.status_code == 201
+    body = r.json()
+    assert body["state"] == "queued" and body["priority"] == 3 and len(body["id"]) == 32
+    assert body["spec"]["n_particles"] == 64 and body["spec"]["e_n"] == 0.8  # defaults filled in
+    got = client.get(f"/jobs/{body['id']}").json()
+    assert got["progress"] == 0.0 and got["eta_s"] is None and got["error"] is None
+
+
+@pytest.mark.parametrize("body, field, words", [
+    ({"e_n": 1.5}, "e_n", "(0, 1]"),
+    ({"volume_fraction": 0.7}, "volume_fraction", "(0, 0.64)"),
+    ({"n_particles": 1}, "n_particles", "2 ... 2147483647"),
+    ({"shape": "cube"}, "shape", "'sphere' or 'ellipsoid'"),
+    ({"colour": "red"}, "colour", "Extra inputs are not permitted"),
+    ({"e_n": "high"}, "e_n", "valid number"),
+])
+def test_invalid_spec_is_422_naming_field_and_limit(client, body, field, words):
+    r = client.post("/jobs", json=body)
+    assert r.status_code == 422
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["body", field] and words in err["msg"]
+    assert client.get("/jobs").json()["total"] == 0
+
+
+def test_cross_field_error_and_overflow_are_422(client):
+    r = client.post("/jobs", json={**TINY, "dt": 1.0})
+    assert r.status_code == 422 and "cannot resolve a contact" in r.json()["detail"][0]["msg"]
+    r = client.post("/jobs", json={"box_length": 1e300})
+    assert r.status_code == 422 and "cannot be evaluated" in r.json()["detail"][0]["msg"]
+    r = client.post("/jobs", content=b'{"e_n": NaN}', headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "e_n = nan" in r.json()["detail"][0]["msg"]
+    r = client.post("/jobs", content=b"{not json", headers={"content-type": "application/json"})
+    assert r.status_code == 422
+
+
+def test_oversize_spec_refused_before_queueing(client):
+    r = client.post("/jobs", json={"n_particles": 2**30})
+    assert r.status_code == 422
+    msgs = " ".join(e["msg"] for e in r.json()["detail"])
+    assert "DEMQ_MAX_PARTICLE_STEPS" in msgs and "DEMQ_MAX_MEMORY_BYTES" in msgs
+    assert client.get("/jobs").json()["total"] == 0
+
+
+def test_limits_are_configurable(tmp_path):
+    app = create_app(make_settings(tmp_path, max_particle_steps=1000, max_body_bytes=200))
+    with TestClient(app) as c:
+        r = c.post("/jobs", json=TINY)
+        assert r.status_code == 422 and "limit DEMQ_MAX_PARTICLE_STEPS = 1e+03" in r.json()["detail"][0]["msg"]
+        r = c.post("/jobs", json={**TINY, "seed": 1, "precision": "float64", "backend": "auto", "e_t": 0.5,
+                                  "velocity_rms": 1.0, "density": 2000.0, "stiffness": 1e8, "overlap_limit": 0.05})
+        assert r.status_code == 413 and "DEMQ_MAX_BODY_BYTES" in r.json()["detail"]
+
+
+def test_body_over_limit_is_413_also_when_streamed(client):
+    big = b"[" + b"1," * 600_000 + b"1]"
+    assert client.post("/jobs", content=big, headers={"content-type": "application/json"}).status_code == 413
+
+    def chunks():  # no Content-Length: chunked transfer
+        for _ in range(20):
+            yield b" " * 100_000
+
+    r = client.post("/batches", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 413
+
+
+def test_unknown_id_is_404_everywhere(client):
+    for method, path in [("get", "/jobs/abc"), ("post", "/jobs/abc/cancel"), ("get", "/jobs/abc/result"),
+                         ("get", "/jobs/abc/energy"), ("get", "/jobs/abc/plot.png")]:
+        r = client.request(method.upper(), path)
+        assert r.status_code == 404 and "abc" in r.json()["detail"], path
+
+
+def test_list_filters_and_pages(client):
+    ids = [client.post("/jobs", json={**TINY, "seed": i}).json()["id"] for i in range(5)]
+    client.post(f"/jobs/{ids[1]}/cancel")
+    page = client.get("/jobs", params={"limit": 2, "offset": 1}).json()
+    assert page["total"] == 5 and [j["id"] for j in page["items"]] == ids[1:3]
+    queued = client.get("/jobs", params={"state": "queued"}).json()
+    assert queued["total"] == 4 and ids[1] not in [j["id"] for j in queued["items"]]
+    assert client.get("/jobs", params={"state": "sleeping"}).status_code == 422
+    assert client.get("/jobs", params={"limit": 0}).status_code == 422
+
+
+def test_batch_of_specs_and_sweep(client):
+    r = client.post("/batches", json={"specs": [TINY, {**TINY, "seed": 2}]})
+    assert r.status_code == 201 and r.json()["count"] == 2
+    r = client.post("/batches", json={"base": TINY, "sweep": {"e_n": [0.5, 0.9], "e_t": [-1.0, 0.0, 1.0]},
+                                      "priority": 2})
+    assert r.status_code == 201
+    body = r.json()
+    assert body["count"] == 6
+    listed = client.get("/jobs", params={"batch_id": body["batch_id"]}).json()
+    assert listed["total"] == 6 and {j["priority"] for j in listed["items"]} == {2}
+    combos = [(j["spec"]["e_n"], j["spec"]["e_t"]) for j in listed["items"]]
+    assert combos == [(0.5, -1.0), (0.5, 0.0), (0.5, 1.0), (0.9, -1.0), (0.9, 0.0), (0.9, 1.0)]
+
+
+def test_batch_errors_name_the_combination_and_queue_nothing(client):
+    r = client.post("/batches", json={"base": TINY, "sweep": {"e_t": [0.0, 2.0]}})
+    assert r.status_code == 422
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["body", "sweep", "combination", 1, "e_t"] and "[-1, 1]" in err["msg"]
+    r = client.post("/batches", json={"specs": [TINY, {"e_n": 7}]})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "specs", 1, "e_n"]
+    r = client.post("/batches", json={"base": TINY, "sweep": {"seed": list(range(1001))}})
+    assert r.status_code == 422 and "DEMQ_MAX_BATCH_JOBS" in r.json()["detail"][0]["msg"]
+    for bad in ({}, {"specs": []}, {"specs": [TINY], "sweep": {"e_n": [0.5]}}, {"sweep": {"e_n": []}}):
+        assert client.post("/batches", json=bad).status_code == 422, bad
+    assert client.get("/jobs").json()["total"] == 0
+
+
+def test_cancel_queued_running_and_finished(client, settings):
+    a, b, c = (client.post("/jobs", json={**TINY, "seed": i}).json()["id"] for i in range(3))
+    r = client.post(f"/jobs/{a}/cancel")
+    assert r.status_code == 200 and r.json()["state"] == "cancelled"
+    client.store.claim("w", 30, job_id=b)
+    r = client.post(f"/jobs/{b}/cancel")
+    assert r.status_code == 200 and r.json()["state"] == "running" and r.json()["cancel_requested"]
+    finish_with_fake_result(client.store, settings, c)
+    assert client.post(f"/jobs/{c}/cancel").status_code == 409
+    assert client.post(f"/jobs/{a}/cancel").status_code == 409
+
+
+def test_result_energy_and_plot_of_a_done_job(client, settings):
+    job_id = client.post("/jobs", json=TINY).json()["id"]
+    assert client.get(f"/jobs/{job_id}/result").status_code == 409  # still queued
+    finish_with_fake_result(client.store, settings, job_id)
+    status = client.get(f"/jobs/{job_id}").json()
+    assert status["state"] == "done" and status["result_available"] and status["cundall"] == 1e6
+    assert status["run_s"] >= 0 and status["queued_s"] >= 0
+
+    r = client.get(f"/jobs/{job_id}/result")
+    assert r.status_code == 200 and r.headers["content-type"] == "application/x-hdf5"
+    assert f'filename="demq-{job_id}.h5"' in r.headers["content-disposition"]
+    with h5py.File(io.BytesIO(r.content)) as f:
+        assert "observables/temperature_rotational/value" in f
+
+    energy = client.get(f"/jobs/{job_id}/energy").json()
+    assert len(energy["time"]) == 21 and energy["time"][0] == 0.0
+    assert energy["kinetic_energy_translational"][0] > energy["kinetic_energy_translational"][-1] > 0
+    r = client.get(f"/jobs/{job_id}/energy", params={"format": "csv"})
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+    rows = list(csv.reader(io.StringIO(r.text)))
+    assert rows[0] == ["step", "time", "kinetic_energy_translational", "kinetic_energy_rotational",
+                       "temperature_translational", "temperature_rotational"]
+    assert len(rows) == 22 and float(rows[1][1]) == 0.0
+    assert client.get(f"/jobs/{job_id}/energy", params={"format": "xml"}).status_code == 422
+
+    r = client.get(f"/jobs/{job_id}/plot.png")
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert r.content[:8] == b"\x89PNG\r\n\x1a\n" and len(r.content) > 10_000
+
+
+def test_deleted_result_file_is_410(client, settings):
+    job_id = client.post("/jobs", json=TINY).json()["id"]
+    finish_with_fake_result(client.store, settings, job_id)
+    settings.result_path(job_id).unlink()
+    assert client.get(f"/jobs/{job_id}/result").status_code == 410
+
+
+def test_bearer_token_guards_every_route_but_healthz(tmp_path):
+    app = create_app(make_settings(tmp_path, token="s3cret"))
+    with TestClient(app) as c:
+        assert c.get("/healthz").status_code == 200
+        for method, path in [("GET", "/jobs"), ("POST", "/jobs"), ("GET", "/jobs/x"), ("POST", "/batches"),
+                             ("GET", "/jobs/x/result"), ("GET", "/jobs/x/plot.png")]:
+            r = c.request(method, path)
+            assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer", path
+        assert c.get("/jobs", headers={"Authorization": "Bearer wrong"}).status_code == 401
+        ok = {"Authorization": "Bearer s3cret"}
+        assert c.post("/jobs", json=TINY, headers=ok).status_code == 201
+        assert c.get("/jobs", headers=ok).json()["total"] == 1
+
+
+def test_auth_off_by_default_and_healthz(client):
+    r = client.get("/healthz")
+    assert r.status_code == 200 and r.json() == {"status": "ok", "jobs": {}}
+    client.post("/jobs", json=TINY)
+    assert client.get("/healthz").json()["jobs"] == {"queued": 1}
+
+
+def test_openapi_docs(client):
+    assert client.get("/docs").status_code == 200
+    paths = client.get("/openapi.json").json()["paths"]
+    assert {"/jobs", "/batches", "/jobs/{job_id}", "/jobs/{job_id}/cancel", "/jobs/{job_id}/result",
+            "/jobs/{job_id}/energy", "/jobs/{job_id}/plot.png", "/healthz"} <= set(paths)
