@@ -63,6 +63,8 @@ class CudaBackend:
         self.steps_done = 0
         self.builds = 0
         self.late_rebuilds = 0
+        self._prof_events = []
+        self.profile = None  # set to {} to time kick_drift / rebuild / forces with CUDA events
         rad = np.asarray(system.radius, np.float64)
         mass = np.asarray(system.mass, np.float64)
         inertia = np.asarray(system.inertia, np.float64)
@@ -307,10 +309,15 @@ class CudaBackend:
         for st in range(nsteps):
             step = self.steps_done + st
             hk = self.hp if st == 0 else self.dt
+            prof = self.profile is not None
+            if prof:
+                e0 = self._ev(); e0.record(s)
             k["kick_drift"][self._grid(self.n)](
                 self.n, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque, self.inv_m,
                 self.inv_i, self._im0, self._ii0, self.x_ref, self.ids, hk, self.dt, self.box_c,
                 self.inv_box, self.half, self.status, step)
+            if prof:
+                e1 = self._ev(); e1.record(s)
             slot = st % 2
             self.status.copy_to_host(self.status_h[slot], stream=s)
             self.events[slot].record(s)
@@ -329,11 +336,18 @@ class CudaBackend:
                     self.late_rebuilds += 1
                 d_prev = 0.0 if rebuilt_prev else math.sqrt(h[K.S_DISP2])
                 rebuild = d_prev + 2.0 * math.sqrt(h[K.S_V2]) * dtf > limit
+            if prof:
+                e2 = self._ev(); e2.record(s)
             if rebuild:
                 self._rebuild()
             rebuilt_prev = rebuild
+            if prof:
+                e3 = self._ev(); e3.record(s)
             self._forces(step)
             self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
+            if prof:
+                e4 = self._ev(); e4.record(s)
+                self._prof_events.append((e0, e1, e2, e3, e4))
             prev = slot
         k["half_kick"][self._grid(self.n)](self.n, self.vel, self.omega, self.f_cur, self.torque, self.inv_m,
                                            self.inv_i, self._im0, self._ii0, self.hp)
@@ -341,7 +355,16 @@ class CudaBackend:
         if not rebuilt_prev and math.sqrt(h[K.S_DISP2]) > limit:
             self.late_rebuilds += 1
         self.steps_done += nsteps
+        if self.profile is not None:
+            for e0, e1, e2, e3, e4 in self._prof_events:
+                for name, a, b in (("kick_drift", e0, e1), ("status_copy", e1, e2), ("rebuild", e2, e3),
+                                   ("forces", e3, e4)):
+                    self.profile[name] = self.profile.get(name, 0.0) + cuda.event_elapsed_time(a, b)
+            self._prof_events = []
         self._check(h)
+
+    def _ev(self):
+        return cuda.event(timing=True) if not SIM else cuda.event()
 
     def _read_status_now(self) -> np.ndarray:
         h = self.status_h[0]

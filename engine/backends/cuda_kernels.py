@@ -23,6 +23,7 @@ import math
 import numba
 import numpy as np
 from numba import cuda
+from numba.cuda import types as ct
 
 from engine.physics.contact import (contact_end_weight, min_image, sphere_contact,
                                     sphere_contact_end)
@@ -49,7 +50,9 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     ZERO = DT(0)
     BIG = DT(np.finfo(DT).max)
     INF = np.float64(np.inf)
-    f64 = numba.float64
+    f64 = np.float64
+    SH2 = 2 * TPB
+    SHOBS = (8, TPB)
 
     @cuda.jit(device=True)
     def block_max2(sh, a, b):
@@ -74,7 +77,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     def kick_drift(n, pos, vel, omega, quat, force, torque, inv_m, inv_i, im0, ii0, x_ref, ids,
                    hk, dt, box, inv_box, half, status, step):
         """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; max |x - x_ref|^2, max |v|^2."""
-        sh = cuda.shared.array(2 * TPB, numba.float64)
+        sh = cuda.shared.array(SH2, ct.float64)
         i0 = cuda.grid(1)
         stride = cuda.gridsize(1)
         md = 0.0
@@ -122,7 +125,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     def forces(n, pos, vel, omega, radius, inv_m, r0, im0, f_old, f_new, torque, nbr, nn, hist, ids,
                box, inv_box, half, hp, k_n, gn_coef, k_t, mu, dt, ovl_limit, status, step):
         """Contact forces and torques from the full list; per-slot history advanced in place."""
-        sh = cuda.shared.array(2 * TPB, numba.float64)
+        sh = cuda.shared.array(SH2, ct.float64)
         i0 = cuda.grid(1)
         stride = cuda.gridsize(1)
         one = half + half
@@ -174,20 +177,20 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                                            uix - ujx, uiy - ujy, uiz - ujz,
                                            omega[0, i], omega[1, i], omega[2, i],
                                            omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev, hist[4, kk, i], m12,
                                            k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, half)
                     elif ROUGH:
                         g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
                                            uix - ujx, uiy - ujy, uiz - ujz,
                                            omega[0, i], omega[1, i], omega[2, i],
                                            omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev, hist[4, kk, i], m12,
                                            k_n, gn_coef * math.sqrt(m12), k_t, None, dt, half)
                     else:
                         g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
                                            uix - ujx, uiy - ujy, uiz - ujz,
                                            ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
-                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev, hist[4, kk, i], m12,
                                            k_n, gn_coef * math.sqrt(m12), None, None, dt, half)
                     fx += g[0]
                     fy += g[1]
@@ -268,7 +271,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     @cuda.jit
     def tile_scan(src, dst, n, bsum, items):
         """Exclusive scan of src[0:n] per tile of TPB*items elements; tile totals into bsum."""
-        sh = cuda.shared.array(TPB, numba.int64)
+        sh = cuda.shared.array(TPB, ct.int64)
         t = cuda.threadIdx.x
         base = cuda.blockIdx.x * TPB * items + t * items
         s = 0
@@ -347,7 +350,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
         Old list rows are in the previous order: row of new i is order[i]; an old neighbour index o
         maps to the new index inv_old[o]. nn[i] gets the true count even beyond the stride.
         """
-        sh = cuda.shared.array(2 * TPB, numba.float64)
+        sh = cuda.shared.array(SH2, ct.float64)
         max_nb = nbr.shape[0]
         lo = -1 if nc >= 3 else 0
         hi = 2 if nc >= 2 else 1
@@ -413,9 +416,9 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     def observe(n, pos, vel, omega, radius, r0, mass, m0, inertia, i0_, nbr, nn, hist, box, inv_box,
                 half, k_n, k_t, acc):
         """acc += (E_tr, E_rot, contacts (x2), elastic energy, P_x, P_y, P_z); acc[7] = max overlap."""
-        sh = cuda.shared.array((8, TPB), numba.float64)
+        sh = cuda.shared.array(SHOBS, ct.float64)
         t = cuda.threadIdx.x
-        a = cuda.local.array(8, numba.float64)
+        a = cuda.local.array(8, ct.float64)
         for q in range(8):
             a[q] = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
@@ -477,7 +480,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
 @cuda.jit(device=True)
 def _cell(x, y, z, nc, inv_cell):
     """Cell index of a position, exactly as the CPU backend bins (float64 products, clamped)."""
-    cx = min(max(int(numba.float64(x) * inv_cell), 0), nc - 1)
-    cy = min(max(int(numba.float64(y) * inv_cell), 0), nc - 1)
-    cz = min(max(int(numba.float64(z) * inv_cell), 0), nc - 1)
+    cx = min(max(int(np.float64(x) * inv_cell), 0), nc - 1)
+    cy = min(max(int(np.float64(y) * inv_cell), 0), nc - 1)
+    cz = min(max(int(np.float64(z) * inv_cell), 0), nc - 1)
     return (cx * nc + cy) * nc + cz
