@@ -1,0 +1,161 @@
+"""Cundall number of the CUDA backend against N, volume fraction and precision (issue 3).
+
+Full rough-sphere physics: tangential springs with history, Coulomb limit, rotation and quaternions,
+neighbour rebuilds by the L_v/2 rule. Cundall number = N x steps / wall seconds of ``advance`` (after
+compilation, placement and the first list build), median of ``--reps`` runs. Per-kernel fractions
+come from CUDA events around the phases of a step (a separate, profiled run).
+
+    python bench/gpu_scaling.py --out bench/gpu_scaling.json           # the full table
+    python bench/gpu_scaling.py --largest                              # largest N in float32
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+
+import numpy as np
+
+
+def scene(n, phi, precision, seed=1):
+    from engine.params import derive
+    from engine.scene import initial_spheres
+    from engine.simulate import contact_params
+    from engine.spec import SimulationSpec
+
+    spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.5, friction=0.5,
+                          precision=precision, seed=seed, snapshots=1)
+    p = derive(spec)
+    c = contact_params(spec, p, thermalization=False)
+    assert c.orientation and c.k_t is not None and c.friction is not None
+    return initial_spheres(spec, p), c
+
+
+def lattice_scene(n, phi, precision, seed=1):
+    """A fast start for very large N: jittered simple-cubic lattice (no fcc placement)."""
+    from engine.backends.base import SphereSystem
+    from engine.params import derive
+    from engine.simulate import contact_params
+    from engine.spec import SimulationSpec
+
+    spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.5, friction=0.5,
+                          precision=precision, seed=seed, snapshots=1)
+    p = derive(spec)
+    c = contact_params(spec, p, thermalization=False)
+    rng = np.random.default_rng(seed)
+    m = math.ceil(n ** (1 / 3))
+    a = spec.box_length / m
+    idx = np.arange(n, dtype=np.int64)
+    pos = np.empty((n, 3), np.float32)
+    pos[:, 0] = (idx // (m * m)) * a
+    pos[:, 1] = ((idx // m) % m) * a
+    pos[:, 2] = (idx % m) * a
+    pos += (0.5 * a + rng.uniform(-0.2, 0.2, size=(n, 3)).astype(np.float32) * (a - 2 * p.radius))
+    vel = rng.standard_normal((n, 3), dtype=np.float32) * np.float32(spec.velocity_rms / math.sqrt(3))
+    om = rng.standard_normal((n, 3), dtype=np.float32)
+    q = np.zeros((n, 4), np.float32)
+    q[:, 0] = 1
+    one = np.ones(n, np.float32)
+    return SphereSystem(box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=om,
+                        orientation=q, radius=one * p.radius, mass=one * p.mass,
+                        inertia=one * p.inertia[0]), c
+
+
+def measure(n, phi, precision, reps, target_s, make=scene):
+    from numba import cuda
+
+    from engine.backends.cuda import CudaBackend
+
+    t0 = time.perf_counter()
+    system, c = make(n, phi, precision)
+    free0 = cuda.current_context().get_memory_info()[0]
+    be = CudaBackend(system, c)
+    del system
+    be.warmup()
+    cuda.synchronize()
+    free1 = cuda.current_context().get_memory_info()[0]
+    setup = time.perf_counter() - t0
+    be.advance(10)
+    t = time.perf_counter()
+    be.advance(20)
+    per = (time.perf_counter() - t) / 20
+    steps = int(max(20, min(20000, target_s / per)))
+    runs = []
+    b0 = be.builds
+    for _ in range(reps):
+        t = time.perf_counter()
+        be.advance(steps)
+        runs.append(n * steps / (time.perf_counter() - t))
+    builds_per_step = (be.builds - b0) / (reps * steps)
+    be.profile = {}
+    be.advance(min(steps, 2000))
+    prof = be.profile
+    tot = sum(prof.values())
+    frac = {k: v / tot for k, v in prof.items()}
+    obs = be.observe()
+    row = dict(n=n, phi=phi, precision=precision, steps=steps, reps=reps, cundall_median=float(np.median(runs)),
+               cundall_runs=runs, frac=frac, kernel_ms_per_step=tot / min(steps, 2000),
+               builds_per_step=builds_per_step, late_rebuilds=be.late_rebuilds, max_nb=be.max_nb,
+               bytes_per_particle_arrays=be.device_bytes() / n, bytes_per_particle_meminfo=(free0 - free1) / n,
+               contacts_per_particle=obs["contacts"] / n, setup_s=setup)
+    del be
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--n", type=int, nargs="*", default=[4096, 32768, 262144, 2097152, 16777216])
+    ap.add_argument("--phi", type=float, nargs="*", default=[0.008, 0.058, 0.3])
+    ap.add_argument("--precision", nargs="*", default=["float32", "float64"])
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--target-s", type=float, default=0.4)
+    ap.add_argument("--largest", action="store_true")
+    ap.add_argument("--largest-n", type=int, nargs="*", default=[])
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    from numba import cuda
+
+    import numba
+    dev = cuda.get_current_device()
+    name = dev.name.decode() if isinstance(dev.name, bytes) else dev.name
+    info = dict(gpu=name, date=time.strftime("%Y-%m-%d"), numba=numba.__version__, numpy=np.__version__,
+                python=platform.python_version(), total_mem=cuda.current_context().get_memory_info()[1])
+    print(json.dumps(info), flush=True)
+    rows = []
+    if not args.largest:
+        for prec in args.precision:
+            for phi in args.phi:
+                for n in args.n:
+                    try:
+                        r = measure(n, phi, prec, args.reps, args.target_s)
+                    except Exception as e:  # report and go on
+                        r = dict(n=n, phi=phi, precision=prec, error=repr(e)[:300])
+                    rows.append(r)
+                    print(json.dumps(r), flush=True)
+    for n in args.largest_n:
+        try:
+            r = measure(n, 0.058, "float32", 1, 1.0, make=lattice_scene)
+            r["largest_probe"] = True
+        except Exception as e:
+            r = dict(n=n, phi=0.058, precision="float32", error=repr(e)[:300], largest_probe=True)
+        rows.append(r)
+        print(json.dumps(r), flush=True)
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(dict(info=info, rows=rows), fh, indent=1)
+    print("\n| precision | phi | N | Cundall (median) | KD | rebuild | forces | B/particle | max_nb |")
+    for r in rows:
+        if "error" in r:
+            print(f"| {r['precision']} | {r['phi']} | {r['n']} | ERROR {r['error'][:80]} |")
+            continue
+        f = r["frac"]
+        print(f"| {r['precision']} | {r['phi']} | {r['n']} | {r['cundall_median']:.3g} | {f['kick_drift']:.2f} | "
+              f"{f['rebuild']:.2f} | {f['forces']:.2f} | {r['bytes_per_particle_meminfo']:.0f} | {r['max_nb']} |")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
