@@ -83,7 +83,7 @@ def measure(n, phi, precision, reps, target_s, make=scene):
     t = time.perf_counter()
     be.advance(20)
     per = (time.perf_counter() - t) / 20
-    steps = int(max(20, min(20000, target_s / per)))
+    steps = int(max(10, min(20000, target_s / per)))
     runs = []
     b0 = be.builds
     for _ in range(reps):
@@ -92,13 +92,14 @@ def measure(n, phi, precision, reps, target_s, make=scene):
         runs.append(n * steps / (time.perf_counter() - t))
     builds_per_step = (be.builds - b0) / (reps * steps)
     be.profile = {}
-    be.advance(min(steps, 2000))
+    psteps = min(steps, 1000)
+    be.advance(psteps)
     prof = be.profile
     tot = sum(prof.values())
     frac = {k: v / tot for k, v in prof.items()}
     obs = be.observe()
     row = dict(n=n, phi=phi, precision=precision, steps=steps, reps=reps, cundall_median=float(np.median(runs)),
-               cundall_runs=runs, frac=frac, kernel_ms_per_step=tot / min(steps, 2000),
+               cundall_runs=runs, frac=frac, kernel_ms_per_step=tot / psteps,
                builds_per_step=builds_per_step, late_rebuilds=be.late_rebuilds, max_nb=be.max_nb,
                bytes_per_particle_arrays=be.device_bytes() / n, bytes_per_particle_meminfo=(free0 - free1) / n,
                contacts_per_particle=obs["contacts"] / n, setup_s=setup)
@@ -115,6 +116,8 @@ def main():
     ap.add_argument("--target-s", type=float, default=0.4)
     ap.add_argument("--largest", action="store_true")
     ap.add_argument("--largest-n", type=int, nargs="*", default=[])
+    ap.add_argument("--largest-auto", action="store_true",
+                    help="after the table, probe the largest float32 N that fits (from the measured B/particle)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     from numba import cuda
@@ -136,10 +139,21 @@ def main():
                         r = dict(n=n, phi=phi, precision=prec, error=repr(e)[:300])
                     rows.append(r)
                     print(json.dumps(r), flush=True)
+    if args.largest_auto:
+        ok = [r for r in rows if "error" not in r and r["precision"] == "float32" and r["phi"] == 0.058]
+        if ok:
+            r = max(ok, key=lambda r: r["n"])
+            free = cuda.current_context().get_memory_info()[0]
+            for f in (0.92, 0.8, 0.65):
+                args.largest_n.append(int(f * free / r["bytes_per_particle_meminfo"]) // 1000000 * 1000000)
+    done_largest = False
     for n in args.largest_n:
+        if done_largest:
+            break
         try:
             r = measure(n, 0.058, "float32", 1, 1.0, make=lattice_scene)
             r["largest_probe"] = True
+            done_largest = True
         except Exception as e:
             r = dict(n=n, phi=0.058, precision="float32", error=repr(e)[:300], largest_probe=True)
         rows.append(r)
