@@ -25,9 +25,9 @@ from tests.jobs.conftest import ROOT, TINY, make_settings
 from tests.jobs.fake_engine import TARGET
 
 REAL = "engine.simulate:run"
-#: A real-engine job of a few seconds on one CPU core (~1e6 steps of 64 particles): long enough to
+#: A real-engine job of a few seconds on one CPU core (~5e5 steps of 64 particles): long enough to
 #: write several checkpoints at a 0.3 s interval before the worker is killed.
-REAL_LONG = {**TINY, "t_end": 2.0}
+REAL_LONG = {**TINY, "t_end": 1.0}
 
 
 def start_worker(settings, engine_run=TARGET, **env) -> subprocess.Popen:
