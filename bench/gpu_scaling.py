@@ -65,6 +65,14 @@ def lattice_scene(n, phi, precision, seed=1):
                         inertia=one * p.inertia[0]), c
 
 
+def dense_scene(n, phi, precision, seed=1):
+    """Contact-rich stress scene (phi ~ 0.49 lattice, gaps 4 % of a radius), see tests/gpu."""
+    sys.path.insert(0, ".")
+    from tests.gpu.test_cuda_gpu import _dense
+
+    return _dense(n_side=round(n ** (1 / 3)), precision=precision, seed=seed)
+
+
 def measure(n, phi, precision, reps, target_s, make=scene):
     from numba import cuda
 
@@ -79,7 +87,7 @@ def measure(n, phi, precision, reps, target_s, make=scene):
     cuda.synchronize()
     free1 = cuda.current_context().get_memory_info()[0]
     setup = time.perf_counter() - t0
-    be.advance(10)
+    be.advance(10 if make is not dense_scene else 60)  # dense: let the contacts form first
     t = time.perf_counter()
     be.advance(20)
     per = (time.perf_counter() - t) / 20
@@ -115,6 +123,7 @@ def main():
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--target-s", type=float, default=0.4)
     ap.add_argument("--largest", action="store_true")
+    ap.add_argument("--dense-n", type=int, nargs="*", default=[], help="contact-rich stress scenes")
     ap.add_argument("--largest-n", type=int, nargs="*", default=[])
     ap.add_argument("--largest-auto", action="store_true",
                     help="after the table, probe the largest float32 N that fits (from the measured B/particle)")
@@ -139,6 +148,12 @@ def main():
                         r = dict(n=n, phi=phi, precision=prec, error=repr(e)[:300])
                     rows.append(r)
                     print(json.dumps(r), flush=True)
+    for n in args.dense_n:
+        for prec in args.precision:
+            r = measure(n, 0.49, prec, args.reps, args.target_s, make=dense_scene)
+            r["dense"] = True
+            rows.append(r)
+            print(json.dumps(r), flush=True)
     if args.largest_auto:
         ok = [r for r in rows if "error" not in r and r["precision"] == "float32" and r["phi"] == 0.058]
         if ok:
@@ -168,7 +183,8 @@ def main():
             continue
         f = r["frac"]
         print(f"| {r['precision']} | {r['phi']} | {r['n']} | {r['cundall_median']:.3g} | {f['kick_drift']:.2f} | "
-              f"{f['rebuild']:.2f} | {f['forces']:.2f} | {r['bytes_per_particle_meminfo']:.0f} | {r['max_nb']} |")
+              f"{f['rebuild']:.2f} | {f['forces']:.2f} | {r['bytes_per_particle_meminfo']:.0f} | {r['max_nb']} | "
+              f"{r['contacts_per_particle']:.2g} |")
 
 
 if __name__ == "__main__":
