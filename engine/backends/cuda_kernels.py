@@ -25,7 +25,7 @@ import numpy as np
 from numba import cuda
 from numba.cuda import types as ct
 
-from engine.physics.contact import (contact_end_weight, min_image, sphere_contact,
+from engine.physics.contact import (contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import fincham_quat_step_space
@@ -207,13 +207,21 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                     if ov > wsi:
                         wsi = ov
                 elif delta_prev > ZERO:
-                    wgt = contact_end_weight(delta_prev, delta, half)
+                    pe = contact_end_fraction(delta_prev, delta)
+                    vjx = vel[0, j]
+                    vjy = vel[1, j]
+                    vjz = vel[2, j]
                     if ROUGH:
-                        e = sphere_contact_end(rx, ry, rz, d, ri, rj, hist[4, kk, i], hist[0, kk, i],
-                                               hist[1, kk, i], hist[2, kk, i], k_t, wgt, half)
+                        e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
+                                               omega[0, i], omega[1, i], omega[2, i],
+                                               omega[0, j], omega[1, j], omega[2, j], ri, rj,
+                                               hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
+                                               k_t, pe, dt, half)
                     else:
-                        e = sphere_contact_end(rx, ry, rz, d, ri, rj, hist[4, kk, i], hist[0, kk, i],
-                                               hist[1, kk, i], hist[2, kk, i], None, wgt, half)
+                        e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
+                                               ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
+                                               hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
+                                               None, pe, dt, half)
                     fx += e[0]
                     fy += e[1]
                     fz += e[2]

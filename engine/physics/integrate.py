@@ -6,8 +6,6 @@ needed (output, checkpoints). The angular velocity of a sphere obeys the same ki
 together with :func:`engine.physics.rotation.fincham_quat_step_space` is Fincham's leap-frog.
 """
 
-import math
-
 import numba
 
 
@@ -21,4 +19,11 @@ def kick(v, f, inv_m, h):
 def drift_wrap(x, v, dt, box, inv_box):
     """Position after a drift of dt, wrapped into [0, box)."""
     y = x + v * dt
-    return y - box * math.floor(y * inv_box)
+    # = y - box * floor(y / box) for a drift shorter than a box, written with comparisons: math.floor
+    # returns an int64 that promotes float32 to float64 (numba-cuda has no np.floor). Compares y with
+    # box itself, so a y a rounding below box stays (the floor form could give -1 ulp there).
+    if y >= box:
+        return y - box
+    if y < box - box:
+        return y + box
+    return y
