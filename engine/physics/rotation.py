@@ -19,7 +19,8 @@ def quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
 
 @numba.njit
 def quat_normalize(q0, q1, q2, q3):
-    inv = 1 / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    s = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    inv = (s / s) / s  # = 1/s exactly, in the working precision (a literal 1 would promote float32)
     return q0 * inv, q1 * inv, q2 * inv, q3 * inv
 
 
@@ -44,7 +45,7 @@ def quat_rotate_inverse(q0, q1, q2, q3, vx, vy, vz):
 @numba.njit
 def quat_rate_space(q0, q1, q2, q3, wx, wy, wz, half):
     """dq/dt = 1/2 (0, w) q for an angular velocity w given in the space frame (rad/s)."""
-    d0, d1, d2, d3 = quat_mul(0 * wx, wx, wy, wz, q0, q1, q2, q3)
+    d0, d1, d2, d3 = quat_mul((half - half) * wx, wx, wy, wz, q0, q1, q2, q3)
     return d0 * half, d1 * half, d2 * half, d3 * half
 
 
