@@ -189,7 +189,7 @@ class SimulationSpec(BaseModel):
             raise ValueError(
                 f"output_interval = {self.output_interval:.6g} s is shorter than the time step dt = {p.dt:.6g} s")
         cutoff = 2.0 * p.radius_max * (1.0 + 0.5 * self.verlet_skin)
-        if self.box_length < 3.0 * cutoff and self.n_particles > 2:
+        if self.box_length < 3.0 * cutoff:
             # The minimum-image convention and the cell list need L > 2 * cutoff; keep a margin.
             raise ValueError(
                 f"box_length = {self.box_length:g} m is too small for particles of radius {p.radius_max:.4g} m: "

@@ -26,7 +26,7 @@ import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the di
 
 from engine.backends.base import ContactParams, SphereSystem
 from engine.errors import InstabilityError
-from engine.physics.contact import contact_end_weight, min_image, sphere_contact, sphere_contact_end
+from engine.physics.contact import contact_end_fraction, min_image, sphere_contact, sphere_contact_end
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import fincham_quat_step_space
 
@@ -253,9 +253,12 @@ def compute_forces(pos, vel, vel_p, omega, radius, inv_m, nbr, nn, hist, force, 
                         worst = ov
                         worst_i = i
                 elif delta_prev > 0:
-                    e = sphere_contact_end(rx, ry, rz, d, ri, rj, hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1],
-                                           hist[i, kk, 2], k_t, contact_end_weight(delta_prev, delta, half),
-                                           half)
+                    e = sphere_contact_end(rx, ry, rz, d,
+                                           vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
+                                           omega[i, 0], omega[i, 1], omega[i, 2],
+                                           omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
+                                           hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], k_t,
+                                           contact_end_fraction(delta_prev, delta), dt, half)
                     fx += e[0]
                     fy += e[1]
                     fz += e[2]
@@ -392,13 +395,13 @@ class CpuBackend:
         n = system.n
         self.n = n
         self.box = float(system.box_length)
-        self.pos = np.ascontiguousarray(system.position, dtype=dt_)
-        self.vel = np.ascontiguousarray(system.velocity, dtype=dt_)
-        self.omega = np.ascontiguousarray(system.angular_velocity, dtype=dt_)
-        self.quat = np.ascontiguousarray(system.orientation, dtype=dt_)
-        self.radius = np.ascontiguousarray(system.radius, dtype=dt_)
-        self.mass = np.ascontiguousarray(system.mass, dtype=dt_)
-        self.inertia = np.ascontiguousarray(system.inertia, dtype=dt_)
+        self.pos = np.array(system.position, dtype=dt_, order="C", copy=True)
+        self.vel = np.array(system.velocity, dtype=dt_, order="C", copy=True)
+        self.omega = np.array(system.angular_velocity, dtype=dt_, order="C", copy=True)
+        self.quat = np.array(system.orientation, dtype=dt_, order="C", copy=True)
+        self.radius = np.array(system.radius, dtype=dt_, order="C", copy=True)
+        self.mass = np.array(system.mass, dtype=dt_, order="C", copy=True)
+        self.inertia = np.array(system.inertia, dtype=dt_, order="C", copy=True)
         self.inv_m = (1.0 / self.mass).astype(dt_)
         self.inv_i = (1.0 / self.inertia).astype(dt_)
         self.force = np.zeros((n, 3), dt_)

@@ -27,7 +27,15 @@ import numba
 @numba.njit
 def min_image(d, box, inv_box, half):
     """Minimum-image component of a separation d (m) in a periodic box of edge `box` (half = 0.5)."""
-    return d - box * math.floor(d * inv_box + half)
+    # = d - box * floor(d / box + 1/2) for |d| < 3/2 box (always so for two positions in [0, box));
+    # written with comparisons because math.floor returns an int64 that would promote float32 to
+    # float64, and numba-cuda has no np.floor; the results are bit-identical to the floor form.
+    t = d * inv_box + half
+    if t >= half + half:
+        return d - box
+    if t < half - half:
+        return d + box
+    return d
 
 
 @numba.njit
@@ -69,6 +77,19 @@ def coulomb_cap(fx, fy, fz, fn, mu, k_t):
 
 
 @numba.njit
+def tangential_slip(nx, ny, nz, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, li, lj):
+    """Tangential part of the contact-point velocity v_i - v_j - (l_i w_i + l_j w_j) x n (m/s)."""
+    sx = li * wix + lj * wjx
+    sy = li * wiy + lj * wjy
+    sz = li * wiz + lj * wjz
+    cx = vx - (sy * nz - sz * ny)
+    cy = vy - (sz * nx - sx * nz)
+    cz = vz - (sx * ny - sy * nx)
+    cn = cx * nx + cy * ny + cz * nz
+    return cx - cn * nx, cy - cn * ny, cz - cn * nz
+
+
+@numba.njit
 def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wjy, wjz, ai, aj,
                    xix, xiy, xiz, delta_prev, fd_prev, m12, k_n, gamma_n, k_t, mu, dt, half):
     """Force and torque on sphere i from an overlapping sphere j, and the updated tangential spring.
@@ -91,7 +112,7 @@ def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wj
     Returns (F_x, F_y, F_z, tau_x, tau_y, tau_z, xi_x, xi_y, xi_z, delta, F_d): force (N) and torque
     (N m) on i, the new spring (m), the overlap (m) and the dashpot force -gamma_n u_n (N) of this step.
     """
-    inv_d = 1 / d
+    inv_d = (half + half) / d  # not 1 / d: an int literal promotes float32 to float64
     nx = rx * inv_d
     ny = ry * inv_d
     nz = rz * inv_d
@@ -103,7 +124,7 @@ def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wj
         w = contact_start_weight(delta, delta_prev, half)
         f_old = delta - delta
     c = dt * half / m12
-    un = (ux * nx + uy * ny + uz * nz + c * (k_n * delta - f_old)) / (1 + w * gamma_n * c)
+    un = (ux * nx + uy * ny + uz * nz + c * (k_n * delta - f_old)) / (half + half + w * gamma_n * c)
     fd = -gamma_n * un
     fn = normal_force(delta, un, k_n, gamma_n)
     fa = k_n * delta + w * fd
@@ -115,17 +136,7 @@ def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wj
         return fx, fy, fz, zero, zero, zero, zero, zero, zero, delta, fd
     li = (d + ai - aj) * half
     lj = d - li
-    # contact-point velocity: v_c = v_i - v_j - (l_i w_i + l_j w_j) x n
-    sx = li * wix + lj * wjx
-    sy = li * wiy + lj * wjy
-    sz = li * wiz + lj * wjz
-    cx = vx - (sy * nz - sz * ny)
-    cy = vy - (sz * nx - sx * nz)
-    cz = vz - (sx * ny - sy * nx)
-    cn = cx * nx + cy * ny + cz * nz
-    tx = cx - cn * nx
-    ty = cy - cn * ny
-    tz = cz - cn * nz
+    tx, ty, tz = tangential_slip(nx, ny, nz, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, li, lj)
     px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
     # a contact that began inside this step has loaded its spring only since then
     h = dt if delta_prev > 0 else dt * (delta / (delta - delta_prev))
@@ -170,27 +181,33 @@ def contact_start_weight(delta, delta_prev, half):
 
 
 @numba.njit
-def contact_end_weight(delta_prev, delta, half):
-    """Extra impulse (in units of the last in-contact jumping force times dt) owed at a contact's end.
+def contact_end_fraction(delta_prev, delta):
+    """Fraction p of the step after the last in-contact step during which the contact still lasted.
 
     The last in-contact force F_k stood for [t_k - dt/2, t_k + dt/2] but the contact lasted until
-    t_k + p dt with p = delta_prev/(delta_prev - delta): the missing part is F_k (p - 1/2) dt.
+    t_k + p dt with p = delta_prev/(delta_prev - delta): a jumping force owes F_k (p - 1/2) dt.
     """
-    return delta_prev / (delta_prev - delta) - half
+    return delta_prev / (delta_prev - delta)
 
 
 @numba.njit
-def sphere_contact_end(rx, ry, rz, d, ai, aj, fd_prev, xix, xiy, xiz, k_t, weight, half):
+def sphere_contact_end(rx, ry, rz, d, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, ai, aj, fd_prev, xix, xiy, xiz,
+                       k_t, p, dt, half):
     """Force and torque on i that settle the impulse of a contact that ended inside this step.
 
     Only the parts of the force that jump at the end are settled: the dashpot (fd_prev, N, of the last
-    in-contact step) and the tangential spring xi (m) that is cut; k_n delta goes to zero continuously.
-    weight: :func:`contact_end_weight`. Returns (F_x, F_y, F_z, tau_x, tau_y, tau_z).
+    in-contact step) and the tangential spring that is cut. p is the fraction of the step the contact
+    still lasted (:func:`contact_end_weight` + 1/2). The spring kept loading at the mid-step slip v_t
+    after the last in-contact step, so its missing impulse over [t_k + dt/2, t_k + p dt] is
+    -k_t [xi (p - 1/2) + v_t dt (p^2 - 1/4)/2] dt; k_n delta goes to zero continuously.
+    v, w: mid-step relative and angular velocities as in :func:`sphere_contact`.
+    Returns (F_x, F_y, F_z, tau_x, tau_y, tau_z).
     """
-    inv_d = 1 / d
+    inv_d = (half + half) / d  # not 1 / d: an int literal promotes float32 to float64
     nx = rx * inv_d
     ny = ry * inv_d
     nz = rz * inv_d
+    weight = p - half
     fn = fd_prev * weight
     fx = fn * nx
     fy = fn * ny
@@ -198,9 +215,13 @@ def sphere_contact_end(rx, ry, rz, d, ai, aj, fd_prev, xix, xiy, xiz, k_t, weigh
     zero = d - d
     if k_t is None:
         return fx, fy, fz, zero, zero, zero
-    gx = -k_t * xix * weight
-    gy = -k_t * xiy * weight
-    gz = -k_t * xiz * weight
     li = (d + ai - aj) * half
+    lj = d - li
+    tx, ty, tz = tangential_slip(nx, ny, nz, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, li, lj)
+    px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
+    s = dt * (p * p - half * half) * half
+    gx = -k_t * (px * weight + tx * s)
+    gy = -k_t * (py * weight + ty * s)
+    gz = -k_t * (pz * weight + tz * s)
     return (fx + gx, fy + gy, fz + gz, -li * (ny * gz - nz * gy), -li * (nz * gx - nx * gz),
             -li * (nx * gy - ny * gx))
