@@ -73,7 +73,7 @@ def test_sigkilled_worker_job_is_resumed_from_checkpoint(tmp_path, engine_run, s
     first = start_worker(settings, engine_run)
     ckpt = settings.checkpoint_dir(job.id)
     try:
-        wait_for(lambda: ckpt.is_dir() and any(ckpt.iterdir()) and store.get(job.id).progress > 0.05, 120,
+        wait_for(lambda: ckpt.is_dir() and any(ckpt.iterdir()) and store.get(job.id).progress > 0.05, 400,
                  "a checkpoint")
     finally:
         os.kill(first.pid, signal.SIGKILL)
@@ -81,7 +81,7 @@ def test_sigkilled_worker_job_is_resumed_from_checkpoint(tmp_path, engine_run, s
     assert store.get(job.id).state == RUNNING  # the row still says running: only the lease can tell
     second = start_worker(settings, engine_run)
     try:
-        wait_for(lambda: store.get(job.id).state in (DONE, FAILED), 180, "the resumed job")
+        wait_for(lambda: store.get(job.id).state in (DONE, FAILED), 400, "the resumed job")
     finally:
         assert stop(second) == 0
     got = store.get(job.id)
