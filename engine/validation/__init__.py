@@ -1,0 +1,1 @@
+"""Physics validation runs that write reports (``demq validate ...``)."""
