@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--seeds", type=int, default=4)
     v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
     v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
+    v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")
+    v.add_argument("--threads", type=int, default=0, help="Numba threads per run (0 = all)")
     v.set_defaults(func=cmd_validate)
 
 
@@ -104,4 +106,5 @@ def cmd_run(args) -> int:
 def cmd_validate(args) -> int:
     from engine.validation import hcs_spheres
 
-    return hcs_spheres.main(out_dir=args.out_dir, seeds=args.seeds, quick=args.quick, backend=args.backend)
+    return hcs_spheres.main(out_dir=args.out_dir, seeds=args.seeds, quick=args.quick, backend=args.backend,
+                            jobs=args.jobs, threads=args.threads)

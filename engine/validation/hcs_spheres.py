@@ -143,22 +143,40 @@ def plot(results: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _one(args) -> str:
+    e_n, seed, backend, quick, path, threads = args
+    if threads:
+        import numba
+
+        numba.set_num_threads(threads)
+    spec = (quick_spec if quick else full_spec)(e_n, seed, backend)
+    t0 = time.time()
+    s = run(spec, path)
+    return (f"e_n=e_t={e_n} seed {seed}: {s.steps} steps on {s.backend} ({s.device}) in "
+            f"{time.time() - t0:.1f} s, Cundall {s.cundall:.3g}")
+
+
 def main(out_dir="reports/hcs-spheres", seeds: int = 4, quick: bool = False, backend: str = "auto",
-         cases=CASES) -> int:
+         cases=CASES, jobs: int = 1, threads: int = 0) -> int:
+    """Run the ensemble (``jobs`` runs at a time, each with ``threads`` Numba threads) and report."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     make = quick_spec if quick else full_spec
+    tasks = [(e_n, seed, backend, quick, out / f"e{e_n}_seed{seed}.h5", threads)
+             for e_n, _ in cases for seed in range(seeds)]
+    if jobs > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            for line in pool.map(_one, tasks):
+                print(line, flush=True)
+    else:
+        for t in tasks:
+            print(_one(t), flush=True)
     results, rows, meta = {}, [], {}
     for e_n, e_t in cases:
-        runs = []
-        for seed in range(seeds):
-            spec = make(e_n, seed, backend)
-            path = out / f"e{e_n}_seed{seed}.h5"
-            t0 = time.time()
-            s = run(spec, path)
-            print(f"e_n=e_t={e_n} seed {seed}: {s.steps} steps on {s.backend} ({s.device}) in "
-                  f"{time.time() - t0:.1f} s, Cundall {s.cundall:.3g}", flush=True)
-            runs.append(measure_run(path))
+        runs = [measure_run(out / f"e{e_n}_seed{seed}.h5") for seed in range(seeds)]
         c = compare(runs, e_n, e_t)
         en_meas, et_meas = measured_restitution(make(e_n, 0, backend))
         c.update(e_n_measured=en_meas, e_t_measured=et_meas,
