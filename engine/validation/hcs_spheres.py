@@ -100,7 +100,8 @@ def measured_restitution(spec: SimulationSpec) -> tuple[float, float]:
     for ang in (0.0, math.radians(10.0)):
         v = 0.5 * np.array([math.cos(ang), math.sin(ang), 0.0])
         gap = 1e-3 * a
-        pos = np.array([[0.5 - a - gap / 2, 0.5, 0.5], [0.5 + a + gap / 2, 0.5, 0.5]]) * (spec.box_length / 1.0)
+        mid = 0.5 * spec.box_length
+        pos = np.array([[mid - a - gap / 2, mid, mid], [mid + a + gap / 2, mid, mid]])
         system = SphereSystem(spec.box_length, pos, np.array([v / 2, -v / 2]), np.zeros((2, 3)),
                               np.tile([1.0, 0, 0, 0], (2, 1)), np.full(2, a), np.full(2, m),
                               np.full(2, Q_SPHERE * m * a * a))
