@@ -7,7 +7,7 @@ taking the same job. Transitions are single conditional UPDATEs (row locks, READ
 
 from __future__ import annotations
 
-from sqlalchemy import Select, create_engine
+from sqlalchemy import Select, create_engine, text
 from sqlalchemy.engine import make_url
 
 from jobs.sql_store import SqlJobStore
@@ -21,6 +21,10 @@ def sqlalchemy_url(url: str) -> str:
     return u.render_as_string(hide_password=False)
 
 
+#: Key of the advisory lock that serialises CREATE TABLE between processes (bytes of "demq").
+_SCHEMA_LOCK = 0x64656D71
+
+
 class PostgresJobStore(SqlJobStore):
     """The job table in PostgreSQL (``postgresql://user@host:port/db``)."""
 
@@ -29,3 +33,11 @@ class PostgresJobStore(SqlJobStore):
 
     def _lock_next(self, query: Select) -> Select:
         return query.with_for_update(skip_locked=True)
+
+    def create_tables(self) -> None:
+        """Create the table under a transaction-scoped advisory lock: workers that start together
+        (a Slurm job array, a compose project) otherwise race in CREATE TABLE and fail with
+        UniqueViolation/DuplicateTable."""
+        with self._write() as conn:
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})
+            self.metadata.create_all(conn, checkfirst=True)

@@ -28,7 +28,7 @@ from typing import Callable, Optional
 from sqlalchemy.exc import SQLAlchemyError
 
 from jobs.runner import child_main
-from jobs.schema import CANCELLED, DONE, FAILED, FINAL_STATES
+from jobs.schema import CANCELLED, DONE, FAILED, FINAL_STATES, QUEUED, RUNNING
 from jobs.settings import Settings
 from jobs.store import Job, JobStore, LeaseLost
 
@@ -67,16 +67,30 @@ class Worker:
         return self._stop.is_set()
 
     # ---- loops ------------------------------------------------------------------------------------
-    def run_forever(self) -> None:
-        """Claim and run jobs until :meth:`stop`."""
-        log.info("worker %s started on %s", self.owner, self.settings.database_url)
+    def run_forever(self, exit_when_idle: bool = False) -> None:
+        """Claim and run jobs until :meth:`stop`; with ``exit_when_idle`` (drain mode, for Slurm job
+        arrays), also return once the table holds no queued and no running job."""
+        log.info("worker %s started on %s", self.owner, _safe_url(self.settings.database_url))
         while not self._stop.is_set():
             job = self._next(None)
             if job is None:
+                if exit_when_idle and self._drained():
+                    log.info("worker %s: no queued or running job left; exiting (drain mode)", self.owner)
+                    break
                 self._stop.wait(self.settings.poll_s)
             else:
                 self.execute(job)
         log.info("worker %s stopped", self.owner)
+
+    def _drained(self) -> bool:
+        """No job queued and none running anywhere (a running job's worker may still die and the
+        reaper requeue it, so a draining worker waits for those too)."""
+        try:
+            counts = self.store.counts()
+        except SQLAlchemyError as exc:
+            log.error("cannot reach the job table, retrying: %s", exc)
+            return False
+        return not counts.get(QUEUED) and not counts.get(RUNNING)
 
     def run_job(self, job_id: str) -> Optional[Job]:
         """Run exactly ``job_id`` here (or wait while another worker runs it); return it when final."""
@@ -210,6 +224,15 @@ class Worker:
 def _columns(progress: Optional[dict]) -> dict:
     """Engine progress -> job-table columns."""
     return {_PROGRESS_COLUMNS[k]: v for k, v in (progress or {}).items() if k in _PROGRESS_COLUMNS}
+
+
+def _safe_url(url: str) -> str:
+    """The database URL without its password, for the log."""
+    try:
+        from sqlalchemy.engine import make_url
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:  # not a URL SQLAlchemy parses: log nothing of it
+        return "<database>"
 
 
 def _spec_json(job: Job) -> str:

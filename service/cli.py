@@ -2,7 +2,7 @@
 
     demq run | validate                  engine commands (engine/cli.py)
     demq serve                           HTTP API + one embedded worker (SQLite in the data directory)
-    demq worker                          a worker on the configured job table
+    demq worker [--exit-when-idle]       a worker on the configured job table (drain mode: exit when empty)
     demq submit [SPEC.json] [--local --wait -o OUT.h5]
     demq status [ID]                     one job, or a list of jobs (submission order)
     demq fetch ID -o OUT.h5              download a result
@@ -84,7 +84,7 @@ def cmd_worker(args) -> int:
     store = open_store(s.database_url, s.table_prefix)
     worker = Worker(store, s)
     _on_signals(worker.stop)
-    worker.run_forever()
+    worker.run_forever(exit_when_idle=args.exit_when_idle)
     store.close()
     return 0
 
@@ -286,6 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("worker", help="claim and run jobs until SIGTERM")
     _add_queue_flags(p)
     _add_worker_flags(p)
+    p.add_argument("--exit-when-idle", action="store_true",
+                   help="drain mode: exit (status 0) once no job is queued or running (Slurm job arrays)")
     p.set_defaults(func=cmd_worker)
 
     p = sub.add_parser("submit", help="queue a spec (default spec if none given)")
