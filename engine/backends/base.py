@@ -42,6 +42,32 @@ class SphereSystem:
         return self.position.shape[0]
 
 
+@dataclass
+class EllipsoidSystem:
+    """Host-side state of N ellipsoids (paper 003), SI units, rows in particle-id order.
+
+    As :class:`SphereSystem`, with semi_axes (N,3) m (a, b, c along the body axes x, y, z; prolate
+    spheroids: a >= b = c) and inertia (N,3) kg m^2, the principal moments about the body axes.
+    angular_velocity is in the space frame. contact_pairs/contact_springs: contact slots carried over
+    from a checkpoint (overlap and dashpot force in columns 3, 4), empty for a fresh start.
+    """
+
+    box_length: float
+    position: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    orientation: np.ndarray
+    semi_axes: np.ndarray
+    mass: np.ndarray
+    inertia: np.ndarray
+    contact_pairs: Optional[np.ndarray] = None
+    contact_springs: Optional[np.ndarray] = None
+
+    @property
+    def n(self) -> int:
+        return self.position.shape[0]
+
+
 @dataclass(frozen=True)
 class ContactParams:
     """Contact constants and numerics. k_t = None: smooth (no tangential force, no torque).
@@ -81,7 +107,16 @@ def cuda_available() -> bool:
 
 
 def make_backend(name: str, system: SphereSystem, contact: ContactParams):
-    """Backend instance for 'cpu', 'cuda' or 'auto'."""
+    """Backend instance for 'cpu', 'cuda' or 'auto' (ellipsoids: CPU only in this version)."""
+    if isinstance(system, EllipsoidSystem):
+        if name == "cuda":
+            raise BackendUnavailable(
+                "backend = 'cuda' is not available for ellipsoids in this engine version; use 'cpu' or 'auto'")
+        if name not in ("auto", "cpu"):
+            raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")
+        from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+
+        return CpuEllipsoidBackend(system, contact)
     if name == "auto":
         name = "cuda" if cuda_available() else "cpu"
     if name == "cpu":

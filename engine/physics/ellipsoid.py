@@ -52,18 +52,10 @@ import math
 
 import numba
 
+from engine.physics.rotation import quat_matrix
+
 
 # ---- 3x3 symmetric matrices as 6-tuples (m00, m01, m02, m11, m12, m22) ------------------------------
-
-
-@numba.njit
-def quat_matrix(q0, q1, q2, q3, half):
-    """Rotation matrix (body -> space) of a unit quaternion, row-major 9-tuple."""
-    one = half + half
-    two = one + one
-    return (one - two * (q2 * q2 + q3 * q3), two * (q1 * q2 - q0 * q3), two * (q1 * q3 + q0 * q2),
-            two * (q1 * q2 + q0 * q3), one - two * (q1 * q1 + q3 * q3), two * (q2 * q3 - q0 * q1),
-            two * (q1 * q3 - q0 * q2), two * (q2 * q3 + q0 * q1), one - two * (q1 * q1 + q2 * q2))
 
 
 @numba.njit
@@ -421,3 +413,51 @@ def paper_tetrahedron(c_a, q_a, axes_a, c_b, q_b, axes_b, w):
     if np.dot(n, np.asarray(c_b) - np.asarray(c_a)) < 0:
         n = -n
     return mu.real, pts, c, n
+
+
+@numba.njit
+def ellipsoid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
+                   ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n, gamma_n, dt, tol,
+                   half):
+    """Frictionless contact of ellipsoids A and B (paper 003 Eqs. 23-24); r = c_B - c_A (minimum image).
+
+    u = u_B - u_A (predicted end-of-step translational velocities, m/s), w_A, w_B predicted space-frame
+    angular velocities (rad/s); delta_prev, fd_prev: overlap (m) and dashpot force (N) of the pair at the
+    previous step; m12 the reduced mass (kg). The force on B is F n with F = k_n delta - gamma_n v_n
+    (:func:`ellipsoid_normal_force`), v_n the normal velocity of B's surface point at the contact point C
+    relative to A's; A gets -F n. Both torques act about the centres with the common point C, so
+    F_A = -F_B and tau_A + tau_B + c_A x F_A + c_B x F_B = 0 (angular momentum) hold to rounding.
+    A contact that ended inside this step (delta <= 0 < delta_prev) settles the dashpot impulse it owes
+    (as engine.physics.contact.sphere_contact_end with k_t = None).
+
+    Returns (F_A (3), tau_A (3), tau_B (3), delta, F_dashpot); delta < 0 is the gap of a separated pair.
+    """
+    f, lam, delta, nx, ny, nz, cx, cy, cz = ellipsoid_contact(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca,
+                                                              qb0, qb1, qb2, qb3, ab, bb, cb, tol, half)
+    zero = half - half
+    if delta > zero:
+        # velocity of B's surface point at C relative to A's: u + w_B x (C - r) - w_A x C
+        bx = cx - rx
+        by = cy - ry
+        bz = cz - rz
+        vx = ux + (wby * bz - wbz * by) - (way * cz - waz * cy)
+        vy = uy + (wbz * bx - wbx * bz) - (waz * cx - wax * cz)
+        vz = uz + (wbx * by - wby * bx) - (wax * cy - way * cx)
+        vn = vx * nx + vy * ny + vz * nz
+        fm, fd = ellipsoid_normal_force(delta, vn, delta_prev, fd_prev, m12, k_n, gamma_n, dt, half)
+    elif delta_prev > zero:
+        p = delta_prev / (delta_prev - delta)
+        fm = fd_prev * (p - half)
+        fd = zero
+    else:
+        return zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero
+    fax = -fm * nx
+    fay = -fm * ny
+    faz = -fm * nz
+    bx = cx - rx
+    by = cy - ry
+    bz = cz - rz
+    return (fax, fay, faz,
+            cy * faz - cz * fay, cz * fax - cx * faz, cx * fay - cy * fax,
+            -(by * faz - bz * fay), -(bz * fax - bx * faz), -(bx * fay - by * fax),
+            delta, fd)
