@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from engine.backends.base import SphereSystem
+from engine.backends.base import EllipsoidSystem, SphereSystem
 from engine.errors import SpecError
 from engine.params import Derived
 
@@ -77,3 +77,33 @@ def initial_spheres(spec, p: Derived) -> SphereSystem:
     return SphereSystem(
         box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
         radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]))
+
+
+def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
+    """Start of an ellipsoid spec (paper 003 §4): bounding spheres (radius a) placed without overlap,
+    uniformly random orientations, Maxwellian velocities, and spins about the two axes perpendicular to
+    the symmetry axis at the translational temperature per degree of freedom (no spin about the axis,
+    which frictionless contacts can neither create nor use: paper 003 sets omega_y(0) = 0)."""
+    rng = np.random.default_rng(spec.seed)
+    n = spec.n_particles
+    a = p.semi_axes[0]
+    try:
+        pos = place_spheres(n, spec.box_length, a, rng)
+    except SpecError as exc:
+        raise SpecError(f"{exc} (ellipsoids are placed by their bounding spheres of radius a = {a:.4g} m, "
+                        f"elongation = {spec.elongation:g})") from None
+    vel = maxwellian(n, spec.velocity_rms, rng)
+    quat = random_quaternions(n, rng)
+    i_perp = p.inertia[1]
+    # T per dof = m <v^2>/3 = I_perp <w_k^2> for each perpendicular body axis k
+    w_b = rng.normal(size=(n, 2))
+    w_b -= w_b.mean(axis=0) if n > 1 else 0.0
+    w_b *= spec.velocity_rms * math.sqrt(p.mass / (3.0 * i_perp)) / math.sqrt(np.mean(w_b * w_b))
+    w, x, y, z = quat.T
+    e2 = np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], 1)
+    e3 = np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], 1)
+    omega = w_b[:, :1] * e2 + w_b[:, 1:] * e3
+    return EllipsoidSystem(
+        box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
+        semi_axes=np.tile(np.asarray(p.semi_axes, float), (n, 1)), mass=np.full(n, p.mass),
+        inertia=np.tile(np.asarray(p.inertia, float), (n, 1)))

@@ -31,7 +31,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from engine.backends.base import ContactParams, SphereSystem, make_backend
+from engine.backends.base import ContactParams, EllipsoidSystem, SphereSystem, make_backend
 from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path
 from engine.params import Q_SPHERE, Derived, derive
@@ -94,12 +94,21 @@ def schedule(p: Derived, snapshots: int) -> tuple[np.ndarray, set]:
 
 
 def record(obs: dict, n: int) -> dict:
-    """Observables written every record (temperatures per degree of freedom, J)."""
+    """Observables written every record (temperatures per degree of freedom, J).
+
+    Ellipsoids: T_rot counts the two rotational degrees of freedom that exchange energy (about the
+    axes perpendicular to the symmetry axis), T_rot = E_rot,perp / N (paper 003 Eq. 25b as corrected in
+    PHYSICS-NOTES §3.3); kinetic_energy_rotational stays the total.
+    """
+    if "kinetic_energy_rotational_active" in obs:
+        t_rot = 2.0 * obs["kinetic_energy_rotational_active"] / (obs.get("rotational_dof", 2) * n)
+    else:
+        t_rot = 2.0 * obs["kinetic_energy_rotational"] / (3.0 * n)
     return {
         "kinetic_energy_translational": obs["kinetic_energy_translational"],
         "kinetic_energy_rotational": obs["kinetic_energy_rotational"],
         "temperature_translational": 2.0 * obs["kinetic_energy_translational"] / (3.0 * n),
-        "temperature_rotational": 2.0 * obs["kinetic_energy_rotational"] / (3.0 * n),
+        "temperature_rotational": t_rot,
         "contacts": np.int64(obs["contacts"]),
         "elastic_energy": obs["elastic_energy"],
         "max_overlap": obs["max_overlap"],
@@ -154,20 +163,30 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     left behind), Cancelled when ``should_cancel()`` returns True.
     """
     from engine import __version__
-    from engine.scene import initial_spheres
+    from engine.scene import initial_ellipsoids, initial_spheres
 
     spec = load_spec(spec)
-    if spec.shape != "sphere":
-        raise SpecError("shape = 'ellipsoid' is not available in this engine version: only 'sphere' runs")
+    ellipsoid = spec.shape == "ellipsoid"
+    if ellipsoid and not spec.smooth:
+        raise SpecError(f"shape = 'ellipsoid' runs frictionless contacts only (paper 003): e_t = {spec.e_t:g} "
+                        f"and friction = {spec.friction} must be e_t = -1 (or friction = 0)")
     p = derive(spec)
     spec_json = spec.to_json()
     output = Path(output)
     ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
     resume = ck.load(spec_json)
 
-    system = initial_spheres(spec, p)
+    system = initial_ellipsoids(spec, p) if ellipsoid else initial_spheres(spec, p)
     phase, step_done = "thermalization", 0
-    if resume is not None:
+    if resume is not None and ellipsoid:
+        phase, step_done = str(resume["phase"]), int(resume["step_done"])
+        system = EllipsoidSystem(
+            box_length=spec.box_length, position=resume["position"], velocity=resume["velocity"],
+            angular_velocity=resume["angular_velocity"], orientation=resume["orientation"],
+            semi_axes=system.semi_axes, mass=system.mass, inertia=system.inertia,
+            contact_pairs=resume["pairs"], contact_springs=resume["springs"])
+        shutil.copyfile(ck.dir / "partial.h5", partial_path(output))
+    elif resume is not None:
         phase, step_done = str(resume["phase"]), int(resume["step_done"])
         system = SphereSystem(
             box_length=spec.box_length, position=resume["position"], velocity=resume["velocity"],
@@ -196,7 +215,8 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
         writer.truncate(json.loads(str(resume["counts"])))
     else:
         writer = H5MDWriter(output, n=spec.n_particles, box_length=spec.box_length, spec_json=spec_json,
-                            derived=derived, radius=system.radius, mass=system.mass,
+                            derived=derived, radius=None if ellipsoid else system.radius,
+                            semi_axes=system.semi_axes if ellipsoid else None, mass=system.mass,
                             creator_version=__version__, dtype=dtype)
 
     n = spec.n_particles

@@ -139,3 +139,38 @@ def test_central_collision_restitution():
     e = (be.vel[1, 0] - be.vel[0, 0]) / 1.0
     assert abs(e - 0.6) < 2e-3, e
     assert np.abs(be.angm).max() < 1e-15
+
+
+def test_end_to_end_ellipsoid_run_writes_h5md(tmp_path):
+    import h5py
+
+    from engine.simulate import run
+
+    spec = {"shape": "ellipsoid", "elongation": 2.0, "n_particles": 32, "volume_fraction": 0.05, "e_n": 0.9,
+            "e_t": -1.0, "t_end": 0.01, "thermalization": 0.1, "snapshots": 2, "backend": "cpu", "seed": 3}
+    summary = run(spec, tmp_path / "e.h5")
+    with h5py.File(summary.output) as f:
+        part = f["particles/all"]
+        axes = part["semi_axes"][...]
+        assert axes.shape == (32, 3) and np.allclose(axes[:, 1], axes[:, 2])
+        assert np.allclose(axes[:, 0] / axes[:, 1], 2.0) and "radius" not in part
+        assert np.allclose(axes[:, 0] * axes[:, 1] ** 2, f["parameters"].attrs["radius"] ** 3)
+        q = part["orientation/value"][...]
+        assert q.shape == (2, 32, 4) and np.allclose(np.linalg.norm(q, axis=2), 1, atol=1e-12)
+        assert not np.allclose(q[0], q[1])                           # orientations were integrated
+        t_tr = f["observables/temperature_translational/value"][...]
+        t_rot = f["observables/temperature_rotational/value"][...]
+        e_rot = f["observables/kinetic_energy_rotational/value"][...]
+        assert np.all(np.isfinite(t_tr)) and np.all(t_rot > 0)
+        # 2 active rotational dof, no spin about the symmetry axis: T_rot = E_rot / N
+        assert np.allclose(t_rot, e_rot / 32, rtol=1e-9)
+        assert f["h5md/modules/dem"].attrs["shape_data"] == "semi_axes"
+
+
+def test_ellipsoid_spec_with_friction_is_refused(tmp_path):
+    from engine.errors import SpecError
+    from engine.simulate import run
+
+    with pytest.raises(SpecError, match="frictionless"):
+        run({"shape": "ellipsoid", "elongation": 2.0, "n_particles": 32, "volume_fraction": 0.05, "e_t": 0.5,
+             "t_end": 0.01, "backend": "cpu"}, tmp_path / "x.h5")
