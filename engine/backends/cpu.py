@@ -37,18 +37,19 @@ SLOT = 5
 
 
 @numba.njit(parallel=True, cache=True)
-def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, vel_p, hk, dt, box, inv_box,
-               half, chunk_disp, chunk_bad):
-    """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; max displacement since the build.
+def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt, box, inv_box, half,
+               chunk_v2, chunk_bad):
+    """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; the largest |v|^2 per chunk.
 
-    Also stores the predicted end-of-step velocities v + F/m dt/2 (and w + tau/I dt/2) that the
-    dashpot and the tangential spring use: with the mid-step velocity instead, the damping force lags
-    by dt/2, which acts like a stiffness change of gamma dt/(2 m12) and shifts e_n at first order in dt
-    (by 4.5e-3 at e_n = 0.3 and dt = t_c/50); the predictor makes that error second order.
+    Also stores the predicted end-of-step velocity v + F/m dt/2 that the normal dashpot uses: with the
+    mid-step velocity instead, the damping force lags by dt/2, which acts like a stiffness change of
+    gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at e_n = 0.3, dt = t_c/50); the
+    predictor makes that error second order. The tangential spring integrates the mid-step velocity
+    (midpoint rule, like the positions).
     """
-    hp = dt * half
     n = pos.shape[0]
-    nch = chunk_disp.shape[0]
+    nch = chunk_v2.shape[0]
+    hp = dt * half
     for c in prange(nch):
         i0 = c * n // nch
         i1 = (c + 1) * n // nch
@@ -56,15 +57,20 @@ def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, vel_p,
         bad = -1
         for i in range(i0, i1):
             im = inv_m[i]
+            v2 = 0.0
             for k in range(3):
                 v = kick(vel[i, k], force[i, k], im, hk)
                 vel[i, k] = v
                 vel_p[i, k] = kick(v, force[i, k], im, hp)
                 pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+                v2 += v * v
+            w2 = 0.0
             if torque is not None:
                 ii = inv_i[i]
                 for k in range(3):
-                    omega[i, k] = kick(omega[i, k], torque[i, k], ii, hk)
+                    w = kick(omega[i, k], torque[i, k], ii, hk)
+                    omega[i, k] = w
+                    w2 += w * w
             if quat is not None:
                 q0, q1, q2, q3 = fincham_quat_step_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
                                                          omega[i, 0], omega[i, 1], omega[i, 2], dt, half)
@@ -72,18 +78,35 @@ def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, vel_p,
                 quat[i, 1] = q1
                 quat[i, 2] = q2
                 quat[i, 3] = q3
+            if not (v2 < 1e300) or not (w2 < 1e300):
+                if bad < 0:
+                    bad = i
+            elif v2 > m:
+                m = v2
+        chunk_v2[c] = m
+        chunk_bad[c] = bad
+
+
+@numba.njit(parallel=True, cache=True)
+def max_displacement2(pos, x_ref, box, inv_box, half, chunk):
+    """Largest squared displacement (minimum image) since the last list build."""
+    n = pos.shape[0]
+    nch = chunk.shape[0]
+    for c in prange(nch):
+        m = 0.0
+        for i in range(c * n // nch, (c + 1) * n // nch):
             dx = min_image(pos[i, 0] - x_ref[i, 0], box, inv_box, half)
             dy = min_image(pos[i, 1] - x_ref[i, 1], box, inv_box, half)
             dz = min_image(pos[i, 2] - x_ref[i, 2], box, inv_box, half)
             d2 = dx * dx + dy * dy + dz * dz
-            if not (d2 < 1e300) or not (abs(vel[i, 0]) + abs(vel[i, 1]) + abs(vel[i, 2]) < 1e300) \
-                    or not (abs(omega[i, 0]) + abs(omega[i, 1]) + abs(omega[i, 2]) < 1e300):
-                if bad < 0:
-                    bad = i
-            elif d2 > m:
+            if d2 > m:
                 m = d2
-        chunk_disp[c] = m
-        chunk_bad[c] = bad
+        chunk[c] = m
+    m = 0.0
+    for c in range(nch):
+        if chunk[c] > m:
+            m = chunk[c]
+    return m
 
 
 @numba.njit(parallel=True, cache=True)
@@ -291,7 +314,7 @@ def _worst(values, idx):
 
 
 @numba.njit(cache=True)
-def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius, x_ref, vel_p,
+def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius, x_ref, vel_p, disp_bound,
               nbr, nn, hist, nbr_new, nn_new, hist_new,
               nc, inv_cell, cell_start, cell_list, cell_of, cursor,
               box, inv_box, half, dt, skin, k_n, gn_coef, k_t, mu, overlap_limit,
@@ -299,8 +322,12 @@ def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius
     """Advance up to nsteps velocity-Verlet steps; velocities are synchronous on entry and on exit.
 
     Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
-    current step have been drifted but its forces not computed: the caller grows the list, calls
-    :func:`finish_step` and goes on. On BAD_VALUE / OVERLAP the state is left as it is for the error.
+    current step have been drifted but its forces not computed: the caller grows the list, rebuilds,
+    computes the forces and closes the step. On BAD_VALUE / OVERLAP the state is left as it is.
+
+    The L_v/2 rule without reading every displacement every step: disp_bound[0] accumulates
+    max|v| dt, an upper bound of any particle's displacement since the build; only when it passes
+    L_v/2 is the exact largest displacement computed, and the list rebuilt if that passes too.
     """
     builds = 0
     if nsteps <= 0:
@@ -308,16 +335,23 @@ def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius
     limit2 = (skin * half) * (skin * half)
     for s in range(nsteps):
         hk = dt * half if s == 0 else dt
-        kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, vel_p, hk, dt, box,
-                   inv_box, half, chunk_a, chunk_b)
+        kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt, box, inv_box, half,
+                   chunk_a, chunk_b)
         for c in range(chunk_b.shape[0]):
             if chunk_b[c] >= 0:
                 return BAD_VALUE, s, chunk_b[c], 0.0, builds
-        disp2 = 0.0
+        v2 = 0.0
         for c in range(chunk_a.shape[0]):
-            if chunk_a[c] > disp2:
-                disp2 = chunk_a[c]
-        if disp2 > limit2:
+            if chunk_a[c] > v2:
+                v2 = chunk_a[c]
+        disp_bound[0] += math.sqrt(v2) * dt
+        rebuild = False
+        if disp_bound[0] * disp_bound[0] > limit2:
+            exact2 = max_displacement2(pos, x_ref, box, inv_box, half, chunk_a)
+            rebuild = exact2 > limit2
+            disp_bound[0] = math.sqrt(exact2)
+        if rebuild:
+            disp_bound[0] = 0.0
             bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
             build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
                        nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
@@ -408,6 +442,7 @@ class CpuBackend:
         self.torque = np.zeros((n, 3), dt_)
         self.x_ref = self.pos.copy()
         self.vel_p = self.vel.copy()      # predicted end-of-step velocities (see kick_drift)
+        self.disp_bound = np.zeros(1)     # upper bound of the displacement since the last build (m)
         self.device = _cpu_name()
         self.steps_done = 0
         self.builds = 0
@@ -481,6 +516,7 @@ class CpuBackend:
                 break
             self._grow_lists(need)
         copy_list(self.nbr_new, self.nn_new, self.hist_new, self.nbr, self.nn, self.hist)
+        self.disp_bound[0] = 0.0
         self.builds += 1
 
     def _prime(self, system: SphereSystem) -> None:
@@ -511,7 +547,7 @@ class CpuBackend:
             _compile_only = False
             status, done, who, value, builds = run_steps(
                 left, self.pos, self.vel, self.omega, self._quat_arg, self.force, self._torque_arg,
-                self.inv_m, self.inv_i, self.radius, self.x_ref, self.vel_p, self.nbr, self.nn, self.hist,
+                self.inv_m, self.inv_i, self.radius, self.x_ref, self.vel_p, self.disp_bound, self.nbr, self.nn, self.hist,
                 self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell, self.cell_start,
                 self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half, self.dt,
                 self.skin, self.k_n, self.gn_coef, self.k_t, self.mu, self.overlap_limit,

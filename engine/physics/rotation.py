@@ -19,8 +19,8 @@ def quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
 
 @numba.njit
 def quat_normalize(q0, q1, q2, q3):
-    s = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
-    inv = (s / s) / s  # = 1/s exactly, in the working precision (a literal 1 would promote float32)
+    n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
+    inv = (n2 / n2) / math.sqrt(n2)  # 1/|q| in the working precision (a literal 1 would promote float32)
     return q0 * inv, q1 * inv, q2 * inv, q3 * inv
 
 
@@ -55,13 +55,14 @@ def fincham_quat_step_space(q0, q1, q2, q3, wx, wy, wz, dt, half):
 
     Fincham's leap-frog (Mol. Sim. 8, 165 (1992)): estimate q(t + dt/2) = q(t) + dt/2 q'(t), then
     q(t + dt) = q(t) + dt q'(t + dt/2) with q'(t + dt/2) from w(t + dt/2) and q(t + dt/2);
-    renormalised every step. For spheres w in the space frame is all the dynamics needs.
+    renormalised every step. With one w for both stages (spheres: w in the space frame is all the
+    dynamics needs) and (0,w)(0,w) = -|w|^2, the two stages collapse exactly into
+    q(t + dt) = (1 - dt^2 |w|^2 / 8) q + dt/2 (0, w) q, one quaternion product instead of two.
     """
     h = dt * half
-    d0, d1, d2, d3 = quat_rate_space(q0, q1, q2, q3, wx, wy, wz, half)
-    m0, m1, m2, m3 = q0 + h * d0, q1 + h * d1, q2 + h * d2, q3 + h * d3
-    e0, e1, e2, e3 = quat_rate_space(m0, m1, m2, m3, wx, wy, wz, half)
-    return quat_normalize(q0 + dt * e0, q1 + dt * e1, q2 + dt * e2, q3 + dt * e3)
+    c = half + half - h * h * (wx * wx + wy * wy + wz * wz) * half
+    d0, d1, d2, d3 = quat_mul(h - h, wx, wy, wz, q0, q1, q2, q3)
+    return quat_normalize(c * q0 + h * d0, c * q1 + h * d1, c * q2 + h * d2, c * q3 + h * d3)
 
 
 # ---- rigid bodies with principal moments (ellipsoids; paper 003 Eqs. 13-21) ---------------------
