@@ -178,6 +178,8 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
 
     system = initial_ellipsoids(spec, p) if ellipsoid else initial_spheres(spec, p)
     phase, step_done = "thermalization", 0
+    # a cooling checkpoint was written after its own record at step_done, which the file already holds
+    resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"
     if resume is not None and ellipsoid:
         phase, step_done = str(resume["phase"]), int(resume["step_done"])
         system = EllipsoidSystem(
@@ -269,7 +271,7 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
         # ---- cooling run ---------------------------------------------------------------------------
         for ev in events:
             ev = int(ev)
-            if ev < step_done or (ev == step_done and resume is not None and step_done > 0):
+            if ev < step_done or (ev == step_done and resumed_in_cooling):
                 continue
             check_cancel()
             if ev > step_done:

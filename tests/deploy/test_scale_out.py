@@ -132,10 +132,6 @@ def test_api_and_three_workers_on_postgres_sigterm_sigkill_every_job_done_once(
             values = f["observables/kinetic_energy_translational/value"][()]
             times = f["observables/kinetic_energy_translational/time"][()]
         assert len(values) > 1 and (values > 0).all() and times[-1] == pytest.approx(SPEC["t_end"], rel=1e-3)
-        if got.resumed_from_step == 0 and len(times) > 2 and times[0] == times[1] == 0.0:
-            # KNOWN ENGINE BUG (engine/simulate.py, reported): a run resumed from a checkpoint taken at
-            # cooling step 0 writes the t = 0 record a second time. Nothing else may repeat.
-            times = times[1:]
         assert (times[1:] > times[:-1]).all(), f"job {job_id}: repeated or unordered records"
     assert sorted(p.name for p in (data / "results").glob("*.h5")) == sorted(f"{i}.h5" for i in ids)
     leftover = list((data / "checkpoints").iterdir()) if (data / "checkpoints").exists() else []

@@ -119,3 +119,16 @@ def test_checkpoint_resume_matches_uninterrupted_run(tmp_path):
         pa = a["particles/all/position/value"][-1]
         pb = b["particles/all/position/value"][-1]
         assert np.abs(pa - pb).max() < 1e-9
+
+
+def test_resume_from_first_record_writes_it_once(tmp_path):
+    """A checkpoint taken right after the t = 0 record must not make the resumed run repeat it."""
+    spec = SimulationSpec(**{**TINY, "thermalization": 0.0, "t_end": 0.01})
+    ck, out = tmp_path / "ck", tmp_path / "r.h5"
+    with pytest.raises(Cancelled):
+        run(spec, out, should_cancel=iter([False, True]).__next__, checkpoint_dir=ck, checkpoint_interval=0.0)
+    s = run(spec, out, checkpoint_dir=ck, checkpoint_interval=0.0)
+    assert s.resumed_from_step == 0
+    with h5py.File(out) as f:
+        t = f["observables/kinetic_energy_translational/time"][()]
+    assert t[0] == 0.0 and (t[1:] > t[:-1]).all()
