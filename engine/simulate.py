@@ -20,6 +20,7 @@ rounding (the neighbour list is rebuilt at the resume point).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -31,7 +32,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from engine.backends.base import ContactParams, EllipsoidSystem, SphereSystem, make_backend
+from engine.backends.base import ContactParams, make_backend
 from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path
 from engine.params import Q_SPHERE, Derived, derive
@@ -180,20 +181,11 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     phase, step_done = "thermalization", 0
     # a cooling checkpoint was written after its own record at step_done, which the file already holds
     resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"
-    if resume is not None and ellipsoid:
+    if resume is not None:
         phase, step_done = str(resume["phase"]), int(resume["step_done"])
-        system = EllipsoidSystem(
-            box_length=spec.box_length, position=resume["position"], velocity=resume["velocity"],
+        system = dataclasses.replace(
+            system, position=resume["position"], velocity=resume["velocity"],
             angular_velocity=resume["angular_velocity"], orientation=resume["orientation"],
-            semi_axes=system.semi_axes, mass=system.mass, inertia=system.inertia,
-            contact_pairs=resume["pairs"], contact_springs=resume["springs"])
-        shutil.copyfile(ck.dir / "partial.h5", partial_path(output))
-    elif resume is not None:
-        phase, step_done = str(resume["phase"]), int(resume["step_done"])
-        system = SphereSystem(
-            box_length=spec.box_length, position=resume["position"], velocity=resume["velocity"],
-            angular_velocity=resume["angular_velocity"], orientation=resume["orientation"],
-            radius=system.radius, mass=system.mass, inertia=system.inertia,
             contact_pairs=resume["pairs"], contact_springs=resume["springs"])
         shutil.copyfile(ck.dir / "partial.h5", partial_path(output))
     if p.n_thermalization_steps == 0 and phase == "thermalization":

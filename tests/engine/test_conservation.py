@@ -1,7 +1,6 @@
 """Conservation laws of the CPU time loop: momentum always, angular momentum, energy when elastic."""
 
 import numpy as np
-import pytest
 
 from engine.backends.base import SphereSystem
 from engine.backends.cpu import CpuBackend

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from engine.params import e_t_effective
-from tests.engine.twobody import RADIUS, collide, contact_point_velocity
+from tests.engine.twobody import collide, contact_point_velocity
 
 N_HAT = np.array([-1.0, 0.0, 0.0])   # from sphere 2 (+x) to sphere 1 (-x)
 # Impact speeds chosen so the contact starts at different phases of the time step (the event
