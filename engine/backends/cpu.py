@@ -526,6 +526,9 @@ class CpuBackend:
             _restore_springs(self.nbr, self.nn, self.hist, np.asarray(system.contact_pairs, np.int64),
                              np.asarray(system.contact_springs, self.dtype))
         self._forces()
+        worst, who = _worst(self.chunk_a, self.chunk_b)
+        if worst > self.overlap_limit:
+            raise _start_overlap(self, int(who), float(worst))
 
     def _forces(self) -> None:
         compute_forces(self.pos, self.vel, self.vel_p, self.omega, self.radius, self.inv_m, self.nbr, self.nn, self.hist,
@@ -636,6 +639,23 @@ def _instability(status: int, step: int, who: int, value: float, backend) -> Ins
                f"{backend.overlap_limit:g}: likely cause: impact speeds too high for the stiffness "
                f"(lower velocity_rms or raise stiffness) or a time step too large (dt = {float(backend.dt):.3g} s)")
     return InstabilityError(msg, step=step, particle=who)
+
+
+def _start_overlap(backend, who: int, worst: float) -> InstabilityError:
+    """The initial positions already overlap beyond the limit: name the deepest pair."""
+    pos, rad = backend.pos.astype(np.float64), backend.radius.astype(np.float64)
+    partner, depth = -1, -math.inf
+    for j in backend.nbr[who, :backend.nn[who]]:
+        r = pos[who] - pos[j]
+        r -= backend.box * np.round(r / backend.box)
+        ov = (rad[who] + rad[j] - math.sqrt(float(r @ r))) / min(rad[who], rad[j])
+        if ov > depth:
+            partner, depth = int(j), ov
+    coincident = " (coincident centres)" if depth >= 2.0 - 1e-12 else ""
+    return InstabilityError(
+        f"particles {who} and {partner} overlap by {worst:.3g} radii{coincident} at the start (step 0), "
+        f"above overlap_limit {backend.overlap_limit:g}: the initial positions overlap; place the particles "
+        f"apart", step=0, particle=who)
 
 
 def _cpu_name() -> str:

@@ -111,7 +111,15 @@ def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wj
 
     Returns (F_x, F_y, F_z, tau_x, tau_y, tau_z, xi_x, xi_y, xi_z, delta, F_d): force (N) and torque
     (N m) on i, the new spring (m), the overlap (m) and the dashpot force -gamma_n u_n (N) of this step.
+
+    Coincident centres (d = 0, also when |r|^2 underflows) leave the normal undefined: the pair then
+    exerts no force and no torque, keeps its spring and reports the overlap a_i + a_j (dashpot force 0),
+    so the overlap guard of the caller stops the run (2 radii > any allowed overlap_limit) instead of
+    a division by zero or a NaN.
     """
+    if not d > 0:
+        zero = d - d
+        return zero, zero, zero, zero, zero, zero, xix, xiy, xiz, ai + aj - d, zero
     inv_d = (half + half) / d  # not 1 / d: an int literal promotes float32 to float64
     nx = rx * inv_d
     ny = ry * inv_d

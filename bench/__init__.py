@@ -1,0 +1,1 @@
+"""Benchmarks and stress tests of demq (run as `demq bench ...` or `python bench/<name>.py`)."""
