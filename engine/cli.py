@@ -24,9 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="physics validation runs that write a report")
-    v.add_argument("case", choices=["hcs-spheres"], help="which validation to run")
-    v.add_argument("-o", "--out-dir", default="reports/hcs-spheres")
-    v.add_argument("--seeds", type=int, default=4)
+    v.add_argument("case", choices=["hcs-spheres", "hcs-ellipsoids"], help="which validation to run")
+    v.add_argument("-o", "--out-dir", default=None, help="report folder (default reports/<case>)")
+    v.add_argument("--seeds", type=int, default=None, help="seeds per case (default 4 spheres, 1 ellipsoids)")
     v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
     v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
     v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")
@@ -104,7 +104,14 @@ def cmd_run(args) -> int:
 
 
 def cmd_validate(args) -> int:
+    out_dir = args.out_dir or f"reports/{args.case}"
+    if args.case == "hcs-ellipsoids":
+        from engine.validation import hcs_ellipsoids
+
+        return hcs_ellipsoids.main(out_dir=out_dir, seeds=args.seeds or 1, quick=args.quick,
+                                   backend="cpu" if args.backend == "auto" else args.backend,
+                                   jobs=args.jobs, threads=args.threads)
     from engine.validation import hcs_spheres
 
-    return hcs_spheres.main(out_dir=args.out_dir, seeds=args.seeds, quick=args.quick, backend=args.backend,
+    return hcs_spheres.main(out_dir=out_dir, seeds=args.seeds or 4, quick=args.quick, backend=args.backend,
                             jobs=args.jobs, threads=args.threads)
