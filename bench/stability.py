@@ -46,9 +46,9 @@ BASE = dict(n_particles=256, volume_fraction=0.1, box_length=0.2, snapshots=2, t
             backend="cpu", seed=3)
 
 
-def gas(overlap=0.01, collisions=2.0, **kw) -> dict:
+def gas(overlap=0.01, collisions=2.0, max_steps=MAX_STEPS, **kw) -> dict:
     """Spec fields of a small gas whose typical head-on overlap is `overlap` radii (sqrt(2) v_rms/omega_0);
-    t_end covers `collisions` collisions per particle, at most MAX_STEPS steps."""
+    t_end covers `collisions` collisions per particle, at most max_steps steps (thermalisation too)."""
     from engine.params import derive
     from engine.spec import SimulationSpec
 
@@ -61,8 +61,9 @@ def gas(overlap=0.01, collisions=2.0, **kw) -> dict:
     probe = SimulationSpec.model_construct(**{**probe.__dict__, "velocity_rms": v})
     p = derive(probe)
     dt = fields.get("dt") or p.dt
-    t_end = min(collisions / p.collision_rate0, MAX_STEPS * dt)
-    fields.update(velocity_rms=float(f"{v:.6g}"), t_end=float(f"{t_end:.6g}"))
+    t_end = min(collisions / p.collision_rate0, max_steps * dt)
+    therm = min(fields["thermalization"], 0.5 * max_steps * dt * p.collision_rate0)
+    fields.update(velocity_rms=float(f"{v:.6g}"), t_end=float(f"{t_end:.6g}"), thermalization=float(f"{therm:.4g}"))
     return fields
 
 
@@ -102,7 +103,7 @@ def cells() -> list[dict]:
     # dense starts
     spec("phi=0.3", gas(volume_fraction=0.3), "phi = 0.3")
     spec("phi=0.5", gas(volume_fraction=0.5, collisions=1.0), "phi = 0.5 (fcc start lattice, near its limit)")
-    spec("phi=0.6 N=256", gas(volume_fraction=0.6, collisions=1.0), "phi = 0.6 > what the start lattice holds")
+    spec("phi=0.6 N=256", gas(volume_fraction=0.6, collisions=1.0), "phi = 0.6 (fcc start lattice of 256 sites holds up to 0.74)")
     # tiny systems
     spec("N=2", gas(n_particles=2, volume_fraction=0.008, box_length=2.0, collisions=0.5),
          "N = 2, phi = 0.008, L = 2 m")
@@ -120,7 +121,7 @@ def cells() -> list[dict]:
     spec("float32 e_n=1 smooth", gas(precision="float32", e_n=1.0, e_t=-1.0), "float32, elastic smooth")
     # ellipsoids (frictionless CPU backend), elongation 5
     ell = dict(shape="ellipsoid", elongation=5.0, e_t=-1.0, n_particles=64, volume_fraction=0.01,
-               box_length=0.2, collisions=1.0)
+               box_length=0.2, collisions=1.0, max_steps=6000)
     spec("ellipsoid xi=5", gas(**ell), "prolate spheroids xi = 5, frictionless, N = 64")
     spec("ellipsoid xi=5 float32", gas(**{**ell, "precision": "float32"}), "as above, float32")
     spec("ellipsoid rough", gas(**{**ell, "e_t": 0.8}), "xi = 5 with e_t = 0.8 (not supported)")

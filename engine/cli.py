@@ -33,6 +33,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--threads", type=int, default=0, help="Numba threads per run (0 = all)")
     v.set_defaults(func=cmd_validate)
 
+    b = sub.add_parser("bench", help="benchmarks and stress tests that write a report")
+    b.add_argument("action", choices=["stability"], help="stability: the CPU stress matrix of issue 6")
+    b.add_argument("-o", "--out-dir", default=None, help="report folder (default bench/reports/stability)")
+    b.add_argument("--only", default=None, help="run only the cells whose name contains this")
+    b.add_argument("--timeout", type=float, default=None, help="seconds per cell before it counts as a hang")
+    b.set_defaults(func=cmd_bench)
+
+
+def cmd_bench(args) -> int:
+    from bench import stability
+
+    kw = {} if args.timeout is None else {"timeout": args.timeout}
+    return stability.main(out_dir=args.out_dir, only=args.only, **kw)
+
 
 def _spec_from_args(args):
     from engine.spec import SimulationSpec

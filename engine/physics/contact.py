@@ -6,8 +6,8 @@ Conventions (forces on particle i from its partner j):
   with the sign chosen so that positive is repulsive); v_n = (v_i - v_j).n < 0 while approaching.
   The contact ends when delta returns to 0 (PHYSICS-NOTES §1.1 rule (a)), so the late dashpot force can
   be attractive; gamma_n from e_n by paper 001 is then exact.
-- Contact point at the middle of the overlap: lever arms l_i = (d + a_i - a_j)/2 and l_j = d - l_i, so
-  the torques balance the orbital term and angular momentum is conserved exactly.
+- Contact point at the middle of the overlap: lever arms l_i = (d + a_i - a_j)/2 and l_j = (d + a_j - a_i)/2
+  (l_i + l_j = d), so the torques balance the orbital term and angular momentum is conserved (to rounding).
 - Tangential spring xi (m), d xi/dt = v_t (relative tangential velocity of the contact point, rotation
   included); each step the old spring is rotated into the current tangent plane keeping its length
   (PHYSICS-NOTES §1.2 condition 4), then integrated. F_t = -k_t xi (gamma_t = 0, paper 001).
@@ -143,7 +143,7 @@ def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wj
     if k_t is None:
         return fx, fy, fz, zero, zero, zero, zero, zero, zero, delta, fd
     li = (d + ai - aj) * half
-    lj = d - li
+    lj = (d + aj - ai) * half  # not d - li: swapping i and j must swap l_i and l_j bit for bit
     tx, ty, tz = tangential_slip(nx, ny, nz, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, li, lj)
     px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
     # a contact that began inside this step has loaded its spring only since then
@@ -224,7 +224,7 @@ def sphere_contact_end(rx, ry, rz, d, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, 
     if k_t is None:
         return fx, fy, fz, zero, zero, zero
     li = (d + ai - aj) * half
-    lj = d - li
+    lj = (d + aj - ai) * half  # not d - li: swapping i and j must swap l_i and l_j bit for bit
     tx, ty, tz = tangential_slip(nx, ny, nz, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, li, lj)
     px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
     s = dt * (p * p - half * half) * half
