@@ -36,7 +36,8 @@ DEFAULT_OUT = ROOT / "bench" / "reports" / "stability"
 
 ENERGY_TOL = 1e-2
 MOMENTUM_TOL = {"float64": 1e-9, "float32": 1e-4}   # float32: eps 6e-8 per update, random walk over 1e4 steps
-CELL_TIMEOUT_S = 120.0
+CELL_TIMEOUT_S = 60.0       # a running cell that reports no progress for this long is a hang
+COMPILE_TIMEOUT_S = 900.0   # total limit per cell: Numba compiles a new specialisation in a fresh cache
 MAX_STEPS = 30000
 
 # ---- the matrix -------------------------------------------------------------------------------------
@@ -191,9 +192,15 @@ def _run_spec(cell: dict) -> dict:
     except ValidationError as exc:
         msgs = "; ".join(f"{'.'.join(map(str, er['loc'])) or 'spec'}: {er['msg']}" for er in exc.errors())
         return {"outcome": "refused", "message": msgs}
+    beat = os.environ.get("DEMQ_STABILITY_HEARTBEAT")
+
+    def progress(_):
+        if beat:
+            Path(beat).touch()
+
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            s = run(spec, Path(tmp) / "out.h5", backend="cpu")
+            s = run(spec, Path(tmp) / "out.h5", backend="cpu", progress=progress)
         except SpecError as exc:
             return {"outcome": "refused", "message": str(exc)}
         except InstabilityError as exc:
@@ -272,12 +279,32 @@ def run_cell(cell: dict, timeout: float = CELL_TIMEOUT_S) -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     t0 = time.perf_counter()
-    try:
-        cp = subprocess.run([sys.executable, "-c", "import bench.stability as s; s._child()"],
-                            input=json.dumps(cell), capture_output=True, text=True, timeout=timeout,
-                            env=env, cwd=str(ROOT))
-    except subprocess.TimeoutExpired:
-        res = {"outcome": "BUG", "message": f"hang: no result within {timeout:g} s"}
+    with tempfile.TemporaryDirectory() as tmp:
+        beat = Path(tmp) / "heartbeat"
+        env["DEMQ_STABILITY_HEARTBEAT"] = str(beat)
+        (Path(tmp) / "cell.json").write_text(json.dumps(cell))
+        with open(Path(tmp) / "out", "w+") as out, open(Path(tmp) / "err", "w+") as err, \
+                open(Path(tmp) / "cell.json") as inp:
+            proc = subprocess.Popen([sys.executable, "-c", "import bench.stability as s; s._child()"],
+                                    stdin=inp, stdout=out, stderr=err, env=env, cwd=str(ROOT))
+            hang = None
+            while proc.poll() is None:
+                time.sleep(0.2)
+                now = time.time()
+                # the run reports progress every output interval once compiled: silence after that is a hang
+                if beat.exists() and now - beat.stat().st_mtime > timeout:
+                    hang = f"hang: no progress for {timeout:g} s"
+                elif time.perf_counter() - t0 > COMPILE_TIMEOUT_S:
+                    hang = f"hang: no result within {COMPILE_TIMEOUT_S:g} s"
+                if hang:
+                    proc.kill()
+                    proc.wait()
+                    break
+            out.seek(0)
+            err.seek(0)
+            cp = subprocess.CompletedProcess(proc.args, proc.returncode, out.read(), err.read())
+    if hang:
+        res = {"outcome": "BUG", "message": hang}
     else:
         marker = "@@RESULT@@"
         if marker in cp.stdout:
@@ -310,7 +337,8 @@ def write_report(results: list[dict], out_dir: Path, total_s: float) -> Path:
         "# Stability stress matrix (CPU backend)",
         "",
         "Reproduce: `PYTHONPATH=. python bench/stability.py` (or `demq bench stability`). Each cell runs "
-        f"in a child process with a {CELL_TIMEOUT_S:g} s timeout. Outcomes: `ok` (ran and passed the checks "
+        f"in a child process; no progress for {CELL_TIMEOUT_S:g} s after the first report, or no result in "
+        f"{COMPILE_TIMEOUT_S:g} s (Numba compilation included), is a hang. Outcomes: `ok` (ran and passed the checks "
         "in bench/stability.py's docstring), `stopped` (the engine's InstabilityError), `refused` (the "
         "spec's validation or SpecError), `BUG` (NaN, hang, crash, unexpected exception or failed checks).",
         "",
