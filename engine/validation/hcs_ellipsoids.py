@@ -35,6 +35,7 @@ from engine.h5md import read_parameters, read_series
 from engine.params import derive
 from engine.simulate import run
 from engine.spec import SimulationSpec
+from engine.validation import run_tasks
 
 XIS = (1.15, 1.5, 2.0, 2.5, 3.0)
 ES = (0.90, 0.95, 0.98)
@@ -395,16 +396,7 @@ def main(out_dir="reports/hcs-ellipsoids", seeds: int = 1, quick: bool = False, 
     if simulate:
         tasks = [(xi, e, seed, backend, quick, out / f"xi{xi}_e{e}_seed{seed}.h5", threads)
                  for xi, e in cells for seed in range(seeds)]
-        if jobs > 1:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-                for line in pool.map(_one, tasks):
-                    print(line, flush=True)
-        else:
-            for tk in tasks:
-                print(_one(tk), flush=True)
+        run_tasks(_one, tasks, jobs)
     results, missing = {}, []
     for xi, e in cells:
         runs = []

@@ -24,6 +24,7 @@ from engine.h5md import read_parameters, read_series
 from engine.params import derive, e_t_effective
 from engine.simulate import run
 from engine.spec import SimulationSpec
+from engine.validation import run_tasks
 from engine.theory import luding_ode, tau_factor
 
 CASES = ((0.8, 0.8), (0.6, 0.6))
@@ -165,16 +166,7 @@ def main(out_dir="reports/hcs-spheres", seeds: int = 4, quick: bool = False, bac
     make = quick_spec if quick else full_spec
     tasks = [(e_n, seed, backend, quick, out / f"e{e_n}_seed{seed}.h5", threads)
              for e_n, _ in cases for seed in range(seeds)]
-    if jobs > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            for line in pool.map(_one, tasks):
-                print(line, flush=True)
-    else:
-        for t in tasks:
-            print(_one(t), flush=True)
+    run_tasks(_one, tasks, jobs)
     results, rows, meta = {}, [], {}
     for e_n, e_t in cases:
         runs = [measure_run(out / f"e{e_n}_seed{seed}.h5") for seed in range(seeds)]
