@@ -94,6 +94,20 @@ class ContactParams:
         return replace(self, **kw)
 
 
+def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
+    """Cells per box edge for the neighbour build: edge >= 2 a_max + L_v (paper 004), at most ~(2N)^(1/3).
+
+    Very dilute scenes would otherwise spend memory and build time on empty cells; cells may be larger
+    than the cutoff, never smaller. Every backend bins with this so they order neighbours alike.
+    """
+    cutoff = 2.0 * rmax + skin
+    nc = max(1, int(box / cutoff))
+    nc = max(1, min(nc, int(round((2.0 * n) ** (1.0 / 3.0))) + 1))
+    while nc > 1 and box / nc < cutoff:
+        nc -= 1
+    return nc
+
+
 def cuda_available() -> bool:
     """True when a real CUDA GPU can be used (the simulator does not count)."""
     if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":

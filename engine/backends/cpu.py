@@ -24,9 +24,10 @@ from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
-from engine.backends.base import ContactParams, SphereSystem
+from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.errors import InstabilityError
-from engine.physics.contact import contact_end_fraction, min_image, sphere_contact, sphere_contact_end
+from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
+                                    sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import fincham_quat_step_space
 
@@ -408,8 +409,9 @@ def observe_kernel(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, i
             if d2 < s * s:
                 ci += 1
                 delta = s - math.sqrt(d2)
-                es += 0.25 * k_t_val * (hist[i, kk, 0] ** 2 + hist[i, kk, 1] ** 2 + hist[i, kk, 2] ** 2)
-                es += 0.25 * k_n_val * delta * delta
+                # each pair appears in both partners' lists
+                es += 0.5 * contact_elastic_energy(delta, hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2],
+                                                   k_n_val, k_t_val, 0.5)
                 ov = delta / min(radius[i], radius[j])
                 wi = max(wi, ov)
         contacts += ci
@@ -458,14 +460,7 @@ class CpuBackend:
     # ---- set-up -----------------------------------------------------------------------------------
 
     def _setup_cells(self, rmax: float, skin: float) -> None:
-        cutoff = 2.0 * rmax + skin
-        nc = max(1, int(self.box / cutoff))
-        # Keep the cell count near N: very dilute scenes would otherwise spend memory and build time
-        # on empty cells (cells may be larger than the cutoff, never smaller).
-        nc = max(1, min(nc, int(round((2.0 * self.n) ** (1.0 / 3.0))) + 1))
-        while nc > 1 and self.box / nc < cutoff:
-            nc -= 1
-        self.nc = nc
+        self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
         self.inv_cell = nc / self.box
         self.cell_start = np.zeros(nc**3 + 1, np.int64)
         self.cursor = np.zeros(nc**3, np.int64)

@@ -24,11 +24,11 @@ from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
-from engine.backends.base import ContactParams, EllipsoidSystem
+from engine.backends.base import ContactParams, EllipsoidSystem, cell_grid
 from engine.backends.cpu import (BAD_VALUE, OK, OVERFLOW, OVERLAP, SLOT, _collect_springs, _cpu_name,
                                  _instability, _restore_springs, _worst, bin_particles, build_list,
                                  copy_list, half_kick)
-from engine.physics.contact import min_image
+from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.ellipsoid import ellipsoid_pair
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import angular_momentum, body_omega, fincham_quat_step_body, space_omega
@@ -238,7 +238,8 @@ def observe_ell(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
             d = hist[i, kk, 3]
             if d > 0:
                 contacts += 1
-                e_spring += 0.25 * k_n_val * d * d
+                # each pair appears in both partners' lists; frictionless: no tangential spring
+                e_spring += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, k_n_val, 0.0, 0.5)
                 worst = max(worst, d)
     return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz
 
@@ -314,12 +315,7 @@ class CpuEllipsoidBackend:
     # ---- set-up (as CpuBackend) ------------------------------------------------------------------
 
     def _setup_cells(self, rmax: float, skin: float) -> None:
-        cutoff = 2.0 * rmax + skin
-        nc = max(1, int(self.box / cutoff))
-        nc = max(1, min(nc, int(round((2.0 * self.n) ** (1.0 / 3.0))) + 1))
-        while nc > 1 and self.box / nc < cutoff:
-            nc -= 1
-        self.nc = nc
+        self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
         self.inv_cell = nc / self.box
         self.cell_start = np.zeros(nc**3 + 1, np.int64)
         self.cursor = np.zeros(nc**3, np.int64)

@@ -30,7 +30,7 @@ import os
 import numpy as np
 from numba import cuda
 
-from engine.backends.base import ContactParams, SphereSystem
+from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends import cuda_kernels as K
 from engine.backends.cpu import BAD_VALUE, OVERLAP, _instability
 from engine.errors import BackendUnavailable
@@ -127,13 +127,7 @@ class CudaBackend:
         return blocks, self.tpb, self.stream
 
     def _setup_cells(self, rmax: float, skin: float) -> None:
-        # identical to CpuBackend._setup_cells, so both backends bin and order neighbours alike
-        cutoff = 2.0 * rmax + skin
-        nc = max(1, int(self.box / cutoff))
-        nc = max(1, min(nc, int(round((2.0 * self.n) ** (1.0 / 3.0))) + 1))
-        while nc > 1 and self.box / nc < cutoff:
-            nc -= 1
-        self.nc = nc
+        self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
         self.inv_cell = nc / self.box
         self.ncell = nc**3
         self.count = cuda.device_array(self.ncell + 1, np.int32, stream=self.stream)

@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 from numba import cuda
 from numba.cuda import types as ct
 
-from engine.physics.contact import (contact_end_fraction, min_image, sphere_contact,
+from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import fincham_quat_step_space
@@ -458,7 +457,8 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                     h0 = f64(hist[0, kk, i])
                     h1 = f64(hist[1, kk, i])
                     h2 = f64(hist[2, kk, i])
-                    a[3] += 0.25 * k_t * (h0 * h0 + h1 * h1 + h2 * h2) + 0.25 * k_n * delta * delta
+                    # each pair appears in both partners' lists
+                    a[3] += 0.5 * contact_elastic_energy(delta, h0, h1, h2, k_n, k_t, 0.5)
                     ov = delta / f64(min(ri, rj))
                     if ov > a[7]:
                         a[7] = ov

@@ -45,6 +45,12 @@ def normal_force(delta, vn, k_n, gamma_n):
 
 
 @numba.njit
+def contact_elastic_energy(delta, xix, xiy, xiz, k_n, k_t, half):
+    """Energy (J) stored in a contact: k_n delta^2/2 in the normal spring, k_t |xi|^2/2 in the tangential one."""
+    return half * (k_n * delta * delta + k_t * (xix * xix + xiy * xiy + xiz * xiz))
+
+
+@numba.njit
 def rotate_spring_into_plane(xx, xy, xz, nx, ny, nz):
     """Project the spring onto the plane normal to n and restore its length (rigid rotation)."""
     dot = xx * nx + xy * ny + xz * nz
