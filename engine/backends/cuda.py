@@ -1,31 +1,38 @@
 """CUDA backend: the whole time loop on the GPU with Numba CUDA, state resident on the device.
 
-Same public interface and semantics as :class:`engine.backends.cpu.CpuBackend`; the kernels
-(:mod:`engine.backends.cuda_kernels`) call the same njit physics functions.
+:class:`CudaEnsemble` advances K independent scenes (own box, contact constants, dt, seed, clock) stored
+back to back on the device with the same kernels (:mod:`engine.backends.cuda_kernels`, which call the
+same njit physics functions as the CPU backend). :class:`CudaBackend` is the one-scene case (K = 1) with
+the public interface of :class:`engine.backends.cpu.CpuBackend`.
 
 Step (velocity Verlet, closing and opening half kicks fused as on the CPU):
-  1. ``kick_drift``: kick (dt/2 on the first step of a call, else dt), drift with periodic wrap,
-     orientation, and per-block maxima of |x - x_ref|^2 and |v|^2 folded into a device ``status``;
-     an asynchronous copy of ``status`` to pinned host memory follows it in the stream.
-  2. rebuild (rare) when the L_v/2 rule demands it: the host decides from the status of the
-     *previous* step, which is already on the host while the GPU still runs that step's forces, so the
-     time loop never waits for the GPU: it rebuilds at step s when
-     sqrt(max disp^2(s-1)) + 2 max|v|(s-1) dt > L_v/2 (conservative: the true displacement at step s
-     is at most disp(s-1) + |v(s)| dt). The true displacement of step s is still checked against L_v/2
-     on the device and any miss is counted in ``late_rebuilds`` (expected 0).
-     Rebuild = count particles per cell, scan, scatter, sort each cell by id, permute the particle
-     arrays into that cell order (neighbours sit close in memory), build the full Verlet list into the
-     second list buffer carrying the contact history of surviving pairs across the permutation, swap.
-  3. ``forces`` over the full list: one thread per particle, each writes only its own force, torque
-     and list slots; the previous forces stay in the other buffer for the predicted velocities.
-A sync happens only at rebuilds (to check the list stride), at output calls and at the end of
-``advance``.
+  1. kick + drift with periodic wrap + orientation; the largest displacement since the list build and
+     the largest speed, each normalised by the scene's L_v/2, folded into a device ``status``;
+  2. rebuild (rare) when some particle has moved more than L_v/2: copy the contact history that must
+     survive into a compact store, count particles per cell (scene-major cell ids), scan, scatter, sort
+     each cell by id, permute the particle arrays into that order (neighbours sit close in memory), build
+     the full Verlet list in place taking the kept history from the compact store;
+  3. forces over the full list: one thread per particle, each writes only its own force, torque and slots.
+
+Two time loops, chosen by size (``multistep``):
+  * many steps per launch (total particles <= MULTISTEP_MAX_PARTICLES, i.e. small scenes and ensembles
+    of them): one cooperative kernel runs the steps with grid-wide syncs between the phases and returns
+    to the host only at the end of the call or when a rebuild is due, so launch overhead is paid per
+    output interval, not per step;
+  * one launch per phase (large scenes): the host decides the rebuild from the *previous* step's status,
+    already copied to pinned memory while the GPU runs this step, so the loop never waits for the GPU
+    (rebuild at step s when d(s-1) + 2 max|v(s-1)| dt > L_v/2; misses are counted in ``late_rebuilds``).
+
+A scene that blows up (non-finite value, overlap beyond its limit) is stopped on the device and reported
+for that scene only; the others go on.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import time
+from types import SimpleNamespace
 
 import numpy as np
 from numba import cuda
@@ -33,62 +40,80 @@ from numba import cuda
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends import cuda_kernels as K
 from engine.backends.cpu import BAD_VALUE, OVERLAP, _instability
-from engine.errors import BackendUnavailable
+from engine.errors import BackendUnavailable, InstabilityError
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+#: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
+#: above it one launch per phase costs < 10 % of a step (DEMQ_CUDA_MULTISTEP=0/1 forces a choice)
+MULTISTEP_MAX_PARTICLES = 4 * 1024 * 1024
 
 
-class CudaBackend:
-    """The GPU time loop; see the module docstring."""
+class CudaEnsemble:
+    """K scenes of spheres advanced together on the GPU; see the module docstring.
+
+    All scenes share the precision; everything else (N, box, contact constants, dt, skin, rough or
+    smooth, Coulomb, orientation) is per scene. ``advance`` returns the scenes that blew up in the call
+    (each stopped at its own step, the others advanced fully); ``deactivate`` drops a scene.
+    """
 
     name = "cuda"
 
-    def __init__(self, system: SphereSystem, contact: ContactParams):
+    def __init__(self, systems: list, contacts: list):
         if not SIM and not cuda.is_available():
             raise BackendUnavailable("backend = 'cuda' but no CUDA GPU is available here")
-        self.dtype = np.float64 if contact.precision == "float64" else np.float32
-        dt_ = self.dtype
-        n = system.n
-        self.n = n
-        self.box = float(system.box_length)
+        if len(systems) != len(contacts) or not systems:
+            raise ValueError("CudaEnsemble needs one ContactParams per scene and at least one scene")
+        precisions = {c.precision for c in contacts}
+        if len(precisions) != 1:
+            raise ValueError(f"all scenes of an ensemble share one precision, got {sorted(precisions)}")
+        self.dtype = dt_ = np.float64 if contacts[0].precision == "float64" else np.float32
+        self.n_scenes = nk = len(systems)
+        self.sizes = np.array([s.n for s in systems], np.int64)
+        self.starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
+        self.n = n = int(self.sizes.sum())
         self.device = "CUDA simulator" if SIM else cuda.get_current_device().name
         if isinstance(self.device, bytes):
             self.device = self.device.decode()
         self.tpb = 32 if SIM else 256
-        if SIM:
-            self.max_blocks = 2
-        else:
-            self.max_blocks = cuda.get_current_device().MULTIPROCESSOR_COUNT * 16
+        self.sm_count = 1 if SIM else cuda.get_current_device().MULTIPROCESSOR_COUNT
+        self.max_blocks = 2 if SIM else self.sm_count * 16
+        env = os.environ.get("DEMQ_CUDA_MULTISTEP")
+        self.multistep = (env == "1") if env in ("0", "1") else n <= MULTISTEP_MAX_PARTICLES
         self.stream = cuda.stream()
         self.steps_done = 0
         self.builds = 0
         self.late_rebuilds = 0
+        self.launches = 0
         self._prof_events = []
-        self.profile = None  # set to {} to time kick_drift / rebuild / forces with CUDA events
-        rad = np.asarray(system.radius, np.float64)
-        mass = np.asarray(system.mass, np.float64)
-        inertia = np.asarray(system.inertia, np.float64)
-        self.uniform = bool(n == 0 or (np.all(rad == rad[0]) and np.all(mass == mass[0])
-                                       and np.all(inertia == inertia[0])))
-        self._r0 = dt_(rad[0] if n else 0.0)
-        self._m0 = dt_(mass[0] if n else 0.0)
-        self._i0 = dt_(inertia[0] if n else 0.0)
-        self._im0 = dt_((1.0 / mass.astype(dt_))[0] if n else 0.0)
-        self._ii0 = dt_((1.0 / inertia.astype(dt_))[0] if n else 0.0)
+        self.profile = None  # set to {} to time the phases with CUDA events
+        self.active = np.ones(nk, bool)
+        self.contact = list(contacts)
+        self.box = np.array([float(s.box_length) for s in systems])
+
+        rad = np.concatenate([np.asarray(s.radius, np.float64) for s in systems])
+        mass = np.concatenate([np.asarray(s.mass, np.float64) for s in systems])
+        inertia = np.concatenate([np.asarray(s.inertia, np.float64) for s in systems])
+        self.uniform = all(s.n == 0 or (np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0])
+                                        and np.all(s.inertia == s.inertia[0])) for s in systems)
+        self._rmax = [float(np.max(s.radius)) if s.n else 0.0 for s in systems]
 
         def up(a, rows):
             a = np.ascontiguousarray(np.asarray(a, dt_).reshape(n, rows).T)
             return cuda.to_device(a, stream=self.stream)
 
-        self.pos = up(system.position, 3)
-        self.vel = up(system.velocity, 3)
-        self.omega = up(system.angular_velocity, 3)
-        self.quat = up(system.orientation, 4)
+        def cat(attr):
+            return np.concatenate([np.asarray(getattr(s, attr), np.float64).reshape(s.n, -1) for s in systems])
+
+        self.pos = up(cat("position"), 3)
+        self.vel = up(cat("velocity"), 3)
+        self.omega = up(cat("angular_velocity"), 3)
+        self.quat = up(cat("orientation"), 4)
         self.f_cur = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
         self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
         self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
         self.x_ref = cuda.device_array((3, n), dt_, stream=self.stream)
         self.ids = cuda.to_device(np.arange(n, dtype=np.int32), stream=self.stream)
+        self.sc = cuda.to_device(np.repeat(np.arange(nk, dtype=np.int32), self.sizes), stream=self.stream)
         if self.uniform:
             dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
             self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
@@ -100,82 +125,145 @@ class CudaBackend:
             self.inv_m = up((1.0 / mass.astype(dt_)).astype(dt_), 1)
             self.inv_i = up((1.0 / inertia.astype(dt_)).astype(dt_), 1)
             self._per_particle = ["radius", "mass", "inertia", "inv_m", "inv_i"]
+        self._views()
         # scratch for permutations (4 rows covers the quaternion)
         self.scratch = cuda.device_array((4, n), dt_, stream=self.stream)
         self.scratch_i = cuda.device_array(n, np.int32, stream=self.stream)
         self.order = cuda.device_array(n, np.int32, stream=self.stream)
         self.inv_old = cuda.device_array(n, np.int32, stream=self.stream)
+        self.c_off = cuda.to_device(np.zeros(n, np.int32), stream=self.stream)
+        self.c_cnt = cuda.to_device(np.zeros(n, np.int32), stream=self.stream)
+        self._alloc_store(max(1024, n // 8))
         self.status = cuda.to_device(self._fresh_status(), stream=self.stream)
-        self.status_h = [cuda.pinned_array(K.S_LEN, np.float64) for _ in range(2)]
+        self.status_h = [cuda.pinned_array(K.status_len(nk), np.float64) for _ in range(2)]
         self.events = [(cuda.event() if SIM else cuda.event(timing=False)) for _ in range(2)]
-        self._status_valid = [False, False]
-        self._setup_cells(float(np.max(rad)) if n else 0.0, contact.skin)
-        self._alloc_lists(8)
-        self.set_contact(contact)
-        self._prime(system)
+
+        self.spd_h = np.zeros((nk, K.ND), dt_)
+        self.spf_h = np.zeros((nk, K.NF), np.float64)
+        self.spi_h = np.zeros((nk, K.NI), np.int32)
+        coff = 0
+        for s, sy in enumerate(systems):
+            c = dt_
+            nc = cell_grid(self.box[s], s_n := sy.n, self._rmax[s], contacts[s].skin)
+            self.spi_h[s, [K.I_NC, K.I_COFF, K.I_ACTIVE, K.I_START, K.I_N]] = [nc, coff, 1, self.starts[s], s_n]
+            coff += nc ** 3
+            self.spf_h[s, K.F_INVCELL] = nc / self.box[s]
+            r0, m0, i0 = (rad[self.starts[s]], mass[self.starts[s]], inertia[self.starts[s]]) if s_n else (0, 0, 0)
+            self.spd_h[s, [K.D_BOX, K.D_INVBOX, K.D_R0, K.D_M0, K.D_I0]] = [
+                c(self.box[s]), c(1.0 / self.box[s]), c(r0), c(m0), c(i0)]
+            self.spd_h[s, K.D_IM0] = (1.0 / np.array([m0 or 1.0], c))[0]
+            self.spd_h[s, K.D_II0] = (1.0 / np.array([i0 or 1.0], c))[0]
+        self.ncell = coff
+        self._setup_scan()
+        self.spd = cuda.to_device(self.spd_h, stream=self.stream)
+        self.spf = cuda.to_device(self.spf_h, stream=self.stream)
+        self.spi = cuda.to_device(self.spi_h, stream=self.stream)
+        self._alloc_list(8)
+        for s, c in enumerate(contacts):
+            self._set_scene_contact(s, c)
+        self._upload_params()
+        self._specialise()
+        self._prime(systems)
 
     # ---- set-up -----------------------------------------------------------------------------------
 
-    @staticmethod
-    def _fresh_status() -> np.ndarray:
-        s = np.zeros(K.S_LEN, np.float64)
-        s[[K.S_BAD_ID, K.S_BAD_STEP, K.S_OVL_ID, K.S_OVL_STEP]] = np.inf
+    def _fresh_status(self) -> np.ndarray:
+        s = np.zeros(K.status_len(self.n_scenes), np.float64)
+        for k in range(self.n_scenes):
+            b = K.SS0 + K.NSS * k
+            s[[b + K.SS_BAD_ID, b + K.SS_BAD_STEP, b + K.SS_OVL_ID, b + K.SS_OVL_STEP]] = np.inf
         return s
+
+    def _views(self) -> None:
+        """1-D views of the per-particle constants (kept as (1, N) rows for the permutation)."""
+        self.radius1, self.inv_m1, self.inv_i1 = self.radius[0], self.inv_m[0], self.inv_i[0]
+        self.mass1, self.inertia1 = self.mass[0], self.inertia[0]
 
     def _grid(self, work: int) -> tuple:
         blocks = max(1, min(self.max_blocks, (work + self.tpb - 1) // self.tpb))
         return blocks, self.tpb, self.stream
 
-    def _setup_cells(self, rmax: float, skin: float) -> None:
-        self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
-        self.inv_cell = nc / self.box
-        self.ncell = nc**3
-        self.count = cuda.device_array(self.ncell + 1, np.int32, stream=self.stream)
-        self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=self.stream)
+    def _setup_scan(self) -> None:
+        s = self.stream
+        self.count = cuda.device_array(self.ncell + 1, np.int32, stream=s)
+        self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=s)
         tile = self.tpb * 16
         nb = (self.ncell + 1 + tile - 1) // tile
         self._scan_tile = tile
         self._scan_nb = nb
-        self.bsum = cuda.device_array(max(nb, 1), np.int32, stream=self.stream)
-        self.bsum_scan = cuda.device_array(max(nb, 1), np.int32, stream=self.stream)
-        self.bsum_tot = cuda.device_array(1, np.int32, stream=self.stream)
+        self.bsum = cuda.device_array(max(nb, 1), np.int32, stream=s)
+        self.bsum_scan = cuda.device_array(max(nb, 1), np.int32, stream=s)
+        self.bsum_tot = cuda.device_array(1, np.int32, stream=s)
 
-    def _alloc_lists(self, max_nb: int) -> None:
-        n, dt_ = self.n, self.dtype
+    def _alloc_list(self, max_nb: int) -> None:
+        s = self.stream
         self.max_nb = max_nb
-        self.lists = []
-        for _ in range(2):
-            nbr = cuda.device_array((max_nb, n), np.int32, stream=self.stream)
-            nn = cuda.to_device(np.zeros(n, np.int32), stream=self.stream)
-            hist = cuda.device_array((K.HW, max_nb, n), dt_, stream=self.stream)
-            self.lists.append([nbr, nn, hist])
-        self.cur = 0
+        self.nbr = cuda.device_array((max_nb, self.n), np.int32, stream=s)
+        self.nn = cuda.to_device(np.zeros(self.n, np.int32), stream=s)
+        self.hist = cuda.device_array((K.HW, max_nb, self.n), self.dtype, stream=s)
 
-    def set_contact(self, contact: ContactParams) -> None:
-        """Switch contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
-        self.contact = contact
+    def _alloc_store(self, cap: int) -> None:
+        self.store_cap = cap
+        self.cj = cuda.device_array(cap, np.int32, stream=self.stream)
+        self.chist = cuda.device_array((K.HW, cap), self.dtype, stream=self.stream)
+
+    def _set_scene_contact(self, s: int, contact: ContactParams) -> None:
         c = self.dtype
-        self.k_n = c(contact.k_n)
-        self.gn_coef = c(contact.gamma_n_coef)
-        self.k_t = c(0.0) if contact.k_t is None else c(contact.k_t)
-        self.mu = c(0.0) if contact.friction is None else c(contact.friction)
-        self.dt = c(contact.dt)
-        self.skin = c(contact.skin)
-        self.half = c(0.5)
-        self.hp = c(self.dt * self.half)
-        self.box_c = c(self.box)
-        self.inv_box = c(1.0 / self.box)
-        self.overlap_limit = float(contact.overlap_limit)
-        self.rough = contact.k_t is not None
-        self.k = K.kernels(c, self.rough, contact.friction is not None and self.rough,
-                           bool(contact.orientation), self.uniform, self.tpb)
+        self.contact[s] = contact
+        dt = c(contact.dt)
+        skin = c(contact.skin)
+        lim = float(skin) * 0.5
+        self.spd_h[s, [K.D_DT, K.D_HP, K.D_KN, K.D_GN, K.D_KT, K.D_SKIN]] = [
+            dt, c(dt * c(0.5)), c(contact.k_n), c(contact.gamma_n_coef),
+            c(0.0) if contact.k_t is None else c(contact.k_t), skin]
+        # a scene without a Coulomb limit inside a Coulomb-compiled ensemble: mu = inf never caps
+        self.spd_h[s, K.D_MU] = c(np.inf) if contact.friction is None else c(contact.friction)
+        self.spf_h[s, [K.F_OVL, K.F_LIM2INV, K.F_V2F, K.F_KN, K.F_KT]] = [
+            float(contact.overlap_limit), 1.0 / (lim * lim), (2.0 * float(dt) / lim) ** 2, float(c(contact.k_n)),
+            0.0 if contact.k_t is None else float(c(contact.k_t))]
+        self.spi_h[s, K.I_ORIENT] = 1 if contact.orientation else 0
+
+    def _specialise(self) -> None:
+        act = [c for c, a in zip(self.contact, self.active) if a] or self.contact
+        rough = any(c.k_t is not None for c in act)
+        coulomb = rough and any(c.friction is not None for c in act)
+        orient = any(c.orientation for c in act)
+        self.k = K.kernels(self.dtype, rough, coulomb, orient, self.uniform, self.tpb)
+        self._coop_blocks = None
+
+    def _upload_params(self) -> None:
+        self.spd.copy_to_device(self.spd_h, stream=self.stream)
+        self.spf.copy_to_device(self.spf_h, stream=self.stream)
+        self.spi.copy_to_device(self.spi_h, stream=self.stream)
+
+    def set_contact(self, k: int, contact: ContactParams) -> None:
+        """Switch scene k's contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
+        if contact.precision != self.contact[k].precision:
+            raise ValueError("the precision of a scene cannot change inside an ensemble")
+        self._sync_active()
+        self._set_scene_contact(k, contact)
+        self._upload_params()
+        self._specialise()
+
+    def deactivate(self, k: int) -> None:
+        """Scene k drops out (finished, cancelled or failed): it is never advanced again."""
+        self._sync_active()
+        self.active[k] = False
+        self.spi_h[k, K.I_ACTIVE] = 0
+        self._upload_params()
+
+    def _sync_active(self) -> None:
+        """The device clears the active flag of a scene that blows up; bring the host copy up to date."""
+        spi = self.spi.copy_to_host(stream=self.stream)
+        self.stream.synchronize()
+        self.spi_h[:, K.I_ACTIVE] = spi[:, K.I_ACTIVE]
 
     # ---- neighbour list -----------------------------------------------------------------------------
 
     def _sort_and_permute(self) -> None:
         k, n, s = self.k, self.n, self.stream
         k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
-        k["count_cells"][self._grid(n)](n, self.pos, self.nc, self.inv_cell, self.count)
+        k["count_cells"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.count)
         # exclusive scan of ncell + 1 counts (the last is 0) -> cell_start, cell_start[ncell] = n
         m = self.ncell + 1
         k["tile_scan"][self._scan_nb, self.tpb, s](self.count, self.cell_start, m, self.bsum, 16)
@@ -184,64 +272,71 @@ class CudaBackend:
             k["tile_scan"][1, self.tpb, s](self.bsum, self.bsum_scan, self._scan_nb, self.bsum_tot, items)
             k["add_offsets"][self._grid(m)](self.cell_start, m, self.bsum_scan, self._scan_tile)
         k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
-        k["scatter"][self._grid(n)](n, self.pos, self.nc, self.inv_cell, self.cell_start, self.count,
+        k["scatter"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.cell_start, self.count,
                                     self.order)
         k["sort_cells"][self._grid(self.ncell)](self.ncell, self.cell_start, self.order, self.ids)
         k["inverse_perm"][self._grid(n)](n, self.order, self.inv_old)
         # permute the particle arrays into cell order (forces too: the next force step reads them)
+        # (torque need not move: the next force step rewrites it before any kick reads it)
         for name in ["pos", "vel", "omega", "quat", "f_cur"] + self._per_particle:
             a = getattr(self, name)
-            rows = a.shape[0]
-            tmp = self.scratch[:rows]
+            tmp = self.scratch[:a.shape[0]]
             k["gather_rows"][self._grid(n)](n, a, tmp, self.order)
             _copy(a, tmp, s)
         k["gather_i32"][self._grid(n)](n, self.ids, self.scratch_i, self.order)
         _copy(self.ids, self.scratch_i, s)
 
-    def _rebuild(self) -> None:
-        """Sort, permute and build the list; grows the stride when a particle has more neighbours."""
-        self._sort_and_permute()
-        old = self.lists[self.cur]
+    def _set_status(self, slot: int, value: float) -> None:
+        self.status[slot:slot + 1].copy_to_device(np.full(1, value), stream=self.stream)
+
+    def _compact(self) -> None:
+        """Copy the history that must survive the rebuild into the compact store (grown when full)."""
         while True:
-            new = self.lists[1 - self.cur]
-            self.status[K.S_NEED_NB:K.S_NEED_NB + 1].copy_to_device(np.zeros(1), stream=self.stream)
+            self._set_status(K.S_NCOMP, 0.0)
+            self.k["compact"][self._grid(self.n)](self.n, self.pos, self.radius1, self.nbr, self.nn, self.hist,
+                                                  self.sc, self.spd, self.spi, self.c_off, self.c_cnt, self.cj,
+                                                  self.chist, self.status)
+            total = np.zeros(1)
+            self.status[K.S_NCOMP:K.S_NCOMP + 1].copy_to_host(total, stream=self.stream)
+            self.stream.synchronize()
+            if int(total[0]) <= self.store_cap:
+                return
+            self._alloc_store(int(total[0] * 1.25) + 1024)
+
+    def _rebuild(self) -> None:
+        """Keep history, sort, permute and build; grows the stride when a particle has more neighbours."""
+        self._compact()
+        self._sort_and_permute()
+        while True:
+            self._set_status(K.S_NEED_NB, 0.0)
             self.k["build"][self._grid(self.n)](
-                self.n, self.pos, self.radius, self._r0, self.skin, self.box_c, self.inv_box, self.half,
-                self.nc, self.inv_cell, self.cell_start, old[0], old[1], old[2], self.order, self.inv_old,
-                new[0], new[1], new[2], self.x_ref, self.status)
+                self.n, self.pos, self.radius1, self.cell_start, self.c_off, self.c_cnt, self.cj, self.chist,
+                self.order, self.inv_old, self.nbr, self.nn, self.hist, self.x_ref, self.sc, self.spd, self.spf,
+                self.spi, self.status)
             need = np.zeros(1)
             self.status[K.S_NEED_NB:K.S_NEED_NB + 1].copy_to_host(need, stream=self.stream)
             self.stream.synchronize()
             need = int(need[0])
             if need <= self.max_nb:
                 break
-            # grow the inactive buffer only; the old list is still needed for the carry-over
-            max_nb = int(math.ceil((need + 2) / 4.0)) * 4
-            self.max_nb = max_nb
-            self.lists[1 - self.cur] = [cuda.device_array((max_nb, self.n), np.int32, stream=self.stream),
-                                        cuda.to_device(np.zeros(self.n, np.int32), stream=self.stream),
-                                        cuda.device_array((K.HW, max_nb, self.n), self.dtype,
-                                                          stream=self.stream)]
-        self.cur = 1 - self.cur
-        if old[0].shape[0] != self.max_nb:  # keep both buffers the same stride
-            self.lists[1 - self.cur] = [cuda.device_array((self.max_nb, self.n), np.int32, stream=self.stream),
-                                        cuda.to_device(np.zeros(self.n, np.int32), stream=self.stream),
-                                        cuda.device_array((K.HW, self.max_nb, self.n), self.dtype,
-                                                          stream=self.stream)]
+            # the kept history is in the compact store: the list can be reallocated and rebuilt
+            self._alloc_list(int(math.ceil((need + 2) / 4.0)) * 4)
         self.builds += 1
 
-    def _prime(self, system: SphereSystem) -> None:
+    def _prime(self, systems) -> None:
         """First list build (restoring checkpointed springs) and forces at t = 0."""
         self._rebuild()
-        if system.contact_pairs is not None and len(system.contact_pairs):
-            self._restore_springs(np.asarray(system.contact_pairs, np.int64),
-                                  np.asarray(system.contact_springs, np.float64))
+        for s, sy in enumerate(systems):
+            if sy.contact_pairs is not None and len(sy.contact_pairs):
+                self._restore_springs(self.starts[s] + np.asarray(sy.contact_pairs, np.int64),
+                                      np.asarray(sy.contact_springs, np.float64))
         self._forces(step=0)
         self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
-        self._check(self._read_status_now())
+        # scenes that already fail at t = 0 (overlapping start): reported by the first advance
+        self._pending = self._collect(self._read_status_now())
 
     def _restore_springs(self, pairs, springs) -> None:
-        nbr, nn, hist = (a.copy_to_host(stream=self.stream) for a in self.lists[self.cur])
+        nbr, nn, hist = (a.copy_to_host(stream=self.stream) for a in (self.nbr, self.nn, self.hist))
         ids = self.ids.copy_to_host(stream=self.stream)
         self.stream.synchronize()
         slot_of = np.empty(self.n, np.int64)
@@ -254,82 +349,138 @@ class CudaBackend:
                     q = min(K.HW, springs.shape[1])
                     hist[0:q, kk, i] = springs[p, :q]
                     break
-        self.lists[self.cur][2].copy_to_device(hist, stream=self.stream)
+        self.hist.copy_to_device(hist, stream=self.stream)
 
     def _forces(self, step: int) -> None:
-        nbr, nn, hist = self.lists[self.cur]
         self.k["forces"][self._grid(self.n)](
-            self.n, self.pos, self.vel, self.omega, self.radius, self.inv_m, self._r0, self._im0,
-            self.f_cur, self.f_nxt, self.torque, nbr, nn, hist, self.ids, self.box_c, self.inv_box,
-            self.half, self.hp, self.k_n, self.gn_coef, self.k_t, self.mu, self.dt, self.overlap_limit,
+            self.n, self.pos, self.vel, self.omega, self.radius1, self.inv_m1, self.f_cur, self.f_nxt,
+            self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
             self.status, step)
 
     # ---- time loop ---------------------------------------------------------------------------------
 
+    def _coop_grid(self) -> tuple:
+        """Blocks of the cooperative launch: all co-resident (a grid sync needs it)."""
+        if self._coop_blocks is None:
+            if SIM:
+                self._coop_blocks = 1  # the simulator syncs a cooperative grid of one block only
+            else:
+                if not self.k["run_steps"].overloads:
+                    self.warmup()
+                kern = next(iter(self.k["run_steps"].overloads.values()))
+                fit = kern.max_cooperative_grid_blocks(self.tpb)
+                self._coop_blocks = max(1, min(fit, (self.n + self.tpb - 1) // self.tpb))
+        return self._coop_blocks, self.tpb, self.stream
+
+    def _run_steps(self, nmax: int, first: int, step0: int, grid=None) -> None:
+        self.k["run_steps"][grid or self._coop_grid()](
+            self.n, nmax, first, 0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
+            self.torque, self.inv_m1, self.inv_i1, self.radius1, self.x_ref, self.nbr, self.nn, self.hist,
+            self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step0)
+
     def warmup(self) -> None:
         """Compile the kernels of the current specialisation without advancing (launches with n = 0)."""
-        k, s, c = self.k, self.stream, self.dtype
-        nbr, nn, hist = self.lists[self.cur]
-        g = (1, self.tpb, s)
-        k["kick_drift"][g](0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque,
-                           self.inv_m, self.inv_i, self._im0, self._ii0, self.x_ref, self.ids, self.dt,
-                           self.dt, self.box_c, self.inv_box, self.half, self.status, 0)
-        k["forces"][g](0, self.pos, self.vel, self.omega, self.radius, self.inv_m, self._r0, self._im0,
-                       self.f_cur, self.f_nxt, self.torque, nbr, nn, hist, self.ids, self.box_c,
-                       self.inv_box, self.half, self.hp, self.k_n, self.gn_coef, self.k_t, self.mu,
-                       self.dt, self.overlap_limit, self.status, 0)
-        k["half_kick"][g](0, self.vel, self.omega, self.f_cur, self.torque, self.inv_m, self.inv_i,
-                          self._im0, self._ii0, self.hp)
-        k["observe"][g](0, self.pos, self.vel, self.omega, self.radius, self._r0, self.mass, self._m0,
-                        self.inertia, self._i0, nbr, nn, hist, self.box_c, self.inv_box, self.half,
-                        1.0, 1.0, cuda.device_array(8, np.float64, stream=s))
-        # list kernels run once per build: compile them on a copy-free dry run
-        k["build"][g](0, self.pos, self.radius, self._r0, self.skin, self.box_c, self.inv_box, self.half,
-                      self.nc, self.inv_cell, self.cell_start, nbr, nn, hist, self.order, self.inv_old,
-                      nbr, nn, hist, self.x_ref, cuda.device_array(K.S_LEN, np.float64, stream=s))
-        s.synchronize()
-        del c
-
-    def advance(self, nsteps: int) -> None:
-        """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
-        nsteps = int(nsteps)
-        if nsteps <= 0:
-            return
         k, s = self.k, self.stream
-        limit = float(self.skin) * 0.5
-        dtf = float(self.dt)
+        g = (1, self.tpb, s)
+        k["kick_drift"][g](0, 1, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque,
+                           self.inv_m1, self.inv_i1, self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi,
+                           self.status, 0)
+        k["forces"][g](0, self.pos, self.vel, self.omega, self.radius1, self.inv_m1, self.f_cur, self.f_nxt,
+                       self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
+                       self.spi, self.status, 0)
+        k["half_kick"][g](0, self.vel, self.omega, self.f_cur, self.torque, self.inv_m1, self.inv_i1, self.sc,
+                          self.spd, self.spi)
+        acc = cuda.device_array((self.n_scenes, 8), np.float64, stream=s)
+        k["observe"][g](0, self.pos, self.vel, self.omega, self.radius1, self.mass1, self.inertia1, self.nbr,
+                        self.nn, self.hist, self.sc, self.spd, self.spf, self.spi, acc)
+        if self.multistep:
+            scratch = cuda.to_device(self._fresh_status(), stream=s)
+            k["run_steps"][g](0, 1, 1, 0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
+                              self.torque, self.inv_m1, self.inv_i1, self.radius1, self.x_ref, self.nbr, self.nn,
+                              self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, scratch, 0)
+        s.synchronize()
+
+    def advance(self, nsteps: int) -> dict:
+        """Advance every active scene nsteps steps; returns {scene: InstabilityError} of the scenes that
+        blew up in this call (stopped on the device at their own step; the others went on)."""
+        nsteps = int(nsteps)
+        failed, self._pending = dict(self._pending), {}
+        if nsteps <= 0 or not self.active.any():
+            return failed
+        if self.multistep:
+            self._advance_multistep(nsteps, failed)
+        else:
+            self._advance_per_phase(nsteps, failed)
+        self.k["half_kick"][self._grid(self.n)](self.n, self.vel, self.omega, self.f_cur, self.torque,
+                                                self.inv_m1, self.inv_i1, self.sc, self.spd, self.spi)
+        self._collect(self._read_status_now(), failed)
+        return failed
+
+    def _advance_multistep(self, nsteps: int, failed: dict) -> None:
+        remaining, first = nsteps, 1
+        prof = self.profile is not None
+        while remaining > 0:
+            t0 = time.perf_counter()
+            self._run_steps(remaining, first, self.steps_done)
+            self.launches += 1
+            first = 0
+            h = self._read_status_now()
+            if prof:
+                self.profile["run_steps"] = self.profile.get("run_steps", 0.0) + 1e3 * (time.perf_counter() - t0)
+            done = int(h[K.S_RUN_DONE])
+            if done % 2 == 1:
+                self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
+            self.steps_done += done
+            remaining -= done
+            self._collect(h, failed)
+            if h[K.S_RUN_REBUILD] > 0 and remaining > 0:
+                # this step has drifted: rebuild, then its forces complete it
+                t0 = time.perf_counter()
+                self._rebuild()
+                self._forces(self.steps_done)
+                self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
+                self.steps_done += 1
+                remaining -= 1
+                if prof:
+                    self.stream.synchronize()
+                    self.profile["rebuild"] = self.profile.get("rebuild", 0.0) + 1e3 * (time.perf_counter() - t0)
+            if not self.active.any():
+                self.steps_done += remaining
+                return
+
+    def _advance_per_phase(self, nsteps: int, failed: dict) -> None:
+        k, s = self.k, self.stream
         rebuilt_prev = False
         prev = None  # slot of the previous step's status copy
         for st in range(nsteps):
-            step = self.steps_done + st
-            hk = self.hp if st == 0 else self.dt
+            step = self.steps_done
             prof = self.profile is not None
             if prof:
                 e0 = self._ev(); e0.record(s)
             k["kick_drift"][self._grid(self.n)](
-                self.n, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque, self.inv_m,
-                self.inv_i, self._im0, self._ii0, self.x_ref, self.ids, hk, self.dt, self.box_c,
-                self.inv_box, self.half, self.status, step)
+                self.n, 1 if st == 0 else 0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque,
+                self.inv_m1, self.inv_i1, self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi,
+                self.status, step)
             if prof:
                 e1 = self._ev(); e1.record(s)
             slot = st % 2
             self.status.copy_to_host(self.status_h[slot], stream=s)
             self.events[slot].record(s)
-            # decide the rebuild from the previous step's status (already on the host, no GPU stall)
+            # decide the rebuild from the previous step's status (already on the host, no GPU stall);
+            # displacements and speeds are normalised by each scene's L_v/2
             if prev is None:
-                # first step of the call: the last status of the previous call is known exactly
+                # first step of the call: this step's displacement is known exactly
                 self.events[slot].synchronize()
                 h = self.status_h[slot]
-                rebuild = math.sqrt(h[K.S_DISP2]) > limit
-                self._check(h)
+                rebuild = math.sqrt(h[K.S_D2]) > 1.0
             else:
                 self.events[prev].synchronize()
                 h = self.status_h[prev]
-                self._check(h)
-                if not rebuilt_prev and math.sqrt(h[K.S_DISP2]) > limit:
+                if not rebuilt_prev and math.sqrt(h[K.S_D2]) > 1.0:
                     self.late_rebuilds += 1
-                d_prev = 0.0 if rebuilt_prev else math.sqrt(h[K.S_DISP2])
-                rebuild = d_prev + 2.0 * math.sqrt(h[K.S_V2]) * dtf > limit
+                d_prev = 0.0 if rebuilt_prev else math.sqrt(h[K.S_D2])
+                rebuild = d_prev + math.sqrt(h[K.S_V2]) > 1.0
+            self._collect(h, failed)
             if prof:
                 e2 = self._ev(); e2.record(s)
             if rebuild:
@@ -338,24 +489,22 @@ class CudaBackend:
             if prof:
                 e3 = self._ev(); e3.record(s)
             self._forces(step)
+            self.launches += 2
             self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
             if prof:
                 e4 = self._ev(); e4.record(s)
                 self._prof_events.append((e0, e1, e2, e3, e4))
             prev = slot
-        k["half_kick"][self._grid(self.n)](self.n, self.vel, self.omega, self.f_cur, self.torque, self.inv_m,
-                                           self.inv_i, self._im0, self._ii0, self.hp)
+            self.steps_done += 1
         h = self._read_status_now()
-        if not rebuilt_prev and math.sqrt(h[K.S_DISP2]) > limit:
+        if not rebuilt_prev and math.sqrt(h[K.S_D2]) > 1.0:
             self.late_rebuilds += 1
-        self.steps_done += nsteps
         if self.profile is not None:
             for e0, e1, e2, e3, e4 in self._prof_events:
                 for name, a, b in (("kick_drift", e0, e1), ("status_copy", e1, e2), ("rebuild", e2, e3),
                                    ("forces", e3, e4)):
                     self.profile[name] = self.profile.get(name, 0.0) + cuda.event_elapsed_time(a, b)
             self._prof_events = []
-        self._check(h)
 
     def _ev(self):
         return cuda.event(timing=True) if not SIM else cuda.event()
@@ -366,33 +515,47 @@ class CudaBackend:
         self.stream.synchronize()
         return h
 
-    def _check(self, h) -> None:
-        if h[K.S_BAD_ID] < np.inf:
-            step = int(h[K.S_BAD_STEP])
-            self.steps_done = step
-            raise _instability(BAD_VALUE, step, int(h[K.S_BAD_ID]), 0.0, self)
-        if h[K.S_OVL_ID] < np.inf:
-            step = int(h[K.S_OVL_STEP])
-            self.steps_done = step
-            raise _instability(OVERLAP, step, int(h[K.S_OVL_ID]), float(h[K.S_OVL]), self)
+    def _collect(self, h, failed: dict | None = None) -> dict:
+        """Scenes that blew up according to status h (once each): deactivated, error recorded."""
+        failed = {} if failed is None else failed
+        for s in np.nonzero(self.active)[0]:
+            b = K.SS0 + K.NSS * s
+            info = SimpleNamespace(dt=self.spd_h[s, K.D_DT], overlap_limit=self.spf_h[s, K.F_OVL])
+            err = None
+            if h[b + K.SS_BAD_ID] < np.inf:
+                err = _instability(BAD_VALUE, int(h[b + K.SS_BAD_STEP]),
+                                   int(h[b + K.SS_BAD_ID]) - int(self.starts[s]), 0.0, info)
+            elif h[b + K.SS_OVL_ID] < np.inf:
+                err = _instability(OVERLAP, int(h[b + K.SS_OVL_STEP]), int(h[b + K.SS_OVL_ID]) - int(self.starts[s]),
+                                   float(h[b + K.SS_OVL]), info)
+            if err is not None:
+                self.active[s] = False
+                self.spi_h[s, K.I_ACTIVE] = 0
+                failed[int(s)] = err
+        return failed
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
-    def observe(self) -> dict:
-        nbr, nn, hist = self.lists[self.cur]
-        acc = cuda.to_device(np.zeros(8), stream=self.stream)
-        k_t = 0.0 if self.contact.k_t is None else float(self.k_t)
+    def observe(self) -> list:
+        """Per scene: the observables of :meth:`CudaBackend.observe`, None for an inactive scene."""
+        acc = cuda.to_device(np.zeros((self.n_scenes, 8)), stream=self.stream)
         self.k["observe"][self._grid(self.n)](
-            self.n, self.pos, self.vel, self.omega, self.radius, self._r0, self.mass, self._m0, self.inertia,
-            self._i0, nbr, nn, hist, self.box_c, self.inv_box, self.half, float(self.k_n), k_t, acc)
+            self.n, self.pos, self.vel, self.omega, self.radius1, self.mass1, self.inertia1, self.nbr, self.nn,
+            self.hist, self.sc, self.spd, self.spf, self.spi, acc)
         a = acc.copy_to_host(stream=self.stream)
         self.stream.synchronize()
-        return {"kinetic_energy_translational": float(a[0]), "kinetic_energy_rotational": float(a[1]),
-                "contacts": int(round(a[2])) // 2, "elastic_energy": float(a[3]), "max_overlap": float(a[7]),
-                "momentum": (float(a[4]), float(a[5]), float(a[6]))}
+        out = []
+        for s in range(self.n_scenes):
+            if not self.active[s]:
+                out.append(None)
+                continue
+            r = a[s]
+            out.append({"kinetic_energy_translational": float(r[0]), "kinetic_energy_rotational": float(r[1]),
+                        "contacts": int(round(r[2])) // 2, "elastic_energy": float(r[3]),
+                        "max_overlap": float(r[7]), "momentum": (float(r[4]), float(r[5]), float(r[6]))})
+        return out
 
-    def state(self) -> dict:
-        """Host copies of the state arrays in particle-id order (all copies queued, one sync)."""
+    def _host_arrays(self):
         s = self.stream
         if getattr(self, "_pinned", None) is None:
             self._pinned = {name: cuda.pinned_array(getattr(self, name).shape, self.dtype)
@@ -402,28 +565,37 @@ class CudaBackend:
             getattr(self, name).copy_to_host(buf, stream=s)
         self.ids.copy_to_host(self._pinned_ids, stream=s)
         s.synchronize()
-        ids = self._pinned_ids
+        return self._pinned, self._pinned_ids
+
+    def state(self, k: int) -> dict:
+        """Host copies of scene k's state arrays in particle-id order."""
+        arrays, ids = self._host_arrays()
+        a0, n_k = int(self.starts[k]), int(self.sizes[k])
+        local = ids[a0:a0 + n_k] - a0
         out = {}
         for key, name in (("position", "pos"), ("velocity", "vel"), ("angular_velocity", "omega"),
                           ("orientation", "quat")):
-            a = self._pinned[name]
-            o = np.empty((self.n, a.shape[0]), self.dtype)
-            o[ids] = a.T
+            a = arrays[name][:, a0:a0 + n_k]
+            o = np.empty((n_k, a.shape[0]), self.dtype)
+            o[local] = a.T
             out[key] = o
         return out
 
-    def contacts(self):
-        """(pairs (M,2) int64 ids, history (M,HW)) of the list slots in contact (previous overlap > 0),
-        ordered like the CPU backend's (by particle id, then list slot)."""
-        nbr, nn, hist = (a.copy_to_host(stream=self.stream) for a in self.lists[self.cur])
+    def contacts(self, k: int):
+        """(pairs (M,2) int64 ids, history (M,HW)) of scene k's list slots in contact (previous overlap
+        > 0), ordered like the CPU backend's (by particle id, then list slot)."""
+        nbr, nn, hist = (a.copy_to_host(stream=self.stream) for a in (self.nbr, self.nn, self.hist))
         ids = self.ids.copy_to_host(stream=self.stream)
         self.stream.synchronize()
+        a0, n_k = int(self.starts[k]), int(self.sizes[k])
+        sl = slice(a0, a0 + n_k)
+        nbr, nn, hist, ids_k = nbr[:, sl], nn[sl], hist[:, :, sl], ids[sl]
         m = nbr.shape[0]
         slot = np.arange(m)[:, None] < np.minimum(nn, m)[None, :]
         kk, ii = np.nonzero(slot & (hist[3] > 0))
-        order = np.lexsort((kk, ids[ii]))
+        order = np.lexsort((kk, ids_k[ii]))
         kk, ii = kk[order], ii[order]
-        pairs = np.stack([ids[ii], ids[nbr[kk, ii]]], axis=1).astype(np.int64)
+        pairs = np.stack([ids_k[ii] - a0, ids[nbr[kk, ii]] - a0], axis=1).astype(np.int64)
         springs = np.ascontiguousarray(hist[:, kk, ii].T).astype(self.dtype)
         return pairs, springs
 
@@ -431,15 +603,66 @@ class CudaBackend:
 
     def device_bytes(self) -> int:
         """Bytes of device memory this backend holds (all arrays)."""
-        total = 0
-        for v in vars(self).values():
-            if isinstance(v, list):
-                for x in v:
-                    for y in (x if isinstance(x, list) else [x]):
-                        total += getattr(y, "nbytes", 0) if _is_dev(y) else 0
-            elif _is_dev(v):
-                total += v.nbytes
-        return total
+        views = {"radius1", "inv_m1", "inv_i1", "mass1", "inertia1"}
+        return sum(v.nbytes for name, v in vars(self).items() if name not in views and _is_dev(v))
+
+
+class CudaBackend:
+    """One scene on the GPU (K = 1 of :class:`CudaEnsemble`), with the CPU backend's interface."""
+
+    name = "cuda"
+
+    def __init__(self, system: SphereSystem, contact: ContactParams):
+        self.e = CudaEnsemble([system], [contact])
+        self.n = system.n
+        self.box = float(system.box_length)
+        self.device = self.e.device
+        self.set_contact(contact)
+        if self.e._pending:
+            raise self.e._pending[0]
+
+    def __getattr__(self, attr):  # builds, late_rebuilds, max_nb, profile, launches, dtype, ...
+        return getattr(self.__dict__["e"], attr)
+
+    def __setattr__(self, attr, value):
+        if attr == "profile":
+            self.e.profile = value
+        else:
+            object.__setattr__(self, attr, value)
+
+    def set_contact(self, contact: ContactParams) -> None:
+        self.contact = contact
+        self.dt = contact.dt
+        self.overlap_limit = float(contact.overlap_limit)
+        self.e.set_contact(0, contact)
+
+    def warmup(self) -> None:
+        self.e.warmup()
+
+    def advance(self, nsteps: int) -> None:
+        """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
+        failed = self.e.advance(nsteps)
+        if failed:
+            err = failed[0]
+            self.e.steps_done = err.step if isinstance(err, InstabilityError) and err.step is not None \
+                else self.e.steps_done
+            raise err
+
+    @property
+    def steps_done(self) -> int:
+        return self.e.steps_done
+
+    def observe(self) -> dict:
+        return self.e.observe()[0]
+
+    def state(self) -> dict:
+        return self.e.state(0)
+
+    def contacts(self):
+        return self.e.contacts(0)
+
+    def device_bytes(self) -> int:
+        return self.e.device_bytes()
 
 
 def _is_dev(a) -> bool:

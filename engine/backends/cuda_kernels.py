@@ -1,19 +1,29 @@
-"""CUDA kernels of the GPU backend, built by factories keyed on what a scene needs (DESIGN §1).
+"""CUDA kernels of the GPU backend: K independent scenes advanced together (K = 1 for one run).
 
 Every kernel calls the same ``@numba.njit`` physics functions as the CPU backend
-(:mod:`engine.physics`); this module owns only layout, loops and launches.
+(:mod:`engine.physics`); this module owns only layout, loops and launches. The kernels are built by
+factories keyed on what the scenes need (DESIGN §1): precision, rough or smooth, Coulomb limit,
+orientation, uniform particles.
 
-Layout (device, particles in *sorted* order, structure of arrays, i fastest):
-    pos, vel, omega (3, N); quat (4, N); force_a/force_b (3, N) (double buffer: the force kernel reads
-    the previous step's forces for the predicted velocities of *other* particles while writing its
-    own); torque (3, N); x_ref (3, N); ids (N) int32 = particle id of each device slot.
-    Neighbour list: nbr (M, N) int32, nn (N) int32, hist (H, M, N) per-slot contact history
-    (H = 5: tangential spring x,y,z, previous overlap, previous normal force), double-buffered for
-    the rebuild (history carried over through the id permutation).
-    Uniform scenes (one radius, one mass) pass scalars instead of per-particle radius / 1/m / 1/I.
+Layout (device, structure of arrays, particle index fastest). The scenes lie back to back: scene s owns
+the slots [start_s, start_s + n_s) and keeps them (its cells come before the next scene's, so the cell
+sort never moves a particle into another scene's range); ``sc[i]`` is the scene of slot i.
+    pos, vel, omega (3, N); quat (4, N); f0/f1 (3, N) (double buffer: the force kernel reads the previous
+    step's forces for the predicted velocities of *other* particles while writing its own); torque (3, N);
+    x_ref (3, N); ids (N) int32 = ensemble-wide particle id (start_s + id within the scene).
+    Neighbour list: nbr (M, N) int32, nn (N) int32, hist (H, M, N) per-slot contact history (H = 5:
+    tangential spring x, y, z, previous overlap, previous dashpot force).
+    Compact history store (rebuilds only): the slots whose history matters across a rebuild (in contact
+    at the previous step or overlapping now) are copied to cj/chist before the list is rebuilt in place;
+    every other slot restarts from zero history with the current gap as its previous overlap, which gives
+    the same forces bit for bit (a pair apart at the previous step has zero spring, and its previous
+    dashpot force is never read). This keeps one list buffer instead of two (issue 3's memory target).
+Per-scene constants: spd (K, ND) in the working precision, spf (K, NF) float64, spi (K, NI) int32; a
+scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or failed: a blow-up
+clears it on the device so a failing scene cannot disturb the others).
 
-Reductions (max displacement, max speed, instability flags, observables) are done per block in
-shared memory and folded into a small float64 ``status`` array with one atomic per block.
+Status (float64): global slots S_* (rebuild decision, list stride, compaction count, multi-step exit)
+then NSS words per scene at SS0 + NSS s (first bad value, worst overlap beyond the limit).
 """
 
 from __future__ import annotations
@@ -29,12 +39,30 @@ from engine.physics.contact import (contact_elastic_energy, contact_end_fraction
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import fincham_quat_step_space
 
-# status slots (float64)
-S_DISP2, S_V2, S_BAD_ID, S_BAD_STEP, S_OVL, S_OVL_ID, S_OVL_STEP, S_NEED_NB, S_LATE = range(9)
-S_LEN = 12
-HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous normal force
+# per-scene constants: spd (working precision)
+D_BOX, D_INVBOX, D_DT, D_HP, D_KN, D_GN, D_KT, D_MU, D_R0, D_M0, D_I0, D_IM0, D_II0, D_SKIN = range(14)
+ND = 14
+# spf (float64)
+F_OVL, F_INVCELL, F_LIM2INV, F_V2F, F_KN, F_KT = range(6)
+NF = 6
+# spi (int32)
+I_NC, I_COFF, I_ACTIVE, I_START, I_N, I_ORIENT = range(6)
+NI = 6
+
+# global status slots; S_D2 (+1): max over particles of (displacement since the build / (L_v/2))^2 (two
+# slots: the multi-step kernel alternates them by step parity); S_V2: max (2 |v| dt / (L_v/2))^2
+S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD = range(7)
+SS0 = 8
+# per-scene status words
+SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
+NSS = 5
+HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force
 
 _cache: dict = {}
+
+
+def status_len(k: int) -> int:
+    return SS0 + NSS * k
 
 
 def kernels(dtype, rough: bool, coulomb: bool, orient: bool, uniform: bool, tpb: int):
@@ -47,11 +75,11 @@ def kernels(dtype, rough: bool, coulomb: bool, orient: bool, uniform: bool, tpb:
 
 def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     ZERO = DT(0)
+    HALF = DT(0.5)
     BIG = DT(np.finfo(DT).max)
     INF = np.float64(np.inf)
     f64 = np.float64
     SH2 = 2 * TPB
-    SHOBS = (8, TPB)
 
     @cuda.jit(device=True)
     def block_max2(sh, a, b):
@@ -70,199 +98,295 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
             cuda.syncthreads()
             s //= 2
 
-    # ---- step kernels -------------------------------------------------------------------------
+    @cuda.jit(device=True)
+    def fail(status, spi, s, word, value, step):
+        """Record a blow-up of scene s (first offender, first step) and stop the scene on the device."""
+        b = SS0 + NSS * s
+        cuda.atomic.min(status, b + word, f64(value))
+        cuda.atomic.min(status, b + word + 1, f64(step))
+        spi[s, I_ACTIVE] = 0
 
-    @cuda.jit
-    def kick_drift(n, pos, vel, omega, quat, force, torque, inv_m, inv_i, im0, ii0, x_ref, ids,
-                   hk, dt, box, inv_box, half, status, step):
-        """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; max |x - x_ref|^2, max |v|^2."""
-        sh = cuda.shared.array(SH2, ct.float64)
-        i0 = cuda.grid(1)
-        stride = cuda.gridsize(1)
-        md = 0.0
-        mv = 0.0
-        for i in range(i0, n, stride):
-            im = im0 if UNIFORM else inv_m[i]
-            v2 = ZERO
-            dsp = ZERO
+    # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
+
+    @cuda.jit(device=True)
+    def kick_drift_one(i, first, pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, ids, sc, spd,
+                       spf, spi, status, step):
+        """v += F/m hk, w += tau/I hk (hk = dt/2 on the first step of a call, else dt), x += v dt wrapped,
+        q advanced; returns the normalised squared displacement and speed (0, 0 for a skipped scene)."""
+        s = sc[i]
+        if spi[s, I_ACTIVE] == 0:
+            return 0.0, 0.0
+        dt = spd[s, D_DT]
+        hk = spd[s, D_HP] if first else dt
+        box = spd[s, D_BOX]
+        inv_box = spd[s, D_INVBOX]
+        im = spd[s, D_IM0] if UNIFORM else inv_m[i]
+        v2 = ZERO
+        dsp = ZERO
+        for k in range(3):
+            v = kick(vel[k, i], force[k, i], im, hk)
+            vel[k, i] = v
+            x = drift_wrap(pos[k, i], v, dt, box, inv_box)
+            pos[k, i] = x
+            d = min_image(x - x_ref[k, i], box, inv_box, HALF)
+            dsp += d * d
+            v2 += v * v
+        w2 = ZERO
+        if ROUGH:
+            ii = spd[s, D_II0] if UNIFORM else inv_i[i]
             for k in range(3):
-                v = kick(vel[k, i], force[k, i], im, hk)
-                vel[k, i] = v
-                x = drift_wrap(pos[k, i], v, dt, box, inv_box)
-                pos[k, i] = x
-                d = min_image(x - x_ref[k, i], box, inv_box, half)
-                dsp += d * d
-                v2 += v * v
-            w2 = ZERO
-            if ROUGH:
-                ii = ii0 if UNIFORM else inv_i[i]
-                for k in range(3):
-                    w = kick(omega[k, i], torque[k, i], ii, hk)
-                    omega[k, i] = w
-                    w2 += w * w
-            if ORIENT:
+                w = kick(omega[k, i], torque[k, i], ii, hk)
+                omega[k, i] = w
+                w2 += w * w
+        if ORIENT:
+            if spi[s, I_ORIENT] != 0:
                 q0, q1, q2, q3 = fincham_quat_step_space(quat[0, i], quat[1, i], quat[2, i], quat[3, i],
-                                                         omega[0, i], omega[1, i], omega[2, i], dt, half)
+                                                         omega[0, i], omega[1, i], omega[2, i], dt, HALF)
                 quat[0, i] = q0
                 quat[1, i] = q1
                 quat[2, i] = q2
                 quat[3, i] = q3
-            if not (dsp < BIG) or not (v2 < BIG) or not (w2 < BIG):
-                cuda.atomic.min(status, S_BAD_ID, f64(ids[i]))
-                cuda.atomic.min(status, S_BAD_STEP, f64(step))
-            else:
-                if dsp > md:
-                    md = dsp
-                if v2 > mv:
-                    mv = v2
+        if not (dsp < BIG) or not (v2 < BIG) or not (w2 < BIG):
+            fail(status, spi, s, SS_BAD_ID, ids[i], step)
+            return 0.0, 0.0
+        return f64(dsp) * spf[s, F_LIM2INV], f64(v2) * spf[s, F_V2F]
+
+    @cuda.jit(device=True)
+    def forces_one(i, pos, vel, omega, radius, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
+                   spf, spi, status, step):
+        """Contact forces and torque on particle i from its list; per-slot history advanced in place."""
+        s = sc[i]
+        if spi[s, I_ACTIVE] == 0:
+            return
+        box = spd[s, D_BOX]
+        inv_box = spd[s, D_INVBOX]
+        hp = spd[s, D_HP]
+        dt = spd[s, D_DT]
+        k_n = spd[s, D_KN]
+        gn_coef = spd[s, D_GN]
+        k_t = spd[s, D_KT]
+        mu = spd[s, D_MU]
+        r0 = spd[s, D_R0]
+        im0 = spd[s, D_IM0]
+        one = HALF + HALF
+        fx = ZERO
+        fy = ZERO
+        fz = ZERO
+        tx = ZERO
+        ty = ZERO
+        tz = ZERO
+        xi = pos[0, i]
+        yi = pos[1, i]
+        zi = pos[2, i]
+        ri = r0 if UNIFORM else radius[i]
+        imi = im0 if UNIFORM else inv_m[i]
+        wsi = ZERO
+        for kk in range(nn[i]):
+            j = nbr[kk, i]
+            rx = min_image(xi - pos[0, j], box, inv_box, HALF)
+            ry = min_image(yi - pos[1, j], box, inv_box, HALF)
+            rz = min_image(zi - pos[2, j], box, inv_box, HALF)
+            d = math.sqrt(rx * rx + ry * ry + rz * rz)
+            rj = r0 if UNIFORM else radius[j]
+            delta = ri + rj - d
+            delta_prev = hist[3, kk, i]
+            if delta > ZERO:
+                imj = im0 if UNIFORM else inv_m[j]
+                m12 = one / (imi + imj)
+                vix = vel[0, i]
+                viy = vel[1, i]
+                viz = vel[2, i]
+                vjx = vel[0, j]
+                vjy = vel[1, j]
+                vjz = vel[2, j]
+                # predicted end-of-step velocities v + F/m dt/2 (CPU: vel_p in kick_drift)
+                uix = kick(vix, f_old[0, i], imi, hp)
+                uiy = kick(viy, f_old[1, i], imi, hp)
+                uiz = kick(viz, f_old[2, i], imi, hp)
+                ujx = kick(vjx, f_old[0, j], imj, hp)
+                ujy = kick(vjy, f_old[1, j], imj, hp)
+                ujz = kick(vjz, f_old[2, j], imj, hp)
+                if ROUGH and COULOMB:
+                    g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
+                                       uix - ujx, uiy - ujy, uiz - ujz,
+                                       omega[0, i], omega[1, i], omega[2, i],
+                                       omega[0, j], omega[1, j], omega[2, j], ri, rj,
+                                       hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                       hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, HALF)
+                elif ROUGH:
+                    g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
+                                       uix - ujx, uiy - ujy, uiz - ujz,
+                                       omega[0, i], omega[1, i], omega[2, i],
+                                       omega[0, j], omega[1, j], omega[2, j], ri, rj,
+                                       hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                       hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, None, dt, HALF)
+                else:
+                    g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
+                                       uix - ujx, uiy - ujy, uiz - ujz,
+                                       ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
+                                       hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                       hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), None, None, dt, HALF)
+                fx += g[0]
+                fy += g[1]
+                fz += g[2]
+                if ROUGH:
+                    tx += g[3]
+                    ty += g[4]
+                    tz += g[5]
+                    hist[0, kk, i] = g[6]
+                    hist[1, kk, i] = g[7]
+                    hist[2, kk, i] = g[8]
+                hist[4, kk, i] = g[10]
+                ov = delta / min(ri, rj)
+                if ov > wsi:
+                    wsi = ov
+            elif delta_prev > ZERO:
+                pe = contact_end_fraction(delta_prev, delta)
+                vjx = vel[0, j]
+                vjy = vel[1, j]
+                vjz = vel[2, j]
+                if ROUGH:
+                    e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
+                                           omega[0, i], omega[1, i], omega[2, i],
+                                           omega[0, j], omega[1, j], omega[2, j], ri, rj,
+                                           hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
+                                           k_t, pe, dt, HALF)
+                else:
+                    e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
+                                           ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
+                                           hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
+                                           None, pe, dt, HALF)
+                fx += e[0]
+                fy += e[1]
+                fz += e[2]
+                if ROUGH:
+                    tx += e[3]
+                    ty += e[4]
+                    tz += e[5]
+                    hist[0, kk, i] = ZERO
+                    hist[1, kk, i] = ZERO
+                    hist[2, kk, i] = ZERO
+            hist[3, kk, i] = delta
+        f_new[0, i] = fx
+        f_new[1, i] = fy
+        f_new[2, i] = fz
+        if ROUGH:
+            torque[0, i] = tx
+            torque[1, i] = ty
+            torque[2, i] = tz
+        w64 = f64(wsi)
+        if w64 > spf[s, F_OVL]:
+            b = SS0 + NSS * s
+            cuda.atomic.max(status, b + SS_OVL, w64)
+            fail(status, spi, s, SS_OVL_ID, ids[i], step)
+
+    # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
+
+    @cuda.jit
+    def kick_drift(n, first, pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, ids, sc, spd, spf,
+                   spi, status, step):
+        sh = cuda.shared.array(SH2, ct.float64)
+        md = 0.0
+        mv = 0.0
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            d2, v2 = kick_drift_one(i, first, pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, ids,
+                                    sc, spd, spf, spi, status, step)
+            md = max(md, d2)
+            mv = max(mv, v2)
         block_max2(sh, md, mv)
         if cuda.threadIdx.x == 0:
-            cuda.atomic.max(status, S_DISP2, sh[0])
+            cuda.atomic.max(status, S_D2, sh[0])
             cuda.atomic.max(status, S_V2, sh[TPB])
 
     @cuda.jit
-    def forces(n, pos, vel, omega, radius, inv_m, r0, im0, f_old, f_new, torque, nbr, nn, hist, ids,
-               box, inv_box, half, hp, k_n, gn_coef, k_t, mu, dt, ovl_limit, status, step):
-        """Contact forces and torques from the full list; per-slot history advanced in place."""
-        sh = cuda.shared.array(SH2, ct.float64)
+    def forces(n, pos, vel, omega, radius, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
+               spi, status, step):
         i0 = cuda.grid(1)
-        stride = cuda.gridsize(1)
-        one = half + half
-        worst = 0.0
-        worst_id = INF
         if i0 == 0:  # reset the per-step maxima for the next kick_drift (stream-ordered after its copy)
-            status[S_DISP2] = 0.0
+            status[S_D2] = 0.0
             status[S_V2] = 0.0
-        for i in range(i0, n, stride):
-            fx = ZERO
-            fy = ZERO
-            fz = ZERO
-            tx = ZERO
-            ty = ZERO
-            tz = ZERO
-            xi = pos[0, i]
-            yi = pos[1, i]
-            zi = pos[2, i]
-            ri = r0 if UNIFORM else radius[i]
-            imi = im0 if UNIFORM else inv_m[i]
-            wsi = ZERO
-            for kk in range(nn[i]):
-                j = nbr[kk, i]
-                rx = min_image(xi - pos[0, j], box, inv_box, half)
-                ry = min_image(yi - pos[1, j], box, inv_box, half)
-                rz = min_image(zi - pos[2, j], box, inv_box, half)
-                d = math.sqrt(rx * rx + ry * ry + rz * rz)
-                rj = r0 if UNIFORM else radius[j]
-                delta = ri + rj - d
-                delta_prev = hist[3, kk, i]
-                if delta > ZERO:
-                    imj = im0 if UNIFORM else inv_m[j]
-                    m12 = one / (imi + imj)
-                    vix = vel[0, i]
-                    viy = vel[1, i]
-                    viz = vel[2, i]
-                    vjx = vel[0, j]
-                    vjy = vel[1, j]
-                    vjz = vel[2, j]
-                    # predicted end-of-step velocities v + F/m dt/2 (CPU: vel_p in kick_drift)
-                    uix = kick(vix, f_old[0, i], imi, hp)
-                    uiy = kick(viy, f_old[1, i], imi, hp)
-                    uiz = kick(viz, f_old[2, i], imi, hp)
-                    ujx = kick(vjx, f_old[0, j], imj, hp)
-                    ujy = kick(vjy, f_old[1, j], imj, hp)
-                    ujz = kick(vjz, f_old[2, j], imj, hp)
-                    if ROUGH and COULOMB:
-                        g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                           uix - ujx, uiy - ujy, uiz - ujz,
-                                           omega[0, i], omega[1, i], omega[2, i],
-                                           omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev, hist[4, kk, i], m12,
-                                           k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, half)
-                    elif ROUGH:
-                        g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                           uix - ujx, uiy - ujy, uiz - ujz,
-                                           omega[0, i], omega[1, i], omega[2, i],
-                                           omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev, hist[4, kk, i], m12,
-                                           k_n, gn_coef * math.sqrt(m12), k_t, None, dt, half)
-                    else:
-                        g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                           uix - ujx, uiy - ujy, uiz - ujz,
-                                           ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
-                                           hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev, hist[4, kk, i], m12,
-                                           k_n, gn_coef * math.sqrt(m12), None, None, dt, half)
-                    fx += g[0]
-                    fy += g[1]
-                    fz += g[2]
-                    if ROUGH:
-                        tx += g[3]
-                        ty += g[4]
-                        tz += g[5]
-                        hist[0, kk, i] = g[6]
-                        hist[1, kk, i] = g[7]
-                        hist[2, kk, i] = g[8]
-                    hist[4, kk, i] = g[10]
-                    ov = delta / min(ri, rj)
-                    if ov > wsi:
-                        wsi = ov
-                elif delta_prev > ZERO:
-                    pe = contact_end_fraction(delta_prev, delta)
-                    vjx = vel[0, j]
-                    vjy = vel[1, j]
-                    vjz = vel[2, j]
-                    if ROUGH:
-                        e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
-                                               omega[0, i], omega[1, i], omega[2, i],
-                                               omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                               hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
-                                               k_t, pe, dt, half)
-                    else:
-                        e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
-                                               ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
-                                               hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
-                                               None, pe, dt, half)
-                    fx += e[0]
-                    fy += e[1]
-                    fz += e[2]
-                    if ROUGH:
-                        tx += e[3]
-                        ty += e[4]
-                        tz += e[5]
-                        hist[0, kk, i] = ZERO
-                        hist[1, kk, i] = ZERO
-                        hist[2, kk, i] = ZERO
-                hist[3, kk, i] = delta
-            f_new[0, i] = fx
-            f_new[1, i] = fy
-            f_new[2, i] = fz
-            if ROUGH:
-                torque[0, i] = tx
-                torque[1, i] = ty
-                torque[2, i] = tz
-            w64 = f64(wsi)
-            if w64 > worst:
-                worst = w64
-                if w64 > ovl_limit:
-                    worst_id = min(worst_id, f64(ids[i]))
-        # block max of the worst overlap; offender id by atomic min
-        block_max2(sh, worst, -worst_id)
-        if cuda.threadIdx.x == 0 and sh[0] > ovl_limit:
-            cuda.atomic.max(status, S_OVL, sh[0])
-            cuda.atomic.min(status, S_OVL_ID, -sh[TPB])
-            cuda.atomic.min(status, S_OVL_STEP, f64(step))
+        for i in range(i0, n, cuda.gridsize(1)):
+            forces_one(i, pos, vel, omega, radius, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
+                       spf, spi, status, step)
 
     @cuda.jit
-    def half_kick(n, vel, omega, force, torque, inv_m, inv_i, im0, ii0, hk):
+    def half_kick(n, vel, omega, force, torque, inv_m, inv_i, sc, spd, spi):
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            im = im0 if UNIFORM else inv_m[i]
+            s = sc[i]
+            if spi[s, I_ACTIVE] == 0:
+                continue
+            hk = spd[s, D_HP]
+            im = spd[s, D_IM0] if UNIFORM else inv_m[i]
             for k in range(3):
                 vel[k, i] = kick(vel[k, i], force[k, i], im, hk)
             if ROUGH:
-                ii = ii0 if UNIFORM else inv_i[i]
+                ii = spd[s, D_II0] if UNIFORM else inv_i[i]
                 for k in range(3):
                     omega[k, i] = kick(omega[k, i], torque[k, i], ii, hk)
 
-    # ---- neighbour list: cells, sort, permute, build ------------------------------------------
+    # ---- many steps per launch (small scenes and ensembles: launch overhead paid once per chunk) -------
+
+    @cuda.jit
+    def run_steps(n, nmax, first, skip_kick, pos, vel, omega, quat, f0, f1, torque, inv_m, inv_i, radius,
+                  x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0):
+        """Up to nmax whole steps in one cooperative launch, the phases separated by grid syncs.
+
+        Stops early, after the drift of a step and before its forces, when a particle has moved more than
+        L_v/2 since the list build: status[S_RUN_REBUILD] = 1 and status[S_RUN_DONE] = the whole steps
+        completed (the host rebuilds, computes that step's forces and relaunches). Step st reads forces
+        from f0 when st is even (f1 when odd) and writes the other buffer. skip_kick = 1: the drift of
+        step 0 is already done (the host computes its forces first).
+        """
+        g = cuda.cg.this_grid()
+        sh = cuda.shared.array(SH2, ct.float64)
+        i0 = cuda.grid(1)
+        stride = cuda.gridsize(1)
+        if i0 == 0:
+            status[S_D2] = 0.0
+            status[S_D2B] = 0.0
+            status[S_RUN_DONE] = 0.0
+            status[S_RUN_REBUILD] = 0.0
+        g.sync()
+        done = 0
+        for st in range(nmax):
+            even = (st & 1) == 0
+            slot = S_D2 if even else S_D2B
+            if even:
+                fa = f0
+                fb = f1
+            else:
+                fa = f1
+                fb = f0
+            step = step0 + st
+            if not (st == 0 and skip_kick != 0):
+                if i0 == 0:
+                    status[S_D2B if even else S_D2] = 0.0  # the other parity's slot, free until next step
+                md = 0.0
+                for i in range(i0, n, stride):
+                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, pos, vel, omega, quat, fa, torque,
+                                            inv_m, inv_i, x_ref, ids, sc, spd, spf, spi, status, step)
+                    md = max(md, d2)
+                block_max2(sh, md, 0.0)
+                if cuda.threadIdx.x == 0:
+                    cuda.atomic.max(status, slot, sh[0])
+                g.sync()
+                if status[slot] > 1.0:
+                    break
+            for i in range(i0, n, stride):
+                forces_one(i, pos, vel, omega, radius, inv_m, fa, fb, torque, nbr, nn, hist, ids, sc, spd,
+                           spf, spi, status, step)
+            done += 1
+            g.sync()
+        if i0 == 0:
+            status[S_RUN_DONE] = f64(done)
+            status[S_RUN_REBUILD] = 1.0 if done < nmax else 0.0
+
+    # ---- neighbour list: cells, sort, permute, compact history, build -----------------------------------
+
+    @cuda.jit(device=True)
+    def cell_of(i, pos, sc, spf, spi):
+        s = sc[i]
+        return spi[s, I_COFF] + _cell(pos[0, i], pos[1, i], pos[2, i], spi[s, I_NC], spf[s, F_INVCELL])
 
     @cuda.jit
     def fill_i32(a, value):
@@ -270,10 +394,9 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
             a[i] = value
 
     @cuda.jit
-    def count_cells(n, pos, nc, inv_cell, count):
+    def count_cells(n, pos, sc, spf, spi, count):
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            c = _cell(pos[0, i], pos[1, i], pos[2, i], nc, inv_cell)
-            cuda.atomic.add(count, c, 1)
+            cuda.atomic.add(count, cell_of(i, pos, sc, spf, spi), 1)
 
     @cuda.jit
     def tile_scan(src, dst, n, bsum, items):
@@ -311,9 +434,9 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
             dst[i] += offs[i // tile]
 
     @cuda.jit
-    def scatter(n, pos, nc, inv_cell, cell_start, cursor, order):
+    def scatter(n, pos, sc, spf, spi, cell_start, cursor, order):
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            c = _cell(pos[0, i], pos[1, i], pos[2, i], nc, inv_cell)
+            c = cell_of(i, pos, sc, spf, spi)
             order[cell_start[c] + cuda.atomic.add(cursor, c, 1)] = i
 
     @cuda.jit
@@ -349,32 +472,88 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
         for k in range(cuda.grid(1), n, cuda.gridsize(1)):
             inv[order[k]] = k
 
-    @cuda.jit
-    def build(n, pos, radius, r0, skin, box, inv_box, half, nc, inv_cell, cell_start,
-              nbr_old, nn_old, hist_old, order, inv_old, nbr, nn, hist, x_ref, status):
-        """Full Verlet list in the sorted order; history of surviving pairs carried over.
+    @cuda.jit(device=True)
+    def keeps_history(i, kk, j, pos, radius, hist, s, spd):
+        """A slot whose history must survive a rebuild: in contact at the previous step or now."""
+        if hist[3, kk, i] > ZERO:
+            return True
+        box = spd[s, D_BOX]
+        inv_box = spd[s, D_INVBOX]
+        r0 = spd[s, D_R0]
+        rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
+        ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
+        rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
+        rs = (r0 + r0) if UNIFORM else (radius[i] + radius[j])
+        return rx * rx + ry * ry + rz * rz < rs * rs
 
-        Old list rows are in the previous order: row of new i is order[i]; an old neighbour index o
-        maps to the new index inv_old[o]. nn[i] gets the true count even beyond the stride.
+    @cuda.jit
+    def compact(n, pos, radius, nbr, nn, hist, sc, spd, spi, c_off, c_cnt, cj, chist, status):
+        """Copy the slots that keep history into the compact store (old slot order); the total goes to
+        status[S_NCOMP]; nothing is written past the store's capacity (the host grows it and reruns)."""
+        cap = cj.shape[0]
+        m = nbr.shape[0]
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            cnt = 0
+            no = min(nn[i], m)
+            if spi[s, I_ACTIVE] != 0:
+                for kk in range(no):
+                    if keeps_history(i, kk, nbr[kk, i], pos, radius, hist, s, spd):
+                        cnt += 1
+            off = 0
+            if cnt > 0:
+                off = int(cuda.atomic.add(status, S_NCOMP, f64(cnt)))
+            c_off[i] = off
+            c_cnt[i] = cnt
+            if cnt > 0 and off + cnt <= cap:
+                q = off
+                for kk in range(no):
+                    j = nbr[kk, i]
+                    if keeps_history(i, kk, j, pos, radius, hist, s, spd):
+                        cj[q] = j
+                        for w in range(HW):
+                            chist[w, q] = hist[w, kk, i]
+                        q += 1
+
+    @cuda.jit
+    def build(n, pos, radius, cell_start, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, x_ref, sc,
+              spd, spf, spi, status):
+        """Full Verlet list in the sorted order; kept history found in the compact store.
+
+        The compact store is indexed by the previous order: the old slot of new i is order[i]; an old
+        neighbour index o maps to the new index inv_old[o]. nn[i] gets the true count even beyond the
+        stride (the host grows the list and reruns when it does not fit).
         """
         sh = cuda.shared.array(SH2, ct.float64)
         max_nb = nbr.shape[0]
-        lo = -1 if nc >= 3 else 0
-        hi = 2 if nc >= 2 else 1
         need = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             xi = pos[0, i]
             yi = pos[1, i]
             zi = pos[2, i]
-            c = _cell(xi, yi, zi, nc, inv_cell)
+            x_ref[0, i] = xi
+            x_ref[1, i] = yi
+            x_ref[2, i] = zi
+            s = sc[i]
+            if spi[s, I_ACTIVE] == 0:
+                nn[i] = 0
+                continue
+            nc = spi[s, I_NC]
+            coff = spi[s, I_COFF]
+            box = spd[s, D_BOX]
+            inv_box = spd[s, D_INVBOX]
+            skin = spd[s, D_SKIN]
+            r0 = spd[s, D_R0]
+            lo = -1 if nc >= 3 else 0
+            hi = 2 if nc >= 2 else 1
+            c = _cell(xi, yi, zi, nc, spf[s, F_INVCELL])
             cx = c // (nc * nc)
             cy = (c // nc) % nc
             cz = c % nc
             ri = r0 if UNIFORM else radius[i]
             oi = order[i]
-            no = nn_old[oi]
-            if no > nbr_old.shape[0]:
-                no = nbr_old.shape[0]
+            k0 = c_off[oi]
+            k1 = k0 + c_cnt[oi]
             cnt = 0
             for ox in range(lo, hi):
                 ax = (cx + ox + nc) % nc
@@ -382,13 +561,13 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                     ay = (cy + oy + nc) % nc
                     for oz in range(lo, hi):
                         az = (cz + oz + nc) % nc
-                        cc = (ax * nc + ay) * nc + az
+                        cc = coff + (ax * nc + ay) * nc + az
                         for j in range(cell_start[cc], cell_start[cc + 1]):
                             if j == i:
                                 continue
-                            dx = min_image(xi - pos[0, j], box, inv_box, half)
-                            dy = min_image(yi - pos[1, j], box, inv_box, half)
-                            dz = min_image(zi - pos[2, j], box, inv_box, half)
+                            dx = min_image(xi - pos[0, j], box, inv_box, HALF)
+                            dy = min_image(yi - pos[1, j], box, inv_box, HALF)
+                            dz = min_image(zi - pos[2, j], box, inv_box, HALF)
                             rj = r0 if UNIFORM else radius[j]
                             rc = ri + rj + skin
                             d2 = dx * dx + dy * dy + dz * dz
@@ -396,98 +575,85 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                                 if cnt < max_nb:
                                     nbr[cnt, i] = j
                                     found = False
-                                    for kk in range(no):
-                                        if inv_old[nbr_old[kk, oi]] == j:
-                                            for q in range(HW):
-                                                hist[q, cnt, i] = hist_old[q, kk, oi]
+                                    for q in range(k0, k1):
+                                        if inv_old[cj[q]] == j:
+                                            for w in range(HW):
+                                                hist[w, cnt, i] = chist[w, q]
                                             found = True
                                             break
                                     if not found:
-                                        for q in range(HW):
-                                            hist[q, cnt, i] = ZERO
+                                        for w in range(HW):
+                                            hist[w, cnt, i] = ZERO
                                         hist[3, cnt, i] = ri + rj - math.sqrt(d2)
                                 cnt += 1
             nn[i] = cnt
-            x_ref[0, i] = xi
-            x_ref[1, i] = yi
-            x_ref[2, i] = zi
             if cnt > need:
                 need = f64(cnt)
         block_max2(sh, need, 0.0)
         if cuda.threadIdx.x == 0:
             cuda.atomic.max(status, S_NEED_NB, sh[0])
 
-    # ---- observables ----------------------------------------------------------------------------
+    # ---- observables ----------------------------------------------------------------------------------
 
     @cuda.jit
-    def observe(n, pos, vel, omega, radius, r0, mass, m0, inertia, i0_, nbr, nn, hist, box, inv_box,
-                half, k_n, k_t, acc):
-        """acc += (E_tr, E_rot, contacts (x2), elastic energy, P_x, P_y, P_z); acc[7] = max overlap."""
-        sh = cuda.shared.array(SHOBS, ct.float64)
-        t = cuda.threadIdx.x
-        a = cuda.local.array(8, ct.float64)
-        for q in range(8):
-            a[q] = 0.0
+    def observe(n, pos, vel, omega, radius, mass, inertia, nbr, nn, hist, sc, spd, spf, spi, acc):
+        """acc[s] += (E_tr, E_rot, contacts (x2), elastic energy, P_x, P_y, P_z); acc[s, 7] = max overlap.
+
+        Accumulated per particle in float64 (an output-step kernel: its atomics do not matter)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            m = f64(m0) if UNIFORM else f64(mass[i])
-            ii = f64(i0_) if UNIFORM else f64(inertia[i])
+            s = sc[i]
+            if spi[s, I_ACTIVE] == 0:
+                continue
+            box = spd[s, D_BOX]
+            inv_box = spd[s, D_INVBOX]
+            r0 = spd[s, D_R0]
+            m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
+            ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
             vx = f64(vel[0, i])
             vy = f64(vel[1, i])
             vz = f64(vel[2, i])
             wx = f64(omega[0, i])
             wy = f64(omega[1, i])
             wz = f64(omega[2, i])
-            a[0] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
-            a[1] += 0.5 * ii * (wx * wx + wy * wy + wz * wz)
-            a[4] += m * vx
-            a[5] += m * vy
-            a[6] += m * vz
+            cuda.atomic.add(acc, (s, 0), 0.5 * m * (vx * vx + vy * vy + vz * vz))
+            cuda.atomic.add(acc, (s, 1), 0.5 * ii * (wx * wx + wy * wy + wz * wz))
+            cuda.atomic.add(acc, (s, 4), m * vx)
+            cuda.atomic.add(acc, (s, 5), m * vy)
+            cuda.atomic.add(acc, (s, 6), m * vz)
             ri = r0 if UNIFORM else radius[i]
+            ncon = 0.0
+            el = 0.0
+            worst = 0.0
             for kk in range(nn[i]):
                 j = nbr[kk, i]
-                rx = min_image(pos[0, i] - pos[0, j], box, inv_box, half)
-                ry = min_image(pos[1, i] - pos[1, j], box, inv_box, half)
-                rz = min_image(pos[2, i] - pos[2, j], box, inv_box, half)
+                rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
+                ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
+                rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
                 rj = r0 if UNIFORM else radius[j]
-                s = ri + rj
+                rs = ri + rj
                 d2 = rx * rx + ry * ry + rz * rz
-                if d2 < s * s:
-                    a[2] += 1.0
-                    delta = f64(s - math.sqrt(d2))
-                    h0 = f64(hist[0, kk, i])
-                    h1 = f64(hist[1, kk, i])
-                    h2 = f64(hist[2, kk, i])
+                if d2 < rs * rs:
+                    ncon += 1.0
+                    delta = f64(rs - math.sqrt(d2))
                     # each pair appears in both partners' lists
-                    a[3] += 0.5 * contact_elastic_energy(delta, h0, h1, h2, k_n, k_t, 0.5)
-                    ov = delta / f64(min(ri, rj))
-                    if ov > a[7]:
-                        a[7] = ov
-        for q in range(8):
-            sh[q, t] = a[q]
-        cuda.syncthreads()
-        s = TPB // 2
-        while s > 0:
-            if t < s:
-                for q in range(7):
-                    sh[q, t] += sh[q, t + s]
-                if sh[7, t + s] > sh[7, t]:
-                    sh[7, t] = sh[7, t + s]
-            cuda.syncthreads()
-            s //= 2
-        if t == 0:
-            for q in range(7):
-                cuda.atomic.add(acc, q, sh[q, 0])
-            cuda.atomic.max(acc, 7, sh[7, 0])
+                    el += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
+                                                       f64(hist[2, kk, i]), spf[s, F_KN], spf[s, F_KT], 0.5)
+                    worst = max(worst, delta / f64(min(ri, rj)))
+            if ncon > 0.0:
+                cuda.atomic.add(acc, (s, 2), ncon)
+                cuda.atomic.add(acc, (s, 3), el)
+                cuda.atomic.max(acc, (s, 7), worst)
 
-    return dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, fill_i32=fill_i32,
-                count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets, scatter=scatter,
-                sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32,
-                inverse_perm=inverse_perm, build=build, observe=observe)
+    return dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps,
+                fill_i32=fill_i32, count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets,
+                scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32,
+                inverse_perm=inverse_perm, compact=compact, build=build, observe=observe)
 
 
 @cuda.jit(device=True)
 def _cell(x, y, z, nc, inv_cell):
-    """Cell index of a position, exactly as the CPU backend bins (float64 products, clamped)."""
+    """Cell index of a position within its scene's grid, exactly as the CPU backend bins (float64
+    products, clamped)."""
     cx = min(max(int(np.float64(x) * inv_cell), 0), nc - 1)
     cy = min(max(int(np.float64(y) * inv_cell), 0), nc - 1)
     cz = min(max(int(np.float64(z) * inv_cell), 0), nc - 1)

@@ -51,10 +51,12 @@ def _child() -> None:
     from engine.backends.cuda import CudaBackend
 
     worst = {}
-    for label, c in (("rough+coulomb", contact()), ("rough", contact(friction=None)),
-                     ("smooth", contact(k_t=None, friction=None))):
+    for label, c, multistep in (("rough+coulomb", contact(), True), ("rough", contact(friction=None), True),
+                                ("smooth", contact(k_t=None, friction=None), True),
+                                ("rough+coulomb per-phase", contact(), False)):
         cpu = CpuBackend(tiny_system(), c)
         gpu = CudaBackend(tiny_system(), c)
+        gpu.e.multistep = multistep
         assert gpu.device == "CUDA simulator"
         gpu.warmup()
         for chunk in (17, 23):
@@ -76,10 +78,51 @@ def _child() -> None:
             assert abs(ca[key] - cb[key]) <= 1e-9 * abs(ca[key]) + 1e-300, (label, key, ca[key], cb[key])
         assert gpu.late_rebuilds == 0 and gpu.builds >= 2, (label, gpu.builds, gpu.late_rebuilds)
         print(label, "contacts", ca["contacts"], "builds cpu/gpu", cpu.builds, gpu.builds)
+    _ensemble(worst)
     for k, v in worst.items():
         print("max rel diff", k, f"{v:.2e}")
         assert v < 1e-11, (k, v)
     print("SIMULATOR-OK")
+
+
+def _ensemble(worst: dict) -> None:
+    """Three different scenes advanced together equal each scene run alone on the CPU; a fourth that
+    blows up (time step far too large) fails alone, at its own step, without disturbing the others."""
+    from engine.backends.cpu import CpuBackend
+    from engine.backends.cuda import CudaEnsemble
+    from engine.errors import InstabilityError
+
+    scenes = [(tiny_system(seed=1), contact()),
+              (tiny_system(seed=2), contact(k_t=None, friction=None, gamma_n_coef=2.0 * np.sqrt(1e5) * 0.4)),
+              (tiny_system(n_side=2, seed=3), contact(friction=None, skin=0.03, dt=np.pi * np.sqrt(0.5e-5) / 35)),
+              (tiny_system(seed=4), contact(dt=np.pi * np.sqrt(0.5e-5) * 3, overlap_limit=0.05))]
+    ens = CudaEnsemble([s for s, _ in scenes], [c for _, c in scenes])
+    ens.warmup()
+    cpus = [CpuBackend(s, c) for s, c in scenes[:3]]
+    failed = {}
+    for chunk in (17, 23):
+        failed.update(ens.advance(chunk))
+        for cpu in cpus:
+            cpu.advance(chunk)
+    assert list(failed) == [3] and isinstance(failed[3], InstabilityError), failed
+    assert "overlap" in str(failed[3]) and 0 <= failed[3].step < 40, str(failed[3])
+    assert not ens.active[3] and ens.active[:3].all()
+    obs = ens.observe()
+    assert obs[3] is None
+    for k, cpu in enumerate(cpus):
+        a, b = cpu.state(), ens.state(k)
+        for key in ("position", "velocity", "angular_velocity"):
+            scale = np.max(np.abs(a[key])) + 1e-300
+            worst[(f"ensemble scene {k}", key)] = float(np.max(np.abs(a[key] - b[key])) / scale)
+        ca = cpu.observe()
+        assert ca["contacts"] == obs[k]["contacts"] and ca["contacts"] > 0, (k, ca, obs[k])
+        pa, _ = cpu.contacts()
+        pb, _ = ens.contacts(k)
+        assert np.array_equal(pa[np.lexsort(pa.T[::-1])], pb[np.lexsort(pb.T[::-1])]), k
+    ens.deactivate(0)
+    before = ens.state(0)["position"]
+    ens.advance(5)
+    assert np.array_equal(before, ens.state(0)["position"]) and ens.observe()[0] is None
 
 
 def test_cuda_backend_matches_cpu_under_simulator():
