@@ -73,7 +73,7 @@ def dense_scene(n, phi, precision, seed=1):
     return _dense(n_side=round(n ** (1 / 3)), precision=precision, seed=seed)
 
 
-def measure(n, phi, precision, reps, target_s, make=scene):
+def measure(n, phi, precision, reps, target_s, make=scene, multistep=None):
     from numba import cuda
 
     from engine.backends.cuda import CudaBackend
@@ -83,6 +83,8 @@ def measure(n, phi, precision, reps, target_s, make=scene):
     free0 = cuda.current_context().get_memory_info()[0]
     be = CudaBackend(system, c)
     del system
+    if multistep is not None:
+        be.e.multistep = multistep
     be.warmup()
     cuda.synchronize()
     free1 = cuda.current_context().get_memory_info()[0]
@@ -99,6 +101,9 @@ def measure(n, phi, precision, reps, target_s, make=scene):
         be.advance(steps)
         runs.append(n * steps / (time.perf_counter() - t))
     builds_per_step = (be.builds - b0) / (reps * steps)
+    # per-kernel fractions: profiled in the one-launch-per-phase loop (CUDA events between phases)
+    loop = "multistep" if be.e.multistep else "per-phase"
+    be.e.multistep = False
     be.profile = {}
     psteps = min(steps, 1000)
     be.advance(psteps)
@@ -106,7 +111,7 @@ def measure(n, phi, precision, reps, target_s, make=scene):
     tot = sum(prof.values())
     frac = {k: v / tot for k, v in prof.items()}
     obs = be.observe()
-    row = dict(n=n, phi=phi, precision=precision, steps=steps, reps=reps, cundall_median=float(np.median(runs)),
+    row = dict(n=n, phi=phi, precision=precision, loop=loop, steps=steps, reps=reps, cundall_median=float(np.median(runs)),
                cundall_runs=runs, frac=frac, kernel_ms_per_step=tot / psteps,
                builds_per_step=builds_per_step, late_rebuilds=be.late_rebuilds, max_nb=be.max_nb,
                bytes_per_particle_arrays=be.device_bytes() / n, bytes_per_particle_meminfo=(free0 - free1) / n,
@@ -127,6 +132,8 @@ def main():
     ap.add_argument("--largest-n", type=int, nargs="*", default=[])
     ap.add_argument("--largest-auto", action="store_true",
                     help="after the table, probe the largest float32 N that fits (from the measured B/particle)")
+    ap.add_argument("--loop", choices=["auto", "multistep", "per-phase", "both"], default="auto",
+                    help="time loop: many steps per launch, one launch per phase, the automatic choice, or both")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     from numba import cuda
@@ -142,12 +149,15 @@ def main():
         for prec in args.precision:
             for phi in args.phi:
                 for n in args.n:
-                    try:
-                        r = measure(n, phi, prec, args.reps, args.target_s)
-                    except Exception as e:  # report and go on
-                        r = dict(n=n, phi=phi, precision=prec, error=repr(e)[:300])
-                    rows.append(r)
-                    print(json.dumps(r), flush=True)
+                    loops = {"auto": [None], "multistep": [True], "per-phase": [False],
+                             "both": [True, False]}[args.loop]
+                    for ms in loops:
+                        try:
+                            r = measure(n, phi, prec, args.reps, args.target_s, multistep=ms)
+                        except Exception as e:  # report and go on
+                            r = dict(n=n, phi=phi, precision=prec, error=repr(e)[:300])
+                        rows.append(r)
+                        print(json.dumps(r), flush=True)
     for n in args.dense_n:
         for prec in args.precision:
             r = measure(n, 0.49, prec, args.reps, args.target_s, make=dense_scene)
@@ -176,13 +186,14 @@ def main():
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(dict(info=info, rows=rows), fh, indent=1)
-    print("\n| precision | phi | N | Cundall (median) | KD | rebuild | forces | B/particle | max_nb |")
+    print("\n| precision | phi | N | loop | Cundall (median) | KD | rebuild | forces | B/particle | max_nb |")
     for r in rows:
         if "error" in r:
             print(f"| {r['precision']} | {r['phi']} | {r['n']} | ERROR {r['error'][:80]} |")
             continue
         f = r["frac"]
-        print(f"| {r['precision']} | {r['phi']} | {r['n']} | {r['cundall_median']:.3g} | {f['kick_drift']:.2f} | "
+        print(f"| {r['precision']} | {r['phi']} | {r['n']} | {r['loop']} | {r['cundall_median']:.3g} | "
+              f"{f['kick_drift']:.2f} | "
               f"{f['rebuild']:.2f} | {f['forces']:.2f} | {r['bytes_per_particle_meminfo']:.0f} | {r['max_nb']} | "
               f"{r['contacts_per_particle']:.2g} |")
 
