@@ -5,6 +5,11 @@ Public API (used by the CLI and the job worker)::
     run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
         checkpoint_interval=60.0, backend=None) -> RunSummary
 
+The per-scene protocol below lives in one object, :class:`SceneRun`, and one loop, :func:`drive`,
+advances any number of them on an ensemble (engine/backends/ensemble.py): :func:`run` is a scene of
+one on a :class:`~engine.backends.ensemble.SerialEnsemble`, ``engine.ensemble.run_ensemble`` packs
+many scenes into one ensemble.
+
 Protocol (paper 001): a homogeneous non-overlapping start with Gaussian translational and angular
 velocities at equal temperatures, ``thermalization`` collisions per particle with dissipation off
 (e_n = 1; rough spheres keep a perfectly rough elastic spring, e_t = 1, smooth ones stay smooth), then
@@ -32,7 +37,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from engine.backends.base import ContactParams, make_backend
+from engine.backends.base import ContactParams
+from engine.backends.ensemble import SerialEnsemble, ensemble_scene_builds
 from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path
 from engine.params import Q_SPHERE, Derived, derive
@@ -154,6 +160,388 @@ class _Checkpointer:
             shutil.rmtree(self.dir, ignore_errors=True)
 
 
+class SceneRun:
+    """The protocol of one scene, step by step: everything :func:`run` and ``run_ensemble`` share.
+
+    It owns the scene's spec, derived parameters, initial state (or checkpoint), contact constants,
+    event schedule, result writer, energy-rise check, progress, cancel check and checkpoints; it does
+    not own a backend. A driver (:func:`drive`) advances the scene's backend (or its slot in an
+    ensemble) by :meth:`steps_to_next` steps, tells it :meth:`advanced`, and calls :meth:`at_stop`
+    when the scene has reached its next stop, passing a *view* of the scene's state with ``observe()``,
+    ``state()``, ``contacts()`` and ``set_contact(contact)``.
+
+    Stops: during thermalisation every ``output_every`` steps (progress, checkpoint; the last one
+    switches to the cooling contact); during the cooling run the record and snapshot steps of
+    :func:`schedule`. Before advancing to a stop the driver calls :meth:`check_cancel` once.
+    """
+
+    def __init__(self, spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
+                 should_cancel: Optional[Callable[[], bool]] = None, checkpoint_dir=None,
+                 checkpoint_interval: float = 60.0):
+        from engine.scene import initial_ellipsoids, initial_spheres
+
+        spec = load_spec(spec)
+        self.spec = spec
+        self.ellipsoid = ellipsoid = spec.shape == "ellipsoid"
+        if ellipsoid and not spec.smooth:
+            raise SpecError(f"shape = 'ellipsoid' runs frictionless contacts only (paper 003): e_t = {spec.e_t:g} "
+                            f"and friction = {spec.friction} must be e_t = -1 (or friction = 0)")
+        self.p = p = derive(spec)
+        self.spec_json = spec.to_json()
+        self.output = Path(output)
+        self.progress, self.should_cancel = progress, should_cancel
+        self.ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
+        self.resume = resume = self.ck.load(self.spec_json)
+
+        system = initial_ellipsoids(spec, p) if ellipsoid else initial_spheres(spec, p)
+        phase, step_done = "thermalization", 0
+        # a cooling checkpoint was written after its own record at step_done, which the file already holds
+        self.resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"
+        if resume is not None:
+            phase, step_done = str(resume["phase"]), int(resume["step_done"])
+            system = dataclasses.replace(
+                system, position=resume["position"], velocity=resume["velocity"],
+                angular_velocity=resume["angular_velocity"], orientation=resume["orientation"],
+                contact_pairs=resume["pairs"], contact_springs=resume["springs"])
+        if p.n_thermalization_steps == 0 and phase == "thermalization":
+            phase = "cooling"
+        self.resumed_from = (step_done if phase == "cooling" else step_done - p.n_thermalization_steps) \
+            if resume is not None else None
+        if phase == "thermalization" and step_done >= p.n_thermalization_steps:
+            phase, step_done = "cooling", 0  # resumed right after the last thermalisation chunk
+        self.system = system
+        self.phase, self.step_done = phase, step_done
+        self.cool = contact_params(spec, p, thermalization=False)
+        self.therm = contact_params(spec, p, thermalization=True)
+
+        self.n = spec.n_particles
+        self.total_steps = p.n_thermalization_steps + p.n_steps
+        self.events, self.snaps = schedule(p, spec.snapshots)
+        self.wall = 0.0       # wall seconds of this attempt's time loop (advances this scene took part in)
+        self.steps_run = 0
+        self.prev_energy = float(resume["prev_energy"]) if resume is not None else math.inf
+        self.dissipative = spec.e_n < 1.0 or (not spec.smooth and spec.e_t < 1.0) or spec.friction is not None
+        self.writer: Optional[H5MDWriter] = None
+        self.done = False
+        self._chunk = max(1, p.output_every)
+        if phase == "thermalization":
+            self._target = min(step_done + self._chunk, p.n_thermalization_steps)
+        else:
+            self._enter_cooling(skip_current=self.resumed_in_cooling)
+
+    # ---- what the driver asks -------------------------------------------------------------------------
+
+    @property
+    def initial_contact(self) -> ContactParams:
+        """Contact constants the scene's backend starts with."""
+        return self.therm if self.phase == "thermalization" else self.cool
+
+    @property
+    def warm_contacts(self) -> tuple:
+        """Contact constants to compile for, in order (the last one is :attr:`initial_contact`'s successor)."""
+        return (self.therm, self.cool) if self.phase == "thermalization" else (self.cool,)
+
+    def steps_to_next(self) -> int:
+        """Steps from the current position to the scene's next stop (0: it is at a stop)."""
+        return self._target - self.step_done
+
+    def check_cancel(self) -> None:
+        if self.should_cancel is not None and self.should_cancel():
+            raise Cancelled("run cancelled on request")
+
+    def advanced(self, k: int, wall_s: float) -> None:
+        """The scene was advanced by k steps in a call of wall_s seconds."""
+        self.step_done += k
+        self.steps_run += k
+        self.wall += wall_s
+
+    def open(self) -> None:
+        """Create the result writer (``<output>.part``; a resumed scene continues its checkpointed file)."""
+        from engine import __version__
+
+        spec, p = self.spec, self.p
+        dtype = np.float64 if spec.precision == "float64" else np.float32
+        derived = {k: v for k, v in p.as_dict().items()}
+        derived.update(engine_version=__version__, q=Q_SPHERE, e_n=spec.e_n, e_t=spec.e_t)
+        common = dict(n=spec.n_particles, box_length=spec.box_length, spec_json=self.spec_json,
+                      derived=derived, dtype=dtype)
+        if self.resume is not None:
+            shutil.copyfile(self.ck.dir / "partial.h5", partial_path(self.output))
+            self.writer = H5MDWriter(self.output, resume=True, **common)
+            self.writer.truncate(json.loads(str(self.resume["counts"])))
+        else:
+            system = self.system
+            self.writer = H5MDWriter(self.output, radius=None if self.ellipsoid else system.radius,
+                                     semi_axes=system.semi_axes if self.ellipsoid else None, mass=system.mass,
+                                     creator_version=__version__, **common)
+
+    def at_stop(self, view) -> None:
+        """Handle the stop the scene has reached (records, energy check, snapshot, progress, checkpoint)."""
+        p, writer = self.p, self.writer
+        if self.phase == "thermalization":
+            # dissipation off, nothing recorded
+            self._report("thermalization", self.step_done, (self.step_done - p.n_thermalization_steps) * p.dt,
+                         self.step_done - p.n_thermalization_steps)
+            if self.ck.due():
+                self.ck.save(writer, view, phase="thermalization", step_done=self.step_done,
+                             extra={"spec": self.spec_json, "prev_energy": self.prev_energy})
+            if self.step_done >= p.n_thermalization_steps:
+                self.phase, self.step_done = "cooling", 0
+                view.set_contact(self.cool)
+                self._enter_cooling(skip_current=False)
+            else:
+                self._target = min(self.step_done + self._chunk, p.n_thermalization_steps)
+            return
+
+        step_done = self.step_done
+        t_sim = step_done * p.dt
+        obs = view.observe()
+        if step_done % p.output_every == 0 or step_done == p.n_steps:
+            writer.observables(step_done, t_sim, record(obs, self.n))
+            energy = obs["kinetic_energy_translational"] + obs["kinetic_energy_rotational"] + obs["elastic_energy"]
+            if self.dissipative and energy > self.prev_energy * (1.0 + ENERGY_RISE_TOLERANCE):
+                raise InstabilityError(
+                    f"total energy rose by {100 * (energy / self.prev_energy - 1):.3g} % by step {step_done} "
+                    f"(t = {t_sim:.4g} s) in a dissipative run: likely cause: a time step too large "
+                    f"(dt = {p.dt:.3g} s, contact time {p.contact_time:.3g} s) or overlaps too deep",
+                    step=step_done)
+            self.prev_energy = min(self.prev_energy, energy)
+        if step_done in self.snaps:
+            writer.snapshot(step_done, t_sim, view.state())
+        self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
+        if self.ck.due() and step_done < p.n_steps:
+            self.ck.save(writer, view, phase="cooling", step_done=step_done,
+                         extra={"spec": self.spec_json, "prev_energy": self.prev_energy})
+        self._next_event()
+
+    def finish(self, backend: str, device: str, builds: int, info: Optional[dict] = None) -> RunSummary:
+        """Write the run attributes, rename the result to its final name, clear the checkpoints."""
+        cundall = self.n * self.steps_run / self.wall if self.wall > 0 else 0.0
+        run_info = {"backend": backend, "device": device, "wall_time": self.wall, "cundall_number": cundall,
+                    "steps_total": self.total_steps, "neighbour_builds": builds,
+                    "resumed_from_step": -1 if self.resumed_from is None else self.resumed_from,
+                    **(info or {})}
+        path = self.writer.finish(run_info)
+        self.ck.clear()
+        return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
+                          wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
+                          extra=dict(info or {}))
+
+    def abort(self) -> None:
+        """Delete the partial result (checkpoints stay for a later attempt)."""
+        if self.writer is not None:
+            self.writer.abort()
+            self.writer = None
+
+    # ---- internals --------------------------------------------------------------------------------------
+
+    def _enter_cooling(self, skip_current: bool) -> None:
+        side = "right" if skip_current else "left"
+        self._idx = int(np.searchsorted(self.events, self.step_done, side=side))
+        self._set_cooling_target()
+
+    def _next_event(self) -> None:
+        self._idx += 1
+        self._set_cooling_target()
+
+    def _set_cooling_target(self) -> None:
+        if self._idx >= len(self.events):
+            self.done = True
+            self._target = self.step_done
+        else:
+            self._target = int(self.events[self._idx])
+
+    def _report(self, phase: str, done_total: int, t_sim: float, step: int) -> None:
+        if self.progress is None:
+            return
+        total = self.total_steps
+        frac = done_total / total if total else 1.0
+        cund = self.n * self.steps_run / self.wall if self.wall > 0 else 0.0
+        eta = (total - done_total) * self.n / cund if cund > 0 else math.inf
+        self.progress(Progress(phase=phase, fraction=min(1.0, frac), step=step, time=t_sim, eta_s=eta,
+                               cundall=cund, wall_s=self.wall))
+
+
+class _SceneView:
+    """Scene ``i`` of an ensemble, seen as a single backend by :meth:`SceneRun.at_stop`.
+
+    ``observe()`` reads the ensemble's observables once per driver round (shared by every scene that
+    stops in that round), or only this scene's where the ensemble offers ``observe_scene``.
+    """
+
+    def __init__(self, ens, i: int, cache: dict):
+        self.ens, self.i, self.cache = ens, i, cache
+
+    def observe(self) -> dict:
+        one = getattr(self.ens, "observe_scene", None)
+        if one is not None:
+            return one(self.i)
+        if "all" not in self.cache:
+            self.cache["all"] = self.ens.observe()
+        return self.cache["all"][self.i]
+
+    def state(self) -> dict:
+        return self.ens.state(self.i)
+
+    def contacts(self):
+        return self.ens.contacts(self.i)
+
+    def set_contact(self, contact: ContactParams) -> None:
+        self.ens.set_contact(self.i, contact)
+        self.cache.pop("all", None)
+
+
+def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
+          lockstep: Optional[bool] = None) -> list:
+    """Run scenes together on one ensemble; return per scene its RunSummary or the exception that ended it.
+
+    ``scenes``: :class:`SceneRun` objects, or exceptions for scenes that failed before they started
+    (kept in their slots). ``build(systems, contacts)`` makes the ensemble (see
+    engine/backends/ensemble.py); if it fails with several scenes, ``build_one(system, contact)`` is tried
+    per scene to find the scenes that cannot start (their error goes in their slot), and the ensemble is
+    built again from the others. With one scene the build error is that scene's.
+
+    Each round: every scene that stands at the start of a segment checks its cancel request (a cancelled
+    scene drops out with Cancelled, its partial file removed); the active scenes are advanced — by their
+    own distances to their next stops when the ensemble offers ``advance_each`` (and ``lockstep`` is not
+    True), else all by the distance to the nearest stop of any scene (``advance``); then every scene at a
+    stop handles it. A scene that blows up (InstabilityError from the ensemble or its own checks) drops
+    out with that error and only its file is aborted; a finished scene writes its file and drops out.
+    An error of the ensemble itself (not of one scene) ends every active scene with that error;
+    KeyboardInterrupt and other BaseExceptions abort every open file and propagate.
+    """
+    results: list = [s if isinstance(s, BaseException) else None for s in scenes]
+    live = [k for k, s in enumerate(scenes) if not isinstance(s, BaseException)]
+    if not live:
+        return results
+    ens, live = _build(scenes, live, results, build, build_one)
+    if ens is None:
+        return results
+    runs = [scenes[k] for k in live]          # ensemble index i -> SceneRun
+    size = len(runs)
+    try:
+        rounds = max(len(r.warm_contacts) for r in runs)
+        for r_ in range(rounds):
+            for i, r in enumerate(runs):
+                ens.set_contact(i, r.warm_contacts[min(r_, len(r.warm_contacts) - 1)])
+            ens.warmup()
+        for i, r in enumerate(runs):
+            ens.set_contact(i, r.initial_contact)
+    except Exception as exc:  # the ensemble cannot compile: every scene fails with the reason
+        for k in live:
+            results[k] = exc
+        return results
+
+    active: set = set()
+
+    def end(i: int, exc: BaseException) -> None:
+        runs[i].abort()
+        results[live[i]] = exc
+        active.discard(i)
+        ens.deactivate(i)
+
+    def finish(i: int) -> None:
+        builds = ensemble_scene_builds(ens, i)
+        try:
+            results[live[i]] = runs[i].finish(ens.name, ens.device, ens.builds if builds is None else builds,
+                                              {"ensemble_size": size, "ensemble_index": i})
+        except Exception as exc:
+            end(i, exc)
+            return
+        active.discard(i)
+        ens.deactivate(i)
+
+    per_scene = hasattr(ens, "advance_each") and not lockstep
+    try:
+        for i, r in enumerate(runs):
+            try:
+                r.open()
+            except Exception as exc:
+                end(i, exc)
+                continue
+            active.add(i)
+        for i in list(active):
+            if runs[i].done:
+                finish(i)
+        at_start = set(active)
+        while active:
+            for i in sorted(at_start & active):
+                try:
+                    runs[i].check_cancel()
+                except Exception as exc:  # Cancelled, or a cancel check that failed
+                    end(i, exc)
+            at_start = set()
+            if not active:
+                break
+            dist = {i: runs[i].steps_to_next() for i in active}
+            failed: dict = {}
+            try:
+                if per_scene:
+                    todo = {i: d for i, d in dist.items() if d > 0}
+                    if todo:
+                        t0 = time.perf_counter()
+                        failed = ens.advance_each(todo)
+                        wall = time.perf_counter() - t0
+                        for i, d in todo.items():
+                            runs[i].advanced(d, wall)
+                else:
+                    m = min(dist.values())
+                    if m > 0:
+                        t0 = time.perf_counter()
+                        failed = ens.advance(m)
+                        wall = time.perf_counter() - t0
+                        for i in active:
+                            runs[i].advanced(m, wall)
+            except Exception as exc:  # the ensemble itself failed: every active scene ends with it
+                for i in sorted(active):
+                    end(i, exc)
+                break
+            for i, exc in failed.items():
+                end(i, exc)
+            cache: dict = {}
+            for i in sorted(i for i in active if runs[i].steps_to_next() == 0):
+                try:
+                    runs[i].at_stop(_SceneView(ens, i, cache))
+                except Exception as exc:
+                    end(i, exc)
+                    continue
+                if runs[i].done:
+                    finish(i)
+                else:
+                    at_start.add(i)
+    except BaseException:
+        for i in list(active):
+            runs[i].abort()
+        raise
+    return results
+
+
+def _build(scenes, live, results, build, build_one):
+    """The ensemble over the live scenes; scenes that cannot start get their error (see :func:`drive`)."""
+    try:
+        return build([scenes[k].system for k in live], [scenes[k].initial_contact for k in live]), live
+    except Exception as exc:
+        if len(live) == 1 or build_one is None:
+            for k in live:
+                results[k] = exc
+            return None, []
+        first = exc
+    ok = []
+    for k in live:
+        try:
+            build_one(scenes[k].system, scenes[k].initial_contact)
+            ok.append(k)
+        except Exception as exc:
+            results[k] = exc
+    if not ok:
+        return None, []
+    if len(ok) == len(live):  # no single scene is at fault: the ensemble as a whole cannot be built
+        for k in live:
+            results[k] = first
+        return None, []
+    return _build(scenes, ok, results, build, build_one)
+
+
 def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
         should_cancel: Optional[Callable[[], bool]] = None, checkpoint_dir=None,
         checkpoint_interval: float = 60.0, backend: Optional[str] = None) -> RunSummary:
@@ -163,140 +551,10 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     run blows up (the message names the step, the particle and the likely cause; no result file is
     left behind), Cancelled when ``should_cancel()`` returns True.
     """
-    from engine import __version__
-    from engine.scene import initial_ellipsoids, initial_spheres
-
-    spec = load_spec(spec)
-    ellipsoid = spec.shape == "ellipsoid"
-    if ellipsoid and not spec.smooth:
-        raise SpecError(f"shape = 'ellipsoid' runs frictionless contacts only (paper 003): e_t = {spec.e_t:g} "
-                        f"and friction = {spec.friction} must be e_t = -1 (or friction = 0)")
-    p = derive(spec)
-    spec_json = spec.to_json()
-    output = Path(output)
-    ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
-    resume = ck.load(spec_json)
-
-    system = initial_ellipsoids(spec, p) if ellipsoid else initial_spheres(spec, p)
-    phase, step_done = "thermalization", 0
-    # a cooling checkpoint was written after its own record at step_done, which the file already holds
-    resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"
-    if resume is not None:
-        phase, step_done = str(resume["phase"]), int(resume["step_done"])
-        system = dataclasses.replace(
-            system, position=resume["position"], velocity=resume["velocity"],
-            angular_velocity=resume["angular_velocity"], orientation=resume["orientation"],
-            contact_pairs=resume["pairs"], contact_springs=resume["springs"])
-        shutil.copyfile(ck.dir / "partial.h5", partial_path(output))
-    if p.n_thermalization_steps == 0 and phase == "thermalization":
-        phase = "cooling"
-
-    name = backend or spec.backend
-    cool = contact_params(spec, p, thermalization=False)
-    therm = contact_params(spec, p, thermalization=True)
-    be = make_backend(name, system, therm if phase == "thermalization" else cool)
-    for c in ((therm, cool) if phase == "thermalization" else (cool,)):
-        be.set_contact(c)
-        be.warmup()
-    be.set_contact(therm if phase == "thermalization" else cool)
-
-    dtype = np.float64 if spec.precision == "float64" else np.float32
-    derived = {k: v for k, v in p.as_dict().items()}
-    derived.update(engine_version=__version__, q=Q_SPHERE, e_n=spec.e_n, e_t=spec.e_t)
-    if resume is not None:
-        writer = H5MDWriter(output, n=spec.n_particles, box_length=spec.box_length, spec_json=spec_json,
-                            derived=derived, dtype=dtype, resume=True)
-        writer.truncate(json.loads(str(resume["counts"])))
-    else:
-        writer = H5MDWriter(output, n=spec.n_particles, box_length=spec.box_length, spec_json=spec_json,
-                            derived=derived, radius=None if ellipsoid else system.radius,
-                            semi_axes=system.semi_axes if ellipsoid else None, mass=system.mass,
-                            creator_version=__version__, dtype=dtype)
-
-    n = spec.n_particles
-    total_steps = p.n_thermalization_steps + p.n_steps
-    events, snaps = schedule(p, spec.snapshots)
-    wall = 0.0  # wall seconds of this attempt's time loop
-    steps_run = 0
-    prev_energy = float(resume["prev_energy"]) if resume is not None else math.inf
-    dissipative = spec.e_n < 1.0 or (not spec.smooth and spec.e_t < 1.0) or spec.friction is not None
-    resumed_from = (step_done if phase == "cooling" else step_done - p.n_thermalization_steps) \
-        if resume is not None else None
-
-    def report(ph: str, done_total: int, t_sim: float, step: int):
-        if progress is None:
-            return
-        frac = done_total / total_steps if total_steps else 1.0
-        cund = n * steps_run / wall if wall > 0 else 0.0
-        eta = (total_steps - done_total) * n / cund if cund > 0 else math.inf
-        progress(Progress(phase=ph, fraction=min(1.0, frac), step=step, time=t_sim, eta_s=eta,
-                          cundall=cund, wall_s=wall))
-
-    def check_cancel():
-        if should_cancel is not None and should_cancel():
-            raise Cancelled("run cancelled on request")
-
-    def advance(k: int):
-        nonlocal wall, steps_run
-        t0 = time.perf_counter()
-        be.advance(k)
-        wall += time.perf_counter() - t0
-        steps_run += k
-
-    try:
-        # ---- thermalisation: dissipation off, nothing recorded -------------------------------------
-        if phase == "thermalization":
-            chunk = max(1, p.output_every)
-            while step_done < p.n_thermalization_steps:
-                check_cancel()
-                k = min(chunk, p.n_thermalization_steps - step_done)
-                advance(k)
-                step_done += k
-                report("thermalization", step_done, (step_done - p.n_thermalization_steps) * p.dt,
-                       step_done - p.n_thermalization_steps)
-                if ck.due():
-                    ck.save(writer, be, phase=phase, step_done=step_done,
-                            extra={"spec": spec_json, "prev_energy": prev_energy})
-            phase, step_done = "cooling", 0
-            be.set_contact(cool)
-
-        # ---- cooling run ---------------------------------------------------------------------------
-        for ev in events:
-            ev = int(ev)
-            if ev < step_done or (ev == step_done and resumed_in_cooling):
-                continue
-            check_cancel()
-            if ev > step_done:
-                advance(ev - step_done)
-                step_done = ev
-            t_sim = step_done * p.dt
-            obs = be.observe()
-            if step_done % p.output_every == 0 or step_done == p.n_steps:
-                writer.observables(step_done, t_sim, record(obs, n))
-                energy = obs["kinetic_energy_translational"] + obs["kinetic_energy_rotational"] + \
-                    obs["elastic_energy"]
-                if dissipative and energy > prev_energy * (1.0 + ENERGY_RISE_TOLERANCE):
-                    raise InstabilityError(
-                        f"total energy rose by {100 * (energy / prev_energy - 1):.3g} % by step {step_done} "
-                        f"(t = {t_sim:.4g} s) in a dissipative run: likely cause: a time step too large "
-                        f"(dt = {p.dt:.3g} s, contact time {p.contact_time:.3g} s) or overlaps too deep",
-                        step=step_done)
-                prev_energy = min(prev_energy, energy)
-            if step_done in snaps:
-                writer.snapshot(step_done, t_sim, be.state())
-            report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
-            if ck.due() and step_done < p.n_steps:
-                ck.save(writer, be, phase="cooling", step_done=step_done,
-                        extra={"spec": spec_json, "prev_energy": prev_energy})
-    except BaseException:
-        writer.abort()
-        raise
-
-    cundall = n * steps_run / wall if wall > 0 else 0.0
-    run_info = {"backend": be.name, "device": be.device, "wall_time": wall, "cundall_number": cundall,
-                "steps_total": total_steps, "neighbour_builds": be.builds,
-                "resumed_from_step": -1 if resumed_from is None else resumed_from}
-    path = writer.finish(run_info)
-    ck.clear()
-    return RunSummary(output=path, backend=be.name, device=be.device, n_particles=n, steps=steps_run,
-                      wall_s=wall, cundall=cundall, resumed_from_step=resumed_from)
+    scene = SceneRun(spec, output, progress=progress, should_cancel=should_cancel, checkpoint_dir=checkpoint_dir,
+                     checkpoint_interval=checkpoint_interval)
+    name = backend or scene.spec.backend
+    (result,) = drive([scene], lambda systems, contacts: SerialEnsemble(name, systems, contacts))
+    if isinstance(result, BaseException):
+        raise result
+    return result

@@ -1,0 +1,203 @@
+"""Ensembles: K independent scenes advanced together by one backend (issue 8).
+
+The protocol every ensemble implementation offers (:class:`Ensemble`)::
+
+    name: str; device: str; builds: int; n_scenes: int
+    set_contact(k, contact)     contact constants of scene k (thermalisation -> cooling switch)
+    warmup()                    compile (or load) the kernels for the current contact parameters
+    advance(nsteps) -> {k: err} advance every ACTIVE scene by nsteps; a scene that blows up is
+                                deactivated and returned (InstabilityError naming its step and particle);
+                                the others complete the nsteps
+    deactivate(k)               a finished / cancelled / failed scene drops out; never advanced again
+    observe() -> [dict | None]  per scene, the keys of a single backend's observe(); None when inactive
+    state(k), contacts(k)       host copies of scene k (snapshots, checkpoints)
+
+Scene indices are the positions of the systems given to the constructor and never change.
+
+Implementations:
+
+- :class:`SerialEnsemble` wraps K single backends (:func:`engine.backends.base.make_backend`) and
+  advances the active scenes one after another. On the CPU there is no launch overhead to amortise —
+  a CPU time loop is already compiled whole and uses every core for one scene — so serial advancing is
+  the right CPU implementation; it also makes every scene bit-identical to the same scene run alone.
+  It offers one extension of the protocol, :meth:`SerialEnsemble.advance_each` (a different number of
+  steps per scene in one call), which the driver uses when present so that every scene is advanced in
+  exactly the chunks a lone run would use (the velocity-Verlet half kicks at chunk ends make the last
+  bits depend on the chunking).
+- ``engine.backends.cuda.CudaEnsemble`` stores the scenes back to back on the GPU and advances them
+  with the same kernel launches (packed ensemble).
+
+:func:`make_ensemble` picks one by backend name, like :func:`engine.backends.base.make_backend` does for
+a single scene; :func:`resolve_backend` says which backend a name resolves to without building one.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping, Optional, Protocol, Sequence, runtime_checkable
+
+from engine.backends.base import ContactParams, EllipsoidSystem, cuda_available, make_backend
+from engine.errors import BackendUnavailable
+
+BACKEND_NAMES = ("auto", "cpu", "cuda")
+
+
+@runtime_checkable
+class Ensemble(Protocol):
+    """K independent scenes advanced together; see the module docstring."""
+
+    name: str
+    device: str
+    builds: int
+    n_scenes: int
+
+    def set_contact(self, k: int, contact: ContactParams) -> None: ...
+
+    def warmup(self) -> None: ...
+
+    def advance(self, nsteps: int) -> dict: ...
+
+    def deactivate(self, k: int) -> None: ...
+
+    def observe(self) -> list: ...
+
+    def state(self, k: int) -> dict: ...
+
+    def contacts(self, k: int): ...
+
+
+def resolve_backend(name: str, shape: str = "sphere") -> str:
+    """The backend ('cpu' or 'cuda') that ``name`` ('auto', 'cpu', 'cuda') resolves to for ``shape``.
+
+    Same rules as :func:`engine.backends.base.make_backend`: ellipsoids run on the CPU ('auto' -> 'cpu',
+    'cuda' refused); spheres take CUDA under 'auto' when a real GPU is present.
+    """
+    if name not in BACKEND_NAMES:
+        raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")
+    if shape == "ellipsoid":
+        if name == "cuda":
+            raise BackendUnavailable(
+                "backend = 'cuda' is not available for ellipsoids in this engine version; use 'cpu' or 'auto'")
+        return "cpu"
+    if name == "auto":
+        return "cuda" if cuda_available() else "cpu"
+    return name
+
+
+class SerialEnsemble:
+    """K single backends advanced one after another (the CPU ensemble; see the module docstring).
+
+    On the CPU there is no kernel-launch overhead to amortise: each scene's time loop is one compiled
+    call that already uses all the cores, so packing scenes into one loop would gain nothing, and
+    advancing the active scenes in turn is the right implementation. Each scene keeps its own
+    backend object, so its trajectory is bit-identical to the same scene run alone.
+    """
+
+    def __init__(self, name: str, systems: Sequence, contacts: Sequence[ContactParams]):
+        if len(systems) != len(contacts) or not systems:
+            raise ValueError("an ensemble needs one ContactParams per scene and at least one scene")
+        self._backends: list = []
+        for system, contact in zip(systems, contacts):
+            self._backends.append(make_backend(name, system, contact))
+        first = self._backends[0]
+        self.name = first.name
+        self.device = first.device
+        self.n_scenes = len(self._backends)
+        self._active = [True] * self.n_scenes
+        self._builds_of_dropped = 0
+
+    # ---- protocol ---------------------------------------------------------------------------------
+
+    @property
+    def builds(self) -> int:
+        """Neighbour-list builds of all scenes so far (dropped scenes included)."""
+        return self._builds_of_dropped + sum(b.builds for b in self._backends if b is not None)
+
+    def scene_builds(self, k: int) -> int:
+        """Neighbour-list builds of scene k (while it is active)."""
+        return self._backend(k).builds
+
+    def set_contact(self, k: int, contact: ContactParams) -> None:
+        self._backend(k).set_contact(contact)
+
+    def warmup(self) -> None:
+        for b in self._backends:
+            if b is not None:
+                b.warmup()
+
+    def advance(self, nsteps: int) -> dict:
+        """Advance every active scene by nsteps; {k: error} of the scenes that failed (deactivated)."""
+        return self.advance_each({k: nsteps for k in self.active_scenes()})
+
+    def advance_each(self, steps: Mapping[int, int]) -> dict:
+        """Advance scene k by steps[k] (active scenes only); {k: error} of the scenes that failed.
+
+        A scene's failure (InstabilityError, or any other error of its backend) deactivates that scene
+        only; the others still complete their steps.
+        """
+        failed: dict = {}
+        for k, n in steps.items():
+            if n <= 0 or not self._active[k]:
+                continue
+            try:
+                self._backends[k].advance(int(n))
+            except Exception as exc:  # one scene's failure: the others go on
+                failed[k] = exc
+                self.deactivate(k)
+        return failed
+
+    def deactivate(self, k: int) -> None:
+        if self._active[k]:
+            self._active[k] = False
+            self._builds_of_dropped += self._backends[k].builds
+            self._backends[k] = None  # free its memory
+
+    def observe(self) -> list:
+        return [b.observe() if b is not None else None for b in self._backends]
+
+    def observe_scene(self, k: int) -> dict:
+        return self._backend(k).observe()
+
+    def state(self, k: int) -> dict:
+        return self._backend(k).state()
+
+    def contacts(self, k: int):
+        return self._backend(k).contacts()
+
+    # ---- helpers ----------------------------------------------------------------------------------
+
+    def active_scenes(self) -> list:
+        return [k for k, a in enumerate(self._active) if a]
+
+    def _backend(self, k: int):
+        b = self._backends[k]
+        if b is None:
+            raise ValueError(f"scene {k} of the ensemble is no longer active")
+        return b
+
+
+def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams]) -> Ensemble:
+    """An ensemble of the scenes for backend 'cpu', 'cuda' or 'auto'.
+
+    'cpu' -> :class:`SerialEnsemble` of CPU backends; 'cuda' -> the packed
+    ``engine.backends.cuda.CudaEnsemble`` (a :class:`SerialEnsemble` of single CUDA backends where that
+    class is not available); 'auto' -> 'cuda' when a CUDA GPU is present, else 'cpu'. All scenes must
+    have the same shape (spheres or ellipsoids).
+    """
+    shapes = {"ellipsoid" if isinstance(s, EllipsoidSystem) else "sphere" for s in systems}
+    if len(shapes) > 1:
+        raise ValueError("an ensemble holds scenes of one shape: got spheres and ellipsoids together")
+    resolved = resolve_backend(name, shapes.pop() if shapes else "sphere")
+    if resolved == "cuda":
+        try:
+            from engine.backends.cuda import CudaEnsemble
+        except ImportError:
+            CudaEnsemble = None  # noqa: N806
+        if CudaEnsemble is not None:
+            return CudaEnsemble(list(systems), list(contacts))
+    return SerialEnsemble(resolved, systems, contacts)
+
+
+def ensemble_scene_builds(ens, k: int) -> Optional[int]:
+    """Neighbour-list builds of scene k when the ensemble counts them per scene, else None."""
+    fn = getattr(ens, "scene_builds", None)
+    return fn(k) if fn is not None else None

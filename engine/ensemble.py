@@ -1,0 +1,99 @@
+"""Many scenes in one run: ``run_ensemble`` packs specs into one ensemble backend (issue 8).
+
+::
+
+    run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=None,
+                 checkpoint_dirs=None, checkpoint_interval=60.0) -> list[RunSummary | BaseException]
+
+Every scene follows the protocol of :func:`engine.simulate.run` — the same :class:`~engine.simulate.SceneRun`
+object runs it (thermalisation, switch to the cooling contact, records, energy-rise check, snapshots,
+result writer, progress, cancel) — and writes its own H5MD file, the same datasets as ``run`` writes for
+that spec; its ``/parameters`` also say ``ensemble_size`` (scenes that started together) and
+``ensemble_index``. On the CPU (a :class:`~engine.backends.ensemble.SerialEnsemble`) each file is
+bit-identical to the lone run's; on the GPU (packed ``CudaEnsemble``) equal to rounding.
+
+Rules:
+
+- All specs share ``shape`` and ``precision`` and resolve to one backend (``backend`` overrides every
+  spec's own); otherwise SpecError naming the field, the scene and the values. Everything else (N, φ,
+  e_n, e_t, ξ, box, dt, output schedule, t_end, seed) may differ per scene.
+- The scenes advance together by the steps to the nearest next stop of any scene (on a
+  ``SerialEnsemble`` each to its own next stop); each scene handles its own records and snapshots.
+- A scene that finishes drops out; the others go on. ``should_cancel(k)`` → True drops scene k with
+  :class:`~engine.errors.Cancelled` in its slot and its partial file removed. A scene that blows up
+  gets its InstabilityError in its slot and only its file is aborted. A scene that cannot start (spec
+  that cannot run, overlapping start) gets its error in its slot. The other scenes finish normally.
+- Checkpoints: optional (``checkpoint_dirs``, one directory or None per scene), written and resumed
+  per scene exactly as :func:`engine.simulate.run` does; a resumed scene may join an ensemble whose other
+  scenes start fresh. Without them (the default) an interrupted ensemble starts again from the beginning.
+- ``progress(k, Progress)``: per scene, at each of its stops; the Cundall number and wall time of a
+  scene count the wall time of the ensemble calls it took part in.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+from engine.backends.base import make_backend
+from engine.backends.ensemble import make_ensemble, resolve_backend
+from engine.errors import EngineError, SpecError
+from engine.simulate import Progress, RunSummary, SceneRun, drive
+from engine.spec import load_spec
+
+#: Spec fields every scene of one ensemble must share.
+SHARED_FIELDS = ("shape", "precision")
+
+
+def check_compatible(specs: Sequence, backend: Optional[str] = None) -> str:
+    """The backend ('cpu' or 'cuda') an ensemble of these specs runs on; SpecError if they cannot share one."""
+    if not specs:
+        raise SpecError("an ensemble needs at least one spec")
+    for name in SHARED_FIELDS:
+        first = getattr(specs[0], name)
+        for k, s in enumerate(specs):
+            if getattr(s, name) != first:
+                raise SpecError(f"{name} = {getattr(s, name)!r} of scene {k} differs from {name} = {first!r} of "
+                                f"scene 0: the scenes of an ensemble share {' and '.join(SHARED_FIELDS)}")
+    resolved = {}
+    for k, s in enumerate(specs):
+        resolved.setdefault(resolve_backend(backend or s.backend, s.shape), k)
+    if len(resolved) > 1:
+        (a, ka), (b, kb) = list(resolved.items())[:2]
+        raise SpecError(f"backend: scene {ka} resolves to {a!r} and scene {kb} to {b!r}; the scenes of an "
+                        f"ensemble run on one backend (give backend= to choose it for all)")
+    return next(iter(resolved))
+
+
+def run_ensemble(specs, outputs, *, progress: Optional[Callable[[int, Progress], None]] = None,
+                 should_cancel: Optional[Callable[[int], bool]] = None, backend: Optional[str] = None,
+                 checkpoint_dirs: Optional[Sequence] = None,
+                 checkpoint_interval: float = 60.0) -> list[RunSummary | BaseException]:
+    """Run the specs as one ensemble; per scene its RunSummary or the exception that ended it.
+
+    See the module docstring. Raises (for the whole call) only for inputs that cannot form an
+    ensemble: invalid specs (pydantic ValidationError), specs that differ in shape or precision or
+    resolve to different backends (SpecError), mismatched ``outputs``/``checkpoint_dirs`` (ValueError).
+    """
+    specs = [load_spec(s) for s in specs]
+    outputs = [Path(o) for o in outputs]
+    if len(outputs) != len(specs):
+        raise ValueError(f"outputs: {len(outputs)} paths for {len(specs)} specs; give one output per spec")
+    if len({o.resolve() for o in outputs}) != len(outputs):
+        raise ValueError("outputs: two scenes would write the same file; give one distinct output per spec")
+    dirs = list(checkpoint_dirs) if checkpoint_dirs is not None else [None] * len(specs)
+    if len(dirs) != len(specs):
+        raise ValueError(f"checkpoint_dirs: {len(dirs)} entries for {len(specs)} specs; give one (or None) per spec")
+    name = check_compatible(specs, backend)
+
+    scenes: list = []
+    for k, (spec, out, ck) in enumerate(zip(specs, outputs, dirs)):
+        cb = None if progress is None else (lambda p, k=k: progress(k, p))
+        cancel = None if should_cancel is None else (lambda k=k: should_cancel(k))
+        try:
+            scenes.append(SceneRun(spec, out, progress=cb, should_cancel=cancel, checkpoint_dir=ck,
+                                   checkpoint_interval=checkpoint_interval))
+        except (EngineError, MemoryError, OSError) as exc:  # this scene cannot start; the others can
+            scenes.append(exc)
+    return drive(scenes, lambda systems, contacts: make_ensemble(name, systems, contacts),
+                 build_one=lambda system, contact: make_backend(name, system, contact))
