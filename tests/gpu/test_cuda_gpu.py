@@ -3,6 +3,7 @@
 Run on the GPU machine: ``python -m pytest tests/gpu -q -s``.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -136,7 +137,7 @@ def test_ensemble_scenes_equal_single_runs_and_both_loops_agree():
 
     scenes = [_scene(n=4096, phi=0.058, seed=10 + k) for k in range(4)]
     for k, (_, c) in enumerate(scenes):
-        scenes[k] = (scenes[k][0], c.__class__(**{**c.__dict__, "gamma_n_coef": c.gamma_n_coef * (1 + 0.3 * k)}))
+        scenes[k] = (scenes[k][0], dataclasses.replace(c, gamma_n_coef=c.gamma_n_coef * (1 + 0.3 * k)))
     ens = CudaEnsemble([s for s, _ in scenes], [c for _, c in scenes])
     assert ens.multistep
     singles = []
