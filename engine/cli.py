@@ -31,6 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
     v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")
     v.add_argument("--threads", type=int, default=0, help="Numba threads per run (0 = all)")
+    v.add_argument("--ensemble", action="store_true",
+                   help="run all seeds and cases as one ensemble (on the GPU: the same kernel launches)")
     v.set_defaults(func=cmd_validate)
 
     b = sub.add_parser("bench", help="benchmarks and stress tests that write a report")
@@ -128,4 +130,4 @@ def cmd_validate(args) -> int:
     from engine.validation import hcs_spheres
 
     return hcs_spheres.main(out_dir=out_dir, seeds=args.seeds or 4, quick=args.quick, backend=args.backend,
-                            jobs=args.jobs, threads=args.threads)
+                            jobs=args.jobs, threads=args.threads, ensemble=args.ensemble)

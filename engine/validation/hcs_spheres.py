@@ -158,15 +158,33 @@ def _one(args) -> str:
             f"{time.time() - t0:.1f} s, Cundall {s.cundall:.3g}")
 
 
+def _as_ensemble(tasks, backend: str) -> None:
+    """All runs as one ensemble (one process; on the GPU the scenes are advanced by the same launches)."""
+    from engine.ensemble import run_ensemble
+
+    specs = [(quick_spec if quick else full_spec)(e_n, seed, backend) for e_n, seed, _, quick, _, _ in tasks]
+    t0 = time.time()
+    results = run_ensemble(specs, [t[4] for t in tasks], backend=backend)
+    for (e_n, seed, *_), s in zip(tasks, results):
+        if isinstance(s, BaseException):
+            raise s
+        print(f"e_n=e_t={e_n} seed {seed}: {s.steps} steps on {s.backend} ({s.device}) in one ensemble of "
+              f"{len(tasks)}, {time.time() - t0:.1f} s for all", flush=True)
+
+
 def main(out_dir="reports/hcs-spheres", seeds: int = 4, quick: bool = False, backend: str = "auto",
-         cases=CASES, jobs: int = 1, threads: int = 0) -> int:
-    """Run the ensemble (``jobs`` runs at a time, each with ``threads`` Numba threads) and report."""
+         cases=CASES, jobs: int = 1, threads: int = 0, ensemble: bool = False) -> int:
+    """Run the seeds x cases (``jobs`` runs at a time, each with ``threads`` Numba threads; or all as one
+    ensemble) and report."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     make = quick_spec if quick else full_spec
     tasks = [(e_n, seed, backend, quick, out / f"e{e_n}_seed{seed}.h5", threads)
              for e_n, _ in cases for seed in range(seeds)]
-    run_tasks(_one, tasks, jobs)
+    if ensemble:
+        _as_ensemble(tasks, backend)
+    else:
+        run_tasks(_one, tasks, jobs)
     results, rows, meta = {}, [], {}
     for e_n, e_t in cases:
         runs = [measure_run(out / f"e{e_n}_seed{seed}.h5") for seed in range(seeds)]
