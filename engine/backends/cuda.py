@@ -44,8 +44,9 @@ from engine.errors import BackendUnavailable, InstabilityError
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
-#: above it one launch per phase costs < 10 % of a step (DEMQ_CUDA_MULTISTEP=0/1 forces a choice)
-MULTISTEP_MAX_PARTICLES = 4 * 1024 * 1024
+#: measured on an H200 (bench/gpu_ensemble.py): 10x faster at 4096, equal at 2^20, 25 % slower at 2^22
+#: (a grid of co-resident blocks loops over many particles per thread); DEMQ_CUDA_MULTISTEP=0/1 forces it
+MULTISTEP_MAX_PARTICLES = 1024 * 1024
 
 
 class CudaEnsemble:
