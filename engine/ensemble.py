@@ -28,6 +28,8 @@ Rules:
   scenes start fresh. Without them (the default) an interrupted ensemble starts again from the beginning.
 - ``progress(k, Progress)``: per scene, at each of its stops; the Cundall number and wall time of a
   scene count the wall time of the ensemble calls it took part in.
+- ``on_result(k, result)``: called as soon as scene k has its RunSummary or exception (its file is
+  complete or gone), while the other scenes run on.
 """
 
 from __future__ import annotations
@@ -67,8 +69,9 @@ def check_compatible(specs: Sequence, backend: Optional[str] = None) -> str:
 
 def run_ensemble(specs, outputs, *, progress: Optional[Callable[[int, Progress], None]] = None,
                  should_cancel: Optional[Callable[[int], bool]] = None, backend: Optional[str] = None,
-                 checkpoint_dirs: Optional[Sequence] = None,
-                 checkpoint_interval: float = 60.0) -> list[RunSummary | BaseException]:
+                 checkpoint_dirs: Optional[Sequence] = None, checkpoint_interval: float = 60.0,
+                 on_result: Optional[Callable[[int, RunSummary | BaseException], None]] = None,
+                 ) -> list[RunSummary | BaseException]:
     """Run the specs as one ensemble; per scene its RunSummary or the exception that ended it.
 
     See the module docstring. Raises (for the whole call) only for inputs that cannot form an
@@ -96,4 +99,4 @@ def run_ensemble(specs, outputs, *, progress: Optional[Callable[[int, Progress],
         except (EngineError, MemoryError, OSError) as exc:  # this scene cannot start; the others can
             scenes.append(exc)
     return drive(scenes, lambda systems, contacts: make_ensemble(name, systems, contacts),
-                 build_one=lambda system, contact: make_backend(name, system, contact))
+                 build_one=lambda system, contact: make_backend(name, system, contact), on_result=on_result)

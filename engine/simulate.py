@@ -392,7 +392,8 @@ class _SceneView:
 
 
 def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
-          lockstep: Optional[bool] = None) -> list:
+          lockstep: Optional[bool] = None,
+          on_result: Optional[Callable[[int, object], None]] = None) -> list:
     """Run scenes together on one ensemble; return per scene its RunSummary or the exception that ended it.
 
     ``scenes``: :class:`SceneRun` objects, or exceptions for scenes that failed before they started
@@ -409,12 +410,23 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     out with that error and only its file is aborted; a finished scene writes its file and drops out.
     An error of the ensemble itself (not of one scene) ends every active scene with that error;
     KeyboardInterrupt and other BaseExceptions abort every open file and propagate.
+
+    ``on_result(k, result)`` is called as soon as scene k has its result (a job can be reported done,
+    failed or cancelled while the other scenes run on).
     """
     results: list = [s if isinstance(s, BaseException) else None for s in scenes]
     live = [k for k, s in enumerate(scenes) if not isinstance(s, BaseException)]
+    if on_result is not None:
+        for k, r in enumerate(results):
+            if r is not None:
+                on_result(k, r)
     if not live:
         return results
     ens, live = _build(scenes, live, results, build, build_one)
+    if on_result is not None:
+        for k, s in enumerate(scenes):
+            if not isinstance(s, BaseException) and k not in live:
+                on_result(k, results[k])
     if ens is None:
         return results
     runs = [scenes[k] for k in live]          # ensemble index i -> SceneRun
@@ -430,26 +442,32 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     except Exception as exc:  # the ensemble cannot compile: every scene fails with the reason
         for k in live:
             results[k] = exc
+            if on_result is not None:
+                on_result(k, exc)
         return results
 
     active: set = set()
 
-    def end(i: int, exc: BaseException) -> None:
-        runs[i].abort()
-        results[live[i]] = exc
+    def settle(i: int, result) -> None:
+        results[live[i]] = result
         active.discard(i)
         ens.deactivate(i)
+        if on_result is not None:
+            on_result(live[i], result)
+
+    def end(i: int, exc: BaseException) -> None:
+        runs[i].abort()
+        settle(i, exc)
 
     def finish(i: int) -> None:
         builds = ensemble_scene_builds(ens, i)
         try:
-            results[live[i]] = runs[i].finish(ens.name, ens.device, ens.builds if builds is None else builds,
-                                              {"ensemble_size": size, "ensemble_index": i})
+            summary = runs[i].finish(ens.name, ens.device, ens.builds if builds is None else builds,
+                                     {"ensemble_size": size, "ensemble_index": i})
         except Exception as exc:
             end(i, exc)
             return
-        active.discard(i)
-        ens.deactivate(i)
+        settle(i, summary)
 
     per_scene = hasattr(ens, "advance_each") and not lockstep
     try:

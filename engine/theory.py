@@ -88,6 +88,18 @@ def haff(t, t0_inverse: float):
     return (1.0 + np.asarray(t, dtype=float) * t0_inverse) ** -2
 
 
+#: Degrees of freedom that share the energy in Haff's law: smooth spheres (translation only) and smooth
+#: prolate spheroids (translation + the two rotations perpendicular to the axis; paper 003).
+DOF_SMOOTH_SPHERE, DOF_SMOOTH_SPHEROID = 3, 5
+
+
+def haff_rate(e_n: float, collision_rate0: float, dof: int) -> float:
+    """Haff's 1/t0 = (1 - e_n^2) Gamma_0 / (2 D_f) for smooth particles whose D_f degrees of freedom
+    share the energy equally (each collision loses (1 - e^2) T; PHYSICS-NOTES §3.2): D_f = 3 for smooth
+    spheres, 5 for prolate spheroids (paper 003); Gamma_0 the collision frequency per particle at T(0)."""
+    return (1.0 - e_n**2) * collision_rate0 / (2.0 * dof)
+
+
 def haff_rate_smooth_spheres(e_n: float, radius: float, number_density: float, mass: float,
                              volume_fraction: float, temperature0: float) -> float:
     """1/t0 = (2/3)(1 - e^2)(2a)^2 n g sqrt(pi T0/m) for smooth spheres (PHYSICS-NOTES §2.3)."""
