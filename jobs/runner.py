@@ -1,12 +1,19 @@
-"""The simulation process: one per job, started by the worker with the ``spawn`` context.
+"""The simulation process: one per claim — one job, or a pack of jobs run as one ensemble (issue 8) —
+started by the worker with the ``spawn`` context.
 
-It validates the spec, calls the engine with a progress callback and a cancel check, and reports
-to the worker over a pipe, one message each::
+It validates the specs, calls the engine with a progress callback and a cancel check per job (one job:
+``DEMQ_ENGINE_RUN``, engine.simulate.run; a pack: ``DEMQ_ENGINE_RUN_ENSEMBLE``,
+engine.ensemble.run_ensemble), and reports to the worker over a pipe; every message names the job by
+its index k in the claim::
 
-    ("progress", {phase, fraction, step, time, eta_s, cundall, wall_s})
-    ("done", {backend, device, wall_s, cundall, steps, resumed_from_step})
-    ("cancelled", reason)
-    ("error", readable message)
+    ("progress", k, {phase, fraction, step, time, eta_s, cundall, wall_s})
+    ("done", k, {backend, device, wall_s, cundall, steps, resumed_from_step, ensemble_size})
+    ("cancelled", k, reason)
+    ("error", k, readable message)
+    ("error", None, readable message)     the pack as a whole failed (no job is singled out)
+
+A pack's jobs report done / cancelled / error one by one, as their scenes end. Each job has its own
+cancel flag (a shared byte array), so one job stops without disturbing the others.
 
 If the process dies instead (signal, out of memory), the worker reads its exit code. The process
 ignores SIGINT/SIGTERM (the worker decides when it stops: cancel event, then SIGKILL after a grace
@@ -23,7 +30,7 @@ import signal
 import sys
 import traceback
 from dataclasses import asdict
-from typing import Callable
+from typing import Callable, Optional
 
 #: TEST HOOK: a job whose spec seed equals this variable's value kills its simulation process with
 #: SIGSEGV at the first progress report (the crash-isolation tests use it). Unset in production.
@@ -42,55 +49,119 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
-def child_main(engine_run: str, spec_json: str, output: str, checkpoint_dir: str,
-               checkpoint_interval: float, conn, cancel_event, parent_pid: int) -> None:
+def child_main(engine_target: str, spec_jsons: list, outputs: list, checkpoint_dirs: list,
+               checkpoint_interval: float, conn, cancel_flags, parent_pid: int, ensemble: bool = False) -> None:
     """Entry point of the simulation process (a top-level function, so ``spawn`` can import it)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
     try:
-        conn.send(_run(engine_run, spec_json, output, checkpoint_dir, checkpoint_interval, conn,
-                       cancel_event, parent_pid))
+        if ensemble:
+            _run_pack(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn,
+                      cancel_flags, parent_pid)
+        else:
+            conn.send(_run(engine_target, spec_jsons[0], outputs[0], checkpoint_dirs[0], checkpoint_interval,
+                           conn, cancel_flags, parent_pid))
     except BrokenPipeError:
         pass  # the worker is gone; nothing to report to
     finally:
         conn.close()
 
 
-def _run(engine_run, spec_json, output, checkpoint_dir, checkpoint_interval, conn, cancel_event,
-         parent_pid) -> tuple:
+def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):
+    """Per-job progress callback and cancel check: progress(k, p), should_cancel(k)."""
+    crash_seed = os.environ.get(TEST_CRASH_ENV)
+
+    def progress(k: int, p) -> None:
+        if crash_seed is not None and crash_seed == str(specs[k].seed):  # TEST HOOK, see TEST_CRASH_ENV
+            os.kill(os.getpid(), signal.SIGSEGV)
+        conn.send(("progress", k, asdict(p)))
+
+    def should_cancel(k: int) -> bool:
+        return bool(cancel_flags[k]) or os.getppid() != parent_pid
+
+    return progress, should_cancel
+
+
+def _final(k: Optional[int], outcome) -> tuple:
+    """The message that ends job k: its RunSummary, or the exception that ended it."""
+    from engine.errors import Cancelled, EngineError
+
+    if isinstance(outcome, Cancelled):
+        return ("cancelled", k, str(outcome))
+    if isinstance(outcome, EngineError):
+        return ("error", k, f"{type(outcome).__name__}: {outcome}")
+    if isinstance(outcome, MemoryError):
+        return ("error", k, "the simulation ran out of memory (MemoryError); use fewer particles")
+    if isinstance(outcome, BaseException):  # an engine bug: report it with its location, the worker goes on
+        tb = traceback.extract_tb(outcome.__traceback__)
+        where = f" ({os.path.basename(tb[-1].filename)}:{tb[-1].lineno})" if tb else ""
+        return ("error", k, f"unexpected {type(outcome).__name__} in the simulation: {outcome}{where}")
+    s = outcome
+    return ("done", k, {"backend": s.backend, "device": s.device, "wall_s": s.wall_s, "cundall": s.cundall,
+                        "steps": s.steps, "resumed_from_step": s.resumed_from_step,
+                        "ensemble_size": s.extra.get("ensemble_size", 1)})
+
+
+def _parse(spec_json: str):
     from pydantic import ValidationError
 
-    from engine.errors import Cancelled, EngineError
     from engine.spec import SimulationSpec
 
     try:
-        spec = SimulationSpec.model_validate_json(spec_json)
+        return SimulationSpec.model_validate_json(spec_json)
     except ValidationError as exc:
         return ("error", f"invalid spec: {exc}")
-    crash_seed = os.environ.get(TEST_CRASH_ENV)
 
-    def progress(p) -> None:
-        if crash_seed is not None and crash_seed == str(spec.seed):  # TEST HOOK, see TEST_CRASH_ENV
-            os.kill(os.getpid(), signal.SIGSEGV)
-        conn.send(("progress", asdict(p)))
 
-    def should_cancel() -> bool:
-        return cancel_event.is_set() or os.getppid() != parent_pid
-
+def _run(engine_run, spec_json, output, checkpoint_dir, checkpoint_interval, conn, cancel_flags,
+         parent_pid) -> tuple:
+    """One job through ``engine_run`` (engine.simulate.run's signature)."""
+    spec = _parse(spec_json)
+    if isinstance(spec, tuple):
+        return (spec[0], 0, spec[1])
+    progress, should_cancel = _hooks({0: spec}, conn, cancel_flags, parent_pid)
     try:
         run = load_callable(engine_run)
-        s = run(spec, output, progress=progress, should_cancel=should_cancel, checkpoint_dir=checkpoint_dir,
-                checkpoint_interval=checkpoint_interval)
-    except Cancelled as exc:
-        return ("cancelled", str(exc))
-    except EngineError as exc:
-        return ("error", f"{type(exc).__name__}: {exc}")
-    except MemoryError:
-        return ("error", "the simulation ran out of memory (MemoryError); use fewer particles")
-    except Exception as exc:  # an engine bug: report it with its location, the worker goes on
-        where = traceback.extract_tb(exc.__traceback__)[-1]
-        return ("error", f"unexpected {type(exc).__name__} in the simulation: {exc} "
-                         f"({os.path.basename(where.filename)}:{where.lineno})")
-    return ("done", {"backend": s.backend, "device": s.device, "wall_s": s.wall_s, "cundall": s.cundall,
-                     "steps": s.steps, "resumed_from_step": s.resumed_from_step})
+        s = run(spec, output, progress=lambda p: progress(0, p), should_cancel=lambda: should_cancel(0),
+                checkpoint_dir=checkpoint_dir, checkpoint_interval=checkpoint_interval)
+    except Exception as exc:
+        return _final(0, exc)
+    return _final(0, s)
+
+
+def _run_pack(engine_run_ensemble, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
+              parent_pid) -> None:
+    """A pack through ``engine_run_ensemble`` (engine.ensemble.run_ensemble's signature); each job's final
+    message is sent as soon as its scene ends."""
+    specs, index = {}, []
+    for k, text in enumerate(spec_jsons):
+        spec = _parse(text)
+        if isinstance(spec, tuple):
+            conn.send((spec[0], k, spec[1]))  # this job fails alone
+        else:
+            specs[k] = spec
+            index.append(k)
+    if not index:
+        return
+    progress, should_cancel = _hooks(specs, conn, cancel_flags, parent_pid)
+    sent: set = set()
+
+    def on_result(i: int, outcome) -> None:
+        sent.add(index[i])
+        conn.send(_final(index[i], outcome))
+
+    try:
+        run_ensemble = load_callable(engine_run_ensemble)
+        run_ensemble([specs[k] for k in index], [outputs[k] for k in index],
+                     progress=lambda i, p: progress(index[i], p), should_cancel=lambda i: should_cancel(index[i]),
+                     checkpoint_dirs=[checkpoint_dirs[k] for k in index], checkpoint_interval=checkpoint_interval,
+                     on_result=on_result)
+    except BrokenPipeError:
+        raise
+    except Exception as exc:  # the pack as a whole failed: the worker decides what its jobs become
+        conn.send(("error", None, _final(None, exc)[2]))
+        return
+    missing = [k for k in index if k not in sent]
+    if missing:
+        conn.send(("error", None, f"the ensemble engine ended without a result for job(s) {missing}"))

@@ -7,7 +7,8 @@ override the environment (``Settings.from_env(**overrides)``, where ``None`` mea
 Variable                       Default                             Meaning
 =============================  ==================================  =================================================
 DEMQ_DATA_DIR                  ``./demq-data``                     Data directory: ``results/<job_id>.h5``,
-                                                                   ``checkpoints/<job_id>/`` and the SQLite file.
+                                                                   ``checkpoints/<job_id>/``, ``batches/<batch_id>.h5``
+                                                                   and the SQLite file.
 DEMQ_DATABASE_URL              ``sqlite:///<data_dir>/demq.sqlite3``  Job table: ``sqlite:///PATH`` (embedded, WAL) or
                                                                    ``postgresql://user@host:port/db`` (several workers).
 DEMQ_TABLE_PREFIX              (empty)                             Prefix of the table name (``<prefix>jobs``), so
@@ -29,6 +30,16 @@ DEMQ_CHECKPOINT_INTERVAL       ``60``                              Wall seconds 
 DEMQ_ENGINE_RUN                ``engine.simulate:run``             ``module:function`` the simulation process calls
                                                                    (same signature as engine.simulate.run); tests and
                                                                    the load bench point it at a fake engine.
+DEMQ_ENGINE_RUN_ENSEMBLE       (auto)                              ``module:function`` that runs a pack of jobs (same
+                                                                   signature as engine.ensemble.run_ensemble). Auto:
+                                                                   ``engine.ensemble:run_ensemble`` with the default
+                                                                   DEMQ_ENGINE_RUN, none (no packing) with another.
+DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued jobs a worker packs into one ensemble
+                                                                   run (same shape, precision and resolved backend);
+                                                                   1 disables packing.
+DEMQ_ENSEMBLE_MAX_PARTICLES    ``4194304``                         Most particles of all jobs of one pack together (a
+                                                                   memory bound: ~1.1 kB per float64 particle); a
+                                                                   single larger job still runs, alone.
 DEMQ_HOST / DEMQ_PORT          ``127.0.0.1`` / ``8000``            Where ``demq serve`` listens.
 DEMQ_URL                       ``http://127.0.0.1:8000``           Service that ``demq submit/status/fetch`` talk to.
 DEMQ_WORKER_ID                 ``<hostname>:<pid>:<random>``       Lease owner name of a worker.
@@ -64,11 +75,18 @@ _ENV = {
     "cancel_grace_s": "DEMQ_CANCEL_GRACE_SECONDS",
     "checkpoint_interval": "DEMQ_CHECKPOINT_INTERVAL",
     "engine_run": "DEMQ_ENGINE_RUN",
+    "engine_run_ensemble": "DEMQ_ENGINE_RUN_ENSEMBLE",
+    "ensemble_max_jobs": "DEMQ_ENSEMBLE_MAX_JOBS",
+    "ensemble_max_particles": "DEMQ_ENSEMBLE_MAX_PARTICLES",
     "host": "DEMQ_HOST",
     "port": "DEMQ_PORT",
     "url": "DEMQ_URL",
     "worker_id": "DEMQ_WORKER_ID",
 }
+
+
+DEFAULT_ENGINE_RUN = "engine.simulate:run"
+DEFAULT_ENGINE_RUN_ENSEMBLE = "engine.ensemble:run_ensemble"
 
 
 def _default_worker_id() -> str:
@@ -94,7 +112,10 @@ class Settings:
     progress_s: float = 1.0
     cancel_grace_s: float = 10.0
     checkpoint_interval: float = 60.0
-    engine_run: str = "engine.simulate:run"
+    engine_run: str = DEFAULT_ENGINE_RUN
+    engine_run_ensemble: str = ""
+    ensemble_max_jobs: int = 256
+    ensemble_max_particles: int = 4 * 2**20
     host: str = "127.0.0.1"
     port: int = 8000
     url: str = "http://127.0.0.1:8000"
@@ -120,13 +141,25 @@ class Settings:
         """Fill the derived defaults (database URL in the data directory, worker id) and check."""
         data_dir = Path(self.data_dir).expanduser().absolute()
         url = self.database_url or f"sqlite:///{data_dir / 'demq.sqlite3'}"
+        ensemble = self.engine_run_ensemble or (DEFAULT_ENGINE_RUN_ENSEMBLE if self.engine_run == DEFAULT_ENGINE_RUN
+                                                else "")
         s = replace(self, data_dir=data_dir, database_url=url, worker_id=self.worker_id or _default_worker_id(),
-                    token=self.token or None)
+                    token=self.token or None, engine_run_ensemble=ensemble)
         if not 0 < s.heartbeat_s < s.lease_s:
             raise ValueError(f"heartbeat ({s.heartbeat_s} s) must be positive and shorter than the lease ({s.lease_s} s)")
         if s.max_attempts < 1:
             raise ValueError(f"max_attempts = {s.max_attempts} must be >= 1")
+        if s.ensemble_max_jobs < 1:
+            raise ValueError(f"DEMQ_ENSEMBLE_MAX_JOBS = {s.ensemble_max_jobs} must be >= 1 (1 disables packing)")
+        if s.ensemble_max_particles < 2:
+            raise ValueError(f"DEMQ_ENSEMBLE_MAX_PARTICLES = {s.ensemble_max_particles} must be >= 2 "
+                             f"(the smallest job has 2 particles)")
         return s
+
+    @property
+    def packing(self) -> bool:
+        """Whether the worker packs compatible queued jobs into one ensemble run."""
+        return self.ensemble_max_jobs > 1 and bool(self.engine_run_ensemble)
 
     @property
     def results_dir(self) -> Path:
@@ -141,6 +174,10 @@ class Settings:
 
     def checkpoint_dir(self, job_id: str) -> Path:
         return self.checkpoints_dir / job_id
+
+    def batch_result_path(self, batch_id: str) -> Path:
+        """Seed statistics of a batch (jobs/batch_results.py), rebuilt on request."""
+        return self.data_dir / "batches" / f"{batch_id}.h5"
 
 
 def _convert(default, raw: str):

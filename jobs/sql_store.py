@@ -11,7 +11,8 @@ import uuid
 from contextlib import contextmanager
 from typing import Any, Iterator, Optional, Sequence
 
-from sqlalchemy import Connection, Engine, MetaData, String, Select, case, cast, func, literal, select, text, update
+from sqlalchemy import (Connection, Engine, MetaData, String, Select, case, cast, func, literal, null, select, text,
+                        update)
 
 from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING, job_table
 from jobs.store import Job, JobStore, LeaseLost, NewJob
@@ -126,18 +127,58 @@ class SqlJobStore(JobStore):
             row = conn.execute(stmt).first()
         return Job.from_row(row) if row is not None else None
 
+    def peek_queued(self, limit: int) -> list[Job]:
+        t = self.table
+        with self._read() as conn:
+            rows = conn.execute(select(t).where(t.c.state == QUEUED)
+                                .order_by(t.c.priority.desc(), t.c.seq).limit(limit)).all()
+        return [Job.from_row(r) for r in rows]
+
+    def claim_ids(self, owner: str, lease_s: float, job_ids: Sequence[str]) -> list[Job]:
+        if not job_ids:
+            return []
+        t, now = self.table, time.time()
+        ids = list(job_ids)
+        rows = []
+        with self._write() as conn:
+            for start in range(0, len(ids), 500):  # bounded IN lists
+                part = ids[start:start + 500]
+                pick = self._lock_next(select(t.c.seq).where(t.c.id.in_(part), t.c.state == QUEUED))
+                stmt = (update(t).where(t.c.seq.in_(pick.scalar_subquery()), t.c.state == QUEUED)
+                        .values(state=RUNNING, lease_owner=owner, lease_expires_at=now + lease_s, heartbeat_at=now,
+                                attempts=t.c.attempts + 1, started_at=func.coalesce(t.c.started_at, now))
+                        .returning(*t.c))
+                rows.extend(conn.execute(stmt).all())
+        claimed = {j.id: j for j in (Job.from_row(r) for r in rows)}
+        return [claimed[i] for i in ids if i in claimed]
+
     def heartbeat(self, job_id: str, owner: str, lease_s: float,
                   progress: Optional[dict[str, Any]] = None) -> bool:
-        t, now = self.table, time.time()
-        values: dict[str, Any] = dict(lease_expires_at=now + lease_s, heartbeat_at=now)
-        values.update({k: v for k, v in (progress or {}).items() if k in PROGRESS_COLUMNS})
-        stmt = (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
-                .values(**values).returning(t.c.cancel_requested))
         with self._write() as conn:
-            row = conn.execute(stmt).first()
+            row = conn.execute(self._heartbeat_stmt(job_id, owner, lease_s, progress, time.time())).first()
         if row is None:
             raise LeaseLost(f"job {job_id} is no longer leased to {owner}")
         return bool(row[0])
+
+    def heartbeat_many(self, job_ids: Sequence[str], owner: str, lease_s: float,
+                       progress: Optional[dict[str, dict[str, Any]]] = None) -> dict[str, bool]:
+        """One transaction for the whole pack (one commit, not one per job)."""
+        now, out = time.time(), {}
+        with self._write() as conn:
+            for job_id in job_ids:
+                row = conn.execute(self._heartbeat_stmt(job_id, owner, lease_s, (progress or {}).get(job_id),
+                                                        now)).first()
+                if row is not None:
+                    out[job_id] = bool(row[0])
+        return out
+
+    def _heartbeat_stmt(self, job_id: str, owner: str, lease_s: float, progress: Optional[dict[str, Any]],
+                        now: float):
+        t = self.table
+        values: dict[str, Any] = dict(lease_expires_at=now + lease_s, heartbeat_at=now)
+        values.update({k: v for k, v in (progress or {}).items() if k in PROGRESS_COLUMNS})
+        return (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
+                .values(**values).returning(t.c.cancel_requested))
 
     def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
         if state not in (DONE, FAILED, CANCELLED):
@@ -151,12 +192,13 @@ class SqlJobStore(JobStore):
         with self._write() as conn:
             return conn.execute(stmt).rowcount == 1
 
-    def release(self, job_id: str, owner: str) -> bool:
+    def release(self, job_id: str, owner: str, error: Optional[str] = None) -> bool:
         t = self.table
+        extra = {} if error is None else {"error": case((t.c.cancel_requested, null()), else_=literal(error))}
         stmt = (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
                 .values(state=case((t.c.cancel_requested, CANCELLED), else_=QUEUED),
                         finished_at=case((t.c.cancel_requested, time.time()), else_=None),
-                        attempts=t.c.attempts - 1, lease_owner=None, lease_expires_at=None))
+                        attempts=t.c.attempts - 1, lease_owner=None, lease_expires_at=None, **extra))
         with self._write() as conn:
             return conn.execute(stmt).rowcount == 1
 

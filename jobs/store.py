@@ -120,6 +120,17 @@ class JobStore(ABC):
         """Atomically lease the next queued job (or exactly ``job_id``) to ``owner``; None if none."""
 
     @abstractmethod
+    def peek_queued(self, limit: int) -> list[Job]:
+        """Up to ``limit`` queued jobs in claim order (priority, then submission), without claiming them."""
+
+    @abstractmethod
+    def claim_ids(self, owner: str, lease_s: float, job_ids: Sequence[str]) -> list[Job]:
+        """Atomically lease those of ``job_ids`` that are still queued (a pack); the others are skipped.
+
+        Returns the claimed jobs in the order of ``job_ids``.
+        """
+
+    @abstractmethod
     def heartbeat(self, job_id: str, owner: str, lease_s: float,
                   progress: Optional[dict[str, Any]] = None) -> bool:
         """Renew the lease (and write progress); return whether a cancel was requested.
@@ -127,13 +138,28 @@ class JobStore(ABC):
         Raises :class:`LeaseLost` when the job is no longer running under ``owner``.
         """
 
+    def heartbeat_many(self, job_ids: Sequence[str], owner: str, lease_s: float,
+                       progress: Optional[dict[str, dict[str, Any]]] = None) -> dict[str, bool]:
+        """:meth:`heartbeat` for several jobs (a pack): {job id: cancel requested} of the jobs still
+        leased to ``owner``; a job missing from the answer has lost its lease."""
+        out = {}
+        for job_id in job_ids:
+            try:
+                out[job_id] = self.heartbeat(job_id, owner, lease_s, (progress or {}).get(job_id))
+            except LeaseLost:
+                pass
+        return out
+
     @abstractmethod
     def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
         """End a leased job as done, failed or cancelled with the given columns; False if not leased."""
 
     @abstractmethod
-    def release(self, job_id: str, owner: str) -> bool:
-        """Give a leased job back to the queue without counting the attempt (worker shutdown)."""
+    def release(self, job_id: str, owner: str, error: Optional[str] = None) -> bool:
+        """Give a leased job back to the queue without counting the attempt (worker shutdown).
+
+        ``error``: a note kept on the queued job (why it went back), e.g. that it must run alone.
+        """
 
     @abstractmethod
     def reap_expired(self, now: Optional[float] = None) -> tuple[list[str], list[str]]:

@@ -5,7 +5,8 @@ engine is elsewhere (or too slow for a test): ``N_STEPS`` steps, each sleeping `
 wall seconds, a progress report and a cancel check per step, a checkpoint (JSON) whenever
 ``checkpoint_interval`` has passed, resumption from that checkpoint, and an HDF5 result with the
 observables layout written to a temporary name and renamed. ``seed == FAIL_SEED`` raises an
-InstabilityError half-way. Selected with ``DEMQ_ENGINE_RUN=tests.jobs.fake_engine:run``.
+InstabilityError half-way. Selected with ``DEMQ_ENGINE_RUN=tests.jobs.fake_engine:run``; its ensemble
+counterpart :func:`run_ensemble` with ``DEMQ_ENGINE_RUN_ENSEMBLE=tests.jobs.fake_engine:run_ensemble``.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from engine.simulate import Progress, RunSummary
 N_STEPS = 20
 FAIL_SEED = 13
 TARGET = "tests.jobs.fake_engine:run"
+ENSEMBLE_TARGET = "tests.jobs.fake_engine:run_ensemble"
 
 
 def write_result(path, spec, n_records: int = 21) -> Path:
@@ -85,3 +87,64 @@ def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
 def run_deaf(spec, output, *, progress=None, should_cancel=None, **kwargs) -> RunSummary:
     """Like :func:`run` but never looks at the cancel check (an engine stuck in a long kernel)."""
     return run(spec, output, progress=progress, should_cancel=None, **kwargs)
+
+
+def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=None, checkpoint_dirs=None,
+                 checkpoint_interval=60.0, on_result=None) -> list:
+    """The contract of ``engine.ensemble.run_ensemble``: the scenes of :func:`run`, stepped together.
+
+    Each round every active scene checks its cancel flag, takes one of its ``N_STEPS`` steps (the
+    round sleeps the longest ``t_end / N_STEPS`` of the active scenes), reports progress and
+    checkpoints; ``FAIL_SEED`` fails its scene alone half-way. A scene's result goes to ``on_result``
+    as soon as it ends. Selected with ``DEMQ_ENGINE_RUN_ENSEMBLE=tests.jobs.fake_engine:run_ensemble``.
+    """
+    k_all = range(len(specs))
+    dirs = list(checkpoint_dirs) if checkpoint_dirs is not None else [None] * len(specs)
+    ckpts = [Path(d) / "fake.ckpt" if d else None for d in dirs]
+    start = []
+    for spec, ck in zip(specs, ckpts):
+        saved = json.loads(ck.read_text()) if ck is not None and ck.exists() else None
+        start.append(saved["step"] if saved and saved["spec"] == spec.to_json() else 0)
+    results: list = [None] * len(specs)
+    step = list(start)
+    active = set(k_all)
+    t0 = last_ckpt = time.monotonic()
+
+    def settle(k, result):
+        results[k] = result
+        active.discard(k)
+        if on_result is not None:
+            on_result(k, result)
+
+    while active:
+        for k in sorted(active):
+            if should_cancel is not None and should_cancel(k):
+                settle(k, Cancelled(f"cancelled at step {step[k]}"))
+            elif specs[k].seed == FAIL_SEED and step[k] == N_STEPS // 2:
+                settle(k, InstabilityError(f"overlap of particle 7 exceeds the limit at step {step[k]}: dt too large?",
+                                           step[k], 7))
+        if not active:
+            break
+        time.sleep(max(specs[k].t_end for k in active) / N_STEPS)
+        ck_due = time.monotonic() - last_ckpt >= checkpoint_interval
+        for k in sorted(active):
+            step[k] += 1
+            if ckpts[k] is not None and ck_due:
+                ckpts[k].write_text(json.dumps({"spec": specs[k].to_json(), "step": step[k]}))
+            wall = time.monotonic() - t0
+            if progress is not None:
+                progress(k, Progress(phase="cooling", fraction=step[k] / N_STEPS, step=step[k],
+                                     time=specs[k].t_end * step[k] / N_STEPS,
+                                     eta_s=wall / (step[k] - start[k]) * (N_STEPS - step[k]), cundall=1.0e6,
+                                     wall_s=wall))
+        if ck_due:
+            last_ckpt = time.monotonic()
+        for k in sorted(active):
+            if step[k] >= N_STEPS:
+                write_result(outputs[k], specs[k])
+                wall = max(time.monotonic() - t0, 1e-9)
+                settle(k, RunSummary(output=Path(outputs[k]), backend="fake", device="test double",
+                                     n_particles=specs[k].n_particles, steps=N_STEPS - start[k], wall_s=wall,
+                                     cundall=specs[k].n_particles * (N_STEPS - start[k]) / wall,
+                                     resumed_from_step=start[k] or None, extra={"ensemble_size": len(specs)}))
+    return results
