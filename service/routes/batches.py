@@ -1,15 +1,22 @@
-"""Batches: many specs, or a base spec and a sweep (cartesian product), queued in one transaction."""
+"""Batches: many specs, or a base spec and a sweep (cartesian product), queued in one transaction;
+the batch result (mean cooling curves over seeds with standard errors) and its plot."""
 
 from __future__ import annotations
 
 import uuid
+from pathlib import Path
+from typing import Annotated
 
-from fastapi import APIRouter, status
+from fastapi import APIRouter, HTTPException, Query, status
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, Response
 
+from jobs.batch_results import BatchNotFound, BatchNotReady, batch_result
 from jobs.specs import admit, expand_sweep, sweep_size
 from jobs.store import NewJob
 from service.deps import SettingsDep, StoreDep
 from service.errors import InvalidRequest, rejected
+from service.results import batch_plot_png
 from service.schemas import BatchIn, BatchOut
 
 router = APIRouter(prefix="/batches", tags=["batches"])
@@ -37,3 +44,43 @@ def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep) -> Batc
     jobs = store.submit([NewJob(s.to_json(), batch.priority) for s in specs], batch_id=batch_id,
                         max_attempts=settings.max_attempts)
     return BatchOut(batch_id=batch_id, count=len(jobs), job_ids=[j.id for j in jobs])
+
+
+BatchId = Annotated[str, PathParam(max_length=64, description="The batch_id returned by POST /batches.")]
+Partial = Annotated[bool, Query(description="Aggregate the jobs done so far while others are still queued or "
+                                            "running (default: 409 until every job of the batch has ended).")]
+RESULT_RESPONSES = {404: {"description": "no batch with this id"},
+                    409: {"description": "jobs still queued or running (see partial), or no job has a result"}}
+
+
+def _batch_file(store, settings, batch_id: str, partial: bool) -> Path:
+    try:
+        return batch_result(store, settings, batch_id, partial)
+    except BatchNotFound as exc:
+        raise HTTPException(404, str(exc)) from None
+    except (BatchNotReady, ValueError) as exc:
+        raise HTTPException(409, str(exc)) from None
+
+
+@router.get("/{batch_id}/result", response_class=FileResponse, responses={
+    **RESULT_RESPONSES, 200: {"content": {"application/x-hdf5": {}}, "description": "the batch HDF5"}})
+def get_batch_result(batch_id: BatchId, store: StoreDep, settings: SettingsDep, partial: Partial = False):
+    """Seed statistics of the batch as HDF5: its done jobs grouped by spec apart from the seed; per group
+    the mean of T_tr, T_rot and E_tr/E_tr(0) over the seeds with its standard error, the number of seeds,
+    the seeds and the job ids (layout: engine/ensemble_stats.py). Failed or cancelled jobs are left out
+    and listed in the file's ``excluded`` attribute."""
+    path = _batch_file(store, settings, batch_id, partial)
+    return FileResponse(path, media_type="application/x-hdf5", filename=f"demq-batch-{batch_id}.h5")
+
+
+@router.get("/{batch_id}/plot.png", response_class=Response, responses={
+    **RESULT_RESPONSES, 200: {"content": {"image/png": {}}, "description": "PNG"}})
+def get_batch_plot(batch_id: BatchId, store: StoreDep, settings: SettingsDep, partial: Partial = False) -> Response:
+    """Mean T/T0 and R/T0 of each group of the batch with +-1 standard-error bands, against Luding's ODE
+    (spheres) or Haff's law (ellipsoids)."""
+    path = _batch_file(store, settings, batch_id, partial)
+    return Response(batch_plot_png(path, f"batch {batch_id[:8]}: mean over seeds"), media_type="image/png")
+
+
+router.add_api_route("/{batch_id}/plot", get_batch_plot, methods=["GET"], response_class=Response,
+                     include_in_schema=False)  # the same plot without the suffix
