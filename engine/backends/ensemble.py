@@ -24,8 +24,9 @@ Implementations:
   steps per scene in one call), which the driver uses when present so that every scene is advanced in
   exactly the chunks a lone run would use (the velocity-Verlet half kicks at chunk ends make the last
   bits depend on the chunking).
-- ``engine.backends.cuda.CudaEnsemble`` stores the scenes back to back on the GPU and advances them
-  with the same kernel launches (packed ensemble).
+- ``engine.backends.cuda.CudaEnsemble`` (spheres) and ``engine.backends.cuda_ellipsoid.CudaEllipsoidEnsemble``
+  (ellipsoids) store the scenes back to back on the GPU and advance them with the same kernel launches
+  (packed ensemble).
 
 :func:`make_ensemble` picks one by backend name, like :func:`engine.backends.base.make_backend` does for
 a single scene; :func:`resolve_backend` says which backend a name resolves to without building one.
@@ -68,16 +69,11 @@ class Ensemble(Protocol):
 def resolve_backend(name: str, shape: str = "sphere") -> str:
     """The backend ('cpu' or 'cuda') that ``name`` ('auto', 'cpu', 'cuda') resolves to for ``shape``.
 
-    Same rules as :func:`engine.backends.base.make_backend`: ellipsoids run on the CPU ('auto' -> 'cpu',
-    'cuda' refused); spheres take CUDA under 'auto' when a real GPU is present.
+    Same rules as :func:`engine.backends.base.make_backend`, for spheres and ellipsoids alike: 'auto'
+    takes CUDA when a real GPU is present.
     """
     if name not in BACKEND_NAMES:
         raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")
-    if shape == "ellipsoid":
-        if name == "cuda":
-            raise BackendUnavailable(
-                "backend = 'cuda' is not available for ellipsoids in this engine version; use 'cpu' or 'auto'")
-        return "cpu"
     if name == "auto":
         return "cuda" if cuda_available() else "cpu"
     return name
@@ -186,10 +182,14 @@ def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams
     shapes = {"ellipsoid" if isinstance(s, EllipsoidSystem) else "sphere" for s in systems}
     if len(shapes) > 1:
         raise ValueError("an ensemble holds scenes of one shape: got spheres and ellipsoids together")
-    resolved = resolve_backend(name, shapes.pop() if shapes else "sphere")
+    shape = shapes.pop() if shapes else "sphere"
+    resolved = resolve_backend(name, shape)
     if resolved == "cuda":
         try:
-            from engine.backends.cuda import CudaEnsemble
+            if shape == "ellipsoid":
+                from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble as CudaEnsemble
+            else:
+                from engine.backends.cuda import CudaEnsemble
         except ImportError:
             CudaEnsemble = None  # noqa: N806
         if CudaEnsemble is not None:
