@@ -121,19 +121,16 @@ def cuda_available() -> bool:
 
 
 def make_backend(name: str, system: SphereSystem, contact: ContactParams):
-    """Backend instance for 'cpu', 'cuda' or 'auto' (ellipsoids: CPU only in this version)."""
-    if isinstance(system, EllipsoidSystem):
-        if name == "cuda":
-            raise BackendUnavailable(
-                "backend = 'cuda' is not available for ellipsoids in this engine version; use 'cpu' or 'auto'")
-        if name not in ("auto", "cpu"):
-            raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")
-        from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
-
-        return CpuEllipsoidBackend(system, contact)
+    """Backend instance for 'cpu', 'cuda' or 'auto' ('auto': CUDA when a GPU is present), for spheres
+    (:class:`SphereSystem`) and ellipsoids (:class:`EllipsoidSystem`)."""
+    ellipsoid = isinstance(system, EllipsoidSystem)
     if name == "auto":
         name = "cuda" if cuda_available() else "cpu"
     if name == "cpu":
+        if ellipsoid:
+            from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+
+            return CpuEllipsoidBackend(system, contact)
         from engine.backends.cpu import CpuBackend
 
         return CpuBackend(system, contact)
@@ -142,6 +139,10 @@ def make_backend(name: str, system: SphereSystem, contact: ContactParams):
         if not sim and not cuda_available():
             raise BackendUnavailable(
                 "backend = 'cuda' but no CUDA GPU is available here; use backend 'cpu' or 'auto'")
+        if ellipsoid:
+            from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+
+            return CudaEllipsoidBackend(system, contact)
         from engine.backends.cuda import CudaBackend
 
         return CudaBackend(system, contact)

@@ -58,6 +58,12 @@ class CudaEnsemble:
     """
 
     name = "cuda"
+    #: widths of the per-scene constant tables (a subclass may append columns)
+    _ND, _NF = K.ND, K.NF
+    #: device arrays permuted into cell order at a rebuild (besides the per-particle constants)
+    _permuted = ("pos", "vel", "omega", "quat", "f_cur")
+    #: 1-D views of other device arrays (not counted by device_bytes)
+    _view_names = ("radius1", "inv_m1", "inv_i1", "mass1", "inertia1")
 
     def __init__(self, systems: list, contacts: list):
         if not SIM and not cuda.is_available():
@@ -91,41 +97,10 @@ class CudaEnsemble:
         self.contact = list(contacts)
         self.box = np.array([float(s.box_length) for s in systems])
 
-        rad = np.concatenate([np.asarray(s.radius, np.float64) for s in systems])
-        mass = np.concatenate([np.asarray(s.mass, np.float64) for s in systems])
-        inertia = np.concatenate([np.asarray(s.inertia, np.float64) for s in systems])
-        self.uniform = all(s.n == 0 or (np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0])
-                                        and np.all(s.inertia == s.inertia[0])) for s in systems)
-        self._rmax = [float(np.max(s.radius)) if s.n else 0.0 for s in systems]
-
-        def up(a, rows):
-            a = np.ascontiguousarray(np.asarray(a, dt_).reshape(n, rows).T)
-            return cuda.to_device(a, stream=self.stream)
-
-        def cat(attr):
-            return np.concatenate([np.asarray(getattr(s, attr), np.float64).reshape(s.n, -1) for s in systems])
-
-        self.pos = up(cat("position"), 3)
-        self.vel = up(cat("velocity"), 3)
-        self.omega = up(cat("angular_velocity"), 3)
-        self.quat = up(cat("orientation"), 4)
-        self.f_cur = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
-        self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
-        self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
         self.x_ref = cuda.device_array((3, n), dt_, stream=self.stream)
         self.ids = cuda.to_device(np.arange(n, dtype=np.int32), stream=self.stream)
         self.sc = cuda.to_device(np.repeat(np.arange(nk, dtype=np.int32), self.sizes), stream=self.stream)
-        if self.uniform:
-            dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
-            self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
-            self._per_particle = []
-        else:
-            self.radius = up(rad, 1)
-            self.mass = up(mass, 1)
-            self.inertia = up(inertia, 1)
-            self.inv_m = up((1.0 / mass.astype(dt_)).astype(dt_), 1)
-            self.inv_i = up((1.0 / inertia.astype(dt_)).astype(dt_), 1)
-            self._per_particle = ["radius", "mass", "inertia", "inv_m", "inv_i"]
+        self._upload_particles(systems)
         self._views()
         # scratch for permutations (4 rows covers the quaternion)
         self.scratch = cuda.device_array((4, n), dt_, stream=self.stream)
@@ -139,8 +114,8 @@ class CudaEnsemble:
         self.status_h = [cuda.pinned_array(K.status_len(nk), np.float64) for _ in range(2)]
         self.events = [(cuda.event() if SIM else cuda.event(timing=False)) for _ in range(2)]
 
-        self.spd_h = np.zeros((nk, K.ND), dt_)
-        self.spf_h = np.zeros((nk, K.NF), np.float64)
+        self.spd_h = np.zeros((nk, self._ND), dt_)
+        self.spf_h = np.zeros((nk, self._NF), np.float64)
         self.spi_h = np.zeros((nk, K.NI), np.int32)
         coff = 0
         for s, sy in enumerate(systems):
@@ -149,11 +124,8 @@ class CudaEnsemble:
             self.spi_h[s, [K.I_NC, K.I_COFF, K.I_ACTIVE, K.I_START, K.I_N]] = [nc, coff, 1, self.starts[s], s_n]
             coff += nc ** 3
             self.spf_h[s, K.F_INVCELL] = nc / self.box[s]
-            r0, m0, i0 = (rad[self.starts[s]], mass[self.starts[s]], inertia[self.starts[s]]) if s_n else (0, 0, 0)
-            self.spd_h[s, [K.D_BOX, K.D_INVBOX, K.D_R0, K.D_M0, K.D_I0]] = [
-                c(self.box[s]), c(1.0 / self.box[s]), c(r0), c(m0), c(i0)]
-            self.spd_h[s, K.D_IM0] = (1.0 / np.array([m0 or 1.0], c))[0]
-            self.spd_h[s, K.D_II0] = (1.0 / np.array([i0 or 1.0], c))[0]
+            self.spd_h[s, [K.D_BOX, K.D_INVBOX]] = [c(self.box[s]), c(1.0 / self.box[s])]
+            self._scene_constants(s)
         self.ncell = coff
         self._setup_scan()
         self.spd = cuda.to_device(self.spd_h, stream=self.stream)
@@ -167,6 +139,54 @@ class CudaEnsemble:
         self._prime(systems)
 
     # ---- set-up -----------------------------------------------------------------------------------
+
+    def _up(self, a, rows):
+        """Host (N, rows) float64 -> device (rows, N) in the working precision."""
+        a = np.ascontiguousarray(np.asarray(a, self.dtype).reshape(self.n, rows).T)
+        return cuda.to_device(a, stream=self.stream)
+
+    @staticmethod
+    def _cat(systems, attr):
+        return np.concatenate([np.asarray(getattr(s, attr), np.float64).reshape(s.n, -1) for s in systems])
+
+    def _upload_particles(self, systems) -> None:
+        """Sphere state and constants on the device (uniform scenes keep their constants in spd)."""
+        dt_, n = self.dtype, self.n
+        rad = np.concatenate([np.asarray(s.radius, np.float64) for s in systems])
+        mass = np.concatenate([np.asarray(s.mass, np.float64) for s in systems])
+        inertia = np.concatenate([np.asarray(s.inertia, np.float64) for s in systems])
+        self.uniform = all(s.n == 0 or (np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0])
+                                        and np.all(s.inertia == s.inertia[0])) for s in systems)
+        self._rmax = [float(np.max(s.radius)) if s.n else 0.0 for s in systems]
+        self._scene0 = [(rad[i], mass[i], inertia[i]) if s_n else (0, 0, 0)
+                        for i, s_n in zip(self.starts, self.sizes)]
+        up, cat = self._up, lambda attr: self._cat(systems, attr)
+        self.pos = up(cat("position"), 3)
+        self.vel = up(cat("velocity"), 3)
+        self.omega = up(cat("angular_velocity"), 3)
+        self.quat = up(cat("orientation"), 4)
+        self.f_cur = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
+        self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
+        self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
+        if self.uniform:
+            dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
+            self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
+            self._per_particle = []
+        else:
+            self.radius = up(rad, 1)
+            self.mass = up(mass, 1)
+            self.inertia = up(inertia, 1)
+            self.inv_m = up((1.0 / mass.astype(dt_)).astype(dt_), 1)
+            self.inv_i = up((1.0 / inertia.astype(dt_)).astype(dt_), 1)
+            self._per_particle = ["radius", "mass", "inertia", "inv_m", "inv_i"]
+
+    def _scene_constants(self, s: int) -> None:
+        """Scene s's particle constants in spd (used when its particles are uniform)."""
+        c = self.dtype
+        r0, m0, i0 = self._scene0[s]
+        self.spd_h[s, [K.D_R0, K.D_M0, K.D_I0]] = [c(r0), c(m0), c(i0)]
+        self.spd_h[s, K.D_IM0] = (1.0 / np.array([m0 or 1.0], c))[0]
+        self.spd_h[s, K.D_II0] = (1.0 / np.array([i0 or 1.0], c))[0]
 
     def _fresh_status(self) -> np.ndarray:
         s = np.zeros(K.status_len(self.n_scenes), np.float64)
@@ -279,7 +299,7 @@ class CudaEnsemble:
         k["inverse_perm"][self._grid(n)](n, self.order, self.inv_old)
         # permute the particle arrays into cell order (forces too: the next force step reads them)
         # (torque need not move: the next force step rewrites it before any kick reads it)
-        for name in ["pos", "vel", "omega", "quat", "f_cur"] + self._per_particle:
+        for name in list(self._permuted) + self._per_particle:
             a = getattr(self, name)
             tmp = self.scratch[:a.shape[0]]
             k["gather_rows"][self._grid(n)](n, a, tmp, self.order)
@@ -373,6 +393,15 @@ class CudaEnsemble:
                 self._coop_blocks = max(1, min(fit, (self.n + self.tpb - 1) // self.tpb))
         return self._coop_blocks, self.tpb, self.stream
 
+    def _kick_drift(self, first: int, step: int) -> None:
+        self.k["kick_drift"][self._grid(self.n)](
+            self.n, first, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque, self.inv_m1,
+            self.inv_i1, self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step)
+
+    def _half_kick(self) -> None:
+        self.k["half_kick"][self._grid(self.n)](self.n, self.vel, self.omega, self.f_cur, self.torque,
+                                                self.inv_m1, self.inv_i1, self.sc, self.spd, self.spi)
+
     def _run_steps(self, nmax: int, first: int, step0: int, grid=None) -> None:
         self.k["run_steps"][grid or self._coop_grid()](
             self.n, nmax, first, 0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
@@ -412,8 +441,7 @@ class CudaEnsemble:
             self._advance_multistep(nsteps, failed)
         else:
             self._advance_per_phase(nsteps, failed)
-        self.k["half_kick"][self._grid(self.n)](self.n, self.vel, self.omega, self.f_cur, self.torque,
-                                                self.inv_m1, self.inv_i1, self.sc, self.spd, self.spi)
+        self._half_kick()
         self._collect(self._read_status_now(), failed)
         return failed
 
@@ -458,10 +486,7 @@ class CudaEnsemble:
             prof = self.profile is not None
             if prof:
                 e0 = self._ev(); e0.record(s)
-            k["kick_drift"][self._grid(self.n)](
-                self.n, 1 if st == 0 else 0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque,
-                self.inv_m1, self.inv_i1, self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi,
-                self.status, step)
+            self._kick_drift(1 if st == 0 else 0, step)
             if prof:
                 e1 = self._ev(); e1.record(s)
             slot = st % 2
@@ -604,17 +629,20 @@ class CudaEnsemble:
 
     def device_bytes(self) -> int:
         """Bytes of device memory this backend holds (all arrays)."""
-        views = {"radius1", "inv_m1", "inv_i1", "mass1", "inertia1"}
-        return sum(v.nbytes for name, v in vars(self).items() if name not in views and _is_dev(v))
+        views = set(self._view_names)
+        return sum(v.nbytes for name, v in vars(self).items() if name not in views and _is_dev(v)
+                   and not (name == "f_nxt" and v is self.f_cur))
 
 
 class CudaBackend:
     """One scene on the GPU (K = 1 of :class:`CudaEnsemble`), with the CPU backend's interface."""
 
     name = "cuda"
+    #: the ensemble class whose one scene this backend is (the ellipsoid backend sets its own)
+    ensemble_class = CudaEnsemble
 
     def __init__(self, system: SphereSystem, contact: ContactParams):
-        self.e = CudaEnsemble([system], [contact])
+        self.e = self.ensemble_class([system], [contact])
         self.n = system.n
         self.box = float(system.box_length)
         self.device = self.e.device

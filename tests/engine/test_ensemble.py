@@ -144,9 +144,12 @@ def test_incompatible_specs_are_refused_naming_the_field(tmp_path):
 
 
 def test_backend_resolution():
-    assert resolve_backend("cpu") == "cpu" and resolve_backend("auto", "ellipsoid") == "cpu"
-    with pytest.raises(BackendUnavailable, match="not available for ellipsoids"):
-        resolve_backend("cuda", "ellipsoid")
+    from engine.backends.base import cuda_available
+
+    assert resolve_backend("cpu") == "cpu" and resolve_backend("cpu", "ellipsoid") == "cpu"
+    # ellipsoids have a CUDA backend (engine/backends/cuda_ellipsoid.py): same rules as spheres
+    assert resolve_backend("cuda", "ellipsoid") == "cuda"
+    assert resolve_backend("auto", "ellipsoid") == resolve_backend("auto") == ("cuda" if cuda_available() else "cpu")
     with pytest.raises(BackendUnavailable, match="unknown backend 'gpu'"):
         resolve_backend("gpu")
 

@@ -1,0 +1,254 @@
+"""CUDA backend for frictionless ellipsoids (paper 003): the CPU ellipsoid backend's step on the GPU.
+
+:class:`CudaEllipsoidEnsemble` advances K independent ellipsoid scenes stored back to back on the device,
+built exactly as the sphere :class:`engine.backends.cuda.CudaEnsemble` (it is a subclass: per-scene
+constant tables, scene index per particle, cell grids per scene, compact contact-history store, the
+cooperative many-steps-per-launch loop for small scenes and the per-phase loop for large ones, a scene that
+blows up stops alone). Only the particle state and the step kernels differ
+(:mod:`engine.backends.cuda_ellipsoid_kernels`, which call the njit physics of
+engine/backends/cpu_ellipsoid.py: Perram-Wertheim contact, Fincham's leap-frog on the body-frame angular
+velocity, paper 003 Eqs. 13-24). :class:`CudaEllipsoidBackend` is the one-scene case (K = 1) with the
+interface of :class:`engine.backends.cpu_ellipsoid.CpuEllipsoidBackend`.
+
+The step is the CPU backend's:
+  1. kick + drift: v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham with L(t) and L(t + dt/2);
+     predicted end-of-step v and w = R I^-1 R^T (L + tau dt/2) stored for the dashpot;
+  2. rebuild when some particle has moved more than L_v/2 since the last build (bounding spheres of
+     radius a: the sphere module's list kernels with radius = a);
+  3. forces: for each list slot whose bounding spheres overlap (or that was in contact at the previous
+     step) the Perram-Wertheim contact with the lower id as "A", summed in list order.
+State on the device is the space-frame angular momentum L; ``state()`` returns the space-frame angular
+velocity computed on the host with the CPU backend's own function (bit-identical to the CPU's state()).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import cuda
+
+from engine.backends import cuda_ellipsoid_kernels as CE
+from engine.backends import cuda_kernels as K
+from engine.backends.base import ContactParams, EllipsoidSystem
+from engine.backends.cpu_ellipsoid import PW_TOL, angm_from_omega, omega_from_angm
+from engine.backends.cuda import CudaBackend, CudaEnsemble
+
+
+class CudaEllipsoidEnsemble(CudaEnsemble):
+    """K scenes of frictionless ellipsoids advanced together on the GPU (see the module docstring).
+
+    All scenes share the precision; N, box, semi-axes, masses, contact constants, dt, skin are per scene.
+    The ensemble protocol of engine/backends/ensemble.py: ``advance`` returns the scenes that blew up in
+    the call, ``observe`` the keys of the CPU ellipsoid backend's observe per scene.
+    """
+
+    _ND = CE.NDE
+    _permuted = ("pos", "vel", "angm", "quat", "vel_p", "omega_p")
+    _view_names = ("radius1", "inv_m1")
+
+    def __init__(self, systems: list, contacts: list):
+        for k, s in enumerate(systems):
+            if not isinstance(s, EllipsoidSystem):
+                raise TypeError(f"scene {k}: CudaEllipsoidEnsemble needs EllipsoidSystem scenes, got {type(s).__name__}")
+        for c in contacts:
+            if c.k_t is not None or c.friction not in (None, 0.0):
+                raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
+        super().__init__(systems, contacts)
+
+    # ---- set-up (hooks of CudaEnsemble) -------------------------------------------------------------
+
+    def _upload_particles(self, systems) -> None:
+        """State (L from the angular velocity, as the CPU backend does) and constants on the device."""
+        dt_, n, s = self.dtype, self.n, self.stream
+        half = dt_(0.5)
+        cat = lambda attr: self._cat(systems, attr)  # noqa: E731
+        axes = cat("semi_axes")
+        mass = cat("mass")[:, 0]
+        inertia = cat("inertia")
+        orient = cat("orientation")
+        self.uniform = all(sy.n == 0 or (np.all(sy.semi_axes == sy.semi_axes[0]) and np.all(sy.mass == sy.mass[0])
+                                         and np.all(sy.inertia == sy.inertia[0])) for sy in systems)
+        self._rmax = [float(np.max(sy.semi_axes)) if sy.n else 0.0 for sy in systems]
+        # host arrays in the working precision, exactly as CpuEllipsoidBackend builds them
+        quat = np.ascontiguousarray((orient / np.linalg.norm(orient, axis=1)[:, None]).astype(dt_))
+        axes_c = axes.astype(dt_)
+        inertia_c = inertia.astype(dt_)
+        inv_i = (1.0 / inertia_c).astype(dt_)
+        inv_m = (1.0 / mass.astype(dt_)).astype(dt_)
+        angm = np.zeros((n, 3), dt_)
+        angm_from_omega(quat, np.ascontiguousarray(cat("angular_velocity").astype(dt_)), inertia_c, half, angm)
+        omega_p = np.zeros((n, 3), dt_)
+        omega_from_angm(quat, angm, inv_i, half, omega_p)
+        self._inv_i_h = inv_i
+        self._bmin = [float(np.min(axes_c[a:a + m])) if m else 1.0 for a, m in zip(self.starts, self.sizes)]
+        self._scene0 = [(axes_c[a], mass[a], inertia_c[a]) if m else (np.ones(3, dt_), 1.0, np.ones(3, dt_))
+                        for a, m in zip(self.starts, self.sizes)]
+        up = self._up
+        self.pos = up(cat("position"), 3)
+        self.vel = up(cat("velocity"), 3)
+        self.vel_p = up(cat("velocity"), 3)
+        self.angm = up(angm, 3)
+        self.omega_p = up(omega_p, 3)
+        self.quat = up(quat, 4)
+        self.force = cuda.to_device(np.zeros((3, n), dt_), stream=s)
+        self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=s)
+        # one force buffer (the force phase reads vel_p/omega_p, not other particles' forces): the sphere
+        # loop's double-buffer swaps exchange two references to it
+        self.f_cur = self.f_nxt = self.force
+        if self.uniform:
+            self.radius = self.inv_m = self.mass = cuda.device_array((1, 1), dt_, stream=s)
+            self.axes = self.inv_i = cuda.device_array((3, 1), dt_, stream=s)
+            self._per_particle = []
+        else:
+            self.radius = up(np.max(axes_c, axis=1), 1)
+            self.axes = up(axes_c, 3)
+            self.inv_m = up(inv_m, 1)
+            self.inv_i = up(inv_i, 3)
+            self.mass = up(mass, 1)
+            self._per_particle = ["radius", "axes", "inv_m", "inv_i", "mass"]
+
+    def _views(self) -> None:
+        self.radius1, self.inv_m1 = self.radius[0], self.inv_m[0]
+
+    def _scene_constants(self, s: int) -> None:
+        """Scene s's particle constants in spd: bounding radius a, mass, semi-axes, principal 1/I, b_min."""
+        c = self.dtype
+        ax, m0, i0 = self._scene0[s]
+        self.spd_h[s, K.D_R0] = np.max(ax)
+        self.spd_h[s, K.D_M0] = c(m0)
+        self.spd_h[s, K.D_IM0] = (1.0 / np.array([m0], c))[0]
+        self.spd_h[s, [CE.E_A, CE.E_B, CE.E_C]] = ax
+        self.spd_h[s, [CE.E_II1, CE.E_II2, CE.E_II3]] = (1.0 / np.asarray(i0, c)).astype(c)
+        self.spd_h[s, CE.E_BMIN] = min(ax[1], ax[2])
+
+    def _set_scene_contact(self, s: int, contact: ContactParams) -> None:
+        if contact.k_t is not None or contact.friction not in (None, 0.0):
+            raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
+        super()._set_scene_contact(s, contact)
+        self.spd_h[s, CE.E_TOL] = self.dtype(PW_TOL[contact.precision])
+
+    def _specialise(self) -> None:
+        self.k = CE.kernels(self.dtype, self.uniform, self.tpb)
+        self._coop_blocks = None
+
+    def _prime(self, systems) -> None:
+        """First list build, no contact history at t = 0 (checkpointed slots restored), forces at t = 0."""
+        self._rebuild()
+        self.k["clamp_history"][self._grid(self.n)](self.n, self.nn, self.hist)
+        for s, sy in enumerate(systems):
+            if sy.contact_pairs is not None and len(sy.contact_pairs):
+                self._restore_springs(self.starts[s] + np.asarray(sy.contact_pairs, np.int64),
+                                      np.asarray(sy.contact_springs, np.float64))
+        self._forces(step=0)
+        self._pending = self._collect(self._read_status_now())
+
+    # ---- kernels of one step (hooks of CudaEnsemble's loops) ---------------------------------------
+
+    def _kick_drift(self, first: int, step: int) -> None:
+        self.k["kick_drift"][self._grid(self.n)](
+            self.n, first, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1,
+            self.inv_i, self.x_ref, self.vel_p, self.omega_p, self.ids, self.sc, self.spd, self.spf, self.spi,
+            self.status, step)
+
+    def _forces(self, step: int) -> None:
+        self.k["forces"][self._grid(self.n)](
+            self.n, self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.radius1, self.inv_m1,
+            self.force, self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
+            self.spi, self.status, step)
+
+    def _half_kick(self) -> None:
+        self.k["half_kick"][self._grid(self.n)](self.n, self.vel, self.angm, self.force, self.torque,
+                                                self.inv_m1, self.sc, self.spd, self.spi)
+
+    def _run_steps(self, nmax: int, first: int, step0: int, grid=None) -> None:
+        self.k["run_steps"][grid or self._coop_grid()](
+            self.n, nmax, first, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1,
+            self.inv_i, self.axes, self.radius1, self.x_ref, self.vel_p, self.omega_p, self.nbr, self.nn,
+            self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step0)
+
+    def warmup(self) -> None:
+        """Compile the kernels without advancing (launches with n = 0)."""
+        k, s = self.k, self.stream
+        g = (1, self.tpb, s)
+        k["kick_drift"][g](
+            0, 1, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1, self.inv_i,
+            self.x_ref, self.vel_p, self.omega_p, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, 0)
+        k["forces"][g](0, self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.radius1, self.inv_m1,
+                       self.force, self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
+                       self.spi, self.status, 0)
+        k["half_kick"][g](0, self.vel, self.angm, self.force, self.torque, self.inv_m1, self.sc, self.spd, self.spi)
+        acc = cuda.device_array((self.n_scenes, CE.NACC), np.float64, stream=s)
+        k["observe"][g](0, self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.sc,
+                        self.spd, self.spf, self.spi, acc)
+        if self.multistep:
+            scratch = cuda.to_device(self._fresh_status(), stream=s)
+            k["run_steps"][g](0, 1, 1, self.pos, self.vel, self.angm, self.quat, self.force, self.torque,
+                              self.inv_m1, self.inv_i, self.axes, self.radius1, self.x_ref, self.vel_p, self.omega_p,
+                              self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
+                              scratch, 0)
+        s.synchronize()
+
+    # ---- host copies (output steps only) -----------------------------------------------------------
+
+    def observe(self) -> list:
+        """Per scene the keys of CpuEllipsoidBackend.observe (None for an inactive scene)."""
+        acc = cuda.to_device(np.zeros((self.n_scenes, CE.NACC)), stream=self.stream)
+        self.k["observe"][self._grid(self.n)](
+            self.n, self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.sc, self.spd,
+            self.spf, self.spi, acc)
+        a = acc.copy_to_host(stream=self.stream)
+        self.stream.synchronize()
+        out = []
+        for s in range(self.n_scenes):
+            if not self.active[s]:
+                out.append(None)
+                continue
+            r = a[s]
+            out.append({"kinetic_energy_translational": float(r[CE.A_TR]),
+                        "kinetic_energy_rotational": float(r[CE.A_ROT]),
+                        "kinetic_energy_rotational_active": float(r[CE.A_PERP]), "rotational_dof": 2,
+                        "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": float(r[CE.A_EL]),
+                        "max_overlap": float(r[CE.A_OVL]) / self._bmin[s],
+                        "momentum": (float(r[CE.A_PX]), float(r[CE.A_PY]), float(r[CE.A_PZ]))})
+        return out
+
+    def _host_arrays(self):
+        s = self.stream
+        if getattr(self, "_pinned", None) is None:
+            self._pinned = {name: cuda.pinned_array(getattr(self, name).shape, self.dtype)
+                            for name in ("pos", "vel", "angm", "quat")}
+            self._pinned_ids = cuda.pinned_array(self.n, np.int32)
+        for name, buf in self._pinned.items():
+            getattr(self, name).copy_to_host(buf, stream=s)
+        self.ids.copy_to_host(self._pinned_ids, stream=s)
+        s.synchronize()
+        return self._pinned, self._pinned_ids
+
+    def state(self, k: int) -> dict:
+        """Host copies of scene k's state in particle-id order (angular velocity in the space frame)."""
+        arrays, ids = self._host_arrays()
+        a0, n_k = int(self.starts[k]), int(self.sizes[k])
+        local = ids[a0:a0 + n_k] - a0
+        out = {}
+        for key, name in (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat")):
+            a = arrays[name][:, a0:a0 + n_k]
+            o = np.empty((n_k, a.shape[0]), self.dtype)
+            o[local] = a.T
+            out[key] = o
+        w = np.zeros((n_k, 3), self.dtype)
+        omega_from_angm(out["orientation"], out.pop("angm"), self._inv_i_h[a0:a0 + n_k], self.dtype(0.5), w)
+        out["angular_velocity"] = w
+        return {key: out[key] for key in ("position", "velocity", "angular_velocity", "orientation")}
+
+
+class CudaEllipsoidBackend(CudaBackend):
+    """One ellipsoid scene on the GPU (K = 1 of :class:`CudaEllipsoidEnsemble`), with the interface of
+    :class:`engine.backends.cpu_ellipsoid.CpuEllipsoidBackend`."""
+
+    ensemble_class = CudaEllipsoidEnsemble
+
+    def __init__(self, system: EllipsoidSystem, contact: ContactParams):
+        super().__init__(system, contact)
+
+    def omega(self) -> np.ndarray:
+        """Space-frame angular velocities in id order (rad/s)."""
+        return self.e.state(0)["angular_velocity"]

@@ -1,0 +1,211 @@
+"""CUDA ellipsoid backend under the Numba CUDA simulator (CI has no GPU): the CPU ellipsoid backend's trajectory.
+
+The GPU kernels call the same njit physics as engine/backends/cpu_ellipsoid.py, evaluate each pair with the
+lower id as "A" and sum the forces in the same list order, and the many-steps-per-launch loop rebuilds the
+list at the same step as the CPU; so in float64 the GPU run under the simulator (whose arithmetic is the
+host's IEEE double arithmetic, and whose physics calls are the very CPU-compiled njit functions) is expected
+to equal the CPU run bit for bit. The one-launch-per-phase loop decides rebuilds one step ahead (it may
+rebuild earlier than the CPU, which reorders neighbours), so there only rounding differences are allowed.
+The comparison runs in a child process because the simulator must be switched on before numba.cuda is
+first imported.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def tiny_ellipsoids(xi=1.5, n_side=3, seed=1, mixed=False, speed=1.5):
+    """n_side^3 prolate spheroids (volume of a sphere of radius 0.1 m) on a cubic lattice with random
+    orientations, scaled so that the closest pair is 1 % short of touching (W_0 = 1.01): contacts start
+    within a few steps. mixed: every other particle has elongation 1 + (xi - 1) / 2 (non-uniform scene)."""
+    from engine.backends.base import EllipsoidSystem
+    from engine.physics.ellipsoid import ellipsoid_overlap_pw
+
+    rng = np.random.default_rng(seed)
+    r_eq = 0.1
+    n = n_side ** 3
+    xis = np.full(n, float(xi))
+    if mixed:
+        xis[1::2] = 1.0 + (xi - 1.0) / 2.0
+    a = r_eq * xis ** (2.0 / 3.0)
+    b = r_eq / xis ** (1.0 / 3.0)
+    axes = np.stack([a, b, b], 1)
+    spacing = 1.0
+    g = (np.arange(n_side) + 0.5) * spacing
+    pos = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    pos = pos + rng.uniform(-0.05, 0.05, size=pos.shape) * spacing
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    box = n_side * spacing
+    w0 = np.inf
+    for i in range(n):
+        for j in range(i + 1, n):
+            r = pos[j] - pos[i]
+            r -= box * np.round(r / box)
+            if np.linalg.norm(r) < 2.0 * spacing:
+                w0 = min(w0, ellipsoid_overlap_pw(r[0], r[1], r[2], *q[i], *axes[i], *q[j], *axes[j], 1e-15, 0.5)[1])
+    f = 1.01 / w0  # W_0 scales with the centre distances
+    pos, box = pos * f, box * f
+    vel = rng.normal(size=(n, 3)) * speed
+    vel -= vel.mean(0)
+    m = np.full(n, 1.0)
+    inertia = np.stack([0.4 * m * b * b, 0.2 * m * (a * a + b * b), 0.2 * m * (a * a + b * b)], 1)
+    omega = rng.normal(size=(n, 3)) * 10.0
+    return EllipsoidSystem(box_length=box, position=pos % box, velocity=vel, angular_velocity=omega,
+                           orientation=q, semi_axes=axes, mass=m, inertia=inertia)
+
+
+def contact(**kw):
+    from engine.backends.base import ContactParams
+
+    k_n = 1.0e5
+    t_c = np.pi * np.sqrt(0.5 / k_n)
+    base = dict(k_n=k_n, gamma_n_coef=2.0 * np.sqrt(k_n) * 0.2, k_t=None, friction=None, dt=t_c / 50,
+                skin=0.01, precision="float64", orientation=True, overlap_limit=0.2)
+    base.update(kw)
+    return ContactParams(**base)
+
+
+KEYS = ("position", "velocity", "angular_velocity", "orientation")
+
+
+def _compare(label, cpu, gpu, worst, exact):
+    a, b = cpu.state(), gpu.state()
+    for key in KEYS:
+        scale = np.max(np.abs(a[key])) + 1e-300
+        worst[(label, key, exact)] = float(np.max(np.abs(a[key] - b[key])) / scale)
+    pa, sa = cpu.contacts()
+    pb, sb = gpu.contacts()
+    oa, ob = np.lexsort(pa.T[::-1]), np.lexsort(pb.T[::-1])
+    assert np.array_equal(pa[oa], pb[ob]), (label, pa, pb)
+    if len(sa):
+        worst[(label, "contact slots", exact)] = float(np.max(np.abs(sa[oa] - sb[ob])) / np.max(np.abs(sa)))
+    ca, cb = cpu.observe(), gpu.observe()
+    assert ca["contacts"] == cb["contacts"] and ca["contacts"] > 0, (label, ca, cb)
+    assert cb["rotational_dof"] == 2
+    for key in ("kinetic_energy_translational", "kinetic_energy_rotational", "kinetic_energy_rotational_active",
+                "elastic_energy", "max_overlap"):
+        assert abs(ca[key] - cb[key]) <= 1e-12 * abs(ca[key]) + 1e-300, (label, key, ca[key], cb[key])
+    assert np.allclose(ca["momentum"], cb["momentum"], rtol=0, atol=1e-12 * np.abs(a["velocity"]).sum())
+    return ca
+
+
+def _child() -> None:
+    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+
+    worst = {}
+    for label, system, c, multistep in (
+            ("xi=1.5 multistep", tiny_ellipsoids(1.5, seed=1), contact(), True),
+            ("xi=2.5 multistep", tiny_ellipsoids(2.5, seed=2), contact(), True),
+            ("xi=2.5 per-phase", tiny_ellipsoids(2.5, seed=2), contact(), False),
+            ("mixed xi 1.5/2.5 multistep", tiny_ellipsoids(2.5, seed=3, mixed=True), contact(), True)):
+        cpu = CpuEllipsoidBackend(system, c)
+        gpu = CudaEllipsoidBackend(system, c)
+        gpu.e.multistep = multistep
+        assert gpu.device == "CUDA simulator" and gpu.e.uniform == ("mixed" not in label)
+        gpu.warmup()
+        for chunk in (17, 23):
+            cpu.advance(chunk)
+            gpu.advance(chunk)
+        obs = _compare(label, cpu, gpu, worst, exact=multistep)
+        assert gpu.late_rebuilds == 0 and gpu.builds >= 2 and cpu.builds >= 2, (label, cpu.builds, gpu.builds)
+        print(label, "contacts", obs["contacts"], "max overlap / b", f"{obs['max_overlap']:.3g}",
+              "builds cpu/gpu", cpu.builds, gpu.builds)
+    _float32(worst)
+    _ensemble(worst)
+    for (label, key, exact), v in worst.items():
+        print("max rel diff", label, key, f"{v:.2e}", "(expected 0)" if exact else "(rounding allowed)")
+    for (label, key, exact), v in worst.items():
+        assert v == 0.0 if exact else v < 1e-11, (label, key, v)
+    print("SIMULATOR-OK")
+
+
+def _float32(worst: dict) -> None:
+    """float32 on the GPU kernels against float64 on the CPU (the float32 path runs and stays close; the
+    CPU float32 loop promotes m12 to float64, the GPU one does not, so no bitwise comparison)."""
+    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+
+    system = tiny_ellipsoids(2.5, seed=2)
+    cpu = CpuEllipsoidBackend(system, contact())
+    gpu = CudaEllipsoidBackend(system, contact(precision="float32"))
+    assert gpu.state()["position"].dtype == np.float32
+    cpu.advance(40)
+    gpu.advance(40)
+    a, b = cpu.state(), gpu.state()
+    dx = float(np.max(np.abs(a["position"] - b["position"])) / system.box_length)
+    ca, cb = cpu.observe(), gpu.observe()
+    print(f"float32 GPU vs float64 CPU after 40 steps: max |dx|/L {dx:.2e}, contacts {ca['contacts']} / {cb['contacts']}")
+    assert dx < 1e-5 and cb["contacts"] > 0
+    assert abs(cb["kinetic_energy_translational"] / ca["kinetic_energy_translational"] - 1) < 1e-3
+
+
+def _ensemble(worst: dict) -> None:
+    """Three different ellipsoid scenes advanced together equal each scene run alone on the CPU (both GPU
+    loops); a fourth that blows up (time step far too large) fails alone without disturbing the others."""
+    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+    from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble
+    from engine.errors import InstabilityError
+
+    t_c = np.pi * np.sqrt(0.5e-5)
+    scenes = [(tiny_ellipsoids(1.5, seed=4), contact()),
+              (tiny_ellipsoids(2.5, seed=8), contact(gamma_n_coef=2.0 * np.sqrt(1e5) * 0.4)),
+              (tiny_ellipsoids(2.0, n_side=2, seed=9), contact(skin=0.015, dt=t_c / 35)),
+              (tiny_ellipsoids(2.0, seed=7, speed=3.0), contact(dt=t_c * 3, overlap_limit=0.05))]
+    for multistep in (True, False):
+        ens = CudaEllipsoidEnsemble([s for s, _ in scenes], [c for _, c in scenes])
+        ens.multistep = multistep
+        ens.warmup()
+        cpus = [CpuEllipsoidBackend(s, c) for s, c in scenes[:3]]
+        failed = {}
+        for chunk in (17, 23):
+            failed.update(ens.advance(chunk))
+            for cpu in cpus:
+                cpu.advance(chunk)
+        assert list(failed) == [3] and isinstance(failed[3], InstabilityError), failed
+        assert 0 <= failed[3].step < 40, str(failed[3])
+        assert not ens.active[3] and ens.active[:3].all()
+        obs = ens.observe()
+        assert obs[3] is None
+        loop = "multistep" if multistep else "per-phase"
+        for k, cpu in enumerate(cpus):
+            view = _SceneOf(ens, k)
+            _compare(f"ensemble {loop} scene {k}", cpu, view, worst, exact=multistep)
+        ens.deactivate(0)
+        before = ens.state(0)["position"]
+        ens.advance(5)
+        assert np.array_equal(before, ens.state(0)["position"]) and ens.observe()[0] is None
+
+
+class _SceneOf:
+    """Scene k of an ensemble with a single backend's state/contacts/observe."""
+
+    def __init__(self, ens, k):
+        self.ens, self.k = ens, k
+
+    def state(self):
+        return self.ens.state(self.k)
+
+    def contacts(self):
+        return self.ens.contacts(self.k)
+
+    def observe(self):
+        return self.ens.observe()[self.k]
+
+
+def test_cuda_ellipsoid_backend_matches_cpu_under_simulator():
+    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, __file__, "--child"], env=env, cwd=ROOT, capture_output=True,
+                       text=True, timeout=900)
+    assert r.returncode == 0 and "SIMULATOR-OK" in r.stdout, r.stdout[-4000:] + r.stderr[-4000:]
+
+
+if __name__ == "__main__" and "--child" in sys.argv:
+    _child()
