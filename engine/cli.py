@@ -32,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")
     v.add_argument("--threads", type=int, default=0, help="Numba threads per run (0 = all)")
     v.add_argument("--ensemble", action="store_true",
-                   help="run all seeds and cases as one ensemble (on the GPU: the same kernel launches)")
+                   help="run all seeds and cases (hcs-ellipsoids: cells) as one ensemble (on the GPU: the same "
+                        "kernel launches)")
     v.set_defaults(func=cmd_validate)
 
     b = sub.add_parser("bench", help="benchmarks and stress tests that write a report")
@@ -124,9 +125,8 @@ def cmd_validate(args) -> int:
     if args.case == "hcs-ellipsoids":
         from engine.validation import hcs_ellipsoids
 
-        return hcs_ellipsoids.main(out_dir=out_dir, seeds=args.seeds or 1, quick=args.quick,
-                                   backend="cpu" if args.backend == "auto" else args.backend,
-                                   jobs=args.jobs, threads=args.threads)
+        return hcs_ellipsoids.main(out_dir=out_dir, seeds=args.seeds or 1, quick=args.quick, backend=args.backend,
+                                   jobs=args.jobs, threads=args.threads, ensemble=args.ensemble)
     from engine.validation import hcs_spheres
 
     return hcs_spheres.main(out_dir=out_dir, seeds=args.seeds or 4, quick=args.quick, backend=args.backend,

@@ -378,13 +378,32 @@ def _one(args) -> str:
             f"{time.time() - t0:.1f} s, Cundall {s.cundall:.3g}")
 
 
+def _as_ensemble(tasks, backend: str) -> None:
+    """All runs as one ensemble (one process; on the GPU the scenes are advanced by the same launches).
+
+    A run that fails is reported and left out; the analysis lists it as not run (as a killed process run)."""
+    from engine.ensemble import run_ensemble
+
+    specs = [(quick_spec if quick else full_spec)(xi, e_n, seed, backend) for xi, e_n, seed, _, quick, _, _ in tasks]
+    t0 = time.time()
+    results = run_ensemble(specs, [t[5] for t in tasks], backend=backend)
+    for (xi, e_n, seed, *_), s in zip(tasks, results):
+        if isinstance(s, BaseException):
+            print(f"xi={xi} e_n={e_n} seed {seed}: FAILED in the ensemble: {type(s).__name__}: {s}", flush=True)
+            continue
+        print(f"xi={xi} e_n={e_n} seed {seed}: {s.steps} steps on {s.backend} ({s.device}) in one ensemble of "
+              f"{len(tasks)}, {time.time() - t0:.1f} s for all", flush=True)
+
+
 def _jsonable(c: dict) -> dict:
     return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in c.items()}
 
 
 def main(out_dir="reports/hcs-ellipsoids", seeds: int = 1, quick: bool = False, backend: str = "cpu",
-         cells=CELLS, jobs: int = 1, threads: int = 0, simulate: bool = True, dsmc: bool = True) -> int:
-    """Run the cells (``jobs`` at a time, ``threads`` Numba threads each), analyse what exists, report.
+         cells=CELLS, jobs: int = 1, threads: int = 0, simulate: bool = True, dsmc: bool = True,
+         ensemble: bool = False) -> int:
+    """Run the cells (``jobs`` at a time, ``threads`` Numba threads each; or all cells and seeds as one
+    ensemble), analyse what exists, report.
 
     simulate=False only analyses the result files already in out_dir (cells whose files are missing or
     unreadable are listed as not run). dsmc=True runs the e_eff(D) DSMC for the DSMC cells (~20 s each).
@@ -396,7 +415,10 @@ def main(out_dir="reports/hcs-ellipsoids", seeds: int = 1, quick: bool = False, 
     if simulate:
         tasks = [(xi, e, seed, backend, quick, out / f"xi{xi}_e{e}_seed{seed}.h5", threads)
                  for xi, e in cells for seed in range(seeds)]
-        run_tasks(_one, tasks, jobs)
+        if ensemble:
+            _as_ensemble(tasks, backend)
+        else:
+            run_tasks(_one, tasks, jobs)
     results, missing = {}, []
     for xi, e in cells:
         runs = []
