@@ -19,5 +19,12 @@ def run(*args, **kwargs):
     return _run(*args, **kwargs)
 
 
-__all__ = ["SimulationSpec", "load_spec", "run", "EngineError", "SpecError", "InstabilityError",
+def run_ensemble(*args, **kwargs):
+    """Run several specs as one ensemble, one HDF5 result each; see :func:`engine.ensemble.run_ensemble`."""
+    from engine.ensemble import run_ensemble as _run_ensemble
+
+    return _run_ensemble(*args, **kwargs)
+
+
+__all__ = ["SimulationSpec", "load_spec", "run", "run_ensemble", "EngineError", "SpecError", "InstabilityError",
            "Cancelled", "BackendUnavailable", "__version__"]

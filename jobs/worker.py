@@ -43,7 +43,7 @@ from jobs.packing import SOLO, Packer
 from jobs.runner import child_main
 from jobs.schema import CANCELLED, DONE, FAILED, FINAL_STATES, QUEUED, RUNNING
 from jobs.settings import Settings
-from jobs.store import Job, JobStore, LeaseLost
+from jobs.store import Job, JobStore
 
 log = logging.getLogger("demq.worker")
 

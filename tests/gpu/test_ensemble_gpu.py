@@ -35,7 +35,7 @@ def test_each_scene_of_a_cuda_ensemble_is_the_scene_run_alone(tmp_path):
     for k, spec in enumerate(SCENES):
         alone = run(spec, tmp_path / f"a{k}.h5")
         cpu = run({**spec, "backend": "cpu"}, tmp_path / f"c{k}.h5")
-        (obs_e, pos_e, par_e), (obs_a, pos_a, _), (obs_c, pos_c, _) = (
+        (obs_e, pos_e, par_e), (obs_a, pos_a, _), (obs_c, _, _) = (
             _series(outs[k]), _series(alone.output), _series(cpu.output))
         assert par_e["ensemble_size"] == 3 and par_e["ensemble_index"] == k
         assert obs_e.keys() == obs_a.keys()
