@@ -73,7 +73,9 @@ def dense_scene(n, phi, precision, seed=1):
     return _dense(n_side=round(n ** (1 / 3)), precision=precision, seed=seed)
 
 
-def measure(n, phi, precision, reps, target_s, make=scene, multistep=None):
+def measure(n, phi, precision, reps, target_s, make=scene, multistep=None, backend=None):
+    """One row; ``backend``: the single-scene backend class (default CudaBackend; the ellipsoid bench
+    passes CudaEllipsoidBackend with its own ``make``)."""
     from numba import cuda
 
     from engine.backends.cuda import CudaBackend
@@ -81,7 +83,7 @@ def measure(n, phi, precision, reps, target_s, make=scene, multistep=None):
     t0 = time.perf_counter()
     system, c = make(n, phi, precision)
     free0 = cuda.current_context().get_memory_info()[0]
-    be = CudaBackend(system, c)
+    be = (backend or CudaBackend)(system, c)
     del system
     if multistep is not None:
         be.e.multistep = multistep
