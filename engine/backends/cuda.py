@@ -478,7 +478,7 @@ class CudaEnsemble:
                 return
 
     def _advance_per_phase(self, nsteps: int, failed: dict) -> None:
-        k, s = self.k, self.stream
+        s = self.stream
         rebuilt_prev = False
         prev = None  # slot of the previous step's status copy
         for st in range(nsteps):
@@ -544,7 +544,9 @@ class CudaEnsemble:
     def _collect(self, h, failed: dict | None = None) -> dict:
         """Scenes that blew up according to status h (once each): deactivated, error recorded."""
         failed = {} if failed is None else failed
-        for s in np.nonzero(self.active)[0]:
+        ss = h[K.SS0:].reshape(self.n_scenes, K.NSS)  # checked vectorised: this runs every step
+        hit = self.active & ((ss[:, K.SS_BAD_ID] < np.inf) | (ss[:, K.SS_OVL_ID] < np.inf))
+        for s in np.nonzero(hit)[0]:
             b = K.SS0 + K.NSS * s
             info = SimpleNamespace(dt=self.spd_h[s, K.D_DT], overlap_limit=self.spf_h[s, K.F_OVL])
             err = None
@@ -581,31 +583,34 @@ class CudaEnsemble:
                         "max_overlap": float(r[7]), "momentum": (float(r[4]), float(r[5]), float(r[6]))})
         return out
 
-    def _host_arrays(self):
+    #: state() keys and the device arrays (3 or 4 rows, particle index fastest) they are copied from
+    _STATE = (("position", "pos"), ("velocity", "vel"), ("angular_velocity", "omega"), ("orientation", "quat"))
+
+    def _scene_rows(self, k: int) -> dict:
+        """Host copies of scene k's state arrays in particle-id order, keyed as in ``_STATE`` (all copies
+        queued into pinned buffers, one sync)."""
         s = self.stream
         if getattr(self, "_pinned", None) is None:
             self._pinned = {name: cuda.pinned_array(getattr(self, name).shape, self.dtype)
-                            for name in ("pos", "vel", "omega", "quat")}
+                            for _, name in self._STATE}
             self._pinned_ids = cuda.pinned_array(self.n, np.int32)
         for name, buf in self._pinned.items():
             getattr(self, name).copy_to_host(buf, stream=s)
         self.ids.copy_to_host(self._pinned_ids, stream=s)
         s.synchronize()
-        return self._pinned, self._pinned_ids
-
-    def state(self, k: int) -> dict:
-        """Host copies of scene k's state arrays in particle-id order."""
-        arrays, ids = self._host_arrays()
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
-        local = ids[a0:a0 + n_k] - a0
+        local = self._pinned_ids[a0:a0 + n_k] - a0
         out = {}
-        for key, name in (("position", "pos"), ("velocity", "vel"), ("angular_velocity", "omega"),
-                          ("orientation", "quat")):
-            a = arrays[name][:, a0:a0 + n_k]
+        for key, name in self._STATE:
+            a = self._pinned[name][:, a0:a0 + n_k]
             o = np.empty((n_k, a.shape[0]), self.dtype)
             o[local] = a.T
             out[key] = o
         return out
+
+    def state(self, k: int) -> dict:
+        """Host copies of scene k's state arrays in particle-id order."""
+        return self._scene_rows(k)
 
     def contacts(self, k: int):
         """(pairs (M,2) int64 ids, history (M,HW)) of scene k's list slots in contact (previous overlap

@@ -211,29 +211,12 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
                         "momentum": (float(r[CE.A_PX]), float(r[CE.A_PY]), float(r[CE.A_PZ]))})
         return out
 
-    def _host_arrays(self):
-        s = self.stream
-        if getattr(self, "_pinned", None) is None:
-            self._pinned = {name: cuda.pinned_array(getattr(self, name).shape, self.dtype)
-                            for name in ("pos", "vel", "angm", "quat")}
-            self._pinned_ids = cuda.pinned_array(self.n, np.int32)
-        for name, buf in self._pinned.items():
-            getattr(self, name).copy_to_host(buf, stream=s)
-        self.ids.copy_to_host(self._pinned_ids, stream=s)
-        s.synchronize()
-        return self._pinned, self._pinned_ids
+    _STATE = (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat"))
 
     def state(self, k: int) -> dict:
         """Host copies of scene k's state in particle-id order (angular velocity in the space frame)."""
-        arrays, ids = self._host_arrays()
+        out = self._scene_rows(k)
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
-        local = ids[a0:a0 + n_k] - a0
-        out = {}
-        for key, name in (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat")):
-            a = arrays[name][:, a0:a0 + n_k]
-            o = np.empty((n_k, a.shape[0]), self.dtype)
-            o[local] = a.T
-            out[key] = o
         w = np.zeros((n_k, 3), self.dtype)
         omega_from_angm(out["orientation"], out.pop("angm"), self._inv_i_h[a0:a0 + n_k], self.dtype(0.5), w)
         out["angular_velocity"] = w

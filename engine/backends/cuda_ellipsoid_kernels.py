@@ -88,30 +88,7 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     f64 = np.float64
     SH2 = 2 * TPB
 
-    @cuda.jit(device=True)
-    def block_max2(sh, a, b):
-        """Block-wide max of (a, b) into sh[0], sh[TPB] (all threads must call)."""
-        t = cuda.threadIdx.x
-        sh[t] = a
-        sh[t + TPB] = b
-        cuda.syncthreads()
-        s = TPB // 2
-        while s > 0:
-            if t < s:
-                if sh[t + s] > sh[t]:
-                    sh[t] = sh[t + s]
-                if sh[t + TPB + s] > sh[t + TPB]:
-                    sh[t + TPB] = sh[t + TPB + s]
-            cuda.syncthreads()
-            s //= 2
-
-    @cuda.jit(device=True)
-    def fail(status, spi, s, word, value, step):
-        """Record a blow-up of scene s (first offender, first step) and stop the scene on the device."""
-        b = SS0 + NSS * s
-        cuda.atomic.min(status, b + word, f64(value))
-        cuda.atomic.min(status, b + word + 1, f64(step))
-        spi[s, I_ACTIVE] = 0
+    block_max2, fail = SK.device_helpers(TPB)
 
     # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) --------
 

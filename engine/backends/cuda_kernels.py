@@ -73,13 +73,17 @@ def kernels(dtype, rough: bool, coulomb: bool, orient: bool, uniform: bool, tpb:
     return _cache[key]
 
 
-def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
-    ZERO = DT(0)
-    HALF = DT(0.5)
-    BIG = DT(np.finfo(DT).max)
-    INF = np.float64(np.inf)
+def device_helpers(tpb: int):
+    """(block_max2, fail): the block reduction and the per-scene blow-up record shared by the sphere and
+    ellipsoid kernel sets (cached per block size)."""
+    key = ("helpers", tpb)
+    if key not in _cache:
+        _cache[key] = _make_helpers(tpb)
+    return _cache[key]
+
+
+def _make_helpers(TPB):
     f64 = np.float64
-    SH2 = 2 * TPB
 
     @cuda.jit(device=True)
     def block_max2(sh, a, b):
@@ -105,6 +109,18 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
         cuda.atomic.min(status, b + word, f64(value))
         cuda.atomic.min(status, b + word + 1, f64(step))
         spi[s, I_ACTIVE] = 0
+
+    return block_max2, fail
+
+
+def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
+    ZERO = DT(0)
+    HALF = DT(0.5)
+    BIG = DT(np.finfo(DT).max)
+    f64 = np.float64
+    SH2 = 2 * TPB
+
+    block_max2, fail = device_helpers(TPB)
 
     # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
 
