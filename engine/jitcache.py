@@ -23,6 +23,10 @@ def source_digest() -> str:
         for f in sorted((_ENGINE / sub).glob("*.py")):
             h.update(f.name.encode())
             h.update(f.read_bytes())
+    # kernels the backends compile in from engine/ itself
+    for name in ("multigrid.py",):
+        h.update(name.encode())
+        h.update((_ENGINE / name).read_bytes())
     return h.hexdigest()[:16]
 
 

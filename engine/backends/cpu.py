@@ -4,7 +4,8 @@ Layout: arrays of shape (N, 3) (and (N, 4) for quaternions) in the working preci
 neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` per particle with one
 tangential spring per list slot, so every thread writes only its own particle (no atomics) and the
 spring of (j, i) is exactly minus the spring of (i, j). The list is built from linked cells of edge
->= 2 a_max + L_v and rebuilt when any particle has moved more than L_v/2 since the last build
+>= 2 a_max + L_v (or, when the radii span more than one level, from the multigrid cells of paper 004
+Algorithm 1, engine/multigrid.py) and rebuilt when any particle has moved more than L_v/2 since the last build
 (paper 004); springs of surviving pairs are carried into the new list. No allocation in the time loop:
 the scratch list is preallocated and grown (rarely) from Python when a build overflows it.
 
@@ -26,6 +27,7 @@ import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the di
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.errors import InstabilityError
+from engine.multigrid import bin_levels, build_levels_carry, grid_levels, level_arrays, main_level
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
@@ -319,7 +321,7 @@ def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius
               nbr, nn, hist, nbr_new, nn_new, hist_new,
               nc, inv_cell, cell_start, cell_list, cell_of, cursor,
               box, inv_box, half, dt, skin, k_n, gn_coef, k_t, mu, overlap_limit,
-              chunk_a, chunk_b):
+              chunk_a, chunk_b, mg):
     """Advance up to nsteps velocity-Verlet steps; velocities are synchronous on entry and on exit.
 
     Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
@@ -329,6 +331,9 @@ def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius
     The L_v/2 rule without reading every displacement every step: disp_bound[0] accumulates
     max|v| dt, an upper bound of any particle's displacement since the build; only when it passes
     L_v/2 is the exact largest displacement computed, and the list rebuilt if that passes too.
+
+    mg = None: the single linked-cell grid; else the multigrid arrays (level, nc, inv_cell, start_off,
+    list_off, cell_start, cell_list) of engine/multigrid.py (scenes with more than one grid level).
     """
     builds = 0
     if nsteps <= 0:
@@ -353,9 +358,14 @@ def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius
             disp_bound[0] = math.sqrt(exact2)
         if rebuild:
             disp_bound[0] = 0.0
-            bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
-            build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
-                       nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+            if mg is None:
+                bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
+                build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
+                           nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+            else:
+                bin_levels(pos, mg[0], mg[1], mg[2], mg[3], mg[4], mg[5], mg[6])
+                build_levels_carry(pos, radius, mg[0], skin, box, inv_box, half, mg[1], mg[2], mg[3], mg[4],
+                                   mg[5], mg[6], nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
             builds += 1
             need = 0
             for i in range(nn_new.shape[0]):
@@ -452,16 +462,28 @@ class CpuBackend:
         nch = max(1, min(n, 8 * threads))
         self.chunk_a = np.zeros(nch, np.float64)
         self.chunk_b = np.zeros(nch, np.int64)
-        self._setup_cells(float(np.max(system.radius)), contact.skin)
+        self._setup_cells(float(np.max(system.radius)) if n else 0.0, contact.skin,
+                          float(np.min(system.radius)) if n else 0.0)
         self._alloc_lists(8)
         self.set_contact(contact)
         self._prime(system)
 
     # ---- set-up -----------------------------------------------------------------------------------
 
-    def _setup_cells(self, rmax: float, skin: float) -> None:
+    def _setup_cells(self, rmax: float, skin: float, rmin: float) -> None:
+        """The single linked-cell grid, and the multigrid cells (paper 004 Algorithm 1, engine/multigrid.py)
+        when the size distribution spans more than one grid level (``self.mg``; None otherwise)."""
         self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
         self.inv_cell = nc / self.box
+        self.mg = None
+        self.levels = None
+        if self.n and rmin < rmax:
+            levels = grid_levels(self.box, self.n, rmin, rmax, float(skin))
+            if levels.n_levels > 1:
+                self.levels = levels
+                level = main_level(self.radius, levels)
+                self.mg = (level,) + level_arrays(self.box, level, levels)
+                nc = 1                      # the single grid is not used
         self.cell_start = np.zeros(nc**3 + 1, np.int64)
         self.cursor = np.zeros(nc**3, np.int64)
         self.cell_list = np.zeros(self.n, np.int64)
@@ -500,12 +522,19 @@ class CpuBackend:
         self._quat_arg = self.quat if contact.orientation else None
 
     def _build(self) -> None:
+        mg = self.mg
         while True:
-            bin_particles(self.pos, self.nc, self.inv_cell, self.cell_start, self.cell_list, self.cell_of,
-                          self.cursor)
-            build_list(self.pos, self.radius, self.skin, self.box_c, self.inv_box, self.half, self.nc,
-                       self.cell_start, self.cell_list, self.cell_of, self.nbr, self.nn, self.hist,
-                       self.nbr_new, self.nn_new, self.hist_new, self.x_ref)
+            if mg is None:
+                bin_particles(self.pos, self.nc, self.inv_cell, self.cell_start, self.cell_list, self.cell_of,
+                              self.cursor)
+                build_list(self.pos, self.radius, self.skin, self.box_c, self.inv_box, self.half, self.nc,
+                           self.cell_start, self.cell_list, self.cell_of, self.nbr, self.nn, self.hist,
+                           self.nbr_new, self.nn_new, self.hist_new, self.x_ref)
+            else:
+                bin_levels(self.pos, *mg)
+                build_levels_carry(self.pos, self.radius, mg[0], self.skin, self.box_c, self.inv_box, self.half,
+                                   *mg[1:], self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new,
+                                   self.hist_new, self.x_ref)
             need = int(self.nn_new.max()) if self.n else 0
             if need <= self.max_nb:
                 break
@@ -549,7 +578,7 @@ class CpuBackend:
                 self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell, self.cell_start,
                 self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half, self.dt,
                 self.skin, self.k_n, self.gn_coef, self.k_t, self.mu, self.overlap_limit,
-                self.chunk_a, self.chunk_b)
+                self.chunk_a, self.chunk_b, self.mg)
             self.builds += builds
             if status == OK:
                 self.steps_done += done
