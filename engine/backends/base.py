@@ -85,6 +85,9 @@ class ContactParams:
     precision: str = "float64"
     orientation: bool = True
     overlap_limit: float = 0.05
+    #: where a CUDA backend builds the Verlet list: 'gpu', 'cpu-sequential', 'cpu-pipelined', 'auto'
+    #: (paper 004 §3; engine/backends/cuda_listmodes.py); the CPU backend always builds on the CPU
+    list_mode: str = "gpu"
 
     @property
     def rough(self) -> bool:

@@ -39,6 +39,7 @@ from numba import cuda
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends import cuda_kernels as K
+from engine.backends.cuda_lists import list_kernels
 from engine.backends.cpu import BAD_VALUE, OVERLAP, _instability
 from engine.errors import BackendUnavailable, InstabilityError
 
@@ -86,6 +87,7 @@ class CudaEnsemble:
         self.max_blocks = 2 if SIM else self.sm_count * 16
         env = os.environ.get("DEMQ_CUDA_MULTISTEP")
         self.multistep = (env == "1") if env in ("0", "1") else n <= MULTISTEP_MAX_PARTICLES
+        self._exit_thr = 1.0  # run_steps exits when (displacement / (L_v/2))^2 exceeds it
         self.stream = cuda.stream()
         self.steps_done = 0
         self.builds = 0
@@ -128,6 +130,7 @@ class CudaEnsemble:
             self._scene_constants(s)
         self.ncell = coff
         self._setup_scan()
+        self._setup_multigrid(systems, contacts)
         self.spd = cuda.to_device(self.spd_h, stream=self.stream)
         self.spf = cuda.to_device(self.spf_h, stream=self.stream)
         self.spi = cuda.to_device(self.spi_h, stream=self.stream)
@@ -208,13 +211,22 @@ class CudaEnsemble:
         s = self.stream
         self.count = cuda.device_array(self.ncell + 1, np.int32, stream=s)
         self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=s)
+        self._scan_cells = self._scan_buffers(self.ncell + 1)
+
+    def _scan_buffers(self, m: int) -> SimpleNamespace:
+        """Block-sum buffers of an exclusive scan of m int32 counts (tiles of tpb * 16)."""
         tile = self.tpb * 16
-        nb = (self.ncell + 1 + tile - 1) // tile
-        self._scan_tile = tile
-        self._scan_nb = nb
-        self.bsum = cuda.device_array(max(nb, 1), np.int32, stream=s)
-        self.bsum_scan = cuda.device_array(max(nb, 1), np.int32, stream=s)
-        self.bsum_tot = cuda.device_array(1, np.int32, stream=s)
+        nb = (m + tile - 1) // tile
+        dev = lambda k: cuda.device_array(max(k, 1), np.int32, stream=self.stream)  # noqa: E731
+        return SimpleNamespace(m=m, tile=tile, nb=nb, bsum=dev(nb), bsum_scan=dev(nb), bsum_tot=dev(1))
+
+    def _exclusive_scan(self, src, dst, b: SimpleNamespace) -> None:
+        k, s = self.k, self.stream
+        k["tile_scan"][b.nb, self.tpb, s](src, dst, b.m, b.bsum, 16)
+        if b.nb > 1:
+            items = (b.nb + self.tpb - 1) // self.tpb
+            k["tile_scan"][1, self.tpb, s](b.bsum, b.bsum_scan, b.nb, b.bsum_tot, items)
+            k["add_offsets"][self._grid(b.m)](dst, b.m, b.bsum_scan, b.tile)
 
     def _alloc_list(self, max_nb: int) -> None:
         s = self.stream
@@ -273,6 +285,22 @@ class CudaEnsemble:
         self.spi_h[k, K.I_ACTIVE] = 0
         self._upload_params()
 
+    def set_list_mode(self, mode: str) -> None:
+        """Where the Verlet list is built: 'gpu', 'cpu-sequential', 'cpu-pipelined' or 'auto' (paper 004
+        §3, :mod:`engine.backends.cuda_listmodes`); the CPU modes need one scene. 'auto' on an ensemble of
+        several scenes is the GPU list."""
+        from engine.backends.cuda_listmodes import MODES, HostLists
+        if mode not in MODES:
+            raise ValueError(f"list_mode = {mode!r} is not one of {', '.join(MODES)}")
+        if self.lists is not None:
+            self.lists.close()
+            self.lists = None
+        if mode == "gpu" or (mode == "auto" and self.n_scenes > 1):
+            return
+        if getattr(self, "kl", None) is None:
+            self.kl = list_kernels(self.dtype, self.tpb)
+        self.lists = HostLists(self, mode)
+
     def _sync_active(self) -> None:
         """The device clears the active flag of a scene that blows up; bring the host copy up to date."""
         spi = self.spi.copy_to_host(stream=self.stream)
@@ -286,12 +314,7 @@ class CudaEnsemble:
         k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
         k["count_cells"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.count)
         # exclusive scan of ncell + 1 counts (the last is 0) -> cell_start, cell_start[ncell] = n
-        m = self.ncell + 1
-        k["tile_scan"][self._scan_nb, self.tpb, s](self.count, self.cell_start, m, self.bsum, 16)
-        if self._scan_nb > 1:
-            items = (self._scan_nb + self.tpb - 1) // self.tpb
-            k["tile_scan"][1, self.tpb, s](self.bsum, self.bsum_scan, self._scan_nb, self.bsum_tot, items)
-            k["add_offsets"][self._grid(m)](self.cell_start, m, self.bsum_scan, self._scan_tile)
+        self._exclusive_scan(self.count, self.cell_start, self._scan_cells)
         k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
         k["scatter"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.cell_start, self.count,
                                     self.order)
@@ -304,8 +327,10 @@ class CudaEnsemble:
             tmp = self.scratch[:a.shape[0]]
             k["gather_rows"][self._grid(n)](n, a, tmp, self.order)
             _copy(a, tmp, s)
-        k["gather_i32"][self._grid(n)](n, self.ids, self.scratch_i, self.order)
-        _copy(self.ids, self.scratch_i, s)
+        for name in ("ids", "lvl") if self.multigrid else ("ids",):
+            a = getattr(self, name)
+            k["gather_i32"][self._grid(n)](n, a, self.scratch_i, self.order)
+            _copy(a, self.scratch_i, s)
 
     def _set_status(self, slot: int, value: float) -> None:
         self.status[slot:slot + 1].copy_to_device(np.full(1, value), stream=self.stream)
@@ -325,15 +350,30 @@ class CudaEnsemble:
             self._alloc_store(int(total[0] * 1.25) + 1024)
 
     def _rebuild(self) -> None:
+        """A list rebuild: on the GPU, or by the CPU-built list modes when they are on (paper 004 §3)."""
+        if self.lists is not None:
+            self.lists.rebuild()
+        else:
+            self._gpu_rebuild()
+
+    def _gpu_rebuild(self) -> None:
         """Keep history, sort, permute and build; grows the stride when a particle has more neighbours."""
         self._compact()
         self._sort_and_permute()
+        if self.multigrid:
+            self._bin_levels()
         while True:
             self._set_status(K.S_NEED_NB, 0.0)
-            self.k["build"][self._grid(self.n)](
-                self.n, self.pos, self.radius1, self.cell_start, self.c_off, self.c_cnt, self.cj, self.chist,
-                self.order, self.inv_old, self.nbr, self.nn, self.hist, self.x_ref, self.sc, self.spd, self.spf,
-                self.spi, self.status)
+            if self.multigrid:
+                self.kl["mg_build"][self._grid(self.n)](
+                    self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
+                    self.c_off, self.c_cnt, self.cj, self.chist, self.order, self.inv_old, self.nbr, self.nn,
+                    self.hist, self.x_ref, self.sc, self.spd, self.spi, self.status)
+            else:
+                self.k["build"][self._grid(self.n)](
+                    self.n, self.pos, self.radius1, self.cell_start, self.c_off, self.c_cnt, self.cj,
+                    self.chist, self.order, self.inv_old, self.nbr, self.nn, self.hist, self.x_ref, self.sc,
+                    self.spd, self.spf, self.spi, self.status)
             need = np.zeros(1)
             self.status[K.S_NEED_NB:K.S_NEED_NB + 1].copy_to_host(need, stream=self.stream)
             self.stream.synchronize()
@@ -343,6 +383,59 @@ class CudaEnsemble:
             # the kept history is in the compact store: the list can be reallocated and rebuilt
             self._alloc_list(int(math.ceil((need + 2) / 4.0)) * 4)
         self.builds += 1
+
+    def _setup_multigrid(self, systems, contacts) -> None:
+        """Grid levels per scene (paper 004 Algorithm 1, :mod:`engine.multigrid`) when some scene's size
+        spread needs more than one; monodisperse ensembles keep the single-grid build."""
+        self.multigrid = False
+        self.lists = None
+        if self.uniform or not isinstance(systems[0], SphereSystem):
+            return
+        from engine.multigrid import grid_levels, main_level
+        levels = [grid_levels(self.box[s], sy.n, float(np.min(sy.radius)), float(np.max(sy.radius)),
+                              contacts[s].skin) if sy.n else None for s, sy in enumerate(systems)]
+        nl = max((lv.n_levels for lv in levels if lv is not None), default=1)
+        if nl <= 1:
+            return
+        self.multigrid = True
+        self.levels = levels
+        self._mg_skin = [c.skin for c in contacts]
+        mgi = np.zeros((self.n_scenes, nl, 3), np.int32)
+        mgf = np.ones((self.n_scenes, nl), np.float64)
+        lvl = np.zeros(self.n, np.int32)
+        off = 0
+        for s, (sy, lv) in enumerate(zip(systems, levels)):
+            if lv is None:
+                continue
+            a0 = int(self.starts[s])
+            lvl[a0:a0 + sy.n] = main_level(np.asarray(sy.radius, np.float64), lv)
+            for l in range(lv.n_levels):
+                nc = int(lv.nc[l])
+                mgi[s, l] = (nc, off, off + nc ** 3)
+                mgf[s, l] = nc / self.box[s]
+                off += 2 * nc ** 3
+        st = self.stream
+        self.mg_nbins = off
+        self.mg_entries = int((lvl.astype(np.int64) + 1).sum())
+        self.lvl = cuda.to_device(lvl, stream=st)
+        self.mgi = cuda.to_device(mgi, stream=st)
+        self.mgf = cuda.to_device(mgf, stream=st)
+        self.mg_count = cuda.device_array(off + 1, np.int32, stream=st)
+        self.mg_start = cuda.device_array(off + 1, np.int32, stream=st)
+        self.mg_cursor = cuda.device_array(off, np.int32, stream=st)
+        self.mg_items = cuda.device_array(self.mg_entries, np.int32, stream=st)
+        self._scan_mg = self._scan_buffers(off + 1)
+        self.kl = list_kernels(self.dtype, self.tpb)
+
+    def _bin_levels(self) -> None:
+        """Main and secondary bins of every level (counting sort by bin)."""
+        k, n = self.k, self.n
+        k["fill_i32"][self._grid(self.mg_nbins + 1)](self.mg_count, 0)
+        self.kl["mg_count"][self._grid(n)](n, self.pos, self.sc, self.lvl, self.mgi, self.mgf, self.mg_count)
+        self._exclusive_scan(self.mg_count, self.mg_start, self._scan_mg)
+        k["fill_i32"][self._grid(self.mg_nbins)](self.mg_cursor, 0)
+        self.kl["mg_scatter"][self._grid(n)](n, self.pos, self.sc, self.lvl, self.mgi, self.mgf, self.mg_start,
+                                             self.mg_cursor, self.mg_items)
 
     def _prime(self, systems) -> None:
         """First list build (restoring checkpointed springs) and forces at t = 0."""
@@ -404,7 +497,7 @@ class CudaEnsemble:
 
     def _run_steps(self, nmax: int, first: int, step0: int, grid=None) -> None:
         self.k["run_steps"][grid or self._coop_grid()](
-            self.n, nmax, first, 0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
+            self.n, nmax, first, 0, self._exit_thr, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
             self.torque, self.inv_m1, self.inv_i1, self.radius1, self.x_ref, self.nbr, self.nn, self.hist,
             self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step0)
 
@@ -425,7 +518,7 @@ class CudaEnsemble:
                         self.nn, self.hist, self.sc, self.spd, self.spf, self.spi, acc)
         if self.multistep:
             scratch = cuda.to_device(self._fresh_status(), stream=s)
-            k["run_steps"][g](0, 1, 1, 0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
+            k["run_steps"][g](0, 1, 1, 0, 1.0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
                               self.torque, self.inv_m1, self.inv_i1, self.radius1, self.x_ref, self.nbr, self.nn,
                               self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, scratch, 0)
         s.synchronize()
@@ -450,6 +543,7 @@ class CudaEnsemble:
         prof = self.profile is not None
         while remaining > 0:
             t0 = time.perf_counter()
+            self._exit_thr = 1.0 if self.lists is None else self.lists.exit_threshold()
             self._run_steps(remaining, first, self.steps_done)
             self.launches += 1
             first = 0
@@ -463,9 +557,13 @@ class CudaEnsemble:
             remaining -= done
             self._collect(h, failed)
             if h[K.S_RUN_REBUILD] > 0 and remaining > 0:
-                # this step has drifted: rebuild, then its forces complete it
+                # this step has drifted: rebuild (or, below L_v/2, signal the pipelined CPU build), then
+                # its forces complete it
                 t0 = time.perf_counter()
-                self._rebuild()
+                if self.lists is not None and max(h[K.S_D2], h[K.S_D2B]) <= 1.0:
+                    self.lists.signal()
+                else:
+                    self._rebuild()
                 self._forces(self.steps_done)
                 self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
                 self.steps_done += 1
@@ -511,6 +609,8 @@ class CudaEnsemble:
                 e2 = self._ev(); e2.record(s)
             if rebuild:
                 self._rebuild()
+            elif self.lists is not None and self.lists.exit_threshold() < 1.0 and math.sqrt(h[K.S_D2]) > 0.5:
+                self.lists.signal()  # L_v/4 passed (paper 004 B3): the pipelined CPU build starts
             rebuilt_prev = rebuild
             if prof:
                 e3 = self._ev(); e3.record(s)
@@ -652,6 +752,8 @@ class CudaBackend:
         self.box = float(system.box_length)
         self.device = self.e.device
         self.set_contact(contact)
+        if self.ensemble_class is CudaEnsemble:  # spheres: the list may be built on the CPU (paper 004 §3)
+            self.e.set_list_mode(contact.list_mode)
         if self.e._pending:
             raise self.e._pending[0]
 
@@ -704,5 +806,5 @@ def _is_dev(a) -> bool:
 
 
 def _copy(dst, src, stream) -> None:
-    """Device-to-device copy of equal-shape arrays."""
+    """Device-to-device copy of equal-shape arrays (also used by engine.backends.cuda_listmodes)."""
     dst.copy_to_device(src, stream=stream)

@@ -51,7 +51,8 @@ NI = 6
 
 # global status slots; S_D2 (+1): max over particles of (displacement since the build / (L_v/2))^2 (two
 # slots: the multi-step kernel alternates them by step parity); S_V2: max (2 |v| dt / (L_v/2))^2
-S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD = range(7)
+# S_CHECK: max (displacement from a list's snapshot / (L_v/2))^2, the a-posteriori check of a CPU-built list
+S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK = range(8)
 SS0 = 8
 # per-scene status words
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
@@ -343,13 +344,14 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     # ---- many steps per launch (small scenes and ensembles: launch overhead paid once per chunk) -------
 
     @cuda.jit
-    def run_steps(n, nmax, first, skip_kick, pos, vel, omega, quat, f0, f1, torque, inv_m, inv_i, radius,
+    def run_steps(n, nmax, first, skip_kick, thr, pos, vel, omega, quat, f0, f1, torque, inv_m, inv_i, radius,
                   x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0):
         """Up to nmax whole steps in one cooperative launch, the phases separated by grid syncs.
 
         Stops early, after the drift of a step and before its forces, when a particle has moved more than
-        L_v/2 since the list build: status[S_RUN_REBUILD] = 1 and status[S_RUN_DONE] = the whole steps
-        completed (the host rebuilds, computes that step's forces and relaunches). Step st reads forces
+        sqrt(thr) L_v/2 since the list build (thr = 1: the rebuild rule; thr = 1/4: the L_v/4 signal of the
+        pipelined CPU-list mode): status[S_RUN_REBUILD] = 1 and status[S_RUN_DONE] = the whole steps
+        completed (the host rebuilds or starts a CPU build, computes that step's forces and relaunches). Step st reads forces
         from f0 when st is even (f1 when odd) and writes the other buffer. skip_kick = 1: the drift of
         step 0 is already done (the host computes its forces first).
         """
@@ -386,7 +388,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                 if cuda.threadIdx.x == 0:
                     cuda.atomic.max(status, slot, sh[0])
                 g.sync()
-                if status[slot] > 1.0:
+                if status[slot] > thr:
                     break
             for i in range(i0, n, stride):
                 forces_one(i, pos, vel, omega, radius, inv_m, fa, fb, torque, nbr, nn, hist, ids, sc, spd,
@@ -590,17 +592,8 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                             if d2 < rc * rc:
                                 if cnt < max_nb:
                                     nbr[cnt, i] = j
-                                    found = False
-                                    for q in range(k0, k1):
-                                        if inv_old[cj[q]] == j:
-                                            for w in range(HW):
-                                                hist[w, cnt, i] = chist[w, q]
-                                            found = True
-                                            break
-                                    if not found:
-                                        for w in range(HW):
-                                            hist[w, cnt, i] = ZERO
-                                        hist[3, cnt, i] = ri + rj - math.sqrt(d2)
+                                    init_slot(i, cnt, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old,
+                                              hist)
                                 cnt += 1
             nn[i] = cnt
             if cnt > need:
@@ -664,6 +657,21 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                 fill_i32=fill_i32, count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets,
                 scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32,
                 inverse_perm=inverse_perm, compact=compact, build=build, observe=observe)
+
+
+@cuda.jit(device=True)
+def init_slot(i, kk, j, gap, k0, k1, cj, chist, inv_old, hist):
+    """History of list slot kk of particle i (neighbour j) after a rebuild: the kept history from the
+    compact store entries k0..k1 of i (old indices o map to new ones by inv_old[o]), else a fresh slot
+    (zero spring, zero dashpot force, previous overlap = the current gap, m)."""
+    for q in range(k0, k1):
+        if inv_old[cj[q]] == j:
+            for w in range(HW):
+                hist[w, kk, i] = chist[w, q]
+            return
+    for w in range(HW):
+        hist[w, kk, i] = 0
+    hist[3, kk, i] = gap
 
 
 @cuda.jit(device=True)
