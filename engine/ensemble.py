@@ -16,7 +16,8 @@ Rules:
 
 - All specs share ``shape`` and ``precision`` and resolve to one backend (``backend`` overrides every
   spec's own); otherwise SpecError naming the field, the scene and the values. Everything else (N, φ,
-  e_n, e_t, ξ, box, dt, output schedule, t_end, seed) may differ per scene.
+  e_n, e_t, ξ, box, dt, skin, output schedule, t_end, seed) may differ per scene; a null ``verlet_skin``
+  is that one backend's default for every scene (engine.spec.default_verlet_skin), as in a lone run.
 - The scenes advance together by the steps to the nearest next stop of any scene (on a
   ``SerialEnsemble`` each to its own next stop); each scene handles its own records and snapshots.
 - A scene that finishes drops out; the others go on. ``should_cancel(k)`` → True drops scene k with
@@ -95,7 +96,7 @@ def run_ensemble(specs, outputs, *, progress: Optional[Callable[[int, Progress],
         cancel = None if should_cancel is None else (lambda k=k: should_cancel(k))
         try:
             scenes.append(SceneRun(spec, out, progress=cb, should_cancel=cancel, checkpoint_dir=ck,
-                                   checkpoint_interval=checkpoint_interval))
+                                   checkpoint_interval=checkpoint_interval, backend=name))
         except (EngineError, MemoryError, OSError) as exc:  # this scene cannot start; the others can
             scenes.append(exc)
     return drive(scenes, lambda systems, contacts: make_ensemble(name, systems, contacts),

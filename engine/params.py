@@ -124,7 +124,9 @@ def derive(spec) -> Derived:
     rate0 = 4.0 * sigma2 * nd * g * math.sqrt(math.pi * t0 / mass)
     t_th = spec.thermalization / rate0 if spec.thermalization > 0 else 0.0
     n_th = int(math.ceil(t_th / dt)) if t_th > 0 else 0
-    skin = spec.verlet_skin * semi[1 if spec.shape == "ellipsoid" else 0]
+    from engine.spec import default_verlet_skin  # null skin: the default of spec.backend (resolved by the driver)
+    skin = (spec.verlet_skin if spec.verlet_skin is not None else default_verlet_skin(spec.backend, spec.shape)) \
+        * semi[1 if spec.shape == "ellipsoid" else 0]
     return Derived(
         radius=r_eq, semi_axes=semi, radius_max=max(semi), radius_min=min(semi), mass=mass,
         inertia=inertia, m12=m12, omega0=omega0, contact_time=t_c, gamma_n=gamma_n,

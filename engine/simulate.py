@@ -38,11 +38,11 @@ from typing import Callable, Optional
 import numpy as np
 
 from engine.backends.base import ContactParams
-from engine.backends.ensemble import SerialEnsemble, ensemble_scene_builds
+from engine.backends.ensemble import SerialEnsemble, ensemble_scene_builds, resolve_backend
 from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path
 from engine.params import Q_SPHERE, Derived, derive
-from engine.spec import SimulationSpec, load_spec
+from engine.spec import SimulationSpec, default_verlet_skin, load_spec
 
 #: In a dissipative run the total mechanical energy may not rise between records by more than this
 #: fraction (integration error is O(dt^2) ~ 1e-4 at dt = t_c/50; a real rise means instability).
@@ -177,7 +177,7 @@ class SceneRun:
 
     def __init__(self, spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
                  should_cancel: Optional[Callable[[], bool]] = None, checkpoint_dir=None,
-                 checkpoint_interval: float = 60.0):
+                 checkpoint_interval: float = 60.0, backend: Optional[str] = None):
         from engine.scene import initial_ellipsoids, initial_spheres
 
         spec = load_spec(spec)
@@ -186,7 +186,13 @@ class SceneRun:
         if ellipsoid and not spec.smooth:
             raise SpecError(f"shape = 'ellipsoid' runs frictionless contacts only (paper 003): e_t = {spec.e_t:g} "
                             f"and friction = {spec.friction} must be e_t = -1 (or friction = 0)")
-        self.p = p = derive(spec)
+        # the backend ('cpu' or 'cuda') this scene runs on: `backend` overrides the spec's, 'auto' resolved here
+        self.backend = resolve_backend(backend or spec.backend, spec.shape)
+        # a null verlet_skin is the resolved backend's default (the stored spec keeps null; /parameters
+        # say verlet_skin and skin); an explicit value always wins
+        self.verlet_skin = spec.verlet_skin if spec.verlet_skin is not None else \
+            default_verlet_skin(self.backend, spec.shape)
+        self.p = p = derive(spec.model_copy(update={"verlet_skin": self.verlet_skin}))
         self.spec_json = spec.to_json()
         self.output = Path(output)
         self.progress, self.should_cancel = progress, should_cancel
@@ -262,7 +268,8 @@ class SceneRun:
         spec, p = self.spec, self.p
         dtype = np.float64 if spec.precision == "float64" else np.float32
         derived = {k: v for k, v in p.as_dict().items()}
-        derived.update(engine_version=__version__, q=Q_SPHERE, e_n=spec.e_n, e_t=spec.e_t)
+        derived.update(engine_version=__version__, q=Q_SPHERE, e_n=spec.e_n, e_t=spec.e_t,
+                       verlet_skin=self.verlet_skin)
         common = dict(n=spec.n_particles, box_length=spec.box_length, spec_json=self.spec_json,
                       derived=derived, dtype=dtype)
         if self.resume is not None:
@@ -565,14 +572,16 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
         checkpoint_interval: float = 60.0, backend: Optional[str] = None) -> RunSummary:
     """Run a spec to completion and write its H5MD result to ``output`` (atomically).
 
+    ``backend`` overrides the spec's own; a null ``verlet_skin`` is the resolved backend's default
+    (engine.spec.default_verlet_skin), recorded with the skin in m in the file's ``/parameters``.
+
     Raises SpecError / pydantic ValidationError for specs that cannot run, InstabilityError when the
     run blows up (the message names the step, the particle and the likely cause; no result file is
     left behind), Cancelled when ``should_cancel()`` returns True.
     """
     scene = SceneRun(spec, output, progress=progress, should_cancel=should_cancel, checkpoint_dir=checkpoint_dir,
-                     checkpoint_interval=checkpoint_interval)
-    name = backend or scene.spec.backend
-    (result,) = drive([scene], lambda systems, contacts: SerialEnsemble(name, systems, contacts))
+                     checkpoint_interval=checkpoint_interval, backend=backend)
+    (result,) = drive([scene], lambda systems, contacts: SerialEnsemble(scene.backend, systems, contacts))
     if isinstance(result, BaseException):
         raise result
     return result

@@ -26,6 +26,29 @@ RANDOM_CLOSE_PACKING = 0.64
 #: A contact must span at least this many time steps (t_c / dt); coarser steps cannot resolve it.
 MIN_STEPS_PER_CONTACT = 10.0
 
+#: Verlet skin L_v in radii that a null ``verlet_skin`` means, per resolved backend: the fastest skin that
+#: `demq bench accuracy` measured on each (bench/reports/accuracy and accuracy-cuda: the skin changes the
+#: cost only). Ellipsoids keep the CPU value on both backends (their skin is not measured on a GPU).
+DEFAULT_VERLET_SKIN = {"cpu": 0.4, "cuda": 0.8}
+
+
+def default_verlet_skin(backend: str, shape: str = "sphere") -> float:
+    """The skin (radii) a null ``verlet_skin`` means on ``backend`` ('cpu' or 'cuda', already resolved).
+
+    An unresolved 'auto' gives the CPU value: the driver (engine.simulate.SceneRun) resolves the backend
+    first, so this fallback serves only callers of ``engine.params.derive`` that run no backend.
+    """
+    if shape == "ellipsoid":
+        return DEFAULT_VERLET_SKIN["cpu"]
+    return DEFAULT_VERLET_SKIN.get(backend, DEFAULT_VERLET_SKIN["cpu"])
+
+
+def largest_default_verlet_skin(backend: str, shape: str = "sphere") -> float:
+    """The largest skin a null ``verlet_skin`` can resolve to for a spec's ``backend`` ('auto': any backend)."""
+    if backend in DEFAULT_VERLET_SKIN:
+        return default_verlet_skin(backend, shape)
+    return max(default_verlet_skin(b, shape) for b in DEFAULT_VERLET_SKIN)
+
 
 class SimulationSpec(BaseModel):
     """A granular-gas simulation: particles, contact law, protocol, output and numerics."""
@@ -69,9 +92,11 @@ class SimulationSpec(BaseModel):
     seed: int = Field(0, description="Seed of the random initial state (0 ... 2**63-1).")
     backend: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="'auto' = CUDA when a GPU is present, else CPU.")
-    verlet_skin: float = Field(
-        0.4, description="Verlet-list skin L_v in units of the particle radius (0 < L_v <= 4); the "
-                         "list is rebuilt when a particle has moved more than L_v/2 (paper 004).")
+    verlet_skin: Optional[float] = Field(
+        None, description="Verlet-list skin L_v in units of the particle radius (0 < L_v <= 4); the "
+                          "list is rebuilt when a particle has moved more than L_v/2 (paper 004). null = "
+                          "the backend's default: 0.4 on the CPU, 0.8 on CUDA (spheres; ellipsoids 0.4 on "
+                          "both), the fastest skin of `demq bench accuracy` on each.")
     overlap_limit: float = Field(
         0.05, description="Largest allowed overlap as a fraction of the radius; a run that exceeds it "
                           "stops with an error (0 < limit <= 0.5).")
@@ -159,9 +184,9 @@ class SimulationSpec(BaseModel):
 
     @field_validator("verlet_skin")
     @classmethod
-    def _skin(cls, v: float) -> float:
-        if not (0.0 < v <= 4.0):
-            raise ValueError(f"verlet_skin = {v} is outside the allowed range (0, 4] radii")
+    def _skin(cls, v: Optional[float]) -> Optional[float]:
+        if v is not None and not (0.0 < v <= 4.0):
+            raise ValueError(f"verlet_skin = {v} is outside the allowed range (0, 4] radii (or null)")
         return v
 
     @field_validator("overlap_limit")
@@ -188,12 +213,16 @@ class SimulationSpec(BaseModel):
         if self.output_interval is not None and self.output_interval < p.dt:
             raise ValueError(
                 f"output_interval = {self.output_interval:.6g} s is shorter than the time step dt = {p.dt:.6g} s")
-        cutoff = 2.0 * p.radius_max * (1.0 + 0.5 * self.verlet_skin)
+        # a null skin is checked at the largest default the spec's backend can resolve to ('auto': any)
+        skin = self.verlet_skin if self.verlet_skin is not None else largest_default_verlet_skin(self.backend,
+                                                                                                 self.shape)
+        cutoff = 2.0 * p.radius_max * (1.0 + 0.5 * skin)
         if self.box_length < 3.0 * cutoff:
             # The minimum-image convention and the cell list need L > 2 * cutoff; keep a margin.
             raise ValueError(
                 f"box_length = {self.box_length:g} m is too small for particles of radius {p.radius_max:.4g} m: "
-                f"it must be at least {3.0 * cutoff:.4g} m (3 x the neighbour cutoff)")
+                f"it must be at least {3.0 * cutoff:.4g} m (3 x the neighbour cutoff at verlet_skin = {skin:g}"
+                f"{'' if self.verlet_skin is not None else ', the default of backend ' + repr(self.backend)})")
         # A typical head-on collision compresses by v_rel/omega_0; reject specs whose *typical* overlap
         # already exceeds the limit (the run-time guard catches the rare tails).
         typical = math.sqrt(2.0) * self.velocity_rms / p.omega0

@@ -4,7 +4,8 @@ A pack is the job the worker claimed first plus queued jobs, in claim order (pri
 submission), that are *compatible* with it — same ``shape``, same ``precision`` and the same engine
 backend once 'auto' is resolved on this host (engine.backends.ensemble.resolve_backend) — while the pack
 holds at most ``DEMQ_ENSEMBLE_MAX_JOBS`` jobs and ``DEMQ_ENSEMBLE_MAX_PARTICLES`` particles. Any mix of
-N, φ, e_n, e_t, ξ, dt, t_end and seeds packs together.
+N, φ, e_n, e_t, ξ, dt, t_end, seeds and Verlet skins packs together (a null ``verlet_skin`` is the default
+of the pack's one resolved backend, engine.spec.default_verlet_skin, the same as the job run alone there).
 
 A job whose queued row carries the :data:`SOLO` note runs alone: its previous pack's simulation process
 died (signal, out of memory) or failed as a whole, so the worker could not tell which job caused it;
