@@ -389,8 +389,8 @@ class CudaEnsemble:
         spread needs more than one; monodisperse ensembles keep the single-grid build."""
         self.multigrid = False
         self.lists = None
-        if self.uniform or not isinstance(systems[0], SphereSystem):
-            return
+        if self.uniform or not isinstance(systems[0], SphereSystem) or os.environ.get("DEMQ_CUDA_MULTIGRID") == "0":
+            return  # (DEMQ_CUDA_MULTIGRID=0: one grid of cell >= 2 R_max + L_v, for the cost comparison)
         from engine.multigrid import grid_levels, main_level
         levels = [grid_levels(self.box[s], sy.n, float(np.min(sy.radius)), float(np.max(sy.radius)),
                               contacts[s].skin) if sy.n else None for s, sy in enumerate(systems)]
@@ -414,6 +414,16 @@ class CudaEnsemble:
                 mgi[s, l] = (nc, off, off + nc ** 3)
                 mgf[s, l] = nc / self.box[s]
                 off += 2 * nc ** 3
+        # the particle permutation (locality only) sorts along the finest level's cells: the coarse grid's
+        # cells hold ~ (R_max/R_min)^3 small particles, which the per-cell id sort handles poorly
+        coff = 0
+        for s, lv in enumerate(levels):
+            nc = 1 if lv is None else int(lv.nc[-1])
+            self.spi_h[s, [K.I_NC, K.I_COFF]] = [nc, coff]
+            self.spf_h[s, K.F_INVCELL] = nc / self.box[s]
+            coff += nc ** 3
+        self.ncell = coff
+        self._setup_scan()
         st = self.stream
         self.mg_nbins = off
         self.mg_entries = int((lvl.astype(np.int64) + 1).sum())

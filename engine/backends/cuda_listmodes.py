@@ -39,6 +39,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 
+import numba
 import numpy as np
 from numba import cuda
 
@@ -131,8 +132,11 @@ class HostLists:
         self.ens.stream.synchronize()
         return time.perf_counter() - t0
 
-    def _cpu_build(self) -> tuple:
-        """The CPU build of the host positions into the host list (runs in the builder thread too)."""
+    def _cpu_build(self, beside_gpu: bool = False) -> tuple:
+        """The CPU build of the host positions into the host list; beside_gpu (the builder thread, while
+        the GPU integrates): one core is left to the thread that drives the GPU."""
+        all_ = numba.config.NUMBA_NUM_THREADS
+        numba.set_num_threads(max(1, all_ - 1) if beside_gpu else all_)  # per calling thread
         t0 = time.perf_counter()
         h = self._host
         need = self.builder.build(h["pos"].T, h["nbr"].T, h["nn"])
@@ -179,7 +183,7 @@ class HostLists:
         """Snapshot the positions (device copy + host copy) and start a CPU build in the thread."""
         _copy(self.snap, self.ens.pos, self.ens.stream)
         t_down = self._download()
-        self.pending = self.pool.submit(self._cpu_build)
+        self.pending = self.pool.submit(self._cpu_build, True)
         self.pending_kind = kind
         return t_down
 

@@ -150,6 +150,10 @@ def test_pack_selection_rules(packing):
     solo = dataclasses.replace(jobs[6], error=SOLO + "its pack died")
     assert is_solo(solo) and Packer(256, 10**6, packer._resolve).select(solo, rest) == []
     assert solo.id not in [j.id for j in packer.select(first, [solo])]
+    # a job that asks for a CPU-built Verlet list (paper 004 modes serve one scene) is never packed
+    cpu_list = dataclasses.replace(jobs[6], spec={**jobs[6].spec, "list_mode": "cpu-pipelined"})
+    assert packer.key(cpu_list) is None and cpu_list.id not in [j.id for j in packer.select(first, [cpu_list])]
+    assert packer.key(dataclasses.replace(jobs[6], spec={**jobs[6].spec, "list_mode": "auto"})) is not None
 
 
 def test_compatible_jobs_run_as_one_pack_each_with_its_own_result(packing, caplog):
