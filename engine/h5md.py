@@ -48,8 +48,10 @@ class H5MDWriter:
     """Appends observables and snapshots to ``<path>.part``; :meth:`finish` renames it to ``path``."""
 
     def __init__(self, path, *, n: int, box_length: float, spec_json: str, derived: dict,
-                 radius=None, semi_axes=None, mass=None, creator_version: str = "",
+                 radius=None, semi_axes=None, mass=None, species=None, creator_version: str = "",
                  author: str = "demq", dtype=np.float64, resume: bool = False):
+        """species: int (N,) species index of every particle (the position in the spec's ``species``
+        list); None writes zeros (one size)."""
         self.path = Path(path)
         self.tmp = partial_path(self.path)
         self.n = n
@@ -78,7 +80,8 @@ class H5MDWriter:
         edges = box.create_dataset("edges", data=np.full(3, box_length, dtype=np.float64))
         edges.attrs["unit"] = "m"
         part.create_dataset("id", data=np.arange(n, dtype=np.int64))
-        part.create_dataset("species", data=np.zeros(n, dtype=np.int32))
+        part.create_dataset("species", data=np.zeros(n, dtype=np.int32) if species is None
+                            else np.asarray(species, dtype=np.int32).reshape(n))
         if mass is not None:
             part.create_dataset("mass", data=np.asarray(mass, dtype=np.float64)).attrs["unit"] = "kg"
         if semi_axes is not None:

@@ -82,10 +82,11 @@ def contact_params(spec: SimulationSpec, p: Derived, *, thermalization: bool) ->
         k_t = None if smooth else p.k_n * Q_SPHERE / (1.0 + Q_SPHERE)  # paper 001 Eq. 4 at e_t = 1
         return ContactParams(k_n=p.k_n, gamma_n_coef=0.0, k_t=k_t, friction=None, dt=p.dt, skin=p.skin,
                              precision=spec.precision, orientation=spec.snapshots > 0,
-                             overlap_limit=spec.overlap_limit)
+                             overlap_limit=spec.overlap_limit, list_mode=spec.list_mode)
     return ContactParams(k_n=p.k_n, gamma_n_coef=p.gamma_n_coef, k_t=None if smooth else p.k_t,
                          friction=spec.friction, dt=p.dt, skin=p.skin, precision=spec.precision,
-                         orientation=spec.snapshots > 0, overlap_limit=spec.overlap_limit)
+                         orientation=spec.snapshots > 0, overlap_limit=spec.overlap_limit,
+                         list_mode=spec.list_mode)
 
 
 def schedule(p: Derived, snapshots: int) -> tuple[np.ndarray, set]:
@@ -277,9 +278,12 @@ class SceneRun:
             self.writer = H5MDWriter(self.output, resume=True, **common)
             self.writer.truncate(json.loads(str(self.resume["counts"])))
         else:
+            from engine.scene import species_index
+
             system = self.system
             self.writer = H5MDWriter(self.output, radius=None if self.ellipsoid else system.radius,
                                      semi_axes=system.semi_axes if self.ellipsoid else None, mass=system.mass,
+                                     species=None if self.ellipsoid else species_index(system.radius, p),
                                      creator_version=__version__, **common)
 
     def at_stop(self, view) -> None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Literal, Optional
+from typing import List, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -25,6 +25,44 @@ RANDOM_CLOSE_PACKING = 0.64
 
 #: A contact must span at least this many time steps (t_c / dt); coarser steps cannot resolve it.
 MIN_STEPS_PER_CONTACT = 10.0
+
+#: Largest volume fraction of a species spec. Random sequential addition (engine/scene.py) jams near
+#: 0.38 for nearly equal sizes; measured with 1000 N + 1e5 candidates (2026-11-21): at 0.35 it failed for
+#: 4 of 20 seeds at N = 100 (radius ratio 0.999), at 0.33 for 1 of 50 at N = 20, at 0.30 never (50 seeds
+#: each, N = 10 ... 100); at 0.30, N = 1e5 nearly equal spheres are placed in 1.5 s on the CI machine.
+SPECIES_MAX_VOLUME_FRACTION = 0.30
+
+#: Most species a spec may list.
+MAX_SPECIES = 16
+
+
+class Species(BaseModel):
+    """One sphere size of a polydisperse spec."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    radius_ratio: float = Field(
+        ..., description="Radius relative to the largest species, in [0.01, 1]; the largest species has "
+                         "exactly 1. Absolute radii follow from n_particles, volume_fraction and box_length.")
+    number_fraction: float = Field(
+        ..., description="Fraction of the n_particles spheres in this species, in (0, 1]; the fractions sum "
+                         "to 1. Counts are round(N f), the remainder going to the largest fraction.")
+
+    @field_validator("radius_ratio")
+    @classmethod
+    def _ratio(cls, v: float) -> float:
+        if not (0.01 <= v <= 1.0):
+            raise ValueError(f"radius_ratio = {v} is outside the allowed range [0.01, 1] "
+                             f"(radius relative to the largest species)")
+        return v
+
+    @field_validator("number_fraction")
+    @classmethod
+    def _fraction(cls, v: float) -> float:
+        if not (0.0 < v <= 1.0):
+            raise ValueError(f"number_fraction = {v} is outside the allowed range (0, 1]")
+        return v
+
 
 #: Verlet skin L_v in radii that a null ``verlet_skin`` means, per resolved backend: the fastest skin that
 #: `demq bench accuracy` measured on each (bench/reports/accuracy and accuracy-cuda: the skin changes the
@@ -100,6 +138,20 @@ class SimulationSpec(BaseModel):
     overlap_limit: float = Field(
         0.05, description="Largest allowed overlap as a fraction of the radius; a run that exceeds it "
                           "stops with an error (0 < limit <= 0.5).")
+    species: Optional[List[Species]] = Field(
+        None, description="Polydisperse spheres: a list of 1 ... 16 sizes {radius_ratio, number_fraction} "
+                          "(radius relative to the largest, which must be 1; fractions of N summing to 1). "
+                          "null = one size. Spheres only, volume_fraction <= 0.30. All species start at the "
+                          "same temperature <m> v_rms^2/3 (velocity_rms is the mass-weighted rms speed); "
+                          "the Verlet skin is in units of the smallest radius, dt = t_c/50 of the "
+                          "small-small contact, overlaps count relative to the smaller radius of a pair.")
+    list_mode: Literal["auto", "gpu", "cpu-sequential", "cpu-pipelined"] = Field(
+        "auto", description="Where the CUDA backend builds the Verlet list (paper 004 §3): 'gpu'; "
+                            "'cpu-sequential' (the GPU waits while CPU threads build it); 'cpu-pipelined' "
+                            "(CPU threads build the next list while the GPU integrates, checked a posteriori); "
+                            "'auto' (measures tau_CPU, tau_GPU and the transfers while running and keeps the "
+                            "fastest; jobs packed into an ensemble always use the GPU list). The CPU backend "
+                            "ignores it.")
 
     # ---- field checks: each message names the value and the allowed range ------------------------
 
@@ -196,6 +248,28 @@ class SimulationSpec(BaseModel):
             raise ValueError(f"overlap_limit = {v} is outside the allowed range (0, 0.5] radii")
         return v
 
+    @field_validator("species")
+    @classmethod
+    def _species(cls, v: Optional[List[Species]]) -> Optional[List[Species]]:
+        if v is None:
+            return v
+        if not 1 <= len(v) <= MAX_SPECIES:
+            raise ValueError(f"species has {len(v)} entries, outside the allowed range 1 ... {MAX_SPECIES} "
+                             f"(or null for one size)")
+        top = max(s.radius_ratio for s in v)
+        if top != 1.0:
+            raise ValueError(f"species: the largest radius_ratio is {top:g}, but it must be exactly 1 "
+                             f"(radius_ratio is relative to the largest species)")
+        ratios = [s.radius_ratio for s in v]
+        if len(set(ratios)) != len(ratios):
+            raise ValueError(f"species: radius_ratio values {ratios} repeat; give each size once "
+                             f"(add the number_fraction of equal sizes)")
+        total = math.fsum(s.number_fraction for s in v)
+        if abs(total - 1.0) > 1e-9:
+            raise ValueError(f"species: the number_fraction values sum to {total:.12g}, but must sum to 1 "
+                             f"(within 1e-9)")
+        return v
+
     # ---- checks that need several fields (derived parameters) ---------------------------------------
 
     @model_validator(mode="after")
@@ -204,6 +278,15 @@ class SimulationSpec(BaseModel):
 
         if self.shape == "sphere" and self.elongation != 1.0:
             raise ValueError(f"elongation = {self.elongation} but shape is 'sphere': elongation must be 1 for spheres")
+        poly = self.species is not None and len(self.species) > 1
+        if self.species is not None and self.shape != "sphere":
+            raise ValueError(f"species is given but shape is {self.shape!r}: size distributions are for "
+                             f"shape 'sphere' only; set species to null")
+        if poly and self.volume_fraction > SPECIES_MAX_VOLUME_FRACTION:
+            raise ValueError(
+                f"volume_fraction = {self.volume_fraction:g} is above {SPECIES_MAX_VOLUME_FRACTION:g}, the largest "
+                f"for a species spec: the random sequential placement of several sizes cannot start denser "
+                f"reliably (it jams near 0.38)")
         p = derive(self)
         if self.dt is not None and self.dt > p.contact_time / MIN_STEPS_PER_CONTACT:
             raise ValueError(
@@ -226,8 +309,14 @@ class SimulationSpec(BaseModel):
         # A typical head-on collision compresses by v_rel/omega_0; reject specs whose *typical* overlap
         # already exceeds the limit (the run-time guard catches the rare tails).
         typical = math.sqrt(2.0) * self.velocity_rms / p.omega0
+        if poly:
+            # equal temperatures: a pair a-b meets at <|v_ab|^2> = 3 T0/m_ab and compresses by v_ab/omega_ab
+            # = sqrt(3 T0/k_n) for every pair; relative to the smaller radius the small-small pair is worst
+            typical = math.sqrt(3.0 * p.temperature0 / p.k_n)
         if typical > self.overlap_limit * p.radius_min:
             vmax = self.overlap_limit * p.radius_min * p.omega0 / math.sqrt(2.0)
+            if poly:
+                vmax = self.overlap_limit * p.radius_min * math.sqrt(p.k_n / p.mass_mean)
             raise ValueError(
                 f"velocity_rms = {self.velocity_rms:g} m/s is too fast for stiffness = {self.stiffness:g} N/m: "
                 f"a typical collision would overlap {typical / p.radius_min:.3g} radii, above "
