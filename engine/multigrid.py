@@ -346,6 +346,12 @@ class MultigridBuilder:
         self.arrays = level_arrays(box, self.level, levels)
         (self.nc, self.inv_cell, self.start_off, self.list_off, self.cell_start, self.cell_list) = self.arrays
 
+    def set_radius(self, radius: np.ndarray) -> None:
+        """The same radii in another order (a permutation of the particles): main levels recomputed,
+        the per-level counts and so the scratch arrays stay valid."""
+        self.radius[:] = radius
+        self.level[:] = main_level(self.radius, self.levels)
+
     def bin(self, pos: np.ndarray) -> None:
         """Sort the particles (positions (N,3) in [0, box), m) into the cells of every level."""
         bin_levels(pos, self.level, self.nc, self.inv_cell, self.start_off, self.list_off, self.cell_start,

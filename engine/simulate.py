@@ -472,9 +472,10 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
 
     def finish(i: int) -> None:
         builds = ensemble_scene_builds(ens, i)
+        info = getattr(ens, "scene_info", None)
         try:
             summary = runs[i].finish(ens.name, ens.device, ens.builds if builds is None else builds,
-                                     {"ensemble_size": size, "ensemble_index": i})
+                                     {"ensemble_size": size, "ensemble_index": i, **(info(i) if info else {})})
         except Exception as exc:
             end(i, exc)
             return

@@ -50,6 +50,9 @@ MODES = ("gpu", "cpu-sequential", "cpu-pipelined", "auto")
 #: stages of the GPU list measured before the first prediction, stages a candidate mode is tried, and
 #: stages between two predictions
 WARM_STAGES, TRIAL_STAGES, REPROBE = 3, 4, 64
+#: a CPU mode is tried only when predicted this much faster per step than the GPU list: switching costs
+#: the builder set-up and a trial, and within a few per cent the modes tie in run-to-run noise
+SWITCH_MARGIN = 0.05
 
 
 def g_max(q: float) -> float:
@@ -108,6 +111,11 @@ class HostLists:
              else np.full(ens.n, ens.spd_h[0, K.D_R0], ens.dtype))
         st.synchronize()
         r = np.asarray(r, ens.dtype)
+        if self.builder is not None and self.builder.n == ens.n:
+            # the same particles in another slot order (the GPU list re-sorts): new radii, same levels
+            self.builder.set_radius(r)
+            self._alloc_host(ens.max_nb)
+            return
         skin = float(ens.contact[0].skin)
         levels = (ens.levels[0] if ens.multigrid else
                   grid_levels(float(ens.box[0]), ens.n, float(r.min()), float(r.max()), skin, max_levels=1))
@@ -319,7 +327,9 @@ class HostLists:
             self._probe = None
             if p is None:
                 return
-            best = min(("gpu", "cpu-sequential", "cpu-pipelined"), key=lambda m: p[m])
+            best = min(("cpu-sequential", "cpu-pipelined"), key=lambda m: p[m])
+            if p[best] > (1.0 - SWITCH_MARGIN) * p["gpu"]:
+                best = "gpu"
             self.decisions.append((self.ens.steps_done, best, p))
             if best != "gpu":
                 self._switch(best)
@@ -334,7 +344,8 @@ class HostLists:
     # ---- summary ------------------------------------------------------------------------------------------
 
     def summary(self) -> dict:
-        """Means per mode of tau_GPU, tau_CPU, tau_exch per stage, q and G_max (paper 004 Eqs. 5, 9)."""
+        """Means per mode of tau_GPU, tau_CPU, tau_exch per stage (s), and q = tau_CPU/tau_GPU of that
+        mode's stages with G_max(q) (paper 004 Eqs. 5, 9; the paper's q is the sequential mode's)."""
         out = {"requested": self.requested, "final_mode": self.mode, "stages": len(self.stages),
                "restarts": self.restarts, "decisions": self.decisions}
         for mode in ("gpu", "cpu-sequential", "cpu-pipelined"):

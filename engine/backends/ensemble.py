@@ -112,6 +112,15 @@ class SerialEnsemble:
         """Neighbour-list builds of scene k (while it is active)."""
         return self._backend(k).builds
 
+    def scene_info(self, k: int) -> dict:
+        """Extra run attributes of scene k for its result file: where a CUDA run built its Verlet lists
+        (paper 004 §3: final mode, stages, restarts, mean tau_CPU / tau_GPU / tau_exch per mode, q, G_max)."""
+        lists = getattr(getattr(self._backend(k), "e", None), "lists", None)
+        if lists is None:
+            return {}
+        summary = lists.summary()
+        return {"list_mode": summary["final_mode"], "list_modes": summary}
+
     def set_contact(self, k: int, contact: ContactParams) -> None:
         self._backend(k).set_contact(contact)
 

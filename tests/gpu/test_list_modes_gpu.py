@@ -49,3 +49,26 @@ def test_three_modes_same_trajectory_and_auto():
         # same lists and physics; only the order of the force sums differs, amplified by collisions
         assert np.abs(d).max() / box < 1e-9, (mode, np.abs(d).max() / box)
     assert out["cpu-pipelined"][2]["stages"] >= 5
+
+
+def test_run_with_cpu_pipelined_list_records_the_mode(tmp_path):
+    """A polydisperse spec through engine.simulate.run with the pipelined CPU list: the result file names
+    the mode and its measured stage times."""
+    import json
+
+    import h5py
+
+    from engine.simulate import run
+    from engine.spec import SimulationSpec
+
+    spec = SimulationSpec(n_particles=20000, volume_fraction=0.1, box_length=2.0 * (20000 / 4096) ** (1 / 3),
+                          species=[{"radius_ratio": 1.0, "number_fraction": 0.1},
+                                   {"radius_ratio": 0.25, "number_fraction": 0.9}],
+                          t_end=2e-4, backend="cuda", list_mode="cpu-pipelined", snapshots=0)
+    run(spec, tmp_path / "r.h5")
+    with h5py.File(tmp_path / "r.h5") as f:
+        par = f["parameters"].attrs
+        assert par["list_mode"] == "cpu-pipelined"
+        summary = json.loads(par["list_modes"])
+        assert summary["stages"] >= 2 and summary["cpu-pipelined"]["tau_cpu"] > 0
+        assert np.all(np.isfinite(f["observables/kinetic_energy_translational/value"][:]))
