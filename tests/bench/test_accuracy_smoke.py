@@ -31,8 +31,14 @@ def test_accuracy_report_files(acc):
     text = (out / "REPORT.md").read_text()
     assert "Pareto" in text and "Verdict on the defaults" in text and s["machine"]["cpu"] in text
     assert (out / "accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert set(s["scenes"]) == {"collisions", "elastic_smooth", "elastic_rough", "cooling", "ellipsoid"}
+    assert set(s["scenes"]) == {"collisions", "elastic_smooth", "elastic_rough", "cooling", "skin_sweep", "ellipsoid"}
+    assert s["default_skin"] == 0.4 and "L_v = 0.4 a on this backend" in text
+    sweep = s["scenes"]["skin_sweep"]["rows"]
+    assert sweep and all(r["cundall"] > 0 and 0 < r["vs_fastest"] <= 1 for r in sweep)
+    assert s["defaults_on_front"]["skin_sweep"] in (True, False)
     for name, block in s["scenes"].items():
+        if name == "skin_sweep":
+            continue
         assert block["rows"], name
         for r in block["rows"]:
             assert math.isfinite(r["error"]) and r["cundall"] > 0, (name, r)
@@ -55,11 +61,18 @@ def test_restitution_error_shrinks_with_dt(acc):
     assert default["err_e_t"] < coarse["err_e_t"]
 
 
-def test_smooth_elastic_drift_shrinks_with_dt(acc):
-    rows = acc[1]["scenes"]["elastic_smooth"]["rows"]
-    # velocity Verlet with event corrections: energy error O(dt^2) per contact, nothing else in a smooth gas
-    assert _row(rows, 200)["error"] < _row(rows, 10)["error"] / 10
-    assert _row(rows, 50)["error"] < _row(rows, 10)["error"]
+def test_elastic_energy_error_per_collision_shrinks_with_dt(acc):
+    smooth = acc[1]["scenes"]["elastic_smooth"]["rows"]
+    # velocity Verlet with event corrections: energy error O(dt^2) or better per contact (smooth: nothing else)
+    assert _row(smooth, 200)["error"] < _row(smooth, 50)["error"] < _row(smooth, 10)["error"] / 10
+    rough = acc[1]["scenes"]["elastic_rough"]
+    # rough: the part dt adds to the model's own loss; zero at the reference itself
+    assert _row(rough["rows"], 200)["error"] == 0.0
+    assert _row(rough["rows"], 50)["error"] < _row(rough["rows"], 10)["error"] / 10
+    # the model's own loss does not depend on dt: t_c/200 and t_c/800 agree (it is not a dt error)
+    ml = rough["model_loss"]
+    assert ml["eps_ref"] < 0 and abs(ml["eps_fine"] - ml["eps_ref"]) < 0.2 * abs(ml["eps_ref"])
+    assert all(r["pairs_apart"] for r in smooth + rough["rows"])
 
 
 def test_ellipsoid_geometry_precision(acc):
@@ -82,6 +95,22 @@ def test_pareto_marks_a_dominated_default():
     # below a floor, errors are equal: the faster point wins
     accuracy.pareto(rows, floor=2e-2)
     assert [r["on_front"] for r in rows] == [False, False, True, True]
+
+
+def test_front_with_error_bars():
+    """Errors the seed scatter cannot rank: neither row dominates; resolved: the more accurate one is kept."""
+    cheap = {"dt_fraction": 35, "precision": "float64", "skin": 0.4, "error": 6e-6, "error_se": 1e-6, "throughput": 2.0}
+    dear = {"dt_fraction": 50, "precision": "float64", "skin": 0.4, "error": 4e-6, "error_se": 1e-6, "throughput": 1.0}
+    assert not accuracy.dominates(cheap, dear) and not accuracy.dominates(dear, cheap)   # 2e-6 < 2 x hypot(SE)
+    assert accuracy.unresolved(cheap, dear)
+    cheap["error_se"] = dear["error_se"] = 0.3e-6
+    assert not accuracy.dominates(cheap, dear) and not accuracy.unresolved(cheap, dear)  # resolved: a trade-off
+    cheap["error"] = 3e-6
+    assert accuracy.dominates(cheap, dear)          # resolved more accurate and cheaper
+    # the same error to rounding (the skin rows run one trajectory): the measurably cheaper row wins
+    a = {"dt_fraction": 50, "precision": "float64", "skin": 0.4, "error": 1e-3, "throughput": 1.0}
+    b = dict(a, skin=0.8, error=1.01e-3, throughput=1.3)
+    assert accuracy.dominates(b, a) and not accuracy.dominates(a, b)
 
 
 def test_specialisation_report(tmp_path):
