@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from engine.params import (carnahan_starling_g, derive, enskog_rate_mixture, estimate_bytes_per_particle,
                            estimate_cost, gamma_n_from_restitution, species_counts)
-from engine.scene import initial_spheres, place_species, species_index
+from engine.scene import initial_spheres, species_index
 from engine.spec import SPECIES_MAX_VOLUME_FRACTION, SimulationSpec
 
 TWO = [{"radius_ratio": 1.0, "number_fraction": 0.3}, {"radius_ratio": 0.4, "number_fraction": 0.7}]
@@ -88,7 +88,7 @@ def test_one_species_list_is_the_monodisperse_scene():
 def test_enskog_mixture_reduces_to_one_size():
     """The mixture rate (BMCSL g_ab) equals 4 (2a)^2 n g_CS sqrt(pi T/m) for one size, and is unchanged
     when one size is split into two labels."""
-    a, m, n, V, T, phi = 0.01, 2e-3, 1000, 1.0, 1e-4, None
+    a, m, n, V, T = 0.01, 2e-3, 1000, 1.0, 1e-4
     phi = n * 4 / 3 * math.pi * a**3 / V
     mono = 4 * (2 * a) ** 2 * (n / V) * carnahan_starling_g(phi) * math.sqrt(math.pi * T / m)
     assert enskog_rate_mixture((a,), (n,), (m,), V, T) == pytest.approx(mono, rel=1e-13)
