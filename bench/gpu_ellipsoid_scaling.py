@@ -18,6 +18,11 @@ reported per N and precision.
     python bench/gpu_ellipsoid_scaling.py --out bench/gpu_ellipsoid_scaling.json
     python bench/gpu_ellipsoid_scaling.py --n 2097152 --precision float64 --no-ensemble   # the target row
     python bench/gpu_ellipsoid_scaling.py --budget-s 200   # start no new row after 200 s (rows by priority)
+    python bench/gpu_ellipsoid_scaling.py --n 2097152 16777216 --no-ensemble --spheres-last --controls
+
+``--controls`` adds float64 rows at N = 2 097 152 with the exact screens before the Perram-Wertheim solve
+switched off (engine.backends.cpu_ellipsoid.PW_SCREEN < 0: the code path before the screens) and with the PW
+tolerance 1e-10 instead of 1e-15, measured in the same process as the default row.
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ from numba import prange
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench import gpu_scaling  # noqa: E402
-from engine.physics.ellipsoid import ellipsoid_overlap_pw  # noqa: E402
+from engine.physics.ellipsoid import ellipsoid_overlap_pw, plane_separated, shape_matrix_inverse  # noqa: E402
 
 XI = 2.0
 PHI = 0.058
@@ -76,6 +81,13 @@ def _flag_overlaps(pos, quat, a, b, box, nc, cell_start, cell_list, moved, bad):
                         dz -= box * np.round(dz / box)
                         if dx * dx + dy * dy + dz * dz >= rc2:
                             continue
+                        # exact screen first (bench speed only): a plane normal to the centre line separating
+                        # the pair scaled by 1 + 2e-6 proves W_0 > 1 + 2e-6, so the pair is not flagged anyway
+                        ia = shape_matrix_inverse(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], a, b, b, 0.5)
+                        ib = shape_matrix_inverse(quat[j, 0], quat[j, 1], quat[j, 2], quat[j, 3], a, b, b, 0.5)
+                        if plane_separated(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5], ib[0], ib[1], ib[2], ib[3],
+                                           ib[4], ib[5], dx, dy, dz, 2e-6, 0.5):
+                            continue
                         w0 = ellipsoid_overlap_pw(dx, dy, dz, quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
                                                   a, b, b, quat[j, 0], quat[j, 1], quat[j, 2], quat[j, 3], a, b, b,
                                                   1e-12, 0.5)[1]
@@ -93,6 +105,29 @@ def _unit_quats(rng, k):
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+@numba.njit(cache=True)
+def _bin_cells(pos, box, nc, cell_start, cell_list):
+    """Counting sort of the particles by cell (stable: index order within a cell), O(N)."""
+    n = pos.shape[0]
+    inv_cell = nc / box
+    cid = np.empty(n, np.int64)
+    cell_start[:] = 0
+    for i in range(n):
+        cx = min(int(pos[i, 0] * inv_cell), nc - 1)
+        cy = min(int(pos[i, 1] * inv_cell), nc - 1)
+        cz = min(int(pos[i, 2] * inv_cell), nc - 1)
+        c = (cx * nc + cy) * nc + cz
+        cid[i] = c
+        cell_start[c + 1] += 1
+    for c in range(nc * nc * nc):
+        cell_start[c + 1] += cell_start[c]
+    fill = cell_start[:-1].copy()
+    for i in range(n):
+        c = cid[i]
+        cell_list[fill[c]] = i
+        fill[c] += 1
+
+
 def place_gas(n, box, a, b, rng, max_passes=200):
     """Random centres and orientations of n spheroids (semi-axes a, b, b) in a periodic box, none overlapping."""
     pos = rng.uniform(0.0, box, size=(n, 3))
@@ -100,12 +135,10 @@ def place_gas(n, box, a, b, rng, max_passes=200):
     moved = np.ones(n, np.bool_)
     bad = np.zeros(n, np.bool_)
     nc = max(1, int(box / (2.0 * a)))
+    cell_start = np.zeros(nc ** 3 + 1, np.int64)
+    cell_list = np.zeros(n, np.int64)
     for _ in range(max_passes):
-        cell = np.minimum((pos * (nc / box)).astype(np.int64), nc - 1)
-        cid = (cell[:, 0] * nc + cell[:, 1]) * nc + cell[:, 2]
-        cell_list = np.argsort(cid, kind="stable")
-        cell_start = np.zeros(nc ** 3 + 1, np.int64)
-        np.cumsum(np.bincount(cid, minlength=nc ** 3), out=cell_start[1:])
+        _bin_cells(pos, box, nc, cell_start, cell_list)
         _flag_overlaps(pos, quat, a, b, box, nc, cell_start, cell_list, moved, bad)
         k = int(bad.sum())
         if k == 0:
@@ -157,11 +190,28 @@ def ellipsoid_gas(n, phi, precision, seed=1, xi=XI, e_n=0.9):
 
 # ---- rows -------------------------------------------------------------------------------------------
 
-def measure_scaling(n, precision, reps, target_s, shape):
+#: control variants of an ellipsoid row: (PW_SCREEN, PW_TOL) overrides for the row's precision
+VARIANTS = {"default": (None, None), "noscreen": (-1.0, None), "tol1e-10": (None, 1e-10)}
+
+
+def measure_scaling(n, precision, reps, target_s, shape, variant="default"):
+    from engine.backends import cpu_ellipsoid
     from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
 
     if shape == "ellipsoid":
-        r = gpu_scaling.measure(n, PHI, precision, reps, target_s, make=ellipsoid_gas, backend=CudaEllipsoidBackend)
+        screen, tol = VARIANTS[variant]
+        saved = (cpu_ellipsoid.PW_SCREEN[precision], cpu_ellipsoid.PW_TOL[precision])
+        try:
+            if screen is not None:
+                cpu_ellipsoid.PW_SCREEN[precision] = screen
+            if tol is not None:
+                cpu_ellipsoid.PW_TOL[precision] = tol
+            r = gpu_scaling.measure(n, PHI, precision, reps, target_s, make=ellipsoid_gas,
+                                    backend=CudaEllipsoidBackend)
+            r.update(variant=variant, pw_screen=cpu_ellipsoid.PW_SCREEN[precision],
+                     pw_tol=cpu_ellipsoid.PW_TOL[precision])
+        finally:
+            cpu_ellipsoid.PW_SCREEN[precision], cpu_ellipsoid.PW_TOL[precision] = saved
     else:
         r = gpu_scaling.measure(n, PHI, precision, reps, target_s)
     r["shape"] = shape
@@ -208,15 +258,20 @@ def measure_ensemble(k, precision, multistep, reps, target_s, n=4096):
     return row
 
 
-def plan(ns, precisions, ks, ensemble):
+def plan(ns, precisions, ks, ensemble, spheres_last=False, controls=False):
     """Rows in priority order: the target row (float64 at 2^21) first, then float64 by N, float32 by N,
-    then the ensemble rows; each ellipsoid row is followed by its sphere row."""
+    then the ensemble rows; each ellipsoid row is followed by its sphere row (spheres_last: all sphere rows
+    after all ellipsoid rows; controls: the float64 2^21 control variants right after the target row)."""
     order = []
     first = [(p, n) for p in precisions for n in ns if (p, n) == ("float64", 2097152)]
     rest = [(p, n) for p in precisions for n in ns if (p, n) not in first]
+    spheres = []
     for p, n in first + rest:
         order.append(("ellipsoid", p, n))
-        order.append(("sphere", p, n))
+        if controls and (p, n) == ("float64", 2097152):
+            order += [("ellipsoid:noscreen", p, n), ("ellipsoid:tol1e-10", p, n)]
+        (spheres if spheres_last else order).append(("sphere", p, n))
+    order += spheres
     if ensemble:
         for p in precisions:
             for k in ks:
@@ -232,11 +287,13 @@ def table(rows, info) -> str:
     for r in rows:
         if r.get("shape") != "ellipsoid":
             continue
+        if r.get("variant", "default") != "default":
+            r = dict(r, precision=f"{r['precision']} ({r['variant']})")
         if "error" in r:
             out.append(f"| {r['precision']} | {r['n']} | ERROR {r['error'][:80]} |")
             continue
         f = r["frac"]
-        s = sph.get((r["precision"], r["n"]))
+        s = sph.get((r["precision"].split(" ")[0], r["n"]))
         ratio = f"{r['cundall_median'] / s['cundall_median']:.2f}" if s else "-"
         sc = f"{s['cundall_median']:.3g}" if s else "-"
         out.append(f"| {r['precision']} | {r['n']} | {r['cundall_median']:.3g} | {r['loop']} | {f['kick_drift']:.2f} | "
@@ -265,6 +322,8 @@ def main():
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--target-s", type=float, default=0.4)
     ap.add_argument("--budget-s", type=float, default=None, help="start no new row after this many seconds")
+    ap.add_argument("--spheres-last", action="store_true", help="sphere rows after all ellipsoid rows")
+    ap.add_argument("--controls", action="store_true", help="float64 2^21 rows without the screens / with tol 1e-10")
     ap.add_argument("--out", default=None, help="JSON (rewritten after every row)")
     args = ap.parse_args()
     from numba import cuda
@@ -277,20 +336,22 @@ def main():
                 xi=XI, phi=PHI, cmd=" ".join(sys.argv))
     print(json.dumps(info), flush=True)
     rows, skipped = [], []
-    for kind, prec, n in plan(args.n, args.precision, args.k, not args.no_ensemble):
+    for kind, prec, n in plan(args.n, args.precision, args.k, not args.no_ensemble, args.spheres_last, args.controls):
+        kind, _, variant = kind.partition(":")
         if kind == "sphere" and args.no_spheres:
             continue
         if args.budget_s is not None and time.perf_counter() - t_start > args.budget_s:
-            skipped.append(f"{kind} {prec} {n}")
+            skipped.append(f"{kind}{':' + variant if variant else ''} {prec} {n}")
             continue
         try:
             if kind == "ensemble":
                 r = measure_ensemble(n, prec, None, args.reps, args.target_s)
             else:
-                r = measure_scaling(n, prec, args.reps, args.target_s, kind)
+                r = measure_scaling(n, prec, args.reps, args.target_s, kind, variant or "default")
         except Exception as e:  # report and go on
             r = dict(shape="ellipsoid-ensemble" if kind == "ensemble" else kind, precision=prec,
-                     **({"k": n} if kind == "ensemble" else {"n": n}), error=repr(e)[:300])
+                     **({"k": n} if kind == "ensemble" else {"n": n}), variant=variant or "default",
+                     error=repr(e)[:300])
         r["elapsed_s"] = time.perf_counter() - t_start
         rows.append(r)
         print(json.dumps(r), flush=True)

@@ -3,14 +3,20 @@
 - Neighbour lists, cells and list copies are those of engine/backends/cpu.py with the bounding-sphere
   radius (largest semi-axis) as the particle radius: the Verlet list holds the pairs whose bounding
   spheres come within the skin, and the force loop runs the Perram-Wertheim contact
-  (engine/physics/ellipsoid.py) only for pairs whose bounding spheres overlap (the cheap broad phase).
+  (engine/physics/ellipsoid.py) only for pairs whose bounding spheres overlap (the cheap broad phase),
+  behind two exact screens for pairs not in contact at the previous step (ellipsoid_pair_screened: the plane
+  normal to the centre line, and the PW iteration stopped at the first iterate with F > 1 + margin). A
+  screened pair stores -inf as its gap; when a contact starts right after a screened step the gap of that step
+  is evaluated from the state before the step (pos_prev, quat_prev), so every result is the one without the
+  screens, bit for bit (tests/engine/test_ellipsoid_screen.py).
 - Each pair is evaluated with the lower id as "A" in both partners' loops, so F_ji = -F_ij to the last
   bit without atomics (the full list evaluates each pair twice, as the sphere backend does).
 - Rotation: space-frame angular momentum L kicked by the torque, quaternions by Fincham's leap-frog with
   the body-frame angular velocity I^-1 R^T L (engine/physics/rotation.py: fincham_quat_step_body),
   renormalised every step. Predicted end-of-step velocities and angular velocities feed the dashpot.
 - List slot layout as in cpu.py (SLOT = 5); slots 3 and 4 hold the overlap and the dashpot force of the
-  previous step (contact start/end corrections), slots 0-2 are unused (frictionless).
+  previous step (contact start/end corrections; slot 3 = -inf: screened), slots 0-2 are unused
+  (frictionless).
 - Everything cache=True; the loop is compiled whole (no Python per step).
 """
 
@@ -29,18 +35,24 @@ from engine.backends.cpu import (BAD_VALUE, OK, OVERFLOW, OVERLAP, SLOT, _collec
                                  _instability, _restore_springs, _worst, bin_particles, build_list,
                                  copy_list, half_kick)
 from engine.physics.contact import contact_elastic_energy, min_image
-from engine.physics.ellipsoid import ellipsoid_pair
+from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import angular_momentum, body_omega, fincham_quat_step_body, space_omega
 
 #: Newton tolerance on the Perram-Wertheim lambda per precision (bench/RESULTS.md, issue 4 section).
 PW_TOL = {"float64": 1e-15, "float32": 1e-7}
+#: relative margin of the exact disjointness screens before/inside the Perram-Wertheim solve
+#: (engine.physics.ellipsoid.ellipsoid_contact_screened; far above the rounding of F in each precision, so the
+#: screens change no result: tests/engine/test_ellipsoid_screen.py); a negative value disables them
+PW_SCREEN = {"float64": 1e-9, "float32": 1e-3}
 
 
 @numba.njit(parallel=True, cache=True)
-def kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p, hk, dt, box,
-                   inv_box, half, chunk_disp, chunk_bad):
-    """v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham; predicted v and w at t + dt."""
+def kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p, pos_prev, quat_prev,
+                   hk, dt, box, inv_box, half, chunk_disp, chunk_bad):
+    """v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham; predicted v and w at t + dt; the
+    positions and orientations before the step kept in pos_prev, quat_prev (for a contact that starts after
+    a screened step, engine.physics.ellipsoid.ellipsoid_pair_screened)."""
     hp = dt * half
     n = pos.shape[0]
     nch = chunk_disp.shape[0]
@@ -51,7 +63,10 @@ def kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel
         bad = -1
         for i in range(i0, i1):
             im = inv_m[i]
+            for k in range(4):
+                quat_prev[i, k] = quat[i, k]
             for k in range(3):
+                pos_prev[i, k] = pos[i, k]
                 v = kick(vel[i, k], force[i, k], im, hk)
                 vel[i, k] = v
                 vel_p[i, k] = kick(v, force[i, k], im, hp)
@@ -92,10 +107,14 @@ def kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel
 
 @numba.njit(parallel=True, cache=True)
 def compute_forces_ell(pos, vel_p, omega_p, quat, axes, bound, inv_m, nbr, nn, hist, force, torque, box,
-                       inv_box, half, k_n, gn_coef, dt, tol, chunk_ovl, chunk_ovl_idx):
+                       inv_box, half, k_n, gn_coef, dt, tol, margin, screened_gap, pos_prev, quat_prev, chunk_ovl,
+                       chunk_ovl_idx):
     """Contact forces and torques on every particle from its list; overlap/dashpot history updated.
 
-    Records per chunk the largest overlap relative to the smallest semi-axis (stability guard).
+    Pairs proven disjoint by the exact screens (margin >= 0) store screened_gap (-inf) as their gap; a contact that
+    starts right after such a step gets the previous gap evaluated from pos_prev/quat_prev (see
+    engine.physics.ellipsoid.ellipsoid_pair_screened). Records per chunk the largest overlap relative to
+    the smallest semi-axis (stability guard).
     """
     n = pos.shape[0]
     nch = chunk_ovl.shape[0]
@@ -125,15 +144,29 @@ def compute_forces_ell(pos, vel_p, omega_p, quat, axes, bound, inv_m, nbr, nn, h
                     hist[i, kk, 4] = 0
                     continue
                 m12 = 1 / (inv_m[a] + inv_m[b])
-                g = ellipsoid_pair(rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
-                                   axes[a, 0], axes[a, 1], axes[a, 2],
-                                   quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
-                                   axes[b, 0], axes[b, 1], axes[b, 2],
-                                   vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
-                                   omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
-                                   omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
-                                   hist[i, kk, 3], hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), dt,
-                                   tol, half)
+                d_prev = hist[i, kk, 3]
+                for _ in range(2):
+                    g = ellipsoid_pair_screened(
+                        rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
+                        axes[a, 0], axes[a, 1], axes[a, 2],
+                        quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
+                        axes[b, 0], axes[b, 1], axes[b, 2],
+                        vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
+                        omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
+                        omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
+                        d_prev, hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, margin,
+                        screened_gap, half)
+                    if g[11] != PAIR_NEEDS_PREV:
+                        break
+                    # a contact starts after a screened step: the gap of that step, from its state
+                    d_prev = ellipsoid_contact(
+                        min_image(pos_prev[b, 0] - pos_prev[a, 0], box, inv_box, half),
+                        min_image(pos_prev[b, 1] - pos_prev[a, 1], box, inv_box, half),
+                        min_image(pos_prev[b, 2] - pos_prev[a, 2], box, inv_box, half),
+                        quat_prev[a, 0], quat_prev[a, 1], quat_prev[a, 2], quat_prev[a, 3],
+                        axes[a, 0], axes[a, 1], axes[a, 2],
+                        quat_prev[b, 0], quat_prev[b, 1], quat_prev[b, 2], quat_prev[b, 3],
+                        axes[b, 0], axes[b, 1], axes[b, 2], tol, half)[2]
                 if i == a:
                     fx += g[0]
                     fy += g[1]
@@ -168,9 +201,10 @@ def compute_forces_ell(pos, vel_p, omega_p, quat, axes, bound, inv_m, nbr, nn, h
 
 @numba.njit(cache=True)
 def run_steps_ell(nsteps, pos, vel, angm, quat, force, torque, inv_m, inv_i, unit, axes, bound, x_ref, vel_p,
-                  omega_p, nbr, nn, hist, nbr_new, nn_new, hist_new,
+                  omega_p, pos_prev, quat_prev, nbr, nn, hist, nbr_new, nn_new, hist_new,
                   nc, inv_cell, cell_start, cell_list, cell_of, cursor,
-                  box, inv_box, half, dt, skin, k_n, gn_coef, tol, overlap_limit, chunk_a, chunk_b):
+                  box, inv_box, half, dt, skin, k_n, gn_coef, tol, margin, screened_gap, overlap_limit, chunk_a,
+                  chunk_b):
     """Advance up to nsteps steps; velocities and L synchronous on entry and exit (see cpu.run_steps)."""
     builds = 0
     if nsteps <= 0:
@@ -178,8 +212,8 @@ def run_steps_ell(nsteps, pos, vel, angm, quat, force, torque, inv_m, inv_i, uni
     limit2 = (skin * half) * (skin * half)
     for s in range(nsteps):
         hk = dt * half if s == 0 else dt
-        kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p, hk, dt, box,
-                       inv_box, half, chunk_a, chunk_b)
+        kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p, pos_prev,
+                       quat_prev, hk, dt, box, inv_box, half, chunk_a, chunk_b)
         for c in range(chunk_b.shape[0]):
             if chunk_b[c] >= 0:
                 return BAD_VALUE, s, chunk_b[c], 0.0, builds
@@ -200,7 +234,8 @@ def run_steps_ell(nsteps, pos, vel, angm, quat, force, torque, inv_m, inv_i, uni
                 return OVERFLOW, s, -1, float(need), builds
             copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
         compute_forces_ell(pos, vel_p, omega_p, quat, axes, bound, inv_m, nbr, nn, hist, force, torque, box,
-                           inv_box, half, k_n, gn_coef, dt, tol, chunk_a, chunk_b)
+                           inv_box, half, k_n, gn_coef, dt, tol, margin, screened_gap, pos_prev, quat_prev, chunk_a,
+                           chunk_b)
         worst, who = _worst(chunk_a, chunk_b)
         if worst > overlap_limit:
             return OVERLAP, s, who, worst, builds
@@ -297,6 +332,8 @@ class CpuEllipsoidBackend:
         self.force = np.zeros((n, 3), dt_)
         self.torque = np.zeros((n, 3), dt_)
         self.x_ref = self.pos.copy()
+        self.pos_prev = self.pos.copy()
+        self.quat_prev = self.quat.copy()
         self.vel_p = self.vel.copy()
         self.omega_p = np.zeros((n, 3), dt_)
         omega_from_angm(self.quat, self.angm, self.inv_i, self.half, self.omega_p)
@@ -350,6 +387,8 @@ class CpuEllipsoidBackend:
         self.box_c = c(self.box)
         self.inv_box = c(1.0 / self.box)
         self.tol = c(PW_TOL[contact.precision])
+        self.margin = c(PW_SCREEN[contact.precision])
+        self.screened_gap = c(-np.inf)
         self.overlap_limit = float(contact.overlap_limit)
 
     def _build(self) -> None:
@@ -378,7 +417,8 @@ class CpuEllipsoidBackend:
     def _forces(self) -> None:
         compute_forces_ell(self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.bound, self.inv_m,
                            self.nbr, self.nn, self.hist, self.force, self.torque, self.box_c, self.inv_box,
-                           self.half, self.k_n, self.gn_coef, self.dt, self.tol, self.chunk_a, self.chunk_b)
+                           self.half, self.k_n, self.gn_coef, self.dt, self.tol, self.margin, self.screened_gap,
+                           self.pos_prev, self.quat_prev, self.chunk_a, self.chunk_b)
 
     # ---- time loop ---------------------------------------------------------------------------------
 
@@ -393,10 +433,11 @@ class CpuEllipsoidBackend:
             status, done, who, value, builds = run_steps_ell(
                 left, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m,
                 self.inv_i, self.unit, self.axes, self.bound, self.x_ref, self.vel_p, self.omega_p,
-                self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new, self.hist_new, self.nc,
+                self.pos_prev, self.quat_prev, self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new, self.hist_new,
+                self.nc,
                 self.inv_cell, self.cell_start, self.cell_list, self.cell_of, self.cursor, self.box_c,
-                self.inv_box, self.half, self.dt, self.skin, self.k_n, self.gn_coef, self.tol,
-                self.overlap_limit, self.chunk_a, self.chunk_b)
+                self.inv_box, self.half, self.dt, self.skin, self.k_n, self.gn_coef, self.tol, self.margin,
+                self.screened_gap, self.overlap_limit, self.chunk_a, self.chunk_b)
             self.builds += builds
             if status == OK:
                 self.steps_done += done

@@ -29,7 +29,7 @@ from numba import cuda
 from engine.backends import cuda_ellipsoid_kernels as CE
 from engine.backends import cuda_kernels as K
 from engine.backends.base import ContactParams, EllipsoidSystem
-from engine.backends.cpu_ellipsoid import PW_TOL, angm_from_omega, omega_from_angm
+from engine.backends.cpu_ellipsoid import PW_SCREEN, PW_TOL, angm_from_omega, omega_from_angm
 from engine.backends.cuda import CudaBackend, CudaEnsemble
 
 
@@ -42,7 +42,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
     """
 
     _ND = CE.NDE
-    _permuted = ("pos", "vel", "angm", "quat", "vel_p", "omega_p")
+    _permuted = ("pos", "vel", "angm", "quat", "vel_p", "omega_p", "pos_prev", "quat_prev")
     _view_names = ("radius1", "inv_m1")
 
     def __init__(self, systems: list, contacts: list):
@@ -89,6 +89,9 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         self.angm = up(angm, 3)
         self.omega_p = up(omega_p, 3)
         self.quat = up(quat, 4)
+        # state before the current step (a contact starting after a screened step needs that step's gap)
+        self.pos_prev = up(cat("position"), 3)
+        self.quat_prev = up(quat, 4)
         self.force = cuda.to_device(np.zeros((3, n), dt_), stream=s)
         self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=s)
         # one force buffer (the force phase reads vel_p/omega_p, not other particles' forces): the sphere
@@ -125,6 +128,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
             raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
         super()._set_scene_contact(s, contact)
         self.spd_h[s, CE.E_TOL] = self.dtype(PW_TOL[contact.precision])
+        self.spd_h[s, CE.E_SCR] = self.dtype(PW_SCREEN[contact.precision])
 
     def _specialise(self) -> None:
         self.k = CE.kernels(self.dtype, self.uniform, self.tpb)
@@ -146,14 +150,14 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
     def _kick_drift(self, first: int, step: int) -> None:
         self.k["kick_drift"][self._grid(self.n)](
             self.n, first, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1,
-            self.inv_i, self.x_ref, self.vel_p, self.omega_p, self.ids, self.sc, self.spd, self.spf, self.spi,
-            self.status, step)
+            self.inv_i, self.x_ref, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev, self.ids, self.sc,
+            self.spd, self.spf, self.spi, self.status, step)
 
     def _forces(self, step: int) -> None:
         self.k["forces"][self._grid(self.n)](
             self.n, self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.radius1, self.inv_m1,
-            self.force, self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
-            self.spi, self.status, step)
+            self.force, self.torque, self.nbr, self.nn, self.hist, self.pos_prev, self.quat_prev, self.ids,
+            self.sc, self.spd, self.spf, self.spi, self.status, step)
 
     def _half_kick(self) -> None:
         self.k["half_kick"][self._grid(self.n)](self.n, self.vel, self.angm, self.force, self.torque,
@@ -162,8 +166,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
     def _run_steps(self, nmax: int, first: int, step0: int, grid=None) -> None:
         self.k["run_steps"][grid or self._coop_grid()](
             self.n, nmax, first, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1,
-            self.inv_i, self.axes, self.radius1, self.x_ref, self.vel_p, self.omega_p, self.nbr, self.nn,
-            self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step0)
+            self.inv_i, self.axes, self.radius1, self.x_ref, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev,
+            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step0)
 
     def warmup(self) -> None:
         """Compile the kernels without advancing (launches with n = 0)."""
@@ -171,10 +175,11 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         g = (1, self.tpb, s)
         k["kick_drift"][g](
             0, 1, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1, self.inv_i,
-            self.x_ref, self.vel_p, self.omega_p, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, 0)
+            self.x_ref, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev, self.ids, self.sc, self.spd,
+            self.spf, self.spi, self.status, 0)
         k["forces"][g](0, self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.radius1, self.inv_m1,
-                       self.force, self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
-                       self.spi, self.status, 0)
+                       self.force, self.torque, self.nbr, self.nn, self.hist, self.pos_prev, self.quat_prev, self.ids,
+                       self.sc, self.spd, self.spf, self.spi, self.status, 0)
         k["half_kick"][g](0, self.vel, self.angm, self.force, self.torque, self.inv_m1, self.sc, self.spd, self.spi)
         acc = cuda.device_array((self.n_scenes, CE.NACC), np.float64, stream=s)
         k["observe"][g](0, self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.sc,
@@ -183,8 +188,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
             scratch = cuda.to_device(self._fresh_status(), stream=s)
             k["run_steps"][g](0, 1, 1, self.pos, self.vel, self.angm, self.quat, self.force, self.torque,
                               self.inv_m1, self.inv_i, self.axes, self.radius1, self.x_ref, self.vel_p, self.omega_p,
-                              self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
-                              scratch, 0)
+                              self.pos_prev, self.quat_prev, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd,
+                              self.spf, self.spi, scratch, 0)
         s.synchronize()
 
     # ---- host copies (output steps only) -----------------------------------------------------------

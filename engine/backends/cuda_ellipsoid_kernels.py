@@ -3,10 +3,12 @@
 One physics source: every kernel calls the same ``@numba.njit`` functions as the CPU ellipsoid backend
 (engine/backends/cpu_ellipsoid.py):
 
-- :func:`engine.physics.ellipsoid.ellipsoid_pair`: Perram-Wertheim contact function (W_0 = sqrt(F_max),
-  paper 003 §3.2 / PHYSICS-NOTES §4.3), contact point C and normal n (paper 003 Eq. 22), overlap delta
-  along n (Eqs. 23-24), force F = k_n delta - gamma_n v_n with the contact start/end corrections, torques
-  (C - c) x F about each centre;
+- :func:`engine.physics.ellipsoid.ellipsoid_pair_screened`: exact disjointness screens (plane normal to the
+  centre line; Perram-Wertheim iterate with F > 1 + margin), Perram-Wertheim contact function
+  (W_0 = sqrt(F_max), paper 003 §3.2 / PHYSICS-NOTES §4.3), contact point C and normal n (paper 003 Eq. 22),
+  overlap delta along n (Eqs. 23-24), force F = k_n delta - gamma_n v_n with the contact start/end
+  corrections, torques (C - c) x F about each centre; :func:`~engine.physics.ellipsoid.ellipsoid_contact` for
+  the previous step's gap of a contact that starts right after a screened step;
 - :func:`engine.physics.rotation.fincham_quat_step_body`, :func:`~engine.physics.rotation.space_omega`,
   :func:`~engine.physics.rotation.body_omega`: Euler's equations in the body frame with the principal
   moments of a spheroid through the space-frame angular momentum L (dL/dt = tau), Fincham's leap-frog for
@@ -25,13 +27,16 @@ Layout (device, particle index fastest) as in the sphere module, with ellipsoid 
     body -> space; force, torque (3, N) N, N m (one buffer: the predicted end-of-step velocities
     vel_p = v + F/m dt/2 and angular velocities omega_p = R I^-1 R^T (L + tau dt/2) (3, N) are written by
     the kick-drift phase, as the CPU backend does, so the force phase reads no force of another particle);
-    x_ref (3, N); hist (5, M, N): slots 3 and 4 hold the previous overlap delta (m; negative: the gap) and
-    the previous dashpot force (N), slots 0-2 unused (frictionless). Non-uniform scenes: bound (1, N) = a
+    x_ref (3, N); pos_prev (3, N), quat_prev (4, N): positions and orientations before the current step
+    (written by the kick-drift phase, read only when a contact starts right after a screened step; permuted
+    with the other particle arrays at a rebuild); hist (5, M, N): slots 3 and 4 hold the previous overlap
+    delta (m; negative: the gap; -inf: screened, i.e. proven apart without computing the gap) and the previous
+    dashpot force (N), slots 0-2 unused (frictionless). Non-uniform scenes: bound (1, N) = a
     (the sphere list's ``radius``), axes (3, N) m, inv_m (1, N), inv_i (3, N) (principal 1/I about the body
     axes), mass (1, N).
 Per-scene constants: the sphere tables spd/spf/spi (D_R0 = a, the bounding radius; D_M0, D_IM0 the mass
 and 1/m) with ellipsoid columns appended to spd (semi-axes, principal 1/I, Perram-Wertheim
-tolerance, smallest semi-axis for the overlap guard).
+tolerance, smallest semi-axis for the overlap guard, margin of the exact screens).
 Each pair is evaluated with the lower particle id as "A" in both partners' loops (CPU: the lower index),
 so F_ji = -F_ij to the last bit without atomics and the GPU repeats the CPU's arithmetic exactly.
 """
@@ -49,13 +54,13 @@ from engine.backends.cuda_kernels import (D_BOX, D_DT, D_GN, D_HP, D_IM0, D_INVB
                                           F_LIM2INV, F_OVL, I_ACTIVE, ND, NSS, S_D2, S_D2B, S_RUN_DONE,
                                           S_RUN_REBUILD, S_V2, SS0, SS_BAD_ID, SS_OVL, SS_OVL_ID, F_V2F)
 from engine.physics.contact import contact_elastic_energy, min_image
-from engine.physics.ellipsoid import ellipsoid_pair
+from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import body_omega, fincham_quat_step_body, space_omega
 
 # ellipsoid columns of spd (after the sphere module's ND columns), working precision
-E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN = range(ND, ND + 8)
-NDE = ND + 8
+E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR = range(ND, ND + 9)
+NDE = ND + 9
 #: observe accumulators per scene: E_tr, E_rot, E_rot perpendicular to body x, contacts (x2), elastic
 #: energy, P_x, P_y, P_z, largest overlap (m)
 A_TR, A_ROT, A_PERP, A_CON, A_EL, A_PX, A_PY, A_PZ, A_OVL = range(9)
@@ -83,6 +88,7 @@ def kernels(dtype, uniform: bool, tpb: int) -> dict:
 def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     ZERO = DT(0)
     HALF = DT(0.5)
+    SCREENED_GAP = DT(-np.inf)
     ONE = DT(1)
     BIG = DT(np.finfo(DT).max)
     f64 = np.float64
@@ -94,11 +100,13 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
 
     @cuda.jit(device=True)
     def kick_drift_one(i, first, pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p,
-                       ids, sc, spd, spf, spi, status, step):
+                       pos_prev, quat_prev, ids, sc, spd, spf, spi, status, step):
         """One particle's kick + drift (cpu_ellipsoid.kick_drift_ell): v += F/m hk, L += tau hk (hk = dt/2
         on the first step of a call, else dt), x += v dt wrapped, q by Fincham's leap-frog with
         L(t) = L - tau dt/2 and L(t + dt/2) = L; predicted v and w at t + dt stored for the force phase.
-        Returns the normalised squared displacement since the build and speed (0, 0 for a skipped scene)."""
+        The positions and orientations before the step go to pos_prev, quat_prev (a contact that starts
+        after a screened step needs the gap of that step). Returns the normalised squared displacement since
+        the build and speed (0, 0 for a skipped scene)."""
         s = sc[i]
         if spi[s, I_ACTIVE] == 0:
             return 0.0, 0.0
@@ -110,7 +118,10 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         im = spd[s, D_IM0] if UNIFORM else inv_m[i]
         v2 = ZERO
         dsp = ZERO
+        for k in range(4):
+            quat_prev[k, i] = quat[k, i]
         for k in range(3):
+            pos_prev[k, i] = pos[k, i]
             v = kick(vel[k, i], force[k, i], im, hk)
             vel[k, i] = v
             vel_p[k, i] = kick(v, force[k, i], im, hp)
@@ -154,12 +165,13 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         return f64(dsp) * spf[s, F_LIM2INV], f64(v2) * spf[s, F_V2F]
 
     @cuda.jit(device=True)
-    def forces_one(i, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, ids, sc,
-                   spd, spf, spi, status, step):
+    def forces_one(i, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, pos_prev,
+                   quat_prev, ids, sc, spd, spf, spi, status, step):
         """Contact forces and torque on particle i from its list (cpu_ellipsoid.compute_forces_ell): the
-        Perram-Wertheim contact only for pairs whose bounding spheres overlap or that were in contact at
-        the previous step; overlap and dashpot history advanced in place; a scene whose overlap exceeds
-        its limit (relative to the smaller semi-axis b) is stopped."""
+        Perram-Wertheim contact (behind the exact screens) only for pairs whose bounding spheres overlap or
+        that were in contact at the previous step; a contact starting after a screened step gets that
+        step's gap from pos_prev/quat_prev; overlap and dashpot history advanced in place; a scene whose
+        overlap exceeds its limit (relative to the smaller semi-axis b) is stopped."""
         s = sc[i]
         if spi[s, I_ACTIVE] == 0:
             return
@@ -169,6 +181,7 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         k_n = spd[s, D_KN]
         gn_coef = spd[s, D_GN]
         tol = spd[s, E_TOL]
+        margin = spd[s, E_SCR]
         r0 = spd[s, D_R0]
         im0 = spd[s, D_IM0]
         fx = ZERO
@@ -212,12 +225,25 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                 ab = axes[0, b]
                 bb = axes[1, b]
                 cb = axes[2, b]
-            g = ellipsoid_pair(rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
-                               quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
-                               vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
-                               omega_p[0, a], omega_p[1, a], omega_p[2, a],
-                               omega_p[0, b], omega_p[1, b], omega_p[2, b],
-                               hist[3, kk, i], hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, HALF)
+            d_prev = hist[3, kk, i]
+            for _ in range(2):
+                g = ellipsoid_pair_screened(
+                    rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
+                    quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
+                    vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
+                    omega_p[0, a], omega_p[1, a], omega_p[2, a],
+                    omega_p[0, b], omega_p[1, b], omega_p[2, b],
+                    d_prev, hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, margin, SCREENED_GAP,
+                    HALF)
+                if g[11] != PAIR_NEEDS_PREV:
+                    break
+                # a contact starts after a screened step: the gap of that step, from its state
+                d_prev = ellipsoid_contact(
+                    min_image(pos_prev[0, b] - pos_prev[0, a], box, inv_box, HALF),
+                    min_image(pos_prev[1, b] - pos_prev[1, a], box, inv_box, HALF),
+                    min_image(pos_prev[2, b] - pos_prev[2, a], box, inv_box, HALF),
+                    quat_prev[0, a], quat_prev[1, a], quat_prev[2, a], quat_prev[3, a], aa, ba, ca,
+                    quat_prev[0, b], quat_prev[1, b], quat_prev[2, b], quat_prev[3, b], ab, bb, cb, tol, HALF)[2]
             if i == a:
                 fx += g[0]
                 fy += g[1]
@@ -255,14 +281,14 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
 
     @cuda.jit
-    def kick_drift(n, first, pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p, ids, sc,
-                   spd, spf, spi, status, step):
+    def kick_drift(n, first, pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p, pos_prev,
+                   quat_prev, ids, sc, spd, spf, spi, status, step):
         sh = cuda.shared.array(SH2, ct.float64)
         md = 0.0
         mv = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             d2, v2 = kick_drift_one(i, first, pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p,
-                                    omega_p, ids, sc, spd, spf, spi, status, step)
+                                    omega_p, pos_prev, quat_prev, ids, sc, spd, spf, spi, status, step)
             md = max(md, d2)
             mv = max(mv, v2)
         block_max2(sh, md, mv)
@@ -271,15 +297,15 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             cuda.atomic.max(status, S_V2, sh[TPB])
 
     @cuda.jit
-    def forces(n, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, ids, sc, spd, spf,
-               spi, status, step):
+    def forces(n, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, pos_prev, quat_prev,
+               ids, sc, spd, spf, spi, status, step):
         i0 = cuda.grid(1)
         if i0 == 0:  # reset the per-step maxima for the next kick_drift (stream-ordered after its copy)
             status[S_D2] = 0.0
             status[S_V2] = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
-            forces_one(i, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, ids, sc,
-                       spd, spf, spi, status, step)
+            forces_one(i, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, pos_prev,
+                       quat_prev, ids, sc, spd, spf, spi, status, step)
 
     @cuda.jit
     def half_kick(n, vel, angm, force, torque, inv_m, sc, spd, spi):
@@ -299,7 +325,7 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
 
     @cuda.jit
     def run_steps(n, nmax, first, pos, vel, angm, quat, force, torque, inv_m, inv_i, axes, bound, x_ref, vel_p,
-                  omega_p, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0):
+                  omega_p, pos_prev, quat_prev, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0):
         """Up to nmax whole steps in one cooperative launch, the phases separated by grid syncs.
 
         As the sphere module's run_steps: stops after the drift of a step and before its forces when a
@@ -327,7 +353,8 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             md = 0.0
             for i in range(i0, n, stride):
                 d2, v2 = kick_drift_one(i, first if st == 0 else 0, pos, vel, angm, quat, force, torque, inv_m,
-                                        inv_i, x_ref, vel_p, omega_p, ids, sc, spd, spf, spi, status, step)
+                                        inv_i, x_ref, vel_p, omega_p, pos_prev, quat_prev, ids, sc, spd, spf, spi,
+                                        status, step)
                 md = max(md, d2)
             block_max2(sh, md, 0.0)
             if cuda.threadIdx.x == 0:
@@ -336,8 +363,8 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             if status[slot] > 1.0:
                 break
             for i in range(i0, n, stride):
-                forces_one(i, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, ids,
-                           sc, spd, spf, spi, status, step)
+                forces_one(i, pos, vel_p, omega_p, quat, axes, bound, inv_m, force, torque, nbr, nn, hist, pos_prev,
+                           quat_prev, ids, sc, spd, spf, spi, status, step)
             done += 1
             g.sync()
         if i0 == 0:

@@ -46,6 +46,13 @@ What is computed, and how
   beta_A = (1 - lambda*)|x*| (and the same for B), delta = t_A - t_B. Negative delta is the gap of a
   separated pair along that line.
 - Spheres (a = b = c_): lambda* = R_A/(R_A + R_B), C on the centre line, delta = R_A + R_B - d exactly.
+- Speed (:func:`ellipsoid_contact_screened`, :func:`ellipsoid_pair_screened`): most pairs whose bounding
+  spheres overlap are far from touching. Two exact screens prove such a pair disjoint before the full
+  maximisation: the plane normal to the centre line separates the support functions
+  (h_A(r_hat) + h_B(r_hat) < |r|), or a Newton iterate has F(lambda_k) > 1 (F at any lambda is a lower bound
+  of F_max). Both are asked with a relative margin far above rounding, so a screened pair is one that the
+  full evaluation calls separated; the only use of the gap of a separated pair (the contact-start weight
+  at the next step) is served by evaluating it when that contact starts.
 """
 
 import math
@@ -227,12 +234,17 @@ def paper_disjoint(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb
 
 
 @numba.njit
-def pw_contact(ia00, ia01, ia02, ia11, ia12, ia22, ib00, ib01, ib02, ib11, ib12, ib22, rx, ry, rz, tol, half):
+def pw_contact(ia00, ia01, ia02, ia11, ia12, ia22, ib00, ib01, ib02, ib11, ib12, ib22, rx, ry, rz, tol, f_stop,
+               half):
     """Maximise F(lambda) = lambda (1 - lambda) r^T C(lambda)^-1 r over [0, 1].
 
     ia, ib: M_A^-1 and M_B^-1 (m^2); r = c_B - c_A (m); tol: stop when the Newton step in lambda is
     below it (1e-13 in float64, 1e-6 in float32 are ample: F is flat at its maximum).
-    Returns (F_max, lambda*, x*) with x* = C(lambda*)^-1 r (1/m); F_max = W_0^2.
+    f_stop > 0: give up as soon as an iterate has F(lambda_k) > f_stop. F at any lambda in (0, 1) is a
+    lower bound of F_max, so with f_stop = 1 + margin that proves the pair disjoint (W_0 > 1) without
+    the rest of the iteration (the screen of :func:`ellipsoid_contact_screened`); f_stop <= 0: never.
+    Returns (F, lambda, x, stopped): (F_max, lambda*, x* = C(lambda*)^-1 r (1/m), False) after the
+    full maximisation (F_max = W_0^2), or (F(lambda_k), lambda_k, x_k, True) when stopped early.
     """
     one = half + half
     two = one + one
@@ -262,6 +274,10 @@ def pw_contact(ia00, ia01, ia02, ia11, ia12, ia22, ib00, ib01, ib02, ib11, ib12,
         inv_det = one / det
         xx, xy, xz = sym_mul_vec(j00, j01, j02, j11, j12, j22, rx * inv_det, ry * inv_det, rz * inv_det)
         rtx = rx * xx + ry * xy + rz * xz
+        if f_stop > zero:
+            fk = lam * u * rtx
+            if fk > f_stop:
+                return fk, lam, xx, xy, xz, True
         yx, yy, yz = sym_mul_vec(d00, d01, d02, d11, d12, d22, xx, xy, xz)
         xdx = xx * yx + xy * yy + xz * yz
         ycy = sym_quad(j00, j01, j02, j11, j12, j22, yx, yy, yz) * inv_det
@@ -296,7 +312,7 @@ def pw_contact(ia00, ia01, ia02, ia11, ia12, ia22, ib00, ib01, ib02, ib11, ib12,
     inv_det = one / (c00 * j00 + c01 * j01 + c02 * j02)
     xx, xy, xz = sym_mul_vec(j00, j01, j02, j11, j12, j22, rx * inv_det, ry * inv_det, rz * inv_det)
     f = lam * u * (rx * xx + ry * xy + rz * xz)
-    return f, lam, xx, xy, xz
+    return f, lam, xx, xy, xz, False
 
 
 @numba.njit
@@ -304,8 +320,9 @@ def ellipsoid_overlap_pw(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, q
     """Robust overlap test: (overlapping, W_0). Overlapping iff W_0 < 1 (Perram-Wertheim)."""
     ia = shape_matrix_inverse(qa0, qa1, qa2, qa3, aa, ba, ca, half)
     ib = shape_matrix_inverse(qb0, qb1, qb2, qb3, ab, bb, cb, half)
-    f, lam, xx, xy, xz = pw_contact(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5],
-                                    ib[0], ib[1], ib[2], ib[3], ib[4], ib[5], rx, ry, rz, tol, half)
+    f, lam, xx, xy, xz, _ = pw_contact(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5],
+                                       ib[0], ib[1], ib[2], ib[3], ib[4], ib[5], rx, ry, rz, tol, half - half,
+                                       half)
     return f < half + half, math.sqrt(f)
 
 
@@ -323,6 +340,27 @@ def _chord_end(alpha, beta, gap):
 
 
 @numba.njit
+def _contact_from_pw(f, lam, xx, xy, xz, ia0, ia1, ia2, ia3, ia4, ia5, qa0, qa1, qa2, qa3, aa, ba, ca,
+                     qb0, qb1, qb2, qb3, ab, bb, cb, half):
+    """n, C and delta from the Perram-Wertheim maximum (F, lambda*, x*) (see :func:`ellipsoid_contact`)."""
+    one = half + half
+    u = one - lam
+    xn = math.sqrt(xx * xx + xy * xy + xz * xz)
+    inv = one / xn
+    nx = xx * inv
+    ny = xy * inv
+    nz = xz * inv
+    cx, cy, cz = sym_mul_vec(ia0, ia1, ia2, ia3, ia4, ia5, u * xx, u * xy, u * xz)
+    ma = shape_matrix(qa0, qa1, qa2, qa3, aa, ba, ca, half)
+    mb = shape_matrix(qb0, qb1, qb2, qb3, ab, bb, cb, half)
+    alpha_a = sym_quad(ma[0], ma[1], ma[2], ma[3], ma[4], ma[5], nx, ny, nz)
+    alpha_b = sym_quad(mb[0], mb[1], mb[2], mb[3], mb[4], mb[5], nx, ny, nz)
+    gap = one - f
+    delta = _chord_end(alpha_a, u * xn, gap) + _chord_end(alpha_b, lam * xn, gap)
+    return f, lam, delta, nx, ny, nz, cx, cy, cz
+
+
+@numba.njit
 def ellipsoid_contact(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, tol, half):
     """Contact geometry of ellipsoids A (at the origin) and B (at r = c_B - c_A, minimum image).
 
@@ -331,25 +369,67 @@ def ellipsoid_contact(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2,
     normal through C (m; negative: gap of a separated pair), n the unit normal from A to B, C the
     touching point of the ellipsoids shrunk by W_0 (paper 003's contact point), relative to c_A (m).
     """
-    one = half + half
     ia = shape_matrix_inverse(qa0, qa1, qa2, qa3, aa, ba, ca, half)
     ib = shape_matrix_inverse(qb0, qb1, qb2, qb3, ab, bb, cb, half)
-    f, lam, xx, xy, xz = pw_contact(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5],
-                                    ib[0], ib[1], ib[2], ib[3], ib[4], ib[5], rx, ry, rz, tol, half)
-    u = one - lam
-    xn = math.sqrt(xx * xx + xy * xy + xz * xz)
-    inv = one / xn
-    nx = xx * inv
-    ny = xy * inv
-    nz = xz * inv
-    cx, cy, cz = sym_mul_vec(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5], u * xx, u * xy, u * xz)
-    ma = shape_matrix(qa0, qa1, qa2, qa3, aa, ba, ca, half)
-    mb = shape_matrix(qb0, qb1, qb2, qb3, ab, bb, cb, half)
-    alpha_a = sym_quad(ma[0], ma[1], ma[2], ma[3], ma[4], ma[5], nx, ny, nz)
-    alpha_b = sym_quad(mb[0], mb[1], mb[2], mb[3], mb[4], mb[5], nx, ny, nz)
-    gap = one - f
-    delta = _chord_end(alpha_a, u * xn, gap) + _chord_end(alpha_b, lam * xn, gap)
-    return f, lam, delta, nx, ny, nz, cx, cy, cz
+    f, lam, xx, xy, xz, _ = pw_contact(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5],
+                                       ib[0], ib[1], ib[2], ib[3], ib[4], ib[5], rx, ry, rz, tol, half - half,
+                                       half)
+    return _contact_from_pw(f, lam, xx, xy, xz, ia[0], ia[1], ia[2], ia[3], ia[4], ia[5],
+                            qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, half)
+
+
+# ---- exact screens: disjointness proven before (or during) the Perram-Wertheim maximisation ---------
+
+
+@numba.njit
+def plane_separated(ia00, ia01, ia02, ia11, ia12, ia22, ib00, ib01, ib02, ib11, ib12, ib22, rx, ry, rz,
+                    margin, half):
+    """The plane normal to the centre line separates A and B (exact disjointness, a sufficient test).
+
+    Support function of an ellipsoid with M^-1 = R diag(a^2, b^2, c^2) R^T: h(u) = sqrt(u^T M^-1 u) for a
+    unit u, so A lies in r.p <= |r| h_A(r_hat) and B in r.p >= |r|^2 - |r| h_B(r_hat) (p relative to c_A).
+    Disjoint when h_A + h_B < |r|; in squared lengths sqrt(r^T M_A^-1 r) + sqrt(r^T M_B^-1 r) < |r|^2,
+    asked here with a relative margin, (...)(1 + margin) < |r|^2, so that rounding can never call a pair
+    separated that the full Perram-Wertheim evaluation would call overlapping.
+    """
+    one = half + half
+    qa = sym_quad(ia00, ia01, ia02, ia11, ia12, ia22, rx, ry, rz)
+    qb = sym_quad(ib00, ib01, ib02, ib11, ib12, ib22, rx, ry, rz)
+    d2 = rx * rx + ry * ry + rz * rz
+    return (math.sqrt(qa) + math.sqrt(qb)) * (one + margin) < d2
+
+
+@numba.njit
+def ellipsoid_contact_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, tol,
+                               margin, half):
+    """:func:`ellipsoid_contact` behind two exact screens: (screened, F, lambda*, delta, n, C).
+
+    screened = True: the pair is proven disjoint (by more than ``margin`` in the relative measures below)
+    and nothing else is computed (the other entries are zero): (i) :func:`plane_separated`, (ii) the
+    Perram-Wertheim iteration stopped at the first iterate with F(lambda_k) > 1 + margin (F(lambda_k) <=
+    F_max = W_0^2). Otherwise the entries are those of :func:`ellipsoid_contact`, bit for bit (the same
+    arithmetic; the screens only add work). ``margin`` (1e-9 in float64, 1e-3 in float32;
+    engine.backends.cpu_ellipsoid.PW_SCREEN) is far above the rounding of F, so a screened pair always
+    has delta < 0 in ellipsoid_contact (tests/engine/test_ellipsoid_screen.py); margin < 0 disables both.
+    """
+    one = half + half
+    zero = half - half
+    ia = shape_matrix_inverse(qa0, qa1, qa2, qa3, aa, ba, ca, half)
+    ib = shape_matrix_inverse(qb0, qb1, qb2, qb3, ab, bb, cb, half)
+    f_stop = zero
+    if margin >= zero:
+        if plane_separated(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5], ib[0], ib[1], ib[2], ib[3], ib[4], ib[5],
+                           rx, ry, rz, margin, half):
+            return True, zero, zero, zero, zero, zero, zero, zero, zero, zero
+        f_stop = one + margin
+    f, lam, xx, xy, xz, stopped = pw_contact(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5],
+                                             ib[0], ib[1], ib[2], ib[3], ib[4], ib[5], rx, ry, rz, tol, f_stop,
+                                             half)
+    if stopped:
+        return True, zero, zero, zero, zero, zero, zero, zero, zero, zero
+    g = _contact_from_pw(f, lam, xx, xy, xz, ia[0], ia[1], ia[2], ia[3], ia[4], ia[5],
+                         qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, half)
+    return False, g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8]
 
 
 # ---- contact force (paper 003 Eqs. 23-24) ----------------------------------------------------------
@@ -415,10 +495,14 @@ def paper_tetrahedron(c_a, q_a, axes_a, c_b, q_b, axes_b, w):
     return mu.real, pts, c, n
 
 
+#: status (last entry) of :func:`ellipsoid_pair_screened`
+PAIR_DONE, PAIR_SCREENED, PAIR_NEEDS_PREV = 0, 1, 2
+
+
 @numba.njit
-def ellipsoid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
-                   ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n, gamma_n, dt, tol,
-                   half):
+def ellipsoid_pair_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
+                            ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n, gamma_n, dt,
+                            tol, margin, screened_gap, half):
     """Frictionless contact of ellipsoids A and B (paper 003 Eqs. 23-24); r = c_B - c_A (minimum image).
 
     u = u_B - u_A (predicted end-of-step translational velocities, m/s), w_A, w_B predicted space-frame
@@ -430,12 +514,29 @@ def ellipsoid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb
     A contact that ended inside this step (delta <= 0 < delta_prev) settles the dashpot impulse it owes
     (as engine.physics.contact.sphere_contact_end with k_t = None).
 
-    Returns (F_A (3), tau_A (3), tau_B (3), delta, F_dashpot); delta < 0 is the gap of a separated pair.
+    Screening (speed; results unchanged): a pair that was not in contact at the previous step
+    (delta_prev <= 0) goes through :func:`ellipsoid_contact_screened` with ``margin``; when it is proven
+    disjoint its gap is not computed and ``screened_gap`` (a value no gap can take: -inf) is returned as
+    delta, with status PAIR_SCREENED. The gap of a separated pair is read at one place only, the
+    contact-start weight of :func:`ellipsoid_normal_force` at the next step; so when a contact starts
+    (delta > 0) after a screened step (delta_prev == screened_gap) nothing is returned but status
+    PAIR_NEEDS_PREV: the caller evaluates the previous step's gap, ``ellipsoid_contact(previous state)[2]``
+    (the value this function returned there before screening existed, bit for bit), and calls again with
+    it. margin < 0: no screening and no PAIR_NEEDS_PREV (the reference path).
+
+    Returns (F_A (3), tau_A (3), tau_B (3), delta, F_dashpot, status); delta < 0 is the gap of a
+    separated pair.
     """
-    f, lam, delta, nx, ny, nz, cx, cy, cz = ellipsoid_contact(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca,
-                                                              qb0, qb1, qb2, qb3, ab, bb, cb, tol, half)
     zero = half - half
+    one = half + half
+    m = margin if not (delta_prev > zero) else -one  # a contact that may end needs its gap: no screen
+    screened, f, lam, delta, nx, ny, nz, cx, cy, cz = ellipsoid_contact_screened(
+        rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, tol, m, half)
+    if screened:
+        return zero, zero, zero, zero, zero, zero, zero, zero, zero, screened_gap, zero, PAIR_SCREENED
     if delta > zero:
+        if margin >= zero and delta_prev == screened_gap:
+            return zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero, PAIR_NEEDS_PREV
         # velocity of B's surface point at C relative to A's: u + w_B x (C - r) - w_A x C
         bx = cx - rx
         by = cy - ry
@@ -450,7 +551,7 @@ def ellipsoid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb
         fm = fd_prev * (p - half)
         fd = zero
     else:
-        return zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero
+        return zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero, PAIR_DONE
     fax = -fm * nx
     fay = -fm * ny
     faz = -fm * nz
@@ -460,4 +561,16 @@ def ellipsoid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb
     return (fax, fay, faz,
             cy * faz - cz * fay, cz * fax - cx * faz, cx * fay - cy * fax,
             -(by * faz - bz * fay), -(bz * fax - bx * faz), -(bx * fay - by * fax),
-            delta, fd)
+            delta, fd, PAIR_DONE)
+
+
+@numba.njit
+def ellipsoid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
+                   ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n, gamma_n, dt, tol,
+                   half):
+    """:func:`ellipsoid_pair_screened` without screening (the reference path): (F_A, tau_A, tau_B, delta,
+    F_dashpot)."""
+    g = ellipsoid_pair_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
+                                ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n, gamma_n,
+                                dt, tol, -(half + half), half - half, half)
+    return g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[9], g[10]
