@@ -4,8 +4,9 @@ Knobs (all through the public spec / backend parameters; nothing here changes an
 
 - time step dt = t_c/k, k in DT_FRACTIONS (spec field ``dt``, in seconds; the spec refuses dt > t_c/10);
 - precision float64 / float32 (spec ``precision``);
-- Verlet skin L_v in radii (spec ``verlet_skin``; its default depends on the backend,
-  engine.spec.DEFAULT_VERLET_SKIN): cost only, in the cooling gas and in a sweep over volume fractions;
+- Verlet skin L_v in radii (spec ``verlet_skin``; its default depends on the backend and the volume
+  fraction, engine.spec.default_verlet_skin): cost only, in the cooling gas and in a sweep over volume
+  fractions, where the default rule's skin at each phi is compared with the fastest;
 - rebuild policy: the engine has exactly one (rebuild when a particle has moved more than L_v/2,
   engine/backends/cpu.py run_steps); there is no switch, so no rows;
 - ellipsoids: the contact algorithm. The spec exposes none: the engine always runs the Perram-Wertheim
@@ -81,7 +82,8 @@ SKINS = (0.1, 0.2, 0.4, 0.8, 1.6)
 PW_TOLS = {"float64": (1e-15, 1e-13, 1e-12, 1e-10, 1e-8, 1e-6), "float32": (1e-7, 1e-6, 1e-5, 1e-4)}
 #: engine defaults (engine/params.py: dt = t_c/50; engine/spec.py: float64, verlet_skin = 0.4;
 #: engine/backends/cpu_ellipsoid.py: PW_TOL)
-#: "skin" is the backend's default (engine.spec.default_verlet_skin), set by main()/analyse() per report.
+#: "skin" is the backend's default at the gas scenes' phi (engine.spec.default_verlet_skin), set by main() per
+#: report; analyse() takes the skin the default rows ran at from summary.json ("default_skin").
 DEFAULT = {"dt_fraction": 50, "precision": "float64", "skin": 0.4}
 DEFAULT_PW_TOL = {"float64": 1e-15, "float32": 1e-7}
 #: Cooling chaos floor: the float64 reference repeated at these dt (converged to ~1e-5 in e_n).
@@ -586,16 +588,19 @@ def build_skin_sweep(size: Size, backend: str, reps: int, tmp: Path, log) -> dic
     from engine.params import derive
     from engine.scene import initial_spheres
     from engine.simulate import contact_params
+    from engine.spec import default_verlet_skin
 
     rows = []
     for phi in size.sweep_phis:
+        rule = default_verlet_skin(backend, "sphere", phi)      # one extra row where it is not a swept skin
+        skins = sorted(set(size.sweep_skins) | {rule})
         spec = gas_spec(replace(size, phi=phi), dt_fraction=DEFAULT["dt_fraction"], precision=DEFAULT["precision"],
                         skin=DEFAULT["skin"], e_n=0.8, e_t=0.8, collisions=0.0, thermalization=0.0, backend=backend,
                         n=size.sweep_n, records=2, steps=size.sweep_steps)
         p = derive(spec)
         system = initial_spheres(spec, p)
         base = contact_params(spec, p, thermalization=False).with_(orientation=False)
-        for skin in size.sweep_skins:
+        for skin in skins:
             contact = base.with_(skin=skin * p.radius)
             runs, device = [], None
             for _ in range(max(1, reps)):
@@ -609,14 +614,33 @@ def build_skin_sweep(size: Size, backend: str, reps: int, tmp: Path, log) -> dic
             rows.append({"phi": phi, "skin": skin, "cundall": float(statistics.median(runs)), "cundall_runs": runs,
                          "n": size.sweep_n, "steps": size.sweep_steps, "device": device,
                          "builds": int(getattr(be, "builds", -1))})
-            log(f"skin sweep phi={phi} L_v={skin}a: Cundall {rows[-1]['cundall']:.3g} ({rows[-1]['builds']} builds)")
-    for phi in size.sweep_phis:
+            log(f"skin sweep phi={phi} L_v={skin:.3g}a: Cundall {rows[-1]['cundall']:.3g} "
+                f"({rows[-1]['builds']} builds)")
+    sweep_flags(rows)
+    return {"rows": rows}
+
+
+def sweep_flags(rows: list) -> None:
+    """vs_fastest and fastest (within TIME_NOISE of the fastest skin: the cost front) of every sweep row."""
+    for phi in {r["phi"] for r in rows}:
         sub = [r for r in rows if r["phi"] == phi]
         best = max(r["cundall"] for r in sub)
         for r in sub:
             r["vs_fastest"] = r["cundall"] / best
             r["fastest"] = r["cundall"] >= best * (1.0 - TIME_NOISE)    # within the timing noise of the fastest
-    return {"rows": rows}
+
+
+def sweep_default_row(rows: list, phi: float, backend: str):
+    """(rule's skin, the row compared, exact?) at ``phi``: the row at the default rule's own skin
+    (engine.spec.default_verlet_skin), else the nearest swept skin (in log L_v)."""
+    from engine.spec import default_verlet_skin
+
+    want = default_verlet_skin(backend, "sphere", phi)
+    sub = [r for r in rows if r["phi"] == phi]
+    exact = [r for r in sub if math.isclose(r["skin"], want, rel_tol=1e-9)]
+    if exact:
+        return want, exact[0], True
+    return want, min(sub, key=lambda r: abs(math.log(r["skin"] / want))), False
 
 
 # ---- scene 4: ellipsoids ---------------------------------------------------------------------------
@@ -766,7 +790,7 @@ def _kind(r: dict) -> str:
     return "dt"
 
 
-def plot(panels: list, path: Path) -> None:
+def plot(panels: list, path: Path, backend: str = "cpu") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -783,7 +807,9 @@ def plot(panels: list, path: Path) -> None:
                 sub = sorted([r for r in rows if r["phi"] == phi], key=lambda r: r["skin"])
                 ax.plot([r["skin"] for r in sub], [r["cundall"] for r in sub], "o-", color=f"C{k}",
                         label=f"phi = {phi:g}")
-            ax.axvline(DEFAULT["skin"], color="red", ls=":", lw=1, label=f"default L_v = {DEFAULT['skin']:g} a")
+                d = sweep_default_row(rows, phi, backend)[1]
+                ax.plot([d["skin"]], [d["cundall"]], "*", ms=11, color="red", zorder=5,
+                        label="default (engine rule)" if k == 0 else None)
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.set_xlabel("Verlet skin L_v / a", fontsize=8)
@@ -861,20 +887,22 @@ def verdict(rows: list, scene: str, floor: float = 0.0) -> str:
     return text + "."
 
 
-def skin_verdict(sweep: dict) -> str:
+def skin_verdict(sweep: dict, backend: str) -> str:
+    """The default rule's skin against the fastest at every swept phi (front: within TIME_NOISE)."""
     rows = sweep["rows"]
-    d = [r for r in rows if r["skin"] == DEFAULT["skin"]]
-    if not d:
-        return f"- skin sweep: the default L_v = {DEFAULT['skin']:g} a is not among this variant's skins."
-    parts = []
-    for r in sorted(d, key=lambda r: r["phi"]):
-        sub = [q for q in rows if q["phi"] == r["phi"]]
-        best = max(sub, key=lambda q: q["cundall"])
-        parts.append(f"phi = {r['phi']:g}: x{r['vs_fastest']:.2f} of the fastest (L_v = {best['skin']:g} a)")
-    ok = all(r["fastest"] for r in d)
-    head = ("is the fastest skin within the timing noise at every volume fraction" if ok else
-            "is **not** the fastest skin within the timing noise at every volume fraction")
-    return f"- **skin** (cost only): the default L_v = {DEFAULT['skin']:g} a {head} ({'; '.join(parts)})."
+    parts, ok = [], True
+    for phi in sorted({r["phi"] for r in rows}):
+        want, d, exact = sweep_default_row(rows, phi, backend)
+        best = max((q for q in rows if q["phi"] == phi), key=lambda q: q["cundall"])
+        name = f"L_v = {want:.3g} a" if exact else f"L_v = {want:.3g} a, nearest swept skin {d['skin']:g} a"
+        parts.append(f"phi = {phi:g}: {name}, x{d['vs_fastest']:.2f} of the fastest (L_v = {best['skin']:g} a)"
+                     + ("" if d["fastest"] else " **off the front**"))
+        ok = ok and d["fastest"]
+    head = ("is on the cost front (within the timing noise of the fastest skin) at every swept volume fraction"
+            if ok else "is **not** on the cost front (within the timing noise of the fastest skin) at every swept "
+            "volume fraction")
+    return (f"- **skin** (cost only): the default, which depends on phi (engine.spec.default_verlet_skin), {head} "
+            f"({'; '.join(parts)}).")
 
 
 def _pm(x, se) -> str:
@@ -976,11 +1004,16 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
          "none; the engine always uses the Perram-Wertheim (PW) maximisation; this bench varies its Newton "
          "tolerance and measures paper 003's Delta/P test as a classifier only).", "",
          "![accuracy against cost](accuracy.png)", "",
-         f"## Verdict on the defaults (dt = t_c/50, float64, L_v = {DEFAULT['skin']:g} a on this backend; "
-         "PW tolerance 1e-15)", ""]
+         f"## Verdict on the defaults (dt = t_c/50, float64, L_v = {DEFAULT['skin']:g} a on this backend at the "
+         f"gas scenes' phi = {size['phi']:g}; PW tolerance 1e-15)", ""]
+    if res.get("rule_skin") is not None and not math.isclose(res["rule_skin"], DEFAULT["skin"], rel_tol=1e-9):
+        L += [f"Note: the gas scenes ran at L_v = {DEFAULT['skin']:g} a, the default when they were measured; the "
+              f"default at phi = {size['phi']:g} is now {res['rule_skin']:.3g} a (engine.spec.default_verlet_skin). "
+              "The skin moves no trajectory, so their errors are the default's; its cost: the cooling rows' skins.",
+              ""]
     for name in sc:
         if name == "skin_sweep":
-            L.append(skin_verdict(sc[name]))
+            L.append(skin_verdict(sc[name], m["backend"]))
         else:
             L.append(verdict(sc[name]["rows"], name, sc[name].get("floor", 0.0)))
     L += ["", *res["advice"], ""]
@@ -1057,21 +1090,36 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
     sw = sc.get("skin_sweep")
     if sw:
         r0 = sw["rows"][0]
+        skins = sorted({r["skin"] for r in sw["rows"]})
+        from engine.spec import DEFAULT_SKIN_FLOOR, DEFAULT_SKIN_MEAN_FREE_PATH, DEFAULT_VERLET_SKIN
+        rule = (DEFAULT_VERLET_SKIN["cpu"], DEFAULT_VERLET_SKIN["cuda"], DEFAULT_SKIN_MEAN_FREE_PATH,
+                DEFAULT_SKIN_FLOOR)
         L += ["", "## Verlet skin: cost against volume fraction", "",
               f"The skin moves no trajectory (the cooling rows above at every skin agree to rounding), so it is a "
               f"cost-only knob: its front is the fastest skin. Rough gas e_n = e_t = 0.8, dt = t_c/50, float64, "
               f"N = {r0['n']}, typical overlap {OVERLAP:g} a, orientation off, {r0['steps']} steps from the same "
               f"lattice start at every skin (a list is rebuilt when a particle has moved L_v/2), median of "
               f"{res['reps']} timed run(s) of the time loop. Cells: Cundall number (x the fastest skin's at the "
-              "same phi; list builds in one run).", "",
-              "| phi | " + " | ".join(f"L_v = {k:g} a" for k in sorted({r['skin'] for r in sw['rows']})) + " |",
-              "|---|" + "---|" * len({r["skin"] for r in sw["rows"]})]
+              "same phi; list builds in one run); **bold**: the default at that phi, engine.spec.default_verlet_skin "
+              f"(L_max = {rule[0]:g} a CPU, {rule[1]:g} a CUDA while the mean free path lambda = a/(3 sqrt(2) phi "
+              f"g(phi)), g the Carnahan-Starling contact value, is at least {rule[2]:g} a; then L_max lambda/"
+              f"{rule[2]:g} a, at least {rule[3]:g} a); where the rule's value is "
+              "not a swept skin the sweep adds it as a row (rows measured before the rule existed: the nearest "
+              "swept skin stands for it and the verdict says so).", "",
+              "| phi | default (rule) | " + " | ".join(f"L_v = {k:.3g} a" for k in skins) + " |",
+              "|---|---|" + "---|" * len(skins)]
         for phi in sorted({r["phi"] for r in sw["rows"]}):
-            sub = sorted([r for r in sw["rows"] if r["phi"] == phi], key=lambda r: r["skin"])
-            L.append(f"| {phi:g} | " + " | ".join(
-                f"{'**' if r['skin'] == DEFAULT['skin'] else ''}{r['cundall']:.3g} (x{r['vs_fastest']:.2f}; "
-                f"{r.get('builds', '?')})"
-                f"{'**' if r['skin'] == DEFAULT['skin'] else ''}" for r in sub) + " |")
+            want, d, exact = sweep_default_row(sw["rows"], phi, m["backend"])
+            by = {r["skin"]: r for r in sw["rows"] if r["phi"] == phi}
+
+            def cell(k, by=by, d=d):
+                r = by.get(k)
+                if r is None:
+                    return "-"
+                b = "**" if r is d else ""
+                return f"{b}{r['cundall']:.3g} (x{r['vs_fastest']:.2f}; {r.get('builds', '?')}){b}"
+            L.append(f"| {phi:g} | {want:.3g} a{'' if exact else ' (nearest swept: ' + format(d['skin'], 'g') + ' a)'}"
+                     f" | " + " | ".join(cell(k) for k in skins) + " |")
 
     ell = sc.get("ellipsoid")
     if ell:
@@ -1177,11 +1225,12 @@ def _json_default(o):
     return str(o)
 
 
-def set_default_skin(backend: str) -> None:
-    """The default rows of this report use the backend's default Verlet skin (engine.spec)."""
+def set_default_skin(backend: str, phi: float) -> None:
+    """The default rows of this report use the backend's default Verlet skin at the gas scenes' phi
+    (engine.spec.default_verlet_skin)."""
     from engine.spec import default_verlet_skin
 
-    DEFAULT["skin"] = default_verlet_skin(backend)
+    DEFAULT["skin"] = default_verlet_skin(backend, "sphere", phi)
 
 
 def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int = 1, n: int | None = None,
@@ -1191,8 +1240,8 @@ def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int
 
     if threads:
         numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    set_default_skin(backend)
     size = SIZES[variant]
+    set_default_skin(backend, size.phi)
     if n:
         size = replace(size, gas_n=n)
     if sweep_n:
@@ -1226,13 +1275,26 @@ def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int
 
 
 def analyse(res: dict, out: Path, log=print) -> None:
-    """Fronts, verdicts, plot, REPORT.md and summary.json from the measured rows in `res`."""
-    set_default_skin(res["machine"]["backend"])
+    """Fronts, verdicts, plot, REPORT.md and summary.json from the measured rows in `res`.
+
+    The default rows are those at the skin they ran at (``default_skin``); the skin sweep's default at each
+    phi is the current rule (engine.spec.default_verlet_skin), so a re-analysis judges the rule of the code
+    it runs with against the stored timings."""
+    backend = res["machine"]["backend"]
+    set_default_skin(backend, res["size"]["phi"])
+    res["rule_skin"] = DEFAULT["skin"]
+    DEFAULT["skin"] = res.get("default_skin", DEFAULT["skin"])
     sc = res["scenes"]
     res["fronts"], res["defaults_on_front"] = {}, {}
     for name, block in sc.items():
         if name == "skin_sweep":
-            res["defaults_on_front"][name] = all(r["fastest"] for r in block["rows"] if r["skin"] == DEFAULT["skin"])
+            sweep_flags(block["rows"])
+            phis = sorted({r["phi"] for r in block["rows"]})
+            picks = [sweep_default_row(block["rows"], phi, backend) for phi in phis]
+            block["default_rule"] = [{"phi": phi, "rule_skin": want, "row_skin": d["skin"], "exact": exact,
+                                      "vs_fastest": d["vs_fastest"], "on_front": d["fastest"]}
+                                     for phi, (want, d, exact) in zip(phis, picks)]
+            res["defaults_on_front"][name] = all(d["fastest"] for _, d, _ in picks)
             continue
         res["fronts"][name] = [label(r) for r in pareto(block["rows"], block.get("floor", 0.0))]
         res["defaults_on_front"][name] = next((r["on_front"] for r in block["rows"] if is_default(r)), None)
@@ -1244,7 +1306,7 @@ def analyse(res: dict, out: Path, log=print) -> None:
     if "skin_sweep" in sc:
         panels.append(("Verlet skin: cost against volume fraction", sc["skin_sweep"]["rows"], "sweep",
                        "Cundall number (particle-steps / s)", 0.0))
-    plot(panels, out / "accuracy.png")
+    plot(panels, out / "accuracy.png", backend)
     text = write_report(out, res, res["command"], res["wall_s"])
     (out / "summary.json").write_text(json.dumps(res, indent=1, default=_json_default))
     log(text)

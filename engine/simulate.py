@@ -189,10 +189,10 @@ class SceneRun:
                             f"and friction = {spec.friction} must be e_t = -1 (or friction = 0)")
         # the backend ('cpu' or 'cuda') this scene runs on: `backend` overrides the spec's, 'auto' resolved here
         self.backend = resolve_backend(backend or spec.backend, spec.shape)
-        # a null verlet_skin is the resolved backend's default (the stored spec keeps null; /parameters
-        # say verlet_skin and skin); an explicit value always wins
+        # a null verlet_skin is the resolved backend's default at this volume fraction (species: the total
+        # phi; the stored spec keeps null; /parameters say verlet_skin and skin); an explicit value always wins
         self.verlet_skin = spec.verlet_skin if spec.verlet_skin is not None else \
-            default_verlet_skin(self.backend, spec.shape)
+            default_verlet_skin(self.backend, spec.shape, spec.volume_fraction)
         self.p = p = derive(spec.model_copy(update={"verlet_skin": self.verlet_skin}))
         self.spec_json = spec.to_json()
         self.output = Path(output)

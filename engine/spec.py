@@ -64,28 +64,71 @@ class Species(BaseModel):
         return v
 
 
-#: Verlet skin L_v in radii that a null ``verlet_skin`` means, per resolved backend: the fastest skin that
-#: `demq bench accuracy` measured on each (bench/reports/accuracy and accuracy-cuda: the skin changes the
-#: cost only). Ellipsoids keep the CPU value on both backends (their skin is not measured on a GPU).
+#: Largest Verlet skin L_v (radii) a null ``verlet_skin`` resolves to, per resolved backend: the fastest
+#: skin of dilute gases in `demq bench accuracy` (bench/reports/accuracy, accuracy-cuda). Ellipsoids keep the
+#: CPU value on both backends (their skin is not measured on a GPU).
 DEFAULT_VERLET_SKIN = {"cpu": 0.4, "cuda": 0.8}
+#: Mean free path (radii) below which the default skin falls in proportion to it (phi above 0.1099) ...
+DEFAULT_SKIN_MEAN_FREE_PATH = 1.6
+#: ... down to this skin (radii): the fastest skin of dense gases on both backends.
+DEFAULT_SKIN_FLOOR = 0.2
 
 
-def default_verlet_skin(backend: str, shape: str = "sphere") -> float:
-    """The skin (radii) a null ``verlet_skin`` means on ``backend`` ('cpu' or 'cuda', already resolved).
+def mean_free_path(volume_fraction: float) -> float:
+    """Enskog mean free path of equal spheres in radii: 1 / (3 sqrt(2) phi g(phi)), with the
+    Carnahan-Starling contact value g(phi) = (1 - phi/2)/(1 - phi)^3 (PHYSICS-NOTES §2.1)."""
+    phi = volume_fraction
+    return 1.0 / (3.0 * math.sqrt(2.0) * phi * (1.0 - 0.5 * phi) / (1.0 - phi) ** 3)
 
-    An unresolved 'auto' gives the CPU value: the driver (engine.simulate.SceneRun) resolves the backend
-    first, so this fallback serves only callers of ``engine.params.derive`` that run no backend.
+
+def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Optional[float] = None) -> float:
+    """The skin (radii) a null ``verlet_skin`` means on ``backend`` ('cpu' or 'cuda', already resolved)
+    at volume fraction ``volume_fraction`` (a species spec: the total phi; the skin then counts in radii
+    of the smallest species, engine.params).
+
+    Rule (spheres): L_v = clamp(L_max lambda / lambda_0, 0.2, L_max), with lambda = mean_free_path(phi),
+    lambda_0 = DEFAULT_SKIN_MEAN_FREE_PATH = 1.6 radii and L_max = DEFAULT_VERLET_SKIN[backend] (0.4 CPU,
+    0.8 CUDA). That is L_max up to phi = 0.1099 (lambda >= 1.6 a: every paper scene, so the CPU default is
+    exactly 0.4 there, bit for bit as before), then L_v/lambda fixed at L_max/1.6 (0.25 CPU, 0.5 CUDA), down
+    to 0.2 from phi = 0.179 (CPU) / 0.267 (CUDA). Values: phi = 0.008, 0.1 -> L_max; 0.15 -> 0.26 / 0.52;
+    0.2 -> 0.2 / 0.34; 0.3 -> 0.2.
+
+    Why: the skin changes the cost only. The neighbours a skin adds to each particle's list, about
+    2 sqrt(2) L_v / lambda, make the list cost grow as the skin counted in mean free paths,
+    while the rebuilds it saves (one per L_v/2 of flight) do not depend on the density; so the fastest skin
+    falls with lambda. Data (skin sweep of `demq bench accuracy`, rough gas, skins 0.2, 0.4, 0.8, 1.2 a;
+    within 15 % of the fastest = on the cost front): CPU, N = 4096 — phi = 0.008: 0.4 a x0.92 of the fastest
+    (1.2 a), phi = 0.1: 0.4 a fastest (also in the N = 2048 cooling gas, where 0.2 a and 0.8 a are x0.80 and
+    x0.75), phi = 0.3: 0.2 a fastest (0.4 a x0.78); NVIDIA H200, N = 262144 — phi = 0.008: 0.8 a fastest
+    (0.4 a x0.83), phi = 0.1: 0.8 a x0.91 (0.4 a fastest; in the N = 16384 cooling gas 0.8 a is x0.96 of the
+    fastest and 0.4 a x0.72), phi = 0.3: 0.2 a fastest (0.8 a x0.71). So a GPU rule giving the sweep's
+    fastest 0.4 a at phi = 0.1 would be off the smaller gas's front, while 0.8 a is on both. The data bound
+    lambda_0 to about 1.4-1.8 a (a CPU spot check at phi = 0.13-0.25 put the fastest at 0.2-0.3 a, as the
+    rule does); the rule's value at each swept phi is a swept skin on both backends.
+
+    Ellipsoids keep DEFAULT_VERLET_SKIN['cpu'] (not measured over phi or on a GPU). An unresolved 'auto'
+    gives the CPU value: the driver (engine.simulate.SceneRun) resolves the backend first, so this fallback
+    serves only callers of ``engine.params.derive`` that run no backend. ``volume_fraction=None`` (a caller
+    that does not know phi) gives L_max, the dilute value.
     """
     if shape == "ellipsoid":
         return DEFAULT_VERLET_SKIN["cpu"]
-    return DEFAULT_VERLET_SKIN.get(backend, DEFAULT_VERLET_SKIN["cpu"])
+    top = DEFAULT_VERLET_SKIN.get(backend, DEFAULT_VERLET_SKIN["cpu"])
+    if volume_fraction is None:
+        return top
+    lam = mean_free_path(volume_fraction)
+    if lam >= DEFAULT_SKIN_MEAN_FREE_PATH:
+        return top                      # exactly L_max (bit-identical dilute runs)
+    return max(DEFAULT_SKIN_FLOOR, top * lam / DEFAULT_SKIN_MEAN_FREE_PATH)
 
 
-def largest_default_verlet_skin(backend: str, shape: str = "sphere") -> float:
-    """The largest skin a null ``verlet_skin`` can resolve to for a spec's ``backend`` ('auto': any backend)."""
+def largest_default_verlet_skin(backend: str, shape: str = "sphere",
+                                volume_fraction: Optional[float] = None) -> float:
+    """The largest skin a null ``verlet_skin`` can resolve to for a spec's ``backend`` ('auto': any backend)
+    at ``volume_fraction``."""
     if backend in DEFAULT_VERLET_SKIN:
-        return default_verlet_skin(backend, shape)
-    return max(default_verlet_skin(b, shape) for b in DEFAULT_VERLET_SKIN)
+        return default_verlet_skin(backend, shape, volume_fraction)
+    return max(default_verlet_skin(b, shape, volume_fraction) for b in DEFAULT_VERLET_SKIN)
 
 
 class SimulationSpec(BaseModel):
@@ -131,10 +174,12 @@ class SimulationSpec(BaseModel):
     backend: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="'auto' = CUDA when a GPU is present, else CPU.")
     verlet_skin: Optional[float] = Field(
-        None, description="Verlet-list skin L_v in units of the particle radius (0 < L_v <= 4); the "
-                          "list is rebuilt when a particle has moved more than L_v/2 (paper 004). null = "
-                          "the backend's default: 0.4 on the CPU, 0.8 on CUDA (spheres; ellipsoids 0.4 on "
-                          "both), the fastest skin of `demq bench accuracy` on each.")
+        None, description="Verlet-list skin L_v in units of the particle radius (0 < L_v <= 4; species: "
+                          "of the smallest radius); the list is rebuilt when a particle has moved more than "
+                          "L_v/2 (paper 004). null = the fastest skin of `demq bench accuracy` for the "
+                          "backend and density: L_max = 0.4 on the CPU, 0.8 on CUDA up to phi = 0.11, then "
+                          "L_max x (mean free path / 1.6 radii), at least 0.2 (0.2 from phi = 0.18 on the "
+                          "CPU, 0.27 on CUDA); ellipsoids 0.4. The value used is in the result's /parameters.")
     overlap_limit: float = Field(
         0.05, description="Largest allowed overlap as a fraction of the radius; a run that exceeds it "
                           "stops with an error (0 < limit <= 0.5).")
@@ -297,8 +342,8 @@ class SimulationSpec(BaseModel):
             raise ValueError(
                 f"output_interval = {self.output_interval:.6g} s is shorter than the time step dt = {p.dt:.6g} s")
         # a null skin is checked at the largest default the spec's backend can resolve to ('auto': any)
-        skin = self.verlet_skin if self.verlet_skin is not None else largest_default_verlet_skin(self.backend,
-                                                                                                 self.shape)
+        skin = self.verlet_skin if self.verlet_skin is not None else largest_default_verlet_skin(
+            self.backend, self.shape, self.volume_fraction)
         cutoff = 2.0 * p.radius_max * (1.0 + 0.5 * skin)
         if self.box_length < 3.0 * cutoff:
             # The minimum-image convention and the cell list need L > 2 * cutoff; keep a margin.

@@ -1,11 +1,16 @@
-"""The backend-dependent default Verlet skin (issue 6): a null ``verlet_skin`` is 0.4 a on the CPU and 0.8 a on
-CUDA (spheres), resolved where the backend is known (engine.simulate.SceneRun), recorded in the result file's
-/parameters, the same in ensembles; an explicit value always wins; the CPU default is unchanged.
+"""The backend- and density-dependent default Verlet skin (issue 6): a null ``verlet_skin`` is
+L_max = 0.4 a on the CPU and 0.8 a on CUDA while the mean free path is at least 1.6 a (phi <= 0.1099), then
+L_max lambda/1.6 a, at least 0.2 a (spheres; species: the total phi; ellipsoids 0.4 a), resolved where the
+backend is known (engine.simulate.SceneRun), recorded in the result file's /parameters, the same in
+ensembles; an explicit value always wins; the CPU default of dilute scenes is unchanged bit for bit; the
+rule sits on the measured cost fronts of both stored accuracy reports.
 """
 
 from __future__ import annotations
 
 import json
+import math
+from pathlib import Path
 
 import h5py
 import pytest
@@ -15,7 +20,10 @@ from engine.backends.ensemble import resolve_backend
 from engine.ensemble import run_ensemble
 from engine.params import derive
 from engine.simulate import SceneRun, run
-from engine.spec import DEFAULT_VERLET_SKIN, SimulationSpec, default_verlet_skin
+from engine.spec import (DEFAULT_VERLET_SKIN, SimulationSpec, Species, default_verlet_skin,
+                         largest_default_verlet_skin, mean_free_path)
+
+ROOT = Path(__file__).resolve().parents[2]
 
 # tests/engine/test_ensemble.py's tiny scene
 TINY = dict(n_particles=64, volume_fraction=0.05, box_length=0.5, t_end=0.01, thermalization=0.2,
@@ -87,10 +95,111 @@ def test_ensemble_scenes_resolve_per_scene(tmp_path):
 
 
 def test_box_check_uses_the_largest_default():
-    # 27 spheres at phi = 0.2 in a box of 8.27 radii: 3 neighbour cutoffs are 7.2 a at L_v = 0.4 a, 8.4 a at 0.8 a
-    tight = dict(n_particles=27, volume_fraction=0.2, box_length=0.2, velocity_rms=0.5)
+    # 13 spheres at phi = 0.1 in a box of 8.17 radii: 3 neighbour cutoffs are 7.2 a at L_v = 0.4 a, 8.4 a at 0.8 a
+    tight = dict(n_particles=13, volume_fraction=0.1, box_length=0.2, velocity_rms=0.5)
     SimulationSpec(**tight, backend="cpu")                       # the CPU default fits
     SimulationSpec(**tight, backend="auto", verlet_skin=0.4)     # an explicit skin is checked as given
     for backend in ("auto", "cuda"):                              # the run may land on a GPU: 0.8 a must fit
         with pytest.raises(ValidationError, match="verlet_skin = 0.8, the default of backend"):
             SimulationSpec(**tight, backend=backend)
+
+
+def test_box_check_uses_the_default_at_the_spec_density():
+    # 23 spheres at phi = 0.3 in a box of 6.85 radii: 3 cutoffs are 6.6 a at L_v = 0.2 a (the default there on
+    # both backends), 7.2 a at 0.4 a
+    dense = dict(n_particles=23, volume_fraction=0.3, box_length=0.2, velocity_rms=0.5)
+    assert largest_default_verlet_skin("auto", "sphere", 0.3) == 0.2
+    for backend in ("cpu", "cuda", "auto"):
+        SimulationSpec(**dense, backend=backend)
+    with pytest.raises(ValidationError, match="verlet_skin = 0.4\\)"):
+        SimulationSpec(**dense, verlet_skin=0.4)
+
+
+# ---- the density-dependent rule ----------------------------------------------------------------------
+
+def test_mean_free_path():
+    # lambda/a = 1/(3 sqrt(2) phi g), Carnahan-Starling g: 28.9 at the paper-001 phi, 1.81 at 0.1, 0.317 at 0.3
+    assert mean_free_path(0.008) == pytest.approx(28.877, rel=1e-4)
+    assert mean_free_path(0.1) == pytest.approx(1.8087, rel=1e-4)
+    assert mean_free_path(0.3) == pytest.approx(0.31704, rel=1e-4)
+
+
+@pytest.mark.parametrize("phi, cpu, cuda", [
+    (0.008, 0.4, 0.8), (0.058, 0.4, 0.8), (0.1, 0.4, 0.8),     # swept (0.008, 0.1) and the paper scenes: L_max
+    (0.15, 0.4 * 1.04325 / 1.6, 0.8 * 1.04325 / 1.6),        # L_max lambda / 1.6 a
+    (0.2, 0.2, 0.8 * 0.670442 / 1.6),                          # CPU at the floor from phi = 0.179
+    (0.3, 0.2, 0.2),                                           # swept: both at the floor (CUDA from 0.267)
+])
+def test_rule_values(phi, cpu, cuda):
+    assert default_verlet_skin("cpu", "sphere", phi) == pytest.approx(cpu, rel=1e-4)
+    assert default_verlet_skin("cuda", "sphere", phi) == pytest.approx(cuda, rel=1e-4)
+    assert default_verlet_skin("cuda", "ellipsoid", phi) == 0.4      # ellipsoids: 0.4 at any phi
+
+
+def test_cpu_dilute_default_is_exactly_0_4():
+    """Every phi up to the paper scenes' 0.058 (and on to 0.109) gives the float 0.4 itself: bit-identical runs."""
+    for k in range(1, 110):
+        phi = k / 1000.0
+        assert default_verlet_skin("cpu", "sphere", phi) == 0.4, phi
+        assert default_verlet_skin("cuda", "sphere", phi) == 0.8, phi
+
+
+def test_rule_is_monotone_and_bounded():
+    for backend in ("cpu", "cuda"):
+        vals = [default_verlet_skin(backend, "sphere", k / 1000.0) for k in range(1, 600)]
+        assert all(0.2 <= v <= DEFAULT_VERLET_SKIN[backend] for v in vals)
+        assert all(b <= a for a, b in zip(vals, vals[1:]))
+        assert vals[-1] == 0.2
+
+
+@pytest.mark.parametrize("report", ["accuracy", "accuracy-cuda"])
+def test_rule_on_the_measured_cost_fronts(report):
+    """At every swept phi of the stored skin sweep, the rule's skin is a swept skin and runs within the
+    timing noise (15 %) of the fastest one (bench/reports/<report>/summary.json, as the report's verdict)."""
+    from bench.accuracy import TIME_NOISE, sweep_default_row
+
+    s = json.loads((ROOT / "bench" / "reports" / report / "summary.json").read_text())
+    rows, backend = s["scenes"]["skin_sweep"]["rows"], s["machine"]["backend"]
+    for phi in sorted({r["phi"] for r in rows}):
+        want, row, exact = sweep_default_row(rows, phi, backend)
+        best = max(r["cundall"] for r in rows if r["phi"] == phi)
+        assert exact and row["cundall"] >= (1.0 - TIME_NOISE) * best, (report, phi, want)
+    # the gas scenes (phi = 0.1) ran at the rule's value there: their default rows are the default's
+    assert s["default_skin"] == default_verlet_skin(backend, "sphere", s["size"]["phi"])
+    assert s["defaults_on_front"]["skin_sweep"] is True
+
+
+@pytest.mark.parametrize("backend, want", [("cpu", 0.2), ("cuda", 0.2)])
+def test_dense_scene_resolves_the_rule(tmp_path, backend, want):
+    spec = SimulationSpec(**{**TINY, "volume_fraction": 0.3})
+    scene = SceneRun(spec, tmp_path / "r.h5", backend=backend)
+    assert scene.verlet_skin == want and scene.p.skin == want * scene.p.radius
+    explicit = SceneRun(SimulationSpec(**{**TINY, "volume_fraction": 0.3, "verlet_skin": 0.8}), tmp_path / "e.h5",
+                        backend=backend)
+    assert explicit.verlet_skin == 0.8                       # an explicit value wins at any density
+
+
+def test_intermediate_density_cuda(tmp_path):
+    scene = SceneRun(SimulationSpec(**{**TINY, "volume_fraction": 0.15}), tmp_path / "r.h5", backend="cuda")
+    assert scene.verlet_skin == default_verlet_skin("cuda", "sphere", 0.15)
+    assert scene.verlet_skin == pytest.approx(0.8 * mean_free_path(0.15) / 1.6)
+
+
+def test_species_use_the_total_volume_fraction(tmp_path):
+    species = [Species(radius_ratio=1.0, number_fraction=0.5), Species(radius_ratio=0.5, number_fraction=0.5)]
+    spec = SimulationSpec(**{**TINY, "volume_fraction": 0.25, "species": species})
+    scene = SceneRun(spec, tmp_path / "r.h5", backend="cpu")
+    assert scene.verlet_skin == default_verlet_skin("cpu", "sphere", 0.25) == 0.2
+    assert scene.p.skin == pytest.approx(0.2 * scene.p.radius_min, rel=1e-12)   # radii of the smallest species
+    assert math.isclose(SceneRun(spec, tmp_path / "c.h5", backend="cuda").verlet_skin,
+                        0.8 * mean_free_path(0.25) / 1.6)
+
+
+def test_dense_skin_in_result_parameters(tmp_path):
+    out = tmp_path / "r.h5"
+    run(SimulationSpec(**{**TINY, "volume_fraction": 0.3}), out)
+    with h5py.File(out) as f:
+        par = f["parameters"].attrs
+        assert float(par["verlet_skin"]) == 0.2
+        assert float(par["skin"]) == pytest.approx(0.2 * float(par["radius"]), rel=1e-15)
+        assert json.loads(par["spec"])["verlet_skin"] is None
