@@ -72,11 +72,12 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                 items[start[b] + cuda.atomic.add(cursor, b, 1)] = i
 
     @cuda.jit(device=True)
-    def gap_of(i, j, pos, radius, box, inv_box):
+    def gap_of(i, j, ri, rj, pos, box, inv_box):
+        """R_i + R_j - |r_ij| (m, minimum image): the previous overlap of a fresh list slot."""
         dx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
         dy = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
         dz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
-        return radius[i] + radius[j] - math.sqrt(dx * dx + dy * dy + dz * dz)
+        return ri + rj - math.sqrt(dx * dx + dy * dy + dz * dz)
 
     @cuda.jit
     def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, c_off, c_cnt, cj, chist, order, inv_old, nbr,
@@ -151,8 +152,8 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                 k1 = k0 + c_cnt[oi]
                 for kk in range(cnt):
                     j = nbr[kk, i]
-                    init_slot(i, kk, j, gap_of(i, j, pos, radius, box, inv_box), k0, k1, cj, chist, inv_old,
-                              hist)
+                    init_slot(i, kk, j, gap_of(i, j, ri, radius[j], pos, box, inv_box), k0, k1, cj, chist,
+                              inv_old, hist)
         block_max2(sh, need, 0.0)
         if cuda.threadIdx.x == 0:
             cuda.atomic.max(status, S_NEED_NB, sh[0])
@@ -175,11 +176,7 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
             for kk in range(nn[i]):
                 j = nbr[kk, i]
                 rj = r0 if uniform else radius[j]
-                dx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
-                dy = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
-                dz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
-                init_slot(i, kk, j, ri + rj - math.sqrt(dx * dx + dy * dy + dz * dz), k0, k1, cj, chist,
-                          inv_old, hist)
+                init_slot(i, kk, j, gap_of(i, j, ri, rj, pos, box, inv_box), k0, k1, cj, chist, inv_old, hist)
 
     @cuda.jit
     def check_snapshot(n, pos, snap, sc, spd, spf, spi, status):
