@@ -104,8 +104,9 @@ def test_cost_estimate_grows_with_the_size_ratio():
         frac = 0.5 if ratio == 1 else 1.0 / (1.0 + ratio**-3)      # equal solid volume of both species
         if sp is not None:
             sp = _sp((1.0, frac), (ratio, 1.0 - frac))
+        # a fixed skin (0.8 smallest radii): the null default shrinks with density (engine.spec)
         s = SimulationSpec(n_particles=100_000, volume_fraction=0.25, box_length=1.0, velocity_rms=0.1,
-                           species=sp)
+                           species=sp, verlet_skin=0.8)
         slots.append(estimate_cost(s)["list_slots"])
     assert slots[0] == 32 and slots[-1] > slots[-2] > 32
     assert slots[-1] > 3 * slots[-2] / 2
