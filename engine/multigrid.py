@@ -255,6 +255,21 @@ def build_levels(pos, radius, level, skin, box, inv_box, half, nc, inv_cell, sta
     return need
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def carry_slot(i, k, j, nbr_old, nn_old, hist_old, hist):
+    """History of slot k of particle i (neighbour j) in a rebuilt CPU list ([i, slot, word] layout): the
+    old slot's words when j was in i's old row (returns True), else zeros (returns False: the caller
+    sets word 3, the previous overlap, to the current gap R_i + R_j - |r_ij|)."""
+    for ko in range(nn_old[i]):
+        if nbr_old[i, ko] == j:
+            for q in range(hist.shape[2]):
+                hist[i, k, q] = hist_old[i, ko, q]
+            return True
+    for q in range(hist.shape[2]):
+        hist[i, k, q] = 0
+    return False
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def build_levels_carry(pos, radius, level, skin, box, inv_box, half, nc, inv_cell, start_off, list_off,
                        cell_start, cell_list, nbr_old, nn_old, hist_old, nbr, nn, hist, x_ref):
@@ -275,16 +290,7 @@ def build_levels_carry(pos, radius, level, skin, box, inv_box, half, nc, inv_cel
         zi = pos[i, 2]
         for kk in range(min(cnt, max_nb)):
             j = nbr[i, kk]
-            found = False
-            for ko in range(nn_old[i]):
-                if nbr_old[i, ko] == j:
-                    for q in range(hist.shape[2]):
-                        hist[i, kk, q] = hist_old[i, ko, q]
-                    found = True
-                    break
-            if not found:
-                for q in range(hist.shape[2]):
-                    hist[i, kk, q] = 0
+            if not carry_slot(i, kk, j, nbr_old, nn_old, hist_old, hist):
                 dx = min_image(xi - pos[j, 0], box, inv_box, half)
                 dy = min_image(yi - pos[j, 1], box, inv_box, half)
                 dz = min_image(zi - pos[j, 2], box, inv_box, half)

@@ -27,7 +27,7 @@ import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the di
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.errors import InstabilityError
-from engine.multigrid import bin_levels, build_levels_carry, grid_levels, level_arrays, main_level
+from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
@@ -187,16 +187,7 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
                         if dx * dx + dy * dy + dz * dz < rc * rc:
                             if cnt < max_nb:
                                 nbr[i, cnt] = j
-                                found = False
-                                for kk in range(nn_old[i]):
-                                    if nbr_old[i, kk] == j:
-                                        for q in range(hist.shape[2]):
-                                            hist[i, cnt, q] = hist_old[i, kk, q]
-                                        found = True
-                                        break
-                                if not found:
-                                    for q in range(hist.shape[2]):
-                                        hist[i, cnt, q] = 0
+                                if not carry_slot(i, cnt, j, nbr_old, nn_old, hist_old, hist):
                                     hist[i, cnt, 3] = ri + radius[j] - math.sqrt(dx * dx + dy * dy + dz * dz)
                             cnt += 1
         nn[i] = cnt

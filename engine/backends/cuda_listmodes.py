@@ -151,11 +151,11 @@ class HostLists:
         return need, time.perf_counter() - t0
 
     def _install(self, snapshot_dev) -> float:
-        """Upload the host list (A2 / B11), keep history, x_ref = the positions it was built from."""
+        """Upload the host list (A2 / B11), attach the history kept in the compact store (the caller has
+        compacted the outgoing list), x_ref = the positions the list was built from."""
         ens = self.ens
         st = ens.stream
         t0 = time.perf_counter()
-        ens._compact()
         h = self._host
         ens.nbr.copy_to_device(h["nbr"], stream=st)
         ens.nn.copy_to_device(h["nn"], stream=st)
@@ -169,14 +169,16 @@ class HostLists:
         return t_up
 
     def _grow(self, need: int) -> None:
-        """A list that did not fit: larger device list and host buffers (history is in the store)."""
+        """A list that did not fit: larger device list and host buffers. The history must already be in
+        the compact store: compacting the new, empty list would clear it."""
         ens = self.ens
-        ens._compact()
         ens._alloc_list(int(np.ceil((need + 2) / 4.0)) * 4)
         self._alloc_host(ens.max_nb)
 
     def _sync_build(self) -> dict:
-        """Sequential build from the current positions (A5, A1, A2 / B1, B2)."""
+        """Sequential build from the current positions (A5, A1, A2 / B1, B2); the outgoing list's history
+        is compacted first, once, before any growth of the list."""
+        self.ens._compact()
         t_down = self._download()
         need, t_cpu = self._cpu_build()
         while need > self.ens.max_nb:
@@ -250,13 +252,12 @@ class HostLists:
                                                    ens.status)
         h = ens._read_status_now()                  # B9, B10
         if h[K.S_CHECK] >= 1.0 or need > ens.max_nb:
-            if need > ens.max_nb:
-                self._grow(need)
-            out = self._sync_build()
+            out = self._sync_build()               # grows the list itself when it does not fit
             out["tau_cpu"] += t_cpu
             out.update(wait=wait, restart=True)
             self.restarts += 1
             return out
+        ens._compact()
         t_up = self._install(self.snap)             # B11 (x_ref = the snapshot the list was built from)
         t_down = self._launch("list")               # B12: the next list from the current positions
         return {"tau_cpu": t_cpu, "tau_exch": t_up + t_down, "wait": wait}

@@ -117,6 +117,44 @@ def _child_modes() -> None:
     print("RESULT", json.dumps(out))
 
 
+def _child_growth() -> None:
+    """A CPU-built list that overflows its stride mid-run: the list grows and the contact history (springs)
+    must survive it, so the run equals the GPU-list run."""
+    from engine.backends.cuda import CudaBackend
+
+    out = {}
+    for mode in ("gpu", "cpu-sequential"):
+        sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
+        skin = 0.3 * float(sy.radius.min())
+        dt = np.pi * np.sqrt(0.5 * float(sy.mass.min()) / 1.0e5) / 50
+        be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
+        stride0 = be.e.max_nb
+        springs = []
+        if mode != "gpu":
+            lists = be.e.lists
+            real = lists.builder.build
+            calls = []
+
+            def build(pos, nbr, nn, x_ref=None):
+                need = real(pos, nbr, nn, x_ref)
+                calls.append(need)
+                if len(calls) == 2:  # the second CPU build claims an overflow: the list must grow
+                    h, k = be.e.hist.copy_to_host(), be.e.nn.copy_to_host()
+                    live = np.arange(h.shape[1])[:, None] < k[None, :]
+                    springs.append(int(((h[0] != 0) & live).sum()))
+                    return nbr.shape[1] + 1
+                return need
+
+            lists.builder.build = build
+        be.advance(100)
+        out[mode] = {"pos": be.state()["position"], "stride": [stride0, be.e.max_nb], "springs": springs}
+    d = out["cpu-sequential"]["pos"] - out["gpu"]["pos"]
+    d -= sy.box_length * np.round(d / sy.box_length)
+    print("RESULT", json.dumps({"dx": float(np.abs(d).max() / sy.box_length),
+                                "stride": out["cpu-sequential"]["stride"],
+                                "springs_at_growth": out["cpu-sequential"]["springs"]}))
+
+
 def _run(which):
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", PYTHONPATH=str(ROOT))
     p = subprocess.run([sys.executable, "-c", f"from tests.engine.test_cuda_lists_simulator import {which}; "
@@ -144,3 +182,12 @@ def test_three_list_modes_same_trajectory():
             # same physics and lists; only the order of the force sums differs: rounding, not O(dt)
             assert r[mode]["dx"] < 1e-11 and r[mode]["dv"] < 1e-8, (loop, mode, r[mode])
         assert r["cpu-pipelined"]["stages"] >= 3, (loop, r)
+
+
+def test_cpu_list_growth_keeps_the_contact_history():
+    res = _run("_child_growth")
+    print(res)
+    assert res["stride"][1] > res["stride"][0]          # the list did grow
+    assert res["springs_at_growth"] and res["springs_at_growth"][0] > 0  # with springs to carry over
+    assert res["dx"] < 1e-11, res                       # rounding only: no spring was lost
+
