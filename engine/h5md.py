@@ -17,11 +17,17 @@ with a along the body x axis.
 
 The writer works on ``<path>.part`` and renames it to ``<path>`` only in :meth:`H5MDWriter.finish`:
 a reader never sees a half-written result. Non-finite values are refused before they are written.
+
+Cost (issue 14): observables are kept in memory and written in blocks of :data:`OBSERVABLE_BLOCK` records
+(one resize and one write per dataset per block, also at :meth:`H5MDWriter.flush`, at checkpoints and at
+:meth:`H5MDWriter.finish`), so a record costs O(1) host work; a snapshot frame is one resize and one write
+per element, from arrays the caller may reuse after the call.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -38,6 +44,8 @@ UNITS = {
 }
 SNAPSHOT_ELEMENTS = ("position", "velocity", "orientation", "angular_velocity")
 DEM_MODULE_VERSION = [1, 0]
+#: observable records kept in memory before they are written (one HDF5 write per dataset per block)
+OBSERVABLE_BLOCK = 512
 
 
 def partial_path(path) -> Path:
@@ -56,6 +64,9 @@ class H5MDWriter:
         self.tmp = partial_path(self.path)
         self.n = n
         self.dtype = np.dtype(dtype)
+        self._pending: dict = {}     # observable name -> ([steps], [times], [values]) not yet written
+        self._n_pending = 0
+        self._groups: dict = {}      # observable name -> its [step, time, value] datasets
         if resume:
             self.f = h5py.File(self.tmp, "a")
             return
@@ -121,15 +132,54 @@ class H5MDWriter:
         g["value"][k] = value
 
     def observables(self, step: int, time: float, values: dict) -> None:
-        """Append one record of scalar (or small vector) observables."""
-        obs = self.f["observables"]
+        """Append one record of scalar observables (kept in memory; written in blocks, see the module
+        docstring). A non-finite value raises InstabilityError and is never written."""
         for name, value in values.items():
-            arr = np.asarray(value)
-            if not np.all(np.isfinite(arr)):
+            if not math.isfinite(value):
                 raise InstabilityError(f"observable {name} is not finite at step {step} (t = {time:g} s): "
                                        f"the run blew up; nothing non-finite is written", step=step)
-            dtype = np.int64 if arr.dtype.kind in "iu" else np.float64
-            self._append(self._series(obs, name, arr.shape, dtype), step, time, arr)
+        pending = self._pending
+        for name, value in values.items():
+            col = pending.get(name)
+            if col is None:
+                col = pending[name] = ([], [], [])
+            col[0].append(step)
+            col[1].append(time)
+            col[2].append(value)
+        self._n_pending += 1
+        if self._n_pending >= OBSERVABLE_BLOCK:
+            self._write_pending()
+
+    def _write_pending(self) -> None:
+        """Write the observables kept in memory: one write per dataset and name (a new series is created
+        with its first block as data; later blocks resize it once)."""
+        if not self._pending:
+            return
+        obs = None
+        for name, (steps, times, values) in self._pending.items():
+            vals = np.asarray(values)
+            dtype = np.int64 if vals.dtype.kind in "iub" else np.float64
+            cols = (("step", np.asarray(steps, np.int64)), ("time", np.asarray(times, np.float64)),
+                    ("value", vals.astype(dtype, copy=False)))
+            g = self._groups.get(name)
+            if g is None:
+                obs = obs or self.f["observables"]
+                if name in obs:  # a resumed file
+                    g = self._groups[name] = [obs[name][key] for key in ("step", "time", "value")]
+                else:
+                    grp = obs.create_group(name)
+                    g = self._groups[name] = [grp.create_dataset(key, data=data, maxshape=(None,), chunks=(1024,))
+                                              for key, data in cols]
+                    g[1].attrs["unit"] = "s"
+                    if UNITS.get(name):
+                        g[2].attrs["unit"] = UNITS[name]
+                    continue
+            k, m = g[0].shape[0], len(steps)
+            for ds, (_, data) in zip(g, cols):
+                ds.resize(k + m, axis=0)
+                ds[k:k + m] = data
+        self._pending = {}
+        self._n_pending = 0
 
     def snapshot(self, step: int, time: float, arrays: dict) -> None:
         """Append one frame of the per-particle elements (arrays in id order)."""
@@ -144,7 +194,8 @@ class H5MDWriter:
             self._append(self._series(part, name, a.shape, self.dtype), step, time, a)
 
     def frame_counts(self) -> dict:
-        """Number of records of every time series (for checkpoints)."""
+        """Number of records of every time series (for checkpoints; writes pending records first)."""
+        self._write_pending()
         out = {}
         for root in ("observables", "particles/all"):
             for name, g in self.f[root].items():
@@ -154,18 +205,22 @@ class H5MDWriter:
 
     def truncate(self, counts: dict) -> None:
         """Cut every time series back to the given record counts (resume from a checkpoint)."""
+        self._write_pending()
         for key, k in counts.items():
             if key in self.f:
                 for ds in ("step", "time", "value"):
                     self.f[key][ds].resize(k, axis=0)
 
     def flush(self) -> None:
+        """Write pending records and flush the file (a copy of it is then complete, e.g. a checkpoint)."""
+        self._write_pending()
         self.f.flush()
 
     # ---- closing -----------------------------------------------------------------------------------
 
     def finish(self, run_info: dict) -> Path:
         """Write the run attributes, close, and atomically rename the file to its final name."""
+        self._write_pending()
         par = self.f["parameters"]
         for key, value in run_info.items():
             par.attrs[key] = _attr(value)

@@ -15,6 +15,12 @@ and slows long before, so species specs are limited to volume_fraction <= SPECIE
 (engine/spec.py). Ids are then shuffled, so the species are interleaved in id order. Velocities: every
 species at the same temperature T0 = <m> v_rms^2 / 3 (equipartition), Gaussian per particle with
 variance T0/m_i per component, zero total momentum; spins with variance T0/I_i, zero total spin.
+
+Large starts (N >= PARALLEL_START_MIN, one size; issue 14): the same protocol, drawn in parallel (Numba
+prange) from a counter-based generator (SplitMix64 of seed, stream, particle and draw index; normals by
+Box-Muller), so the start is the same whatever the thread count, and sums (mean momentum, energy) are taken
+in fixed blocks. These starts differ from the sequential NumPy draws of smaller N (``start_generator``
+says which one a spec gets; the result's /parameters@start_generator records it).
 """
 
 from __future__ import annotations
@@ -239,12 +245,20 @@ def initial_spheres(spec, p: Derived) -> SphereSystem:
     """The starting state of a sphere spec: placed, Maxwellian, spins at equal temperature."""
     if species_table(spec) is not None:
         return initial_species(spec, p)
-    rng = np.random.default_rng(spec.seed)
     n = spec.n_particles
+    w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
+    if start_generator(spec) == PARALLEL_GENERATOR:
+        pos = _parallel_place(n, spec.box_length, p.radius, spec.seed)
+        vel = _parallel_maxwellian(n, spec.velocity_rms, spec.seed, STREAM_VELOCITY, 3)
+        omega = _parallel_maxwellian(n, w_rms, spec.seed, STREAM_SPIN, 3)
+        quat = _parallel_quaternions(n, spec.seed)
+        return SphereSystem(
+            box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
+            radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]))
+    rng = np.random.default_rng(spec.seed)
     pos = place_spheres(n, spec.box_length, p.radius, rng)
     vel = maxwellian(n, spec.velocity_rms, rng)
     # equal rotational and translational temperature: I <w^2> = m <v^2>
-    w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
     omega = maxwellian(n, w_rms, rng)
     quat = random_quaternions(n, rng)
     return SphereSystem(
@@ -257,21 +271,29 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
     uniformly random orientations, Maxwellian velocities, and spins about the two axes perpendicular to
     the symmetry axis at the translational temperature per degree of freedom (no spin about the axis,
     which frictionless contacts can neither create nor use: paper 003 sets omega_y(0) = 0)."""
-    rng = np.random.default_rng(spec.seed)
     n = spec.n_particles
     a = p.semi_axes[0]
+    parallel = start_generator(spec) == PARALLEL_GENERATOR
+    rng = None if parallel else np.random.default_rng(spec.seed)
     try:
-        pos = place_spheres(n, spec.box_length, a, rng)
+        pos = _parallel_place(n, spec.box_length, a, spec.seed) if parallel else \
+            place_spheres(n, spec.box_length, a, rng)
     except SpecError as exc:
         raise SpecError(f"{exc} (ellipsoids are placed by their bounding spheres of radius a = {a:.4g} m, "
                         f"elongation = {spec.elongation:g})") from None
-    vel = maxwellian(n, spec.velocity_rms, rng)
-    quat = random_quaternions(n, rng)
     i_perp = p.inertia[1]
     # T per dof = m <v^2>/3 = I_perp <w_k^2> for each perpendicular body axis k
-    w_b = rng.normal(size=(n, 2))
-    w_b -= w_b.mean(axis=0) if n > 1 else 0.0
-    w_b *= spec.velocity_rms * math.sqrt(p.mass / (3.0 * i_perp)) / math.sqrt(np.mean(w_b * w_b))
+    w_rms = spec.velocity_rms * math.sqrt(p.mass / (3.0 * i_perp))
+    if parallel:
+        vel = _parallel_maxwellian(n, spec.velocity_rms, spec.seed, STREAM_VELOCITY, 3)
+        quat = _parallel_quaternions(n, spec.seed)
+        w_b = _parallel_maxwellian(n, w_rms * math.sqrt(2.0), spec.seed, STREAM_SPIN, 2)
+    else:
+        vel = maxwellian(n, spec.velocity_rms, rng)
+        quat = random_quaternions(n, rng)
+        w_b = rng.normal(size=(n, 2))
+        w_b -= w_b.mean(axis=0) if n > 1 else 0.0
+        w_b *= w_rms / math.sqrt(np.mean(w_b * w_b))
     w, x, y, z = quat.T
     e2 = np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], 1)
     e3 = np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], 1)
@@ -280,3 +302,175 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
         box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
         semi_axes=np.tile(np.asarray(p.semi_axes, float), (n, 1)), mass=np.full(n, p.mass),
         inertia=np.tile(np.asarray(p.inertia, float), (n, 1)))
+
+
+# ---- large starts in parallel (issue 14) --------------------------------------------------------------
+
+#: one-size starts of at least this many particles are drawn in parallel (module docstring)
+PARALLEL_START_MIN = 1 << 20
+SEQUENTIAL_GENERATOR = "numpy-pcg64"
+PARALLEL_GENERATOR = "splitmix64-counter"
+STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION = range(5)
+_DRAWS = 8           # counter values reserved per particle and stream
+_BLOCK = 1 << 14     # particles per block of the deterministic sums
+
+_U = np.uint64
+_GOLDEN = _U(0x9E3779B97F4A7C15)
+_M1 = _U(0xBF58476D1CE4E5B9)
+_M2 = _U(0x94D049BB133111EB)
+
+
+def start_generator(spec) -> str:
+    """Which generator draws a spec's start: the sequential NumPy one, or the parallel counter-based one
+    for one-size starts of N >= PARALLEL_START_MIN (species starts are always sequential: RSA)."""
+    if species_table(spec) is None and spec.n_particles >= PARALLEL_START_MIN:
+        return PARALLEL_GENERATOR
+    return SEQUENTIAL_GENERATOR
+
+
+@numba.njit(cache=True, inline="always")
+def _mix64(x):
+    """SplitMix64's finaliser (a bijection of uint64 with full avalanche)."""
+    x = (x ^ (x >> _U(30))) * _M1
+    x = (x ^ (x >> _U(27))) * _M2
+    return x ^ (x >> _U(31))
+
+
+@numba.njit(cache=True, inline="always")
+def _bits(key, i, k):
+    return _mix64(key + (_U(i) * _U(_DRAWS) + _U(k)) * _GOLDEN)
+
+
+@numba.njit(cache=True, inline="always")
+def _uniform(key, i, k):
+    """A uniform double in (0, 1), draw k of particle i in the stream of ``key``."""
+    return ((_bits(key, i, k) >> _U(11)) + 0.5) * (1.0 / 9007199254740992.0)
+
+
+@numba.njit(cache=True, inline="always")
+def _normal_pair(key, i, k):
+    """Two independent standard normals (Box-Muller) from draws k, k + 1 of particle i."""
+    r = math.sqrt(-2.0 * math.log(_uniform(key, i, k)))
+    t = 2.0 * math.pi * _uniform(key, i, k + 1)
+    return r * math.cos(t), r * math.sin(t)
+
+
+def _stream_key(seed: int, stream: int) -> np.uint64:
+    with np.errstate(over="ignore"):
+        return _U(_mix64(_U(seed % (1 << 64)) * _GOLDEN + _U(stream + 1)))
+
+
+@numba.njit(cache=True, parallel=True)
+def _site_keys(key, n_sites):
+    out = np.empty(n_sites, np.uint64)
+    for j in numba.prange(n_sites):
+        out[j] = _bits(key, j, 0)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _place_on_sites(chosen, m, a, key, half_gap, box):
+    """Centres at the chosen fcc sites (as fcc_sites numbers them), each displaced uniformly in a ball of
+    radius half_gap (direction from three normals, radius from a uniform), wrapped into [0, box)."""
+    base = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0], [0.5, 0.0, 0.5], [0.0, 0.5, 0.5]]) * a
+    n = chosen.shape[0]
+    pos = np.empty((n, 3))
+    for i in numba.prange(n):
+        j = chosen[i]
+        c = j // 4
+        b = j - 4 * c
+        ix = c // (m * m)
+        iy = (c // m) % m
+        iz = c % m
+        g0, g1 = _normal_pair(key, i, 0)
+        g2, _ = _normal_pair(key, i, 2)
+        norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        r = half_gap * _uniform(key, i, 4) ** (1.0 / 3.0) * (1.0 - 1e-9) / norm
+        x = (ix * a + base[b, 0]) + 0.25 * a + g0 * r
+        y = (iy * a + base[b, 1]) + 0.25 * a + g1 * r
+        z = (iz * a + base[b, 2]) + 0.25 * a + g2 * r
+        pos[i, 0] = x - box * math.floor(x / box)
+        pos[i, 1] = y - box * math.floor(y / box)
+        pos[i, 2] = z - box * math.floor(z / box)
+    return pos
+
+
+def _parallel_place(n: int, box: float, radius: float, seed: int) -> np.ndarray:
+    """place_spheres' protocol (fcc sites, n of them at random, a random displacement in the free room)
+    with the counter-based generator: the n sites of smallest 64-bit key are chosen."""
+    m = max(1, math.ceil((n / 4.0) ** (1.0 / 3.0) - 1e-9))
+    a = box / m
+    n_sites = 4 * m ** 3
+    gap = a / math.sqrt(2.0) - 2.0 * radius
+    if gap <= 0:
+        phi = n * 4.0 / 3.0 * math.pi * radius**3 / box**3
+        raise SpecError(
+            f"volume_fraction = {phi:.4g}: {n} spheres of radius {radius:.4g} m do not fit on the "
+            f"{n_sites}-site fcc start lattice of a {box:g} m box; lower volume_fraction "
+            f"(or choose n_particles = 4 m^3 for a full lattice)")
+    if n == n_sites:
+        chosen = np.arange(n, dtype=np.int64)
+    else:
+        keys = _site_keys(_stream_key(seed, STREAM_SITES), n_sites)
+        chosen = np.sort(np.argpartition(keys, n - 1)[:n]).astype(np.int64)
+    return _place_on_sites(chosen, m, a, _stream_key(seed, STREAM_DISPLACEMENT), 0.5 * gap, float(box))
+
+
+@numba.njit(cache=True, parallel=True)
+def _normals(key, n, dim):
+    out = np.empty((n, dim))
+    for i in numba.prange(n):
+        for k in range(0, dim, 2):
+            g0, g1 = _normal_pair(key, i, k)
+            out[i, k] = g0
+            if k + 1 < dim:
+                out[i, k + 1] = g1
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _block_sums(v, power):
+    """Per block of _BLOCK rows, the column sums of v**power (a fixed summation order for any thread count)."""
+    n, dim = v.shape
+    nb = (n + _BLOCK - 1) // _BLOCK
+    out = np.zeros((nb, dim))
+    for b in numba.prange(nb):
+        for i in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
+            for d in range(dim):
+                out[b, d] += v[i, d] ** power
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _shift_scale(v, shift, scale):
+    for i in numba.prange(v.shape[0]):
+        for d in range(v.shape[1]):
+            v[i, d] = (v[i, d] - shift[d]) * scale
+
+
+def _parallel_maxwellian(n: int, rms: float, seed: int, stream: int, dim: int) -> np.ndarray:
+    """maxwellian() with the counter-based generator: zero mean and sqrt(<|v|^2>) = rms exactly."""
+    v = _normals(_stream_key(seed, stream), n, dim)
+    mean = _block_sums(v, 1).sum(axis=0) / n if n > 1 else np.zeros(dim)
+    _shift_scale(v, mean, 1.0)
+    norm = math.sqrt(_block_sums(v, 2).sum() / n)
+    _shift_scale(v, np.zeros(dim), rms / norm if norm > 0 else 1.0)
+    return v
+
+
+@numba.njit(cache=True, parallel=True)
+def _normalise_rows(q):
+    for i in numba.prange(q.shape[0]):
+        s = 0.0
+        for d in range(q.shape[1]):
+            s += q[i, d] * q[i, d]
+        s = math.sqrt(s)
+        for d in range(q.shape[1]):
+            q[i, d] /= s
+
+
+def _parallel_quaternions(n: int, seed: int) -> np.ndarray:
+    """Uniformly random unit quaternions (w, x, y, z) with the counter-based generator."""
+    q = _normals(_stream_key(seed, STREAM_QUATERNION), n, 4)
+    _normalise_rows(q)
+    return q

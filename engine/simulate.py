@@ -72,7 +72,17 @@ class RunSummary:
     wall_s: float                 # wall seconds of the time loop (after compilation and placement)
     cundall: float                # N * steps / wall_s
     resumed_from_step: Optional[int] = None
-    extra: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)   # run attributes; "timings": wall s per phase (TIMINGS)
+
+
+#: Where a job's wall time goes (RunSummary.extra["timings"], /parameters@timings), seconds:
+#: setup = spec checks, derived parameters and the initial state (placement, velocities, spins);
+#: build = the backend (device upload, first neighbour list); compile = kernel compilation or cache load;
+#: loop = the time loop (thermalisation + cooling steps); records, snapshots, checkpoints = output stops;
+#: open/close = creating and finishing the result file. build and compile are the ensemble's (shared by its
+#: scenes: SHARED_TIMINGS); the others are the scene's own.
+TIMINGS = ("setup", "build", "compile", "loop", "records", "snapshots", "checkpoints", "open", "close")
+SHARED_TIMINGS = ("build", "compile")
 
 
 def contact_params(spec: SimulationSpec, p: Derived, *, thermalization: bool) -> ContactParams:
@@ -147,7 +157,7 @@ class _Checkpointer:
         writer.flush()
         tmp_h5 = self.dir / "partial.h5.tmp"
         shutil.copyfile(writer.tmp, tmp_h5)
-        st = backend.state()
+        st = backend.state(reuse=True)  # consumed by np.savez below
         pairs, springs = backend.contacts()
         tmp = self.dir / "state.tmp.npz"
         np.savez(tmp, phase=phase, step_done=step_done, counts=json.dumps(writer.frame_counts()),
@@ -181,6 +191,7 @@ class SceneRun:
                  checkpoint_interval: float = 60.0, backend: Optional[str] = None):
         from engine.scene import initial_ellipsoids, initial_spheres
 
+        t_setup = time.perf_counter()
         spec = load_spec(spec)
         self.spec = spec
         self.ellipsoid = ellipsoid = spec.shape == "ellipsoid"
@@ -231,6 +242,8 @@ class SceneRun:
         self.writer: Optional[H5MDWriter] = None
         self.done = False
         self._chunk = max(1, p.output_every)
+        self.timings = dict.fromkeys(TIMINGS, 0.0)
+        self.timings["setup"] = time.perf_counter() - t_setup
         if phase == "thermalization":
             self._target = min(step_done + self._chunk, p.n_thermalization_steps)
         else:
@@ -266,6 +279,7 @@ class SceneRun:
         """Create the result writer (``<output>.part``; a resumed scene continues its checkpointed file)."""
         from engine import __version__
 
+        t0 = time.perf_counter()
         spec, p = self.spec, self.p
         dtype = np.float64 if spec.precision == "float64" else np.float32
         derived = {k: v for k, v in p.as_dict().items()}
@@ -285,6 +299,7 @@ class SceneRun:
                                      semi_axes=system.semi_axes if self.ellipsoid else None, mass=system.mass,
                                      species=None if self.ellipsoid else species_index(system.radius, p),
                                      creator_version=__version__, **common)
+        self.timings["open"] += time.perf_counter() - t0
 
     def at_stop(self, view) -> None:
         """Handle the stop the scene has reached (records, energy check, snapshot, progress, checkpoint)."""
@@ -294,8 +309,10 @@ class SceneRun:
             self._report("thermalization", self.step_done, (self.step_done - p.n_thermalization_steps) * p.dt,
                          self.step_done - p.n_thermalization_steps)
             if self.ck.due():
+                t0 = time.perf_counter()
                 self.ck.save(writer, view, phase="thermalization", step_done=self.step_done,
                              extra={"spec": self.spec_json, "prev_energy": self.prev_energy})
+                self.timings["checkpoints"] += time.perf_counter() - t0
             if self.step_done >= p.n_thermalization_steps:
                 self.phase, self.step_done = "cooling", 0
                 view.set_contact(self.cool)
@@ -306,6 +323,8 @@ class SceneRun:
 
         step_done = self.step_done
         t_sim = step_done * p.dt
+        tm = self.timings
+        t0 = time.perf_counter()
         obs = view.observe()
         if step_done % p.output_every == 0 or step_done == p.n_steps:
             writer.observables(step_done, t_sim, record(obs, self.n))
@@ -317,26 +336,41 @@ class SceneRun:
                     f"(dt = {p.dt:.3g} s, contact time {p.contact_time:.3g} s) or overlaps too deep",
                     step=step_done)
             self.prev_energy = min(self.prev_energy, energy)
+        t1 = time.perf_counter()
+        tm["records"] += t1 - t0
         if step_done in self.snaps:
-            writer.snapshot(step_done, t_sim, view.state())
+            # the view may hand out reused (pinned) buffers: the writer copies them into the file at once
+            writer.snapshot(step_done, t_sim, view.state(reuse=True))
+            tm["snapshots"] += time.perf_counter() - t1
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
         if self.ck.due() and step_done < p.n_steps:
+            t0 = time.perf_counter()
             self.ck.save(writer, view, phase="cooling", step_done=step_done,
                          extra={"spec": self.spec_json, "prev_energy": self.prev_energy})
+            tm["checkpoints"] += time.perf_counter() - t0
         self._next_event()
 
-    def finish(self, backend: str, device: str, builds: int, info: Optional[dict] = None) -> RunSummary:
-        """Write the run attributes, rename the result to its final name, clear the checkpoints."""
+    def finish(self, backend: str, device: str, builds: int, info: Optional[dict] = None,
+               shared_timings: Optional[dict] = None) -> RunSummary:
+        """Write the run attributes, rename the result to its final name, clear the checkpoints.
+
+        ``shared_timings``: the ensemble's build and compile seconds (SHARED_TIMINGS), reported with the
+        scene's own in ``extra["timings"]`` and ``/parameters@timings`` (the file's lacks ``close``)."""
         cundall = self.n * self.steps_run / self.wall if self.wall > 0 else 0.0
+        tm = self.timings
+        tm["loop"] = self.wall
+        tm.update(shared_timings or {})
         run_info = {"backend": backend, "device": device, "wall_time": self.wall, "cundall_number": cundall,
                     "steps_total": self.total_steps, "neighbour_builds": builds,
                     "resumed_from_step": -1 if self.resumed_from is None else self.resumed_from,
-                    **(info or {})}
+                    **(info or {}), "timings": {k: round(v, 6) for k, v in tm.items()}}
+        t0 = time.perf_counter()
         path = self.writer.finish(run_info)
         self.ck.clear()
+        tm["close"] = time.perf_counter() - t0
         return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
                           wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
-                          extra=dict(info or {}))
+                          extra={**(info or {}), "timings": dict(tm)})
 
     def abort(self) -> None:
         """Delete the partial result (checkpoints stay for a later attempt)."""
@@ -391,7 +425,10 @@ class _SceneView:
             self.cache["all"] = self.ens.observe()
         return self.cache["all"][self.i]
 
-    def state(self) -> dict:
+    def state(self, reuse: bool = False) -> dict:
+        """Scene i's state in id order; ``reuse``: the arrays may be buffers the next call overwrites."""
+        if reuse and getattr(self.ens, "reuses_state_buffers", False):
+            return self.ens.state(self.i, reuse=True)
         return self.ens.state(self.i)
 
     def contacts(self):
@@ -433,7 +470,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
                 on_result(k, r)
     if not live:
         return results
+    t0 = time.perf_counter()
     ens, live = _build(scenes, live, results, build, build_one)
+    shared = {"build": time.perf_counter() - t0, "compile": 0.0}
     if on_result is not None:
         for k, s in enumerate(scenes):
             if not isinstance(s, BaseException) and k not in live:
@@ -442,6 +481,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
         return results
     runs = [scenes[k] for k in live]          # ensemble index i -> SceneRun
     size = len(runs)
+    t0 = time.perf_counter()
     try:
         rounds = max(len(r.warm_contacts) for r in runs)
         for r_ in range(rounds):
@@ -450,6 +490,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
             ens.warmup()
         for i, r in enumerate(runs):
             ens.set_contact(i, r.initial_contact)
+        shared["compile"] = time.perf_counter() - t0
     except Exception as exc:  # the ensemble cannot compile: every scene fails with the reason
         for k in live:
             results[k] = exc
@@ -475,13 +516,17 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
         info = getattr(ens, "scene_info", None)
         try:
             summary = runs[i].finish(ens.name, ens.device, ens.builds if builds is None else builds,
-                                     {"ensemble_size": size, "ensemble_index": i, **(info(i) if info else {})})
+                                     {"ensemble_size": size, "ensemble_index": i, **(info(i) if info else {})},
+                                     shared_timings=shared)
         except Exception as exc:
             end(i, exc)
             return
         settle(i, summary)
 
     per_scene = hasattr(ens, "advance_each") and not lockstep
+    plan = getattr(ens, "plan", None)
+    if plan is not None:  # how long the run goes on (the auto list mode weighs a probe against it)
+        plan(max((r.p.n_steps if r.phase == "cooling" else r.total_steps) - r.step_done for r in runs))
     try:
         for i, r in enumerate(runs):
             try:

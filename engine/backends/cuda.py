@@ -523,9 +523,7 @@ class CudaEnsemble:
                        self.spi, self.status, 0)
         k["half_kick"][g](0, self.vel, self.omega, self.f_cur, self.torque, self.inv_m1, self.inv_i1, self.sc,
                           self.spd, self.spi)
-        acc = cuda.device_array((self.n_scenes, 8), np.float64, stream=s)
-        k["observe"][g](0, self.pos, self.vel, self.omega, self.radius1, self.mass1, self.inertia1, self.nbr,
-                        self.nn, self.hist, self.sc, self.spd, self.spf, self.spi, acc)
+        self._observe_sums()
         if self.multistep:
             scratch = cuda.to_device(self._fresh_status(), stream=s)
             k["run_steps"][g](0, 1, 1, 0, 1.0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
@@ -533,10 +531,22 @@ class CudaEnsemble:
                               self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, scratch, 0)
         s.synchronize()
 
+    def plan(self, steps: int) -> None:
+        """The driver's horizon: the run goes on for about ``steps`` more steps (used by the auto list mode to
+        judge whether a probe can repay itself)."""
+        self._horizon = self.steps_done + int(steps)
+
+    def steps_left(self):
+        """Steps left before the later of the driver's horizon and the current advance call's end (None:
+        unknown)."""
+        ends = [e for e in (getattr(self, "_horizon", None), getattr(self, "_call_end", None)) if e is not None]
+        return max(ends) - self.steps_done if ends else None
+
     def advance(self, nsteps: int) -> dict:
         """Advance every active scene nsteps steps; returns {scene: InstabilityError} of the scenes that
         blew up in this call (stopped on the device at their own step; the others went on)."""
         nsteps = int(nsteps)
+        self._call_end = self.steps_done + nsteps
         failed, self._pending = dict(self._pending), {}
         if nsteps <= 0 or not self.active.any():
             return failed
@@ -674,53 +684,78 @@ class CudaEnsemble:
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
+    #: the observe kernel's sums per scene (cuda_kernels.NOBS; the ellipsoid ensemble has its own)
+    _NOBS = K.NOBS
+
+    def _observe_args(self) -> tuple:
+        return (self.pos, self.vel, self.omega, self.radius1, self.mass1, self.inertia1, self.nbr, self.nn,
+                self.hist, self.spd, self.spf, self.spi)
+
+    def _observe_sums(self) -> np.ndarray:
+        """The observe kernel's per-scene sums (K, _NOBS) on the host (issue 14): one zeroing copy, one launch
+        with one block row per scene, one copy of K x _NOBS float64 into pinned memory, one sync. The host
+        buffer is reused: read it before the next call."""
+        s, nk = self.stream, self.n_scenes
+        if getattr(self, "_acc", None) is None:
+            self._acc_zero = cuda.pinned_array((nk, self._NOBS), np.float64)
+            self._acc_zero[:] = 0.0
+            self._acc_h = cuda.pinned_array((nk, self._NOBS), np.float64)
+            self._acc = cuda.device_array((nk, self._NOBS), np.float64, stream=s)
+        self._acc.copy_to_device(self._acc_zero, stream=s)
+        per_scene = (int(self.sizes.max()) + self.tpb - 1) // self.tpb
+        bx = max(1, min(per_scene, max(1, self.max_blocks // nk)))
+        self.k["observe"][(bx, nk), self.tpb, s](*self._observe_args(), self._acc)
+        self._acc.copy_to_host(self._acc_h, stream=s)
+        s.synchronize()
+        return self._acc_h
+
     def observe(self) -> list:
         """Per scene: the observables of :meth:`CudaBackend.observe`, None for an inactive scene."""
-        acc = cuda.to_device(np.zeros((self.n_scenes, 8)), stream=self.stream)
-        self.k["observe"][self._grid(self.n)](
-            self.n, self.pos, self.vel, self.omega, self.radius1, self.mass1, self.inertia1, self.nbr, self.nn,
-            self.hist, self.sc, self.spd, self.spf, self.spi, acc)
-        a = acc.copy_to_host(stream=self.stream)
-        self.stream.synchronize()
+        a = self._observe_sums()
         out = []
         for s in range(self.n_scenes):
             if not self.active[s]:
                 out.append(None)
                 continue
-            r = a[s]
-            out.append({"kinetic_energy_translational": float(r[0]), "kinetic_energy_rotational": float(r[1]),
-                        "contacts": int(round(r[2])) // 2, "elastic_energy": float(r[3]),
-                        "max_overlap": float(r[7]), "momentum": (float(r[4]), float(r[5]), float(r[6]))})
+            r = a[s].tolist()
+            out.append({"kinetic_energy_translational": r[0], "kinetic_energy_rotational": r[1],
+                        "contacts": int(round(r[2])) // 2, "elastic_energy": r[3],
+                        "max_overlap": r[7], "momentum": (r[4], r[5], r[6])})
         return out
 
     #: state() keys and the device arrays (3 or 4 rows, particle index fastest) they are copied from
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angular_velocity", "omega"), ("orientation", "quat"))
+    #: state(k, reuse=True) hands out reused pinned buffers (engine/simulate.py writes them at once)
+    reuses_state_buffers = True
 
-    def _scene_rows(self, k: int) -> dict:
-        """Host copies of scene k's state arrays in particle-id order, keyed as in ``_STATE`` (all copies
-        queued into pinned buffers, one sync)."""
+    def _scene_rows(self, k: int, reuse: bool = False) -> dict:
+        """Scene k's state arrays (n_k, rows) in particle-id order, keyed as in ``_STATE`` (issue 14): per array
+        a kernel gathers the scene's slots into id order on the device, into one reused staging buffer, and
+        one copy moves exactly those n_k rows into a reused pinned host buffer; one sync for all.
+        ``reuse``: return views of the pinned buffers (valid until the next call), else copies."""
         s = self.stream
-        if getattr(self, "_pinned", None) is None:
-            self._pinned = {name: cuda.pinned_array(getattr(self, name).shape, self.dtype)
-                            for _, name in self._STATE}
-            self._pinned_ids = cuda.pinned_array(self.n, np.int32)
-        for name, buf in self._pinned.items():
-            getattr(self, name).copy_to_host(buf, stream=s)
-        self.ids.copy_to_host(self._pinned_ids, stream=s)
-        s.synchronize()
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
-        local = self._pinned_ids[a0:a0 + n_k] - a0
+        if getattr(self, "_stage", None) is None:
+            nmax = int(self.sizes.max())
+            self._stage = cuda.device_array(max(1, 4 * nmax), self.dtype, stream=s)
+            self._stage_h = {key: cuda.pinned_array((nmax, getattr(self, name).shape[0]), self.dtype)
+                             for key, name in self._STATE}
         out = {}
         for key, name in self._STATE:
-            a = self._pinned[name][:, a0:a0 + n_k]
-            o = np.empty((n_k, a.shape[0]), self.dtype)
-            o[local] = a.T
-            out[key] = o
-        return out
+            src = getattr(self, name)
+            rows = src.shape[0]
+            host = self._stage_h[key][:n_k]
+            if n_k:
+                dst = self._stage[:n_k * rows].reshape(n_k, rows)
+                K.gather_scene[self._grid(n_k)](src, self.ids, a0, n_k, dst)
+                dst.copy_to_host(host, stream=s)
+            out[key] = host
+        s.synchronize()
+        return out if reuse else {key: a.copy() for key, a in out.items()}
 
-    def state(self, k: int) -> dict:
-        """Host copies of scene k's state arrays in particle-id order."""
-        return self._scene_rows(k)
+    def state(self, k: int, reuse: bool = False) -> dict:
+        """Host copies of scene k's state arrays in particle-id order (``reuse``: see :meth:`_scene_rows`)."""
+        return self._scene_rows(k, reuse)
 
     def contacts(self, k: int):
         """(pairs (M,2) int64 ids, history (M,HW)) of scene k's list slots in contact (previous overlap

@@ -181,9 +181,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
                        self.force, self.torque, self.nbr, self.nn, self.hist, self.pos_prev, self.quat_prev, self.ids,
                        self.sc, self.spd, self.spf, self.spi, self.status, 0)
         k["half_kick"][g](0, self.vel, self.angm, self.force, self.torque, self.inv_m1, self.sc, self.spd, self.spi)
-        acc = cuda.device_array((self.n_scenes, CE.NACC), np.float64, stream=s)
-        k["observe"][g](0, self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.sc,
-                        self.spd, self.spf, self.spi, acc)
+        self._observe_sums()
         if self.multistep:
             scratch = cuda.to_device(self._fresh_status(), stream=s)
             k["run_steps"][g](0, 1, 1, self.pos, self.vel, self.angm, self.quat, self.force, self.torque,
@@ -194,33 +192,35 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
+    _NOBS = CE.NACC
+
+    def _observe_args(self) -> tuple:
+        return (self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.spd, self.spf,
+                self.spi)
+
     def observe(self) -> list:
         """Per scene the keys of CpuEllipsoidBackend.observe (None for an inactive scene)."""
-        acc = cuda.to_device(np.zeros((self.n_scenes, CE.NACC)), stream=self.stream)
-        self.k["observe"][self._grid(self.n)](
-            self.n, self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.sc, self.spd,
-            self.spf, self.spi, acc)
-        a = acc.copy_to_host(stream=self.stream)
-        self.stream.synchronize()
+        a = self._observe_sums()
         out = []
         for s in range(self.n_scenes):
             if not self.active[s]:
                 out.append(None)
                 continue
-            r = a[s]
-            out.append({"kinetic_energy_translational": float(r[CE.A_TR]),
-                        "kinetic_energy_rotational": float(r[CE.A_ROT]),
-                        "kinetic_energy_rotational_active": float(r[CE.A_PERP]), "rotational_dof": 2,
-                        "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": float(r[CE.A_EL]),
-                        "max_overlap": float(r[CE.A_OVL]) / self._bmin[s],
-                        "momentum": (float(r[CE.A_PX]), float(r[CE.A_PY]), float(r[CE.A_PZ]))})
+            r = a[s].tolist()
+            out.append({"kinetic_energy_translational": r[CE.A_TR],
+                        "kinetic_energy_rotational": r[CE.A_ROT],
+                        "kinetic_energy_rotational_active": r[CE.A_PERP], "rotational_dof": 2,
+                        "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": r[CE.A_EL],
+                        "max_overlap": r[CE.A_OVL] / self._bmin[s],
+                        "momentum": (r[CE.A_PX], r[CE.A_PY], r[CE.A_PZ])})
         return out
 
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat"))
 
-    def state(self, k: int) -> dict:
-        """Host copies of scene k's state in particle-id order (angular velocity in the space frame)."""
-        out = self._scene_rows(k)
+    def state(self, k: int, reuse: bool = False) -> dict:
+        """Host copies of scene k's state in particle-id order (angular velocity in the space frame, computed
+        on the host from L; ``reuse``: see CudaEnsemble._scene_rows)."""
+        out = self._scene_rows(k, reuse)
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         w = np.zeros((n_k, 3), self.dtype)
         omega_from_angm(out["orientation"], out.pop("angm"), self._inv_i_h[a0:a0 + n_k], self.dtype(0.5), w)

@@ -50,8 +50,9 @@ from numba import cuda
 from numba.cuda import types as ct
 
 from engine.backends import cuda_kernels as SK
+from engine.backends.cuda_cache import cache_kernels
 from engine.backends.cuda_kernels import (D_BOX, D_DT, D_GN, D_HP, D_IM0, D_INVBOX, D_KN, D_M0, D_R0, F_KN,
-                                          F_LIM2INV, F_OVL, I_ACTIVE, ND, NSS, S_D2, S_D2B, S_RUN_DONE,
+                                          F_LIM2INV, F_OVL, I_ACTIVE, I_N, I_START, ND, NSS, S_D2, S_D2B, S_RUN_DONE,
                                           S_RUN_REBUILD, S_V2, SS0, SS_BAD_ID, SS_OVL, SS_OVL_ID, F_V2F)
 from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
@@ -80,7 +81,7 @@ def kernels(dtype, uniform: bool, tpb: int) -> dict:
     if key not in _cache:
         lists = SK.kernels(dtype, False, False, False, uniform, tpb)
         k = {name: lists[name] for name in LIST_KERNELS}
-        k.update(_make(np.dtype(dtype).type, uniform, tpb))
+        k.update(cache_kernels(_make(np.dtype(dtype).type, uniform, tpb), ("ellipsoids",) + key))
         _cache[key] = k
     return _cache[key]
 
@@ -373,55 +374,57 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
 
     # ---- observables ----------------------------------------------------------------------------------
 
+    block_accumulate = SK.observe_reducer(TPB, NACC, A_OVL)
+
     @cuda.jit
-    def observe(n, vel, angm, quat, mass, inv_i, nn, hist, sc, spd, spf, spi, acc):
-        """acc[s] += the sums of cpu_ellipsoid.observe_ell, in float64 per particle (an output-step kernel:
-        its atomics do not matter): E_tr = m v^2/2; E_rot = sum_k I_k w_b,k^2/2 with the body-frame
-        w_b = I^-1 R^T L; E_rot,perp the part about the two axes perpendicular to body x (the 2 active
-        dof of paper 003 Eq. 25b as corrected in PHYSICS-NOTES §3.3); contacts (each pair counted twice,
-        previous overlap > 0); elastic energy k_n delta^2/2 (half per list slot); momentum; largest delta."""
-        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
-            if spi[s, I_ACTIVE] == 0:
-                continue
-            if UNIFORM:
-                m = f64(spd[s, D_M0])
-                ii1 = spd[s, E_II1]
-                ii2 = spd[s, E_II2]
-                ii3 = spd[s, E_II3]
-            else:
-                m = f64(mass[0, i])
-                ii1 = inv_i[0, i]
-                ii2 = inv_i[1, i]
-                ii3 = inv_i[2, i]
-            vx = f64(vel[0, i])
-            vy = f64(vel[1, i])
-            vz = f64(vel[2, i])
-            wb0, wb1, wb2 = body_omega(quat[0, i], quat[1, i], quat[2, i], quat[3, i], angm[0, i], angm[1, i],
-                                       angm[2, i], ii1, ii2, ii3, HALF)
-            w0 = f64(wb0)
-            w1 = f64(wb1)
-            w2 = f64(wb2)
-            ep = 0.5 * (w1 * w1 / f64(ii2) + w2 * w2 / f64(ii3))
-            cuda.atomic.add(acc, (s, A_TR), 0.5 * m * (vx * vx + vy * vy + vz * vz))
-            cuda.atomic.add(acc, (s, A_ROT), 0.5 * w0 * w0 / f64(ii1) + ep)
-            cuda.atomic.add(acc, (s, A_PERP), ep)
-            cuda.atomic.add(acc, (s, A_PX), m * vx)
-            cuda.atomic.add(acc, (s, A_PY), m * vy)
-            cuda.atomic.add(acc, (s, A_PZ), m * vz)
-            ncon = 0.0
-            el = 0.0
-            worst = 0.0
-            for kk in range(nn[i]):
-                d = f64(hist[3, kk, i])
-                if d > 0.0:
-                    ncon += 1.0
-                    el += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, spf[s, F_KN], 0.0, 0.5)
-                    worst = max(worst, d)
-            if ncon > 0.0:
-                cuda.atomic.add(acc, (s, A_CON), ncon)
-                cuda.atomic.add(acc, (s, A_EL), el)
-                cuda.atomic.max(acc, (s, A_OVL), worst)
+    def observe(vel, angm, quat, mass, inv_i, nn, hist, spd, spf, spi, acc):
+        """acc[s] += the sums of cpu_ellipsoid.observe_ell, in float64 per particle, one block row per scene
+        (blockIdx.y = s) reduced per block (cuda_kernels.observe_reducer): E_tr = m v^2/2; E_rot = sum_k
+        I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
+        perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in PHYSICS-NOTES §3.3);
+        contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
+        slot); momentum; largest delta."""
+        s = cuda.blockIdx.y
+        sh = cuda.shared.array(NACC * TPB, ct.float64)
+        vals = cuda.local.array(NACC, ct.float64)
+        for q in range(NACC):
+            vals[q] = 0.0
+        if spi[s, I_ACTIVE] != 0:
+            a0 = spi[s, I_START]
+            for li in range(cuda.blockIdx.x * TPB + cuda.threadIdx.x, spi[s, I_N], cuda.gridDim.x * TPB):
+                i = a0 + li
+                if UNIFORM:
+                    m = f64(spd[s, D_M0])
+                    ii1 = spd[s, E_II1]
+                    ii2 = spd[s, E_II2]
+                    ii3 = spd[s, E_II3]
+                else:
+                    m = f64(mass[0, i])
+                    ii1 = inv_i[0, i]
+                    ii2 = inv_i[1, i]
+                    ii3 = inv_i[2, i]
+                vx = f64(vel[0, i])
+                vy = f64(vel[1, i])
+                vz = f64(vel[2, i])
+                wb0, wb1, wb2 = body_omega(quat[0, i], quat[1, i], quat[2, i], quat[3, i], angm[0, i], angm[1, i],
+                                           angm[2, i], ii1, ii2, ii3, HALF)
+                w0 = f64(wb0)
+                w1 = f64(wb1)
+                w2 = f64(wb2)
+                ep = 0.5 * (w1 * w1 / f64(ii2) + w2 * w2 / f64(ii3))
+                vals[A_TR] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
+                vals[A_ROT] += 0.5 * w0 * w0 / f64(ii1) + ep
+                vals[A_PERP] += ep
+                vals[A_PX] += m * vx
+                vals[A_PY] += m * vy
+                vals[A_PZ] += m * vz
+                for kk in range(nn[i]):
+                    d = f64(hist[3, kk, i])
+                    if d > 0.0:
+                        vals[A_CON] += 1.0
+                        vals[A_EL] += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, spf[s, F_KN], 0.0, 0.5)
+                        vals[A_OVL] = max(vals[A_OVL], d)
+        block_accumulate(sh, vals, acc, s)
 
     @cuda.jit
     def clamp_history(n, nn, hist):

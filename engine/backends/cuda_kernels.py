@@ -34,6 +34,7 @@ import numpy as np
 from numba import cuda
 from numba.cuda import types as ct
 
+from engine.backends.cuda_cache import cache_kernels
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
@@ -58,6 +59,7 @@ SS0 = 8
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5
 HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force
+NOBS = 8  # observe sums per scene: E_tr, E_rot, contacts x 2, elastic energy, P_x, P_y, P_z, max overlap
 
 _cache: dict = {}
 
@@ -70,7 +72,8 @@ def kernels(dtype, rough: bool, coulomb: bool, orient: bool, uniform: bool, tpb:
     """The kernel set for one specialisation (cached)."""
     key = (np.dtype(dtype).str, rough, coulomb, orient, uniform, tpb)
     if key not in _cache:
-        _cache[key] = _make(np.dtype(dtype).type, rough, coulomb, orient, uniform, tpb)
+        _cache[key] = cache_kernels(_make(np.dtype(dtype).type, rough, coulomb, orient, uniform, tpb),
+                                    ("spheres",) + key)
     return _cache[key]
 
 
@@ -81,6 +84,48 @@ def device_helpers(tpb: int):
     if key not in _cache:
         _cache[key] = _make_helpers(tpb)
     return _cache[key]
+
+
+def observe_reducer(tpb: int, nv: int, max_slot: int):
+    """Device function ``block_accumulate(sh, vals, acc, s)``: the block-wide reduction of the nv float64
+    values ``vals`` of every thread (sums, except slot ``max_slot``: a maximum) into ``acc[s, :]`` with one
+    atomic per value per block (cached). ``sh`` is a shared float64 array of nv * tpb; every thread of the
+    block must call it, and all of them must add to the same scene s (observe grids are one block row per
+    scene)."""
+    key = ("reducer", tpb, nv, max_slot)
+    if key not in _cache:
+        _cache[key] = _make_reducer(tpb, nv, max_slot)
+    return _cache[key]
+
+
+def _make_reducer(TPB, NV, MAXSLOT):
+    @cuda.jit(device=True)
+    def block_accumulate(sh, vals, acc, s):
+        t = cuda.threadIdx.x
+        for q in range(NV):
+            sh[q * TPB + t] = vals[q]
+        cuda.syncthreads()
+        st = TPB // 2
+        while st > 0:
+            if t < st:
+                for q in range(NV):
+                    a = sh[q * TPB + t]
+                    b = sh[q * TPB + t + st]
+                    if q == MAXSLOT:
+                        if b > a:
+                            sh[q * TPB + t] = b
+                    else:
+                        sh[q * TPB + t] = a + b
+            cuda.syncthreads()
+            st //= 2
+        if t < NV:
+            v = sh[t * TPB]
+            if t == MAXSLOT:
+                cuda.atomic.max(acc, (s, t), v)
+            elif v != 0.0:
+                cuda.atomic.add(acc, (s, t), v)
+
+    return block_accumulate
 
 
 def _make_helpers(TPB):
@@ -604,59 +649,75 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
 
     # ---- observables ----------------------------------------------------------------------------------
 
+    block_accumulate = observe_reducer(TPB, NOBS, 7)
+
     @cuda.jit
-    def observe(n, pos, vel, omega, radius, mass, inertia, nbr, nn, hist, sc, spd, spf, spi, acc):
+    def observe(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, spd, spf, spi, acc):
         """acc[s] += (E_tr, E_rot, contacts (x2), elastic energy, P_x, P_y, P_z); acc[s, 7] = max overlap.
 
-        Accumulated per particle in float64 (an output-step kernel: its atomics do not matter)."""
-        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
-            if spi[s, I_ACTIVE] == 0:
-                continue
+        One block row per scene (blockIdx.y = s); per particle in float64, reduced per block
+        (observe_reducer): O(blocks) atomics, not O(N) on K x 8 addresses (issue 14)."""
+        s = cuda.blockIdx.y
+        sh = cuda.shared.array(NOBS * TPB, ct.float64)
+        vals = cuda.local.array(NOBS, ct.float64)
+        for q in range(NOBS):
+            vals[q] = 0.0
+        if spi[s, I_ACTIVE] != 0:
+            a0 = spi[s, I_START]
             box = spd[s, D_BOX]
             inv_box = spd[s, D_INVBOX]
             r0 = spd[s, D_R0]
-            m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
-            ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
-            vx = f64(vel[0, i])
-            vy = f64(vel[1, i])
-            vz = f64(vel[2, i])
-            wx = f64(omega[0, i])
-            wy = f64(omega[1, i])
-            wz = f64(omega[2, i])
-            cuda.atomic.add(acc, (s, 0), 0.5 * m * (vx * vx + vy * vy + vz * vz))
-            cuda.atomic.add(acc, (s, 1), 0.5 * ii * (wx * wx + wy * wy + wz * wz))
-            cuda.atomic.add(acc, (s, 4), m * vx)
-            cuda.atomic.add(acc, (s, 5), m * vy)
-            cuda.atomic.add(acc, (s, 6), m * vz)
-            ri = r0 if UNIFORM else radius[i]
-            ncon = 0.0
-            el = 0.0
-            worst = 0.0
-            for kk in range(nn[i]):
-                j = nbr[kk, i]
-                rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
-                ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
-                rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
-                rj = r0 if UNIFORM else radius[j]
-                rs = ri + rj
-                d2 = rx * rx + ry * ry + rz * rz
-                if d2 < rs * rs:
-                    ncon += 1.0
-                    delta = f64(rs - math.sqrt(d2))
-                    # each pair appears in both partners' lists
-                    el += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
-                                                       f64(hist[2, kk, i]), spf[s, F_KN], spf[s, F_KT], 0.5)
-                    worst = max(worst, delta / f64(min(ri, rj)))
-            if ncon > 0.0:
-                cuda.atomic.add(acc, (s, 2), ncon)
-                cuda.atomic.add(acc, (s, 3), el)
-                cuda.atomic.max(acc, (s, 7), worst)
+            for li in range(cuda.blockIdx.x * TPB + cuda.threadIdx.x, spi[s, I_N], cuda.gridDim.x * TPB):
+                i = a0 + li
+                m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
+                ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
+                vx = f64(vel[0, i])
+                vy = f64(vel[1, i])
+                vz = f64(vel[2, i])
+                wx = f64(omega[0, i])
+                wy = f64(omega[1, i])
+                wz = f64(omega[2, i])
+                vals[0] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
+                vals[1] += 0.5 * ii * (wx * wx + wy * wy + wz * wz)
+                vals[4] += m * vx
+                vals[5] += m * vy
+                vals[6] += m * vz
+                ri = r0 if UNIFORM else radius[i]
+                for kk in range(nn[i]):
+                    j = nbr[kk, i]
+                    rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
+                    ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
+                    rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
+                    rj = r0 if UNIFORM else radius[j]
+                    rs = ri + rj
+                    d2 = rx * rx + ry * ry + rz * rz
+                    if d2 < rs * rs:
+                        vals[2] += 1.0
+                        delta = f64(rs - math.sqrt(d2))
+                        # each pair appears in both partners' lists
+                        vals[3] += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
+                                                                f64(hist[2, kk, i]), spf[s, F_KN], spf[s, F_KT], 0.5)
+                        vals[7] = max(vals[7], delta / f64(min(ri, rj)))
+        block_accumulate(sh, vals, acc, s)
 
     return dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps,
                 fill_i32=fill_i32, count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets,
                 scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32,
                 inverse_perm=inverse_perm, compact=compact, build=build, observe=observe)
+
+
+@cuda.jit
+def gather_scene(src, ids, a0, n_k, dst):
+    """dst[ids[a0 + l] - a0, r] = src[r, a0 + l] for l < n_k: one scene's rows of a (rows, N) state array in
+    particle-id order, particle-major, for the host copy of a snapshot or checkpoint."""
+    for li in range(cuda.grid(1), n_k, cuda.gridsize(1)):
+        i = a0 + li
+        o = ids[i] - a0
+        for r in range(src.shape[0]):
+            dst[o, r] = src[r, i]
+
+
+cache_kernels({"gather_scene": gather_scene}, ("gather",))
 
 
 @cuda.jit(device=True)

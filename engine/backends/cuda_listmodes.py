@@ -23,6 +23,13 @@ Three ways to get the GPU its neighbour list (``list_mode``):
                      2 tau_exch, GPU tau_GPU + tau_build); a CPU mode predicted faster is tried for a few
                      stages and kept only if its *measured* time per step beats the GPU list's. The
                      prediction is repeated every ``REPROBE`` stages (q changes as a gas cools).
+                     The probe and a trial cost time (pinned buffers, the builder's set-up, the CPU
+                     build beside the GPU's driver thread, stages in a slower mode), so ``auto`` probes
+                     only when what is left of the run could repay them (issue 14): at least
+                     ``MIN_STAGES_LEFT`` stages (a trial of TRIAL_STAGES stages and the probe repaid by a
+                     SWITCH_MARGIN gain) and ``MIN_WALL_LEFT_S`` seconds. The steps left are the
+                     ensemble's: the driver's horizon (``CudaEnsemble.plan``) or the current
+                     ``advance`` call's end, whichever is later.
 
 The CPU modes keep the particle order of the device fixed (the GPU mode re-sorts at every rebuild), so
 a list built from a position snapshot stays valid for the slots it names. History carry-over is the GPU
@@ -53,6 +60,9 @@ WARM_STAGES, TRIAL_STAGES, REPROBE = 3, 4, 64
 #: a CPU mode is tried only when predicted this much faster per step than the GPU list: switching costs
 #: the builder set-up and a trial, and within a few per cent the modes tie in run-to-run noise
 SWITCH_MARGIN = 0.05
+#: what must be left of a run before auto probes (module docstring): stages and wall seconds
+MIN_STAGES_LEFT = int((1 + TRIAL_STAGES) / SWITCH_MARGIN)
+MIN_WALL_LEFT_S = 10.0
 
 
 def g_max(q: float) -> float:
@@ -318,6 +328,9 @@ class HostLists:
         if self.mode != "gpu":
             return
         if n_st >= self._next_probe and self.pending is None:
+            if not self._worth_probing():
+                self._next_probe = n_st + REPROBE
+                return
             # timing only: the GPU list stays; radii in the slot order of this moment (the GPU re-sorts)
             self._prepare()
             self._probe_down = self._launch("probe")
@@ -335,6 +348,21 @@ class HostLists:
             if best != "gpu":
                 self._switch(best)
                 self._trial = (best, len(self.stages))
+
+    def _worth_probing(self) -> bool:
+        """Whether the rest of the run is long enough to repay a probe and a trial (module docstring)."""
+        g = self._means("gpu")
+        left = self.ens.steps_left()
+        if g is None or left is None:
+            return False
+        steps_per_stage = max(1.0, float(np.mean([r["steps"] for r in self.stages if r["mode"] == "gpu"][-8:])))
+        stages_left = left / steps_per_stage
+        if stages_left >= MIN_STAGES_LEFT and left * g["per_step"] >= MIN_WALL_LEFT_S:
+            return True
+        if not any("skipped probe" in str(d[2]) for d in self.decisions):
+            self.decisions.append((self.ens.steps_done, "gpu", {"skipped probe: steps left": int(left),
+                                                                "stages left": round(stages_left, 1)}))
+        return False
 
     def _switch(self, mode: str) -> None:
         self._drop_pending()

@@ -26,6 +26,7 @@ from numba import cuda
 from numba.cuda import types as ct
 
 from engine.backends import cuda_kernels as K
+from engine.backends.cuda_cache import cache_kernels
 from engine.backends.cuda_kernels import _cell, init_slot
 from engine.physics.contact import min_image
 
@@ -36,7 +37,7 @@ def list_kernels(dtype, tpb: int) -> dict:
     """The list kernels for one precision (cached)."""
     key = (np.dtype(dtype).str, tpb)
     if key not in _cache:
-        _cache[key] = _make(np.dtype(dtype).type, tpb)
+        _cache[key] = cache_kernels(_make(np.dtype(dtype).type, tpb), ("lists",) + key)
     return _cache[key]
 
 

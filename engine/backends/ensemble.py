@@ -124,6 +124,13 @@ class SerialEnsemble:
     def set_contact(self, k: int, contact: ContactParams) -> None:
         self._backend(k).set_contact(contact)
 
+    def plan(self, steps: int) -> None:
+        """The run goes on for about ``steps`` more steps (passed to backends that use it: CUDA's auto list
+        mode)."""
+        for b in self._backends:
+            if b is not None and hasattr(b, "plan"):
+                b.plan(steps)
+
     def warmup(self) -> None:
         for b in self._backends:
             if b is not None:

@@ -10,7 +10,7 @@ from engine.backends.ensemble import SerialEnsemble, make_ensemble, resolve_back
 from engine.ensemble import run_ensemble
 from engine.errors import BackendUnavailable, Cancelled, InstabilityError, SpecError
 from engine.h5md import partial_path
-from engine.simulate import RunSummary, SceneRun, drive, run
+from engine.simulate import TIMINGS, RunSummary, SceneRun, drive, run
 from engine.spec import SimulationSpec
 
 # tests/engine/test_simulate.py's tiny scene, shortened
@@ -68,7 +68,11 @@ def test_each_scene_is_bit_identical_to_the_scene_run_alone(tmp_path, alone):
             par = f["parameters"].attrs
             assert par["ensemble_size"] == 3 and par["ensemble_index"] == k and par["backend"] == "cpu"
         assert seen[k][-1].fraction == pytest.approx(1.0) and seen[k][-1].phase == "cooling"
-        assert results[k].extra == {"ensemble_size": 3, "ensemble_index": k}
+        extra = dict(results[k].extra)
+        timings = extra.pop("timings")
+        assert extra == {"ensemble_size": 3, "ensemble_index": k}
+        assert set(timings) == set(TIMINGS) and all(v >= 0.0 for v in timings.values())
+        assert timings["loop"] == results[k].wall_s and timings["records"] > 0.0
     assert len({len(v) for v in seen.values()}) > 1  # per-scene schedules
 
 

@@ -1,0 +1,305 @@
+"""Time to result (issue 14): whole jobs, from spec to closed HDF5 file, through the public path.
+
+``demq bench e2e`` (or ``python -m bench.e2e``) times each case in a fresh Python process (so kernel
+compilation or its disk-cache load is part of the figure, as for a user who starts a job) and prints:
+
+* the end-to-end Cundall number: N x steps / wall seconds of the whole call (``engine.run``,
+  ``engine.ensemble.run_ensemble``, or, for the worker, from the HTTP submission of the batch until the
+  last result is downloadable);
+* the loop Cundall number: N x steps / wall seconds of the time loop (thermalisation and cooling steps,
+  rebuilds, no output) — a diagnostic, printed beside the end-to-end figure;
+* where the rest went (RunSummary.extra["timings"], engine/simulate.py TIMINGS): setup (spec, placement,
+  velocities), build (device upload, first list), compile (or cache load), loop, records, snapshots,
+  checkpoints, open and close of the file, and "other" (imports excluded: the clock starts at the call).
+
+Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
+that the step count is exact):
+
+  spheres-2M-f64 / -f32     2 097 152 spheres x 5000 steps, 2 snapshots        (issue 14 (a))
+  spheres-8M-f64 / -f32     8 388 608 spheres x 2000 steps, 2 snapshots        (issue 14 (a))
+  batch-256x4096-2k / -20k  256 scenes x 4096 spheres x 2000 / 20 000 steps, one run_ensemble (b)
+  worker-256x4096-20k       the same batch submitted over HTTP to `demq serve` (embedded worker)  (b)
+  quickstart                the README quick-start default spec, through engine.run       (c)
+  ellipsoids-2M             2 097 152 ellipsoids, xi = 2 x 2000 steps, 2 snapshots    (d)
+  cpu-16x512                CPU: 16 x 512 spheres x 3000 steps with default records through run_ensemble,
+                            against one such scene with 4 records, in the same process (the issue's
+                            must-show ratio)
+
+``--quick`` shrinks every case (for the smoke test). ``--reps`` runs each case several times (median of the
+end-to-end wall time). Writes ``--out``/e2e.json and e2e.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+BREAKDOWN = ("setup", "build", "compile", "loop", "records", "snapshots", "checkpoints", "open", "close")
+GPU_CASES = ("spheres-2M-f64", "spheres-2M-f32", "spheres-8M-f64", "spheres-8M-f32", "batch-256x4096-2k",
+             "batch-256x4096-20k", "worker-256x4096-20k", "ellipsoids-2M")
+CPU_CASES = ("quickstart", "cpu-16x512")
+
+
+def case_specs(case: str, quick: bool) -> dict:
+    """{"specs": [spec dicts], "path": "run" | "ensemble" | "worker"} of a case."""
+    n2m, n8m, k, nk = (2_097_152, 8_388_608, 256, 4096) if not quick else (4096, 8192, 4, 512)
+    s5k, s2k, s20k = (5000, 2000, 20_000) if not quick else (50, 40, 80)
+
+    def sph(n, steps, precision="float64", snapshots=2, seed=0, **kw):
+        return dict(n_particles=n, volume_fraction=0.058, box_length=2.0 * (n / 4096) ** (1.0 / 3.0),
+                    precision=precision, snapshots=snapshots, seed=seed, thermalization=0, _steps=steps, **kw)
+
+    if case.startswith("spheres-"):
+        n, steps = (n2m, s5k) if "-2M-" in case else (n8m, s2k)
+        return {"path": "run", "specs": [sph(n, steps, "float32" if case.endswith("f32") else "float64")]}
+    if case.startswith("batch-") or case.startswith("worker-"):
+        steps = s20k if case.endswith("20k") else s2k
+        return {"path": "worker" if case.startswith("worker") else "ensemble",
+                "specs": [sph(nk, steps, snapshots=0, seed=i, backend="auto") for i in range(k)]}
+    if case == "ellipsoids-2M":
+        return {"path": "run", "specs": [sph(n2m, s2k, shape="ellipsoid", elongation=2.0, e_t=-1.0)]}
+    if case == "quickstart":
+        return {"path": "run", "specs": [{} if not quick else {"n_particles": 512, "t_end": 0.002, "thermalization": 0}]}
+    if case == "cpu-16x512":
+        steps = 3000 if not quick else 60
+        return {"path": "cpu-ratio", "specs": [sph(512, steps, snapshots=0, seed=i, backend="cpu") for i in range(16)]}
+    raise ValueError(f"unknown case {case!r}; cases: {', '.join(GPU_CASES + CPU_CASES)}")
+
+
+def to_spec(d: dict):
+    """A SimulationSpec from a case dict; ``_steps`` sets t_end to exactly that many time steps."""
+    from engine.params import derive
+    from engine.spec import SimulationSpec
+
+    d = dict(d)
+    steps = d.pop("_steps", None)
+    spec = SimulationSpec(**d)
+    if steps is not None:
+        dt = derive(spec).dt
+        spec = SimulationSpec(**{**d, "t_end": steps * dt, "dt": dt})
+    return spec
+
+
+def _row(label: str, n_total: int, steps: int, wall: float, loop: float, timings: dict, extra=None) -> dict:
+    other = wall - sum(timings.get(k, 0.0) for k in BREAKDOWN)
+    return {"case": label, "particles": n_total, "steps": steps, "wall_s": wall, "loop_s": loop,
+            "e2e_cundall": n_total * steps / wall if wall > 0 else 0.0,
+            "loop_cundall": n_total * steps / loop if loop > 0 else 0.0,
+            "e2e_over_loop": loop / wall if wall > 0 else 0.0,
+            "timings": {**{k: timings.get(k, 0.0) for k in BREAKDOWN}, "other": other}, **(extra or {})}
+
+
+def _sum_timings(summaries) -> dict:
+    """Ensemble breakdown: scene-own phases summed over the scenes, shared ones (build, compile) once, the
+    loop as the longest scene's (the scenes advance together)."""
+    from engine.simulate import SHARED_TIMINGS
+
+    out = dict.fromkeys(BREAKDOWN, 0.0)
+    for s in summaries:
+        for k, v in s.extra["timings"].items():
+            if k in SHARED_TIMINGS or k == "loop":
+                out[k] = max(out[k], v)
+            else:
+                out[k] += v
+    return out
+
+
+def run_case(case: str, quick: bool, workdir: Path) -> dict:
+    """Time one case in this process (the caller gives it a fresh one)."""
+    info = case_specs(case, quick)
+    path, raw = info["path"], info["specs"]
+    if path == "worker":
+        return _run_worker(case, raw, workdir)
+    if path == "cpu-ratio":
+        return _run_cpu_ratio(case, raw, workdir)
+    from engine.ensemble import run_ensemble
+    from engine.simulate import run
+
+    t0 = time.perf_counter()
+    specs = [to_spec(d) for d in raw]
+    if path == "run":
+        summary = run(specs[0], workdir / "out.h5")
+        wall = time.perf_counter() - t0
+        tm = dict(summary.extra["timings"])
+        row = _row(case, summary.n_particles, summary.steps, wall, summary.wall_s, tm,
+                   {"backend": summary.backend, "device": summary.device,
+                    "records": int(specs[0].t_end / (specs[0].output_interval or specs[0].t_end / 200)) + 1,
+                    "precision": specs[0].precision, "shape": specs[0].shape,
+                    "list_mode": summary.extra.get("list_mode")})
+        return row
+    outs = [workdir / f"s{k}.h5" for k in range(len(specs))]
+    results = run_ensemble(specs, outs)
+    wall = time.perf_counter() - t0
+    bad = [r for r in results if isinstance(r, BaseException)]
+    if bad:
+        raise RuntimeError(f"{len(bad)} scenes failed: {bad[0]!r}")
+    tm = _sum_timings(results)
+    n_total = sum(r.n_particles for r in results)
+    steps = results[0].steps
+    records = int(round(specs[0].t_end / specs[0].output_interval)) + 1 if specs[0].output_interval else 201
+    row = _row(case, n_total, steps, wall, tm["loop"], tm,
+               {"backend": results[0].backend, "device": results[0].device, "scenes": len(specs),
+                "precision": specs[0].precision, "shape": specs[0].shape})
+    row["records_per_scene"] = records
+    row["record_host_ms_per_scene"] = 1e3 * tm["records"] / (len(specs) * records)
+    return row
+
+
+def _run_cpu_ratio(case: str, raw: list, workdir: Path) -> dict:
+    """16 x 512 spheres with default records through run_ensemble against one such scene with 4 records
+    (both end to end, after a warm-up run that compiles)."""
+    from engine.ensemble import run_ensemble
+    from engine.simulate import run
+
+    specs = [to_spec(d) for d in raw]
+    run(specs[0].model_copy(update={"t_end": specs[0].t_end / 10}), workdir / "warm.h5")  # compile
+    one = specs[0].model_copy(update={"output_interval": specs[0].t_end / 4})
+    t0 = time.perf_counter()
+    s1 = run(one, workdir / "one.h5")
+    wall1 = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    results = run_ensemble(specs, [workdir / f"e{k}.h5" for k in range(len(specs))])
+    wall = time.perf_counter() - t0
+    tm = _sum_timings(results)
+    n_total = sum(r.n_particles for r in results)
+    row = _row(case, n_total, results[0].steps, wall, tm["loop"], tm,
+               {"backend": results[0].backend, "device": results[0].device, "scenes": len(specs)})
+    one_rate = s1.n_particles * s1.steps / wall1
+    row.update(one_scene_4_records_cundall=one_rate, ratio_to_one_scene=row["e2e_cundall"] / one_rate,
+               record_host_ms_per_scene=1e3 * tm["records"] / (len(specs) * 201))
+    return row
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _run_worker(case: str, raw: list, workdir: Path) -> dict:
+    """The batch submitted over HTTP to `demq serve` (API + embedded worker, SQLite) until the last result is
+    downloadable; the worker packs the batch into one ensemble."""
+    import httpx
+
+    port = _free_port()
+    env = {**os.environ, "DEMQ_DATA_DIR": str(workdir / "data"), "DEMQ_PORT": str(port),
+           "DEMQ_HOST": "127.0.0.1", "DEMQ_MAX_PARTICLE_STEPS": "1e15"}
+    server = subprocess.Popen([sys.executable, "-c", "from service.cli import main; main()", "serve"],
+                              cwd=str(ROOT), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        with httpx.Client(base_url=url, timeout=60.0) as c:
+            for _ in range(600):
+                try:
+                    if c.get("/healthz").status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                time.sleep(0.1)
+            base = to_spec(raw[0]).model_dump(mode="json")
+            base.pop("seed")
+            t0 = time.perf_counter()
+            r = c.post("/batches", json={"base": base, "sweep": {"seed": [d["seed"] for d in raw]}})
+            r.raise_for_status()
+            batch = r.json()
+            bid = batch["batch_id"]
+            while True:
+                page = c.get("/jobs", params={"batch_id": bid, "limit": 1000}).json()
+                states = [j["state"] for j in page["items"]]
+                if len(states) == len(raw) and all(s in ("done", "failed", "cancelled") for s in states):
+                    break
+                time.sleep(0.05)
+            last = max(page["items"], key=lambda j: j.get("finished_at") or "")
+            got = c.get(f"/jobs/{last['id']}/result")
+            wall = time.perf_counter() - t0
+            if any(s != "done" for s in states) or got.status_code != 200:
+                raise RuntimeError(f"batch did not finish cleanly: {sorted(set(states))}, result {got.status_code}")
+            n_total = sum(d["n_particles"] for d in raw)
+            steps = int(round(base["t_end"] / base["dt"]))
+            loop = max(j.get("wall_s") or 0.0 for j in page["items"])
+            return _row(case, n_total, steps, wall, loop, {"loop": loop},
+                        {"scenes": len(raw), "path": "worker", "jobs": len(states)})
+    finally:
+        server.terminate()
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+
+
+def fresh_process(case: str, quick: bool) -> dict:
+    """run_case in a new Python process (compilation / cache load counted, as for a user's first call)."""
+    with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
+        code = ("import json,sys; sys.path.insert(0, %r); from bench.e2e import run_case; from pathlib import Path; "
+                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r))))" % (str(ROOT), case, quick, d))
+        p = subprocess.run([sys.executable, "-c", code], cwd=str(ROOT), capture_output=True, text=True)
+        for line in p.stdout.splitlines():
+            if line.startswith("E2E-ROW "):
+                return json.loads(line[8:])
+        raise RuntimeError(f"case {case} failed (exit {p.returncode}):\n{p.stderr[-3000:]}")
+
+
+def table(rows: list) -> str:
+    head = ("| case | particles x steps | end-to-end Cundall | loop Cundall (diagnostic) | e2e/loop | wall s | "
+            + " | ".join(BREAKDOWN + ("other",)) + " |")
+    lines = [head, "|" + "---|" * (6 + len(BREAKDOWN) + 1)]
+    for r in rows:
+        t = r["timings"]
+        lines.append(f"| {r['case']} | {r['particles']} x {r['steps']} | {r['e2e_cundall']:.3g} | "
+                     f"{r['loop_cundall']:.3g} | {r['e2e_over_loop']:.2f} | {r['wall_s']:.2f} | "
+                     + " | ".join(f"{t.get(k, 0.0):.2f}" for k in BREAKDOWN + ("other",)) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None, out_dir=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", nargs="*", default=None, help="cases to run (default: the GPU cases when a GPU "
+                    "is present, and the CPU cases)")
+    ap.add_argument("--reps", type=int, default=1, help="runs per case (median of the end-to-end wall time)")
+    ap.add_argument("--quick", action="store_true", help="small scenes (smoke test)")
+    ap.add_argument("--out", type=Path, default=out_dir or Path("bench/reports/e2e"))
+    ap.add_argument("--same-process", action="store_true", help="run the cases in this process (warm caches)")
+    args = ap.parse_args(argv)
+    if args.cases is None:
+        from engine.backends.base import cuda_available
+
+        args.cases = (list(GPU_CASES) if cuda_available() else []) + list(CPU_CASES)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for case in args.cases:
+        reps = []
+        for _ in range(max(1, args.reps)):
+            if args.same_process:
+                with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
+                    reps.append(run_case(case, args.quick, Path(d)))
+            else:
+                reps.append(fresh_process(case, args.quick))
+        reps.sort(key=lambda r: r["wall_s"])
+        row = reps[len(reps) // 2]
+        row["walls"] = [r["wall_s"] for r in reps]
+        rows.append(row)
+        print(f"{case}: wall {row['wall_s']:.2f} s (runs {', '.join(f'{w:.2f}' for w in row['walls'])}), "
+              f"end-to-end {row['e2e_cundall']:.3g}, loop {row['loop_cundall']:.3g} particle-steps/s, "
+              f"e2e/loop {row['e2e_over_loop']:.2f}; " + ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items()),
+              flush=True)
+    (args.out / "e2e.json").write_text(json.dumps(rows, indent=1, default=str))
+    md = table(rows)
+    (args.out / "e2e.md").write_text(md + "\n")
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
