@@ -375,6 +375,7 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     # ---- observables ----------------------------------------------------------------------------------
 
     block_accumulate = SK.observe_reducer(TPB, NACC, A_OVL)
+    SH_OBS = NACC * TPB
 
     @cuda.jit
     def observe(vel, angm, quat, mass, inv_i, nn, hist, spd, spf, spi, acc):
@@ -385,7 +386,7 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
         slot); momentum; largest delta."""
         s = cuda.blockIdx.y
-        sh = cuda.shared.array(NACC * TPB, ct.float64)
+        sh = cuda.shared.array(SH_OBS, ct.float64)
         vals = cuda.local.array(NACC, ct.float64)
         for q in range(NACC):
             vals[q] = 0.0

@@ -650,6 +650,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     # ---- observables ----------------------------------------------------------------------------------
 
     block_accumulate = observe_reducer(TPB, NOBS, 7)
+    SH_OBS = NOBS * TPB
 
     @cuda.jit
     def observe(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, spd, spf, spi, acc):
@@ -658,7 +659,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
         One block row per scene (blockIdx.y = s); per particle in float64, reduced per block
         (observe_reducer): O(blocks) atomics, not O(N) on K x 8 addresses (issue 14)."""
         s = cuda.blockIdx.y
-        sh = cuda.shared.array(NOBS * TPB, ct.float64)
+        sh = cuda.shared.array(SH_OBS, ct.float64)
         vals = cuda.local.array(NOBS, ct.float64)
         for q in range(NOBS):
             vals[q] = 0.0
