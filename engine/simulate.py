@@ -264,7 +264,7 @@ class SceneRun:
 
     def open(self) -> None:
         """Create the result writer (``<output>.part``; a resumed scene continues its checkpointed file)."""
-        from engine import __version__
+        from engine.version import __version__
 
         spec, p = self.spec, self.p
         dtype = np.float64 if spec.precision == "float64" else np.float32
