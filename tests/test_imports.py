@@ -46,31 +46,37 @@ def _dynamic_target(node: ast.Call):
     return None
 
 
+def imports_of(source: str, package: str, mods) -> set[str]:
+    """Every module a source imports, anywhere in it; ``package``: the package it lives in (for relative
+    imports), ``mods``: the known module names (``from a import b`` is ``a.b`` when that is one)."""
+    targets: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            targets.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                src = ".".join(base + ([node.module] if node.module else []))
+            else:
+                src = node.module
+            for a in node.names:
+                sub = f"{src}.{a.name}"
+                targets.add(sub if sub in mods else src)
+        elif isinstance(node, ast.Call):
+            t = _dynamic_target(node)
+            if t:
+                targets.add(t)
+    return targets
+
+
 def import_graph() -> dict[str, set[str]]:
     """module -> set of imported modules (only names under PACKAGES)."""
     mods = _modules()
     graph: dict[str, set[str]] = {}
     for mod, path in mods.items():
-        is_pkg = path.name == "__init__.py"
-        package = mod if is_pkg else mod.rpartition(".")[0]
-        targets: set[str] = set()
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Import):
-                targets.update(a.name for a in node.names)
-            elif isinstance(node, ast.ImportFrom):
-                if node.level:
-                    base = package.split(".")
-                    base = base[:len(base) - (node.level - 1)]
-                    src = ".".join(base + ([node.module] if node.module else []))
-                else:
-                    src = node.module
-                for a in node.names:
-                    sub = f"{src}.{a.name}"
-                    targets.add(sub if sub in mods else src)
-            elif isinstance(node, ast.Call):
-                t = _dynamic_target(node)
-                if t:
-                    targets.add(t)
+        package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+        targets = imports_of(path.read_text(), package, mods)
         graph[mod] = {t for t in targets if t.split(".")[0] in PACKAGES}
     return graph
 
@@ -112,15 +118,22 @@ def test_cycle_finder_sees_cycles():
     assert cycles({"a": {"b"}, "b": set()}) == []
 
 
-def test_walker_sees_function_level_and_dynamic_imports():
+def test_walker_sees_function_level_relative_and_dynamic_imports():
     g = import_graph()
     # function-level: service/cli.py imports the app inside cmd_serve
     assert "service.app" in g["service.cli"]
     # 'from engine.physics import x' style resolves to the submodule when x is one
     assert "engine.physics.contact" in g["engine.backends.cpu"]
-    src = ast.parse("import importlib\nimportlib.import_module(f'bench.{x}')\n__import__('jobs.store')")
-    found = {_dynamic_target(n) for n in ast.walk(src) if isinstance(n, ast.Call)}
-    assert {"bench", "jobs.store"} <= found
+    src = ("import importlib\n"
+           "def f():\n"
+           "    from . import base\n"
+           "    from ..physics.contact import min_image\n"
+           "    from .. import spec\n"
+           "    importlib.import_module(f'bench.{x}')\n"
+           "    __import__('jobs.store')\n")
+    mods = {"engine.backends.base", "engine.physics.contact", "engine.spec"}
+    assert imports_of(src, "engine.backends", mods) == {
+        "importlib", "engine.backends.base", "engine.physics.contact", "engine.spec", "bench", "jobs.store"}
 
 
 def test_no_import_cycle_in_engine_jobs_service():
