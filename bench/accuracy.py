@@ -267,7 +267,8 @@ def collision_scene(size: Size, seed: int = 7):
 def run_pairs(scene: dict, *, dt_fraction: int, precision: str, backend: str, reps: int, e_n: float,
               e_t: float) -> dict:
     """Run a pair scene (positions, velocities, optional spins) for its ``duration``: final state, Cundall."""
-    from engine.backends.base import ContactParams, SphereSystem, make_backend
+    from engine.backends.base import ContactParams, SphereSystem
+    from engine.backends.registry import make_backend
     from engine.params import gamma_n_from_restitution, k_t_paper
 
     k2 = scene["pos"].shape[0]
@@ -584,7 +585,7 @@ def build_skin_sweep(size: Size, backend: str, reps: int, tmp: Path, log) -> dic
     the same lattice start for every skin, ``size.sweep_steps`` steps (several list rebuilds at every skin),
     median of ``reps`` timed ``advance`` calls (compilation and the first list build excluded, one
     observables reduction at the end, as bench/specialisation.py times)."""
-    from engine.backends.base import make_backend
+    from engine.backends.registry import make_backend
     from engine.params import derive
     from engine.scene import initial_spheres
     from engine.simulate import contact_params

@@ -35,7 +35,8 @@ import numba
 import numpy as np
 
 from engine.backends.base import cell_grid
-from engine.backends.cpu import SLOT, bin_particles, build_list
+from engine.backends.cpu import bin_particles, build_list
+from engine.backends.cpu_shared import SLOT
 from engine.multigrid import (bin_levels, build_levels_carry, count_candidates, grid_levels, level_arrays,
                               main_level)
 from engine.scene import place_species

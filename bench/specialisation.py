@@ -79,7 +79,7 @@ def _scenes(cfg: dict, backend: str) -> dict:
 
 def _state(spec, backend: str, therm_steps: int, thermalise: bool):
     """The spec's start, optionally advanced `therm_steps` with the elastic rough law (contacts formed)."""
-    from engine.backends.base import make_backend
+    from engine.backends.registry import make_backend
     from engine.params import derive
     from engine.scene import initial_spheres
     from engine.simulate import contact_params
@@ -98,7 +98,7 @@ def _state(spec, backend: str, therm_steps: int, thermalise: bool):
 
 
 def _time_variant(system, contact, backend: str, steps: int, reps: int) -> tuple[float, list, dict, str]:
-    from engine.backends.base import make_backend
+    from engine.backends.registry import make_backend
 
     runs, obs, device = [], None, None
     for _ in range(max(1, reps)):
@@ -166,7 +166,7 @@ def build_output(cfg: dict, backend: str, log) -> list:
 
 def build_ellipsoids(cfg: dict, log) -> dict:
     """Ellipsoid float64/float32 Cundall (CPU) and the estimated saving of the bounding-sphere broad phase."""
-    from engine.backends.base import make_backend
+    from engine.backends.registry import make_backend
     from engine.params import derive
     from engine.scene import initial_ellipsoids
     from engine.simulate import contact_params

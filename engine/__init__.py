@@ -8,8 +8,7 @@ Usable alone::
 
 from engine.errors import BackendUnavailable, Cancelled, EngineError, InstabilityError, SpecError
 from engine.spec import SimulationSpec, load_spec
-
-__version__ = "0.1.0"
+from engine.version import __version__
 
 
 def run(*args, **kwargs):

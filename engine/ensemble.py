@@ -38,7 +38,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from engine.backends.base import make_backend
+from engine.backends.registry import make_backend
 from engine.backends.ensemble import make_ensemble, resolve_backend
 from engine.errors import EngineError, SpecError
 from engine.simulate import Progress, RunSummary, SceneRun, drive

@@ -134,7 +134,7 @@ def aggregate(runs: Sequence[Run]) -> list[Group]:
 def write_batch_result(path, groups: Sequence[Group], *, batch_id: str = "",
                        excluded: Optional[dict] = None) -> Path:
     """Write the batch file (layout in the module docstring) through a temporary name and a rename."""
-    from engine import __version__
+    from engine.version import __version__
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,8 @@
-"""Derived parameters of a spec: particle size, mass, inertia, contact constants, time step.
+"""Derived parameters of a spec: particle size, mass, inertia, contact constants, time step, cost estimate.
+
+Owns :func:`derive` (every derived number of a validated spec) and the cost estimate. The sizes, masses
+and the contact time that the spec's own checks also need come from engine/scales.py (which imports
+neither this module nor engine/spec.py); this module imports the spec only for the default Verlet skin.
 
 Paper 001 (Hidalgo et al. 2013) and PHYSICS-NOTES §1:
 - normal spring-dashpot m12 d''+ gamma_n d' + k_n d = 0, contact ending when the overlap returns to
@@ -28,13 +32,9 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-#: Moment-of-inertia factor of a solid sphere, I = q m a^2.
-Q_SPHERE = 0.4
-
-
-def radius_from_volume_fraction(n: int, phi: float, box_length: float) -> float:
-    """Radius in m of N equal spheres that fill a fraction phi of a cube of edge L."""
-    return (3.0 * phi * box_length**3 / (4.0 * math.pi * n)) ** (1.0 / 3.0)
+from engine.scales import (Q_SPHERE, SpeciesTable, radius_from_volume_fraction, scales, species_counts,  # noqa: F401
+                           species_table)
+from engine.spec import default_verlet_skin
 
 
 def gamma_n_from_restitution(e_n: float, k_n: float, m12: float) -> float:
@@ -65,50 +65,6 @@ def e_t_effective(e_n: float, e_t: float) -> float:
 def carnahan_starling_g(phi: float) -> float:
     """Pair correlation at contact g(2a) = (1 - phi/2)/(1 - phi)^3 (Carnahan-Starling)."""
     return (1.0 - 0.5 * phi) / (1.0 - phi) ** 3
-
-
-def species_counts(n: int, fractions) -> tuple:
-    """Particles per species: round(N f_k), the remainder to the largest fraction (first of equals).
-
-    Raises ValueError naming ``species[k].number_fraction`` when a species would hold no particle.
-    """
-    counts = [int(math.floor(n * f + 0.5)) for f in fractions]
-    big = max(range(len(fractions)), key=lambda k: (fractions[k], -k))
-    counts[big] += n - sum(counts)
-    for k, c in enumerate(counts):
-        if c < 1:
-            raise ValueError(
-                f"species[{k}].number_fraction = {fractions[k]:g} gives {c} of n_particles = {n} particles: "
-                f"every species needs at least one particle; raise n_particles or the fraction")
-    return tuple(counts)
-
-
-@dataclass(frozen=True)
-class SpeciesTable:
-    """Per-species radius (m), count, mass (kg) and inertia (kg m^2), in the spec's species order."""
-
-    radius: tuple
-    count: tuple
-    mass: tuple
-    inertia: tuple
-
-
-def species_table(spec):
-    """The :class:`SpeciesTable` of a sphere spec with two or more species, else None.
-
-    A one-entry species list is the monodisperse scene and goes the monodisperse way (bit-identical).
-    """
-    sp = getattr(spec, "species", None)
-    if sp is None or len(sp) < 2 or spec.shape != "sphere":
-        return None
-    ratios = [float(s.radius_ratio) for s in sp]
-    counts = species_counts(spec.n_particles, [float(s.number_fraction) for s in sp])
-    unit = sum(c * r**3 for c, r in zip(counts, ratios))
-    r_max = (3.0 * spec.volume_fraction * spec.box_length**3 / (4.0 * math.pi * unit)) ** (1.0 / 3.0)
-    radius = tuple(r * r_max for r in ratios)
-    mass = tuple(spec.density * (4.0 / 3.0 * math.pi * r**3) for r in radius)
-    inertia = tuple(Q_SPHERE * m * r**2 for m, r in zip(mass, radius))
-    return SpeciesTable(radius=radius, count=counts, mass=mass, inertia=inertia)
 
 
 def bmcsl_g(diameters, number_densities) -> list:
@@ -212,37 +168,18 @@ class Derived:
 def derive(spec) -> Derived:
     """Compute every derived parameter of a spec (a SimulationSpec or anything with its fields)."""
     n, L, phi = spec.n_particles, spec.box_length, spec.volume_fraction
-    sp = species_table(spec)          # None: one size
-    # one size: the (volume-equivalent) radius; species: the radius of the largest species
-    r_eq = radius_from_volume_fraction(n, phi, L) if sp is None else max(sp.radius)
-    volume = 4.0 / 3.0 * math.pi * r_eq**3
-    mass = spec.density * volume
-    xi = spec.elongation
-    if spec.shape == "sphere":
-        semi = (r_eq, r_eq, r_eq)
-        inertia = (Q_SPHERE * mass * r_eq**2,) * 3
-    else:
-        # prolate spheroid with a*b^2 = r_eq^3 (paper 003 Table 1 keeps the volume fixed)
-        b = r_eq / xi ** (1.0 / 3.0)
-        a = xi * b
-        semi = (a, b, b)
-        i_perp = mass * (a * a + b * b) / 5.0
-        inertia = (2.0 * mass * b * b / 5.0, i_perp, i_perp)
-    # reduced mass of an equal pair; species: of the smallest pair, which has the shortest contact
-    m12 = 0.5 * mass if sp is None else 0.5 * min(sp.mass)
-    mass_mean = mass if sp is None else sum(c * m for c, m in zip(sp.count, sp.mass)) / n
-    k_n = spec.stiffness
-    omega0 = math.sqrt(k_n / m12)
-    t_c = math.pi / omega0
+    sc = scales(spec)                 # sizes, masses, contact time, dt (engine/scales.py)
+    sp = sc.species                   # None: one size
+    r_eq, semi, mass, inertia, m12, mass_mean = sc.radius, sc.semi_axes, sc.mass, sc.inertia, sc.m12, sc.mass_mean
+    k_n, omega0, t_c, dt = sc.k_n, sc.omega0, sc.contact_time, sc.dt
     gamma_n = gamma_n_from_restitution(spec.e_n, k_n, m12)
     smooth = spec.e_t == -1.0 or spec.friction == 0.0
     k_t = 0.0 if smooth else k_t_paper(spec.e_t, k_n)
-    dt = spec.dt if spec.dt is not None else t_c / 50.0
     n_steps = max(1, int(round(spec.t_end / dt)))
     out_dt = spec.output_interval if spec.output_interval is not None else spec.t_end / 200.0
     output_every = max(1, min(n_steps, int(round(out_dt / dt))))
     nd = n / L**3
-    t0 = mass_mean * spec.velocity_rms**2 / 3.0      # species: equipartition, T0 = <m> v_rms^2 / 3
+    t0 = sc.temperature0              # species: equipartition, T0 = <m> v_rms^2 / 3
     g = carnahan_starling_g(phi)
     # Enskog collision frequency per particle, omega_E = 4 (2a)^2 n g sqrt(pi T/m) (PHYSICS-NOTES §2.1);
     # for spheroids the orientation-averaged excluded surface replaces (2a)^2 at leading order.
@@ -252,7 +189,7 @@ def derive(spec) -> Derived:
         rate0 = enskog_rate_mixture(sp.radius, sp.count, sp.mass, L**3, t0)
     t_th = spec.thermalization / rate0 if spec.thermalization > 0 else 0.0
     n_th = int(math.ceil(t_th / dt)) if t_th > 0 else 0
-    from engine.spec import default_verlet_skin  # null skin: the default of spec.backend (resolved by the driver)
+    # null skin: the default of spec.backend (resolved by the driver)
     skin = (spec.verlet_skin if spec.verlet_skin is not None else default_verlet_skin(spec.backend, spec.shape, spec.volume_fraction)) \
         * semi[1 if spec.shape == "ellipsoid" else 0]
     if sp is not None:

@@ -277,7 +277,7 @@ class SceneRun:
 
     def open(self) -> None:
         """Create the result writer (``<output>.part``; a resumed scene continues its checkpointed file)."""
-        from engine import __version__
+        from engine.version import __version__
 
         t0 = time.perf_counter()
         spec, p = self.spec, self.p

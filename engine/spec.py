@@ -20,6 +20,8 @@ from typing import List, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from engine.scales import scales
+
 #: Random close packing of monodisperse spheres; no homogeneous gas start exists above it.
 RANDOM_CLOSE_PACKING = 0.64
 
@@ -315,12 +317,10 @@ class SimulationSpec(BaseModel):
                              f"(within 1e-9)")
         return v
 
-    # ---- checks that need several fields (derived parameters) ---------------------------------------
+    # ---- checks that need several fields (sizes and time scales: engine/scales.py) -------------------
 
     @model_validator(mode="after")
     def _consistent(self) -> "SimulationSpec":
-        from engine.params import derive  # local import: params imports this module
-
         if self.shape == "sphere" and self.elongation != 1.0:
             raise ValueError(f"elongation = {self.elongation} but shape is 'sphere': elongation must be 1 for spheres")
         poly = self.species is not None and len(self.species) > 1
@@ -332,7 +332,7 @@ class SimulationSpec(BaseModel):
                 f"volume_fraction = {self.volume_fraction:g} is above {SPECIES_MAX_VOLUME_FRACTION:g}, the largest "
                 f"for a species spec: the random sequential placement of several sizes cannot start denser "
                 f"reliably (it jams near 0.38)")
-        p = derive(self)
+        p = scales(self)
         if self.dt is not None and self.dt > p.contact_time / MIN_STEPS_PER_CONTACT:
             raise ValueError(
                 f"dt = {self.dt:.6g} s cannot resolve a contact: the contact time is {p.contact_time:.6g} s, "

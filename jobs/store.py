@@ -8,7 +8,8 @@ Two implementations share one SQL schema (jobs/schema.py) and one SQLAlchemy-Cor
   ``SELECT ... FOR UPDATE SKIP LOCKED``.
 
 Every transition that belongs to a worker (heartbeat, finish, release) is conditional on the lease
-owner, so a worker that lost its lease can no longer write to the job.
+owner, so a worker that lost its lease can no longer write to the job. This module owns the interface
+and the row types only and imports no implementation; :func:`jobs.stores.open_store` picks one by URL.
 """
 
 from __future__ import annotations
@@ -167,18 +168,3 @@ class JobStore(ABC):
 
         Returns (requeued ids, failed ids). A job whose cancel was requested ends cancelled instead.
         """
-
-
-def open_store(url: str, table_prefix: str = "", create: bool = True) -> JobStore:
-    """The store for a database URL: ``sqlite:///path`` or ``postgresql://...``."""
-    if url.startswith("sqlite"):
-        from jobs.sqlite_store import SQLiteJobStore
-        store: JobStore = SQLiteJobStore(url, table_prefix)
-    elif url.startswith(("postgresql", "postgres")):
-        from jobs.postgres_store import PostgresJobStore
-        store = PostgresJobStore(url, table_prefix)
-    else:
-        raise ValueError(f"unsupported database URL {url!r}: use sqlite:///PATH or postgresql://...")
-    if create:
-        store.create_tables()
-    return store

@@ -11,7 +11,8 @@ from fastapi import Depends, FastAPI
 from fastapi.exceptions import RequestValidationError
 
 from jobs.settings import Settings
-from jobs.store import JobStore, open_store
+from jobs.store import JobStore
+from jobs.stores import open_store
 from jobs.worker import Worker
 from service.deps import require_token
 from service.errors import InvalidRequest, on_invalid_request, on_validation_error

@@ -1,6 +1,7 @@
 """The ``demq`` command line: the engine's commands plus the queue's.
 
     demq run | validate                  engine commands (engine/cli.py)
+    demq bench                           benchmarks and stress tests (bench/cli.py)
     demq serve                           HTTP API + one embedded worker (SQLite in the data directory)
     demq worker [--exit-when-idle]       a worker on the configured job table (drain mode: exit when empty)
     demq submit [SPEC.json] [--local --wait -o OUT.h5]
@@ -76,7 +77,7 @@ def cmd_serve(args) -> int:
 
 
 def cmd_worker(args) -> int:
-    from jobs.store import open_store
+    from jobs.stores import open_store
     from jobs.worker import Worker
 
     s = _settings(args)
@@ -124,7 +125,8 @@ class _ProgressLine:
 
 def _submit_local(args, data: dict) -> int:
     from jobs.specs import SpecRejected, check_limits, parse_spec
-    from jobs.store import NewJob, open_store
+    from jobs.store import NewJob
+    from jobs.stores import open_store
     from jobs.worker import Worker
 
     s = _settings(args)
@@ -207,7 +209,7 @@ def _print_job(job: dict) -> None:
 
 def cmd_status(args) -> int:
     if args.local:
-        from jobs.store import open_store
+        from jobs.stores import open_store
         from service.schemas import JobOut
 
         s = _settings(args)
@@ -241,7 +243,7 @@ def cmd_status(args) -> int:
 
 def cmd_fetch(args) -> int:
     if args.local:
-        from jobs.store import open_store
+        from jobs.stores import open_store
 
         s = _settings(args)
         job = open_store(s.database_url, s.table_prefix).get(args.id)
@@ -264,12 +266,14 @@ def cmd_fetch(args) -> int:
 
 # ---- the parser ---------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
+    from bench.cli import register as register_bench
     from engine.cli import register
 
     parser = argparse.ArgumentParser(prog="demq", description="GPU DEM simulations of granular gases, "
                                                               "run from a durable job queue.")
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
+    register_bench(sub)
 
     p = sub.add_parser("serve", help="HTTP API with one embedded worker")
     _add_queue_flags(p)

@@ -1,6 +1,8 @@
 """What every backend receives and returns: the system (state arrays in id order) and contact constants.
 
-A backend is constructed from a :class:`SphereSystem` (host arrays) and a :class:`ContactParams`, and
+Owns the shared types (:class:`SphereSystem`, :class:`EllipsoidSystem`, :class:`ContactParams`), the cell
+count rule (:func:`cell_grid`) and the GPU probe (:func:`cuda_available`); it imports no concrete backend
+(the factory is engine/backends/registry.py). A backend is constructed from a :class:`SphereSystem` (host arrays) and a :class:`ContactParams`, and
 offers ``advance(nsteps)``, ``observe()``, ``state()``, ``contacts()``, ``set_contact(params)``.
 Host copies happen only in ``observe``/``state``/``contacts`` (output steps).
 """
@@ -12,8 +14,6 @@ from dataclasses import dataclass, replace
 from typing import Optional
 
 import numpy as np
-
-from engine.errors import BackendUnavailable
 
 
 @dataclass
@@ -121,32 +121,3 @@ def cuda_available() -> bool:
         return bool(cuda.is_available())
     except Exception:  # numba-cuda missing or no driver
         return False
-
-
-def make_backend(name: str, system: SphereSystem, contact: ContactParams):
-    """Backend instance for 'cpu', 'cuda' or 'auto' ('auto': CUDA when a GPU is present), for spheres
-    (:class:`SphereSystem`) and ellipsoids (:class:`EllipsoidSystem`)."""
-    ellipsoid = isinstance(system, EllipsoidSystem)
-    if name == "auto":
-        name = "cuda" if cuda_available() else "cpu"
-    if name == "cpu":
-        if ellipsoid:
-            from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
-
-            return CpuEllipsoidBackend(system, contact)
-        from engine.backends.cpu import CpuBackend
-
-        return CpuBackend(system, contact)
-    if name == "cuda":
-        sim = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
-        if not sim and not cuda_available():
-            raise BackendUnavailable(
-                "backend = 'cuda' but no CUDA GPU is available here; use backend 'cpu' or 'auto'")
-        if ellipsoid:
-            from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
-
-            return CudaEllipsoidBackend(system, contact)
-        from engine.backends.cuda import CudaBackend
-
-        return CudaBackend(system, contact)
-    raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")

@@ -26,18 +26,14 @@ from numba import prange
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
+from engine.backends.cpu_shared import SLOT, collect_springs, cpu_name, restore_springs, worst_overlap
+from engine.backends.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
 from engine.errors import InstabilityError
 from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import fincham_quat_step_space
-
-OK, BAD_VALUE, OVERLAP, OVERFLOW = 0, 1, 2, 3
-
-#: Per list slot: tangential spring (3), overlap and dashpot force at the previous step.
-SLOT = 5
-
 
 @numba.njit(parallel=True, cache=True)
 def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt, box, inv_box, half,
@@ -299,15 +295,6 @@ def compute_forces(pos, vel, vel_p, omega, radius, inv_m, nbr, nn, hist, force, 
 
 
 @numba.njit(cache=True)
-def _worst(values, idx):
-    k = 0
-    for c in range(values.shape[0]):
-        if values[c] > values[k]:
-            k = c
-    return values[k], idx[k]
-
-
-@numba.njit(cache=True)
 def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius, x_ref, vel_p, disp_bound,
               nbr, nn, hist, nbr_new, nn_new, hist_new,
               nc, inv_cell, cell_start, cell_list, cell_of, cursor,
@@ -367,7 +354,7 @@ def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius
             copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
         compute_forces(pos, vel, vel_p, omega, radius, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                        k_n, gn_coef, k_t, mu, dt, chunk_a, chunk_b)
-        worst, who = _worst(chunk_a, chunk_b)
+        worst, who = worst_overlap(chunk_a, chunk_b)
         if worst > overlap_limit:
             return OVERLAP, s, who, worst, builds
     half_kick(vel, omega, force, torque, inv_m, inv_i, dt * half)
@@ -446,7 +433,7 @@ class CpuBackend:
         self.x_ref = self.pos.copy()
         self.vel_p = self.vel.copy()      # predicted end-of-step velocities (see kick_drift)
         self.disp_bound = np.zeros(1)     # upper bound of the displacement since the last build (m)
-        self.device = _cpu_name()
+        self.device = cpu_name()
         self.steps_done = 0
         self.builds = 0
         threads = numba.get_num_threads()
@@ -538,10 +525,10 @@ class CpuBackend:
         """First list build (restoring checkpointed springs) and forces at t = 0."""
         self._build()
         if system.contact_pairs is not None and len(system.contact_pairs):
-            _restore_springs(self.nbr, self.nn, self.hist, np.asarray(system.contact_pairs, np.int64),
-                             np.asarray(system.contact_springs, self.dtype))
+            restore_springs(self.nbr, self.nn, self.hist, np.asarray(system.contact_pairs, np.int64),
+                            np.asarray(system.contact_springs, self.dtype))
         self._forces()
-        worst, who = _worst(self.chunk_a, self.chunk_b)
+        worst, who = worst_overlap(self.chunk_a, self.chunk_b)
         if worst > self.overlap_limit:
             raise _start_overlap(self, int(who), float(worst))
 
@@ -586,7 +573,7 @@ class CpuBackend:
                 left -= done + 1
                 continue
             self.steps_done = step
-            raise _instability(status, step, int(who), value, self)
+            raise instability_error(status, step, int(who), value, self)
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
@@ -609,51 +596,8 @@ class CpuBackend:
 
         A slot holds the tangential spring (3), the overlap and the dashpot force of the last step.
         """
-        return _collect_springs(self.pos, self.radius, self.nbr, self.nn, self.hist, self.box_c,
-                                self.inv_box, self.half)
-
-
-@numba.njit(cache=True)
-def _collect_springs(pos, radius, nbr, nn, hist, box, inv_box, half):
-    n = pos.shape[0]
-    total = 0
-    for i in range(n):
-        total += nn[i]
-    pairs = np.empty((total, 2), np.int64)
-    springs = np.empty((total, hist.shape[2]), hist.dtype)
-    m = 0
-    for i in range(n):
-        for kk in range(nn[i]):
-            if hist[i, kk, 3] > 0:
-                pairs[m, 0] = i
-                pairs[m, 1] = nbr[i, kk]
-                for q in range(hist.shape[2]):
-                    springs[m, q] = hist[i, kk, q]
-                m += 1
-    return pairs[:m].copy(), springs[:m].copy()
-
-
-@numba.njit(cache=True)
-def _restore_springs(nbr, nn, hist, pairs, springs):
-    for p in range(pairs.shape[0]):
-        i = pairs[p, 0]
-        for kk in range(nn[i]):
-            if nbr[i, kk] == pairs[p, 1]:
-                for q in range(hist.shape[2]):
-                    hist[i, kk, q] = springs[p, q]
-                break
-
-
-def _instability(status: int, step: int, who: int, value: float, backend) -> InstabilityError:
-    if status == BAD_VALUE:
-        msg = (f"non-finite position or velocity of particle {who} at step {step}: the run blew up; "
-               f"likely cause: a time step too large for the contact (dt = {float(backend.dt):.3g} s) "
-               f"or overlapping particles at the start")
-    else:
-        msg = (f"overlap of {value:.3g} radii at particle {who} at step {step} exceeds the limit "
-               f"{backend.overlap_limit:g}: likely cause: impact speeds too high for the stiffness "
-               f"(lower velocity_rms or raise stiffness) or a time step too large (dt = {float(backend.dt):.3g} s)")
-    return InstabilityError(msg, step=step, particle=who)
+        return collect_springs(self.pos, self.radius, self.nbr, self.nn, self.hist, self.box_c,
+                               self.inv_box, self.half)
 
 
 def _start_overlap(backend, who: int, worst: float) -> InstabilityError:
@@ -671,16 +615,3 @@ def _start_overlap(backend, who: int, worst: float) -> InstabilityError:
         f"particles {who} and {partner} overlap by {worst:.3g} radii{coincident} at the start (step 0), "
         f"above overlap_limit {backend.overlap_limit:g}: the initial positions overlap; place the particles "
         f"apart", step=0, particle=who)
-
-
-def _cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return f"{line.split(':', 1)[1].strip()} x{numba.get_num_threads()} threads"
-    except OSError:
-        pass
-    import platform
-
-    return f"{platform.processor() or 'cpu'} x{numba.get_num_threads()} threads"

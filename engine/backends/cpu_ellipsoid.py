@@ -14,7 +14,7 @@
 - Rotation: space-frame angular momentum L kicked by the torque, quaternions by Fincham's leap-frog with
   the body-frame angular velocity I^-1 R^T L (engine/physics/rotation.py: fincham_quat_step_body),
   renormalised every step. Predicted end-of-step velocities and angular velocities feed the dashpot.
-- List slot layout as in cpu.py (SLOT = 5); slots 3 and 4 hold the overlap and the dashpot force of the
+- List slot layout as in cpu.py (cpu_shared.SLOT = 5); slots 3 and 4 hold the overlap and the dashpot force of the
   previous step (contact start/end corrections; slot 3 = -inf: screened), slots 0-2 are unused
   (frictionless).
 - Everything cache=True; the loop is compiled whole (no Python per step).
@@ -31,9 +31,9 @@ from numba import prange
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.backends.base import ContactParams, EllipsoidSystem, cell_grid
-from engine.backends.cpu import (BAD_VALUE, OK, OVERFLOW, OVERLAP, SLOT, _collect_springs, _cpu_name,
-                                 _instability, _restore_springs, _worst, bin_particles, build_list,
-                                 copy_list, half_kick)
+from engine.backends.cpu import bin_particles, build_list, copy_list, half_kick
+from engine.backends.cpu_shared import SLOT, collect_springs, cpu_name, restore_springs, worst_overlap
+from engine.backends.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
 from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
 from engine.physics.integrate import drift_wrap, kick
@@ -236,7 +236,7 @@ def run_steps_ell(nsteps, pos, vel, angm, quat, force, torque, inv_m, inv_i, uni
         compute_forces_ell(pos, vel_p, omega_p, quat, axes, bound, inv_m, nbr, nn, hist, force, torque, box,
                            inv_box, half, k_n, gn_coef, dt, tol, margin, screened_gap, pos_prev, quat_prev, chunk_a,
                            chunk_b)
-        worst, who = _worst(chunk_a, chunk_b)
+        worst, who = worst_overlap(chunk_a, chunk_b)
         if worst > overlap_limit:
             return OVERLAP, s, who, worst, builds
     half_kick(vel, angm, force, torque, inv_m, unit, dt * half)
@@ -337,7 +337,7 @@ class CpuEllipsoidBackend:
         self.vel_p = self.vel.copy()
         self.omega_p = np.zeros((n, 3), dt_)
         omega_from_angm(self.quat, self.angm, self.inv_i, self.half, self.omega_p)
-        self.device = _cpu_name()
+        self.device = cpu_name()
         self.steps_done = 0
         self.builds = 0
         threads = numba.get_num_threads()
@@ -410,8 +410,8 @@ class CpuEllipsoidBackend:
         # a fresh list holds bounding-sphere overlaps in slot 3; no contact history at t = 0
         self.hist[:, :, 3] = np.minimum(self.hist[:, :, 3], 0)
         if system.contact_pairs is not None and len(system.contact_pairs):
-            _restore_springs(self.nbr, self.nn, self.hist, np.asarray(system.contact_pairs, np.int64),
-                             np.asarray(system.contact_springs, self.dtype))
+            restore_springs(self.nbr, self.nn, self.hist, np.asarray(system.contact_pairs, np.int64),
+                            np.asarray(system.contact_springs, self.dtype))
         self._forces()
 
     def _forces(self) -> None:
@@ -453,7 +453,7 @@ class CpuEllipsoidBackend:
                 left -= done + 1
                 continue
             self.steps_done = step
-            raise _instability(status, step, int(who), value, self)
+            raise instability_error(status, step, int(who), value, self)
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
@@ -479,5 +479,5 @@ class CpuEllipsoidBackend:
 
     def contacts(self):
         """(pairs (M,2), slots (M,5)) of the list slots in contact (overlap, dashpot force in 3, 4)."""
-        return _collect_springs(self.pos, self.bound, self.nbr, self.nn, self.hist, self.box_c,
-                                self.inv_box, self.half)
+        return collect_springs(self.pos, self.bound, self.nbr, self.nn, self.hist, self.box_c,
+                               self.inv_box, self.half)

@@ -39,8 +39,9 @@ from numba import cuda
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends import cuda_kernels as K
+from engine.backends.cuda_device import copy_device as _copy
 from engine.backends.cuda_lists import list_kernels
-from engine.backends.cpu import BAD_VALUE, OVERLAP, _instability
+from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
@@ -848,8 +849,3 @@ class CudaBackend:
 
 def _is_dev(a) -> bool:
     return cuda.is_cuda_array(a) and not isinstance(a, np.ndarray)
-
-
-def _copy(dst, src, stream) -> None:
-    """Device-to-device copy of equal-shape arrays (also used by engine.backends.cuda_listmodes)."""
-    dst.copy_to_device(src, stream=stream)

@@ -51,7 +51,7 @@ import numpy as np
 from numba import cuda
 
 from engine.backends import cuda_kernels as K
-from engine.backends.cuda import _copy
+from engine.backends.cuda_device import copy_device as _copy
 
 MODES = ("gpu", "cpu-sequential", "cpu-pipelined", "auto")
 #: stages of the GPU list measured before the first prediction, stages a candidate mode is tried, and

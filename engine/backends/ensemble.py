@@ -36,7 +36,8 @@ from __future__ import annotations
 
 from typing import Mapping, Optional, Protocol, Sequence, runtime_checkable
 
-from engine.backends.base import ContactParams, EllipsoidSystem, cuda_available, make_backend
+from engine.backends.base import ContactParams, EllipsoidSystem, cuda_available
+from engine.backends.registry import make_backend
 from engine.errors import BackendUnavailable
 
 BACKEND_NAMES = ("auto", "cpu", "cuda")

@@ -114,7 +114,7 @@ def bin_dir(tmp_path_factory) -> Path:
 @pytest.fixture
 def pg():
     """(URL, table prefix, store) on the real PostgreSQL; the table is dropped afterwards."""
-    from jobs.store import open_store
+    from jobs.stores import open_store
 
     url, prefix = postgres_url(), f"d{uuid.uuid4().hex[:10]}_"
     store = open_store(url, prefix)

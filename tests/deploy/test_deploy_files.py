@@ -218,7 +218,7 @@ def test_worker_healthcheck_command_runs(tmp_path, bin_dir):
                         capture_output=True, text=True, timeout=120)
     bad = subprocess.run(argv, env=clean_env(bin_dir, DEMQ_DATABASE_URL="postgresql://nobody@127.0.0.1:1/none"),
                          capture_output=True, text=True, timeout=120)
-    from jobs.store import open_store
+    from jobs.stores import open_store
     open_store(postgres_url(), "hc_").drop_tables()
     assert ok.returncode == 0, ok.stderr
     assert bad.returncode != 0

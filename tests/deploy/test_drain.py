@@ -11,7 +11,8 @@ import uuid
 
 from jobs.schema import DONE
 from jobs.specs import parse_spec
-from jobs.store import NewJob, open_store
+from jobs.store import NewJob
+from jobs.stores import open_store
 from jobs.worker import Worker
 from tests.deploy.deployfiles import ROOT, clean_env
 from tests.jobs.conftest import TINY, make_settings, postgres_url

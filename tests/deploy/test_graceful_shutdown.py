@@ -16,7 +16,8 @@ import pytest
 from engine.spec import SimulationSpec
 from jobs.schema import DONE, QUEUED, RUNNING
 from jobs.specs import parse_spec
-from jobs.store import NewJob, open_store
+from jobs.store import NewJob
+from jobs.stores import open_store
 from tests.deploy.conftest import SPEC, free_port, process_env, wait_for
 from tests.deploy.deployfiles import (SBATCH, WORKSTATION_UNIT, env_file, sbatch_exec, seconds, unit,
                                       unit_exec)

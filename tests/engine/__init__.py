@@ -1,0 +1,1 @@
+"""Tests of engine/: spec, physics, backends (CPU; CUDA under the simulator), driver."""

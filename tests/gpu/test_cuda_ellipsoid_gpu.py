@@ -97,7 +97,7 @@ def _rel(a, b, system):
 
 
 def test_real_gpu_ellipsoid_kernels_compile_and_device_is_named():
-    from engine.backends.base import make_backend
+    from engine.backends.registry import make_backend
     from engine.backends.ensemble import make_ensemble
 
     system, c = _gas(n=512)

@@ -54,7 +54,7 @@ def _dense(n_side=16, precision="float64", friction=0.5, seed=3):
 
 
 def test_real_gpu_kernels_compile_and_device_is_named():
-    from engine.backends.base import make_backend
+    from engine.backends.registry import make_backend
 
     system, c = _scene(n=512)
     be = make_backend("auto", system, c)

@@ -19,7 +19,7 @@ if str(ROOT) not in sys.path:  # the simulation processes import tests.jobs.fake
     sys.path.insert(0, str(ROOT))
 
 from jobs.settings import Settings  # noqa: E402
-from jobs.store import open_store  # noqa: E402
+from jobs.stores import open_store  # noqa: E402
 from tests.jobs.fake_engine import TARGET  # noqa: E402
 
 #: A scene the real engine runs in about a second once compiled (checked valid by test_specs).

@@ -20,7 +20,8 @@ from jobs.packing import SOLO, Packer, is_solo
 from jobs.runner import TEST_CRASH_ENV
 from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING
 from jobs.specs import parse_spec
-from jobs.store import NewJob, open_store
+from jobs.store import NewJob
+from jobs.stores import open_store
 from jobs.worker import Worker
 from tests.jobs.conftest import TINY, make_settings
 from tests.jobs.fake_engine import ENSEMBLE_TARGET, FAIL_SEED

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from jobs.settings import Settings
-from jobs.store import open_store
+from jobs.stores import open_store
 
 
 def test_defaults_and_derived_paths():

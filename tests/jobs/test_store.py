@@ -9,7 +9,8 @@ import time
 import pytest
 
 from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING
-from jobs.store import LeaseLost, NewJob, open_store
+from jobs.store import LeaseLost, NewJob
+from jobs.stores import open_store
 
 
 def _submit(store, n=1, priority=0, batch_id=None):

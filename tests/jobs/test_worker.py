@@ -12,7 +12,8 @@ import pytest
 from jobs.runner import TEST_CRASH_ENV
 from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING
 from jobs.specs import parse_spec
-from jobs.store import NewJob, open_store
+from jobs.store import NewJob
+from jobs.stores import open_store
 from jobs.worker import Worker, describe_exit
 from tests.jobs.conftest import TINY
 from tests.jobs.fake_engine import FAIL_SEED

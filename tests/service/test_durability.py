@@ -20,7 +20,8 @@ from fastapi.testclient import TestClient
 from jobs.runner import TEST_CRASH_ENV
 from jobs.schema import DONE, FAILED, QUEUED, RUNNING
 from jobs.specs import parse_spec
-from jobs.store import NewJob, open_store
+from jobs.store import NewJob
+from jobs.stores import open_store
 from jobs.worker import Worker
 from service.app import create_app
 from tests.jobs.conftest import ROOT, TINY, make_settings

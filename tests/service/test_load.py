@@ -10,7 +10,7 @@ import time
 import httpx
 import uvicorn
 
-from jobs.store import open_store
+from jobs.stores import open_store
 from jobs.worker import Worker
 from service.app import create_app
 from tests.jobs.conftest import TINY, make_settings

@@ -1,0 +1,1 @@
+"""Reduced physics validation runs (homogeneous cooling against theory)."""

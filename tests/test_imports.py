@@ -1,0 +1,150 @@
+"""The package import graph is acyclic and flows one way: service -> jobs -> engine (DESIGN.md §1).
+
+Walks every module of engine/, jobs/, service/ (and bench/, for resolving names) with ``ast``: module-level
+and function-level imports count alike, relative imports are resolved, and ``importlib.import_module`` /
+``__import__`` with a literal (or an f-string's literal head) count too. Importing ``a.b.c`` is an edge to
+``a.b.c`` only (not to the parent packages, as pydeps and importlab do); ``from a.b import c`` is an edge
+to ``a.b.c`` when that is a module, else to ``a.b``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+CHECKED = ("engine", "jobs", "service")
+PACKAGES = CHECKED + ("bench",)
+#: importer -> packages it must never import
+FORBIDDEN = {"engine": ("jobs", "service", "bench"), "jobs": ("service", "bench")}
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            mods[".".join(parts)] = path
+    return mods
+
+
+def _dynamic_target(node: ast.Call):
+    """The module named by importlib.import_module(...) / __import__(...) with a literal argument, or the
+    literal head of an f-string argument ('bench.{x}' -> 'bench'); None otherwise."""
+    f = node.func
+    name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
+    if name not in ("import_module", "__import__") or not node.args:
+        return None
+    arg = node.args[0]
+    if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+        return arg.value
+    if isinstance(arg, ast.JoinedStr) and arg.values and isinstance(arg.values[0], ast.Constant):
+        head = arg.values[0].value.rsplit(".", 1)[0] if "." in arg.values[0].value else ""
+        return head or None
+    return None
+
+
+def imports_of(source: str, package: str, mods) -> set[str]:
+    """Every module a source imports, anywhere in it; ``package``: the package it lives in (for relative
+    imports), ``mods``: the known module names (``from a import b`` is ``a.b`` when that is one)."""
+    targets: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            targets.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                src = ".".join(base + ([node.module] if node.module else []))
+            else:
+                src = node.module
+            for a in node.names:
+                sub = f"{src}.{a.name}"
+                targets.add(sub if sub in mods else src)
+        elif isinstance(node, ast.Call):
+            t = _dynamic_target(node)
+            if t:
+                targets.add(t)
+    return targets
+
+
+def import_graph() -> dict[str, set[str]]:
+    """module -> set of imported modules (only names under PACKAGES)."""
+    mods = _modules()
+    graph: dict[str, set[str]] = {}
+    for mod, path in mods.items():
+        package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+        targets = imports_of(path.read_text(), package, mods)
+        graph[mod] = {t for t in targets if t.split(".")[0] in PACKAGES}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module, or a self-import (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1 or v in graph.get(v, ()):
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycle_finder_sees_cycles():
+    g = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": {"e"}}
+    assert sorted(cycles(g)) == [["a", "b", "c"], ["e"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_walker_sees_function_level_relative_and_dynamic_imports():
+    g = import_graph()
+    # function-level: service/cli.py imports the app inside cmd_serve
+    assert "service.app" in g["service.cli"]
+    # 'from engine.physics import x' style resolves to the submodule when x is one
+    assert "engine.physics.contact" in g["engine.backends.cpu"]
+    src = ("import importlib\n"
+           "def f():\n"
+           "    from . import base\n"
+           "    from ..physics.contact import min_image\n"
+           "    from .. import spec\n"
+           "    importlib.import_module(f'bench.{x}')\n"
+           "    __import__('jobs.store')\n")
+    mods = {"engine.backends.base", "engine.physics.contact", "engine.spec"}
+    assert imports_of(src, "engine.backends", mods) == {
+        "importlib", "engine.backends.base", "engine.physics.contact", "engine.spec", "bench", "jobs.store"}
+
+
+def test_no_import_cycle_in_engine_jobs_service():
+    g = import_graph()
+    inner = {m: {t for t in ts if t.split(".")[0] in CHECKED} for m, ts in g.items() if m.split(".")[0] in CHECKED}
+    found = cycles(inner)
+    assert not found, "import cycles: " + "; ".join(" <-> ".join(c) for c in found)
+
+
+def test_dependencies_flow_service_jobs_engine():
+    g = import_graph()
+    bad = sorted(f"{m} -> {t}" for m, ts in g.items() for t in ts
+                 if t.split(".")[0] in FORBIDDEN.get(m.split(".")[0], ()))
+    assert not bad, "imports against the flow service -> jobs -> engine: " + ", ".join(bad)
