@@ -1,4 +1,4 @@
-"""Engine commands of the `demq` CLI: `demq run`, `demq validate`, `demq bench`.
+"""Engine commands of the `demq` CLI: `demq run`, `demq export`, `demq validate`, `demq bench`.
 
 The console script itself lives in service/cli.py (it also offers the queue commands); it calls
 :func:`register` so the engine stays importable and runnable without jobs/ or service/.
@@ -35,6 +35,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="run all seeds and cases (hcs-ellipsoids: cells) as one ensemble (on the GPU: the same "
                         "kernel launches)")
     v.set_defaults(func=cmd_validate)
+
+    x = sub.add_parser("export", help="convert a result's snapshot frames for other tools (gsd: OVITO, HOOMD)")
+    x.add_argument("result", help="HDF5 (H5MD) result file")
+    x.add_argument("--format", choices=["gsd", "xdmf"], default="gsd",
+                   help="gsd: a GSD trajectory (OVITO, HOOMD, freud); xdmf: the ParaView sidecar <stem>.xmf")
+    x.add_argument("-o", "--output", default=None, help="output path (default: the result's stem + .gsd)")
+    x.set_defaults(func=cmd_export)
 
     b = sub.add_parser("bench", help="benchmarks and stress tests that write a report")
     b.add_argument("action", choices=["stability", "accuracy", "specialisation"],
@@ -141,6 +148,34 @@ def cmd_run(args) -> int:
         bar.close()
     print(f"wrote {s.output}: N={s.n_particles} steps={s.steps} backend={s.backend} ({s.device}) "
           f"wall={s.wall_s:.2f}s Cundall={s.cundall:.3g} particle-steps/s")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from pathlib import Path
+
+    src = Path(args.result)
+    if not src.is_file():
+        print(f"export: no result file {src}", file=sys.stderr)
+        return 2
+    try:
+        if args.format == "xdmf":
+            from engine.xdmf import write_xdmf
+
+            out = write_xdmf(src)
+            if out is None:
+                raise ValueError(f"{src}: the result holds no snapshot frame: nothing to point at")
+            if args.output and Path(args.output) != out:
+                print("export: the xdmf sidecar is always <stem>.xmf next to the result (it names the "
+                      "HDF5 file relatively); -o is ignored", file=sys.stderr)
+        else:
+            from engine.export_gsd import export_gsd
+
+            out = export_gsd(src, args.output or src.with_suffix(".gsd"))
+    except (OSError, KeyError, ValueError) as exc:
+        print(f"export failed: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {out}")
     return 0
 
 

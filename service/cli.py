@@ -1,6 +1,6 @@
 """The ``demq`` command line: the engine's commands plus the queue's.
 
-    demq run | validate                  engine commands (engine/cli.py)
+    demq run | export | validate | bench  engine commands (engine/cli.py)
     demq serve                           HTTP API + one embedded worker (SQLite in the data directory)
     demq worker [--exit-when-idle]       a worker on the configured job table (drain mode: exit when empty)
     demq submit [SPEC.json] [--local --wait -o OUT.h5]
