@@ -75,8 +75,8 @@ def export_gsd(h5_path, out_path) -> Path:
 
     out_path = Path(out_path)
     with h5py.File(h5_path, "r") as f:
-        part = f[PART]
-        if "position" not in part or part["position/value"].shape[0] == 0:
+        part = f.get(PART)
+        if part is None or "position" not in part or part["position/value"].shape[0] == 0:
             raise ValueError(f"{h5_path}: the result holds no snapshot frame (spec snapshots = 0): nothing to export")
         edges = part["box/edges"][()].astype(float)
         n = part["position/value"].shape[1]

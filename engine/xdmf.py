@@ -73,8 +73,8 @@ def xdmf_text(h5_path, h5_ref: Optional[str] = None) -> Optional[str]:
     h5_path = Path(h5_path)
     ref = quoteattr(h5_ref or h5_path.name)[1:-1]
     with h5py.File(h5_path, "r") as f:
-        part = f[PART]
-        if "position" not in part or part["position/value"].shape[0] == 0:
+        part = f.get(PART)
+        if part is None or "position" not in part or part["position/value"].shape[0] == 0:
             return None
         pos = part["position/value"]
         n_frames, n = pos.shape[0], pos.shape[1]
