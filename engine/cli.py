@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a spec key (JSON value), e.g. --set n_particles=512")
     p.add_argument("--backend", choices=["auto", "cpu", "cuda"], default=None)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (it is off anyway when stderr is not a terminal)")
     p.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="physics validation runs that write a report")
@@ -102,27 +101,6 @@ def _spec_from_args(args):
     return SimulationSpec.model_validate(data)
 
 
-class ProgressBar:
-    """One-line progress bar on stderr: fraction of the run, ETA, particle-steps per second."""
-
-    def __init__(self, stream=sys.stderr, width: int = 30):
-        self.stream, self.width, self.last = stream, width, 0.0
-
-    def __call__(self, pr) -> None:
-        now = time.monotonic()
-        if now - self.last < 0.2 and pr.fraction < 1.0:
-            return
-        self.last = now
-        filled = int(self.width * pr.fraction)
-        bar = "#" * filled + "-" * (self.width - filled)
-        self.stream.write(f"\r[{bar}] {100 * pr.fraction:5.1f}% {pr.phase:<14s} t={pr.time:.4g}s "
-                          f"ETA {pr.eta_s:6.1f}s  {pr.cundall:.3g} particle-steps/s ")
-        self.stream.flush()
-
-    def close(self) -> None:
-        self.stream.write("\n")
-
-
 def cmd_run(args) -> int:
     from pydantic import ValidationError
 
@@ -136,7 +114,9 @@ def cmd_run(args) -> int:
             loc = ".".join(str(x) for x in err["loc"]) or "spec"
             print(f"invalid spec: {loc}: {err['msg']}", file=sys.stderr)
         return 2
-    bar = None if args.quiet else ProgressBar()
+    from engine.progress import ProgressBar
+
+    bar = None if args.quiet else ProgressBar(spec.n_particles, desc="demq run ")
     try:
         s = run(spec, args.output, progress=bar)
     except EngineError as exc:

@@ -105,7 +105,7 @@ def _rotation_matrices(q: np.ndarray) -> np.ndarray:
 
 def _title(fr: Frame, path_label: str) -> str:
     shape = "spheroids" if fr.ellipsoid else "spheres"
-    return f"{path_label}N = {len(fr.position)} {shape}, frame {fr.index} of {fr.n_frames}, t = {fr.time:.4g} s"
+    return f"{path_label}N = {len(fr.position)} {shape}, frame {fr.index}/{fr.n_frames - 1}, t = {fr.time:.4g} s"
 
 
 def render_matplotlib(fr: Frame, title: str = "", size=(6.4, 5.6), dpi: int = 100) -> bytes:
@@ -195,12 +195,13 @@ def render_ovito(fr: Frame, title: str = "", size=(640, 560)) -> bytes:
             vp = Viewport(type=Viewport.Type.Ortho, camera_dir=tuple(camera))
             vp.zoom_all(size=size)
             vp.overlays.append(ColorLegendOverlay(modifier=coding, title=fr.label, alignment=0x0002 | 0x0080,
-                                                  orientation=0x2, legend_size=0.45, font_size=0.06, offset_x=-0.01))
+                                                  orientation=0x2, legend_size=0.45, font_size=0.05, offset_x=-0.06))
             vp.overlays.append(TextLabelOverlay(text=title, font_size=0.035, alignment=0x0001 | 0x0020))
             with tempfile.TemporaryDirectory() as tmp:
                 png = Path(tmp) / "frame.png"
                 vp.render_image(size=size, filename=str(png), background=(1, 1, 1),
-                                renderer=TachyonRenderer(antialiasing_samples=2, ambient_occlusion=False))
+                                renderer=TachyonRenderer(antialiasing_samples=2, ambient_occlusion=False,
+                                                         shadows=False))
                 return png.read_bytes()
         finally:
             pipeline.remove_from_scene()
