@@ -10,10 +10,11 @@ import argparse
 
 def register(sub: argparse._SubParsersAction) -> None:
     b = sub.add_parser("bench", help="benchmarks and stress tests that write a report")
-    b.add_argument("action", choices=["stability", "accuracy", "specialisation"],
+    b.add_argument("action", choices=["stability", "accuracy", "specialisation", "e2e"],
                    help="stability: the CPU stress matrix; accuracy: error against cost for dt, precision, "
                         "skin and the ellipsoid PW tolerance; specialisation: speed-up of each compile-time "
-                        "specialisation (issue 6)")
+                        "specialisation (issue 6); e2e: time to result of whole jobs through engine.run, "
+                        "run_ensemble and the worker, with the breakdown (issue 14; bench/e2e.py --help)")
     b.add_argument("-o", "--out-dir", default=None, help="report folder (default bench/reports/<action>)")
     b.add_argument("--only", default=None, help="stability: run only the cells whose name contains this")
     b.add_argument("--timeout", type=float, default=None,
@@ -26,10 +27,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--n", type=int, default=None, help="accuracy/specialisation: spheres per gas scene")
     b.add_argument("--reps", type=int, default=None, help="accuracy/specialisation: timed runs per row (median)")
     b.add_argument("--no-ellipsoids", action="store_true", help="accuracy/specialisation: skip ellipsoid rows")
+    b.add_argument("--cases", nargs="*", default=None, help="e2e: cases to time (bench/e2e.py lists them)")
     b.set_defaults(func=cmd_bench)
 
 
 def cmd_bench(args) -> int:
+    if args.action == "e2e":
+        from bench import e2e
+
+        argv = ["--reps", str(args.reps or 1)] + (["--quick"] if args.quick or args.tiny else []) + \
+            (["--out", args.out_dir] if args.out_dir else []) + (["--cases", *args.cases] if args.cases else [])
+        return e2e.main(argv)
     if args.action in ("accuracy", "specialisation"):
         import importlib
 

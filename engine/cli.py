@@ -1,4 +1,4 @@
-"""Engine commands of the `demq` CLI: `demq run`, `demq validate`.
+"""Engine commands of the `demq` CLI: `demq run`, `demq export`, `demq validate`.
 
 The console script itself lives in service/cli.py (it also offers the queue commands and `demq bench`,
 bench/cli.py); it calls :func:`register` so the engine stays importable and runnable without jobs/,
@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a spec key (JSON value), e.g. --set n_particles=512")
     p.add_argument("--backend", choices=["auto", "cpu", "cuda"], default=None)
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (it is off anyway when stderr is not a terminal)")
     p.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="physics validation runs that write a report")
@@ -36,6 +35,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="run all seeds and cases (hcs-ellipsoids: cells) as one ensemble (on the GPU: the same "
                         "kernel launches)")
     v.set_defaults(func=cmd_validate)
+
+    x = sub.add_parser("export", help="convert a result's snapshot frames for other tools (gsd: OVITO, HOOMD)")
+    x.add_argument("result", help="HDF5 (H5MD) result file")
+    x.add_argument("--format", choices=["gsd", "xdmf"], default="gsd",
+                   help="gsd: a GSD trajectory (OVITO, HOOMD, freud); xdmf: the ParaView sidecar <stem>.xmf")
+    x.add_argument("-o", "--output", default=None, help="output path (default: the result's stem + .gsd)")
+    x.set_defaults(func=cmd_export)
 
 
 def _spec_from_args(args):
@@ -58,27 +64,6 @@ def _spec_from_args(args):
     return SimulationSpec.model_validate(data)
 
 
-class ProgressBar:
-    """One-line progress bar on stderr: fraction of the run, ETA, particle-steps per second."""
-
-    def __init__(self, stream=sys.stderr, width: int = 30):
-        self.stream, self.width, self.last = stream, width, 0.0
-
-    def __call__(self, pr) -> None:
-        now = time.monotonic()
-        if now - self.last < 0.2 and pr.fraction < 1.0:
-            return
-        self.last = now
-        filled = int(self.width * pr.fraction)
-        bar = "#" * filled + "-" * (self.width - filled)
-        self.stream.write(f"\r[{bar}] {100 * pr.fraction:5.1f}% {pr.phase:<14s} t={pr.time:.4g}s "
-                          f"ETA {pr.eta_s:6.1f}s  {pr.cundall:.3g} particle-steps/s ")
-        self.stream.flush()
-
-    def close(self) -> None:
-        self.stream.write("\n")
-
-
 def cmd_run(args) -> int:
     from pydantic import ValidationError
 
@@ -92,7 +77,9 @@ def cmd_run(args) -> int:
             loc = ".".join(str(x) for x in err["loc"]) or "spec"
             print(f"invalid spec: {loc}: {err['msg']}", file=sys.stderr)
         return 2
-    bar = None if args.quiet else ProgressBar()
+    from engine.progress import ProgressBar
+
+    bar = None if args.quiet else ProgressBar(spec.n_particles, desc="demq run ")
     try:
         s = run(spec, args.output, progress=bar)
     except EngineError as exc:
@@ -104,6 +91,34 @@ def cmd_run(args) -> int:
         bar.close()
     print(f"wrote {s.output}: N={s.n_particles} steps={s.steps} backend={s.backend} ({s.device}) "
           f"wall={s.wall_s:.2f}s Cundall={s.cundall:.3g} particle-steps/s")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from pathlib import Path
+
+    src = Path(args.result)
+    if not src.is_file():
+        print(f"export: no result file {src}", file=sys.stderr)
+        return 2
+    try:
+        if args.format == "xdmf":
+            from engine.xdmf import write_xdmf
+
+            out = write_xdmf(src)
+            if out is None:
+                raise ValueError(f"{src}: the result holds no snapshot frame: nothing to point at")
+            if args.output and Path(args.output) != out:
+                print("export: the xdmf sidecar is always <stem>.xmf next to the result (it names the "
+                      "HDF5 file relatively); -o is ignored", file=sys.stderr)
+        else:
+            from engine.export_gsd import export_gsd
+
+            out = export_gsd(src, args.output or src.with_suffix(".gsd"))
+    except (OSError, KeyError, ValueError) as exc:
+        print(f"export failed: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {out}")
     return 0
 
 

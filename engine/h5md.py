@@ -35,6 +35,7 @@ import h5py
 import numpy as np
 
 from engine.errors import InstabilityError
+from engine.xdmf import write_xdmf
 
 UNITS = {
     "position": "m", "velocity": "m s-1", "orientation": "", "angular_velocity": "s-1",
@@ -226,6 +227,7 @@ class H5MDWriter:
             par.attrs[key] = _attr(value)
         self.f.close()
         os.replace(self.tmp, self.path)
+        write_xdmf(self.path)  # ParaView/VisIt sidecar <stem>.xmf (engine/xdmf.py)
         return self.path
 
     def abort(self) -> None:

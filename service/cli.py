@@ -1,6 +1,6 @@
 """The ``demq`` command line: the engine's commands plus the queue's.
 
-    demq run | validate                  engine commands (engine/cli.py)
+    demq run | export | validate         engine commands (engine/cli.py)
     demq bench                           benchmarks and stress tests (bench/cli.py)
     demq serve                           HTTP API + one embedded worker (SQLite in the data directory)
     demq worker [--exit-when-idle]       a worker on the configured job table (drain mode: exit when empty)
@@ -106,21 +106,11 @@ def _read_spec(args) -> dict:
     return data
 
 
-class _ProgressLine:
-    """One progress line on stderr, at most five updates per second."""
+def _job_bar(job_id: str, n_particles):
+    """The tqdm progress bar of a job (quiet when stderr is not a terminal): N, steps/s, Cundall, ETA."""
+    from engine.progress import ProgressBar
 
-    def __init__(self):
-        self.last = 0.0
-
-    def __call__(self, job, p: dict) -> None:
-        now = time.monotonic()
-        if now - self.last < 0.2:
-            return
-        self.last = now
-        eta = p.get("eta_s")
-        sys.stderr.write(f"\rjob {job.id[:8]} {100 * (p.get('fraction') or 0):5.1f}% {p.get('phase') or '':<14s} "
-                         f"ETA {eta if eta is not None else float('nan'):7.1f} s ")
-        sys.stderr.flush()
+    return ProgressBar(n_particles, desc=f"job {job_id[:8]} ")
 
 
 def _submit_local(args, data: dict) -> int:
@@ -142,10 +132,14 @@ def _submit_local(args, data: dict) -> int:
     print(job.id)
     if not args.wait:
         return 0
-    worker = Worker(store, s, on_progress=_ProgressLine())
+    bar = _job_bar(job.id, spec.n_particles)
+    worker = Worker(store, s, on_progress=lambda _job, p: bar.update(p.get("fraction") or 0.0, p.get("phase") or "",
+                                                                     p.get("eta_s"), p.get("cundall")))
     _on_signals(worker.stop)
-    final = worker.run_job(job.id)
-    sys.stderr.write("\n")
+    try:
+        final = worker.run_job(job.id)
+    finally:
+        bar.close()
     if final is None or final.state != "done":
         state = final.state if final else "unknown"
         if worker.stopping and state == "queued":
@@ -169,12 +163,15 @@ def _submit_remote(args, data: dict) -> int:
         print(job["id"])
         if not args.wait:
             return 0
-        while job["state"] in ("queued", "running"):
-            sys.stderr.write(f"\rjob {job['id'][:8]} {job['state']:<8s} {100 * job['progress']:5.1f}% ")
-            sys.stderr.flush()
-            time.sleep(1.0)
-            job = client.get(job["id"])
-        sys.stderr.write("\n")
+        bar = _job_bar(job["id"], (job.get("spec") or {}).get("n_particles"))
+        try:
+            while job["state"] in ("queued", "running"):
+                bar.update(job["progress"], job.get("phase") or job["state"], job.get("eta_s"), job.get("cundall"))
+                time.sleep(1.0)
+                job = client.get(job["id"])
+            bar.update(job["progress"], job["state"], None, job.get("cundall"))
+        finally:
+            bar.close()
         if job["state"] != "done":
             print(f"job {job['id']} {job['state']}: {job['error'] or ''}", file=sys.stderr)
             return 1

@@ -1,16 +1,21 @@
-"""Results of a done job: the HDF5 file, the energy series (JSON or CSV), the cooling-curve PNG."""
+"""Results of a done job: the HDF5 file, the energy series (JSON or CSV), the cooling-curve PNG, and the
+visualisation outputs: the XDMF sidecar (ParaView), a GSD export (OVITO, HOOMD), a picture of a snapshot."""
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, Query
 from fastapi.responses import FileResponse, PlainTextResponse, Response
+from starlette.background import BackgroundTask
 
 from jobs.schema import DONE
 from jobs.store import Job
 from service.deps import JobDep
+from service.errors import InvalidRequest
 from service.results import cooling_plot_png, energy_csv, read_energy
 
 router = APIRouter(prefix="/jobs", tags=["results"])
@@ -53,3 +58,73 @@ def get_plot(job: JobDep) -> Response:
     s = job.spec
     title = f"job {job.id[:8]}: N={s['n_particles']}, e_n={s['e_n']}, e_t={s['e_t']}, phi={s['volume_fraction']}"
     return Response(cooling_plot_png(_result_file(job), title), media_type="image/png")
+
+
+SNAPSHOT_RESPONSES = {**RESPONSES, 409: {"description": "the job is not done, or its result has no snapshot frame"},
+                      410: {"description": "the result file was deleted"}}
+
+
+def _no_snapshot(job: Job) -> HTTPException:
+    return HTTPException(409, f"job {job.id} has no snapshot frame in its result (its spec asked for "
+                              f"snapshots = {job.spec.get('snapshots')})")
+
+
+@router.get("/{job_id}/result.xmf", responses={**SNAPSHOT_RESPONSES, 200: {
+    "content": {"application/xml": {}}, "description": "XDMF 3 document pointing into demq-{id}.h5"}})
+def get_xdmf(job: JobDep) -> Response:
+    """The XDMF sidecar of the result for ParaView / VisIt, naming the download name ``demq-{id}.h5``:
+    save it next to the file from ``GET /jobs/{id}/result`` and open the ``.xmf``."""
+    from engine.xdmf import xdmf_text
+
+    text = xdmf_text(_result_file(job), h5_ref=f"demq-{job.id}.h5")
+    if text is None:
+        raise _no_snapshot(job)
+    return Response(text, media_type="application/xml",
+                    headers={"Content-Disposition": f'attachment; filename="demq-{job.id}.xmf"'})
+
+
+@router.get("/{job_id}/export.gsd", response_class=FileResponse, responses={**SNAPSHOT_RESPONSES, 200: {
+    "content": {"application/octet-stream": {}}, "description": "GSD trajectory (HOOMD schema, SI units)"}})
+def get_gsd(job: JobDep) -> FileResponse:
+    """Every snapshot frame as a GSD file (OVITO, HOOMD-blue, freud); engine/export_gsd.py lists the fields."""
+    from engine.export_gsd import export_gsd
+    from service.render import frame_count
+
+    path = _result_file(job)
+    if frame_count(path) == 0:
+        raise _no_snapshot(job)
+    fd, tmp = tempfile.mkstemp(suffix=".gsd", prefix=f"demq-{job.id}-")
+    os.close(fd)
+    try:
+        export_gsd(path, tmp)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return FileResponse(tmp, media_type="application/octet-stream", filename=f"demq-{job.id}.gsd",
+                        background=BackgroundTask(os.unlink, tmp))
+
+
+@router.get("/{job_id}/snapshot.png", response_class=Response, responses={
+    **SNAPSHOT_RESPONSES, 422: {"description": "frame index out of range, or an unknown colour/renderer"},
+    200: {"content": {"image/png": {}}, "description": "PNG"}})
+def get_snapshot(job: JobDep,
+                 frame: Annotated[int, Query(description="snapshot frame, Python-style: 0 = first, -1 = last")] = -1,
+                 color: Annotated[Literal["speed", "omega"], Query(
+                     description="colour by the speed |v| (m/s) or the angular speed |omega| (1/s)")] = "speed",
+                 renderer: Annotated[Literal["auto", "ovito", "matplotlib"], Query(
+                     description="auto: OVITO's Tachyon when installed, else matplotlib")] = "auto") -> Response:
+    """A picture of one snapshot frame: spheres or oriented spheroids, coloured with a colour bar, box outline."""
+    from service.render import FrameOutOfRange, NoSnapshot, ovito_available, snapshot_png
+
+    path = _result_file(job)
+    if renderer == "ovito" and not ovito_available():
+        raise InvalidRequest([{"loc": ["query", "renderer"], "type": "value_error",
+                               "msg": "OVITO is not installed on this server (pip install ovito, and a Vulkan "
+                                      "loader): use renderer=auto or matplotlib"}])
+    try:
+        png = snapshot_png(path, frame, color, renderer, label=f"job {job.id[:8]}: ")
+    except NoSnapshot:
+        raise _no_snapshot(job) from None
+    except FrameOutOfRange as exc:
+        raise InvalidRequest([{"loc": ["query", "frame"], "msg": str(exc), "type": "value_error"}]) from None
+    return Response(png, media_type="image/png")
