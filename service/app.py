@@ -13,6 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from jobs.settings import Settings
 from jobs.store import JobStore, open_store
 from jobs.worker import Worker
+from service import dashboard
 from service.deps import require_token
 from service.errors import InvalidRequest, on_invalid_request, on_validation_error
 from service.limits import BodySizeLimit
@@ -55,4 +56,5 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
     app.include_router(health.router)
     for module in (jobs, batches, results):
         app.include_router(module.router, dependencies=auth)
+    dashboard.install(app)
     return app
