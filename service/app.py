@@ -26,6 +26,8 @@ DESCRIPTION = """Queue granular-gas DEM simulations, follow their progress, down
 A job's body is a simulation spec (see the SimulationSpec schema; missing keys take the defaults of
 paper 001). Invalid specs get 422 naming the field and the allowed range; specs whose estimated
 memory or particle-steps exceed the server's limits get 422 before they are queued.
+
+A web dashboard (jobs, progress, plots, downloads, a submit form) is served at `/`.
 """
 
 

@@ -170,12 +170,13 @@ async def submit(request: Request, store: StoreDep, settings: SettingsDep) -> Re
             raise ValueError
     except ValueError:
         errors["priority"] = f"priority = {priority_raw!r} must be a whole number in -1000 ... 1000"
-    if not errors:
-        try:
-            parsed = parse_spec(spec)
+    try:
+        parsed = parse_spec({k: v for k, v in spec.items() if k not in errors})
+        if not errors:
             check_limits(parsed, settings.max_particle_steps, settings.max_memory_bytes)
-        except SpecRejected as exc:
-            errors, general = views.errors_by_field(exc.errors)
+    except SpecRejected as exc:
+        per_field, general = views.errors_by_field(exc.errors)
+        errors = {**per_field, **errors}
     if errors or general:
         return render(request, "submit.html", status=422, fields=views.form_fields(), values=form, errors=errors,
                       general=general, priority=priority_raw)

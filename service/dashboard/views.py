@@ -13,7 +13,7 @@ from jobs.schema import FINAL_STATES
 from jobs.store import Job
 
 #: Spec keys shown in the jobs table's "scene" column (shape aside).
-SCENE_KEYS = ("n_particles", "e_n", "e_t", "volume_fraction")
+SCENE_KEYS = ("n_particles", "e_n", "e_t", "volume_fraction", "seed")
 
 
 def when(t: Optional[float]) -> str:

@@ -2,6 +2,8 @@
 Selenium against a real server (uvicorn on a free loopback port, embedded worker, real engine, CPU).
 
 Skips when no Chromium, chromedriver or selenium is installed (.ci/run installs them with apt-get).
+With DEMQ_SCREENSHOT_DIR set, the screenshots are also written there (docs/dashboard.png comes from
+``DEMQ_SCREENSHOT_DIR=docs python -m pytest tests/service/test_dashboard_browser.py``).
 """
 
 from __future__ import annotations
@@ -98,6 +100,9 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
         bare = httpx.get(server.url + "/", headers={"accept": "text/html"})
         assert bare.status_code == 401 and 'name="token"' in bare.text
 
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        batch = httpx.post(server.url + "/batches", headers=auth, json={
+            "base": {**TINY, "backend": "cpu"}, "sweep": {"e_n": [0.6, 0.9], "seed": [1, 2]}}).json()
         driver = make_driver()
         try:
             driver.get(server.url + "/")
@@ -137,7 +142,11 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
             width = driver.execute_script(f"return document.querySelector('{bar} span').style.width")
             assert width == "100%"
             assert driver.find_element(By.CSS_SELECTOR, f"#job-{job_id}").text.count("cpu") == 1  # backend column
-            driver.save_screenshot(str(tmp_path / "jobs.png"))
+            WebDriverWait(driver, DONE_TIMEOUT_S, poll_frequency=0.25).until(lambda d: all(
+                d.find_element(By.ID, f"job-{j}").get_attribute("data-state") == "done" for j in batch["job_ids"]))
+            driver.set_window_size(1400, 680)
+            _screenshot(driver, tmp_path, "dashboard.png")
+            driver.set_window_size(1400, 1000)
 
             # the job page: spec, downloads, the cooling plot loaded
             driver.find_element(By.CSS_SELECTOR, f"#job-{job_id} a[href='/ui/jobs/{job_id}']").click()
@@ -160,8 +169,22 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
             if snapshot_route:  # the particle picture (its route lands with the visualisation exports)
                 WebDriverWait(driver, 60, poll_frequency=0.25).until(lambda d: d.execute_script(
                     "const i = document.getElementById('snapshot'); return i.complete && i.naturalWidth > 0;"))
-            driver.save_screenshot(str(tmp_path / "job.png"))
+            _screenshot(driver, tmp_path, "dashboard-job.png")
+
+            # the batch page: the sweep table and the mean curves over the seeds
+            driver.get(f"{server.url}/ui/batches/{batch['batch_id']}")
+            heads = [th.text for th in driver.find_elements(By.CSS_SELECTOR, "#batch-live thead th")]
+            assert heads[1:3] == ["e_n", "seed"], heads
+            WebDriverWait(driver, 60, poll_frequency=0.25).until(lambda d: d.execute_script(
+                "const i = document.getElementById('batch-plot'); return i && i.complete && i.naturalWidth > 0;"))
+            _screenshot(driver, tmp_path, "dashboard-batch.png")
         finally:
             driver.quit()
-    for name in ("jobs.png", "job.png"):
+    for name in ("dashboard.png", "dashboard-job.png", "dashboard-batch.png"):
         assert (tmp_path / name).stat().st_size > 10_000, name
+
+
+def _screenshot(driver, tmp_path: Path, name: str) -> None:
+    driver.save_screenshot(str(tmp_path / name))
+    if os.environ.get("DEMQ_SCREENSHOT_DIR"):
+        shutil.copyfile(tmp_path / name, Path(os.environ["DEMQ_SCREENSHOT_DIR"]) / name)
