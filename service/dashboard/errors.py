@@ -46,7 +46,8 @@ async def on_http_error(request: Request, exc: StarletteHTTPException) -> Respon
         # an htmx poll whose cookie has gone: send the whole page to the token form
         return Response(status_code=401, headers={"HX-Redirect": f"/ui/login?next={quote(target, safe='/')}"})
     job, batch = _JOB_PATH.match(path), _BATCH_PATH.match(path)
-    return render(request, "error.html", status=exc.status_code, headers=getattr(exc, "headers", None),
+    hide = {"show_logout": False} if exc.status_code == 401 else {}
+    return render(request, "error.html", status=exc.status_code, headers=getattr(exc, "headers", None), **hide,
                   code=exc.status_code, title=TITLES.get(exc.status_code, "Error"), detail=str(exc.detail),
                   next=target if request.method == "GET" else "/",
                   job_id=job.group(1) if job and exc.status_code != 404 else None,

@@ -41,8 +41,10 @@ public = APIRouter(include_in_schema=False)
 
 
 def render(request: Request, name: str, status: int = 200, headers: Optional[dict] = None, **context) -> HTMLResponse:
-    """Render template ``name``; every page knows whether auth is on (for the log-out button)."""
+    """Render template ``name``; every page knows whether auth is on (``token_on``: the token form, the
+    log-out button)."""
     context.setdefault("token_on", request.app.state.settings.token is not None)
+    context.setdefault("show_logout", context["token_on"])
     return templates.TemplateResponse(request, name, context, status_code=status, headers=headers)
 
 
@@ -193,7 +195,8 @@ def _local(path: Optional[str]) -> str:
 
 @public.get("/ui/login", response_class=HTMLResponse)
 def login_form(request: Request) -> HTMLResponse:
-    return render(request, "login.html", next=_local(request.query_params.get("next")), wrong=False)
+    return render(request, "login.html", next=_local(request.query_params.get("next")), wrong=False,
+                  show_logout=False)
 
 
 @public.post("/ui/login")
@@ -202,7 +205,7 @@ async def login(request: Request, settings: SettingsDep) -> Response:
     form = await request.form()
     token, target = str(form.get("token") or ""), _local(str(form.get("next") or "/"))
     if settings.token is not None and not token_matches(settings, token):
-        return render(request, "login.html", status=401, next=target, wrong=True,
+        return render(request, "login.html", status=401, next=target, wrong=True, show_logout=False,
                       headers={"WWW-Authenticate": "Bearer"})
     response = RedirectResponse(target, status_code=303)
     if settings.token is not None:

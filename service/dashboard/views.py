@@ -80,6 +80,9 @@ def show(value: Any) -> str:
         return ""
     if isinstance(value, (list, dict)):
         return json.dumps(value)
+    if isinstance(value, float) and abs(value) >= 1e5 and value == float(f"{value:.12e}"):
+        mantissa, exponent = f"{value:.12e}".split("e")
+        return f"{mantissa.rstrip('0').rstrip('.')}e{int(exponent)}"   # 1e8, not 100000000.0
     return str(value)
 
 

@@ -81,6 +81,15 @@ def test_done_job_page_has_plot_downloads_and_spec(client, settings):
     assert re.search(r'class="changed"><th>e_t</th><td class="mono">-1.0</td>', page)  # a changed key stands out
     assert "hx-get" not in page and 'id="cancel"' not in page  # ended: no polling, nothing to cancel
     assert client.get(f"/jobs/{job_id}/plot.png").headers["content-type"] == "image/png"
+    assert '<th>stiffness</th><td class="mono">1e8</td>' in page  # not 100000000.0
+
+
+def test_spec_values_read_back_as_the_same_numbers():
+    from service.dashboard.views import show
+
+    for x in (1e8, 2.5e9, 123456.0, 1.0000000000001e8, 0.05, 2000.0, -3e7):
+        assert float(show(x)) == x, x
+    assert show(1e8) == "1e8" and show(2000.0) == "2000.0" and show(None) == "" and show([1, 2]) == "[1, 2]"
 
 
 def test_live_job_page_polls_and_reloads_once_ended(client, settings):
@@ -217,6 +226,7 @@ def test_without_the_token_nothing_leaks(guarded):
     assert guarded.get(f"/jobs/{job_id}").status_code == 401
     r = guarded.get("/ui/jobs/table", headers={"HX-Request": "true"})  # an htmx poll: go to the token form
     assert r.status_code == 401 and r.headers["HX-Redirect"] == "/ui/login?next=/ui/jobs/table"
+    assert "Log out" not in guarded.get("/").text
     guarded.cookies.set(TOKEN_COOKIE, "wrong")
     assert guarded.get("/").status_code == 401
     assert guarded.get("/ui/static/htmx.min.js").status_code == 200  # public, holds no data
@@ -230,7 +240,8 @@ def test_token_form_sets_an_httponly_cookie(guarded):
     cookie = r.headers["set-cookie"].lower()
     assert f"{TOKEN_COOKIE}=s3cret-token" in cookie and "httponly" in cookie and "samesite=strict" in cookie
     guarded.cookies.set(TOKEN_COOKIE, "s3cret-token")
-    assert guarded.get("/").status_code == 200
+    r = guarded.get("/")
+    assert r.status_code == 200 and "Log out" in r.text
     r = guarded.post("/ui/submit", data=FORM, follow_redirects=False)
     assert r.status_code == 303
     assert guarded.get("/jobs").json()["total"] == 1  # the cookie opens the API too
@@ -244,3 +255,11 @@ def test_token_form_redirects_only_within_the_site(guarded):
     for target in ("//evil.example/x", "https://evil.example/", "/\\evil.example"):
         r = guarded.post("/ui/login", data={"token": "s3cret-token", "next": target}, follow_redirects=False)
         assert r.headers["location"] == "/", target
+
+
+def test_token_form_without_auth_says_so(client):
+    r = client.get("/ui/login")
+    assert r.status_code == 200 and "No token needed" in r.text and 'name="token"' not in r.text
+    r = client.post("/ui/login", data={"token": "anything"}, follow_redirects=False)
+    assert r.status_code == 303 and "set-cookie" not in r.headers
+    assert "Log out" not in client.get("/").text
