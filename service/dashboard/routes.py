@@ -78,7 +78,7 @@ def _jobs_context(store, state, batch, page) -> dict:
     _, total = store.list(state=state, batch_id=batch, limit=1, offset=0)
     end = max(0, total - page * PAGE_SIZE)
     start = max(0, end - PAGE_SIZE)
-    items = list(reversed(store.list(state=state, batch_id=batch, limit=PAGE_SIZE, offset=start)[0])) if end else []
+    items = list(reversed(store.list(state=state, batch_id=batch, limit=end - start, offset=start)[0])) if end else []
     query = urlencode({k: v for k, v in (("state", state), ("batch", batch), ("page", page)) if v})
     return {"jobs": items, "total": total, "counts": store.counts(), "state": state, "batch": batch, "page": page,
             "query": query, "has_older": start > 0, "states": STATES,

@@ -61,6 +61,21 @@ def test_jobs_list_shows_state_progress_and_filters(client, settings):
     assert r.status_code == 422 and "not a job state" in r.text and "<html" in r.text
 
 
+def test_jobs_list_pages_newest_first(client, monkeypatch):
+    from service.dashboard import routes
+
+    monkeypatch.setattr(routes, "PAGE_SIZE", 2)
+    ids = [_submit(client, seed=i) for i in range(5)]
+
+    def shown(page: int) -> list[str]:
+        return re.findall(r'<tr id="job-([0-9a-f]+)"', client.get("/", params={"page": page}).text)
+
+    assert [shown(p) for p in range(4)] == [[ids[4], ids[3]], [ids[2], ids[1]], [ids[0]], []]
+    assert 'href="/?page=1">older' in client.get("/").text
+    last = client.get("/", params={"page": 2}).text
+    assert "older &rarr;" not in last and 'href="/?page=1">&larr; newer' in last
+
+
 def test_no_asset_from_elsewhere(client):
     page = client.get("/").text + client.get("/ui/submit").text
     for url in re.findall(r'(?:src|href)="([^"]+)"', page):

@@ -126,30 +126,26 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
 
             # the list, loaded before the job existed, shows its row and the bar reaching done by itself
             driver.switch_to.window(list_tab)
-            bar = f"#job-{job_id} [role=progressbar]"
-            seen: set[str] = set()
+            seen: list = []
 
             def done(d) -> bool:
-                rows = d.find_elements(By.CSS_SELECTOR, f"#job-{job_id}")
-                if not rows:
-                    return False
-                seen.add(rows[0].get_attribute("data-state"))
-                return (rows[0].get_attribute("data-state") == "done"
-                        and d.find_element(By.CSS_SELECTOR, bar).get_attribute("aria-valuenow") == "100")
+                row = _row(d, job_id)  # read in one script: htmx replaces the rows every 2 s
+                if row and (not seen or seen[-1] != row):
+                    seen.append(row)
+                return bool(row) and row["state"] == "done" and row["value"] == "100"
 
-            WebDriverWait(driver, DONE_TIMEOUT_S, poll_frequency=0.25).until(done, f"job states seen: {seen}")
+            WebDriverWait(driver, DONE_TIMEOUT_S, poll_frequency=0.25).until(done, f"row states seen: {seen}")
             assert driver.execute_script("return window.loadedOnce === true"), "the list reloaded instead of updating"
-            width = driver.execute_script(f"return document.querySelector('{bar} span').style.width")
-            assert width == "100%"
-            assert driver.find_element(By.CSS_SELECTOR, f"#job-{job_id}").text.count("cpu") == 1  # backend column
-            WebDriverWait(driver, DONE_TIMEOUT_S, poll_frequency=0.25).until(lambda d: all(
-                d.find_element(By.ID, f"job-{j}").get_attribute("data-state") == "done" for j in batch["job_ids"]))
+            row = _row(driver, job_id)
+            assert row["width"] == "100%" and row["cells"][5] == "cpu", row  # the bar is full; backend column
+            WebDriverWait(driver, DONE_TIMEOUT_S, poll_frequency=0.25).until(
+                lambda d: all((_row(d, j) or {}).get("state") == "done" for j in batch["job_ids"]))
             driver.set_window_size(1400, 680)
             _screenshot(driver, tmp_path, "dashboard.png")
             driver.set_window_size(1400, 1000)
 
             # the job page: spec, downloads, the cooling plot loaded
-            driver.find_element(By.CSS_SELECTOR, f"#job-{job_id} a[href='/ui/jobs/{job_id}']").click()
+            driver.execute_script(f"document.querySelector(\"#job-{job_id} a[href='/ui/jobs/{job_id}']\").click()")
             WebDriverWait(driver, 10).until(lambda d: d.find_elements(By.ID, "cooling-plot"))
             plot_loaded = ("const i = document.getElementById('cooling-plot');"
                            "return i.complete && i.naturalWidth > 0 ? i.naturalWidth : 0;")
@@ -182,6 +178,15 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
             driver.quit()
     for name in ("dashboard.png", "dashboard-job.png", "dashboard-batch.png"):
         assert (tmp_path / name).stat().st_size > 10_000, name
+
+
+def _row(driver, job_id: str):
+    """State, progress value, bar width and cell texts of a job's row in the list (None if absent)."""
+    return driver.execute_script(
+        "const r = document.getElementById(arguments[0]); if (!r) return null;"
+        "const b = r.querySelector('[role=progressbar]');"
+        "return {state: r.dataset.state, value: b.getAttribute('aria-valuenow'), width: b.firstElementChild.style.width,"
+        "        cells: Array.from(r.cells, c => c.innerText.trim())};", f"job-{job_id}")
 
 
 def _screenshot(driver, tmp_path: Path, name: str) -> None:
