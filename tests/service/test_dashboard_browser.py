@@ -109,7 +109,7 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
             assert "Token needed" in driver.find_element(By.TAG_NAME, "h1").text
             _fill(driver, "token", TOKEN)
             driver.find_element(By.ID, "login").click()
-            WebDriverWait(driver, 10).until(lambda d: d.find_element(By.TAG_NAME, "h1").text == "Jobs")
+            WebDriverWait(driver, 10).until(lambda d: _h1(d) == "Jobs")  # the next page, once it is there
             list_tab = driver.current_window_handle
             driver.execute_script("window.loadedOnce = true")  # survives htmx swaps, not a page reload
 
@@ -122,7 +122,7 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
             driver.find_element(By.ID, "submit").click()
             WebDriverWait(driver, 10).until(lambda d: "/ui/jobs/" in d.current_url)
             job_id = driver.current_url.rstrip("/").rsplit("/", 1)[-1]
-            assert job_id in driver.find_element(By.TAG_NAME, "h1").text
+            WebDriverWait(driver, 10).until(lambda d: job_id in _h1(d))
 
             # the list, loaded before the job existed, shows its row and the bar reaching done by itself
             driver.switch_to.window(list_tab)
@@ -178,6 +178,11 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
             driver.quit()
     for name in ("dashboard.png", "dashboard-job.png", "dashboard-batch.png"):
         assert (tmp_path / name).stat().st_size > 10_000, name
+
+
+def _h1(driver) -> str:
+    """The page's heading, read in one script (no element reference to go stale while a page loads)."""
+    return driver.execute_script("const h = document.querySelector('h1'); return h ? h.textContent.trim() : ''")
 
 
 def _row(driver, job_id: str):
