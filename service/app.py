@@ -14,6 +14,7 @@ from jobs.settings import Settings
 from jobs.store import JobStore
 from jobs.stores import open_store
 from jobs.worker import Worker
+from service import dashboard
 from service.deps import require_token
 from service.errors import InvalidRequest, on_invalid_request, on_validation_error
 from service.limits import BodySizeLimit
@@ -26,6 +27,8 @@ DESCRIPTION = """Queue granular-gas DEM simulations, follow their progress, down
 A job's body is a simulation spec (see the SimulationSpec schema; missing keys take the defaults of
 paper 001). Invalid specs get 422 naming the field and the allowed range; specs whose estimated
 memory or particle-steps exceed the server's limits get 422 before they are queued.
+
+A web dashboard (jobs, progress, plots, downloads, a submit form) is served at `/`.
 """
 
 
@@ -56,4 +59,5 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
     app.include_router(health.router)
     for module in (jobs, batches, results):
         app.include_router(module.router, dependencies=auth)
+    dashboard.install(app)
     return app

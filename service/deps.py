@@ -22,13 +22,28 @@ def get_store(request: Request) -> JobStore:
     return request.app.state.store
 
 
-def require_token(settings: Annotated[Settings, Depends(get_settings)],
+#: The HttpOnly cookie in which the dashboard keeps the token (set by its token form, /ui/login).
+TOKEN_COOKIE = "demq_token"
+
+
+def token_matches(settings: Settings, supplied: Optional[str]) -> bool:
+    """Whether ``supplied`` is the configured token (constant-time); True when auth is off."""
+    if settings.token is None:
+        return True
+    return supplied is not None and secrets.compare_digest(supplied.encode(), settings.token.encode())
+
+
+def require_token(request: Request, settings: Annotated[Settings, Depends(get_settings)],
                   credentials: Annotated[Optional[HTTPAuthorizationCredentials], Depends(_bearer)]) -> None:
-    """Bearer-token auth, on when a token is configured."""
+    """Token auth, on when a token is configured: the ``Authorization: Bearer`` header, or the
+    dashboard's cookie (:data:`TOKEN_COOKIE`)."""
     if settings.token is None:
         return
-    if credentials is None or not secrets.compare_digest(credentials.credentials.encode(), settings.token.encode()):
-        raise HTTPException(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
+    if credentials is not None and token_matches(settings, credentials.credentials):
+        return
+    if token_matches(settings, request.cookies.get(TOKEN_COOKIE)):
+        return
+    raise HTTPException(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
 
 
 def get_job(job_id: str, store: Annotated[JobStore, Depends(get_store)]) -> Job:
