@@ -21,7 +21,11 @@ a reader never sees a half-written result. Non-finite values are refused before 
 Cost (issue 14): observables are kept in memory and written in blocks of :data:`OBSERVABLE_BLOCK` records
 (one resize and one write per dataset per block, also at :meth:`H5MDWriter.flush`, at checkpoints and at
 :meth:`H5MDWriter.finish`), so a record costs O(1) host work; a snapshot frame is one resize and one write
-per element, from arrays the caller may reuse after the call.
+per element. With ``background=True`` the file work (creation, blocks of records, snapshot frames) runs on
+one I/O thread shared by every writer of the process (HDF5 serialises its calls anyway), in submission
+order, while the caller goes on (e.g. the GPU integrates): :meth:`H5MDWriter.flush`, :meth:`frame_counts`,
+:meth:`truncate` and :meth:`finish` wait for it. A failure on that thread (e.g. a non-finite snapshot value)
+is raised by the writer's next call, and the file is then never finished.
 """
 
 from __future__ import annotations
@@ -29,6 +33,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import threading
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import h5py
@@ -49,6 +56,22 @@ DEM_MODULE_VERSION = [1, 0]
 OBSERVABLE_BLOCK = 512
 
 
+#: snapshot frames a background writer may hold in its queue before snapshot() waits (memory bound)
+MAX_QUEUED_FRAMES = 2
+
+_io_lock = threading.Lock()
+_io_pool = None
+
+
+def _io() -> ThreadPoolExecutor:
+    """The process's one HDF5 I/O thread (background writers)."""
+    global _io_pool
+    with _io_lock:
+        if _io_pool is None:
+            _io_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="demq-h5io")
+        return _io_pool
+
+
 def partial_path(path) -> Path:
     return Path(str(path) + ".part")
 
@@ -58,20 +81,57 @@ class H5MDWriter:
 
     def __init__(self, path, *, n: int, box_length: float, spec_json: str, derived: dict,
                  radius=None, semi_axes=None, mass=None, species=None, creator_version: str = "",
-                 author: str = "demq", dtype=np.float64, resume: bool = False):
+                 author: str = "demq", dtype=np.float64, resume: bool = False, background: bool = False,
+                 series: dict | None = None):
         """species: int (N,) species index of every particle (the position in the spec's ``species``
-        list); None writes zeros (one size)."""
+        list); None writes zeros (one size). background: file work on the I/O thread (module docstring);
+        snapshot() then keeps the arrays it is given until they are written: do not modify them.
+        series: {name: dtype} of the observables that will be recorded, created (empty) with the file, so
+        that writing a block later is a resize and a write per dataset."""
         self.path = Path(path)
         self.tmp = partial_path(self.path)
         self.n = n
         self.dtype = np.dtype(dtype)
+        self.f = None
         self._pending: dict = {}     # observable name -> ([steps], [times], [values]) not yet written
         self._n_pending = 0
         self._groups: dict = {}      # observable name -> its [step, time, value] datasets
+        self._bg = background
+        self._jobs: deque = deque()  # futures of the background file work, in order
+        self._frames: deque = deque()  # futures of queued snapshot frames
         if resume:
             self.f = h5py.File(self.tmp, "a")
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._submit(self._create, n, box_length, spec_json, derived, radius, semi_axes, mass, species,
+                     creator_version, author, series or {})
+
+    # ---- the I/O thread ------------------------------------------------------------------------------
+
+    def _submit(self, fn, *args):
+        """Run fn(*args) now, or on the I/O thread after the writer's earlier work (background)."""
+        if not self._bg:
+            return fn(*args)
+        while self._jobs and self._jobs[0].done():
+            self._jobs.popleft().result()  # raises a failure of earlier work here, in the caller
+        fut = _io().submit(fn, *args)
+        self._jobs.append(fut)
+        return fut
+
+    def _wait(self) -> None:
+        """Wait for every queued piece of file work; raise the first failure."""
+        first = None
+        while self._jobs:
+            try:
+                self._jobs.popleft().result()
+            except BaseException as exc:  # noqa: BLE001  (kept, raised after the queue is drained)
+                first = first or exc
+        self._frames.clear()
+        if first is not None:
+            raise first
+
+    def _create(self, n, box_length, spec_json, derived, radius, semi_axes, mass, species, creator_version,
+                author, series) -> None:
         self.f = f = h5py.File(self.tmp, "w")
         h5 = f.create_group("h5md")
         h5.attrs["version"] = np.array([1, 1], dtype=np.int32)
@@ -100,7 +160,14 @@ class H5MDWriter:
             part.create_dataset("semi_axes", data=np.asarray(semi_axes, dtype=np.float64)).attrs["unit"] = "m"
         elif radius is not None:
             part.create_dataset("radius", data=np.asarray(radius, dtype=np.float64)).attrs["unit"] = "m"
-        f.create_group("observables")
+        obs = f.create_group("observables")
+        for name, dtype in series.items():
+            grp = obs.create_group(name)
+            self._groups[name] = [grp.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dt, chunks=(1024,))
+                                  for key, dt in (("step", np.int64), ("time", np.float64), ("value", dtype))]
+            self._groups[name][1].attrs["unit"] = "s"
+            if UNITS.get(name):
+                self._groups[name][2].attrs["unit"] = UNITS[name]
         par = f.create_group("parameters")
         par.attrs["spec"] = spec_json
         for key, value in derived.items():
@@ -152,12 +219,17 @@ class H5MDWriter:
             self._write_pending()
 
     def _write_pending(self) -> None:
-        """Write the observables kept in memory: one write per dataset and name (a new series is created
-        with its first block as data; later blocks resize it once)."""
+        """Hand the observables kept in memory to the file (now, or queued on the I/O thread)."""
         if not self._pending:
             return
+        block, self._pending, self._n_pending = self._pending, {}, 0
+        self._submit(self._write_block, block)
+
+    def _write_block(self, block: dict) -> None:
+        """Write a block of observable records: one write per dataset and name (a new series is created with
+        its first block as data; later blocks resize it once)."""
         obs = None
-        for name, (steps, times, values) in self._pending.items():
+        for name, (steps, times, values) in block.items():
             vals = np.asarray(values)
             dtype = np.int64 if vals.dtype.kind in "iub" else np.float64
             cols = (("step", np.asarray(steps, np.int64)), ("time", np.asarray(times, np.float64)),
@@ -179,11 +251,21 @@ class H5MDWriter:
             for ds, (_, data) in zip(g, cols):
                 ds.resize(k + m, axis=0)
                 ds[k:k + m] = data
-        self._pending = {}
-        self._n_pending = 0
 
     def snapshot(self, step: int, time: float, arrays: dict) -> None:
-        """Append one frame of the per-particle elements (arrays in id order)."""
+        """Append one frame of the per-particle elements (arrays in id order). Background: queued (at most
+        MAX_QUEUED_FRAMES frames wait) and the future of its write returned: the arrays must stay unmodified
+        until it is done. Otherwise written at once (returns None)."""
+        if self._bg:
+            while len(self._frames) >= MAX_QUEUED_FRAMES:
+                self._frames.popleft().result()
+            fut = self._submit(self._write_frame, step, time, arrays)
+            self._frames.append(fut)
+            return fut
+        self._write_frame(step, time, arrays)
+        return None
+
+    def _write_frame(self, step: int, time: float, arrays: dict) -> None:
         part = self.f["particles/all"]
         for name in SNAPSHOT_ELEMENTS:
             if name not in arrays:
@@ -197,6 +279,7 @@ class H5MDWriter:
     def frame_counts(self) -> dict:
         """Number of records of every time series (for checkpoints; writes pending records first)."""
         self._write_pending()
+        self._wait()
         out = {}
         for root in ("observables", "particles/all"):
             for name, g in self.f[root].items():
@@ -207,6 +290,7 @@ class H5MDWriter:
     def truncate(self, counts: dict) -> None:
         """Cut every time series back to the given record counts (resume from a checkpoint)."""
         self._write_pending()
+        self._wait()
         for key, k in counts.items():
             if key in self.f:
                 for ds in ("step", "time", "value"):
@@ -215,6 +299,7 @@ class H5MDWriter:
     def flush(self) -> None:
         """Write pending records and flush the file (a copy of it is then complete, e.g. a checkpoint)."""
         self._write_pending()
+        self._wait()
         self.f.flush()
 
     # ---- closing -----------------------------------------------------------------------------------
@@ -222,6 +307,7 @@ class H5MDWriter:
     def finish(self, run_info: dict) -> Path:
         """Write the run attributes, close, and atomically rename the file to its final name."""
         self._write_pending()
+        self._wait()
         par = self.f["parameters"]
         for key, value in run_info.items():
             par.attrs[key] = _attr(value)
@@ -233,7 +319,12 @@ class H5MDWriter:
     def abort(self) -> None:
         """Close and delete the partial file."""
         try:
-            self.f.close()
+            try:
+                self._wait()
+            except BaseException:  # noqa: BLE001  (the file is deleted anyway)
+                pass
+            if self.f is not None:
+                self.f.close()
         finally:
             if self.tmp.exists():
                 self.tmp.unlink()

@@ -355,9 +355,14 @@ def _normal_pair(key, i, k):
     return r * math.cos(t), r * math.sin(t)
 
 
+@numba.njit(cache=True)
+def _key(seed, stream):
+    return _mix64(seed * _GOLDEN + _U(stream + 1))
+
+
 def _stream_key(seed: int, stream: int) -> np.uint64:
-    with np.errstate(over="ignore"):
-        return _U(_mix64(_U(seed % (1 << 64)) * _GOLDEN + _U(stream + 1)))
+    """The 64-bit key of one random stream of a seed (a compiled call: the inlined mixer is not cached)."""
+    return _U(_key(_U(seed % (1 << 64)), stream))
 
 
 @numba.njit(cache=True, parallel=True)

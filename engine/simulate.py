@@ -111,6 +111,12 @@ def schedule(p: Derived, snapshots: int) -> tuple[np.ndarray, set]:
     return np.array(sorted(records | snaps)), snaps
 
 
+#: the observables record() returns, with their dtypes in the result file
+RECORDED = {"kinetic_energy_translational": np.float64, "kinetic_energy_rotational": np.float64,
+            "temperature_translational": np.float64, "temperature_rotational": np.float64,
+            "contacts": np.int64, "elastic_energy": np.float64, "max_overlap": np.float64}
+
+
 def record(obs: dict, n: int) -> dict:
     """Observables written every record (temperatures per degree of freedom, J).
 
@@ -242,6 +248,8 @@ class SceneRun:
         self.writer: Optional[H5MDWriter] = None
         self.done = False
         self._chunk = max(1, p.output_every)
+        self._frames = 0                  # snapshot frames handed to the writer (buffer slot rotation)
+        self._slot_busy = [None, None]    # per buffer slot, the write of the frame still using it
         self.timings = dict.fromkeys(TIMINGS, 0.0)
         self.timings["setup"] = time.perf_counter() - t_setup
         if phase == "thermalization":
@@ -295,10 +303,11 @@ class SceneRun:
             from engine.scene import species_index
 
             system = self.system
+            # file work on the I/O thread, overlapping the time loop (engine/h5md.py)
             self.writer = H5MDWriter(self.output, radius=None if self.ellipsoid else system.radius,
                                      semi_axes=system.semi_axes if self.ellipsoid else None, mass=system.mass,
                                      species=None if self.ellipsoid else species_index(system.radius, p),
-                                     creator_version=__version__, **common)
+                                     creator_version=__version__, background=True, series=RECORDED, **common)
         self.timings["open"] += time.perf_counter() - t0
 
     def at_stop(self, view) -> None:
@@ -339,8 +348,13 @@ class SceneRun:
         t1 = time.perf_counter()
         tm["records"] += t1 - t0
         if step_done in self.snaps:
-            # the view may hand out reused (pinned) buffers: the writer copies them into the file at once
-            writer.snapshot(step_done, t_sim, view.state(reuse=True))
+            # two alternating buffer slots (pinned on CUDA): the I/O thread writes one frame while the run goes
+            # on; a slot is reused only after its previous frame is in the file
+            slot = self._frames % 2
+            if self._slot_busy[slot] is not None:
+                self._slot_busy[slot].result()
+            self._slot_busy[slot] = writer.snapshot(step_done, t_sim, view.state(reuse=2 + slot))
+            self._frames += 1
             tm["snapshots"] += time.perf_counter() - t1
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
         if self.ck.due() and step_done < p.n_steps:
@@ -425,10 +439,11 @@ class _SceneView:
             self.cache["all"] = self.ens.observe()
         return self.cache["all"][self.i]
 
-    def state(self, reuse: bool = False) -> dict:
-        """Scene i's state in id order; ``reuse``: the arrays may be buffers the next call overwrites."""
-        if reuse and getattr(self.ens, "reuses_state_buffers", False):
-            return self.ens.state(self.i, reuse=True)
+    def state(self, reuse=False) -> dict:
+        """Scene i's state in id order; ``reuse`` (True or a buffer slot): the arrays may be buffers that the
+        next call with the same slot overwrites."""
+        if reuse is not False and getattr(self.ens, "reuses_state_buffers", False):
+            return self.ens.state(self.i, reuse=reuse)
         return self.ens.state(self.i)
 
     def contacts(self):

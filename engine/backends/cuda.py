@@ -729,32 +729,36 @@ class CudaEnsemble:
     #: state(k, reuse=True) hands out reused pinned buffers (engine/simulate.py writes them at once)
     reuses_state_buffers = True
 
-    def _scene_rows(self, k: int, reuse: bool = False) -> dict:
+    def _scene_rows(self, k: int, reuse=False) -> dict:
         """Scene k's state arrays (n_k, rows) in particle-id order, keyed as in ``_STATE`` (issue 14): per array
         a kernel gathers the scene's slots into id order on the device, into one reused staging buffer, and
         one copy moves exactly those n_k rows into a reused pinned host buffer; one sync for all.
-        ``reuse``: return views of the pinned buffers (valid until the next call), else copies."""
+        ``reuse``: False returns copies; True or a buffer slot number returns views of that slot's pinned
+        buffers (slot 0 for True), valid until the next call with the same slot."""
         s = self.stream
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
+        nmax = int(self.sizes.max())
         if getattr(self, "_stage", None) is None:
-            nmax = int(self.sizes.max())
             self._stage = cuda.device_array(max(1, 4 * nmax), self.dtype, stream=s)
-            self._stage_h = {key: cuda.pinned_array((nmax, getattr(self, name).shape[0]), self.dtype)
-                             for key, name in self._STATE}
+            self._stage_h = {}
+        slot = 0 if reuse is False or reuse is True else int(reuse)
+        if slot not in self._stage_h:
+            self._stage_h[slot] = {key: cuda.pinned_array((nmax, getattr(self, name).shape[0]), self.dtype)
+                                   for key, name in self._STATE}
         out = {}
         for key, name in self._STATE:
             src = getattr(self, name)
             rows = src.shape[0]
-            host = self._stage_h[key][:n_k]
+            host = self._stage_h[slot][key][:n_k]
             if n_k:
                 dst = self._stage[:n_k * rows].reshape(n_k, rows)
                 K.gather_scene[self._grid(n_k)](src, self.ids, a0, n_k, dst)
                 dst.copy_to_host(host, stream=s)
             out[key] = host
         s.synchronize()
-        return out if reuse else {key: a.copy() for key, a in out.items()}
+        return out if reuse is not False else {key: a.copy() for key, a in out.items()}
 
-    def state(self, k: int, reuse: bool = False) -> dict:
+    def state(self, k: int, reuse=False) -> dict:
         """Host copies of scene k's state arrays in particle-id order (``reuse``: see :meth:`_scene_rows`)."""
         return self._scene_rows(k, reuse)
 

@@ -217,7 +217,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
 
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat"))
 
-    def state(self, k: int, reuse: bool = False) -> dict:
+    def state(self, k: int, reuse=False) -> dict:
         """Host copies of scene k's state in particle-id order (angular velocity in the space frame, computed
         on the host from L; ``reuse``: see CudaEnsemble._scene_rows)."""
         out = self._scene_rows(k, reuse)
