@@ -81,13 +81,10 @@ class H5MDWriter:
 
     def __init__(self, path, *, n: int, box_length: float, spec_json: str, derived: dict,
                  radius=None, semi_axes=None, mass=None, species=None, creator_version: str = "",
-                 author: str = "demq", dtype=np.float64, resume: bool = False, background: bool = False,
-                 series: dict | None = None):
+                 author: str = "demq", dtype=np.float64, resume: bool = False, background: bool = False):
         """species: int (N,) species index of every particle (the position in the spec's ``species``
         list); None writes zeros (one size). background: file work on the I/O thread (module docstring);
-        snapshot() then keeps the arrays it is given until they are written: do not modify them.
-        series: {name: dtype} of the observables that will be recorded, created (empty) with the file, so
-        that writing a block later is a resize and a write per dataset."""
+        snapshot() then keeps the arrays it is given until they are written: do not modify them."""
         self.path = Path(path)
         self.tmp = partial_path(self.path)
         self.n = n
@@ -104,7 +101,7 @@ class H5MDWriter:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._submit(self._create, n, box_length, spec_json, derived, radius, semi_axes, mass, species,
-                     creator_version, author, series or {})
+                     creator_version, author)
 
     # ---- the I/O thread ------------------------------------------------------------------------------
 
@@ -131,7 +128,7 @@ class H5MDWriter:
             raise first
 
     def _create(self, n, box_length, spec_json, derived, radius, semi_axes, mass, species, creator_version,
-                author, series) -> None:
+                author) -> None:
         self.f = f = h5py.File(self.tmp, "w")
         h5 = f.create_group("h5md")
         h5.attrs["version"] = np.array([1, 1], dtype=np.int32)
@@ -160,14 +157,7 @@ class H5MDWriter:
             part.create_dataset("semi_axes", data=np.asarray(semi_axes, dtype=np.float64)).attrs["unit"] = "m"
         elif radius is not None:
             part.create_dataset("radius", data=np.asarray(radius, dtype=np.float64)).attrs["unit"] = "m"
-        obs = f.create_group("observables")
-        for name, dtype in series.items():
-            grp = obs.create_group(name)
-            self._groups[name] = [grp.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dt, chunks=(1024,))
-                                  for key, dt in (("step", np.int64), ("time", np.float64), ("value", dtype))]
-            self._groups[name][1].attrs["unit"] = "s"
-            if UNITS.get(name):
-                self._groups[name][2].attrs["unit"] = UNITS[name]
+        f.create_group("observables")
         par = f.create_group("parameters")
         par.attrs["spec"] = spec_json
         for key, value in derived.items():

@@ -111,12 +111,6 @@ def schedule(p: Derived, snapshots: int) -> tuple[np.ndarray, set]:
     return np.array(sorted(records | snaps)), snaps
 
 
-#: the observables record() returns, with their dtypes in the result file
-RECORDED = {"kinetic_energy_translational": np.float64, "kinetic_energy_rotational": np.float64,
-            "temperature_translational": np.float64, "temperature_rotational": np.float64,
-            "contacts": np.int64, "elastic_energy": np.float64, "max_overlap": np.float64}
-
-
 def record(obs: dict, n: int) -> dict:
     """Observables written every record (temperatures per degree of freedom, J).
 
@@ -307,7 +301,7 @@ class SceneRun:
             self.writer = H5MDWriter(self.output, radius=None if self.ellipsoid else system.radius,
                                      semi_axes=system.semi_axes if self.ellipsoid else None, mass=system.mass,
                                      species=None if self.ellipsoid else species_index(system.radius, p),
-                                     creator_version=__version__, background=True, series=RECORDED, **common)
+                                     creator_version=__version__, background=True, **common)
         self.timings["open"] += time.perf_counter() - t0
 
     def at_stop(self, view) -> None:

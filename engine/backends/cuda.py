@@ -659,8 +659,20 @@ class CudaEnsemble:
     def _read_status_now(self) -> np.ndarray:
         h = self.status_h[0]
         self.status.copy_to_host(h, stream=self.stream)
-        self.stream.synchronize()
+        self._wait_stream()
         return h
+
+    def _wait_stream(self) -> None:
+        """Wait for the stream by polling an event with short sleeps, which release the GIL, so that the result
+        files' I/O thread (engine/h5md.py) works while the GPU does (a blocking synchronize may hold it)."""
+        if SIM:
+            self.stream.synchronize()
+            return
+        if getattr(self, "_poll_ev", None) is None:
+            self._poll_ev = cuda.event(timing=False)
+        self._poll_ev.record(self.stream)
+        while not self._poll_ev.query():
+            time.sleep(2e-5)
 
     def _collect(self, h, failed: dict | None = None) -> dict:
         """Scenes that blew up according to status h (once each): deactivated, error recorded."""
