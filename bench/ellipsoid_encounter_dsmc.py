@@ -1,0 +1,202 @@
+"""The ellipsoid excess (issue 18, part 3): DSMC with the whole DEM encounter as the collision rule.
+
+Runs engine.validation.encounter_dsmc.run_dsmc for every (xi, rule, seed) in parallel processes (one Numba
+thread each) and writes runs.json (rewritten after every finished run), summary.md (the table: late T_tr/T_rot,
+mean ± standard error over seeds, per rule, with the DEM and the earlier DSMC numbers) and
+encounter_dsmc.png. Rules (same sampling, same seeds): 'impulse' = one instantaneous impulse with e_eff(D) per
+sampled contact (dsmc_ratio(dem=True)); 'soft' = the DEM pair integrated through the whole encounter with the
+engine's njit functions, first contacts only; 'hard' = hard bodies, impulses with e_eff(D) at every contact of
+the encounter (the stiff limit of 'soft').
+
+Full version (16 cores, ~4-5 min):
+
+    NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 PYTHONPATH=. python bench/ellipsoid_encounter_dsmc.py --procs 16 \\
+        --xi 1.5 2 2.5 --seeds 4 --n 20000 --coll 60 --out bench/reports/ellipsoid-encounter-dsmc/full
+
+Only re-analyse what exists: add --analyse-only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+#: DEM late T_tr/T_rot at e = 0.9 (mean ± SE; N, seeds): bench/reports/hcs-ellipsoids-cuda (xi 1.5, 2: one
+#: seed, block SE) and bench/reports/ellipsoid-cooling-seeds-cuda (xi 2.5: SE over seeds)
+DEM = {1.5: [(0.9148, 0.0050, "N=4096, 1 seed")], 2.0: [(0.9901, 0.0048, "N=4096, 1 seed")],
+       2.5: [(1.0233, 0.0036, "N=4096, 8 seeds"), (1.0333, 0.0014, "N=16384, 2 seeds")]}
+#: earlier DSMC references at e = 0.9: PHYSICS-NOTES §3.2 (nominal e; xi 1.5, 2) and
+#: bench/reports/ellipsoid-cooling-seeds-cuda/dsmc.json (e_eff(D), xi 2.5, 4 seeds)
+DSMC_OLD = {1.5: (0.909, None, "nominal e, notes"), 2.0: (0.984, None, "nominal e, notes"),
+            2.5: (1.0093, 0.0007, "e_eff(D), 4 seeds")}
+RULE_ORDER = ("impulse", "soft", "hard")
+
+
+def _one(task):
+    xi, e_n, rule, seed, n, coll, tf = task
+    from engine.validation.encounter_dsmc import run_dsmc
+
+    r = run_dsmc(xi, e_n, rule, n=n, coll_per_particle=coll, seed=seed, temp_fraction=tf)
+    r.pop("constants", None)
+    return task, r
+
+
+def _key(xi, e, rule):
+    return f"{xi}/{e}/{rule}"
+
+
+def summarise(runs: dict) -> dict:
+    import numpy as np
+
+    cells = {}
+    for r in runs.values():
+        cells.setdefault(_key(r["xi"], r["e_n"], r["rule"]), []).append(r)
+    out = {}
+    for k, rs in cells.items():
+        vals = np.array([r["ratio"] for r in rs])
+        se = float(np.std(vals, ddof=1) / math.sqrt(len(vals))) if len(vals) > 1 else None
+        out[k] = {"xi": rs[0]["xi"], "e_n": rs[0]["e_n"], "rule": rs[0]["rule"], "seeds": len(rs),
+                  "values": vals.tolist(), "mean": float(vals.mean()), "se": se,
+                  "rejected_share": float(np.mean([r["rejected_share"] for r in rs])),
+                  "later_contact_share": float(np.mean([r["later_contact_share"] for r in rs])),
+                  "loss": float(np.mean([r["loss_per_collision_over_T"] for r in rs])),
+                  "capped": int(sum(r["capped"] for r in rs)), "encounters": int(sum(r["encounters"] for r in rs)),
+                  "max_overlap_over_b": float(max(r["max_overlap_over_b"] for r in rs)),
+                  "softness": rs[0]["softness_delta_over_b"], "n": rs[0]["n"],
+                  "coll": rs[0]["coll_per_particle"], "wall_s": float(sum(r["wall_s"] for r in rs))}
+    return out
+
+
+def table(summ: dict) -> str:
+    f = lambda m, s: "–" if m is None else (f"{m:.4f}" if s is None else f"{m:.4f} ± {s:.4f}")  # noqa: E731
+    lines = ["| xi | e | rule | seeds | late T_tr/T_rot, per seed | mean ± SE | vs impulse | rejected (not first) | "
+             "later contacts | loss/coll / T_tr | capped | max overlap/b |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for k in sorted(summ, key=lambda k: (summ[k]["xi"], summ[k]["e_n"], RULE_ORDER.index(summ[k]["rule"]))):
+        c = summ[k]
+        imp = summ.get(_key(c["xi"], c["e_n"], "impulse"))
+        dv = "–"
+        if imp is not None and c["rule"] != "impulse":
+            d = c["mean"] / imp["mean"] - 1
+            se = None
+            if c["se"] is not None and imp["se"] is not None:
+                se = math.hypot(c["se"] / imp["mean"], imp["se"] * c["mean"] / imp["mean"] ** 2)
+            dv = f"{100 * d:+.2f} %" + ("" if se is None else f" ± {100 * se:.2f}")
+        lines.append(f"| {c['xi']} | {c['e_n']} | {c['rule']} | {c['seeds']} | "
+                     f"{', '.join(f'{v:.4f}' for v in c['values'])} | {f(c['mean'], c['se'])} | {dv} | "
+                     f"{100 * c['rejected_share']:.1f} % | {100 * c['later_contact_share']:.1f} % | "
+                     f"{c['loss']:.4f} | {c['capped']} / {c['encounters']} | {c['max_overlap_over_b']:.4f} |")
+    lines += ["", "| xi | DEM (e = 0.9) | earlier DSMC |", "|---|---|---|"]
+    for xi in sorted({summ[k]["xi"] for k in summ}):
+        dem = "; ".join(f"{m:.4f} ± {s:.4f} ({t})" for m, s, t in DEM.get(xi, []))
+        o = DSMC_OLD.get(xi)
+        lines.append(f"| {xi} | {dem or '–'} | {'–' if o is None else f(o[0], o[1]) + ' (' + o[2] + ')'} |")
+    return "\n".join(lines)
+
+
+def plot(runs: dict, summ: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
+    marks = {"impulse": ("s", "C0"), "soft": ("o", "C3"), "hard": ("^", "C2")}
+    for rule, (mk, col) in marks.items():
+        pts = sorted((c["xi"], c["mean"], c["se"] or 0.0) for c in summ.values() if c["rule"] == rule)
+        if pts:
+            x = np.array([p[0] for p in pts])
+            off = {"impulse": -0.03, "soft": 0.0, "hard": 0.03}[rule]
+            ax1.errorbar(x + off, [p[1] for p in pts], yerr=[p[2] for p in pts], fmt=mk, color=col,
+                         label=f"DSMC {rule}", capsize=3)
+    for xi, rows in DEM.items():
+        for i, (m, s, t) in enumerate(rows):
+            ax1.errorbar([xi + 0.06 + 0.03 * i], [m], yerr=[s], fmt="*", color="k", ms=9, capsize=3,
+                         label="DEM (cooling runs)" if (xi, i) == (1.5, 0) else None)
+    ax1.set_xlabel("xi = a/b")
+    ax1.set_ylabel("late T_tr / T_rot (e = 0.9)")
+    ax1.legend(fontsize=8)
+    ax1.set_title("mean ± SE over seeds")
+    xs = sorted({r["xi"] for r in runs.values()})
+    xi_p = xs[-1] if xs else None
+    for rule, (mk, col) in marks.items():
+        prof = [np.array(r["profile"]) for r in runs.values() if r["xi"] == xi_p and r["rule"] == rule]
+        if prof:
+            grid = np.linspace(0, min(p[-1, 0] for p in prof), 200)
+            y = np.mean([np.interp(grid, p[:, 0], p[:, 1]) for p in prof], axis=0)
+            ax2.plot(grid, y, "-", color=col, lw=1, label=f"{rule} ({len(prof)} seeds)")
+    ax2.set_xlabel("collisions (encounters) per particle")
+    ax2.set_ylabel("T_tr / T_rot")
+    ax2.set_title(f"xi = {xi_p}: relaxation (seed mean)")
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write(out: Path, runs: dict, meta: dict) -> dict:
+    summ = summarise(runs)
+    (out / "runs.json").write_text(json.dumps({"meta": meta, "runs": runs}, indent=1))
+    (out / "summary.json").write_text(json.dumps(summ, indent=1))
+    (out / "summary.md").write_text(table(summ) + "\n")
+    if runs:
+        plot(runs, summ, out / "encounter_dsmc.png")
+    return summ
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--xi", type=float, nargs="+", default=[1.5, 2.0, 2.5])
+    ap.add_argument("--e-n", type=float, default=0.9)
+    ap.add_argument("--rules", nargs="+", default=list(RULE_ORDER), choices=RULE_ORDER)
+    ap.add_argument("--seeds", type=int, default=4, help="seeds 1..k for every (xi, rule)")
+    ap.add_argument("--n", type=int, default=20000)
+    ap.add_argument("--coll", type=float, default=60.0, help="collisions (encounters) per particle")
+    ap.add_argument("--temp-fraction", type=float, default=None,
+                    help="T_tr held at this fraction of the DEM scene's T0 (default: the DEM late window, 0.36)")
+    ap.add_argument("--procs", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--out", default="bench/reports/ellipsoid-encounter-dsmc/run")
+    ap.add_argument("--analyse-only", action="store_true")
+    args = ap.parse_args(argv)
+    from engine.validation.encounter_dsmc import LATE_TEMPERATURE_FRACTION
+
+    tf = LATE_TEMPERATURE_FRACTION if args.temp_fraction is None else args.temp_fraction
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = {}
+    if (out / "runs.json").exists():
+        runs = json.loads((out / "runs.json").read_text())["runs"]
+    meta = {"argv": sys.argv if argv is None else argv, "procs": args.procs}
+    if not args.analyse_only:
+        # slow cells first (encounters at large xi), so the pool drains evenly
+        tasks = [(xi, args.e_n, rule, s, args.n, args.coll, tf) for xi in sorted(args.xi, reverse=True)
+                 for rule in ("soft", "hard", "impulse") if rule in args.rules for s in range(1, args.seeds + 1)]
+        tasks = [t for t in tasks if f"{t[0]}/{t[1]}/{t[2]}/{t[3]}/{t[4]}/{t[5]}" not in runs]
+        t0 = time.time()
+        with ProcessPoolExecutor(max(1, args.procs), mp_context=multiprocessing.get_context("spawn")) as pool:
+            futs = [pool.submit(_one, t) for t in tasks]
+            for fu in as_completed(futs):
+                task, r = fu.result()
+                runs["/".join(str(x) for x in task[:6])] = r
+                print(f"xi={task[0]} e={task[1]} {task[2]} seed {task[3]}: T_tr/T_rot {r['ratio']:.4f}, rejected "
+                      f"{100 * r['rejected_share']:.1f} %, later contacts {100 * r['later_contact_share']:.1f} %, "
+                      f"{r['wall_s']:.0f} s ({time.time() - t0:.0f} s total)", flush=True)
+                meta["total_wall_s"] = time.time() - t0
+                write(out, runs, meta)
+    write(out, runs, meta)
+    print((out / "summary.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
