@@ -6,7 +6,8 @@ mean ± standard error over seeds, per rule, with the DEM and the earlier DSMC n
 encounter_dsmc.png. Rules (same sampling, same seeds): 'impulse' = one instantaneous impulse with e_eff(D) per
 sampled contact (dsmc_ratio(dem=True)); 'soft' = the DEM pair integrated through the whole encounter with the
 engine's njit functions, first contacts only; 'hard' = hard bodies, impulses with e_eff(D) at every contact of
-the encounter (the stiff limit of 'soft').
+the encounter (the stiff limit of 'soft'); 'first' = first contacts only, one impulse, repeats not resolved
+(a diagnostic).
 
 Full version (16 cores, ~4-5 min):
 
@@ -38,14 +39,14 @@ DEM = {1.5: [(0.9148, 0.0050, "N=4096, 1 seed")], 2.0: [(0.9901, 0.0048, "N=4096
 #: bench/reports/ellipsoid-cooling-seeds-cuda/dsmc.json (e_eff(D), xi 2.5, 4 seeds)
 DSMC_OLD = {1.5: (0.909, None, "nominal e, notes"), 2.0: (0.984, None, "nominal e, notes"),
             2.5: (1.0093, 0.0007, "e_eff(D), 4 seeds")}
-RULE_ORDER = ("impulse", "soft", "hard")
+RULE_ORDER = ("impulse", "first", "hard", "soft")
 
 
 def _one(task):
-    xi, e_n, rule, seed, n, coll, tf = task
+    xi, e_n, rule, seed, n, coll, tf, kn = task
     from engine.validation.encounter_dsmc import run_dsmc
 
-    r = run_dsmc(xi, e_n, rule, n=n, coll_per_particle=coll, seed=seed, temp_fraction=tf)
+    r = run_dsmc(xi, e_n, rule, n=n, coll_per_particle=coll, seed=seed, temp_fraction=tf, kn_factor=kn)
     r.pop("constants", None)
     return task, r
 
@@ -68,6 +69,7 @@ def summarise(runs: dict) -> dict:
                   "values": vals.tolist(), "mean": float(vals.mean()), "se": se,
                   "rejected_share": float(np.mean([r["rejected_share"] for r in rs])),
                   "later_contact_share": float(np.mean([r["later_contact_share"] for r in rs])),
+                  "multi_contact_share": float(np.mean([r.get("multi_contact_share", float("nan")) for r in rs])),
                   "loss": float(np.mean([r["loss_per_collision_over_T"] for r in rs])),
                   "capped": int(sum(r["capped"] for r in rs)), "encounters": int(sum(r["encounters"] for r in rs)),
                   "max_overlap_over_b": float(max(r["max_overlap_over_b"] for r in rs)),
@@ -79,8 +81,8 @@ def summarise(runs: dict) -> dict:
 def table(summ: dict) -> str:
     f = lambda m, s: "–" if m is None else (f"{m:.4f}" if s is None else f"{m:.4f} ± {s:.4f}")  # noqa: E731
     lines = ["| xi | e | rule | seeds | late T_tr/T_rot, per seed | mean ± SE | vs impulse | rejected (not first) | "
-             "later contacts | loss/coll / T_tr | capped | max overlap/b |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "encounters with >= 2 contacts | later contacts | loss/coll / T_tr | capped | max overlap/b |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for k in sorted(summ, key=lambda k: (summ[k]["xi"], summ[k]["e_n"], RULE_ORDER.index(summ[k]["rule"]))):
         c = summ[k]
         imp = summ.get(_key(c["xi"], c["e_n"], "impulse"))
@@ -93,7 +95,8 @@ def table(summ: dict) -> str:
             dv = f"{100 * d:+.2f} %" + ("" if se is None else f" ± {100 * se:.2f}")
         lines.append(f"| {c['xi']} | {c['e_n']} | {c['rule']} | {c['seeds']} | "
                      f"{', '.join(f'{v:.4f}' for v in c['values'])} | {f(c['mean'], c['se'])} | {dv} | "
-                     f"{100 * c['rejected_share']:.1f} % | {100 * c['later_contact_share']:.1f} % | "
+                     f"{100 * c['rejected_share']:.1f} % | {100 * c['multi_contact_share']:.1f} % | "
+                     f"{100 * c['later_contact_share']:.1f} % | "
                      f"{c['loss']:.4f} | {c['capped']} / {c['encounters']} | {c['max_overlap_over_b']:.4f} |")
     lines += ["", "| xi | DEM (e = 0.9) | earlier DSMC |", "|---|---|---|"]
     for xi in sorted({summ[k]["xi"] for k in summ}):
@@ -111,12 +114,12 @@ def plot(runs: dict, summ: dict, path: Path) -> None:
     import numpy as np
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
-    marks = {"impulse": ("s", "C0"), "soft": ("o", "C3"), "hard": ("^", "C2")}
+    marks = {"impulse": ("s", "C0"), "first": ("v", "C1"), "hard": ("^", "C2"), "soft": ("o", "C3")}
     for rule, (mk, col) in marks.items():
         pts = sorted((c["xi"], c["mean"], c["se"] or 0.0) for c in summ.values() if c["rule"] == rule)
         if pts:
             x = np.array([p[0] for p in pts])
-            off = {"impulse": -0.03, "soft": 0.0, "hard": 0.03}[rule]
+            off = {"impulse": -0.045, "first": -0.015, "hard": 0.015, "soft": 0.045}[rule]
             ax1.errorbar(x + off, [p[1] for p in pts], yerr=[p[2] for p in pts], fmt=mk, color=col,
                          label=f"DSMC {rule}", capsize=3)
     for xi, rows in DEM.items():
@@ -164,6 +167,8 @@ def main(argv=None) -> int:
     ap.add_argument("--coll", type=float, default=60.0, help="collisions (encounters) per particle")
     ap.add_argument("--temp-fraction", type=float, default=None,
                     help="T_tr held at this fraction of the DEM scene's T0 (default: the DEM late window, 0.36)")
+    ap.add_argument("--kn-factor", type=float, default=1.0,
+                    help="k_n of the DEM scene times this (softness test; dt = t_c/50 follows)")
     ap.add_argument("--procs", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--out", default="bench/reports/ellipsoid-encounter-dsmc/run")
     ap.add_argument("--analyse-only", action="store_true")
@@ -179,9 +184,10 @@ def main(argv=None) -> int:
     meta = {"argv": sys.argv if argv is None else argv, "procs": args.procs}
     if not args.analyse_only:
         # slow cells first (encounters at large xi), so the pool drains evenly
-        tasks = [(xi, args.e_n, rule, s, args.n, args.coll, tf) for xi in sorted(args.xi, reverse=True)
-                 for rule in ("soft", "hard", "impulse") if rule in args.rules for s in range(1, args.seeds + 1)]
-        tasks = [t for t in tasks if f"{t[0]}/{t[1]}/{t[2]}/{t[3]}/{t[4]}/{t[5]}" not in runs]
+        tasks = [(xi, args.e_n, rule, s, args.n, args.coll, tf, args.kn_factor) for xi in sorted(args.xi, reverse=True)
+                 for rule in ("soft", "hard", "first", "impulse") if rule in args.rules
+                 for s in range(1, args.seeds + 1)]
+        tasks = [t for t in tasks if "/".join(str(x) for x in t[:6]) not in runs]
         t0 = time.time()
         with ProcessPoolExecutor(max(1, args.procs), mp_context=multiprocessing.get_context("spawn")) as pool:
             futs = [pool.submit(_one, t) for t in tasks]

@@ -16,6 +16,9 @@ impulse. Here the SAME sampling feeds three collision rules, chosen by ``rule``:
 - ``RULE_HARD`` (2): hard bodies, one impulse with e_eff(D) at every contact of the encounter, repeat
   contacts found in exact free flight. The stiff limit of RULE_SOFT (zero contact duration, the same
   repeat contacts).
+- ``RULE_FIRST`` (3): a diagnostic between RULE_IMPULSE and RULE_HARD: first contacts only (the backward
+  check below), one impulse with e_eff(D), repeat contacts NOT resolved (the pair may be left overlapping or
+  approaching). It separates the effect of dropping correlated contacts from that of resolving them.
 
 Encounters (rules 1 and 2). A sampled contact state (touching, approaching) is a state of the Boltzmann
 gas only if the pair reached it from free flight: the state is run BACKWARD in exact free flight and is
@@ -55,8 +58,8 @@ from engine.physics.integrate import kick
 from engine.physics.rotation import (body_omega, fincham_quat_step_body, quat_matrix, quat_mul, quat_normalize,
                                      space_omega)
 
-RULE_IMPULSE, RULE_SOFT, RULE_HARD = 0, 1, 2
-RULES = {"impulse": RULE_IMPULSE, "soft": RULE_SOFT, "hard": RULE_HARD}
+RULE_IMPULSE, RULE_SOFT, RULE_HARD, RULE_FIRST = 0, 1, 2, 3
+RULES = {"impulse": RULE_IMPULSE, "soft": RULE_SOFT, "hard": RULE_HARD, "first": RULE_FIRST}
 #: encounter status
 ENC_OK, ENC_REJECTED, ENC_CAPPED = 0, 1, 2
 #: Perram-Wertheim Newton tolerance of the float64 engine (engine.backends.cpu_ellipsoid.PW_TOL)
@@ -65,6 +68,9 @@ HALF = 0.5
 #: first (and smallest) step of the backward first-contact check, in units of dt: the pair separates
 #: locally from its touching point backward in time, so an earlier overlap cannot start within it
 BACK_STEP = 0.02
+#: iteration cap of a hard encounter: a hard inelastic pair can collapse into an endless chatter of ever
+#: weaker contacts (inelastic collapse of two bodies); such encounters are stopped here and counted as capped
+HARD_MAX_ITER = 5000
 
 
 # ---- exact free flight and the pair geometry -----------------------------------------------------------
@@ -496,7 +502,8 @@ def _body_state(vi, vj, w2i, w2j, qp, xa, xb, i_perp):
 @numba.njit(parallel=True, cache=True)
 def resolve_batch(rule, v, w2, I, J, Q, XA, XB, U, m, inv_i, a, b, k_n, gamma_n, dt, zeta, max_steps, skip,
                   out_v, out_w2, out_stat):
-    """Resolve the accepted pairs of a sweep (independent encounters, prange) with RULE_SOFT or RULE_HARD.
+    """Resolve the accepted pairs of a sweep (independent encounters, prange) with RULE_SOFT, RULE_HARD or
+    RULE_FIRST.
 
     out_v (k, 2, 3), out_w2 (k, 2, 2): post-encounter velocities and body-frame spins (w_y, w_z);
     out_stat (k, 5): status, contacts, steps/iterations, backward iterations, |w_x| / |w| after (should be
@@ -516,8 +523,12 @@ def resolve_batch(rule, v, w2, I, J, Q, XA, XB, U, m, inv_i, a, b, k_n, gamma_n,
             free_flight(x[1], vv[1], q[1], L[1], inv_i, -U[c] * dt)
             st, nc, ns, ov = soft_encounter(x, vv, q, L, m, inv_i, a, b, k_n, gamma_n, dt, max_steps, skip)
             out_stat[c, 4] = ov
+        elif rule == RULE_HARD:
+            st, nc, ns = hard_encounter(x, vv, q, L, m, inv_i, a, b, zeta, 1e-3 * dt, HARD_MAX_ITER)
+            out_stat[c, 4] = 0.0
         else:
-            st, nc, ns = hard_encounter(x, vv, q, L, m, inv_i, a, b, zeta, 1e-3 * dt, max_steps)
+            hard_impulse(x, vv, q, L, m, inv_i, a, b, zeta)
+            st, nc, ns = ENC_OK, 1, 0
             out_stat[c, 4] = 0.0
         out_stat[c, 0] = st
         out_stat[c, 1] = nc
@@ -685,6 +696,7 @@ def run_dsmc(xi: float, e_n: float, rule: str = "soft", n: int = 20000, coll_per
             "profile": h[:, :2].tolist(), "sampled": sampled, "rejected_share": rejected / max(sampled, 1),
             "encounters": encounters, "contacts_per_encounter": {str(k): v_ for k, v_ in sorted(contacts_hist.items())},
             "later_contact_share": (contacts - encounters) / max(contacts, 1),
+            "multi_contact_share": sum(v_ for k, v_ in contacts_hist.items() if k >= 2) / max(encounters, 1),
             "loss_per_collision_over_T": loss_sum / max(loss_n, 1), "capped": capped,
             "max_overlap_over_b": worst, "mean_steps": steps_sum / max(encounters, 1),
             "mean_backward_iterations": back_sum / max(sampled, 1),
