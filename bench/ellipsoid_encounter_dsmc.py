@@ -9,10 +9,12 @@ engine's njit functions, first contacts only; 'hard' = hard bodies, impulses wit
 the encounter (the stiff limit of 'soft'); 'first' = first contacts only, one impulse, repeats not resolved
 (a diagnostic).
 
-Full version (16 cores, ~4-5 min):
+Full version (16 cores, ~5 min: one round of 12 'soft' runs of 6e5 encounters, ~200-300 s each on one core of
+the 2-core dev VM, the 12 'impulse' runs alongside; bench/reports/ellipsoid-encounter-dsmc/REPORT.md):
 
     NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 PYTHONPATH=. python bench/ellipsoid_encounter_dsmc.py --procs 16 \\
-        --xi 1.5 2 2.5 --seeds 4 --n 20000 --coll 60 --out bench/reports/ellipsoid-encounter-dsmc/full
+        --rules impulse soft --xi 1.5 2 2.5 --seeds 4 --n 20000 --coll 60 \\
+        --out bench/reports/ellipsoid-encounter-dsmc/full
 
 Only re-analyse what exists: add --analyse-only.
 """
@@ -48,7 +50,14 @@ def _one(task):
 
     r = run_dsmc(xi, e_n, rule, n=n, coll_per_particle=coll, seed=seed, temp_fraction=tf, kn_factor=kn)
     r.pop("constants", None)
+    r["profile"] = _thin(r["profile"])
     return task, r
+
+
+def _thin(profile, keep: int = 150):
+    """At most ~keep rows of the (collisions per particle, T_tr/T_rot) profile (one row per sweep)."""
+    step = max(1, len(profile) // keep)
+    return profile[::step]
 
 
 def _key(xi, e, rule):
@@ -107,29 +116,55 @@ def table(summ: dict) -> str:
 
 
 def plot(runs: dict, summ: dict, path: Path) -> None:
+    """Late ratio per xi (the 'first' diagnostic only in the table: it sits ~15 % lower), the same relative
+    to the impulse DSMC (with the DEM), and the relaxation at the largest xi."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
-    marks = {"impulse": ("s", "C0"), "first": ("v", "C1"), "hard": ("^", "C2"), "soft": ("o", "C3")}
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(17, 4.8))
+    marks = {"impulse": ("s", "C0"), "hard": ("^", "C2"), "soft": ("o", "C3")}
+    off = {"impulse": -0.045, "hard": 0.015, "soft": 0.045}
     for rule, (mk, col) in marks.items():
         pts = sorted((c["xi"], c["mean"], c["se"] or 0.0) for c in summ.values() if c["rule"] == rule)
-        if pts:
-            x = np.array([p[0] for p in pts])
-            off = {"impulse": -0.045, "first": -0.015, "hard": 0.015, "soft": 0.045}[rule]
-            ax1.errorbar(x + off, [p[1] for p in pts], yerr=[p[2] for p in pts], fmt=mk, color=col,
-                         label=f"DSMC {rule}", capsize=3)
+        if not pts:
+            continue
+        x = np.array([p[0] for p in pts])
+        ax1.errorbar(x + off[rule], [p[1] for p in pts], yerr=[p[2] for p in pts], fmt=mk, color=col,
+                     label=f"DSMC {rule}", capsize=3)
+        if rule != "impulse":
+            rel = []
+            for xi, m, se in pts:
+                imp = summ.get(_key(xi, 0.9, "impulse")) or next(
+                    (c for c in summ.values() if c["xi"] == xi and c["rule"] == "impulse"), None)
+                if imp is not None:
+                    rel.append((xi, 100 * (m / imp["mean"] - 1), 100 * math.hypot(se, imp["se"] or 0) / imp["mean"]))
+            if rel:
+                ax2.errorbar([r[0] + off[rule] for r in rel], [r[1] for r in rel], yerr=[r[2] for r in rel],
+                             fmt=mk, color=col, capsize=3, label=f"{rule} - impulse")
     for xi, rows in DEM.items():
+        imp = next((c for c in summ.values() if c["xi"] == xi and c["rule"] == "impulse"), None)
         for i, (m, s, t) in enumerate(rows):
-            ax1.errorbar([xi + 0.06 + 0.03 * i], [m], yerr=[s], fmt="*", color="k", ms=9, capsize=3,
-                         label="DEM (cooling runs)" if (xi, i) == (1.5, 0) else None)
+            lab = "DEM (cooling runs)" if (xi, i) == (1.5, 0) else None
+            ax1.errorbar([xi + 0.07 + 0.03 * i], [m], yerr=[s], fmt="*", color="k" if i == 0 else "grey", ms=9,
+                         capsize=3, label=lab)
+            if imp is not None:
+                ax2.errorbar([xi + 0.07 + 0.03 * i], [100 * (m / imp["mean"] - 1)],
+                             yerr=[100 * math.hypot(s, imp["se"] or 0) / imp["mean"]], fmt="*",
+                             color="k" if i == 0 else "grey", ms=9, capsize=3,
+                             label=("DEM - impulse (N=4096; grey: 16384)" if (xi, i) == (1.5, 0) else None))
     ax1.set_xlabel("xi = a/b")
     ax1.set_ylabel("late T_tr / T_rot (e = 0.9)")
     ax1.legend(fontsize=8)
     ax1.set_title("mean ± SE over seeds")
+    ax2.axhline(0, color="grey", lw=0.6)
+    ax2.set_xlabel("xi = a/b")
+    ax2.set_ylabel("excess over the impulse DSMC (%)")
+    if ax2.get_legend_handles_labels()[0]:
+        ax2.legend(fontsize=8)
+    ax2.set_title("relative to the one-impulse DSMC (same sampling)")
     xs = sorted({r["xi"] for r in runs.values()})
     xi_p = xs[-1] if xs else None
     for rule, (mk, col) in marks.items():
@@ -137,17 +172,20 @@ def plot(runs: dict, summ: dict, path: Path) -> None:
         if prof:
             grid = np.linspace(0, min(p[-1, 0] for p in prof), 200)
             y = np.mean([np.interp(grid, p[:, 0], p[:, 1]) for p in prof], axis=0)
-            ax2.plot(grid, y, "-", color=col, lw=1, label=f"{rule} ({len(prof)} seeds)")
-    ax2.set_xlabel("collisions (encounters) per particle")
-    ax2.set_ylabel("T_tr / T_rot")
-    ax2.set_title(f"xi = {xi_p}: relaxation (seed mean)")
-    ax2.legend(fontsize=8)
+            ax3.plot(grid, y, "-", color=col, lw=1, label=f"{rule} ({len(prof)} seeds)")
+    ax3.set_xlabel("collisions (encounters) per particle")
+    ax3.set_ylabel("T_tr / T_rot")
+    ax3.set_title(f"xi = {xi_p}: relaxation (seed mean)")
+    if ax3.get_legend_handles_labels()[0]:
+        ax3.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def write(out: Path, runs: dict, meta: dict) -> dict:
+    for r in runs.values():
+        r["profile"] = _thin(r["profile"])
     summ = summarise(runs)
     (out / "runs.json").write_text(json.dumps({"meta": meta, "runs": runs}, indent=1))
     (out / "summary.json").write_text(json.dumps(summ, indent=1))
