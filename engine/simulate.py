@@ -285,7 +285,10 @@ class SceneRun:
         spec, p = self.spec, self.p
         dtype = np.float64 if spec.precision == "float64" else np.float32
         derived = {k: v for k, v in p.as_dict().items()}
+        from engine.scene import start_generator
+
         derived.update(engine_version=__version__, q=Q_SPHERE, e_n=spec.e_n, e_t=spec.e_t,
+                       start_generator=start_generator(spec),
                        verlet_skin=self.verlet_skin)
         common = dict(n=spec.n_particles, box_length=spec.box_length, spec_json=self.spec_json,
                       derived=derived, dtype=dtype)

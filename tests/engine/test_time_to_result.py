@@ -1,0 +1,167 @@
+"""Issue 14 (time to result): parallel starts, the buffered / background result writer, the auto list mode's
+probe rule. The speed itself is measured by bench/e2e.py, not here."""
+
+from __future__ import annotations
+
+import math
+import types
+
+import h5py
+import numba
+import numpy as np
+import pytest
+
+from engine.errors import InstabilityError
+from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
+from engine.params import derive
+from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_VELOCITY,
+                          _parallel_maxwellian, initial_ellipsoids, initial_spheres, start_generator)
+from engine.spec import SimulationSpec
+
+
+def _big(n=PARALLEL_START_MIN, **kw):
+    return SimulationSpec(n_particles=n, volume_fraction=0.058, box_length=2.0 * (n / 4096) ** (1.0 / 3.0),
+                          thermalization=0, **kw)
+
+
+def test_which_starts_are_drawn_in_parallel():
+    assert start_generator(_big(PARALLEL_START_MIN - 1)) == SEQUENTIAL_GENERATOR
+    assert start_generator(_big()) == PARALLEL_GENERATOR
+    assert start_generator(SimulationSpec()) == SEQUENTIAL_GENERATOR
+    species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
+    assert start_generator(_big(species=species)) == SEQUENTIAL_GENERATOR  # RSA placement stays sequential
+
+
+def test_parallel_start_is_a_valid_homogeneous_gas():
+    from scipy.spatial import cKDTree
+
+    spec = _big()
+    p = derive(spec)
+    sy = initial_spheres(spec, p)
+    n, box = spec.n_particles, spec.box_length
+    v, w, q, x = sy.velocity, sy.angular_velocity, sy.orientation, sy.position
+    assert np.all((x >= 0.0) & (x < box))
+    # no two spheres overlap (periodic box)
+    d, _ = cKDTree(x, boxsize=box).query(x, k=2)
+    assert d[:, 1].min() >= 2.0 * p.radius
+    # zero momentum and exactly the requested rms speed (to rounding)
+    assert np.abs(v.mean(axis=0)).max() < 1e-12 * spec.velocity_rms
+    assert math.sqrt(np.mean(np.sum(v * v, axis=1))) == pytest.approx(spec.velocity_rms, rel=1e-12)
+    assert np.abs(w.mean(axis=0)).max() < 1e-12 * np.sqrt(np.mean(w * w))
+    assert np.abs(np.linalg.norm(q, axis=1) - 1.0).max() < 1e-14
+    # Gaussian components: kurtosis 3 within ~6 standard errors of sqrt(24/n) = 0.005 for n = 2^20
+    kurt = np.mean(v ** 4, axis=0) / np.mean(v ** 2, axis=0) ** 2
+    assert np.abs(kurt - 3.0).max() < 0.03
+    # isotropic: the three components carry the same energy within ~6 standard errors (sqrt(2/n) = 0.0014)
+    var = np.mean(v ** 2, axis=0)
+    assert np.abs(var / var.mean() - 1.0).max() < 0.01
+    # uniform orientations: <q_k^2> = 1/4 for each component
+    assert np.abs(np.mean(q ** 2, axis=0) - 0.25).max() < 0.005
+    # the same seed gives the same start, another seed another one
+    again = initial_spheres(spec, p)
+    assert np.array_equal(again.position, x) and np.array_equal(again.velocity, v)
+    other = initial_spheres(spec.model_copy(update={"seed": 1}), p)
+    assert not np.array_equal(other.velocity, v)
+
+
+def test_parallel_start_does_not_depend_on_the_thread_count():
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = _parallel_maxwellian(50_000, 2.0, 7, STREAM_VELOCITY, 3)
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        many = _parallel_maxwellian(50_000, 2.0, 7, STREAM_VELOCITY, 3)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(one, many)
+
+
+def test_parallel_ellipsoid_start_spins_only_about_the_perpendicular_axes():
+    spec = _big(shape="ellipsoid", elongation=2.0, e_t=-1.0)
+    p = derive(spec)
+    sy = initial_ellipsoids(spec, p)
+    w, q = sy.angular_velocity, sy.orientation
+    wq, xq, yq, zq = q.T
+    e1 = np.stack([1 - 2 * (yq * yq + zq * zq), 2 * (xq * yq + wq * zq), 2 * (xq * zq - wq * yq)], 1)
+    assert np.abs(np.sum(w * e1, axis=1)).max() < 1e-9 * np.abs(w).max()   # no spin about the symmetry axis
+    # T per perpendicular dof = m <v^2>/3 (equipartition at the start)
+    e_perp = 0.5 * p.inertia[1] * np.mean(np.sum(w * w, axis=1))
+    t_tr = p.mass * np.mean(np.sum(sy.velocity ** 2, axis=1)) / 3.0
+    assert e_perp == pytest.approx(t_tr, rel=1e-9)
+
+
+# ---- the result writer --------------------------------------------------------------------------------
+
+def _write(path, background: bool, records: int, frames=(), nan_frame=None):
+    w = H5MDWriter(path, n=5, box_length=1.0, spec_json="{}", derived={"dt": 1e-3}, radius=np.ones(5),
+                   mass=np.ones(5), background=background)
+    rng = np.random.default_rng(0)
+    for r in range(records):
+        w.observables(r, r * 1e-3, {"a": float(r), "contacts": np.int64(r % 3)})
+        if r in frames:
+            pos = rng.random((5, 3))
+            if r == nan_frame:
+                pos[2, 1] = np.nan
+            w.snapshot(r, r * 1e-3, {"position": pos})
+    return w
+
+
+def _datasets(path) -> dict:
+    out = {}
+    with h5py.File(path) as f:
+        f.visititems(lambda name, o: out.__setitem__(name, o[()]) if isinstance(o, h5py.Dataset) else None)
+    return out
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_writer_blocks_and_counts(tmp_path, background):
+    records = 2 * OBSERVABLE_BLOCK + 17  # three blocks
+    w = _write(tmp_path / "r.h5", background, records, frames=(0, 5, records - 1))
+    counts = w.frame_counts()  # what a checkpoint records: pending records included
+    assert counts["observables/a"] == records and counts["particles/all/position"] == 3
+    w.finish({"wall_time": 1.0})
+    d = _datasets(tmp_path / "r.h5")
+    assert np.array_equal(d["observables/a/step"], np.arange(records))
+    assert np.array_equal(d["observables/a/value"], np.arange(records, dtype=float))
+    assert d["observables/contacts/value"].dtype == np.int64
+    assert d["particles/all/position/value"].shape == (3, 5, 3)
+
+
+def test_background_and_synchronous_writers_write_the_same_file(tmp_path):
+    for bg in (False, True):
+        _write(tmp_path / f"{bg}.h5", bg, 700, frames=(0, 300, 699)).finish({"wall_time": 1.0})
+    a, b = _datasets(tmp_path / "False.h5"), _datasets(tmp_path / "True.h5")
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_a_non_finite_frame_on_the_io_thread_never_reaches_a_result(tmp_path):
+    path = tmp_path / "bad.h5"
+    w = _write(path, True, 20, frames=(3, 10), nan_frame=10)
+    with pytest.raises(InstabilityError, match="position is not finite at step 10"):
+        w.finish({"wall_time": 1.0})
+    w.abort()
+    assert not path.exists() and not partial_path(path).exists()
+
+
+# ---- the auto list mode's probe rule ---------------------------------------------------------------------
+
+def _lists(steps_left, per_step=1e-3, steps_per_stage=20):
+    from engine.backends.cuda_listmodes import HostLists
+
+    fake = types.SimpleNamespace(
+        stages=[{"mode": "gpu", "steps": steps_per_stage}] * 5, decisions=[],
+        ens=types.SimpleNamespace(steps_left=lambda: steps_left, steps_done=100),
+        _means=lambda mode: {"per_step": per_step, "wall": per_step * steps_per_stage})
+    return HostLists._worth_probing(fake), fake.decisions
+
+
+def test_auto_probes_only_when_the_rest_of_the_run_can_repay_it():
+    from engine.backends.cuda_listmodes import MIN_STAGES_LEFT, MIN_WALL_LEFT_S
+
+    per_step, stage = 1e-3, 20
+    enough = int(max(MIN_STAGES_LEFT * stage, MIN_WALL_LEFT_S / per_step)) + 1
+    assert _lists(enough, per_step, stage)[0]
+    ok, decisions = _lists(enough // 4, per_step, stage)  # too short: no probe, and the decision says why
+    assert not ok and "skipped probe" in str(decisions)
+    assert not _lists(MIN_STAGES_LEFT * stage * 10, per_step=1e-6, steps_per_stage=stage)[0]  # stages, not seconds
+    assert not _lists(None)[0]  # unknown length: never probe
