@@ -301,9 +301,11 @@ class H5MDWriter:
         par = self.f["parameters"]
         for key, value in run_info.items():
             par.attrs[key] = _attr(value)
+        frames = "position" in self.f["particles/all"]
         self.f.close()
         os.replace(self.tmp, self.path)
-        write_xdmf(self.path)  # ParaView/VisIt sidecar <stem>.xmf (engine/xdmf.py)
+        if frames:  # ParaView/VisIt sidecar <stem>.xmf (engine/xdmf.py; a result without frames has none)
+            write_xdmf(self.path)
         return self.path
 
     def abort(self) -> None:
