@@ -279,14 +279,13 @@ class SceneRun:
 
     def open(self) -> None:
         """Create the result writer (``<output>.part``; a resumed scene continues its checkpointed file)."""
+        from engine.scene import start_generator
         from engine.version import __version__
 
         t0 = time.perf_counter()
         spec, p = self.spec, self.p
         dtype = np.float64 if spec.precision == "float64" else np.float32
         derived = {k: v for k, v in p.as_dict().items()}
-        from engine.scene import start_generator
-
         derived.update(engine_version=__version__, q=Q_SPHERE, e_n=spec.e_n, e_t=spec.e_t,
                        start_generator=start_generator(spec),
                        verlet_skin=self.verlet_skin)

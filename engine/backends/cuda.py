@@ -853,8 +853,11 @@ class CudaBackend:
     def observe(self) -> dict:
         return self.e.observe()[0]
 
-    def state(self) -> dict:
-        return self.e.state(0)
+    #: state(reuse=...) hands out reused pinned buffers (CudaEnsemble._scene_rows)
+    reuses_state_buffers = True
+
+    def state(self, reuse=False) -> dict:
+        return self.e.state(0, reuse)
 
     def contacts(self):
         return self.e.contacts(0)

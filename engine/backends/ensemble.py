@@ -170,8 +170,16 @@ class SerialEnsemble:
     def observe_scene(self, k: int) -> dict:
         return self._backend(k).observe()
 
-    def state(self, k: int) -> dict:
-        return self._backend(k).state()
+    @property
+    def reuses_state_buffers(self) -> bool:
+        """True when every backend can hand out reused (pinned) state buffers (CUDA)."""
+        return all(getattr(b, "reuses_state_buffers", False) for b in self._backends if b is not None)
+
+    def state(self, k: int, reuse=False) -> dict:
+        b = self._backend(k)
+        if reuse is not False and getattr(b, "reuses_state_buffers", False):
+            return b.state(reuse=reuse)
+        return b.state()
 
     def contacts(self, k: int):
         return self._backend(k).contacts()
