@@ -46,16 +46,23 @@ def fcc_sites(n: int, box: float) -> tuple[np.ndarray, float]:
     return sites, a / math.sqrt(2.0)
 
 
-def place_spheres(n: int, box: float, radius: float, rng: np.random.Generator) -> np.ndarray:
-    """N non-overlapping sphere centres in [0, box)^3 (see module docstring)."""
-    sites, nn_dist = fcc_sites(n, box)
+def lattice_gap(n: int, box: float, radius: float, n_sites: int, nn_dist: float) -> float:
+    """The free gap between neighbouring spheres on the fcc start lattice; SpecError naming volume_fraction
+    when the spheres do not fit."""
     gap = nn_dist - 2.0 * radius
     if gap <= 0:
         phi = n * 4.0 / 3.0 * math.pi * radius**3 / box**3
         raise SpecError(
             f"volume_fraction = {phi:.4g}: {n} spheres of radius {radius:.4g} m do not fit on the "
-            f"{len(sites)}-site fcc start lattice of a {box:g} m box; lower volume_fraction "
+            f"{n_sites}-site fcc start lattice of a {box:g} m box; lower volume_fraction "
             f"(or choose n_particles = 4 m^3 for a full lattice)")
+    return gap
+
+
+def place_spheres(n: int, box: float, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """N non-overlapping sphere centres in [0, box)^3 (see module docstring)."""
+    sites, nn_dist = fcc_sites(n, box)
+    gap = lattice_gap(n, box, radius, len(sites), nn_dist)
     chosen = rng.choice(len(sites), size=n, replace=False)
     pos = sites[np.sort(chosen)]
     # random displacement in a ball of radius gap/2 keeps every pair at least 2a apart
@@ -406,13 +413,7 @@ def _parallel_place(n: int, box: float, radius: float, seed: int) -> np.ndarray:
     m = max(1, math.ceil((n / 4.0) ** (1.0 / 3.0) - 1e-9))
     a = box / m
     n_sites = 4 * m ** 3
-    gap = a / math.sqrt(2.0) - 2.0 * radius
-    if gap <= 0:
-        phi = n * 4.0 / 3.0 * math.pi * radius**3 / box**3
-        raise SpecError(
-            f"volume_fraction = {phi:.4g}: {n} spheres of radius {radius:.4g} m do not fit on the "
-            f"{n_sites}-site fcc start lattice of a {box:g} m box; lower volume_fraction "
-            f"(or choose n_particles = 4 m^3 for a full lattice)")
+    gap = lattice_gap(n, box, radius, n_sites, a / math.sqrt(2.0))
     if n == n_sites:
         chosen = np.arange(n, dtype=np.int64)
     else:
