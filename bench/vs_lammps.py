@@ -285,9 +285,11 @@ def main(argv=None):
         phi = a.phi if a.phi is not None else default_phi(n)
         r = compare(n, phi, k, a.threads, a.lammps_skin, a.out, a.seed)
         rows.append(r)
-        print(f"N={n} phi={phi:g}: demq loop {r['demq']['cundall_loop']:.3g} "
-              f"(end-to-end {r['demq']['cundall_end_to_end']:.3g}), LAMMPS loop "
-              f"{r['lammps'].get('cundall_loop', float('nan')):.3g}, ratio {r['ratio_loop']}", flush=True)
+        lm = r["lammps"]
+        lmp_txt = (f"LAMMPS loop {lm['cundall_loop']:.3g}, demq/LAMMPS x{r['ratio_loop']:.2f}" if lm["available"]
+                   else f"LAMMPS not run ({lm['reason']})")
+        print(f"N={n} phi={phi:g} steps={k}: demq loop {r['demq']['cundall_loop']:.3g} "
+              f"(end-to-end {r['demq']['cundall_end_to_end']:.3g}), {lmp_txt}", flush=True)
     md = table(rows)
     print(md)
     if a.out:
