@@ -208,3 +208,41 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
         # the records are reduced on the device in another order: equal to rounding
         assert np.allclose(a["observables/kinetic_energy_translational/value"],
                            b["observables/kinetic_energy_translational/value"], rtol=1e-12, atol=0)
+
+
+# ---- the CUDA kernels' disk-cache key ----------------------------------------------------------------------
+
+def _factory(flag):
+    from numba import cuda
+
+    @cuda.jit(device=True)
+    def helper(x):
+        return x * 2.0 if flag else x
+
+    @cuda.jit
+    def kern(a):
+        i = cuda.grid(1)
+        if i < a.shape[0]:
+            a[i] = helper(a[i])
+
+    return {"kern": kern, "helper": helper}
+
+
+def test_factory_kernels_get_a_cache_key_that_is_stable_across_rebuilds():
+    """A new process rebuilds the closures; numba-cuda's own key pickles the closure's dispatchers, which is not
+    stable, so engine.backends.cuda_cache keys by (engine sources, specialisation, name): equal for a rebuild
+    of the same specialisation, different for another one. No GPU needed (nothing is compiled)."""
+    from engine.backends import cuda_cache
+
+    if cuda_cache.SIM:
+        pytest.skip("the CUDA simulator caches nothing")
+    from numba.cuda.dispatcher import CUDACache
+
+    codegen = types.SimpleNamespace(magic_tuple=lambda: ("sm_90", "x86_64"))
+    keys = []
+    for flag in (True, True, False):
+        ks = cuda_cache.cache_kernels(_factory(flag), ("test", flag))
+        assert isinstance(ks["kern"]._cache, CUDACache)
+        assert not isinstance(ks["helper"]._cache, CUDACache)  # device functions compile into the kernels
+        keys.append(ks["kern"]._cache._index_key(("float64[:]",), codegen))
+    assert keys[0] == keys[1] and keys[0] != keys[2]
