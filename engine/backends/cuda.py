@@ -738,7 +738,8 @@ class CudaEnsemble:
 
     #: state() keys and the device arrays (3 or 4 rows, particle index fastest) they are copied from
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angular_velocity", "omega"), ("orientation", "quat"))
-    #: state(k, reuse=True) hands out reused pinned buffers (engine/simulate.py writes them at once)
+    #: state(k, reuse=...) hands out reused pinned buffers (engine/simulate.py alternates two slots for snapshot
+    #: frames and reuses a slot only after the I/O thread has written its frame)
     reuses_state_buffers = True
 
     def _scene_rows(self, k: int, reuse=False) -> dict:
