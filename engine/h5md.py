@@ -26,6 +26,13 @@ one I/O thread shared by every writer of the process (HDF5 serialises its calls 
 order, while the caller goes on (e.g. the GPU integrates): :meth:`H5MDWriter.flush`, :meth:`frame_counts`,
 :meth:`truncate` and :meth:`finish` wait for it. A failure on that thread (e.g. a non-finite snapshot value)
 is raised by the writer's next call, and the file is then never finished.
+
+With ``deferred=True`` (the small scenes of a GPU ensemble, engine/simulate.py) nothing touches the disk
+before the end: the writer keeps its blocks of records and copies of its snapshot frames in memory, and
+:meth:`H5MDWriter.finish_async` hands them to a writer process (engine/h5md_pool.py) that writes the same
+file with this class's own code, so the files of scenes that end together are written in parallel. A
+checkpoint (:meth:`flush`, :meth:`frame_counts`, :meth:`truncate`) first writes the file the usual way and
+the writer goes on as a ``background`` one.
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ import math
 import os
 import threading
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import h5py
@@ -81,27 +88,36 @@ class H5MDWriter:
 
     def __init__(self, path, *, n: int, box_length: float, spec_json: str, derived: dict,
                  radius=None, semi_axes=None, mass=None, species=None, creator_version: str = "",
-                 author: str = "demq", dtype=np.float64, resume: bool = False, background: bool = False):
+                 author: str = "demq", dtype=np.float64, resume: bool = False, background: bool = False,
+                 deferred: bool = False):
         """species: int (N,) species index of every particle (the position in the spec's ``species``
         list); None writes zeros (one size). background: file work on the I/O thread (module docstring);
-        snapshot() then keeps the arrays it is given until they are written: do not modify them."""
+        snapshot() then keeps the arrays it is given until they are written: do not modify them.
+        deferred: keep the whole file in memory and write it in a writer process at the end (module
+        docstring); snapshot() copies its arrays."""
         self.path = Path(path)
         self.tmp = partial_path(self.path)
         self.n = n
         self.dtype = np.dtype(dtype)
         self.f = None
-        self._pending: dict = {}     # observable name -> ([steps], [times], [values]) not yet written
-        self._n_pending = 0
+        self._pending: list = []     # (step, time, {name: value}) records not yet written
         self._groups: dict = {}      # observable name -> its [step, time, value] datasets
         self._bg = background
         self._jobs: deque = deque()  # futures of the background file work, in order
         self._frames: deque = deque()  # futures of queued snapshot frames
+        self._deferred = False
         if resume:
             self.f = h5py.File(self.tmp, "a")
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._submit(self._create, n, box_length, spec_json, derived, radius, semi_axes, mass, species,
-                     creator_version, author)
+        self._create_args = (n, box_length, spec_json, derived, radius, semi_axes, mass, species, creator_version,
+                             author)
+        if deferred:
+            self._deferred = True
+            self._blocks: list = []       # blocks of records not yet in a file, in order
+            self._frames_kept: list = []  # (step, time, arrays) snapshot frames not yet in a file
+            return
+        self._submit(self._create, *self._create_args)
 
     # ---- the I/O thread ------------------------------------------------------------------------------
 
@@ -190,34 +206,39 @@ class H5MDWriter:
         g["value"][k] = value
 
     def observables(self, step: int, time: float, values: dict) -> None:
-        """Append one record of scalar observables (kept in memory; written in blocks, see the module
-        docstring). A non-finite value raises InstabilityError and is never written."""
+        """Append one record of scalar observables (kept in memory, ``values`` itself: do not modify it;
+        written in blocks, see the module docstring). A non-finite value raises InstabilityError and is never
+        written."""
         for name, value in values.items():
             if not math.isfinite(value):
                 raise InstabilityError(f"observable {name} is not finite at step {step} (t = {time:g} s): "
                                        f"the run blew up; nothing non-finite is written", step=step)
-        pending = self._pending
-        for name, value in values.items():
-            col = pending.get(name)
-            if col is None:
-                col = pending[name] = ([], [], [])
-            col[0].append(step)
-            col[1].append(time)
-            col[2].append(value)
-        self._n_pending += 1
-        if self._n_pending >= OBSERVABLE_BLOCK:
+        self._pending.append((step, time, values))
+        if len(self._pending) >= OBSERVABLE_BLOCK:
             self._write_pending()
 
     def _write_pending(self) -> None:
         """Hand the observables kept in memory to the file (now, or queued on the I/O thread)."""
         if not self._pending:
             return
-        block, self._pending, self._n_pending = self._pending, {}, 0
-        self._submit(self._write_block, block)
+        rows, self._pending = self._pending, []
+        if self._deferred:
+            self._blocks.append(rows)
+            return
+        self._submit(self._write_block, rows)
 
-    def _write_block(self, block: dict) -> None:
-        """Write a block of observable records: one write per dataset and name (a new series is created with
-        its first block as data; later blocks resize it once)."""
+    def _write_block(self, rows: list) -> None:
+        """Write a block of observable records [(step, time, {name: value})]: one write per dataset and name
+        (a new series is created with its first block as data; later blocks resize it once)."""
+        block: dict = {}  # name -> ([steps], [times], [values]), in the writer's thread, not the caller's
+        for step, time, values in rows:
+            for name, value in values.items():
+                col = block.get(name)
+                if col is None:
+                    col = block[name] = ([], [], [])
+                col[0].append(step)
+                col[1].append(time)
+                col[2].append(value)
         obs = None
         for name, (steps, times, values) in block.items():
             vals = np.asarray(values)
@@ -245,7 +266,16 @@ class H5MDWriter:
     def snapshot(self, step: int, time: float, arrays: dict) -> None:
         """Append one frame of the per-particle elements (arrays in id order). Background: queued (at most
         MAX_QUEUED_FRAMES frames wait) and the future of its write returned: the arrays must stay unmodified
-        until it is done. Otherwise written at once (returns None)."""
+        until it is done. Deferred: checked for finite values and copied (returns None). Otherwise written
+        at once (returns None)."""
+        if self._deferred:
+            kept = {}
+            for name, a in arrays.items():
+                a = np.array(a, copy=True)
+                _check_finite(name, a, step, time)
+                kept[name] = a
+            self._frames_kept.append((step, time, kept))
+            return None
         if self._bg:
             while len(self._frames) >= MAX_QUEUED_FRAMES:
                 self._frames.popleft().result()
@@ -261,13 +291,24 @@ class H5MDWriter:
             if name not in arrays:
                 continue
             a = np.asarray(arrays[name])
-            if not np.all(np.isfinite(a)):
-                raise InstabilityError(f"{name} is not finite at step {step} (t = {time:g} s): the run "
-                                       f"blew up; nothing non-finite is written", step=step)
+            _check_finite(name, a, step, time)
             self._append(self._series(part, name, a.shape, self.dtype), step, time, a)
+
+    def _materialize(self) -> None:
+        """A deferred writer writes its file now and goes on as an ordinary (background) one."""
+        if not self._deferred:
+            return
+        self._deferred = False
+        self._submit(self._create, *self._create_args)
+        for block in self._blocks:
+            self._submit(self._write_block, block)
+        for step, time, arrays in self._frames_kept:
+            self._submit(self._write_frame, step, time, arrays)
+        self._blocks, self._frames_kept = [], []
 
     def frame_counts(self) -> dict:
         """Number of records of every time series (for checkpoints; writes pending records first)."""
+        self._materialize()
         self._write_pending()
         self._wait()
         out = {}
@@ -279,6 +320,7 @@ class H5MDWriter:
 
     def truncate(self, counts: dict) -> None:
         """Cut every time series back to the given record counts (resume from a checkpoint)."""
+        self._materialize()
         self._write_pending()
         self._wait()
         for key, k in counts.items():
@@ -288,14 +330,39 @@ class H5MDWriter:
 
     def flush(self) -> None:
         """Write pending records and flush the file (a copy of it is then complete, e.g. a checkpoint)."""
+        self._materialize()
         self._write_pending()
         self._wait()
         self.f.flush()
 
     # ---- closing -----------------------------------------------------------------------------------
 
+    def finish_async(self, run_info: dict) -> Future:
+        """:meth:`finish`, as a future of the final path: a deferred writer's file is written by a writer
+        process meanwhile (engine/h5md_pool.py); any other writer finishes now."""
+        if self._deferred:
+            from engine import h5md_pool
+
+            self._write_pending()
+            n, box_length, spec_json, derived, radius, semi_axes, mass, species, creator_version, author = \
+                self._create_args
+            kwargs = dict(n=n, box_length=box_length, spec_json=spec_json, derived=derived, radius=radius,
+                          semi_axes=semi_axes, mass=mass, species=species, creator_version=creator_version,
+                          author=author, dtype=self.dtype)
+            blocks, frames = self._blocks, self._frames_kept
+            self._blocks, self._frames_kept, self._deferred = [], [], False
+            return h5md_pool.submit(write_whole_file, self.path, kwargs, blocks, frames, run_info)
+        fut: Future = Future()
+        try:
+            fut.set_result(self.finish(run_info))
+        except Exception as exc:  # noqa: BLE001  (the caller gets it from the future)
+            fut.set_exception(exc)
+        return fut
+
     def finish(self, run_info: dict) -> Path:
         """Write the run attributes, close, and atomically rename the file to its final name."""
+        if self._deferred:
+            return self.finish_async(run_info).result()
         self._write_pending()
         self._wait()
         par = self.f["parameters"]
@@ -320,6 +387,27 @@ class H5MDWriter:
         finally:
             if self.tmp.exists():
                 self.tmp.unlink()
+
+
+def write_whole_file(path, kwargs: dict, blocks: list, frames: list, run_info: dict) -> Path:
+    """Write a deferred writer's file at once (in a writer process): create, blocks of records, frames,
+    run attributes, close, rename; a failure leaves no file."""
+    w = H5MDWriter(path, **kwargs)
+    try:
+        for block in blocks:
+            w._write_block(block)
+        for step, time, arrays in frames:
+            w._write_frame(step, time, arrays)
+        return w.finish(run_info)
+    except BaseException:
+        w.abort()
+        raise
+
+
+def _check_finite(name: str, a: np.ndarray, step: int, time: float) -> None:
+    if not np.all(np.isfinite(a)):
+        raise InstabilityError(f"{name} is not finite at step {step} (t = {time:g} s): the run "
+                               f"blew up; nothing non-finite is written", step=step)
 
 
 def _attr(value):

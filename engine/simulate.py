@@ -244,6 +244,7 @@ class SceneRun:
         self._chunk = max(1, p.output_every)
         self._frames = 0                  # snapshot frames handed to the writer (buffer slot rotation)
         self._slot_busy = [None, None]    # per buffer slot, the write of the frame still using it
+        self.defer_file = False           # set by drive(): the file is written at the end, in a writer process
         self.timings = dict.fromkeys(TIMINGS, 0.0)
         self.timings["setup"] = time.perf_counter() - t_setup
         if phase == "thermalization":
@@ -303,7 +304,8 @@ class SceneRun:
             self.writer = H5MDWriter(self.output, radius=None if self.ellipsoid else system.radius,
                                      semi_axes=system.semi_axes if self.ellipsoid else None, mass=system.mass,
                                      species=None if self.ellipsoid else species_index(system.radius, p),
-                                     creator_version=__version__, background=True, **common)
+                                     creator_version=__version__, background=True,
+                                     deferred=self.defer_file, **common)
         self.timings["open"] += time.perf_counter() - t0
 
     def at_stop(self, view) -> None:
@@ -366,6 +368,12 @@ class SceneRun:
 
         ``shared_timings``: the ensemble's build and compile seconds (SHARED_TIMINGS), reported with the
         scene's own in ``extra["timings"]`` and ``/parameters@timings`` (the file's lacks ``close``)."""
+        return self.finish_end(self.finish_begin(backend, device, builds, info, shared_timings))
+
+    def finish_begin(self, backend: str, device: str, builds: int, info: Optional[dict] = None,
+                     shared_timings: Optional[dict] = None) -> tuple:
+        """:meth:`finish` in two halves: this one hands the file its run attributes (a deferred file is then
+        written by a writer process while other scenes finish); :meth:`finish_end` waits for it."""
         cundall = self.n * self.steps_run / self.wall if self.wall > 0 else 0.0
         tm = self.timings
         tm["loop"] = self.wall
@@ -375,9 +383,17 @@ class SceneRun:
                     "resumed_from_step": -1 if self.resumed_from is None else self.resumed_from,
                     **(info or {}), "timings": {k: round(v, 6) for k, v in tm.items()}}
         t0 = time.perf_counter()
-        path = self.writer.finish(run_info)
-        self.ck.clear()
+        fut = self.writer.finish_async(run_info)
         tm["close"] = time.perf_counter() - t0
+        return fut, cundall, backend, device, info
+
+    def finish_end(self, begun: tuple) -> RunSummary:
+        fut, cundall, backend, device, info = begun
+        tm = self.timings
+        t0 = time.perf_counter()
+        path = fut.result()
+        self.ck.clear()
+        tm["close"] += time.perf_counter() - t0
         return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
                           wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
                           extra={**(info or {}), "timings": dict(tm)})
@@ -511,10 +527,11 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
 
     active: set = set()
 
-    def settle(i: int, result) -> None:
+    def settle(i: int, result, deactivated: bool = False) -> None:
         results[live[i]] = result
         active.discard(i)
-        ens.deactivate(i)
+        if not deactivated:
+            ens.deactivate(i)
         if on_result is not None:
             on_result(live[i], result)
 
@@ -522,22 +539,44 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
         runs[i].abort()
         settle(i, exc)
 
-    def finish(i: int) -> None:
-        builds = ensemble_scene_builds(ens, i)
+    def finish(done: list) -> None:
+        """Finish the scenes that ended this round: all files handed over first (deferred ones are then
+        written in parallel by the writer processes), then each waited for and settled."""
         info = getattr(ens, "scene_info", None)
-        try:
-            summary = runs[i].finish(ens.name, ens.device, ens.builds if builds is None else builds,
-                                     {"ensemble_size": size, "ensemble_index": i, **(info(i) if info else {})},
-                                     shared_timings=shared)
-        except Exception as exc:
-            end(i, exc)
+        begun = []
+        for i in done:
+            builds = ensemble_scene_builds(ens, i)
+            try:
+                begun.append((i, runs[i].finish_begin(
+                    ens.name, ens.device, ens.builds if builds is None else builds,
+                    {"ensemble_size": size, "ensemble_index": i, **(info(i) if info else {})},
+                    shared_timings=shared)))
+            except Exception as exc:
+                end(i, exc)
+        if not begun:
             return
-        settle(i, summary)
+        many = getattr(ens, "deactivate_many", None)
+        if many is not None:
+            many([i for i, _ in begun])
+        for i, b in begun:
+            try:
+                summary = runs[i].finish_end(b)
+            except Exception as exc:
+                runs[i].abort()
+                settle(i, exc, deactivated=many is not None)
+                continue
+            settle(i, summary, deactivated=many is not None)
 
     per_scene = hasattr(ens, "advance_each") and not lockstep
     plan = getattr(ens, "plan", None)
     if plan is not None:  # how long the run goes on (the auto list mode weighs a probe against it)
         plan(max((r.p.n_steps if r.phase == "cooling" else r.total_steps) - r.step_done for r in runs))
+    if _defer_files(ens, runs):  # many small GPU scenes: files written at the end, in parallel processes
+        from engine import h5md_pool
+
+        h5md_pool.prewarm(min(len(runs), h5md_pool.MAX_PROCESSES))
+        for r in runs:
+            r.defer_file = True
     try:
         for i, r in enumerate(runs):
             try:
@@ -546,9 +585,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
                 end(i, exc)
                 continue
             active.add(i)
-        for i in list(active):
-            if runs[i].done:
-                finish(i)
+        finish([i for i in sorted(active) if runs[i].done])
         at_start = set(active)
         while active:
             for i in sorted(at_start & active):
@@ -585,6 +622,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
             for i, exc in failed.items():
                 end(i, exc)
             cache: dict = {}
+            done = []
             for i in sorted(i for i in active if runs[i].steps_to_next() == 0):
                 try:
                     runs[i].at_stop(_SceneView(ens, i, cache))
@@ -592,14 +630,34 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
                     end(i, exc)
                     continue
                 if runs[i].done:
-                    finish(i)
+                    done.append(i)
                 else:
                     at_start.add(i)
+            finish(done)
     except BaseException:
         for i in list(active):
             runs[i].abort()
         raise
     return results
+
+
+#: an ensemble of at least this many scenes on the GPU writes its files at the end in writer processes
+DEFER_MIN_SCENES = 8
+#: ... if every scene's file (snapshot frames kept in memory until then) is at most this large
+DEFER_MAX_BYTES = 64 << 20
+
+
+def _defer_files(ens, runs: list) -> bool:
+    """Whether the scenes keep their files in memory and have them written in parallel at the end
+    (engine/h5md_pool.py): many small scenes on the GPU, which all finish in the same round. On the CPU the
+    cores integrate, and one large scene gains nothing."""
+    if ens.name != "cuda" or len(runs) < DEFER_MIN_SCENES:
+        return False
+    for r in runs:
+        frames = len(r.snaps) * r.n * 13 * (8 if r.spec.precision == "float64" else 4)
+        if r.resume is not None or frames > DEFER_MAX_BYTES:
+            return False
+    return True
 
 
 def _build(scenes, live, results, build, build_one):

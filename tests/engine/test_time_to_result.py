@@ -92,9 +92,9 @@ def test_parallel_ellipsoid_start_spins_only_about_the_perpendicular_axes():
 
 # ---- the result writer --------------------------------------------------------------------------------
 
-def _write(path, background: bool, records: int, frames=(), nan_frame=None):
+def _write(path, background: bool, records: int, frames=(), nan_frame=None, deferred=False):
     w = H5MDWriter(path, n=5, box_length=1.0, spec_json="{}", derived={"dt": 1e-3}, radius=np.ones(5),
-                   mass=np.ones(5), background=background)
+                   mass=np.ones(5), background=background, deferred=deferred)
     rng = np.random.default_rng(0)
     for r in range(records):
         w.observables(r, r * 1e-3, {"a": float(r), "contacts": np.int64(r % 3)})
@@ -132,6 +132,44 @@ def test_background_and_synchronous_writers_write_the_same_file(tmp_path):
         _write(tmp_path / f"{bg}.h5", bg, 700, frames=(0, 300, 699)).finish({"wall_time": 1.0})
     a, b = _datasets(tmp_path / "False.h5"), _datasets(tmp_path / "True.h5")
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_a_deferred_file_written_by_a_writer_process_is_the_same_file(tmp_path):
+    """engine/h5md_pool.py: the whole file kept in memory and written at the end in another process."""
+    records, frames = 2 * OBSERVABLE_BLOCK + 5, (0, 300, 2 * OBSERVABLE_BLOCK + 4)
+    _write(tmp_path / "bg.h5", True, records, frames=frames).finish({"wall_time": 1.0})
+    w = _write(tmp_path / "def.h5", True, records, frames=frames, deferred=True)
+    assert not partial_path(tmp_path / "def.h5").exists()  # nothing on disk before the end
+    fut = w.finish_async({"wall_time": 1.0})
+    assert fut.result(timeout=120) == tmp_path / "def.h5"
+    a, b = _datasets(tmp_path / "bg.h5"), _datasets(tmp_path / "def.h5")
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    with h5py.File(tmp_path / "def.h5") as f:
+        assert f["parameters"].attrs["wall_time"] == 1.0
+    assert not partial_path(tmp_path / "def.h5").exists()
+
+
+def test_a_deferred_writer_writes_its_file_at_a_checkpoint_and_goes_on(tmp_path):
+    w = _write(tmp_path / "c.h5", True, 30, frames=(2,), deferred=True)
+    counts = w.frame_counts()  # a checkpoint needs the file: it is written now, in this process
+    assert counts["observables/a"] == 30 and counts["particles/all/position"] == 1
+    assert partial_path(tmp_path / "c.h5").exists()
+    w.observables(30, 0.03, {"a": 30.0, "contacts": np.int64(0)})
+    w.finish({"wall_time": 1.0})
+    assert np.array_equal(_datasets(tmp_path / "c.h5")["observables/a/value"], np.arange(31, dtype=float))
+
+
+def test_a_deferred_writer_refuses_a_non_finite_frame_at_once_and_a_failed_write_leaves_no_file(tmp_path):
+    with pytest.raises(InstabilityError, match="position is not finite at step 10"):
+        _write(tmp_path / "n2.h5", True, 20, frames=(3, 10), nan_frame=10, deferred=True)
+    # the writer process fails (the target's folder is a file by then): the error comes back, no file stays
+    target = tmp_path / "gone" / "r.h5"
+    w = _write(target, True, 3, deferred=True)
+    (tmp_path / "gone").rmdir()
+    (tmp_path / "gone").write_text("not a folder")
+    with pytest.raises(Exception):
+        w.finish_async({"wall_time": 1.0}).result(timeout=120)
+    assert not target.exists()
 
 
 def test_a_non_finite_frame_on_the_io_thread_never_reaches_a_result(tmp_path):
@@ -182,6 +220,10 @@ run({**spec, "backend": "cuda"}, f"{out}/gpu.h5")                 # one scene: S
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/e0.h5", f"{out}/e1.h5"],
              backend="cuda")                                       # packed CudaEnsemble
 run({**spec, "seed": 4, "snapshots": 3, "backend": "cpu"}, f"{out}/cpu1.h5")
+import engine.simulate
+engine.simulate.DEFER_MIN_SCENES = 2                               # files written by writer processes
+run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/d0.h5", f"{out}/d1.h5"],
+             backend="cuda")
 """
 
 
@@ -199,7 +241,7 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
     p = subprocess.run([sys.executable, "-c", _SIM_SCRIPT, str(tmp_path)], env=env, capture_output=True, text=True,
                        cwd=str(root), timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
-    for gpu, cpu in (("gpu", "cpu"), ("e0", "cpu"), ("e1", "cpu1")):
+    for gpu, cpu in (("gpu", "cpu"), ("e0", "cpu"), ("e1", "cpu1"), ("d0", "cpu"), ("d1", "cpu1")):
         a, b = _datasets(tmp_path / f"{gpu}.h5"), _datasets(tmp_path / f"{cpu}.h5")
         for el in ("position", "velocity", "angular_velocity", "orientation"):
             key = f"particles/all/{el}/value"
@@ -208,6 +250,9 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
         # the records are reduced on the device in another order: equal to rounding
         assert np.allclose(a["observables/kinetic_energy_translational/value"],
                            b["observables/kinetic_energy_translational/value"], rtol=1e-12, atol=0)
+    for deferred, ordinary in (("d0", "e0"), ("d1", "e1")):  # a deferred file holds the same data
+        a, b = _datasets(tmp_path / f"{deferred}.h5"), _datasets(tmp_path / f"{ordinary}.h5")
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a), deferred
 
 
 # ---- the CUDA kernels' disk-cache key ----------------------------------------------------------------------
