@@ -176,3 +176,30 @@ def onset_tau(tau, x, level: float) -> float:
     if i == 0:
         return float(tau[0])
     return float(tau[i - 1] + (level - x[i - 1]) * (tau[i] - tau[i - 1]) / (x[i] - x[i - 1]))
+
+
+def box_wavenumbers(stab: ShearStability, k_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct |k|/k_min of the box's wavevector pairs (k, -k) with 0 < |k| < k_max, and how many pairs
+    share each."""
+    m_max = int(k_max / stab.k_min) + 1
+    g = np.arange(-m_max, m_max + 1)
+    m2 = (g[:, None, None] ** 2 + g[None, :, None] ** 2 + g[None, None, :] ** 2).ravel()
+    m2 = m2[(m2 > 0) & (m2 * stab.k_min**2 < k_max**2)]
+    vals, counts = np.unique(m2, return_counts=True)
+    return np.sqrt(vals.astype(float)), counts // 2
+
+
+def predicted_unstable_excess(e_n: float, e_t: float, stab: ShearStability, n_particles: int, tau,
+                              r0: float = 1.0):
+    """Predicted excess translational energy in the box's unstable shear modes, as a fraction of the
+    translational kinetic energy: (2/(3N)) sum over pairs with |k| < k_c and both polarisations of
+    (x_k(tau) - 1) (Eq. 3). The ODE describes the thermal part, while the recorded temperature contains
+    this flow energy, so it estimates T_measured/T_ODE - 1 once the modes have grown. Zeros for a
+    stable box."""
+    tau = np.asarray(tau, dtype=float)
+    out = np.zeros_like(tau)
+    ks, pairs = box_wavenumbers(stab, stab.k_c)
+    for kk, cnt in zip(ks, pairs):
+        x, _ = predicted_mode_energy(e_n, e_t, stab, tau, r0=r0, k_over_kmin=float(kk))
+        out += cnt * 2 * (x - 1.0) * 2.0 / (3.0 * n_particles)
+    return out
