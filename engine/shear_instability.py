@@ -123,16 +123,18 @@ def shear_stability(e_n: float, e_t: float, volume_fraction: float, n_particles:
     zs, es = zeta_star(e, volume_fraction), eta_star(e, volume_fraction)
     k_c = math.sqrt(zs / (2.0 * es) * 256.0 * math.pi / 25.0) * n * sigma**2
     k_min = 2.0 * math.pi / box_length
-    # per collision: zeta/omega_E = (4/3)(A - B r_inf) = (1 - e^2)/3; nu k^2/omega_E = (zeta/(2 omega_E)) k^2/k_c^2
+    # per collision: zeta/omega_E = (4/3)(A - B r_inf) = (1 - e^2)/3;
+    # nu k^2/omega_E = eta* k^2 eta_0/(n m omega_E) = 5 eta* k^2 / (64 pi chi n^2 sigma^4)
     half_zeta = (1.0 - e * e) / 6.0
-    mu = half_zeta * (k_min / k_c) ** 2
+    mu = 5.0 * es * k_min**2 / (64.0 * math.pi * chi * n**2 * sigma**4)
     lam = half_zeta - mu
     x_st = 1.0 / (1.0 - (k_c / k_min) ** 2) if k_min > k_c else float("nan")
     m_max = int(k_c / k_min) + 1
     grid = np.arange(-m_max, m_max + 1)
     m2 = grid[:, None, None] ** 2 + grid[None, :, None] ** 2 + grid[None, None, :] ** 2
     pairs = int(np.count_nonzero((m2 > 0) & (m2 * k_min**2 < k_c**2))) // 2
-    return ShearStability(e_eff=e, zeta_star=zs, eta_star=es, k_c=k_c, L_c=2.0 * math.pi / k_c, k_min=k_min,
+    return ShearStability(e_eff=e, zeta_star=zs, eta_star=es, k_c=k_c,
+                          L_c=2.0 * math.pi / k_c if k_c > 0 else math.inf, k_min=k_min,
                           box_over_Lc=box_length * k_c / (2.0 * math.pi),
                           mean_free_path=1.0 / (math.sqrt(2.0) * math.pi * sigma**2 * n * chi),
                           lambda_kmin=lam, mu_kmin=mu, x_stationary=x_st, unstable_pairs=pairs)
