@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Long-time homogeneous cooling (issue 18 part 2) on the GPU machine, in one device call (< 7 min on an H200):
+#   - the paper-001 scene (N = 4096, phi = 0.008, L = 2 m; shear-stable) to tau = 100 at e = 0.8 and 0.6,
+#     12 seeds each, v_rms = 10 m/s;
+#   - the shear-unstable box (N = 32768, phi = 0.1, L = 4 m; L/L_c = 2.6, 3.4) to tau = 100, 4 seeds each;
+#   all 32 runs as one CUDA ensemble (5.9e11 particle-steps, ~200-300 s), then the analysis on the device
+#   (result files, ~2.5 GB, stay in /tmp there); only the report comes back: $OUT/hcs-long/{README.md,
+#   deviation.png, modes.png, summary.json, series.npz} and $OUT/hcs-long.log.
+# Run from the repository root with .whl carried (../shared/tools/device-wheels.sh):
+#   bash bench/device_hcs_long.sh
+# Extra arguments go to `python -m engine.validation.hcs_long run` (e.g. --seeds 8 --scenes paper001).
+set -uo pipefail
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
+mkdir -p "$OUT/hcs-long"
+# 395 s: the report of a finished run is written well inside the 7-minute call; an overrun still returns the log
+timeout 395 python3 -m engine.validation.hcs_long run --backend cuda --out-dir "$OUT/hcs-long" \
+    --scratch /tmp/hcs-long "$@" > "$OUT/hcs-long.log" 2>&1
+echo "hcs-long exit $?" >> "$OUT/hcs-long.log"
+tail -n 20 "$OUT/hcs-long.log"
+rm -rf /tmp/hcs-long
