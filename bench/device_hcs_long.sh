@@ -5,7 +5,7 @@
 #   - the shear-unstable box (N = 32768, phi = 0.1, L = 4 m; L/L_c = 2.6, 3.4; 40 elastic thermalisation
 #     collisions) to tau = 100, 4 seeds each;
 #   all 32 runs as one CUDA ensemble (6.3e11 particle-steps, ~210-320 s), then the analysis on the device
-#   (result files, ~2.5 GB, stay in /tmp there); only the report comes back: $OUT/hcs-long/{README.md,
+#   (result files, ~3.8 GB, stay in /tmp there); only the report comes back: $OUT/hcs-long/{README.md,
 #   deviation.png, modes.png, summary.json, series.npz} and $OUT/hcs-long.log.
 # Run from the repository root with .whl carried (../shared/tools/device-wheels.sh):
 #   bash bench/device_hcs_long.sh

@@ -18,7 +18,7 @@ spring-dashpot contact gives the same e_n and e_t,eff at any speed, the largest 
 ~1.5 % of a and t_c omega_E to <= 8e-4) and 12 seeds per e (not 32): 4.8e11 particle-steps. The unstable
 scene (v_rms = 5 m/s, 40 elastic thermalisation collisions, 4 seeds per e): 5.8e5 steps, 1.9e10
 particle-steps per seed, 1.5e11 in all. In all 6.3e11 particle-steps: ~210 s at 3e9/s, ~320 s at 2e9/s,
-which leaves room for start-up, snapshot I/O (~2.5 GB of frames) and the analysis inside one 7-minute
+which leaves room for start-up, snapshot I/O (~3.8 GB of frames) and the analysis inside one 7-minute
 device command.
 
 Observables: T/T0 and R/T0 from the records (T0 = T_tr at t = 0 after the elastic thermalisation;

@@ -140,6 +140,12 @@ def test_transport_coefficients_have_their_limits():
     e = 0.8
     assert eta_star(e, 1e-12) == pytest.approx(1.0 / ((3 - e) * (1 + e) / 4 - 5 / 24 * (1 - e * e)), rel=1e-9)
     assert effective_restitution(0.7, -1.0) == 0.7                         # smooth: e_eff = e_n
+    # elastic limit = Enskog's dense hard-sphere viscosity, eta/eta_0 = 1/chi + 0.8 b n + 0.7614 (b n)^2 chi,
+    # b n = 4 phi (Chapman & Cowling); the first-Sonine form differs in the last coefficient (0.771)
+    for phi in (0.01, 0.1, 0.2):
+        chi = (1 - phi / 2) / (1 - phi) ** 3
+        enskog = 1 / chi + 0.8 * 4 * phi + 0.7614 * (4 * phi) ** 2 * chi
+        assert eta_star(1.0, phi) == pytest.approx(enskog, rel=0.01)
     assert structure_factor_cs(1e-9) == pytest.approx(1.0)
 
 
