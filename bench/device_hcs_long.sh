@@ -9,15 +9,19 @@
 #   deviation.png, modes.png, summary.json, series.npz} and $OUT/hcs-long.log.
 # Run from the repository root with .whl carried (../shared/tools/device-wheels.sh):
 #   bash bench/device_hcs_long.sh
-# Extra arguments go to `python -m engine.validation.hcs_long run` (e.g. --seeds 8 --scenes paper001).
+# Extra arguments go to `python -m engine.validation.hcs_long run`. Split into two calls if one overruns
+# (each its own report folder, HCS_LONG_NAME):
+#   HCS_LONG_NAME=hcs-long-paper001 bash bench/device_hcs_long.sh --scenes paper001   (4.8e11 particle-steps)
+#   HCS_LONG_NAME=hcs-long-unstable bash bench/device_hcs_long.sh --scenes unstable   (1.5e11)
 set -uo pipefail
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
-mkdir -p "$OUT/hcs-long"
-# 395 s: the report of a finished run is written well inside the 7-minute call; an overrun still returns the log
-timeout 395 python3 -m engine.validation.hcs_long run --backend cuda --out-dir "$OUT/hcs-long" \
-    --scratch /tmp/hcs-long "$@" > "$OUT/hcs-long.log" 2>&1
-echo "hcs-long exit $?" >> "$OUT/hcs-long.log"
-tail -n 20 "$OUT/hcs-long.log"
-rm -rf /tmp/hcs-long
+name=${HCS_LONG_NAME:-hcs-long}
+mkdir -p "$OUT/$name"
+# 395 s: a finished run's report is written well inside the 7-minute call; an overrun still returns the log
+timeout 395 python3 -m engine.validation.hcs_long run --backend cuda --out-dir "$OUT/$name" \
+    --scratch "/tmp/$name" "$@" > "$OUT/$name.log" 2>&1
+echo "hcs-long exit $?" >> "$OUT/$name.log"
+tail -n 20 "$OUT/$name.log"
+rm -rf "/tmp/$name"

@@ -396,7 +396,17 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
     print(f"hcs-long: {c['runs']} runs as one ensemble, up to {c['max_steps']:.3g} steps, "
           f"{c['particle_steps']:.3g} particle-steps (~{c['particle_steps'] / 3e9:.0f} s at 3e9/s)", flush=True)
     t0 = time.time()
-    results_run = run_ensemble(specs, [t[4] for t in tasks], backend=None if backend == "auto" else backend)
+    last = [t0]
+
+    def progress(k: int, p) -> None:   # scene 0 has the most steps: a line every 30 s for the log
+        now = time.time()
+        if k == 0 and now - last[0] >= 30.0:
+            last[0] = now
+            print(f"hcs-long: {100 * p.fraction:.0f} % of the longest run after {now - t0:.0f} s, "
+                  f"ETA {p.eta_s:.0f} s, Cundall {p.cundall:.3g} per scene", flush=True)
+
+    results_run = run_ensemble(specs, [t[4] for t in tasks], backend=None if backend == "auto" else backend,
+                               progress=progress)
     wall = time.time() - t0
     for (scene, e, seed, _, _), s in zip(tasks, results_run):
         if isinstance(s, BaseException):
