@@ -133,7 +133,8 @@ def cmd_validate(args) -> int:
         from engine.validation import hcs_long
 
         return hcs_long.main(out_dir=out_dir, seeds=args.seeds, quick=args.quick, backend=args.backend,
-                             command=f"demq validate hcs-long -o {out_dir}" + (f" --seeds {args.seeds}" if args.seeds else "")
+                             command=f"demq validate hcs-long -o {out_dir}"
+                             + (f" --seeds {args.seeds}" if args.seeds else "")
                              + (" --quick" if args.quick else "") + f" --backend {args.backend}")
     from engine.validation import hcs_spheres
 

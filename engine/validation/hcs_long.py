@@ -287,7 +287,8 @@ def _verdict(c: dict) -> str:
                  + ("; a deviation here is NOT caused by the shear mode" if math.isfinite(c["tau_dev_significant"])
                     else ""))
     else:
-        shear = (f"box unstable (L/L_c = {st.box_over_Lc:.2f}, {st.unstable_pairs} unstable mode pairs): x > 2 measured "
+        shear = (f"box unstable (L/L_c = {st.box_over_Lc:.2f}, {st.unstable_pairs} unstable mode pairs): "
+                 f"x > 2 measured "
                  f"from tau = {_fmt_tau(c['tau_shear_measured'])} (predicted {_fmt_tau(c['tau_shear_predicted'])}), "
                  f"x = {c['x_shear'][-1]:.1f} at the end (predicted {c['x_pred'][-1]:.1f}); unstable modes predicted "
                  f"to hold 1 % of E_tr from tau = {_fmt_tau(c['tau_dev_predicted'])}")
@@ -322,7 +323,8 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
               "predicted 1 % of E_tr | goal met | largest overlap / a |",
               "|---|---|---|---|---|---|---|---|---|"]
     for key, c in results.items():
-        lines.append(f"| {key} | {c['seeds']} | 0 - {c['tau_within_1pct']:.1f} | {_fmt_tau(c['tau_dev_significant'])} | "
+        lines.append(f"| {key} | {c['seeds']} | 0 - {c['tau_within_1pct']:.1f} | "
+                     f"{_fmt_tau(c['tau_dev_significant'])} | "
                      f"{_fmt_tau(c['tau_shear_measured'])} | {_fmt_tau(c['tau_shear_predicted'])} | "
                      f"{_fmt_tau(c['tau_dev_predicted'])} | {'yes' if criterion(c) else 'NO'} | "
                      f"{c['max_overlap']:.4f} |")
@@ -501,7 +503,8 @@ def quick_checks(results: dict) -> list:
         if not float(np.max(c["x_shear"])) < 3.0:
             problems.append(f"{key}: shear-mode energy reached {np.max(c['x_shear']):.2f} T in a stable box")
         if not (np.all(c["S"] > 0) and float(np.max(c["S"])) <= 1.6 * c["S_cs"]):
-            problems.append(f"{key}: S(k_min) left (0, {1.6 * c['S_cs']:.2f}] in a stable box: max {np.max(c['S']):.2f}")
+            problems.append(f"{key}: S(k_min) left (0, {1.6 * c['S_cs']:.2f}] in a stable box: "
+                            f"max {np.max(c['S']):.2f}")
     return problems
 
 
@@ -529,7 +532,8 @@ def _cli(argv=None) -> int:
 
         return main(out_dir=args.out_dir, seeds=args.seeds, quick=args.quick, backend=args.backend,
                     scenes=args.scenes, scratch=args.scratch, keep=args.keep, velocity_rms=args.velocity_rms,
-                    tau_end=args.tau_end, unstable_seeds=args.unstable_seeds, command="python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
+                    tau_end=args.tau_end, unstable_seeds=args.unstable_seeds,
+                    command="python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
     c = analyse(args.files)
     lines = ["tau,T,T_err,T_ode,dev,dev_err,x_shear,x_shear_err,x_pred,S,S_err"]
     for j, tf in enumerate(c["tau_f"]):

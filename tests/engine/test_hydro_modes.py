@@ -187,6 +187,7 @@ def test_mode_energy_prediction_limits():
     # unstable box: grows as exp(2 lambda s) at late times (smooth: no rotational transient)
     st = shear_stability(0.6, -1.0, 0.1, 32768, 4.0)
     x, s = predicted_mode_energy(0.6, -1.0, st, tau)
-    rate = np.log((x[-1] - st.mu_kmin / (-st.lambda_kmin)) / (x[-11] - st.mu_kmin / (-st.lambda_kmin))) / (s[-1] - s[-11])
+    x_star = st.mu_kmin / (-st.lambda_kmin)                # x(s) = x* + (1 - x*) exp(2 lambda s)
+    rate = np.log((x[-1] - x_star) / (x[-11] - x_star)) / (s[-1] - s[-11])
     assert rate == pytest.approx(2 * st.lambda_kmin, rel=1e-4)
     assert np.all(np.diff(predicted_unstable_excess(0.6, -1.0, st, 32768, tau)) > 0)
