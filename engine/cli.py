@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     v = sub.add_parser("validate", help="physics validation runs that write a report")
     v.add_argument("case", choices=["hcs-spheres", "hcs-ellipsoids", "hcs-long"], help="which validation to run")
     v.add_argument("-o", "--out-dir", default=None, help="report folder (default reports/<case>)")
-    v.add_argument("--seeds", type=int, default=None, help="seeds per case (default 4 spheres, 1 ellipsoids)")
+    v.add_argument("--seeds", type=int, default=None, help="seeds per case (default 4 spheres, 1 ellipsoids, 12 hcs-long)")
     v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
     v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
     v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")

@@ -33,9 +33,9 @@ denominator nu_eta* - zeta*/2 of the Garzó–Dufty viscosity in SedFoam's Garzo
 - rough spheres: the smooth-sphere formulas at the effective normal restitution e_eff that gives the
   same HCS cooling rate, (1 - e_eff^2)/4 = A - B r_inf (A, B from e_n and the contact model's e_t,eff).
   This is the "elastic-viscosity / effective-restitution" approximation: the viscosity of elastic
-  perfectly rough spheres (Pidduck) differs from the smooth one by ~5 % at q = 2/5, and Garzó, Santos &
-  Kremer (2018) find that roughness moves the threshold by tens of percent at most; treat L_c as
-  +-20 %.
+  perfectly rough spheres (Pidduck; Chapman & Cowling's factor 6(1+K)^2/(6+13K), K = q = 2/5, quoted from
+  memory) differs from the smooth one by ~5 %, and Garzó, Santos & Kremer (2018; abstract read) find
+  that roughness shifts the threshold either way depending on e_t; treat L_c as +-20 %.
 
 Fluctuating hydrodynamics (van Noije, Ernst, Brito & Orza, PRL 79, 411 (1997); Brey, Ruiz-Montero &
 Cubero 1999): with the elastic fluctuation–dissipation noise, the mean energy of one transverse mode
