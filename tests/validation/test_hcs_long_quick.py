@@ -12,7 +12,7 @@ from engine.validation import hcs_long
 
 
 def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):
-    rc = hcs_long.main(out_dir=tmp_path, quick=True, backend="cpu")
+    rc = hcs_long.main(out_dir=tmp_path, quick=True, backend="cpu", keep=True)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert set(summary) == {"quick e=0.8", "quick e=0.6"}
     for case, s in summary.items():
@@ -29,7 +29,15 @@ def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):
     readme = (tmp_path / "README.md").read_text()
     assert "Garzó" in readme and "Luding" in readme and "| quick e=0.8 |" in readme
     assert (tmp_path / "deviation.png").stat().st_size > 1000 and (tmp_path / "modes.png").stat().st_size > 1000
-    assert not list((tmp_path / "runs").glob("*.h5"))           # result files removed after the analysis
+    # the analysis CLI on one case's result files: seed-mean series at the frame times
+    files = sorted(str(p) for p in (tmp_path / "runs").glob("quick_e0.8_seed*.h5"))
+    assert len(files) == 4
+    assert hcs_long._cli(["analyse", *files, "-o", str(tmp_path / "e08.csv")]) == 0
+    rows = (tmp_path / "e08.csv").read_text().splitlines()
+    assert rows[0].startswith("tau,T,T_err,T_ode,dev") and len(rows) == 1 + 9
+    table = np.array([[float(v) for v in r.split(",")] for r in rows[1:]])
+    assert np.all(np.isfinite(table))
+    assert np.allclose(table[:, 6], series["quick e=0.8/x_shear"], rtol=1e-4)
 
 
 def test_quick_checks_fail_on_a_deviating_or_clustered_case():
