@@ -16,10 +16,17 @@ tau = 100. At ~3e9 particle-steps/s (H200, CUDA ensemble) 2 x 32 seeds would tak
 run uses v_rms = 10 m/s (4x fewer steps: 4.9e6 steps and 2.0e10 particle-steps per seed; the linear
 spring-dashpot contact gives the same e_n and e_t,eff at any speed, the largest overlap grows ~ v to
 ~1.5 % of a and t_c omega_E to <= 8e-4) and 12 seeds per e (not 32): 4.8e11 particle-steps. The unstable
-scene (v_rms = 5 m/s, 40 elastic thermalisation collisions, 4 seeds per e): 5.8e5 steps, 1.9e10
-particle-steps per seed, 1.5e11 in all. In all 6.3e11 particle-steps: ~210 s at 3e9/s, ~320 s at 2e9/s,
-which leaves room for start-up, snapshot I/O (~3.8 GB of frames) and the analysis inside one 7-minute
-device command.
+scene (v_rms = 5 m/s, 4 seeds per e): 4.0e5 steps, 1.3e10 particle-steps per seed, 1.1e11 in all. In all
+5.9e11 particle-steps: ~200 s at 3e9/s, ~300 s at 2e9/s, which leaves room for start-up, snapshot I/O
+(~3.8 GB of frames) and the analysis inside one 7-minute device command.
+
+S(k_min) and the fcc start. The start lattice (engine/scene.py) has almost no density fluctuation at
+k_min, while the velocities are Maxwellian: the k_min sound mode starts with its kinetic half only, and
+the ensemble mean of S(k_min) of a homogeneous gas then rises as S_eq sin^2(omega_s t) (omega_s the sound
+frequency; period L/c ~ 5 collision times in the paper-001 box, ~60 in the unstable one) and settles
+at or below S_eq as the sound damps. So S(k_min) BELOW the equilibrium value S_CS(phi) is the start's
+memory, and S(k_min) ABOVE S_CS (at 2 SE) is the signal of density growth (clustering). The transverse
+modes do not couple to density in linear order and start at their noise level.
 
 Observables: T/T0 and R/T0 from the records (T0 = T_tr at t = 0 after the elastic thermalisation;
 tau = (2/3) G T0^(1/2) t), and from the snapshot frames (101 over the run) the six k_min shear-mode
@@ -52,10 +59,8 @@ CASES = (0.8, 0.6)
 SCENES = {
     "paper001": (dict(n_particles=4096, volume_fraction=0.008, box_length=2.0, velocity_rms=10.0,
                       thermalization=4.0), 100.0, 12, 400, 101),
-    # 40 elastic collisions first: the fcc start suppresses the k_min density fluctuation, which relaxes
-    # by sound (period L/c ~ 60 collision times here); 4 collisions would leave S(k_min) far below equilibrium
     "unstable": (dict(n_particles=32768, volume_fraction=0.1, box_length=4.0, velocity_rms=5.0,
-                      thermalization=40.0), 100.0, 4, 400, 101),
+                      thermalization=4.0), 100.0, 4, 400, 101),
     # CI: N = 1000, phi = 0.05, tau <= 4 (stable: L/L_c = 0.51 and 0.65); ~3e7 particle-steps per run
     "quick": (dict(n_particles=1000, volume_fraction=0.05, box_length=2.0, velocity_rms=7.0,
                    thermalization=1.0), 4.0, 4, 80, 9),
@@ -182,14 +187,17 @@ def onsets(c: dict) -> dict:
     - ``tau_dev_significant``: first tau where |dev| - 2 SE > 1 % (the deviation exceeds 1 % at 2 sigma);
     - ``tau_shear_measured``: first frame where x_shear - 2 SE > 2 (the shear modes hold twice the thermal
       noise at 2 sigma); ``tau_shear_predicted``: x_pred(k_min) = 2;
-    - ``tau_dev_predicted``: the unstable shear modes hold 1 % of the translational energy (linear theory).
+    - ``tau_dev_predicted``: the unstable shear modes hold 1 % of the translational energy (linear theory);
+    - ``tau_S_above_eq``: first frame where S(k_min) - 2 SE exceeds the equilibrium S_CS (density growth).
     """
     dev, err, tau = np.abs(c["dev"]), c["dev_err"], c["tau"]
     out_idx = np.nonzero(dev > 0.01)[0]
     within = float(tau[-1]) if out_idx.size == 0 else (float(tau[out_idx[0] - 1]) if out_idx[0] > 0 else 0.0)
     sig = np.nonzero(dev - 2 * err > 0.01)[0]
     xs = np.nonzero(c["x_shear"] - 2 * c["x_shear_err"] > 2.0)[0]
-    return {"tau_within_1pct": within, "tau_dev_significant": float(tau[sig[0]]) if sig.size else math.inf,
+    sc = np.nonzero(c["S"] - 2 * c["S_err"] > c["S_cs"])[0]
+    return {"tau_S_above_eq": float(c["tau_f"][sc[0]]) if sc.size else math.inf,
+            "tau_within_1pct": within, "tau_dev_significant": float(tau[sig[0]]) if sig.size else math.inf,
             "tau_shear_measured": float(c["tau_f"][xs[0]]) if xs.size else math.inf,
             "tau_shear_predicted": onset_tau(c["tau_f"], c["x_pred"], 2.0),
             "tau_dev_predicted": onset_tau(tau, c["dev_pred"], 0.01)}
@@ -253,6 +261,8 @@ def _plots(results: dict, out: Path) -> None:
         ax = axes[1][j]
         ax.errorbar(c["tau_f"], c["S"], yerr=c["S_err"], fmt="o", ms=2.5, label="S(k_min), mean of x, y, z")
         ax.axhline(c["S_cs"], color="grey", lw=0.6, ls=":", label="equilibrium hard spheres (CS)")
+        if math.isfinite(c["tau_S_above_eq"]):
+            ax.axvline(c["tau_S_above_eq"], color="m", lw=0.8, label="measured S > S_CS (2 SE)")
         if math.isfinite(c["tau_dev_predicted"]):
             ax.axvline(c["tau_dev_predicted"], color="r", lw=0.8, ls="--", label="predicted shear onset (1 % E_tr)")
         ax.set_yscale("log")
@@ -292,7 +302,10 @@ def _verdict(c: dict) -> str:
                  f"from tau = {_fmt_tau(c['tau_shear_measured'])} (predicted {_fmt_tau(c['tau_shear_predicted'])}), "
                  f"x = {c['x_shear'][-1]:.1f} at the end (predicted {c['x_pred'][-1]:.1f}); unstable modes predicted "
                  f"to hold 1 % of E_tr from tau = {_fmt_tau(c['tau_dev_predicted'])}")
-    return dev + sig + "; " + shear + f"; S(k_min) {c['S'][0]:.2f} -> {c['S'][-1]:.2f}; goal " + \
+    dens = (f"; S(k_min) {c['S'][0]:.2f} -> {c['S'][-1]:.2f} (equilibrium {c['S_cs']:.2f}"
+            + ("" if not math.isfinite(c["tau_S_above_eq"]) else
+               f"; above it from tau = {c['tau_S_above_eq']:.1f}: density growth") + ")")
+    return dev + sig + "; " + shear + dens + "; goal " + \
         ("met." if criterion(c) else "NOT met.")
 
 
@@ -320,13 +333,14 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
                      f"{st.x_stationary:.3f} | {st.unstable_pairs} |")
     lines += ["", "## Results", "",
               "| case | seeds | tau within 1 % | dev > 1 % (2 SE) from | shear x > 2 measured | predicted x = 2 | "
-              "predicted 1 % of E_tr | goal met | largest overlap / a |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "predicted 1 % of E_tr | S(k_min) > S_CS (2 SE) from | goal met | largest overlap / a |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for key, c in results.items():
         lines.append(f"| {key} | {c['seeds']} | 0 - {c['tau_within_1pct']:.1f} | "
                      f"{_fmt_tau(c['tau_dev_significant'])} | "
                      f"{_fmt_tau(c['tau_shear_measured'])} | {_fmt_tau(c['tau_shear_predicted'])} | "
-                     f"{_fmt_tau(c['tau_dev_predicted'])} | {'yes' if criterion(c) else 'NO'} | "
+                     f"{_fmt_tau(c['tau_dev_predicted'])} | {_fmt_tau(c['tau_S_above_eq'])} | "
+                     f"{'yes' if criterion(c) else 'NO'} | "
                      f"{c['max_overlap']:.4f} |")
     lines += ["", "Goal (issue 18): |T/T_ODE - 1| <= 1 % for as long as the shear mode has not grown; "
               "\"goal met\" = no deviation beyond 1 % at 2 SE before the measured shear onset.", "",
@@ -361,7 +375,9 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
               "Definitions: tau = (2/3) G T0^(1/2) t; T0 = T_tr at t = 0 of each seed; deviation = seed mean / "
               "ODE - 1 (ODE from the measured R(0)/T(0), e_t,eff of the contact model); x = mean over the six "
               "k_min shear modes of M |u_perp(k)|^2 / T (1 = thermal noise of a Maxwellian; engine/hydro_modes.py); "
-              "S(k_min) mean over x, y, z (1 = ideal gas). SE = std over seeds / sqrt(seeds).", "",
+              "S(k_min) mean over x, y, z (1 = ideal gas; S_CS = equilibrium hard spheres). The fcc start leaves "
+              "S(k_min) below S_CS until the k_min sound mode has equilibrated (engine/validation/hcs_long.py "
+              "docstring), so only S above S_CS signals density growth. SE = std over seeds / sqrt(seeds).", "",
               "## References", ""] + [f"- {r}" for r in REFERENCES] + [""]
     (out / "README.md").write_text("\n".join(lines) + "\n")
     summary = {}
@@ -370,7 +386,7 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
         st = c["stab"]
         summary[key] = {k: c[k] for k in ("e_n", "e_t", "e_t_effective", "seeds", "R0", "max_overlap",
                                           "tau_within_1pct", "tau_dev_significant", "tau_shear_measured",
-                                          "tau_shear_predicted", "tau_dev_predicted")}
+                                          "tau_shear_predicted", "tau_dev_predicted", "tau_S_above_eq")}
         summary[key].update(goal_met=bool(criterion(c)), L_over_Lc=st.box_over_Lc, L_c=st.L_c, e_eff=st.e_eff,
                             max_abs_dev=float(np.max(np.abs(c["dev"]))),
                             x_shear_final=float(c["x_shear"][-1]), S_final=float(c["S"][-1]),
@@ -478,10 +494,11 @@ def quick_checks(results: dict) -> list:
       shear and longitudinal mode energies are thermal noise, x within 1 +- 0.75: per frame the mean of
       6 (3) exponential variables scatters by 41 % (58 %), over 4 seeds SE 0.20 (0.29), so 0.75 is > 2.5 SE;
       a wrong normalisation (factor 2 or N) fails.
-    - the box is stable (L/L_c = 0.51, 0.65): x_shear < 3 at every frame (theory x* = 1.36, 1.74) and
-      0 < S(k_min) <= 1.6 S_CS (no clustering). S starts low (0.4): the fcc start lattice suppresses the
-      k_min density fluctuation until the gas has crossed the box (engine/scene.py), so S(0) is not checked
-      against the equilibrium value.
+    - the box is stable (L/L_c = 0.51, 0.65): x_shear < 4 at every frame (theory x* = 1.36, 1.74; the 4-seed
+      SE is ~0.35, so 4 is > 6 SE above x*) and 0 < S(k_min) <= 2.5 S_CS (no clustering; the seed-mean S
+      scatters with SE ~0.2 around <= 0.8 here, so the bound is > 4 SE away). S starts low (0.4): the fcc
+      start suppresses the k_min density fluctuation (module docstring), so S(0) is not checked against
+      the equilibrium value.
     """
     problems = []
     for key, c in results.items():
@@ -500,10 +517,10 @@ def quick_checks(results: dict) -> list:
             problems.append(f"{key}: shear-mode energy at tau = 0 is {c['x_shear'][0]:.2f} T, not thermal noise (1)")
         if not abs(c["x_long"][0] - 1.0) <= 0.75:
             problems.append(f"{key}: longitudinal mode energy at tau = 0 is {c['x_long'][0]:.2f} T, not 1")
-        if not float(np.max(c["x_shear"])) < 3.0:
+        if not float(np.max(c["x_shear"])) < 4.0:
             problems.append(f"{key}: shear-mode energy reached {np.max(c['x_shear']):.2f} T in a stable box")
-        if not (np.all(c["S"] > 0) and float(np.max(c["S"])) <= 1.6 * c["S_cs"]):
-            problems.append(f"{key}: S(k_min) left (0, {1.6 * c['S_cs']:.2f}] in a stable box: "
+        if not (np.all(c["S"] > 0) and float(np.max(c["S"])) <= 2.5 * c["S_cs"]):
+            problems.append(f"{key}: S(k_min) left (0, {2.5 * c['S_cs']:.2f}] in a stable box: "
                             f"max {np.max(c['S']):.2f}")
     return problems
 
