@@ -25,7 +25,8 @@ k_min, while the velocities are Maxwellian: the k_min sound mode starts with its
 the ensemble mean of S(k_min) of a homogeneous gas then rises as S_eq sin^2(omega_s t) (omega_s the sound
 frequency; period L/c ~ 5 collision times in the paper-001 box, ~60 in the unstable one) and settles
 at or below S_eq as the sound damps. So S(k_min) BELOW the equilibrium value S_CS(phi) is the start's
-memory, and S(k_min) ABOVE S_CS (at 2 SE) is the signal of density growth (clustering). The transverse
+memory, and S(k_min) ABOVE S_CS (at 2 SE) signals density growth (HCS density correlations, then
+clustering; the linear heat mode is not modelled here). The transverse
 modes do not couple to density in linear order and start at their noise level.
 
 Observables: T/T0 and R/T0 from the records (T0 = T_tr at t = 0 after the elastic thermalisation;
