@@ -1,0 +1,68 @@
+"""Reduced long-time HCS validation (`demq validate hcs-long --quick`): runs in CI (~20 s on one core).
+
+The full run (paper-001 scene to tau = 100 and the shear-unstable box, on the GPU) is
+bench/device_hcs_long.sh; its report goes to bench/reports/hcs-long/."""
+
+import json
+import math
+
+import numpy as np
+
+from engine.validation import hcs_long
+
+
+def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):
+    rc = hcs_long.main(out_dir=tmp_path, quick=True, backend="cpu", keep=True)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert set(summary) == {"quick e=0.8", "quick e=0.6"}
+    for case, s in summary.items():
+        assert s["L_over_Lc"] < 1.0, case                       # the CI box is linearly stable
+        assert s["tau_shear_predicted"] is None                 # (inf -> null) the theory predicts no growth
+        assert s["max_abs_dev"] < hcs_long.QUICK_DEV_MAX, (case, s)
+        assert 0.0 < s["S_final"] < 2.5 and math.isfinite(s["x_shear_final"])
+    assert rc == 0
+    series = np.load(tmp_path / "series.npz")
+    for case in summary:
+        x = series[f"{case}/x_shear"]
+        assert x.shape == (9,) and np.all(np.isfinite(x))
+        assert abs(x[0] - 1.0) < 0.75                            # thermal noise at tau = 0
+    readme = (tmp_path / "README.md").read_text()
+    assert "Garzó" in readme and "Luding" in readme and "| quick e=0.8 |" in readme
+    assert (tmp_path / "deviation.png").stat().st_size > 1000 and (tmp_path / "modes.png").stat().st_size > 1000
+    # the analysis CLI on one case's result files: seed-mean series at the frame times
+    files = sorted(str(p) for p in (tmp_path / "runs").glob("quick_e0.8_seed*.h5"))
+    assert len(files) == 4
+    assert hcs_long._cli(["analyse", *files, "-o", str(tmp_path / "e08.csv")]) == 0
+    rows = (tmp_path / "e08.csv").read_text().splitlines()
+    assert rows[0].startswith("tau,T,T_err,T_ode,dev") and len(rows) == 1 + 9
+    table = np.array([[float(v) for v in r.split(",")] for r in rows[1:]])
+    assert np.all(np.isfinite(table))
+    assert np.allclose(table[:, 6], series["quick e=0.8/x_shear"], rtol=1e-4)
+
+
+def test_quick_checks_fail_on_a_deviating_or_clustered_case():
+    tau = np.linspace(0, 4, 81)
+    good = {"tau": tau, "dev": np.zeros_like(tau), "dev_err": np.full_like(tau, 0.005),
+            "x_shear": np.ones(9), "x_long": np.ones(9), "S": np.full(9, 0.6), "shear_fraction": np.full(9, 0.004),
+            "S_cs": 0.67}
+    assert hcs_long.quick_checks({"ok": good}) == []
+    bad = dict(good, dev=np.where(tau > 2, 0.04, 0.0))          # 4 % > 1 % + 3 x 0.5 %
+    assert any("exceeds" in p for p in hcs_long.quick_checks({"b": bad}))
+    assert hcs_long.quick_checks({"b": dict(good, x_shear=np.full(9, 2.0))})   # x(0) = 2: not noise
+    assert hcs_long.quick_checks({"b": dict(good, S=np.full(9, 3.0))})          # clustered
+    assert hcs_long.quick_checks({"b": dict(good, x_shear=np.linspace(1, 5, 9))})  # shear grew
+
+
+def test_cli_dispatches_hcs_long(monkeypatch):
+    import argparse
+
+    from engine import cli
+
+    seen = {}
+    monkeypatch.setattr(hcs_long, "main", lambda **kw: seen.update(kw) or 0)
+    ap = argparse.ArgumentParser()
+    cli.register(ap.add_subparsers())
+    args = ap.parse_args(["validate", "hcs-long", "--quick", "--backend", "cpu", "-o", "x"])
+    assert args.func(args) == 0
+    assert seen["quick"] and seen["backend"] == "cpu" and seen["out_dir"] == "x"
+    assert seen["command"].startswith("demq validate hcs-long -o x")
