@@ -31,6 +31,7 @@ import math
 import os
 import shutil
 import time
+from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -242,8 +243,6 @@ class SceneRun:
         self.writer: Optional[H5MDWriter] = None
         self.done = False
         self._chunk = max(1, p.output_every)
-        self._frames = 0                  # snapshot frames handed to the writer (buffer slot rotation)
-        self._slot_busy = [None, None]    # per buffer slot, the write of the frame still using it
         self.defer_file = False           # set by drive(): the file is written at the end, in a writer process
         self.timings = dict.fromkeys(TIMINGS, 0.0)
         self.timings["setup"] = time.perf_counter() - t_setup
@@ -346,13 +345,15 @@ class SceneRun:
         t1 = time.perf_counter()
         tm["records"] += t1 - t0
         if step_done in self.snaps:
-            # two alternating buffer slots (pinned on CUDA): the I/O thread writes one frame while the run goes
-            # on; a slot is reused only after its previous frame is in the file
-            slot = self._frames % 2
-            if self._slot_busy[slot] is not None:
-                self._slot_busy[slot].result()
-            self._slot_busy[slot] = writer.snapshot(step_done, t_sim, view.state(reuse=2 + slot))
-            self._frames += 1
+            # two alternating buffer slots (pinned on CUDA), shared by all scenes of the ensemble (view.slots):
+            # the I/O thread writes one frame while the run goes on; a slot is reused, by any scene, only after
+            # its previous frame is in the file (waited for, not raised: a failed write is its writer's error)
+            slots = view.slots
+            slot = slots.frames % 2
+            if slots.busy[slot] is not None:
+                futures_wait([slots.busy[slot]])
+            slots.busy[slot] = writer.snapshot(step_done, t_sim, view.state(reuse=2 + slot))
+            slots.frames += 1
             tm["snapshots"] += time.perf_counter() - t1
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
         if self.ck.due() and step_done < p.n_steps:
@@ -433,6 +434,15 @@ class SceneRun:
                                cundall=cund, wall_s=self.wall))
 
 
+class _FrameSlots:
+    """The two snapshot buffer slots of an ensemble (its reused host buffers are shared by every scene) and the
+    write still using each (a future, or None)."""
+
+    def __init__(self):
+        self.frames = 0
+        self.busy = [None, None]
+
+
 class _SceneView:
     """Scene ``i`` of an ensemble, seen as a single backend by :meth:`SceneRun.at_stop`.
 
@@ -440,8 +450,8 @@ class _SceneView:
     stops in that round), or only this scene's where the ensemble offers ``observe_scene``.
     """
 
-    def __init__(self, ens, i: int, cache: dict):
-        self.ens, self.i, self.cache = ens, i, cache
+    def __init__(self, ens, i: int, cache: dict, slots: "_FrameSlots"):
+        self.ens, self.i, self.cache, self.slots = ens, i, cache, slots
 
     def observe(self) -> dict:
         one = getattr(self.ens, "observe_scene", None)
@@ -526,6 +536,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
         return results
 
     active: set = set()
+    frame_slots = _FrameSlots()
 
     def settle(i: int, result, deactivated: bool = False) -> None:
         results[live[i]] = result
@@ -625,7 +636,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
             done = []
             for i in sorted(i for i in active if runs[i].steps_to_next() == 0):
                 try:
-                    runs[i].at_stop(_SceneView(ens, i, cache))
+                    runs[i].at_stop(_SceneView(ens, i, cache, frame_slots))
                 except Exception as exc:
                     end(i, exc)
                     continue

@@ -224,6 +224,15 @@ import engine.simulate
 engine.simulate.DEFER_MIN_SCENES = 2                               # files written by writer processes
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/d0.h5", f"{out}/d1.h5"],
              backend="cuda")
+# frames of several scenes at the same steps while the I/O thread lags: the ensemble's shared buffer slots
+import time
+from engine.h5md import H5MDWriter
+_write_frame = H5MDWriter._write_frame
+H5MDWriter._write_frame = lambda self, *a: (time.sleep(0.2), _write_frame(self, *a))[1]
+engine.simulate.DEFER_MIN_SCENES = 100
+run_ensemble([{**spec, "seed": s} for s in (3, 4, 5)], [f"{out}/s{s}.h5" for s in (3, 4, 5)], backend="cuda")
+for s in (4, 5):
+    run({**spec, "seed": s, "backend": "cpu"}, f"{out}/cpu{s}.h5")
 """
 
 
@@ -241,7 +250,8 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
     p = subprocess.run([sys.executable, "-c", _SIM_SCRIPT, str(tmp_path)], env=env, capture_output=True, text=True,
                        cwd=str(root), timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
-    for gpu, cpu in (("gpu", "cpu"), ("e0", "cpu"), ("e1", "cpu1"), ("d0", "cpu"), ("d1", "cpu1")):
+    for gpu, cpu in (("gpu", "cpu"), ("e0", "cpu"), ("e1", "cpu1"), ("d0", "cpu"), ("d1", "cpu1"), ("s3", "cpu"),
+                     ("s4", "cpu4"), ("s5", "cpu5")):
         a, b = _datasets(tmp_path / f"{gpu}.h5"), _datasets(tmp_path / f"{cpu}.h5")
         for el in ("position", "velocity", "angular_velocity", "orientation"):
             key = f"particles/all/{el}/value"
