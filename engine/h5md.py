@@ -389,6 +389,11 @@ class H5MDWriter:
                 self.tmp.unlink()
 
 
+def writer_process_ready() -> int:
+    """What a writer process runs first (engine/h5md_pool.prewarm): importing this module is its start-up."""
+    return os.getpid()
+
+
 def write_whole_file(path, kwargs: dict, blocks: list, frames: list, run_info: dict) -> Path:
     """Write a deferred writer's file at once (in a writer process): create, blocks of records, frames,
     run attributes, close, rename; a failure leaves no file."""

@@ -96,11 +96,12 @@ def _executor() -> ThreadPoolExecutor:
         return _pool
 
 
-def prewarm(n: int = MAX_PROCESSES) -> None:
-    """Start up to ``n`` writer processes now (their imports then overlap the run), without waiting."""
+def prewarm(n: int = MAX_PROCESSES, ready=None) -> None:
+    """Start up to ``n`` writer processes now, without waiting; each runs ``ready()`` (a module-level function
+    of the module the later requests need: unpickling it imports that module), so the imports overlap the run."""
     ex = _executor()
     for _ in range(min(n, MAX_PROCESSES)):
-        ex.submit(_call, _ping, ())
+        ex.submit(_call, ready or _ping, ())
 
 
 def submit(fn, *args) -> Future:
@@ -122,9 +123,7 @@ def _shutdown() -> None:
 
 
 def serve() -> None:
-    """The writer process: answer (fn, args) requests until stdin closes."""
-    import engine.h5md  # noqa: F401  (import once, before the first request)
-
+    """The writer process: answer (fn, args) requests until stdin closes (unpickling fn imports its module)."""
     inp, out = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # anything printed must not corrupt the answers
     while True:

@@ -41,7 +41,7 @@ import numpy as np
 from engine.backends.base import ContactParams
 from engine.backends.ensemble import SerialEnsemble, ensemble_scene_builds, resolve_backend
 from engine.errors import Cancelled, InstabilityError, SpecError
-from engine.h5md import H5MDWriter, partial_path
+from engine.h5md import H5MDWriter, partial_path, writer_process_ready
 from engine.params import Q_SPHERE, Derived, derive
 from engine.spec import SimulationSpec, default_verlet_skin, load_spec
 
@@ -585,7 +585,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     if _defer_files(ens, runs):  # many small GPU scenes: files written at the end, in parallel processes
         from engine import h5md_pool
 
-        h5md_pool.prewarm(min(len(runs), h5md_pool.MAX_PROCESSES))
+        h5md_pool.prewarm(min(len(runs), h5md_pool.MAX_PROCESSES), ready=writer_process_ready)
         for r in runs:
             r.defer_file = True
     try:
