@@ -48,7 +48,8 @@ and for independent translational and rotational Maxwellians
 
     var(a11_hat) = 1 / (k_t k_r N) = 4 / (d_t d_r N)      (= 4/(9 N) for spheres)                (4)
 
-The estimators also carry an O(1/N) bias (ratio of sums), far below (3) for N >= 100.
+The estimator (1) also has a bias: for a Maxwellian the e_i / sum e are Dirichlet-distributed independently of
+the sum, which gives exactly E[a2_hat] = -1/(N d/2 + 1) = -2/(N d + 2), far below (3) for N >= 100.
 """
 
 from __future__ import annotations
