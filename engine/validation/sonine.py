@@ -30,8 +30,11 @@ s in [S_SKIP, S_END] per run, then over the seeds (mean and standard error s/sqr
 spring, engine.params.e_t_effective; moment of inertia q = 2/5) and gives a20, a02, a11 of that model:
 a model reference (the DEM tangential spring is not exactly a constant-beta collision), reported next to
 the DEM values; the Sonine theory of Santos, Kremer & dos Santos, Phys. Fluids 23, 030604 (2011), arXiv
-1009.6180, and Megías & Santos, arXiv 2303.00057, computes the same cumulants (their tables were not
-available here either).
+1009.6180, Vega Reyes, Santos & Kremer, arXiv 1309.2369 (Grad-like theory, DSMC and MD of the HCS), and
+Megías & Santos, arXiv 2303.00057, compute the same cumulants (their tables were not available here either).
+The DSMC is checked against exact limits (elastic perfectly rough spheres: equipartition, zero cumulants;
+energy conservation per collision) and, where the cumulants are small, against the Maxwellian T_rot/T_tr
+(tests/validation/test_sonine_reduced.py).
 
 **Pass criteria.** Full run: for every smooth case |a2,DEM - a2,DSMC| <= 3 sigma + 0.005, sigma the combined
 standard error; 0.005 is the allowance for the finite-density and soft-contact differences listed above
@@ -457,7 +460,9 @@ def main(out_dir="reports/sonine", seeds: int = 32, quick: bool = False, backend
               "DSMC is run here instead of quoting numbers.",
               "- Rough spheres: Santos, Kremer & dos Santos, Phys. Fluids 23, 030604 (2011) (arXiv 1009.6180) and "
               "Megías & Santos (arXiv 2303.00057) define a20, a02, a11 as here (a11 = <e_tr e_rot>/(<e_tr><e_rot>) "
-              "- 1).", "",
+              "- 1); Vega Reyes, Santos & Kremer (arXiv 1309.2369) compute them in the HCS with a Grad-like theory, "
+              "DSMC and MD (tables not reachable here). Maxwellian T_rot/T_tr: the fixed point of Luding's ODE "
+              "(paper 001; Huthmann & Zippelius 1997).", "",
               f"Pass: |DEM - DSMC| <= 3 sigma + {allow} (sigma: combined standard error; {allow}: allowance for "
               "finite density phi = 0.05, soft contacts and finite N)" +
               ("; quick: also a2 > 3 sigma." if quick else "."),

@@ -55,8 +55,8 @@ def test_sampling_error_formula_matches_the_scatter_of_repeated_draws():
 
 
 def test_polydisperse_maxwellian_is_zero_in_the_energy_form_not_in_the_velocity_form():
-    """Masses 1 and 8 at one temperature: the energy form gives 0; the velocity kurtosis of the mass mixture
-    gives (3/5)<v^4>/<v^2>^2 - 1 = 3/5 * 15/9 * (1 + 64)/2 / ((1 + 8)/2)^2 ... - 1 > 0 (here 0.605)."""
+    """Masses 1 and 1/8 at one temperature: the energy form gives 0; the velocity form of the mass mixture gives
+    (3/5)<v^4>/<v^2>^2 - 1 = (3/5)(15/9)((1 + 64)/2)/((1 + 8)/2)^2 - 1 = 0.605 (<v^2> = 3T/m, <v^4> = 15T^2/m^2)."""
     rng = np.random.default_rng(3)
     n = 200_000
     m = np.where(np.arange(n) % 2 == 0, 1.0, 1.0 / 8.0)
