@@ -16,10 +16,11 @@ else
   export PYTHONPATH=$PWD
 fi
 export PYTHONUNBUFFERED=1
-OUT=${OUT:-bench/reports/sonine}; SEEDS=${SEEDS:-32}; BACKEND=${BACKEND:-cuda}
+# optional box-size check: N=1000 L=1.26 (same phi, L / mean free path 10.5 instead of 17), CASES="0.4:-1 0.6:-1"
+OUT=${OUT:-bench/reports/sonine}; SEEDS=${SEEDS:-32}; BACKEND=${BACKEND:-cuda}; N=${N:-0}; L=${L:-0}; CASES=${CASES:-}
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null || true
 t0=$(date +%s)
-python3 -c "import sys; from engine.validation import sonine as v; sys.exit(v.main(sys.argv[1], seeds=int(sys.argv[2]), backend=sys.argv[3], ensemble=True))" "$OUT" "$SEEDS" "$BACKEND" 2>&1 | tee "$OUT.log"
+python3 -c "import sys; from engine.validation import sonine as v; c = [tuple(map(float, x.split(':'))) for x in sys.argv[6].split()] or None; sys.exit(v.main(sys.argv[1], seeds=int(sys.argv[2]), backend=sys.argv[3], ensemble=True, n_particles=int(sys.argv[4]), box_length=float(sys.argv[5]), cases=c))" "$OUT" "$SEEDS" "$BACKEND" "$N" "$L" "$CASES" 2>&1 | tee "$OUT.log"
 rc=${PIPESTATUS[0]}
 echo "sonine validation exit $rc in $(( $(date +%s) - t0 )) s" | tee -a "$OUT.log"
 mkdir -p "$OUT" && mv "$OUT.log" "$OUT/run.log"

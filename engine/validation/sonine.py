@@ -72,13 +72,19 @@ OBS = ("sonine_a2_translational", "sonine_a2_rotational", "sonine_a11")
 
 # ---- the DEM runs --------------------------------------------------------------------------------------
 
-def case_spec(e_n: float, e_t: float, seed: int, backend: str, quick: bool) -> SimulationSpec:
+def case_spec(e_n: float, e_t: float, seed: int, backend: str, quick: bool, n_particles: int = 0,
+              box_length: float = 0.0) -> SimulationSpec:
     """The scene of one case: velocity_rms 8 m/s (largest overlap about 2 % of the radius at the start, less as
     the gas cools), 1 elastic collision per particle of thermalisation (the Maxwellian start), and t_end long
     enough for S_END collisions per particle by Luding's ODE (s(tau) = (3/4) int sqrt(T) dtau), +5 %.
     Full: N = 4000, phi = 0.05 (Enskog g = 1.14) in L = 2 m (L / mean free path = 17); quick: N = 800,
-    phi = 0.08 (g = 1.24) in L = 1 m, radius 0.0288 m in both."""
+    phi = 0.08 (g = 1.24) in L = 1 m, radius 0.0288 m in both. ``n_particles``, ``box_length`` (both or neither)
+    replace N and L at the same phi (a box-size check: the shear modes of a finite box, issue 18 part 2)."""
     n, box, phi = (800, 1.0, 0.08) if quick else (4000, 2.0, 0.05)
+    if n_particles or box_length:
+        if not (n_particles > 1 and box_length > 0):
+            raise ValueError(f"n_particles ({n_particles}) and box_length ({box_length}) go together: give both")
+        n, box = int(n_particles), float(box_length)
     s_end = S_END_QUICK if quick else S_END
     base = SimulationSpec(n_particles=n, volume_fraction=phi, box_length=box, e_n=e_n, e_t=e_t,
                           velocity_rms=8.0, seed=seed, backend=backend, snapshots=0, thermalization=1.0)
@@ -303,18 +309,18 @@ def dsmc_references(cases, *, n: int, quick: bool) -> dict:
 
 # ---- report ----------------------------------------------------------------------------------------------
 
-def _tasks(seeds: int, backend: str, quick: bool, out: Path) -> list:
-    cases = [(0.4, -1.0)] if quick else [(e, -1.0) for e in SMOOTH] + list(ROUGH)
-    return [(e_n, e_t, seed, backend, quick, out / f"en{e_n}_et{e_t}_seed{seed}.h5")
+def _tasks(seeds: int, backend: str, quick: bool, out: Path, cases=None, size=(0, 0.0)) -> list:
+    cases = cases or ([(0.4, -1.0)] if quick else [(e, -1.0) for e in SMOOTH] + list(ROUGH))
+    return [(e_n, e_t, seed, backend, quick, out / f"en{e_n}_et{e_t}_seed{seed}.h5", size)
             for e_n, e_t in cases for seed in range(seeds)]
 
 
 def _one(task) -> str:
     from engine.simulate import run
 
-    e_n, e_t, seed, backend, quick, path = task
+    e_n, e_t, seed, backend, quick, path, size = task
     t0 = time.time()
-    s = run(case_spec(e_n, e_t, seed, backend, quick), path)
+    s = run(case_spec(e_n, e_t, seed, backend, quick, *size), path)
     return f"e_n={e_n} e_t={e_t} seed {seed}: {s.steps} steps on {s.backend} in {time.time() - t0:.1f} s"
 
 
@@ -358,19 +364,22 @@ def plot(rows: list, path: Path) -> None:
 
 
 def main(out_dir="reports/sonine", seeds: int = 32, quick: bool = False, backend: str = "auto", jobs: int = 1,
-         threads: int = 0, ensemble: bool = False, dsmc_n: int = 0) -> int:
+         threads: int = 0, ensemble: bool = False, dsmc_n: int = 0, cases=None, n_particles: int = 0,
+         box_length: float = 0.0) -> int:
     """Run the DEM cases (one ensemble with ``ensemble``), the DSMC references, and write README.md,
-    summary.json and sonine.png into ``out_dir``; 0 when the pass criteria of the module docstring hold."""
+    summary.json and sonine.png into ``out_dir``; 0 when the pass criteria of the module docstring hold.
+    ``cases``: [(e_n, e_t), ...] instead of the default set; ``n_particles``/``box_length``: see case_spec."""
     if threads:
         numba.set_num_threads(threads)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tasks = _tasks(seeds, backend, quick, out)
+    size = (n_particles, box_length)
+    tasks = _tasks(seeds, backend, quick, out, cases, size)
     t_start = time.time()
     if ensemble:
         from engine.ensemble import run_ensemble
 
-        specs = [case_spec(e_n, e_t, seed, be, q) for e_n, e_t, seed, be, q, _ in tasks]
+        specs = [case_spec(e_n, e_t, seed, be, q, *sz) for e_n, e_t, seed, be, q, _, sz in tasks]
         results = run_ensemble(specs, [t[5] for t in tasks], backend=backend)
         for t, r in zip(tasks, results):
             if isinstance(r, BaseException):
@@ -409,7 +418,7 @@ def main(out_dir="reports/sonine", seeds: int = 32, quick: bool = False, backend
     t_dsmc = time.time() - t1
     plot(rows, out / "sonine.png")
     meta = rows[0]["runs"][0]
-    spec0 = case_spec(rows[0]["e_n"], rows[0]["e_t"], 0, backend, quick)
+    spec0 = case_spec(rows[0]["e_n"], rows[0]["e_t"], 0, backend, quick, *size)
     cmd = (f"demq validate sonine{' --quick' if quick else ''}{' --ensemble' if ensemble else ''} --backend "
            f"{backend} --seeds {seeds} -o {out_dir}")
     lines = [
