@@ -24,12 +24,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="physics validation runs that write a report")
-    v.add_argument("case", choices=["hcs-spheres", "hcs-ellipsoids", "hcs-long", "encounter-dsmc"],
+    v.add_argument("case", choices=["hcs-spheres", "hcs-ellipsoids", "hcs-long", "sonine", "encounter-dsmc"],
                    help="which validation to run")
     v.add_argument("-o", "--out-dir", default=None, help="report folder (default reports/<case>)")
     v.add_argument("--seeds", type=int, default=None,
-                   help="seeds per case (default 4 spheres, 1 ellipsoids, 12 hcs-long, encounter-dsmc 4 (quick: 2) "
-                        "per rule)")
+                   help="seeds per case (default 4 spheres, 1 ellipsoids, 12 hcs-long, sonine 32 (quick: 6), "
+                        "encounter-dsmc 4 (quick: 2) per rule)")
     v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
     v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
     v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")
@@ -131,6 +131,11 @@ def cmd_validate(args) -> int:
         from engine.validation import encounter_report
 
         return encounter_report.main(out_dir=out_dir, seeds=args.seeds, quick=args.quick, jobs=args.jobs)
+    if args.case == "sonine":
+        from engine.validation import sonine
+
+        return sonine.main(out_dir=out_dir, seeds=args.seeds or (6 if args.quick else 32), quick=args.quick,
+                           backend=args.backend, jobs=args.jobs, threads=args.threads, ensemble=args.ensemble)
     if args.case == "hcs-ellipsoids":
         from engine.validation import hcs_ellipsoids
 

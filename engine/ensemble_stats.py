@@ -5,8 +5,11 @@ changes nothing but rounding); in each group the runs share their record steps, 
 
     mean  = (1/K) sum_k x_k,        standard_error = s / sqrt(K),  s^2 = (1/(K-1)) sum_k (x_k - mean)^2
 
-for x = T_tr, T_rot (J, per degree of freedom, as in the run files) and E_tr/E_tr(0) (each run
-normalised by its own first record). K = 1 has no spread estimate: its standard error is NaN.
+for x = T_tr, T_rot (J, per degree of freedom, as in the run files), E_tr/E_tr(0) (each run
+normalised by its own first record) and the velocity-distribution cumulants sonine_a2_translational,
+sonine_a2_rotational, sonine_a11 (dimensionless, engine/physics/sonine.py; a run file written before
+issue 18 has none: its values are NaN). K = 1 has no spread estimate: its standard error is NaN.
+The per-seed cumulant is a ratio of sums over N particles (bias O(1/N), far below the seed scatter).
 
 Batch file layout (``write_batch_result``)::
 
@@ -41,7 +44,12 @@ QUANTITIES = {
     "temperature_translational": ("temperature_translational", "J", False),
     "temperature_rotational": ("temperature_rotational", "J", False),
     "kinetic_energy_translational_ratio": ("kinetic_energy_translational", "", True),
+    "sonine_a2_translational": ("sonine_a2_translational", "", False),
+    "sonine_a2_rotational": ("sonine_a2_rotational", "", False),
+    "sonine_a11": ("sonine_a11", "", False),
 }
+#: quantities a run file may lack (written since issue 18): NaN there instead of an error
+OPTIONAL = ("sonine_a2_translational", "sonine_a2_rotational", "sonine_a11")
 #: Spec keys that do not define a group: runs differing only in these are seeds of one spec.
 NOT_GROUPING = ("seed", "backend")
 STANDARD_ERROR = "sample standard deviation over the seeds (ddof = 1) / sqrt(n_seeds); NaN with one seed"
@@ -114,8 +122,12 @@ def aggregate(runs: Sequence[Run]) -> list[Group]:
         g.runs.append(run.name)
         g.seeds.append(int(spec.get("seed", 0)))
         for name, (source, _, normalised) in QUANTITIES.items():
-            v = np.asarray(first["value"] if source == "temperature_translational" else
-                           read_series(run.path, source)["value"], dtype=np.float64)
+            if source == "temperature_translational":
+                v = np.asarray(first["value"], dtype=np.float64)
+            elif name in OPTIONAL and not _has_series(run.path, source):
+                v = np.full(len(g.step), np.nan)
+            else:
+                v = np.asarray(read_series(run.path, source)["value"], dtype=np.float64)
             if normalised:
                 v = v / v[0] if v.size and v[0] != 0 else np.full_like(v, np.nan)
             g.values.setdefault(name, []).append(v)
@@ -186,10 +198,16 @@ def read_batch_result(path) -> dict:
                  "job_ids": [x.decode() if isinstance(x, bytes) else str(x) for x in h["job_ids"][()]],
                  "seeds": h["seeds"][()], "step": h["step"][()], "time": h["time"][()]}
             for q in QUANTITIES:
-                g[q] = {part: h[q][part][()] for part in ("mean", "standard_error", "values")}
+                if q in h:  # batch files written before issue 18 lack the Sonine cumulants
+                    g[q] = {part: h[q][part][()] for part in ("mean", "standard_error", "values")}
             groups.append(g)
         out["groups"] = groups
     return out
+
+
+def _has_series(path, name: str) -> bool:
+    with h5py.File(path, "r") as f:
+        return name in f["observables"]
 
 
 def _varying_keys(specs: Sequence[dict]) -> list:

@@ -7,7 +7,11 @@ Layout (DESIGN §4)::
     /particles/all/<element>   {step, time, value[T][N][D]} for position, velocity, orientation,
                                angular_velocity (resizable, one frame per chunk)
     /particles/all/id, species, mass, radius | semi_axes       fixed per-particle data
-    /observables/<name>        {step, time, value[T]} scalar time series
+    /observables/<name>        {step, time, value[T]} scalar time series: kinetic_energy_translational,
+                               kinetic_energy_rotational, temperature_translational, temperature_rotational
+                               (J), contacts, elastic_energy (J), max_overlap (/radius), and the
+                               dimensionless velocity-distribution cumulants sonine_a2_translational,
+                               sonine_a2_rotational, sonine_a11 (engine/physics/sonine.py, issue 18)
     /parameters                @spec (JSON), derived parameters, engine version, backend, device,
                                wall time, Cundall number
 
@@ -56,6 +60,7 @@ UNITS = {
     "kinetic_energy_translational": "J", "kinetic_energy_rotational": "J",
     "temperature_translational": "J", "temperature_rotational": "J", "contacts": "",
     "elastic_energy": "J", "max_overlap": "", "momentum": "kg m s-1",
+    "sonine_a2_translational": "", "sonine_a2_rotational": "", "sonine_a11": "",
 }
 SNAPSHOT_ELEMENTS = ("position", "velocity", "orientation", "angular_velocity")
 DEM_MODULE_VERSION = [1, 0]

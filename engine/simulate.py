@@ -43,6 +43,7 @@ from engine.backends.ensemble import SerialEnsemble, ensemble_scene_builds, reso
 from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path, writer_process_ready
 from engine.params import Q_SPHERE, Derived, derive
+from engine.physics.sonine import sonine_observables
 from engine.spec import SimulationSpec, default_verlet_skin, load_spec
 
 #: In a dissipative run the total mechanical energy may not rise between records by more than this
@@ -118,6 +119,13 @@ def record(obs: dict, n: int) -> dict:
     Ellipsoids: T_rot counts the two rotational degrees of freedom that exchange energy (about the
     axes perpendicular to the symmetry axis), T_rot = E_rot,perp / N (paper 003 Eq. 25b as corrected in
     PHYSICS-NOTES §3.3); kinetic_energy_rotational stays the total.
+
+    Velocity-distribution shape (issue 18), dimensionless, where the backend reports the energy moments:
+    ``sonine_a2_translational`` (a2 of the translational energies, d = 3), ``sonine_a2_rotational`` (of the
+    rotational energies: spheres d = 3, spheroids the 2 active dof) and ``sonine_a11`` (the cross cumulant
+    <e_tr e_rot>/(<e_tr><e_rot>) - 1), all from engine/physics/sonine.py (energy form, lab frame = centre-of-mass
+    frame; 0 where the energy of those dof is zero). O(1) host work per record: the moments are per-scene sums
+    of the observe kernel.
     """
     if "kinetic_energy_rotational_active" in obs:
         t_rot = 2.0 * obs["kinetic_energy_rotational_active"] / (obs.get("rotational_dof", 2) * n)
@@ -131,6 +139,7 @@ def record(obs: dict, n: int) -> dict:
         "contacts": np.int64(obs["contacts"]),
         "elastic_energy": obs["elastic_energy"],
         "max_overlap": obs["max_overlap"],
+        **sonine_observables(obs, n),
     }
 
 

@@ -33,6 +33,7 @@ from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_le
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
+from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
 from engine.physics.rotation import fincham_quat_step_space
 
 @numba.njit(parallel=True, cache=True)
@@ -363,10 +364,13 @@ def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius
 
 @numba.njit(cache=True)
 def observe_kernel(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, inv_box, half, k_n_val, k_t_val):
-    """(E_tr, E_rot, contacts, elastic energy, max overlap/radius, P_x, P_y, P_z) in SI units.
+    """(E_tr, E_rot, contacts, elastic energy, max overlap/radius, P_x, P_y, P_z, S_tr2, S_rot2, S_x) in SI units.
 
     The elastic energy is that of the normal springs (k_n delta^2 / 2) and of the tangential springs
     (k_t |xi|^2 / 2) of the contacts; each pair appears twice in the full list, hence the factors 1/4.
+    S_tr2 = sum_i e_tr,i^2, S_rot2 = sum_i e_rot,i^2, S_x = sum_i e_tr,i e_rot,i (J^2) with the particle
+    energies e_tr,i = m_i |v_i|^2 / 2 and e_rot,i = I_i |omega_i|^2 / 2: the moments of the Sonine
+    coefficients (engine/physics/sonine.py), in sums of their own (the existing sums are unchanged).
     """
     n = pos.shape[0]
     e_tr = 0.0
@@ -377,10 +381,18 @@ def observe_kernel(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, i
     py = 0.0
     pz = 0.0
     worst = 0.0
+    s_tr2 = 0.0
+    s_rot2 = 0.0
+    s_x = 0.0
     for i in range(n):
         m = mass[i]
         e_tr += 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
         e_rot += 0.5 * inertia[i] * (omega[i, 0] ** 2 + omega[i, 1] ** 2 + omega[i, 2] ** 2)
+        et_i = 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
+        er_i = 0.5 * inertia[i] * (omega[i, 0] ** 2 + omega[i, 1] ** 2 + omega[i, 2] ** 2)
+        s_tr2 += et_i * et_i
+        s_rot2 += er_i * er_i
+        s_x += et_i * er_i
         px += m * vel[i, 0]
         py += m * vel[i, 1]
         pz += m * vel[i, 2]
@@ -405,7 +417,7 @@ def observe_kernel(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, i
         contacts += ci
         e_spring += es
         worst = max(worst, wi)
-    return e_tr, e_rot, contacts // 2, e_spring, worst, px, py, pz
+    return e_tr, e_rot, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
 
 
 class CpuBackend:
@@ -579,12 +591,13 @@ class CpuBackend:
 
     def observe(self) -> dict:
         k_t = 0.0 if self.k_t is None else float(self.k_t)
-        e_tr, e_rot, contacts, e_spring, worst, px, py, pz = observe_kernel(
+        e_tr, e_rot, contacts, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x = observe_kernel(
             self.pos, self.vel, self.omega, self.radius, self.mass, self.inertia, self.nbr, self.nn,
             self.hist, self.box_c, self.inv_box, self.half, float(self.k_n), k_t)
         return {"kinetic_energy_translational": float(e_tr), "kinetic_energy_rotational": float(e_rot),
                 "contacts": int(contacts), "elastic_energy": float(e_spring), "max_overlap": float(worst),
-                "momentum": (float(px), float(py), float(pz))}
+                "momentum": (float(px), float(py), float(pz)),
+                **sonine_sums(s_tr2, s_rot2, s_x, DOF_ROTATION_SPHERE)}
 
     def state(self) -> dict:
         """Copies of the state arrays in id order."""

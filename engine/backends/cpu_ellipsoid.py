@@ -37,6 +37,7 @@ from engine.backends.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability
 from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
 from engine.physics.integrate import drift_wrap, kick
+from engine.physics.sonine import DOF_ROTATION_SPHEROID, sonine_sums
 from engine.physics.rotation import angular_momentum, body_omega, fincham_quat_step_body, space_omega
 
 #: Newton tolerance on the Perram-Wertheim lambda per precision (bench/RESULTS.md, issue 4 section).
@@ -246,7 +247,9 @@ def run_steps_ell(nsteps, pos, vel, angm, quat, force, torque, inv_m, inv_i, uni
 @numba.njit(cache=True)
 def observe_ell(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
     """(E_tr, E_rot, E_rot of the two axes perpendicular to body x, contacts, elastic energy,
-    max overlap (m), P_x, P_y, P_z)."""
+    max overlap (m), P_x, P_y, P_z, S_tr2, S_rot2, S_x): the last three are the Sonine moments
+    sum e_tr,i^2, sum e_perp,i^2 and sum e_tr,i e_perp,i (J^2) with e_perp,i the energy of the two active
+    rotational dof (engine/physics/sonine.py, d = 2)."""
     n = vel.shape[0]
     e_tr = 0.0
     e_rot = 0.0
@@ -257,9 +260,13 @@ def observe_ell(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
     px = 0.0
     py = 0.0
     pz = 0.0
+    s_tr2 = 0.0
+    s_rot2 = 0.0
+    s_x = 0.0
     for i in range(n):
         m = mass[i]
         e_tr += 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
+        et_i = 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
         px += m * vel[i, 0]
         py += m * vel[i, 1]
         pz += m * vel[i, 2]
@@ -269,6 +276,9 @@ def observe_ell(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
         ep = 0.5 * (wb[1] * wb[1] / inv_i[i, 1] + wb[2] * wb[2] / inv_i[i, 2])
         e_rot += e1 + ep
         e_perp += ep
+        s_tr2 += et_i * et_i
+        s_rot2 += ep * ep
+        s_x += et_i * ep
         for kk in range(nn[i]):
             d = hist[i, kk, 3]
             if d > 0:
@@ -276,7 +286,7 @@ def observe_ell(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
                 # each pair appears in both partners' lists; frictionless: no tangential spring
                 e_spring += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, k_n_val, 0.0, 0.5)
                 worst = max(worst, d)
-    return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz
+    return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
 
 
 @numba.njit(cache=True)
@@ -458,14 +468,15 @@ class CpuEllipsoidBackend:
     # ---- host copies (output steps only) -----------------------------------------------------------
 
     def observe(self) -> dict:
-        e_tr, e_rot, e_perp, contacts, e_spring, worst, px, py, pz = observe_ell(
+        e_tr, e_rot, e_perp, contacts, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x = observe_ell(
             self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.half,
             float(self.k_n))
         bmin = float(np.min(self.axes))
         return {"kinetic_energy_translational": float(e_tr), "kinetic_energy_rotational": float(e_rot),
                 "kinetic_energy_rotational_active": float(e_perp), "rotational_dof": 2,
                 "contacts": int(contacts), "elastic_energy": float(e_spring),
-                "max_overlap": float(worst) / bmin, "momentum": (float(px), float(py), float(pz))}
+                "max_overlap": float(worst) / bmin, "momentum": (float(px), float(py), float(pz)),
+                **sonine_sums(s_tr2, s_rot2, s_x, DOF_ROTATION_SPHEROID)}
 
     def omega(self) -> np.ndarray:
         out = np.zeros((self.n, 3), self.dtype)

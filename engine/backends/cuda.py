@@ -43,6 +43,7 @@ from engine.backends.cuda_device import copy_device as _copy
 from engine.backends.cuda_lists import list_kernels
 from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
+from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
@@ -739,7 +740,8 @@ class CudaEnsemble:
             r = a[s].tolist()
             out.append({"kinetic_energy_translational": r[0], "kinetic_energy_rotational": r[1],
                         "contacts": int(round(r[2])) // 2, "elastic_energy": r[3],
-                        "max_overlap": r[7], "momentum": (r[4], r[5], r[6])})
+                        "max_overlap": r[7], "momentum": (r[4], r[5], r[6]),
+                        **sonine_sums(r[K.O_TR2], r[K.O_ROT2], r[K.O_X], DOF_ROTATION_SPHERE)})
         return out
 
     #: state() keys and the device arrays (3 or 4 rows, particle index fastest) they are copied from

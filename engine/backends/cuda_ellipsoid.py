@@ -31,6 +31,7 @@ from engine.backends import cuda_kernels as K
 from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.backends.cpu_ellipsoid import PW_SCREEN, PW_TOL, angm_from_omega, omega_from_angm
 from engine.backends.cuda import CudaBackend, CudaEnsemble
+from engine.physics.sonine import DOF_ROTATION_SPHEROID, sonine_sums
 
 
 class CudaEllipsoidEnsemble(CudaEnsemble):
@@ -212,7 +213,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
                         "kinetic_energy_rotational_active": r[CE.A_PERP], "rotational_dof": 2,
                         "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": r[CE.A_EL],
                         "max_overlap": r[CE.A_OVL] / self._bmin[s],
-                        "momentum": (r[CE.A_PX], r[CE.A_PY], r[CE.A_PZ])})
+                        "momentum": (r[CE.A_PX], r[CE.A_PY], r[CE.A_PZ]),
+                        **sonine_sums(r[CE.A_TR2], r[CE.A_ROT2], r[CE.A_X], DOF_ROTATION_SPHEROID)})
         return out
 
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat"))

@@ -65,7 +65,9 @@ NDE = ND + 9
 #: observe accumulators per scene: E_tr, E_rot, E_rot perpendicular to body x, contacts (x2), elastic
 #: energy, P_x, P_y, P_z, largest overlap (m)
 A_TR, A_ROT, A_PERP, A_CON, A_EL, A_PX, A_PY, A_PZ, A_OVL = range(9)
-NACC = 9
+# the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp (J^2; engine/physics/sonine.py)
+A_TR2, A_ROT2, A_X = 9, 10, 11
+NACC = 12
 
 #: sphere-module kernels reused unchanged (the list of bounding spheres)
 LIST_KERNELS = ("fill_i32", "count_cells", "tile_scan", "add_offsets", "scatter", "sort_cells", "gather_rows",
@@ -384,7 +386,7 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
         perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in PHYSICS-NOTES §3.3);
         contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
-        slot); momentum; largest delta."""
+        slot); momentum; largest delta; the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp."""
         s = cuda.blockIdx.y
         sh = cuda.shared.array(SH_OBS, ct.float64)
         vals = cuda.local.array(NACC, ct.float64)
@@ -419,6 +421,10 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                 vals[A_PX] += m * vx
                 vals[A_PY] += m * vy
                 vals[A_PZ] += m * vz
+                et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
+                vals[A_TR2] += et_i * et_i
+                vals[A_ROT2] += ep * ep
+                vals[A_X] += et_i * ep
                 for kk in range(nn[i]):
                     d = f64(hist[3, kk, i])
                     if d > 0.0:

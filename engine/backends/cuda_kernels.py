@@ -59,7 +59,10 @@ SS0 = 8
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5
 HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force
-NOBS = 8  # observe sums per scene: E_tr, E_rot, contacts x 2, elastic energy, P_x, P_y, P_z, max overlap
+# observe sums per scene: E_tr, E_rot, contacts x 2, elastic energy, P_x, P_y, P_z, max overlap (slot 7, a max),
+# then the Sonine moments sum e_tr^2, sum e_rot^2, sum e_tr e_rot (J^2; engine/physics/sonine.py)
+NOBS = 11
+O_TR2, O_ROT2, O_X = 8, 9, 10
 
 _cache: dict = {}
 
@@ -654,7 +657,8 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
 
     @cuda.jit
     def observe(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, spd, spf, spi, acc):
-        """acc[s] += (E_tr, E_rot, contacts (x2), elastic energy, P_x, P_y, P_z); acc[s, 7] = max overlap.
+        """acc[s] += (E_tr, E_rot, contacts (x2), elastic energy, P_x, P_y, P_z); acc[s, 7] = max overlap;
+        acc[s, 8:11] += (sum e_tr^2, sum e_rot^2, sum e_tr e_rot), the Sonine moments (cpu.observe_kernel).
 
         One block row per scene (blockIdx.y = s); per particle in float64, reduced per block
         (observe_reducer): O(blocks) atomics, not O(N) on K x 8 addresses (issue 14)."""
@@ -683,6 +687,11 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
                 vals[4] += m * vx
                 vals[5] += m * vy
                 vals[6] += m * vz
+                et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
+                er_i = 0.5 * ii * (wx * wx + wy * wy + wz * wz)
+                vals[O_TR2] += et_i * et_i
+                vals[O_ROT2] += er_i * er_i
+                vals[O_X] += et_i * er_i
                 ri = r0 if UNIFORM else radius[i]
                 for kk in range(nn[i]):
                     j = nbr[kk, i]
