@@ -19,12 +19,12 @@ _ENGINE = Path(__file__).resolve().parent
 
 def source_digest() -> str:
     h = hashlib.sha1()
-    for sub in ("physics", "backends"):
+    for sub in ("physics", "backends", "shapes"):
         for f in sorted((_ENGINE / sub).glob("*.py")):
             h.update(f.name.encode())
             h.update(f.read_bytes())
     # kernels the backends compile in from engine/ itself
-    for name in ("multigrid.py",):
+    for name in ("multigrid.py", "cells.py", "scene.py"):
         h.update(name.encode())
         h.update((_ENGINE / name).read_bytes())
     return h.hexdigest()[:16]

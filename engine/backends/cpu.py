@@ -28,6 +28,7 @@ import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the di
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends.cpu_shared import SLOT, collect_springs, cpu_name, restore_springs, worst_overlap
 from engine.backends.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
+from engine.cells import cell_coords_of, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.errors import InstabilityError
 from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
@@ -127,10 +128,7 @@ def bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor):
     for c in range(ncell + 1):
         cell_start[c] = 0
     for i in range(n):
-        cx = min(max(int(pos[i, 0] * inv_cell), 0), nc - 1)
-        cy = min(max(int(pos[i, 1] * inv_cell), 0), nc - 1)
-        cz = min(max(int(pos[i, 2] * inv_cell), 0), nc - 1)
-        c = (cx * nc + cy) * nc + cz
+        c = cell_index_of(pos[i, 0], pos[i, 1], pos[i, 2], inv_cell, nc)
         cell_of[i] = c
         cell_start[c + 1] += 1
     for c in range(ncell):
@@ -153,39 +151,28 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
     """
     n = pos.shape[0]
     max_nb = nbr.shape[1]
-    lo = -1 if nc >= 3 else 0
-    hi = 2 if nc >= 2 else 1
+    ncells = neighbour_cell_count(nc)
     for i in prange(n):
-        c = cell_of[i]
-        cx = c // (nc * nc)
-        cy = (c // nc) % nc
-        cz = c % nc
+        cx, cy, cz = cell_coords_of(cell_of[i], nc)
         xi = pos[i, 0]
         yi = pos[i, 1]
         zi = pos[i, 2]
         ri = radius[i]
         cnt = 0
-        for ox in range(lo, hi):
-            ax = (cx + ox + nc) % nc
-            for oy in range(lo, hi):
-                ay = (cy + oy + nc) % nc
-                for oz in range(lo, hi):
-                    az = (cz + oz + nc) % nc
-                    cc = (ax * nc + ay) * nc + az
-                    for s in range(cell_start[cc], cell_start[cc + 1]):
-                        j = cell_list[s]
-                        if j == i:
-                            continue
-                        dx = min_image(xi - pos[j, 0], box, inv_box, half)
-                        dy = min_image(yi - pos[j, 1], box, inv_box, half)
-                        dz = min_image(zi - pos[j, 2], box, inv_box, half)
-                        rc = ri + radius[j] + skin
-                        if dx * dx + dy * dy + dz * dz < rc * rc:
-                            if cnt < max_nb:
-                                nbr[i, cnt] = j
-                                if not carry_slot(i, cnt, j, nbr_old, nn_old, hist_old, hist):
-                                    hist[i, cnt, 3] = ri + radius[j] - math.sqrt(dx * dx + dy * dy + dz * dz)
-                            cnt += 1
+        for k in range(ncells):
+            cc = neighbour_cell(cx, cy, cz, k, nc)
+            for s in range(cell_start[cc], cell_start[cc + 1]):
+                j = cell_list[s]
+                if j == i:
+                    continue
+                d2 = distance2(xi, yi, zi, pos[j, 0], pos[j, 1], pos[j, 2], box, inv_box, half)
+                rc = ri + radius[j] + skin
+                if d2 < rc * rc:
+                    if cnt < max_nb:
+                        nbr[i, cnt] = j
+                        if not carry_slot(i, cnt, j, nbr_old, nn_old, hist_old, hist):
+                            hist[i, cnt, 3] = ri + radius[j] - math.sqrt(d2)
+                    cnt += 1
         nn[i] = cnt
         x_ref[i, 0] = xi
         x_ref[i, 1] = yi
