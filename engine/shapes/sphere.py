@@ -1,0 +1,196 @@
+"""The sphere shape plug-in (papers 001, 002, 004): what a sphere adds to the shared CPU time loop.
+
+A shape module provides, for engine/backends/cpu.py's one time loop (``make_run_steps``):
+
+- ``NAME``: the shape's name in the spec (``SimulationSpec.shape``);
+- ``EXACT_DISPLACEMENT``: False = ``step`` leaves each chunk's largest |v|^2 (m^2/s^2) in ``chunk_a`` and the
+  loop bounds the displacement since the last list build by sum max|v| dt (the exact displacement is read only
+  when the bound passes L_v/2); True = ``step`` leaves each chunk's exact largest squared displacement (m^2);
+- ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+  chunk_a, chunk_b)``: the kick-drift half of velocity Verlet (translation, the shape's rotation, predicted
+  end-of-step velocities), the first non-finite particle per chunk into ``chunk_b`` (-1: none);
+- ``forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half, k_n,
+  gn_coef, law, dt, ext, chunk_a, chunk_b)``: contact forces and torques from the full Verlet list, list-slot
+  history updated (cpu_shared.SLOT), the largest overlap per chunk into ``chunk_a``/``chunk_b``.
+
+``spin`` is what the closing half kick advances with ``torque * spin_inv`` (spheres: the angular velocity and
+1/I), ``rad`` the list radius, ``law`` the shape's contact constants beyond k_n and gamma_n, ``ext`` its own
+extra arrays. For spheres: ``law = (k_t, mu)`` (None = smooth / no Coulomb limit: pruned at compile time,
+as are ``torque = None`` and ``quat = None``), ``ext = None``. The physics is in engine/physics/contact.py
+(sphere_contact, sphere_contact_end), engine/physics/integrate.py and engine/physics/rotation.py.
+Array layout: (N, 3) / (N, 4) rows per particle, the CPU backend's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+from numba import prange
+
+import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+
+from engine.physics.contact import contact_end_fraction, min_image, sphere_contact, sphere_contact_end
+from engine.physics.integrate import drift_wrap, kick
+from engine.physics.rotation import fincham_quat_step_space
+
+NAME = "sphere"
+EXACT_DISPLACEMENT = False
+
+
+@numba.njit(parallel=True, cache=True)
+def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt, box, inv_box, half,
+               chunk_v2, chunk_bad):
+    """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; the largest |v|^2 per chunk.
+
+    Also stores the predicted end-of-step velocity v + F/m dt/2 that the normal dashpot uses: with the
+    mid-step velocity instead, the damping force lags by dt/2, which acts like a stiffness change of
+    gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at e_n = 0.3, dt = t_c/50); the
+    predictor makes that error second order. The tangential spring integrates the mid-step velocity
+    (midpoint rule, like the positions).
+    """
+    n = pos.shape[0]
+    nch = chunk_v2.shape[0]
+    hp = dt * half
+    for c in prange(nch):
+        i0 = c * n // nch
+        i1 = (c + 1) * n // nch
+        m = 0.0
+        bad = -1
+        for i in range(i0, i1):
+            im = inv_m[i]
+            v2 = 0.0
+            for k in range(3):
+                v = kick(vel[i, k], force[i, k], im, hk)
+                vel[i, k] = v
+                vel_p[i, k] = kick(v, force[i, k], im, hp)
+                pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+                v2 += v * v
+            w2 = 0.0
+            if torque is not None:
+                ii = inv_i[i]
+                for k in range(3):
+                    w = kick(omega[i, k], torque[i, k], ii, hk)
+                    omega[i, k] = w
+                    w2 += w * w
+            if quat is not None:
+                q0, q1, q2, q3 = fincham_quat_step_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+                                                         omega[i, 0], omega[i, 1], omega[i, 2], dt, half)
+                quat[i, 0] = q0
+                quat[i, 1] = q1
+                quat[i, 2] = q2
+                quat[i, 3] = q3
+            if not (v2 < 1e300) or not (w2 < 1e300):
+                if bad < 0:
+                    bad = i
+            elif v2 > m:
+                m = v2
+        chunk_v2[c] = m
+        chunk_bad[c] = bad
+
+
+@numba.njit(parallel=True, cache=True)
+def compute_forces(pos, vel, vel_p, omega, radius, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                   k_n, gn_coef, k_t, mu, dt, chunk_ovl, chunk_ovl_idx):
+    """Contact forces and torques on every particle from its list; springs advanced in place.
+
+    vel, omega: mid-step velocities (spring increment); vel_p: predicted end-of-step velocities
+    (normal dashpot).
+
+    Records per chunk the largest overlap relative to the smaller radius, for the stability guard.
+    """
+    n = pos.shape[0]
+    nch = chunk_ovl.shape[0]
+    for c in prange(nch):
+        i0 = c * n // nch
+        i1 = (c + 1) * n // nch
+        worst = 0.0
+        worst_i = -1
+        for i in range(i0, i1):
+            fx = 0.0
+            fy = 0.0
+            fz = 0.0
+            tx = 0.0
+            ty = 0.0
+            tz = 0.0
+            xi = pos[i, 0]
+            yi = pos[i, 1]
+            zi = pos[i, 2]
+            ri = radius[i]
+            for kk in range(nn[i]):
+                j = nbr[i, kk]
+                rx = min_image(xi - pos[j, 0], box, inv_box, half)
+                ry = min_image(yi - pos[j, 1], box, inv_box, half)
+                rz = min_image(zi - pos[j, 2], box, inv_box, half)
+                d = math.sqrt(rx * rx + ry * ry + rz * rz)
+                rj = radius[j]
+                delta = ri + rj - d
+                delta_prev = hist[i, kk, 3]
+                if delta > 0:
+                    m12 = 1 / (inv_m[i] + inv_m[j])
+                    g = sphere_contact(rx, ry, rz, d,
+                                       vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
+                                       vel_p[i, 0] - vel_p[j, 0], vel_p[i, 1] - vel_p[j, 1],
+                                       vel_p[i, 2] - vel_p[j, 2],
+                                       omega[i, 0], omega[i, 1], omega[i, 2],
+                                       omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
+                                       hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], delta_prev,
+                                       hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, half)
+                    fx += g[0]
+                    fy += g[1]
+                    fz += g[2]
+                    if k_t is not None:
+                        tx += g[3]
+                        ty += g[4]
+                        tz += g[5]
+                        hist[i, kk, 0] = g[6]
+                        hist[i, kk, 1] = g[7]
+                        hist[i, kk, 2] = g[8]
+                    hist[i, kk, 4] = g[10]
+                    ov = delta / min(ri, rj)
+                    if ov > worst:
+                        worst = ov
+                        worst_i = i
+                elif delta_prev > 0:
+                    e = sphere_contact_end(rx, ry, rz, d,
+                                           vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
+                                           omega[i, 0], omega[i, 1], omega[i, 2],
+                                           omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
+                                           hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], k_t,
+                                           contact_end_fraction(delta_prev, delta), dt, half)
+                    fx += e[0]
+                    fy += e[1]
+                    fz += e[2]
+                    if k_t is not None:
+                        tx += e[3]
+                        ty += e[4]
+                        tz += e[5]
+                        hist[i, kk, 0] = 0
+                        hist[i, kk, 1] = 0
+                        hist[i, kk, 2] = 0
+                hist[i, kk, 3] = delta
+            force[i, 0] = fx
+            force[i, 1] = fy
+            force[i, 2] = fz
+            if torque is not None:
+                torque[i, 0] = tx
+                torque[i, 1] = ty
+                torque[i, 2] = tz
+        chunk_ovl[c] = worst
+        chunk_ovl_idx[c] = worst_i
+
+
+@numba.njit
+def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+         chunk_a, chunk_b):
+    """The shape's kick-drift (module docstring): kick_drift with spin = omega, spin_inv = 1/I."""
+    kick_drift(pos, vel, spin, quat, force, torque, inv_m, spin_inv, vel_p, hk, dt, box, inv_box, half,
+               chunk_a, chunk_b)
+
+
+@numba.njit
+def forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half, k_n,
+           gn_coef, law, dt, ext, chunk_a, chunk_b):
+    """The shape's forces (module docstring): compute_forces with law = (k_t, mu)."""
+    compute_forces(pos, vel, vel_p, spin, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                   k_n, gn_coef, law[0], law[1], dt, chunk_a, chunk_b)
