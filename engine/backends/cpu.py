@@ -151,6 +151,65 @@ def copy_list(nbr_src, nn_src, hist_src, nbr_dst, nn_dst, hist_dst):
 
 
 _loops: dict = {}
+_force_loops: dict = {}
+
+
+def make_forces(shape):
+    """The one CPU force loop, specialised by a shape's pair evaluator ``shape.pair`` (cached on disk per shape):
+
+    ``compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+    k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx)`` sums the forces and torques of every list slot of
+    every particle (each thread owns its particles: no atomics; the full list holds each pair twice), lets the
+    evaluator advance the slot's history in place, and records per chunk the largest relative overlap and its
+    particle (the stability guard). ``torque = None`` (smooth spheres): torques are neither summed nor written.
+    """
+    if shape.NAME in _force_loops:
+        return _force_loops[shape.NAME]
+    pair = shape.pair
+
+    def compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                       k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx):
+        n = pos.shape[0]
+        nch = chunk_ovl.shape[0]
+        for c in prange(nch):
+            i0 = c * n // nch
+            i1 = (c + 1) * n // nch
+            worst = 0.0
+            worst_i = -1
+            for i in range(i0, i1):
+                fx = 0.0
+                fy = 0.0
+                fz = 0.0
+                tx = 0.0
+                ty = 0.0
+                tz = 0.0
+                for kk in range(nn[i]):
+                    g = pair(i, kk, nbr[i, kk], pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half,
+                             k_n, gn_coef, law, dt, ext)
+                    fx += g[0]
+                    fy += g[1]
+                    fz += g[2]
+                    if torque is not None:
+                        tx += g[3]
+                        ty += g[4]
+                        tz += g[5]
+                    if g[6] > worst:
+                        worst = g[6]
+                        worst_i = i
+                force[i, 0] = fx
+                force[i, 1] = fy
+                force[i, 2] = fz
+                if torque is not None:
+                    torque[i, 0] = tx
+                    torque[i, 1] = ty
+                    torque[i, 2] = tz
+            chunk_ovl[c] = worst
+            chunk_ovl_idx[c] = worst_i
+
+    loop = cache_closure(numba.njit(parallel=True)(compute_forces), ("cpu.compute_forces", shape.NAME))
+    _force_loops[shape.NAME] = loop
+    return loop
+
 
 
 def make_run_steps(shape):
@@ -177,7 +236,7 @@ def make_run_steps(shape):
     if shape.NAME in _loops:
         return _loops[shape.NAME]
     step = shape.step
-    forces = shape.forces
+    forces = make_forces(shape)
     exact = bool(shape.EXACT_DISPLACEMENT)
 
     def run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
@@ -381,6 +440,15 @@ class CpuLoop:
         self.disp_bound[0] = 0.0
         self.builds += 1
 
+    def _forces(self) -> None:
+        """Forces and torques at the current positions (after a build outside the loop)."""
+        make_forces(self.shape)(self.pos, self.vel, self.vel_p, self._spin, self._quat_arg, self._rad_list,
+                                self.inv_m, self.nbr, self.nn, self.hist, self.force, self._torque_arg, self.box_c,
+                                self.inv_box, self.half, self.k_n, self.gn_coef, self._law, self.dt, self._ext,
+                                self.chunk_a, self.chunk_b)
+        if self._torque_arg is None:
+            self.torque[:] = 0
+
     # ---- time loop ---------------------------------------------------------------------------------
 
     def warmup(self) -> None:
@@ -472,13 +540,6 @@ class CpuBackend(CpuLoop):
         if worst > self.overlap_limit:
             raise _start_overlap(self, int(who), float(worst))
 
-    def _forces(self) -> None:
-        sphere.compute_forces(self.pos, self.vel, self.vel_p, self.omega, self.radius, self.inv_m, self.nbr,
-                              self.nn, self.hist, self.force, self._torque_arg, self.box_c, self.inv_box,
-                              self.half, self.k_n, self.gn_coef, self.k_t, self.mu, self.dt, self.chunk_a,
-                              self.chunk_b)
-        if self._torque_arg is None:
-            self.torque[:] = 0
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 

@@ -156,13 +156,6 @@ class CpuEllipsoidBackend(CpuLoop):
                             np.asarray(system.contact_springs, self.dtype))
         self._forces()
 
-    def _forces(self) -> None:
-        spheroid.compute_forces_ell(self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.bound,
-                                    self.inv_m, self.nbr, self.nn, self.hist, self.force, self.torque, self.box_c,
-                                    self.inv_box, self.half, self.k_n, self.gn_coef, self.dt, self.tol,
-                                    self.margin, self.screened_gap, self.pos_prev, self.quat_prev, self.chunk_a,
-                                    self.chunk_b)
-
     # ---- host copies (output steps only) -----------------------------------------------------------
 
     def observe(self) -> dict:

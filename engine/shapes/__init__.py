@@ -1,10 +1,10 @@
 """Particle shapes as plug-ins of the CPU time loop: one module per shape, one registry line each.
 
 A shape module (engine/shapes/sphere.py documents the interface) provides ``NAME``, ``EXACT_DISPLACEMENT`` and
-two njit functions, ``step`` (kick-drift: translation and the shape's rotation) and ``forces`` (the pair
-contact and force law over the Verlet list). engine/backends/cpu.py builds one compiled time loop per shape
-from them (``make_run_steps``); the list/cell machinery (engine/cells.py, engine/multigrid.py) and the
-list-slot history store (engine/backends/cpu_shared.py) are shared by every shape. Shape modules import
+two njit functions, ``step`` (kick-drift: translation and the shape's rotation) and ``pair`` (the pair
+evaluator: contact geometry and force law of one list slot). engine/backends/cpu.py builds one compiled time
+loop and one force loop per shape from them (``make_run_steps``, ``make_forces``); the list/cell machinery
+(engine/cells.py, engine/multigrid.py) and the list-slot history store (engine/backends/cpu_shared.py) are shared by every shape. Shape modules import
 only engine/physics/ (and numba); they never import a backend.
 """
 

@@ -9,9 +9,11 @@ A shape module provides, for engine/backends/cpu.py's one time loop (``make_run_
 - ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
   chunk_a, chunk_b)``: the kick-drift half of velocity Verlet (translation, the shape's rotation, predicted
   end-of-step velocities), the first non-finite particle per chunk into ``chunk_b`` (-1: none);
-- ``forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half, k_n,
-  gn_coef, law, dt, ext, chunk_a, chunk_b)``: contact forces and torques from the full Verlet list, list-slot
-  history updated (cpu_shared.SLOT), the largest overlap per chunk into ``chunk_a``/``chunk_b``.
+- ``pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
+  ext)``: the pair evaluator (contact geometry and force law) of list slot kk of particle i (neighbour j):
+  returns (F_x, F_y, F_z, T_x, T_y, T_z, overlap relative to the pair's size or 0) on i and advances the slot's
+  history ``hist[i, kk, :]`` (cpu_shared.SLOT) in place. engine/backends/cpu.py ``make_forces`` sums it over the
+  full Verlet list.
 
 ``spin`` is what the closing half kick advances with ``torque * spin_inv`` (spheres: the angular velocity and
 1/I), ``rad`` the list radius, ``law`` the shape's contact constants beyond k_n and gamma_n, ``ext`` its own
@@ -89,97 +91,6 @@ def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt
         chunk_bad[c] = bad
 
 
-@numba.njit(parallel=True, cache=True)
-def compute_forces(pos, vel, vel_p, omega, radius, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
-                   k_n, gn_coef, k_t, mu, dt, chunk_ovl, chunk_ovl_idx):
-    """Contact forces and torques on every particle from its list; springs advanced in place.
-
-    vel, omega: mid-step velocities (spring increment); vel_p: predicted end-of-step velocities
-    (normal dashpot).
-
-    Records per chunk the largest overlap relative to the smaller radius, for the stability guard.
-    """
-    n = pos.shape[0]
-    nch = chunk_ovl.shape[0]
-    for c in prange(nch):
-        i0 = c * n // nch
-        i1 = (c + 1) * n // nch
-        worst = 0.0
-        worst_i = -1
-        for i in range(i0, i1):
-            fx = 0.0
-            fy = 0.0
-            fz = 0.0
-            tx = 0.0
-            ty = 0.0
-            tz = 0.0
-            xi = pos[i, 0]
-            yi = pos[i, 1]
-            zi = pos[i, 2]
-            ri = radius[i]
-            for kk in range(nn[i]):
-                j = nbr[i, kk]
-                rx = min_image(xi - pos[j, 0], box, inv_box, half)
-                ry = min_image(yi - pos[j, 1], box, inv_box, half)
-                rz = min_image(zi - pos[j, 2], box, inv_box, half)
-                d = math.sqrt(rx * rx + ry * ry + rz * rz)
-                rj = radius[j]
-                delta = ri + rj - d
-                delta_prev = hist[i, kk, 3]
-                if delta > 0:
-                    m12 = 1 / (inv_m[i] + inv_m[j])
-                    g = sphere_contact(rx, ry, rz, d,
-                                       vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
-                                       vel_p[i, 0] - vel_p[j, 0], vel_p[i, 1] - vel_p[j, 1],
-                                       vel_p[i, 2] - vel_p[j, 2],
-                                       omega[i, 0], omega[i, 1], omega[i, 2],
-                                       omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
-                                       hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], delta_prev,
-                                       hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, half)
-                    fx += g[0]
-                    fy += g[1]
-                    fz += g[2]
-                    if k_t is not None:
-                        tx += g[3]
-                        ty += g[4]
-                        tz += g[5]
-                        hist[i, kk, 0] = g[6]
-                        hist[i, kk, 1] = g[7]
-                        hist[i, kk, 2] = g[8]
-                    hist[i, kk, 4] = g[10]
-                    ov = delta / min(ri, rj)
-                    if ov > worst:
-                        worst = ov
-                        worst_i = i
-                elif delta_prev > 0:
-                    e = sphere_contact_end(rx, ry, rz, d,
-                                           vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
-                                           omega[i, 0], omega[i, 1], omega[i, 2],
-                                           omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
-                                           hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], k_t,
-                                           contact_end_fraction(delta_prev, delta), dt, half)
-                    fx += e[0]
-                    fy += e[1]
-                    fz += e[2]
-                    if k_t is not None:
-                        tx += e[3]
-                        ty += e[4]
-                        tz += e[5]
-                        hist[i, kk, 0] = 0
-                        hist[i, kk, 1] = 0
-                        hist[i, kk, 2] = 0
-                hist[i, kk, 3] = delta
-            force[i, 0] = fx
-            force[i, 1] = fy
-            force[i, 2] = fz
-            if torque is not None:
-                torque[i, 0] = tx
-                torque[i, 1] = ty
-                torque[i, 2] = tz
-        chunk_ovl[c] = worst
-        chunk_ovl_idx[c] = worst_i
-
-
 @numba.njit
 def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
          chunk_a, chunk_b):
@@ -189,8 +100,69 @@ def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext
 
 
 @numba.njit
-def forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half, k_n,
-           gn_coef, law, dt, ext, chunk_a, chunk_b):
-    """The shape's forces (module docstring): compute_forces with law = (k_t, mu)."""
-    compute_forces(pos, vel, vel_p, spin, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
-                   k_n, gn_coef, law[0], law[1], dt, chunk_a, chunk_b)
+def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
+         ext):
+    """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), slot history advanced in place,
+    and the overlap relative to the smaller radius (0 when not in contact), for the shared force loop.
+
+    vel, spin: mid-step velocities and angular velocities (spring increment); vel_p: predicted end-of-step
+    velocities (normal dashpot). law = (k_t, mu): None = smooth / no Coulomb limit.
+    """
+    k_t = law[0]
+    omega = spin
+    rx = min_image(pos[i, 0] - pos[j, 0], box, inv_box, half)
+    ry = min_image(pos[i, 1] - pos[j, 1], box, inv_box, half)
+    rz = min_image(pos[i, 2] - pos[j, 2], box, inv_box, half)
+    d = math.sqrt(rx * rx + ry * ry + rz * rz)
+    ri = rad[i]
+    rj = rad[j]
+    delta = ri + rj - d
+    delta_prev = hist[i, kk, 3]
+    fx = 0.0
+    fy = 0.0
+    fz = 0.0
+    tx = 0.0
+    ty = 0.0
+    tz = 0.0
+    ov = 0.0
+    if delta > 0:
+        m12 = 1 / (inv_m[i] + inv_m[j])
+        g = sphere_contact(rx, ry, rz, d,
+                           vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
+                           vel_p[i, 0] - vel_p[j, 0], vel_p[i, 1] - vel_p[j, 1],
+                           vel_p[i, 2] - vel_p[j, 2],
+                           omega[i, 0], omega[i, 1], omega[i, 2],
+                           omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
+                           hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], delta_prev,
+                           hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), k_t, law[1], dt, half)
+        fx = g[0]
+        fy = g[1]
+        fz = g[2]
+        if k_t is not None:
+            tx = g[3]
+            ty = g[4]
+            tz = g[5]
+            hist[i, kk, 0] = g[6]
+            hist[i, kk, 1] = g[7]
+            hist[i, kk, 2] = g[8]
+        hist[i, kk, 4] = g[10]
+        ov = delta / min(ri, rj)
+    elif delta_prev > 0:
+        e = sphere_contact_end(rx, ry, rz, d,
+                               vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
+                               omega[i, 0], omega[i, 1], omega[i, 2],
+                               omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
+                               hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], k_t,
+                               contact_end_fraction(delta_prev, delta), dt, half)
+        fx = e[0]
+        fy = e[1]
+        fz = e[2]
+        if k_t is not None:
+            tx = e[3]
+            ty = e[4]
+            tz = e[5]
+            hist[i, kk, 0] = 0
+            hist[i, kk, 1] = 0
+            hist[i, kk, 2] = 0
+    hist[i, kk, 3] = delta
+    return fx, fy, fz, tx, ty, tz, ov

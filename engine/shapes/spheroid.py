@@ -1,5 +1,5 @@
 """The spheroid shape plug-in (frictionless prolate ellipsoids, paper 003): what an ellipsoid adds to the
-shared CPU time loop (engine/backends/cpu.py ``make_run_steps``; the interface is in engine/shapes/sphere.py).
+shared CPU time loop (engine/backends/cpu.py ``make_run_steps``, ``make_forces``; the interface is in engine/shapes/sphere.py).
 
 - Broad phase: the list radius ``rad`` is the bounding-sphere radius (largest semi-axis); the force loop runs the
   Perram-Wertheim contact (engine/physics/ellipsoid.py) only for pairs whose bounding spheres overlap, behind
@@ -96,100 +96,6 @@ def kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel
         chunk_bad[c] = bad
 
 
-@numba.njit(parallel=True, cache=True)
-def compute_forces_ell(pos, vel_p, omega_p, quat, axes, bound, inv_m, nbr, nn, hist, force, torque, box,
-                       inv_box, half, k_n, gn_coef, dt, tol, margin, screened_gap, pos_prev, quat_prev, chunk_ovl,
-                       chunk_ovl_idx):
-    """Contact forces and torques on every particle from its list; overlap/dashpot history updated.
-
-    Pairs proven disjoint by the exact screens (margin >= 0) store screened_gap (-inf) as their gap; a contact that
-    starts right after such a step gets the previous gap evaluated from pos_prev/quat_prev (see
-    engine.physics.ellipsoid.ellipsoid_pair_screened). Records per chunk the largest overlap relative to
-    the smallest semi-axis (stability guard).
-    """
-    n = pos.shape[0]
-    nch = chunk_ovl.shape[0]
-    for c in prange(nch):
-        i0 = c * n // nch
-        i1 = (c + 1) * n // nch
-        worst = 0.0
-        worst_i = -1
-        for i in range(i0, i1):
-            fx = 0.0
-            fy = 0.0
-            fz = 0.0
-            tx = 0.0
-            ty = 0.0
-            tz = 0.0
-            for kk in range(nn[i]):
-                j = nbr[i, kk]
-                a = i if i < j else j
-                b = j if i < j else i
-                rx = min_image(pos[b, 0] - pos[a, 0], box, inv_box, half)
-                ry = min_image(pos[b, 1] - pos[a, 1], box, inv_box, half)
-                rz = min_image(pos[b, 2] - pos[a, 2], box, inv_box, half)
-                rc = bound[a] + bound[b]
-                d2 = rx * rx + ry * ry + rz * rz
-                if d2 >= rc * rc and hist[i, kk, 3] <= 0:
-                    hist[i, kk, 3] = rc - math.sqrt(d2)     # negative: no contact possible
-                    hist[i, kk, 4] = 0
-                    continue
-                m12 = 1 / (inv_m[a] + inv_m[b])
-                d_prev = hist[i, kk, 3]
-                for _ in range(2):
-                    g = ellipsoid_pair_screened(
-                        rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
-                        axes[a, 0], axes[a, 1], axes[a, 2],
-                        quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
-                        axes[b, 0], axes[b, 1], axes[b, 2],
-                        vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
-                        omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
-                        omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
-                        d_prev, hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, margin,
-                        screened_gap, half)
-                    if g[11] != PAIR_NEEDS_PREV:
-                        break
-                    # a contact starts after a screened step: the gap of that step, from its state
-                    d_prev = ellipsoid_contact(
-                        min_image(pos_prev[b, 0] - pos_prev[a, 0], box, inv_box, half),
-                        min_image(pos_prev[b, 1] - pos_prev[a, 1], box, inv_box, half),
-                        min_image(pos_prev[b, 2] - pos_prev[a, 2], box, inv_box, half),
-                        quat_prev[a, 0], quat_prev[a, 1], quat_prev[a, 2], quat_prev[a, 3],
-                        axes[a, 0], axes[a, 1], axes[a, 2],
-                        quat_prev[b, 0], quat_prev[b, 1], quat_prev[b, 2], quat_prev[b, 3],
-                        axes[b, 0], axes[b, 1], axes[b, 2], tol, half)[2]
-                if i == a:
-                    fx += g[0]
-                    fy += g[1]
-                    fz += g[2]
-                    tx += g[3]
-                    ty += g[4]
-                    tz += g[5]
-                else:
-                    fx -= g[0]
-                    fy -= g[1]
-                    fz -= g[2]
-                    tx += g[6]
-                    ty += g[7]
-                    tz += g[8]
-                delta = g[9]
-                hist[i, kk, 3] = delta
-                hist[i, kk, 4] = g[10]
-                if delta > 0:
-                    ov = delta / min(min(axes[a, 1], axes[a, 2]), min(axes[b, 1], axes[b, 2]))
-                    if ov > worst:
-                        worst = ov
-                        worst_i = i
-            force[i, 0] = fx
-            force[i, 1] = fy
-            force[i, 2] = fz
-            torque[i, 0] = tx
-            torque[i, 1] = ty
-            torque[i, 2] = tz
-        chunk_ovl[c] = worst
-        chunk_ovl_idx[c] = worst_i
-
-
 @numba.njit
 def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
          chunk_a, chunk_b):
@@ -199,8 +105,63 @@ def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext
 
 
 @numba.njit
-def forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half, k_n,
-           gn_coef, law, dt, ext, chunk_a, chunk_b):
-    """The shape's forces (engine/shapes/sphere.py): compute_forces_ell with rad = bounding radius."""
-    compute_forces_ell(pos, vel_p, ext[2], quat, ext[1], rad, inv_m, nbr, nn, hist, force, torque, box, inv_box,
-                       half, k_n, gn_coef, dt, law[0], law[1], law[2], ext[3], ext[4], chunk_a, chunk_b)
+def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
+         ext):
+    """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), overlap/dashpot history updated,
+    and the overlap (m) relative to the smallest semi-axis of the pair (0 when not in contact), for the shared
+    force loop.
+
+    Pairs proven disjoint by the exact screens (margin >= 0) store screened_gap (-inf) as their gap; a contact
+    that starts right after such a step gets the previous gap evaluated from pos_prev/quat_prev (see
+    engine.physics.ellipsoid.ellipsoid_pair_screened). law = (tol, margin, screened_gap); ext = (inv_i, axes,
+    omega_p, pos_prev, quat_prev).
+    """
+    axes = ext[1]
+    omega_p = ext[2]
+    pos_prev = ext[3]
+    quat_prev = ext[4]
+    tol = law[0]
+    a = i if i < j else j
+    b = j if i < j else i
+    rx = min_image(pos[b, 0] - pos[a, 0], box, inv_box, half)
+    ry = min_image(pos[b, 1] - pos[a, 1], box, inv_box, half)
+    rz = min_image(pos[b, 2] - pos[a, 2], box, inv_box, half)
+    rc = rad[a] + rad[b]
+    d2 = rx * rx + ry * ry + rz * rz
+    if d2 >= rc * rc and hist[i, kk, 3] <= 0:
+        hist[i, kk, 3] = rc - math.sqrt(d2)     # negative: no contact possible
+        hist[i, kk, 4] = 0
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    m12 = 1 / (inv_m[a] + inv_m[b])
+    d_prev = hist[i, kk, 3]
+    for _ in range(2):
+        g = ellipsoid_pair_screened(
+            rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
+            axes[a, 0], axes[a, 1], axes[a, 2],
+            quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
+            axes[b, 0], axes[b, 1], axes[b, 2],
+            vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
+            omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
+            omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
+            d_prev, hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, law[1],
+            law[2], half)
+        if g[11] != PAIR_NEEDS_PREV:
+            break
+        # a contact starts after a screened step: the gap of that step, from its state
+        d_prev = ellipsoid_contact(
+            min_image(pos_prev[b, 0] - pos_prev[a, 0], box, inv_box, half),
+            min_image(pos_prev[b, 1] - pos_prev[a, 1], box, inv_box, half),
+            min_image(pos_prev[b, 2] - pos_prev[a, 2], box, inv_box, half),
+            quat_prev[a, 0], quat_prev[a, 1], quat_prev[a, 2], quat_prev[a, 3],
+            axes[a, 0], axes[a, 1], axes[a, 2],
+            quat_prev[b, 0], quat_prev[b, 1], quat_prev[b, 2], quat_prev[b, 3],
+            axes[b, 0], axes[b, 1], axes[b, 2], tol, half)[2]
+    delta = g[9]
+    hist[i, kk, 3] = delta
+    hist[i, kk, 4] = g[10]
+    ov = 0.0
+    if delta > 0:
+        ov = delta / min(min(axes[a, 1], axes[a, 2]), min(axes[b, 1], axes[b, 2]))
+    if i == a:
+        return g[0], g[1], g[2], g[3], g[4], g[5], ov
+    return -g[0], -g[1], -g[2], g[6], g[7], g[8], ov
