@@ -43,7 +43,7 @@ from engine.cells import cell_coords_of, cell_index_of, distance2, neighbour_cel
 from engine.errors import InstabilityError
 from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
 from engine.physics.contact import contact_elastic_energy, min_image
-from engine.physics.integrate import kick
+from engine.physics.integrate import drift_wrap, kick
 from engine.shapes import sphere
 
 
@@ -152,6 +152,57 @@ def copy_list(nbr_src, nn_src, hist_src, nbr_dst, nn_dst, hist_dst):
 
 _loops: dict = {}
 _force_loops: dict = {}
+_step_loops: dict = {}
+
+
+def make_step(shape):
+    """The one CPU kick-drift, specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
+
+    ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+    chunk_a, chunk_b)``: per particle, the shape's ``pre_step``, then the shared translation v += F/m hk,
+    predicted end-of-step velocity v + F/m dt/2 (the normal dashpot's), x += v dt wrapped into the box, then
+    the shape's ``rotate``, which returns the particle's displacement measure (module docstring of
+    engine/shapes/sphere.py: |v|^2 or the exact squared displacement) and whether its state is finite. Per
+    chunk: the largest measure into ``chunk_a``, the first non-finite particle into ``chunk_b`` (-1: none).
+    """
+    if shape.NAME in _step_loops:
+        return _step_loops[shape.NAME]
+    pre_step = shape.pre_step
+    rotate = shape.rotate
+
+    def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+             chunk_a, chunk_b):
+        n = pos.shape[0]
+        nch = chunk_a.shape[0]
+        hp = dt * half
+        for c in prange(nch):
+            i0 = c * n // nch
+            i1 = (c + 1) * n // nch
+            m = 0.0
+            bad = -1
+            for i in range(i0, i1):
+                pre_step(i, pos, quat, ext)
+                im = inv_m[i]
+                v2 = 0.0
+                for k in range(3):
+                    v = kick(vel[i, k], force[i, k], im, hk)
+                    vel[i, k] = v
+                    vel_p[i, k] = kick(v, force[i, k], im, hp)
+                    pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+                    v2 += v * v
+                measure, ok = rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box,
+                                     inv_box, half)
+                if not ok:
+                    if bad < 0:
+                        bad = i
+                elif measure > m:
+                    m = measure
+            chunk_a[c] = m
+            chunk_b[c] = bad
+
+    loop = cache_closure(numba.njit(parallel=True)(step), ("cpu.step", shape.NAME))
+    _step_loops[shape.NAME] = loop
+    return loop
 
 
 def make_forces(shape):
@@ -235,7 +286,7 @@ def make_run_steps(shape):
     """
     if shape.NAME in _loops:
         return _loops[shape.NAME]
-    step = shape.step
+    step = make_step(shape)
     forces = make_forces(shape)
     exact = bool(shape.EXACT_DISPLACEMENT)
 

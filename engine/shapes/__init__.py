@@ -1,9 +1,10 @@
 """Particle shapes as plug-ins of the CPU time loop: one module per shape, one registry line each.
 
 A shape module (engine/shapes/sphere.py documents the interface) provides ``NAME``, ``EXACT_DISPLACEMENT`` and
-two njit functions, ``step`` (kick-drift: translation and the shape's rotation) and ``pair`` (the pair
-evaluator: contact geometry and force law of one list slot). engine/backends/cpu.py builds one compiled time
-loop and one force loop per shape from them (``make_run_steps``, ``make_forces``); the list/cell machinery
+njit functions of one particle or one list slot: ``pre_step`` and ``rotate`` (the shape's part of the
+kick-drift; the translation is shared) and ``pair`` (the pair evaluator: contact geometry and force law). engine/backends/cpu.py builds one compiled time
+loop, one kick-drift and one force loop per shape from them (``make_run_steps``, ``make_step``,
+``make_forces``); the list/cell machinery
 (engine/cells.py, engine/multigrid.py) and the list-slot history store (engine/backends/cpu_shared.py) are shared by every shape. Shape modules import
 only engine/physics/ (and numba); they never import a backend.
 """

@@ -1,14 +1,17 @@
 """The sphere shape plug-in (papers 001, 002, 004): what a sphere adds to the shared CPU time loop.
 
-A shape module provides, for engine/backends/cpu.py's one time loop (``make_run_steps``):
+A shape module provides, for engine/backends/cpu.py's one time loop (``make_run_steps``, built from the shared
+kick-drift ``make_step`` and force loop ``make_forces``), plain ``@numba.njit`` functions of one particle or one
+list slot:
 
 - ``NAME``: the shape's name in the spec (``SimulationSpec.shape``);
-- ``EXACT_DISPLACEMENT``: False = ``step`` leaves each chunk's largest |v|^2 (m^2/s^2) in ``chunk_a`` and the
-  loop bounds the displacement since the last list build by sum max|v| dt (the exact displacement is read only
-  when the bound passes L_v/2); True = ``step`` leaves each chunk's exact largest squared displacement (m^2);
-- ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-  chunk_a, chunk_b)``: the kick-drift half of velocity Verlet (translation, the shape's rotation, predicted
-  end-of-step velocities), the first non-finite particle per chunk into ``chunk_b`` (-1: none);
+- ``EXACT_DISPLACEMENT``: False = ``rotate`` returns |v|^2 (m^2/s^2) and the loop bounds the displacement since
+  the last list build by sum max|v| dt (the exact displacement is read only when the bound passes L_v/2);
+  True = ``rotate`` returns the exact squared displacement since the last build (m^2);
+- ``pre_step(i, pos, quat, ext)``: anything to keep from before particle i's step;
+- ``rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half)``: the
+  shape's rotation step of particle i after the shared translation (kick hk, predicted velocity at hp = dt/2,
+  drift dt); returns (displacement measure, state finite);
 - ``pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
   ext)``: the pair evaluator (contact geometry and force law) of list slot kk of particle i (neighbour j):
   returns (F_x, F_y, F_z, T_x, T_y, T_z, overlap relative to the pair's size or 0) on i and advances the slot's
@@ -28,75 +31,50 @@ from __future__ import annotations
 import math
 
 import numba
-from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.physics.contact import contact_end_fraction, min_image, sphere_contact, sphere_contact_end
-from engine.physics.integrate import drift_wrap, kick
+from engine.physics.integrate import kick
 from engine.physics.rotation import fincham_quat_step_space
 
 NAME = "sphere"
 EXACT_DISPLACEMENT = False
 
 
-@numba.njit(parallel=True, cache=True)
-def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt, box, inv_box, half,
-               chunk_v2, chunk_bad):
-    """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; the largest |v|^2 per chunk.
-
-    Also stores the predicted end-of-step velocity v + F/m dt/2 that the normal dashpot uses: with the
-    mid-step velocity instead, the damping force lags by dt/2, which acts like a stiffness change of
-    gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at e_n = 0.3, dt = t_c/50); the
-    predictor makes that error second order. The tangential spring integrates the mid-step velocity
-    (midpoint rule, like the positions).
-    """
-    n = pos.shape[0]
-    nch = chunk_v2.shape[0]
-    hp = dt * half
-    for c in prange(nch):
-        i0 = c * n // nch
-        i1 = (c + 1) * n // nch
-        m = 0.0
-        bad = -1
-        for i in range(i0, i1):
-            im = inv_m[i]
-            v2 = 0.0
-            for k in range(3):
-                v = kick(vel[i, k], force[i, k], im, hk)
-                vel[i, k] = v
-                vel_p[i, k] = kick(v, force[i, k], im, hp)
-                pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
-                v2 += v * v
-            w2 = 0.0
-            if torque is not None:
-                ii = inv_i[i]
-                for k in range(3):
-                    w = kick(omega[i, k], torque[i, k], ii, hk)
-                    omega[i, k] = w
-                    w2 += w * w
-            if quat is not None:
-                q0, q1, q2, q3 = fincham_quat_step_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
-                                                         omega[i, 0], omega[i, 1], omega[i, 2], dt, half)
-                quat[i, 0] = q0
-                quat[i, 1] = q1
-                quat[i, 2] = q2
-                quat[i, 3] = q3
-            if not (v2 < 1e300) or not (w2 < 1e300):
-                if bad < 0:
-                    bad = i
-            elif v2 > m:
-                m = v2
-        chunk_v2[c] = m
-        chunk_bad[c] = bad
+@numba.njit
+def pre_step(i, pos, quat, ext):
+    """Nothing to keep from before the step (spheres)."""
+    return
 
 
 @numba.njit
-def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-         chunk_a, chunk_b):
-    """The shape's kick-drift (module docstring): kick_drift with spin = omega, spin_inv = 1/I."""
-    kick_drift(pos, vel, spin, quat, force, torque, inv_m, spin_inv, vel_p, hk, dt, box, inv_box, half,
-               chunk_a, chunk_b)
+def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
+    """The sphere's half of the kick-drift of particle i after the shared translation (v += F/m hk, predicted
+    v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), the orientation
+    advanced by Fincham's leap-frog in the space frame (when tracked). Returns (|v|^2, finite).
+
+    The predicted end-of-step velocity: with the mid-step velocity instead, the damping force lags by dt/2,
+    which acts like a stiffness change of gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at
+    e_n = 0.3, dt = t_c/50); the predictor makes that error second order. The tangential spring integrates
+    the mid-step velocity (midpoint rule, like the positions).
+    """
+    omega = spin
+    w2 = 0.0
+    if torque is not None:
+        ii = spin_inv[i]
+        for k in range(3):
+            w = kick(omega[i, k], torque[i, k], ii, hk)
+            omega[i, k] = w
+            w2 += w * w
+    if quat is not None:
+        q0, q1, q2, q3 = fincham_quat_step_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+                                                 omega[i, 0], omega[i, 1], omega[i, 2], dt, half)
+        quat[i, 0] = q0
+        quat[i, 1] = q1
+        quat[i, 2] = q2
+        quat[i, 3] = q3
+    return v2, (v2 < 1e300) and (w2 < 1e300)
 
 
 @numba.njit

@@ -25,83 +25,64 @@ from __future__ import annotations
 import math
 
 import numba
-from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.physics.contact import min_image
 from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
-from engine.physics.integrate import drift_wrap, kick
 from engine.physics.rotation import fincham_quat_step_body, space_omega
 
 NAME = "ellipsoid"
 EXACT_DISPLACEMENT = True
 
 
-@numba.njit(parallel=True, cache=True)
-def kick_drift_ell(pos, vel, angm, quat, force, torque, inv_m, inv_i, x_ref, vel_p, omega_p, pos_prev, quat_prev,
-                   hk, dt, box, inv_box, half, chunk_disp, chunk_bad):
-    """v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham; predicted v and w at t + dt; the
-    positions and orientations before the step kept in pos_prev, quat_prev (for a contact that starts after
-    a screened step, engine.physics.ellipsoid.ellipsoid_pair_screened)."""
-    hp = dt * half
-    n = pos.shape[0]
-    nch = chunk_disp.shape[0]
-    for c in prange(nch):
-        i0 = c * n // nch
-        i1 = (c + 1) * n // nch
-        m = 0.0
-        bad = -1
-        for i in range(i0, i1):
-            im = inv_m[i]
-            for k in range(4):
-                quat_prev[i, k] = quat[i, k]
-            for k in range(3):
-                pos_prev[i, k] = pos[i, k]
-                v = kick(vel[i, k], force[i, k], im, hk)
-                vel[i, k] = v
-                vel_p[i, k] = kick(v, force[i, k], im, hp)
-                pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
-            lx = angm[i, 0] + torque[i, 0] * hk
-            ly = angm[i, 1] + torque[i, 1] * hk
-            lz = angm[i, 2] + torque[i, 2] * hk
-            angm[i, 0] = lx
-            angm[i, 1] = ly
-            angm[i, 2] = lz
-            i1_, i2_, i3_ = inv_i[i, 0], inv_i[i, 1], inv_i[i, 2]
-            q0, q1, q2, q3 = fincham_quat_step_body(
-                quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
-                lx - torque[i, 0] * hp, ly - torque[i, 1] * hp, lz - torque[i, 2] * hp, lx, ly, lz,
-                i1_, i2_, i3_, dt, half)
-            quat[i, 0] = q0
-            quat[i, 1] = q1
-            quat[i, 2] = q2
-            quat[i, 3] = q3
-            wx, wy, wz = space_omega(q0, q1, q2, q3, lx + torque[i, 0] * hp, ly + torque[i, 1] * hp,
-                                     lz + torque[i, 2] * hp, i1_, i2_, i3_, half)
-            omega_p[i, 0] = wx
-            omega_p[i, 1] = wy
-            omega_p[i, 2] = wz
-            dx = min_image(pos[i, 0] - x_ref[i, 0], box, inv_box, half)
-            dy = min_image(pos[i, 1] - x_ref[i, 1], box, inv_box, half)
-            dz = min_image(pos[i, 2] - x_ref[i, 2], box, inv_box, half)
-            d2 = dx * dx + dy * dy + dz * dz
-            if not (d2 < 1e300) or not (abs(vel[i, 0]) + abs(vel[i, 1]) + abs(vel[i, 2]) < 1e300) \
-                    or not (abs(lx) + abs(ly) + abs(lz) < 1e300) or not (abs(q0) <= 1.5):
-                if bad < 0:
-                    bad = i
-            elif d2 > m:
-                m = d2
-        chunk_disp[c] = m
-        chunk_bad[c] = bad
+@numba.njit
+def pre_step(i, pos, quat, ext):
+    """Keep position and orientation before the step (ext[3], ext[4]) for a contact that starts after a screened
+    step (engine.physics.ellipsoid.ellipsoid_pair_screened)."""
+    pos_prev = ext[3]
+    quat_prev = ext[4]
+    for k in range(4):
+        quat_prev[i, k] = quat[i, k]
+    for k in range(3):
+        pos_prev[i, k] = pos[i, k]
 
 
 @numba.njit
-def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-         chunk_a, chunk_b):
-    """The shape's kick-drift (engine/shapes/sphere.py): kick_drift_ell with spin = L."""
-    kick_drift_ell(pos, vel, spin, quat, force, torque, inv_m, ext[0], x_ref, vel_p, ext[2], ext[3], ext[4],
-                   hk, dt, box, inv_box, half, chunk_a, chunk_b)
+def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
+    """The ellipsoid's half of the kick-drift of particle i after the shared translation: L += tau hk, q by
+    Fincham's leap-frog on the body-frame angular velocity, predicted space-frame angular velocity at t + dt
+    into ext[2]. Returns (squared displacement since the last list build (m^2), finite)."""
+    angm = spin
+    inv_i = ext[0]
+    omega_p = ext[2]
+    lx = angm[i, 0] + torque[i, 0] * hk
+    ly = angm[i, 1] + torque[i, 1] * hk
+    lz = angm[i, 2] + torque[i, 2] * hk
+    angm[i, 0] = lx
+    angm[i, 1] = ly
+    angm[i, 2] = lz
+    i1_, i2_, i3_ = inv_i[i, 0], inv_i[i, 1], inv_i[i, 2]
+    q0, q1, q2, q3 = fincham_quat_step_body(
+        quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+        lx - torque[i, 0] * hp, ly - torque[i, 1] * hp, lz - torque[i, 2] * hp, lx, ly, lz,
+        i1_, i2_, i3_, dt, half)
+    quat[i, 0] = q0
+    quat[i, 1] = q1
+    quat[i, 2] = q2
+    quat[i, 3] = q3
+    wx, wy, wz = space_omega(q0, q1, q2, q3, lx + torque[i, 0] * hp, ly + torque[i, 1] * hp,
+                             lz + torque[i, 2] * hp, i1_, i2_, i3_, half)
+    omega_p[i, 0] = wx
+    omega_p[i, 1] = wy
+    omega_p[i, 2] = wz
+    dx = min_image(pos[i, 0] - x_ref[i, 0], box, inv_box, half)
+    dy = min_image(pos[i, 1] - x_ref[i, 1], box, inv_box, half)
+    dz = min_image(pos[i, 2] - x_ref[i, 2], box, inv_box, half)
+    d2 = dx * dx + dy * dy + dz * dz
+    ok = (d2 < 1e300) and (abs(vel[i, 0]) + abs(vel[i, 1]) + abs(vel[i, 2]) < 1e300) \
+        and (abs(lx) + abs(ly) + abs(lz) < 1e300) and (abs(q0) <= 1.5)
+    return d2, ok
 
 
 @numba.njit
