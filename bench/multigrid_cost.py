@@ -37,6 +37,7 @@ import numpy as np
 from engine.backends.base import cell_grid
 from engine.backends.cpu import bin_particles, build_list
 from engine.backends.cpu_shared import SLOT
+from engine.cells import cell_coords, neighbour_cell, neighbour_cell_count
 from engine.multigrid import (bin_levels, build_levels_carry, count_candidates, grid_levels, level_arrays,
                               main_level)
 from engine.scene import place_species
@@ -45,21 +46,12 @@ from engine.scene import place_species
 @numba.njit(parallel=True, cache=True)
 def single_candidates(pos, nc, inv_cell, cell_start, out):
     """Distance tests per particle of engine/backends/cpu.py build_list (27 cells, fewer if nc < 3)."""
-    lo = -1 if nc >= 3 else 0
-    hi = 2 if nc >= 2 else 1
     for i in numba.prange(pos.shape[0]):
-        cx = min(max(int(pos[i, 0] * inv_cell), 0), nc - 1)
-        cy = min(max(int(pos[i, 1] * inv_cell), 0), nc - 1)
-        cz = min(max(int(pos[i, 2] * inv_cell), 0), nc - 1)
+        cx, cy, cz = cell_coords(pos[i, 0], pos[i, 1], pos[i, 2], inv_cell, nc)
         cnt = 0
-        for ox in range(lo, hi):
-            ax = (cx + ox + nc) % nc
-            for oy in range(lo, hi):
-                ay = (cy + oy + nc) % nc
-                for oz in range(lo, hi):
-                    az = (cz + oz + nc) % nc
-                    cc = (ax * nc + ay) * nc + az
-                    cnt += cell_start[cc + 1] - cell_start[cc]
+        for k in range(neighbour_cell_count(nc)):
+            cc = neighbour_cell(cx, cy, cz, k, nc)
+            cnt += cell_start[cc + 1] - cell_start[cc]
         out[i] = cnt - 1
 
 

@@ -19,12 +19,12 @@ _ENGINE = Path(__file__).resolve().parent
 
 def source_digest() -> str:
     h = hashlib.sha1()
-    for sub in ("physics", "backends"):
+    for sub in ("physics", "backends", "shapes"):
         for f in sorted((_ENGINE / sub).glob("*.py")):
             h.update(f.name.encode())
             h.update(f.read_bytes())
     # kernels the backends compile in from engine/ itself
-    for name in ("multigrid.py",):
+    for name in ("multigrid.py", "cells.py", "scene.py"):
         h.update(name.encode())
         h.update((_ENGINE / name).read_bytes())
     return h.hexdigest()[:16]
@@ -38,3 +38,32 @@ def configure() -> None:
 
 
 configure()
+
+
+def cache_closure(dispatcher, key: tuple):
+    """Give a factory-built njit closure an on-disk cache keyed by (the engine source digest, ``key``).
+
+    Numba keys a cached closure by a pickle of its cell contents; cells holding other dispatchers pickle
+    differently in every process, so a fresh process would compile again (the same problem
+    engine/backends/cuda_cache.py solves for the CUDA kernels). The digest covers every source the closure
+    compiles in, so an edit never loads stale machine code. Returns ``dispatcher``.
+    """
+    try:
+        dispatcher._cache = _StableKeyCache(dispatcher.py_func, (source_digest(),) + tuple(str(k) for k in key))
+    except Exception:  # no cache locator for this file (e.g. read-only install): compile as before
+        pass
+    return dispatcher
+
+
+try:
+    from numba.core.caching import FunctionCache as _FunctionCache
+
+    class _StableKeyCache(_FunctionCache):
+        def __init__(self, py_func, stable):
+            self._stable = stable
+            super().__init__(py_func)
+
+        def _index_key(self, sig, codegen):
+            return (sig, codegen.magic_tuple(), self._stable)
+except ImportError:  # another numba layout: cache_closure leaves the closure uncached
+    _StableKeyCache = None

@@ -55,6 +55,7 @@ from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
+from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
 #: Relative margin between the cell width box/nc and the nominal cell size L_c: rounding of the pair
@@ -148,14 +149,6 @@ def main_level(radius: np.ndarray, levels: Levels) -> np.ndarray:
 # ---- kernels ---------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _cell_of(x, y, z, inv_cell, nc):
-    cx = min(max(int(x * inv_cell), 0), nc - 1)
-    cy = min(max(int(y * inv_cell), 0), nc - 1)
-    cz = min(max(int(z * inv_cell), 0), nc - 1)
-    return cx, cy, cz
-
-
 @numba.njit(parallel=True, cache=True, nogil=True)
 def bin_levels(pos, level, nc, inv_cell, start_off, list_off, cell_start, cell_list):
     """Counting sort of the particles into the main/secondary cells of every level (see module doc).
@@ -175,8 +168,7 @@ def bin_levels(pos, level, nc, inv_cell, start_off, list_off, cell_start, cell_l
             cell_start[s0 + k] = 0
         for i in range(n):
             if level[i] >= l:
-                cx, cy, cz = _cell_of(pos[i, 0], pos[i, 1], pos[i, 2], ic, ncl)
-                key = 2 * ((cx * ncl + cy) * ncl + cz) + (1 if level[i] > l else 0)
+                key = 2 * cell_index_of(pos[i, 0], pos[i, 1], pos[i, 2], ic, ncl) + (1 if level[i] > l else 0)
                 cell_start[s0 + key] += 1
         for k in range(1, nkeys):
             cell_start[s0 + k] += cell_start[s0 + k - 1]
@@ -184,8 +176,7 @@ def bin_levels(pos, level, nc, inv_cell, start_off, list_off, cell_start, cell_l
         # reverse fill: each key's counter ends at its first entry, ids ascending within a key
         for i in range(n - 1, -1, -1):
             if level[i] >= l:
-                cx, cy, cz = _cell_of(pos[i, 0], pos[i, 1], pos[i, 2], ic, ncl)
-                key = 2 * ((cx * ncl + cy) * ncl + cz) + (1 if level[i] > l else 0)
+                key = 2 * cell_index_of(pos[i, 0], pos[i, 1], pos[i, 2], ic, ncl) + (1 if level[i] > l else 0)
                 cell_start[s0 + key] -= 1
                 cell_list[l0 + cell_start[s0 + key]] = i
 
@@ -204,29 +195,19 @@ def _search(i, pos, radius, level, skin, box, inv_box, half, nc, inv_cell, start
         s0 = start_off[l]
         l0 = list_off[l]
         ncl = nc[l]
-        lo = -1 if ncl >= 3 else 0
-        hi = 2 if ncl >= 2 else 1
         span = 1 if l < li else 2        # keys scanned per cell: main only, or main + secondary
-        cx, cy, cz = _cell_of(xi, yi, zi, inv_cell[l], ncl)
-        for ox in range(lo, hi):
-            ax = (cx + ox + ncl) % ncl
-            for oy in range(lo, hi):
-                ay = (cy + oy + ncl) % ncl
-                for oz in range(lo, hi):
-                    az = (cz + oz + ncl) % ncl
-                    key = 2 * ((ax * ncl + ay) * ncl + az)
-                    for s in range(cell_start[s0 + key], cell_start[s0 + key + span]):
-                        j = cell_list[l0 + s]
-                        if j == i:
-                            continue
-                        dx = min_image(xi - pos[j, 0], box, inv_box, half)
-                        dy = min_image(yi - pos[j, 1], box, inv_box, half)
-                        dz = min_image(zi - pos[j, 2], box, inv_box, half)
-                        rc = ri + radius[j] + skin
-                        if dx * dx + dy * dy + dz * dz < rc * rc:
-                            if cnt < max_nb:
-                                nbr[i, cnt] = j
-                            cnt += 1
+        cx, cy, cz = cell_coords(xi, yi, zi, inv_cell[l], ncl)
+        for k in range(neighbour_cell_count(ncl)):
+            key = 2 * neighbour_cell(cx, cy, cz, k, ncl)
+            for s in range(cell_start[s0 + key], cell_start[s0 + key + span]):
+                j = cell_list[l0 + s]
+                if j == i:
+                    continue
+                rc = ri + radius[j] + skin
+                if distance2(xi, yi, zi, pos[j, 0], pos[j, 1], pos[j, 2], box, inv_box, half) < rc * rc:
+                    if cnt < max_nb:
+                        nbr[i, cnt] = j
+                    cnt += 1
     return cnt
 
 
@@ -310,18 +291,11 @@ def count_candidates(pos, level, nc, inv_cell, start_off, list_off, cell_start, 
         for l in range(li + 1):
             s0 = start_off[l]
             ncl = nc[l]
-            lo = -1 if ncl >= 3 else 0
-            hi = 2 if ncl >= 2 else 1
             span = 1 if l < li else 2
-            cx, cy, cz = _cell_of(pos[i, 0], pos[i, 1], pos[i, 2], inv_cell[l], ncl)
-            for ox in range(lo, hi):
-                ax = (cx + ox + ncl) % ncl
-                for oy in range(lo, hi):
-                    ay = (cy + oy + ncl) % ncl
-                    for oz in range(lo, hi):
-                        az = (cz + oz + ncl) % ncl
-                        key = 2 * ((ax * ncl + ay) * ncl + az)
-                        cnt += cell_start[s0 + key + span] - cell_start[s0 + key]
+            cx, cy, cz = cell_coords(pos[i, 0], pos[i, 1], pos[i, 2], inv_cell[l], ncl)
+            for k in range(neighbour_cell_count(ncl)):
+                key = 2 * neighbour_cell(cx, cy, cz, k, ncl)
+                cnt += cell_start[s0 + key + span] - cell_start[s0 + key]
         out[i] = cnt - 1          # i itself is in its own cell and is skipped
 
 

@@ -31,6 +31,7 @@ import numba
 import numpy as np
 
 from engine.backends.base import EllipsoidSystem, SphereSystem
+from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.errors import SpecError
 from engine.params import Derived, species_table
 
@@ -112,35 +113,22 @@ def _rsa_batch(cand, r_new, s_new, target, pos, n_placed, sp_radius, sp_nc, sp_o
             if nc == 0:
                 continue
             inv_cell = nc * inv_box
-            cx = min(int(x * inv_cell), nc - 1)
-            cy = min(int(y * inv_cell), nc - 1)
-            cz = min(int(z * inv_cell), nc - 1)
-            lo = -1 if nc >= 3 else 0
-            hi = 2 if nc >= 2 else 1
+            cx, cy, cz = cell_coords(x, y, z, inv_cell, nc)
             rr = (r_new + sp_radius[s]) * (1.0 + RSA_GAP)
             rr2 = rr * rr
-            for ox in range(lo, hi):
-                ax = (cx + ox + nc) % nc
-                for oy in range(lo, hi):
-                    ay = (cy + oy + nc) % nc
-                    for oz in range(lo, hi):
-                        az = (cz + oz + nc) % nc
-                        j = head[sp_off[s] + (ax * nc + ay) * nc + az]
-                        while j >= 0:
-                            dx = x - pos[j, 0]
-                            dy = y - pos[j, 1]
-                            dz = z - pos[j, 2]
-                            dx -= box * math.floor(dx * inv_box + 0.5)
-                            dy -= box * math.floor(dy * inv_box + 0.5)
-                            dz -= box * math.floor(dz * inv_box + 0.5)
-                            if dx * dx + dy * dy + dz * dz < rr2:
-                                ok = False
-                                break
-                            j = nxt[j]
-                        if not ok:
-                            break
-                    if not ok:
+            for k in range(neighbour_cell_count(nc)):
+                j = head[sp_off[s] + neighbour_cell(cx, cy, cz, k, nc)]
+                while j >= 0:
+                    dx = x - pos[j, 0]
+                    dy = y - pos[j, 1]
+                    dz = z - pos[j, 2]
+                    dx -= box * math.floor(dx * inv_box + 0.5)
+                    dy -= box * math.floor(dy * inv_box + 0.5)
+                    dz -= box * math.floor(dz * inv_box + 0.5)
+                    if dx * dx + dy * dy + dz * dz < rr2:
+                        ok = False
                         break
+                    j = nxt[j]
                 if not ok:
                     break
             if not ok:
@@ -151,10 +139,7 @@ def _rsa_batch(cand, r_new, s_new, target, pos, n_placed, sp_radius, sp_nc, sp_o
             pos[n_placed, 2] = z
             nc = sp_nc[s_new]
             inv_cell = nc * inv_box
-            cx = min(int(x * inv_cell), nc - 1)
-            cy = min(int(y * inv_cell), nc - 1)
-            cz = min(int(z * inv_cell), nc - 1)
-            cell = sp_off[s_new] + (cx * nc + cy) * nc + cz
+            cell = sp_off[s_new] + cell_index_of(x, y, z, inv_cell, nc)
             nxt[n_placed] = head[cell]
             head[cell] = n_placed
             n_placed += 1

@@ -1,18 +1,28 @@
-"""CPU backend: Numba ``parallel=True`` loops over particles, the whole time loop compiled.
+"""CPU backend: Numba ``parallel=True`` loops over particles, the whole time loop compiled; one machinery for
+every particle shape.
+
+What lives here, shared by every shape: the cells and the Verlet list build (engine/cells.py,
+engine/multigrid.py), the list-slot history store (engine/backends/cpu_shared.py), the time loop
+(:func:`make_run_steps`, specialised at compile time by a shape plug-in of engine/shapes/: its kick-drift
+``step`` and its ``forces``), the closing half kick, and the host class :class:`CpuLoop` (list growth,
+overflow recovery, instability errors). :class:`CpuBackend` is the sphere's host class; ellipsoids are
+engine/backends/cpu_ellipsoid.py.
 
 Layout: arrays of shape (N, 3) (and (N, 4) for quaternions) in the working precision; a full Verlet
 neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` per particle with one
-tangential spring per list slot, so every thread writes only its own particle (no atomics) and the
-spring of (j, i) is exactly minus the spring of (i, j). The list is built from linked cells of edge
->= 2 a_max + L_v (or, when the radii span more than one level, from the multigrid cells of paper 004
-Algorithm 1, engine/multigrid.py) and rebuilt when any particle has moved more than L_v/2 since the last build
-(paper 004); springs of surviving pairs are carried into the new list. No allocation in the time loop:
-the scratch list is preallocated and grown (rarely) from Python when a build overflows it.
+slot of contact history per list entry (tangential spring, previous overlap and dashpot force), so every
+thread writes only its own particle (no atomics) and the spring of (j, i) is exactly minus the spring of
+(i, j). The list is built from linked cells of edge >= 2 a_max + L_v (or, when the radii span more than one
+level, from the multigrid cells of paper 004 Algorithm 1, engine/multigrid.py) and rebuilt when any particle
+has moved more than L_v/2 since the last build (paper 004); the history of surviving pairs is carried into
+the new list. No allocation in the time loop: the scratch list is preallocated and grown (rarely) from
+Python when a build overflows it.
 
-Compile-time specialisation: ``k_t``/``torque`` = None (smooth spheres: no spring, no torque, no spin
-update), ``mu`` = None (no Coulomb limit) and ``quat`` = None (orientation not needed) are pruned by
-Numba when the functions are compiled for those argument types. Everything is ``cache=True``, so a
-new process (a job's child, a test run) loads the compiled code from disk.
+Compile-time specialisation: the shape (one loop per shape, closures over its njit functions, cached on
+disk per shape by engine.jitcache.cache_closure); for spheres ``k_t``/``torque`` = None (smooth spheres: no
+spring, no torque, no spin update), ``mu`` = None (no Coulomb limit) and ``quat`` = None (orientation not
+needed) are pruned by Numba when the functions are compiled for those argument types. Everything is cached
+on disk, so a new process (a job's child, a test run) loads the compiled code.
 """
 
 from __future__ import annotations
@@ -24,67 +34,18 @@ import numpy as np
 from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+from engine.jitcache import cache_closure
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends.cpu_shared import SLOT, collect_springs, cpu_name, restore_springs, worst_overlap
 from engine.backends.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
+from engine.cells import cell_coords_of, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.errors import InstabilityError
 from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
-from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
-                                    sphere_contact_end)
+from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
-from engine.physics.rotation import fincham_quat_step_space
-
-@numba.njit(parallel=True, cache=True)
-def kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt, box, inv_box, half,
-               chunk_v2, chunk_bad):
-    """v += F/m hk, w += tau/I hk, x += v dt (wrapped), q advanced; the largest |v|^2 per chunk.
-
-    Also stores the predicted end-of-step velocity v + F/m dt/2 that the normal dashpot uses: with the
-    mid-step velocity instead, the damping force lags by dt/2, which acts like a stiffness change of
-    gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at e_n = 0.3, dt = t_c/50); the
-    predictor makes that error second order. The tangential spring integrates the mid-step velocity
-    (midpoint rule, like the positions).
-    """
-    n = pos.shape[0]
-    nch = chunk_v2.shape[0]
-    hp = dt * half
-    for c in prange(nch):
-        i0 = c * n // nch
-        i1 = (c + 1) * n // nch
-        m = 0.0
-        bad = -1
-        for i in range(i0, i1):
-            im = inv_m[i]
-            v2 = 0.0
-            for k in range(3):
-                v = kick(vel[i, k], force[i, k], im, hk)
-                vel[i, k] = v
-                vel_p[i, k] = kick(v, force[i, k], im, hp)
-                pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
-                v2 += v * v
-            w2 = 0.0
-            if torque is not None:
-                ii = inv_i[i]
-                for k in range(3):
-                    w = kick(omega[i, k], torque[i, k], ii, hk)
-                    omega[i, k] = w
-                    w2 += w * w
-            if quat is not None:
-                q0, q1, q2, q3 = fincham_quat_step_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
-                                                         omega[i, 0], omega[i, 1], omega[i, 2], dt, half)
-                quat[i, 0] = q0
-                quat[i, 1] = q1
-                quat[i, 2] = q2
-                quat[i, 3] = q3
-            if not (v2 < 1e300) or not (w2 < 1e300):
-                if bad < 0:
-                    bad = i
-            elif v2 > m:
-                m = v2
-        chunk_v2[c] = m
-        chunk_bad[c] = bad
+from engine.shapes import sphere
 
 
 @numba.njit(parallel=True, cache=True)
@@ -128,10 +89,7 @@ def bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor):
     for c in range(ncell + 1):
         cell_start[c] = 0
     for i in range(n):
-        cx = min(max(int(pos[i, 0] * inv_cell), 0), nc - 1)
-        cy = min(max(int(pos[i, 1] * inv_cell), 0), nc - 1)
-        cz = min(max(int(pos[i, 2] * inv_cell), 0), nc - 1)
-        c = (cx * nc + cy) * nc + cz
+        c = cell_index_of(pos[i, 0], pos[i, 1], pos[i, 2], inv_cell, nc)
         cell_of[i] = c
         cell_start[c + 1] += 1
     for c in range(ncell):
@@ -154,39 +112,28 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
     """
     n = pos.shape[0]
     max_nb = nbr.shape[1]
-    lo = -1 if nc >= 3 else 0
-    hi = 2 if nc >= 2 else 1
+    ncells = neighbour_cell_count(nc)
     for i in prange(n):
-        c = cell_of[i]
-        cx = c // (nc * nc)
-        cy = (c // nc) % nc
-        cz = c % nc
+        cx, cy, cz = cell_coords_of(cell_of[i], nc)
         xi = pos[i, 0]
         yi = pos[i, 1]
         zi = pos[i, 2]
         ri = radius[i]
         cnt = 0
-        for ox in range(lo, hi):
-            ax = (cx + ox + nc) % nc
-            for oy in range(lo, hi):
-                ay = (cy + oy + nc) % nc
-                for oz in range(lo, hi):
-                    az = (cz + oz + nc) % nc
-                    cc = (ax * nc + ay) * nc + az
-                    for s in range(cell_start[cc], cell_start[cc + 1]):
-                        j = cell_list[s]
-                        if j == i:
-                            continue
-                        dx = min_image(xi - pos[j, 0], box, inv_box, half)
-                        dy = min_image(yi - pos[j, 1], box, inv_box, half)
-                        dz = min_image(zi - pos[j, 2], box, inv_box, half)
-                        rc = ri + radius[j] + skin
-                        if dx * dx + dy * dy + dz * dz < rc * rc:
-                            if cnt < max_nb:
-                                nbr[i, cnt] = j
-                                if not carry_slot(i, cnt, j, nbr_old, nn_old, hist_old, hist):
-                                    hist[i, cnt, 3] = ri + radius[j] - math.sqrt(dx * dx + dy * dy + dz * dz)
-                            cnt += 1
+        for k in range(ncells):
+            cc = neighbour_cell(cx, cy, cz, k, nc)
+            for s in range(cell_start[cc], cell_start[cc + 1]):
+                j = cell_list[s]
+                if j == i:
+                    continue
+                d2 = distance2(xi, yi, zi, pos[j, 0], pos[j, 1], pos[j, 2], box, inv_box, half)
+                rc = ri + radius[j] + skin
+                if d2 < rc * rc:
+                    if cnt < max_nb:
+                        nbr[i, cnt] = j
+                        if not carry_slot(i, cnt, j, nbr_old, nn_old, hist_old, hist):
+                            hist[i, cnt, 3] = ri + radius[j] - math.sqrt(d2)
+                    cnt += 1
         nn[i] = cnt
         x_ref[i, 0] = xi
         x_ref[i, 1] = yi
@@ -204,162 +151,202 @@ def copy_list(nbr_src, nn_src, hist_src, nbr_dst, nn_dst, hist_dst):
                 hist_dst[i, k, q] = hist_src[i, k, q]
 
 
-@numba.njit(parallel=True, cache=True)
-def compute_forces(pos, vel, vel_p, omega, radius, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
-                   k_n, gn_coef, k_t, mu, dt, chunk_ovl, chunk_ovl_idx):
-    """Contact forces and torques on every particle from its list; springs advanced in place.
+_loops: dict = {}
+_force_loops: dict = {}
+_step_loops: dict = {}
 
-    vel, omega: mid-step velocities (spring increment); vel_p: predicted end-of-step velocities
-    (normal dashpot).
 
-    Records per chunk the largest overlap relative to the smaller radius, for the stability guard.
+def make_step(shape):
+    """The one CPU kick-drift, specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
+
+    ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+    chunk_a, chunk_b)``: per particle, the shape's ``pre_step``, then the shared translation v += F/m hk,
+    predicted end-of-step velocity v + F/m dt/2 (the normal dashpot's), x += v dt wrapped into the box, then
+    the shape's ``rotate``, which returns the particle's displacement measure (module docstring of
+    engine/shapes/sphere.py: |v|^2 or the exact squared displacement) and whether its state is finite. Per
+    chunk: the largest measure into ``chunk_a``, the first non-finite particle into ``chunk_b`` (-1: none).
     """
-    n = pos.shape[0]
-    nch = chunk_ovl.shape[0]
-    for c in prange(nch):
-        i0 = c * n // nch
-        i1 = (c + 1) * n // nch
-        worst = 0.0
-        worst_i = -1
-        for i in range(i0, i1):
-            fx = 0.0
-            fy = 0.0
-            fz = 0.0
-            tx = 0.0
-            ty = 0.0
-            tz = 0.0
-            xi = pos[i, 0]
-            yi = pos[i, 1]
-            zi = pos[i, 2]
-            ri = radius[i]
-            for kk in range(nn[i]):
-                j = nbr[i, kk]
-                rx = min_image(xi - pos[j, 0], box, inv_box, half)
-                ry = min_image(yi - pos[j, 1], box, inv_box, half)
-                rz = min_image(zi - pos[j, 2], box, inv_box, half)
-                d = math.sqrt(rx * rx + ry * ry + rz * rz)
-                rj = radius[j]
-                delta = ri + rj - d
-                delta_prev = hist[i, kk, 3]
-                if delta > 0:
-                    m12 = 1 / (inv_m[i] + inv_m[j])
-                    g = sphere_contact(rx, ry, rz, d,
-                                       vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
-                                       vel_p[i, 0] - vel_p[j, 0], vel_p[i, 1] - vel_p[j, 1],
-                                       vel_p[i, 2] - vel_p[j, 2],
-                                       omega[i, 0], omega[i, 1], omega[i, 2],
-                                       omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
-                                       hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], delta_prev,
-                                       hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, half)
+    if shape.NAME in _step_loops:
+        return _step_loops[shape.NAME]
+    pre_step = shape.pre_step
+    rotate = shape.rotate
+
+    def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+             chunk_a, chunk_b):
+        n = pos.shape[0]
+        nch = chunk_a.shape[0]
+        hp = dt * half
+        for c in prange(nch):
+            i0 = c * n // nch
+            i1 = (c + 1) * n // nch
+            m = 0.0
+            bad = -1
+            for i in range(i0, i1):
+                pre_step(i, pos, quat, ext)
+                im = inv_m[i]
+                v2 = 0.0
+                for k in range(3):
+                    v = kick(vel[i, k], force[i, k], im, hk)
+                    vel[i, k] = v
+                    vel_p[i, k] = kick(v, force[i, k], im, hp)
+                    pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+                    v2 += v * v
+                measure, ok = rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box,
+                                     inv_box, half)
+                if not ok:
+                    if bad < 0:
+                        bad = i
+                elif measure > m:
+                    m = measure
+            chunk_a[c] = m
+            chunk_b[c] = bad
+
+    loop = cache_closure(numba.njit(parallel=True)(step), ("cpu.step", shape.NAME))
+    _step_loops[shape.NAME] = loop
+    return loop
+
+
+def make_forces(shape):
+    """The one CPU force loop, specialised by a shape's pair evaluator ``shape.pair`` (cached on disk per shape):
+
+    ``compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+    k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx)`` sums the forces and torques of every list slot of
+    every particle (each thread owns its particles: no atomics; the full list holds each pair twice), lets the
+    evaluator advance the slot's history in place, and records per chunk the largest relative overlap and its
+    particle (the stability guard). ``torque = None`` (smooth spheres): torques are neither summed nor written.
+    """
+    if shape.NAME in _force_loops:
+        return _force_loops[shape.NAME]
+    pair = shape.pair
+
+    def compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                       k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx):
+        n = pos.shape[0]
+        nch = chunk_ovl.shape[0]
+        for c in prange(nch):
+            i0 = c * n // nch
+            i1 = (c + 1) * n // nch
+            worst = 0.0
+            worst_i = -1
+            for i in range(i0, i1):
+                fx = 0.0
+                fy = 0.0
+                fz = 0.0
+                tx = 0.0
+                ty = 0.0
+                tz = 0.0
+                for kk in range(nn[i]):
+                    g = pair(i, kk, nbr[i, kk], pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half,
+                             k_n, gn_coef, law, dt, ext)
                     fx += g[0]
                     fy += g[1]
                     fz += g[2]
-                    if k_t is not None:
+                    if torque is not None:
                         tx += g[3]
                         ty += g[4]
                         tz += g[5]
-                        hist[i, kk, 0] = g[6]
-                        hist[i, kk, 1] = g[7]
-                        hist[i, kk, 2] = g[8]
-                    hist[i, kk, 4] = g[10]
-                    ov = delta / min(ri, rj)
-                    if ov > worst:
-                        worst = ov
+                    if g[6] > worst:
+                        worst = g[6]
                         worst_i = i
-                elif delta_prev > 0:
-                    e = sphere_contact_end(rx, ry, rz, d,
-                                           vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
-                                           omega[i, 0], omega[i, 1], omega[i, 2],
-                                           omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
-                                           hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], k_t,
-                                           contact_end_fraction(delta_prev, delta), dt, half)
-                    fx += e[0]
-                    fy += e[1]
-                    fz += e[2]
-                    if k_t is not None:
-                        tx += e[3]
-                        ty += e[4]
-                        tz += e[5]
-                        hist[i, kk, 0] = 0
-                        hist[i, kk, 1] = 0
-                        hist[i, kk, 2] = 0
-                hist[i, kk, 3] = delta
-            force[i, 0] = fx
-            force[i, 1] = fy
-            force[i, 2] = fz
-            if torque is not None:
-                torque[i, 0] = tx
-                torque[i, 1] = ty
-                torque[i, 2] = tz
-        chunk_ovl[c] = worst
-        chunk_ovl_idx[c] = worst_i
+                force[i, 0] = fx
+                force[i, 1] = fy
+                force[i, 2] = fz
+                if torque is not None:
+                    torque[i, 0] = tx
+                    torque[i, 1] = ty
+                    torque[i, 2] = tz
+            chunk_ovl[c] = worst
+            chunk_ovl_idx[c] = worst_i
+
+    loop = cache_closure(numba.njit(parallel=True)(compute_forces), ("cpu.compute_forces", shape.NAME))
+    _force_loops[shape.NAME] = loop
+    return loop
 
 
-@numba.njit(cache=True)
-def run_steps(nsteps, pos, vel, omega, quat, force, torque, inv_m, inv_i, radius, x_ref, vel_p, disp_bound,
-              nbr, nn, hist, nbr_new, nn_new, hist_new,
-              nc, inv_cell, cell_start, cell_list, cell_of, cursor,
-              box, inv_box, half, dt, skin, k_n, gn_coef, k_t, mu, overlap_limit,
-              chunk_a, chunk_b, mg):
-    """Advance up to nsteps velocity-Verlet steps; velocities are synchronous on entry and on exit.
+
+def make_run_steps(shape):
+    """The compiled time loop of a shape plug-in (engine/shapes/): one loop for every shape, specialised by the
+    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.jitcache).
+
+    ``run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
+    ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
+    inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg)`` advances up to nsteps
+    velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and on exit.
 
     Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
     current step have been drifted but its forces not computed: the caller grows the list, rebuilds,
     computes the forces and closes the step. On BAD_VALUE / OVERLAP the state is left as it is.
 
-    The L_v/2 rule without reading every displacement every step: disp_bound[0] accumulates
-    max|v| dt, an upper bound of any particle's displacement since the build; only when it passes
-    L_v/2 is the exact largest displacement computed, and the list rebuilt if that passes too.
+    The L_v/2 rule (paper 004): with ``shape.EXACT_DISPLACEMENT`` the step measures the exact largest
+    displacement since the build; otherwise disp_bound[0] accumulates max|v| dt, an upper bound of any
+    particle's displacement since the build, and only when it passes L_v/2 is the exact largest displacement
+    computed, and the list rebuilt if that passes too.
 
     mg = None: the single linked-cell grid; else the multigrid arrays (level, nc, inv_cell, start_off,
     list_off, cell_start, cell_list) of engine/multigrid.py (scenes with more than one grid level).
     """
-    builds = 0
-    if nsteps <= 0:
-        return OK, 0, -1, 0.0, builds
-    limit2 = (skin * half) * (skin * half)
-    for s in range(nsteps):
-        hk = dt * half if s == 0 else dt
-        kick_drift(pos, vel, omega, quat, force, torque, inv_m, inv_i, vel_p, hk, dt, box, inv_box, half,
-                   chunk_a, chunk_b)
-        for c in range(chunk_b.shape[0]):
-            if chunk_b[c] >= 0:
-                return BAD_VALUE, s, chunk_b[c], 0.0, builds
-        v2 = 0.0
-        for c in range(chunk_a.shape[0]):
-            if chunk_a[c] > v2:
-                v2 = chunk_a[c]
-        disp_bound[0] += math.sqrt(v2) * dt
-        rebuild = False
-        if disp_bound[0] * disp_bound[0] > limit2:
-            exact2 = max_displacement2(pos, x_ref, box, inv_box, half, chunk_a)
-            rebuild = exact2 > limit2
-            disp_bound[0] = math.sqrt(exact2)
-        if rebuild:
-            disp_bound[0] = 0.0
-            if mg is None:
-                bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
-                build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
-                           nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+    if shape.NAME in _loops:
+        return _loops[shape.NAME]
+    step = make_step(shape)
+    forces = make_forces(shape)
+    exact = bool(shape.EXACT_DISPLACEMENT)
+
+    def run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
+                  ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
+                  cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg):
+        builds = 0
+        if nsteps <= 0:
+            return OK, 0, -1, 0.0, builds
+        limit2 = (skin * half) * (skin * half)
+        for s in range(nsteps):
+            hk = dt * half if s == 0 else dt
+            step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box,
+                 half, chunk_a, chunk_b)
+            for c in range(chunk_b.shape[0]):
+                if chunk_b[c] >= 0:
+                    return BAD_VALUE, s, chunk_b[c], 0.0, builds
+            m2 = 0.0
+            for c in range(chunk_a.shape[0]):
+                if chunk_a[c] > m2:
+                    m2 = chunk_a[c]
+            if exact:
+                rebuild = m2 > limit2
             else:
-                bin_levels(pos, mg[0], mg[1], mg[2], mg[3], mg[4], mg[5], mg[6])
-                build_levels_carry(pos, radius, mg[0], skin, box, inv_box, half, mg[1], mg[2], mg[3], mg[4],
-                                   mg[5], mg[6], nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
-            builds += 1
-            need = 0
-            for i in range(nn_new.shape[0]):
-                if nn_new[i] > need:
-                    need = nn_new[i]
-            if need > nbr_new.shape[1]:
-                return OVERFLOW, s, -1, float(need), builds
-            copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
-        compute_forces(pos, vel, vel_p, omega, radius, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
-                       k_n, gn_coef, k_t, mu, dt, chunk_a, chunk_b)
-        worst, who = worst_overlap(chunk_a, chunk_b)
-        if worst > overlap_limit:
-            return OVERLAP, s, who, worst, builds
-    half_kick(vel, omega, force, torque, inv_m, inv_i, dt * half)
-    return OK, nsteps, -1, 0.0, builds
+                disp_bound[0] += math.sqrt(m2) * dt
+                rebuild = False
+                if disp_bound[0] * disp_bound[0] > limit2:
+                    exact2 = max_displacement2(pos, x_ref, box, inv_box, half, chunk_a)
+                    rebuild = exact2 > limit2
+                    disp_bound[0] = math.sqrt(exact2)
+            if rebuild:
+                disp_bound[0] = 0.0
+                if mg is None:
+                    bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
+                    build_list(pos, rad, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
+                               nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+                else:
+                    bin_levels(pos, mg[0], mg[1], mg[2], mg[3], mg[4], mg[5], mg[6])
+                    build_levels_carry(pos, rad, mg[0], skin, box, inv_box, half, mg[1], mg[2], mg[3], mg[4],
+                                       mg[5], mg[6], nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+                builds += 1
+                need = 0
+                for i in range(nn_new.shape[0]):
+                    if nn_new[i] > need:
+                        need = nn_new[i]
+                if need > nbr_new.shape[1]:
+                    return OVERFLOW, s, -1, float(need), builds
+                copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
+            forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                   k_n, gn_coef, law, dt, ext, chunk_a, chunk_b)
+            worst, who = worst_overlap(chunk_a, chunk_b)
+            if worst > overlap_limit:
+                return OVERLAP, s, who, worst, builds
+        half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
+        return OK, nsteps, -1, 0.0, builds
+
+    loop = cache_closure(numba.njit(run_steps), ("cpu.run_steps", shape.NAME))
+    _loops[shape.NAME] = loop
+    return loop
 
 
 @numba.njit(cache=True)
@@ -420,30 +407,20 @@ def observe_kernel(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, i
     return e_tr, e_rot, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
 
 
-class CpuBackend:
-    """The CPU time loop; see the module docstring for layout and specialisation."""
+class CpuLoop:
+    """What every CPU shape backend shares: cells, the Verlet list and its slot store, the list build, the
+    time loop (``make_run_steps`` of the subclass's ``shape``) and its error handling.
+
+    A subclass sets ``shape`` (an engine/shapes/ module) and, before ``_init_loop``, the state arrays ``pos``,
+    ``vel``, ``force``, ``inv_m``, ``x_ref``, ``vel_p`` and ``_rad_list`` (list radius); ``set_contact`` then
+    sets the constants and the loop arguments ``_spin``, ``_spin_inv``, ``_quat_arg``, ``_torque_arg``,
+    ``_ext``, ``_law``. It implements ``_prime`` and ``_forces`` (forces at a list build outside the loop).
+    """
 
     name = "cpu"
+    shape = None
 
-    def __init__(self, system: SphereSystem, contact: ContactParams):
-        self.dtype = np.float64 if contact.precision == "float64" else np.float32
-        dt_ = self.dtype
-        n = system.n
-        self.n = n
-        self.box = float(system.box_length)
-        self.pos = np.array(system.position, dtype=dt_, order="C", copy=True)
-        self.vel = np.array(system.velocity, dtype=dt_, order="C", copy=True)
-        self.omega = np.array(system.angular_velocity, dtype=dt_, order="C", copy=True)
-        self.quat = np.array(system.orientation, dtype=dt_, order="C", copy=True)
-        self.radius = np.array(system.radius, dtype=dt_, order="C", copy=True)
-        self.mass = np.array(system.mass, dtype=dt_, order="C", copy=True)
-        self.inertia = np.array(system.inertia, dtype=dt_, order="C", copy=True)
-        self.inv_m = (1.0 / self.mass).astype(dt_)
-        self.inv_i = (1.0 / self.inertia).astype(dt_)
-        self.force = np.zeros((n, 3), dt_)
-        self.torque = np.zeros((n, 3), dt_)
-        self.x_ref = self.pos.copy()
-        self.vel_p = self.vel.copy()      # predicted end-of-step velocities (see kick_drift)
+    def _init_loop(self, n: int, rmax: float, rmin: float, skin: float) -> None:
         self.disp_bound = np.zeros(1)     # upper bound of the displacement since the last build (m)
         self.device = cpu_name()
         self.steps_done = 0
@@ -452,11 +429,8 @@ class CpuBackend:
         nch = max(1, min(n, 8 * threads))
         self.chunk_a = np.zeros(nch, np.float64)
         self.chunk_b = np.zeros(nch, np.int64)
-        self._setup_cells(float(np.max(system.radius)) if n else 0.0, contact.skin,
-                          float(np.min(system.radius)) if n else 0.0)
+        self._setup_cells(rmax, skin, rmin)
         self._alloc_lists(8)
-        self.set_contact(contact)
-        self._prime(system)
 
     # ---- set-up -----------------------------------------------------------------------------------
 
@@ -471,7 +445,7 @@ class CpuBackend:
             levels = grid_levels(self.box, self.n, rmin, rmax, float(skin))
             if levels.n_levels > 1:
                 self.levels = levels
-                level = main_level(self.radius, levels)
+                level = main_level(self._rad_list, levels)
                 self.mg = (level,) + level_arrays(self.box, level, levels)
                 nc = 1                      # the single grid is not used
         self.cell_start = np.zeros(nc**3 + 1, np.int64)
@@ -494,22 +468,18 @@ class CpuBackend:
         self._alloc_lists(int(math.ceil(max(need, 2 * self.max_nb) / 4.0)) * 4)
         copy_list(old[0], old[1], old[2], self.nbr, self.nn, self.hist)
 
-    def set_contact(self, contact: ContactParams) -> None:
-        """Switch contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
+    def _set_common(self, contact: ContactParams) -> None:
+        """The contact constants every shape has."""
         self.contact = contact
         c = self.dtype
         self.k_n = c(contact.k_n)
         self.gn_coef = c(contact.gamma_n_coef)
-        self.k_t = None if contact.k_t is None else c(contact.k_t)
-        self.mu = None if contact.friction is None else c(contact.friction)
         self.dt = c(contact.dt)
         self.skin = c(contact.skin)
         self.half = c(0.5)
         self.box_c = c(self.box)
         self.inv_box = c(1.0 / self.box)
         self.overlap_limit = float(contact.overlap_limit)
-        self._torque_arg = self.torque if contact.rough else None
-        self._quat_arg = self.quat if contact.orientation else None
 
     def _build(self) -> None:
         mg = self.mg
@@ -517,13 +487,13 @@ class CpuBackend:
             if mg is None:
                 bin_particles(self.pos, self.nc, self.inv_cell, self.cell_start, self.cell_list, self.cell_of,
                               self.cursor)
-                build_list(self.pos, self.radius, self.skin, self.box_c, self.inv_box, self.half, self.nc,
+                build_list(self.pos, self._rad_list, self.skin, self.box_c, self.inv_box, self.half, self.nc,
                            self.cell_start, self.cell_list, self.cell_of, self.nbr, self.nn, self.hist,
                            self.nbr_new, self.nn_new, self.hist_new, self.x_ref)
             else:
                 bin_levels(self.pos, *mg)
-                build_levels_carry(self.pos, self.radius, mg[0], self.skin, self.box_c, self.inv_box, self.half,
-                                   *mg[1:], self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new,
+                build_levels_carry(self.pos, self._rad_list, mg[0], self.skin, self.box_c, self.inv_box,
+                                   self.half, *mg[1:], self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new,
                                    self.hist_new, self.x_ref)
             need = int(self.nn_new.max()) if self.n else 0
             if need <= self.max_nb:
@@ -532,6 +502,95 @@ class CpuBackend:
         copy_list(self.nbr_new, self.nn_new, self.hist_new, self.nbr, self.nn, self.hist)
         self.disp_bound[0] = 0.0
         self.builds += 1
+
+    def _forces(self) -> None:
+        """Forces and torques at the current positions (after a build outside the loop)."""
+        make_forces(self.shape)(self.pos, self.vel, self.vel_p, self._spin, self._quat_arg, self._rad_list,
+                                self.inv_m, self.nbr, self.nn, self.hist, self.force, self._torque_arg, self.box_c,
+                                self.inv_box, self.half, self.k_n, self.gn_coef, self._law, self.dt, self._ext,
+                                self.chunk_a, self.chunk_b)
+        if self._torque_arg is None:
+            self.torque[:] = 0
+
+    # ---- time loop ---------------------------------------------------------------------------------
+
+    def warmup(self) -> None:
+        """Compile (or load from the disk cache) the time loop for the current contact parameters."""
+        self.advance(0, _compile_only=True)
+
+    def advance(self, nsteps: int, _compile_only: bool = False) -> None:
+        """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
+        run_steps = make_run_steps(self.shape)
+        left = int(nsteps)
+        while left > 0 or _compile_only:
+            _compile_only = False
+            status, done, who, value, builds = run_steps(
+                left, self.pos, self.vel, self._spin, self._quat_arg, self.force, self._torque_arg,
+                self.inv_m, self._spin_inv, self._rad_list, self.x_ref, self.vel_p, self.disp_bound, self._ext,
+                self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell,
+                self.cell_start, self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half,
+                self.dt, self.skin, self.k_n, self.gn_coef, self._law, self.overlap_limit,
+                self.chunk_a, self.chunk_b, self.mg)
+            self.builds += builds
+            if status == OK:
+                self.steps_done += done
+                return
+            step = self.steps_done + done
+            if status == OVERFLOW:
+                # finish the interrupted step with a larger list, then continue
+                self._grow_lists(int(value))
+                self._build()
+                self._forces()
+                half_kick(self.vel, self._spin, self.force, self._torque_arg, self.inv_m, self._spin_inv,
+                          self.dt * self.half)
+                self.steps_done += done + 1
+                left -= done + 1
+                continue
+            self.steps_done = step
+            raise instability_error(status, step, int(who), value, self)
+
+
+class CpuBackend(CpuLoop):
+    """The CPU time loop for spheres (engine/shapes/sphere.py); see the module docstring for layout and
+    specialisation."""
+
+    shape = sphere
+
+    def __init__(self, system: SphereSystem, contact: ContactParams):
+        self.dtype = np.float64 if contact.precision == "float64" else np.float32
+        dt_ = self.dtype
+        n = system.n
+        self.n = n
+        self.box = float(system.box_length)
+        self.pos = np.array(system.position, dtype=dt_, order="C", copy=True)
+        self.vel = np.array(system.velocity, dtype=dt_, order="C", copy=True)
+        self.omega = np.array(system.angular_velocity, dtype=dt_, order="C", copy=True)
+        self.quat = np.array(system.orientation, dtype=dt_, order="C", copy=True)
+        self.radius = np.array(system.radius, dtype=dt_, order="C", copy=True)
+        self.mass = np.array(system.mass, dtype=dt_, order="C", copy=True)
+        self.inertia = np.array(system.inertia, dtype=dt_, order="C", copy=True)
+        self.inv_m = (1.0 / self.mass).astype(dt_)
+        self.inv_i = (1.0 / self.inertia).astype(dt_)
+        self.force = np.zeros((n, 3), dt_)
+        self.torque = np.zeros((n, 3), dt_)
+        self.x_ref = self.pos.copy()
+        self.vel_p = self.vel.copy()      # predicted end-of-step velocities (see shapes/sphere.kick_drift)
+        self._rad_list = self.radius
+        self._spin, self._spin_inv, self._ext = self.omega, self.inv_i, None
+        self._init_loop(n, float(np.max(system.radius)) if n else 0.0,
+                        float(np.min(system.radius)) if n else 0.0, contact.skin)
+        self.set_contact(contact)
+        self._prime(system)
+
+    def set_contact(self, contact: ContactParams) -> None:
+        """Switch contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
+        self._set_common(contact)
+        c = self.dtype
+        self.k_t = None if contact.k_t is None else c(contact.k_t)
+        self.mu = None if contact.friction is None else c(contact.friction)
+        self._law = (self.k_t, self.mu)
+        self._torque_arg = self.torque if contact.rough else None
+        self._quat_arg = self.quat if contact.orientation else None
 
     def _prime(self, system: SphereSystem) -> None:
         """First list build (restoring checkpointed springs) and forces at t = 0."""
@@ -544,48 +603,6 @@ class CpuBackend:
         if worst > self.overlap_limit:
             raise _start_overlap(self, int(who), float(worst))
 
-    def _forces(self) -> None:
-        compute_forces(self.pos, self.vel, self.vel_p, self.omega, self.radius, self.inv_m, self.nbr, self.nn, self.hist,
-                       self.force, self._torque_arg, self.box_c, self.inv_box, self.half, self.k_n,
-                       self.gn_coef, self.k_t, self.mu, self.dt, self.chunk_a, self.chunk_b)
-        if self._torque_arg is None:
-            self.torque[:] = 0
-
-    # ---- time loop ---------------------------------------------------------------------------------
-
-    def warmup(self) -> None:
-        """Compile (or load from the disk cache) the time loop for the current contact parameters."""
-        self.advance(0, _compile_only=True)
-
-    def advance(self, nsteps: int, _compile_only: bool = False) -> None:
-        """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
-        left = int(nsteps)
-        while left > 0 or _compile_only:
-            _compile_only = False
-            status, done, who, value, builds = run_steps(
-                left, self.pos, self.vel, self.omega, self._quat_arg, self.force, self._torque_arg,
-                self.inv_m, self.inv_i, self.radius, self.x_ref, self.vel_p, self.disp_bound, self.nbr, self.nn, self.hist,
-                self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell, self.cell_start,
-                self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half, self.dt,
-                self.skin, self.k_n, self.gn_coef, self.k_t, self.mu, self.overlap_limit,
-                self.chunk_a, self.chunk_b, self.mg)
-            self.builds += builds
-            if status == OK:
-                self.steps_done += done
-                return
-            step = self.steps_done + done
-            if status == OVERFLOW:
-                # finish the interrupted step with a larger list, then continue
-                self._grow_lists(int(value))
-                self._build()
-                self._forces()
-                half_kick(self.vel, self.omega, self.force, self._torque_arg, self.inv_m, self.inv_i,
-                          self.dt * self.half)
-                self.steps_done += done + 1
-                left -= done + 1
-                continue
-            self.steps_done = step
-            raise instability_error(status, step, int(who), value, self)
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 

@@ -35,6 +35,7 @@ from numba import cuda
 from numba.cuda import types as ct
 
 from engine.backends.cuda_cache import cache_kernels
+from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import drift_wrap, kick
@@ -452,7 +453,7 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
     @cuda.jit(device=True)
     def cell_of(i, pos, sc, spf, spi):
         s = sc[i]
-        return spi[s, I_COFF] + _cell(pos[0, i], pos[1, i], pos[2, i], spi[s, I_NC], spf[s, F_INVCELL])
+        return spi[s, I_COFF] + cell_index_of(pos[0, i], pos[1, i], pos[2, i], spf[s, F_INVCELL], spi[s, I_NC])
 
     @cuda.jit
     def fill_i32(a, value):
@@ -610,39 +611,25 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
             inv_box = spd[s, D_INVBOX]
             skin = spd[s, D_SKIN]
             r0 = spd[s, D_R0]
-            lo = -1 if nc >= 3 else 0
-            hi = 2 if nc >= 2 else 1
-            c = _cell(xi, yi, zi, nc, spf[s, F_INVCELL])
-            cx = c // (nc * nc)
-            cy = (c // nc) % nc
-            cz = c % nc
+            cx, cy, cz = cell_coords(xi, yi, zi, spf[s, F_INVCELL], nc)
             ri = r0 if UNIFORM else radius[i]
             oi = order[i]
             k0 = c_off[oi]
             k1 = k0 + c_cnt[oi]
             cnt = 0
-            for ox in range(lo, hi):
-                ax = (cx + ox + nc) % nc
-                for oy in range(lo, hi):
-                    ay = (cy + oy + nc) % nc
-                    for oz in range(lo, hi):
-                        az = (cz + oz + nc) % nc
-                        cc = coff + (ax * nc + ay) * nc + az
-                        for j in range(cell_start[cc], cell_start[cc + 1]):
-                            if j == i:
-                                continue
-                            dx = min_image(xi - pos[0, j], box, inv_box, HALF)
-                            dy = min_image(yi - pos[1, j], box, inv_box, HALF)
-                            dz = min_image(zi - pos[2, j], box, inv_box, HALF)
-                            rj = r0 if UNIFORM else radius[j]
-                            rc = ri + rj + skin
-                            d2 = dx * dx + dy * dy + dz * dz
-                            if d2 < rc * rc:
-                                if cnt < max_nb:
-                                    nbr[cnt, i] = j
-                                    init_slot(i, cnt, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old,
-                                              hist)
-                                cnt += 1
+            for k in range(neighbour_cell_count(nc)):
+                cc = coff + neighbour_cell(cx, cy, cz, k, nc)
+                for j in range(cell_start[cc], cell_start[cc + 1]):
+                    if j == i:
+                        continue
+                    d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, HALF)
+                    rj = r0 if UNIFORM else radius[j]
+                    rc = ri + rj + skin
+                    if d2 < rc * rc:
+                        if cnt < max_nb:
+                            nbr[cnt, i] = j
+                            init_slot(i, cnt, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
+                        cnt += 1
             nn[i] = cnt
             if cnt > need:
                 need = f64(cnt)
@@ -743,13 +730,3 @@ def init_slot(i, kk, j, gap, k0, k1, cj, chist, inv_old, hist):
     for w in range(HW):
         hist[w, kk, i] = 0
     hist[3, kk, i] = gap
-
-
-@cuda.jit(device=True)
-def _cell(x, y, z, nc, inv_cell):
-    """Cell index of a position within its scene's grid, exactly as the CPU backend bins (float64
-    products, clamped)."""
-    cx = min(max(int(np.float64(x) * inv_cell), 0), nc - 1)
-    cy = min(max(int(np.float64(y) * inv_cell), 0), nc - 1)
-    cz = min(max(int(np.float64(z) * inv_cell), 0), nc - 1)
-    return (cx * nc + cy) * nc + cz

@@ -27,7 +27,8 @@ from numba.cuda import types as ct
 
 from engine.backends import cuda_kernels as K
 from engine.backends.cuda_cache import cache_kernels
-from engine.backends.cuda_kernels import _cell, init_slot
+from engine.backends.cuda_kernels import init_slot
+from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
 _cache: dict = {}
@@ -52,7 +53,7 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
     @cuda.jit(device=True)
     def level_bin(i, l, li, pos, s, mgi, mgf):
         """Bin of particle i at level l: main bin when l is its own level, secondary bin when coarser."""
-        c = _cell(pos[0, i], pos[1, i], pos[2, i], mgi[s, l, 0], mgf[s, l])
+        c = cell_index_of(pos[0, i], pos[1, i], pos[2, i], mgf[s, l], mgi[s, l, 0])
         return (mgi[s, l, 1] if l == li else mgi[s, l, 2]) + c
 
     @cuda.jit
@@ -108,34 +109,21 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
             cnt = 0
             for l in range(li + 1):
                 nc = mgi[s, l, 0]
-                c = _cell(xi, yi, zi, nc, mgf[s, l])
-                cx = c // (nc * nc)
-                cy = (c // nc) % nc
-                cz = c % nc
-                lo = -1 if nc >= 3 else 0
-                hi = 2 if nc >= 2 else 1
+                cx, cy, cz = cell_coords(xi, yi, zi, mgf[s, l], nc)
                 kinds = 2 if l == li else 1
-                for ox in range(lo, hi):
-                    ax = (cx + ox + nc) % nc
-                    for oy in range(lo, hi):
-                        ay = (cy + oy + nc) % nc
-                        for oz in range(lo, hi):
-                            az = (cz + oz + nc) % nc
-                            cc = (ax * nc + ay) * nc + az
-                            for kind in range(kinds):
-                                b = mgi[s, l, 1 + kind] + cc
-                                for p in range(start[b], start[b + 1]):
-                                    j = items[p]
-                                    if j == i:
-                                        continue
-                                    dx = min_image(xi - pos[0, j], box, inv_box, HALF)
-                                    dy = min_image(yi - pos[1, j], box, inv_box, HALF)
-                                    dz = min_image(zi - pos[2, j], box, inv_box, HALF)
-                                    rc = ri + radius[j] + skin
-                                    if dx * dx + dy * dy + dz * dz < rc * rc:
-                                        if cnt < max_nb:
-                                            nbr[cnt, i] = j
-                                        cnt += 1
+                for k in range(neighbour_cell_count(nc)):
+                    cc = neighbour_cell(cx, cy, cz, k, nc)
+                    for kind in range(kinds):
+                        b = mgi[s, l, 1 + kind] + cc
+                        for p in range(start[b], start[b + 1]):
+                            j = items[p]
+                            if j == i:
+                                continue
+                            rc = ri + radius[j] + skin
+                            if distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, HALF) < rc * rc:
+                                if cnt < max_nb:
+                                    nbr[cnt, i] = j
+                                cnt += 1
             nn[i] = cnt
             if cnt > need:
                 need = np.float64(cnt)

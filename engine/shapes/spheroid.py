@@ -1,0 +1,148 @@
+"""The spheroid shape plug-in (frictionless prolate ellipsoids, paper 003): what an ellipsoid adds to the
+shared CPU time loop (engine/backends/cpu.py ``make_run_steps``, ``make_forces``; the interface is in engine/shapes/sphere.py).
+
+- Broad phase: the list radius ``rad`` is the bounding-sphere radius (largest semi-axis); the force loop runs the
+  Perram-Wertheim contact (engine/physics/ellipsoid.py) only for pairs whose bounding spheres overlap, behind
+  two exact screens for pairs not in contact at the previous step (ellipsoid_pair_screened). A screened pair
+  stores -inf as its gap; when a contact starts right after a screened step the gap of that step is evaluated
+  from the state before the step (pos_prev, quat_prev), so every result is the one without the screens, bit
+  for bit (tests/engine/test_ellipsoid_screen.py).
+- Each pair is evaluated with the lower id as "A" in both partners' loops, so F_ji = -F_ij to the last bit
+  without atomics.
+- Rotation: ``spin`` is the space-frame angular momentum L (kicked by the torque: ``spin_inv`` = 1), the
+  quaternions advance by Fincham's leap-frog with the body-frame angular velocity I^-1 R^T L
+  (engine/physics/rotation.py: fincham_quat_step_body), renormalised every step; predicted end-of-step
+  velocities and angular velocities feed the dashpot.
+- ``EXACT_DISPLACEMENT = True``: ``step`` measures every particle's displacement since the last build.
+- ``law = (tol, margin, screened_gap)``: Perram-Wertheim Newton tolerance, screen margin, stored gap of a
+  screened pair; ``ext = (inv_i, axes, omega_p, pos_prev, quat_prev)``: inverse principal moments (N, 3),
+  semi-axes (N, 3), predicted space-frame angular velocities, positions and orientations before the step.
+- List slots 3 and 4 hold the overlap (-inf: screened) and the dashpot force of the previous step; 0-2 unused.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+
+import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+
+from engine.physics.contact import min_image
+from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
+from engine.physics.rotation import fincham_quat_step_body, space_omega
+
+NAME = "ellipsoid"
+EXACT_DISPLACEMENT = True
+
+
+@numba.njit
+def pre_step(i, pos, quat, ext):
+    """Keep position and orientation before the step (ext[3], ext[4]) for a contact that starts after a screened
+    step (engine.physics.ellipsoid.ellipsoid_pair_screened)."""
+    pos_prev = ext[3]
+    quat_prev = ext[4]
+    for k in range(4):
+        quat_prev[i, k] = quat[i, k]
+    for k in range(3):
+        pos_prev[i, k] = pos[i, k]
+
+
+@numba.njit
+def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
+    """The ellipsoid's half of the kick-drift of particle i after the shared translation: L += tau hk, q by
+    Fincham's leap-frog on the body-frame angular velocity, predicted space-frame angular velocity at t + dt
+    into ext[2]. Returns (squared displacement since the last list build (m^2), finite)."""
+    angm = spin
+    inv_i = ext[0]
+    omega_p = ext[2]
+    lx = angm[i, 0] + torque[i, 0] * hk
+    ly = angm[i, 1] + torque[i, 1] * hk
+    lz = angm[i, 2] + torque[i, 2] * hk
+    angm[i, 0] = lx
+    angm[i, 1] = ly
+    angm[i, 2] = lz
+    i1_, i2_, i3_ = inv_i[i, 0], inv_i[i, 1], inv_i[i, 2]
+    q0, q1, q2, q3 = fincham_quat_step_body(
+        quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+        lx - torque[i, 0] * hp, ly - torque[i, 1] * hp, lz - torque[i, 2] * hp, lx, ly, lz,
+        i1_, i2_, i3_, dt, half)
+    quat[i, 0] = q0
+    quat[i, 1] = q1
+    quat[i, 2] = q2
+    quat[i, 3] = q3
+    wx, wy, wz = space_omega(q0, q1, q2, q3, lx + torque[i, 0] * hp, ly + torque[i, 1] * hp,
+                             lz + torque[i, 2] * hp, i1_, i2_, i3_, half)
+    omega_p[i, 0] = wx
+    omega_p[i, 1] = wy
+    omega_p[i, 2] = wz
+    dx = min_image(pos[i, 0] - x_ref[i, 0], box, inv_box, half)
+    dy = min_image(pos[i, 1] - x_ref[i, 1], box, inv_box, half)
+    dz = min_image(pos[i, 2] - x_ref[i, 2], box, inv_box, half)
+    d2 = dx * dx + dy * dy + dz * dz
+    ok = (d2 < 1e300) and (abs(vel[i, 0]) + abs(vel[i, 1]) + abs(vel[i, 2]) < 1e300) \
+        and (abs(lx) + abs(ly) + abs(lz) < 1e300) and (abs(q0) <= 1.5)
+    return d2, ok
+
+
+@numba.njit
+def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
+         ext):
+    """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), overlap/dashpot history updated,
+    and the overlap (m) relative to the smallest semi-axis of the pair (0 when not in contact), for the shared
+    force loop.
+
+    Pairs proven disjoint by the exact screens (margin >= 0) store screened_gap (-inf) as their gap; a contact
+    that starts right after such a step gets the previous gap evaluated from pos_prev/quat_prev (see
+    engine.physics.ellipsoid.ellipsoid_pair_screened). law = (tol, margin, screened_gap); ext = (inv_i, axes,
+    omega_p, pos_prev, quat_prev).
+    """
+    axes = ext[1]
+    omega_p = ext[2]
+    pos_prev = ext[3]
+    quat_prev = ext[4]
+    tol = law[0]
+    a = i if i < j else j
+    b = j if i < j else i
+    rx = min_image(pos[b, 0] - pos[a, 0], box, inv_box, half)
+    ry = min_image(pos[b, 1] - pos[a, 1], box, inv_box, half)
+    rz = min_image(pos[b, 2] - pos[a, 2], box, inv_box, half)
+    rc = rad[a] + rad[b]
+    d2 = rx * rx + ry * ry + rz * rz
+    if d2 >= rc * rc and hist[i, kk, 3] <= 0:
+        hist[i, kk, 3] = rc - math.sqrt(d2)     # negative: no contact possible
+        hist[i, kk, 4] = 0
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    m12 = 1 / (inv_m[a] + inv_m[b])
+    d_prev = hist[i, kk, 3]
+    for _ in range(2):
+        g = ellipsoid_pair_screened(
+            rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
+            axes[a, 0], axes[a, 1], axes[a, 2],
+            quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
+            axes[b, 0], axes[b, 1], axes[b, 2],
+            vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
+            omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
+            omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
+            d_prev, hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, law[1],
+            law[2], half)
+        if g[11] != PAIR_NEEDS_PREV:
+            break
+        # a contact starts after a screened step: the gap of that step, from its state
+        d_prev = ellipsoid_contact(
+            min_image(pos_prev[b, 0] - pos_prev[a, 0], box, inv_box, half),
+            min_image(pos_prev[b, 1] - pos_prev[a, 1], box, inv_box, half),
+            min_image(pos_prev[b, 2] - pos_prev[a, 2], box, inv_box, half),
+            quat_prev[a, 0], quat_prev[a, 1], quat_prev[a, 2], quat_prev[a, 3],
+            axes[a, 0], axes[a, 1], axes[a, 2],
+            quat_prev[b, 0], quat_prev[b, 1], quat_prev[b, 2], quat_prev[b, 3],
+            axes[b, 0], axes[b, 1], axes[b, 2], tol, half)[2]
+    delta = g[9]
+    hist[i, kk, 3] = delta
+    hist[i, kk, 4] = g[10]
+    ov = 0.0
+    if delta > 0:
+        ov = delta / min(min(axes[a, 1], axes[a, 2]), min(axes[b, 1], axes[b, 2]))
+    if i == a:
+        return g[0], g[1], g[2], g[3], g[4], g[5], ov
+    return -g[0], -g[1], -g[2], g[6], g[7], g[8], ov
