@@ -83,6 +83,27 @@ def coulomb_cap(fx, fy, fz, fn, mu, k_t):
 
 
 @numba.njit
+def tangential_spring_step(xix, xiy, xiz, nx, ny, nz, tx, ty, tz, h, k_t, fn, mu):
+    """One step of the tangential spring (paper 001; spheres and rough spheroids): the old spring xi (m) rotated
+    into the plane normal to n, loaded by the slip t (m/s) for h seconds, the force -k_t xi (N) capped at
+    mu |F_n| (fn, N; mu None: no cap) with the spring shortened on sliding. Returns (F (3), xi (3))."""
+    px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
+    px += tx * h
+    py += ty * h
+    pz += tz * h
+    gx = -k_t * px
+    gy = -k_t * py
+    gz = -k_t * pz
+    if mu is not None:
+        gx, gy, gz, sliding, qx, qy, qz = coulomb_cap(gx, gy, gz, fn, mu, k_t)
+        if sliding:
+            px = qx
+            py = qy
+            pz = qz
+    return gx, gy, gz, px, py, pz
+
+
+@numba.njit
 def tangential_slip(nx, ny, nz, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, li, lj):
     """Tangential part of the contact-point velocity v_i - v_j - (l_i w_i + l_j w_j) x n (m/s)."""
     sx = li * wix + lj * wjx
@@ -151,21 +172,9 @@ def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wj
     li = (d + ai - aj) * half
     lj = (d + aj - ai) * half  # not d - li: swapping i and j must swap l_i and l_j bit for bit
     tx, ty, tz = tangential_slip(nx, ny, nz, vx, vy, vz, wix, wiy, wiz, wjx, wjy, wjz, li, lj)
-    px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
     # a contact that began inside this step has loaded its spring only since then
     h = dt if delta_prev > 0 else dt * (delta / (delta - delta_prev))
-    px += tx * h
-    py += ty * h
-    pz += tz * h
-    gx = -k_t * px
-    gy = -k_t * py
-    gz = -k_t * pz
-    if mu is not None:
-        gx, gy, gz, sliding, qx, qy, qz = coulomb_cap(gx, gy, gz, fn, mu, k_t)
-        if sliding:
-            px = qx
-            py = qy
-            pz = qz
+    gx, gy, gz, px, py, pz = tangential_spring_step(xix, xiy, xiz, nx, ny, nz, tx, ty, tz, h, k_t, fn, mu)
     # torque on i: (-l_i n) x F_t
     taux = -li * (ny * gz - nz * gy)
     tauy = -li * (nz * gx - nx * gz)

@@ -41,7 +41,7 @@ import math
 
 import numba
 
-from engine.physics.contact import coulomb_cap, rotate_spring_into_plane
+from engine.physics.contact import tangential_spring_step
 from engine.physics.ellipsoid import sym_mul_vec, sym_quad, sym_rotated
 
 
@@ -119,19 +119,7 @@ def spheroid_tangential(nx, ny, nz, ra_x, ra_y, ra_z, rb_x, rb_y, rb_z, tx, ty, 
     Returns (F_B (3), tau_A (3), tau_B (3), xi (3)): the tangential force on B (A gets -F_B), the torques (N m)
     and the new spring (m).
     """
-    px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
-    px += tx * h
-    py += ty * h
-    pz += tz * h
-    gx = -k_t * px
-    gy = -k_t * py
-    gz = -k_t * pz
-    if mu is not None:
-        gx, gy, gz, sliding, qx, qy, qz = coulomb_cap(gx, gy, gz, fn, mu, k_t)
-        if sliding:
-            px = qx
-            py = qy
-            pz = qz
+    gx, gy, gz, px, py, pz = tangential_spring_step(xix, xiy, xiz, nx, ny, nz, tx, ty, tz, h, k_t, fn, mu)
     # tau_A = r_A x (-F), tau_B = r_B x F
     return (gx, gy, gz,
             -(ra_y * gz - ra_z * gy), -(ra_z * gx - ra_x * gz), -(ra_x * gy - ra_y * gx),
