@@ -46,13 +46,13 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.h5md import read_parameters, read_series
 from engine.hydro_modes import file_mode_series, structure_factor_cs
 from engine.params import derive, e_t_effective
 from engine.shear_instability import (onset_tau, predicted_mode_energy, predicted_unstable_excess,
                                       shear_stability)
 from engine.spec import SimulationSpec
 from engine.theory import luding_ode, tau_factor
+from engine.validation.hcs_spheres import measure_run
 
 CASES = (0.8, 0.6)
 
@@ -117,18 +117,8 @@ def cost(specs) -> dict:
 # ---- analysis of result files -------------------------------------------------------------------------
 
 def _read_run(path) -> dict:
-    par = read_parameters(path)
-    spec = par["spec"]
-    tt = read_series(path, "temperature_translational")
-    tr = read_series(path, "temperature_rotational")
-    ov = read_series(path, "max_overlap")
-    t0 = float(tt["value"][0])
-    k = tau_factor(float(par["radius"]), float(par["number_density"]), float(par["mass"]),
-                   spec["volume_fraction"], t0)
-    modes = file_mode_series(path)
-    return {"spec": spec, "time": tt["time"], "T0": t0, "k": k, "T": tt["value"] / t0, "R": tr["value"] / t0,
-            "max_overlap": float(np.max(ov["value"])), "modes": modes, "backend": str(par.get("backend", "")),
-            "device": str(par.get("device", "")), "radius": float(par["radius"])}
+    """engine.validation.hcs_spheres.measure_run of one result file, with its hydrodynamic-mode series."""
+    return {**measure_run(path), "modes": file_mode_series(path)}
 
 
 def _mean_se(rows) -> tuple[np.ndarray, np.ndarray]:

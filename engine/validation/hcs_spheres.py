@@ -53,7 +53,8 @@ def quick_spec(e: float, seed: int, backend: str) -> SimulationSpec:
 
 
 def measure_run(path) -> dict:
-    """tau, T/T0, R/T0 and the largest overlap of one result file."""
+    """tau, T/T0, R/T0 and the largest overlap of one result file (also its spec, time (s), T0 (J), the tau
+    factor k = tau/t and the radius)."""
     par = read_parameters(path)
     spec = par["spec"]
     tt = read_series(path, "temperature_translational")
@@ -64,7 +65,8 @@ def measure_run(path) -> dict:
                    spec["volume_fraction"], t0)
     return {"tau": k * tt["time"], "T": tt["value"] / t0, "R": tr["value"] / t0,
             "max_overlap": float(np.max(ov["value"])), "cundall": float(par["cundall_number"]),
-            "backend": str(par["backend"]), "device": str(par["device"])}
+            "backend": str(par["backend"]), "device": str(par["device"]),
+            "spec": spec, "time": tt["time"], "T0": t0, "k": k, "radius": float(par["radius"])}
 
 
 def compare(runs: list, e_n: float, e_t: float) -> dict:
