@@ -18,8 +18,8 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 name=${HCS_LONG_NAME:-hcs-long}
 mkdir -p "$OUT/$name"
-# 395 s: a finished run's report is written well inside the 7-minute call; an overrun still returns the log
-timeout 395 python3 -m engine.validation.hcs_long run --backend cuda --out-dir "$OUT/$name" \
+# 395 s (HCS_TIMEOUT overrides): a finished run's report is written well inside the 7-minute call; an overrun still returns the log
+timeout ${HCS_TIMEOUT:-395} python3 -m engine.validation.hcs_long run --backend cuda --out-dir "$OUT/$name" \
     --scratch "/tmp/$name" "$@" > "$OUT/$name.log" 2>&1
 echo "hcs-long exit $?" >> "$OUT/$name.log"
 tail -n 20 "$OUT/$name.log"
