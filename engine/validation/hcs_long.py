@@ -460,6 +460,13 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
               f"{_fmt_tau(r['tau_dev_significant'])}; shear x > 2 from {_fmt_tau(r['tau_shear_measured'])} "
               f"(predicted {_fmt_tau(r['tau_shear_predicted'])}); L/L_c = {r['stab'].box_over_Lc:.2f}; "
               f"goal {'met' if criterion(r) else 'NOT met'}", flush=True)
+    if not quick:
+        from engine.validation import hcs_dsmc
+
+        parts = hcs_dsmc.compare(out, velocity_rms=velocity_rms)
+        if parts:
+            hcs_dsmc.write(out, parts, f"{command} (then engine/validation/hcs_dsmc.py on its report)")
+            print(f"hcs-long: the deviation's parts (DSMC, soft contact) in {out / 'dsmc.md'}", flush=True)
     if quick:
         problems = quick_checks(results)
         for p in problems:

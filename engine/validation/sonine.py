@@ -142,14 +142,19 @@ def ensemble_stats(runs: list, key: str) -> tuple[float, float]:
 # ---- the DSMC reference ----------------------------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
-def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed):
+def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed, r0=1.0):
     """Homogeneous DSMC of inelastic (rough) hard spheres, m = 1, radius 1, I = q; returns per sample
-    (s, sum e_tr, sum e_tr^2, sum e_rot, sum e_rot^2, sum e_tr e_rot). The hard-sphere kernel (g.n)_+ is
-    sampled as a pair accepted with probability |g| / (2 vmax), then n with density (g_hat.n)_+. Velocities are rescaled to T_tr = 1 every
-    n/2 collisions (the cumulants and T_rot/T_tr do not change under a common scale)."""
+    (s, sum e_tr, sum e_tr^2, sum e_rot, sum e_rot^2, sum e_tr e_rot, tau, T_unit). The hard-sphere kernel
+    (g.n)_+ is sampled as a pair accepted with probability |g| / (2 vmax), then n with density (g_hat.n)_+.
+    Velocities are rescaled to T_tr = 1 every n/2 collisions (the cumulants and T_rot/T_tr do not change
+    under a common scale); T_unit is the physical temperature of that unit, so T_tr(tau)/T0 =
+    T_unit (2/3) sum e_tr / n (T0 the start's T_tr; likewise T_rot). tau is paper 001's scaled time, in
+    which the Maxwellian collision frequency per particle is (3/4) (T/T0)^(1/2) (engine/validation/hcs_long.py):
+    each candidate pair, accepted or not, advances it by 16 / (3 sqrt(pi) n vmax sqrt(T_unit)) (the pair
+    rate K |g| with K (n - 1) <|g|>_Maxwell(T0) = 3/4). Start: Maxwellian, T_rot/T_tr = r0."""
     np.random.seed(seed)
     v = np.random.standard_normal((n, 3))
-    w = np.random.standard_normal((n, 3)) / math.sqrt(q)
+    w = np.random.standard_normal((n, 3)) * math.sqrt(r0 / q)
     for c in range(3):
         mv = v[:, c].mean()
         mw = w[:, c].mean()
@@ -161,7 +166,10 @@ def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed):
     n_coll_total = int(s_end * n / 2.0)
     every = max(1, int(n / (2.0 * samples_per_collision)))
     n_samples = n_coll_total // every + 1
-    out = np.zeros((n_samples, 6))
+    out = np.zeros((n_samples, 8))
+    tau = 0.0
+    t_unit = 1.0
+    dtau0 = 16.0 / (3.0 * math.sqrt(math.pi) * n)
     vmax = 0.0
     for i in range(n):
         vmax = max(vmax, math.sqrt(v[i, 0] ** 2 + v[i, 1] ** 2 + v[i, 2] ** 2))
@@ -190,14 +198,20 @@ def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed):
             out[k, 3] = sr
             out[k, 4] = sr2
             out[k, 5] = sx
-            k += 1
+            out[k, 6] = tau
+            # T0 is the start's T_tr, so the first rescale (to T_tr = 1) keeps the unit at T0
+            out[k, 7] = t_unit if k > 0 else 3.0 * n / (2.0 * se)
             scale = 1.0 / math.sqrt(2.0 * se / (3.0 * n))
+            if k > 0:
+                t_unit /= scale * scale
+            k += 1
             vmax = 0.0
             for i in range(n):
                 for c in range(3):
                     v[i, c] *= scale
                     w[i, c] *= scale
                 vmax = max(vmax, math.sqrt(v[i, 0] ** 2 + v[i, 1] ** 2 + v[i, 2] ** 2))
+        tau += dtau0 / (vmax * math.sqrt(t_unit))
         i = np.random.randint(0, n)
         j = np.random.randint(0, n - 1)
         if j >= i:
