@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="which validation to run")
     v.add_argument("-o", "--out-dir", default=None, help="report folder (default reports/<case>)")
     v.add_argument("--seeds", type=int, default=None,
-                   help="seeds per case (default 4 spheres, 1 ellipsoids, 12 hcs-long, sonine 32 (quick: 6), "
+                   help="seeds per case (default 4 spheres, 1 ellipsoids, 12 hcs-long, sonine 64 (quick: 6), "
                         "encounter-dsmc 4 (quick: 2) per rule)")
     v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
     v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
@@ -134,7 +134,7 @@ def cmd_validate(args) -> int:
     if args.case == "sonine":
         from engine.validation import sonine
 
-        return sonine.main(out_dir=out_dir, seeds=args.seeds or (6 if args.quick else 32), quick=args.quick,
+        return sonine.main(out_dir=out_dir, seeds=args.seeds or (6 if args.quick else 64), quick=args.quick,
                            backend=args.backend, jobs=args.jobs, threads=args.threads, ensemble=args.ensemble)
     if args.case == "hcs-ellipsoids":
         from engine.validation import hcs_ellipsoids
