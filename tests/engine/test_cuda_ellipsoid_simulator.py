@@ -10,12 +10,13 @@ The comparison runs in a child process because the simulator must be switched on
 first imported.
 """
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from tests.cudasim import child_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -201,11 +202,15 @@ class _SceneOf:
 
 
 def test_cuda_ellipsoid_backend_matches_cpu_under_simulator():
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
+    env = child_env()
     r = subprocess.run([sys.executable, __file__, "--child"], env=env, cwd=ROOT, capture_output=True,
                        text=True, timeout=900)
     assert r.returncode == 0 and "SIMULATOR-OK" in r.stdout, r.stdout[-4000:] + r.stderr[-4000:]
 
 
 if __name__ == "__main__" and "--child" in sys.argv:
+    sys.path.insert(0, str(ROOT))
+    from tests.cudasim import fast_block_polling
+
+    fast_block_polling()
     _child()

@@ -8,12 +8,14 @@ The simulator must be switched on before numba.cuda is first imported, so each c
 """
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+
+from tests.cudasim import child_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -85,10 +87,18 @@ def _child_sets() -> None:
     print("RESULT", json.dumps(out))
 
 
-def _child_modes() -> None:
+def _child_modes_and_growth() -> None:
+    """Both list checks in one child: the growth check's reference is the list-modes check's GPU-list run of
+    the same scene (multistep, the default at 40 particles), so that run is not repeated."""
+    modes, gpu_ref = _modes()
+    print("RESULT", json.dumps({"modes": modes, "growth": _growth(gpu_ref)}))
+
+
+def _modes():
     from engine.backends.cuda import CudaBackend
 
     out = {}
+    gpu_ref = None
     for multistep, modes in ((True, ("gpu", "cpu-sequential", "cpu-pipelined")), (False, ("gpu", "cpu-pipelined"))):
         runs = {}
         for mode in modes:
@@ -97,9 +107,12 @@ def _child_modes() -> None:
             m12 = 0.5 * float(sy.mass.min())
             dt = np.pi * np.sqrt(m12 / 1.0e5) / 50
             be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
+            assert be.e.multistep  # the default here: the growth check's GPU reference is the multistep run
             be.e.multistep = multistep
             be.advance(100)
             st = be.state()
+            if multistep and mode == "gpu":
+                gpu_ref = st["position"]
             runs[mode] = {"pos": st["position"], "vel": st["velocity"], "builds": be.builds,
                           "summary": None if be.e.lists is None else be.e.lists.summary(),
                           "contacts": be.observe()["contacts"]}
@@ -114,51 +127,48 @@ def _child_modes() -> None:
                          "dv": float(np.abs(runs[mode]["vel"] - ref["vel"]).max() / np.abs(ref["vel"]).max()),
                          "stages": runs[mode]["summary"]["stages"], "restarts": runs[mode]["summary"]["restarts"]}
         out["multistep" if multistep else "per-phase"] = res
-    print("RESULT", json.dumps(out))
+    return out, gpu_ref
 
 
-def _child_growth() -> None:
+def _growth(gpu_ref) -> dict:
     """A CPU-built list that overflows its stride mid-run: the list grows and the contact history (springs)
-    must survive it, so the run equals the GPU-list run."""
+    must survive it, so the run equals the GPU-list run (gpu_ref: the final positions of the GPU-list run of
+    the same scene, 100 steps in one call, from _modes)."""
     from engine.backends.cuda import CudaBackend
 
-    out = {}
-    for mode in ("gpu", "cpu-sequential"):
-        sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
-        skin = 0.3 * float(sy.radius.min())
-        dt = np.pi * np.sqrt(0.5 * float(sy.mass.min()) / 1.0e5) / 50
-        be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
-        stride0 = be.e.max_nb
-        springs = []
-        if mode != "gpu":
-            lists = be.e.lists
-            real = lists.builder.build
-            calls = []
+    sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
+    skin = 0.3 * float(sy.radius.min())
+    dt = np.pi * np.sqrt(0.5 * float(sy.mass.min()) / 1.0e5) / 50
+    be = CudaBackend(sy, contact(skin, dt, list_mode="cpu-sequential"))
+    stride0 = be.e.max_nb
+    springs = []
+    lists = be.e.lists
+    real = lists.builder.build
+    calls = []
 
-            def build(pos, nbr, nn, x_ref=None):
-                need = real(pos, nbr, nn, x_ref)
-                calls.append(need)
-                if len(calls) == 2:  # the second CPU build claims an overflow: the list must grow
-                    h, k = be.e.hist.copy_to_host(), be.e.nn.copy_to_host()
-                    live = np.arange(h.shape[1])[:, None] < k[None, :]
-                    springs.append(int(((h[0] != 0) & live).sum()))
-                    return nbr.shape[1] + 1
-                return need
+    def build(pos, nbr, nn, x_ref=None):
+        need = real(pos, nbr, nn, x_ref)
+        calls.append(need)
+        if len(calls) == 2:  # the second CPU build claims an overflow: the list must grow
+            h, k = be.e.hist.copy_to_host(), be.e.nn.copy_to_host()
+            live = np.arange(h.shape[1])[:, None] < k[None, :]
+            springs.append(int(((h[0] != 0) & live).sum()))
+            return nbr.shape[1] + 1
+        return need
 
-            lists.builder.build = build
-        be.advance(100)
-        out[mode] = {"pos": be.state()["position"], "stride": [stride0, be.e.max_nb], "springs": springs}
-    d = out["cpu-sequential"]["pos"] - out["gpu"]["pos"]
+    lists.builder.build = build
+    be.advance(100)
+    d = be.state()["position"] - gpu_ref
     d -= sy.box_length * np.round(d / sy.box_length)
-    print("RESULT", json.dumps({"dx": float(np.abs(d).max() / sy.box_length),
-                                "stride": out["cpu-sequential"]["stride"],
-                                "springs_at_growth": out["cpu-sequential"]["springs"]}))
+    return {"dx": float(np.abs(d).max() / sy.box_length), "stride": [stride0, be.e.max_nb],
+            "springs_at_growth": springs}
 
 
 def _run(which):
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", PYTHONPATH=str(ROOT))
-    p = subprocess.run([sys.executable, "-c", f"from tests.engine.test_cuda_lists_simulator import {which}; "
-                        f"{which}()"], env=env, capture_output=True, text=True, timeout=1800, cwd=ROOT)
+    code = ("from tests.cudasim import fast_block_polling; fast_block_polling(); "
+            f"from tests.engine.test_cuda_lists_simulator import {which}; {which}()")
+    p = subprocess.run([sys.executable, "-c", code], env=child_env(), capture_output=True, text=True, timeout=1800,
+                       cwd=ROOT)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1]
     return json.loads(line[7:])
@@ -173,19 +183,25 @@ def test_multigrid_gpu_contact_set_equals_brute_force():
     assert res["1"]["levels"] == 1 and res["10"]["levels"] >= 3
 
 
-def test_three_list_modes_same_trajectory():
-    res = _run("_child_modes")
+@pytest.fixture(scope="module")
+def modes_and_growth():
+    return _run("_child_modes_and_growth")
+
+
+def test_three_list_modes_same_trajectory(modes_and_growth):
+    res = modes_and_growth["modes"]
     print(res)
     for loop, r in res.items():
         assert min(r["builds"].values()) >= 3, (loop, r)  # the lists were rebuilt several times
+        assert min(r["contacts"].values()) > 0, (loop, r)  # with contacts (forces and springs) at the end
         for mode in [m for m in ("cpu-sequential", "cpu-pipelined") if m in r]:
             # same physics and lists; only the order of the force sums differs: rounding, not O(dt)
             assert r[mode]["dx"] < 1e-11 and r[mode]["dv"] < 1e-8, (loop, mode, r[mode])
         assert r["cpu-pipelined"]["stages"] >= 3, (loop, r)
 
 
-def test_cpu_list_growth_keeps_the_contact_history():
-    res = _run("_child_growth")
+def test_cpu_list_growth_keeps_the_contact_history(modes_and_growth):
+    res = modes_and_growth["growth"]
     print(res)
     assert res["stride"][1] > res["stride"][0]          # the list did grow
     assert res["springs_at_growth"] and res["springs_at_growth"][0] > 0  # with springs to carry over

@@ -4,12 +4,13 @@ The simulator must be switched on before numba.cuda is first imported, and other
 pytest process may import it first, so the comparison runs in a child process.
 """
 
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from tests.cudasim import child_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -126,11 +127,15 @@ def _ensemble(worst: dict) -> None:
 
 
 def test_cuda_backend_matches_cpu_under_simulator():
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
+    env = child_env()
     r = subprocess.run([sys.executable, __file__, "--child"], env=env, cwd=ROOT, capture_output=True,
                        text=True, timeout=600)
     assert r.returncode == 0 and "SIMULATOR-OK" in r.stdout, r.stdout[-4000:] + r.stderr[-4000:]
 
 
 if __name__ == "__main__" and "--child" in sys.argv:
+    sys.path.insert(0, str(ROOT))
+    from tests.cudasim import fast_block_polling
+
+    fast_block_polling()
     _child()

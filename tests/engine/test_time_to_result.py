@@ -209,6 +209,8 @@ def test_auto_probes_only_when_the_rest_of_the_run_can_repay_it():
 # is imported) -------------------------------------------------------------------------------------------------
 
 _SIM_SCRIPT = r"""
+from tests.cudasim import fast_block_polling
+fast_block_polling()
 import sys, h5py, numpy as np
 from engine.simulate import run
 from engine.ensemble import run_ensemble
@@ -240,15 +242,13 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
     """Frames taken through the two alternating pinned buffer slots (one scene and a packed ensemble) are the
     CPU run's frames: the simulated CUDA backend is bit-identical to the CPU one, so any frame written from a
     buffer that was overwritten too early would differ."""
-    import os
     import subprocess
     import sys
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[2]
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(root)}
-    p = subprocess.run([sys.executable, "-c", _SIM_SCRIPT, str(tmp_path)], env=env, capture_output=True, text=True,
-                       cwd=str(root), timeout=900)
+    from tests.cudasim import ROOT, child_env
+
+    p = subprocess.run([sys.executable, "-c", _SIM_SCRIPT, str(tmp_path)], env=child_env(), capture_output=True,
+                       text=True, cwd=str(ROOT), timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
     for gpu, cpu in (("gpu", "cpu"), ("e0", "cpu"), ("e1", "cpu1"), ("d0", "cpu"), ("d1", "cpu1"), ("s3", "cpu"),
                      ("s4", "cpu4"), ("s5", "cpu5")):
