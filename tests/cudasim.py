@@ -56,3 +56,38 @@ def fast_block_polling() -> bool:
     patched.__demq_fast_polling__ = True
     K.BlockManager.run = patched
     return True
+
+
+def run_children(commands: dict, timeout: float) -> dict:
+    """Run ``python *args`` for every {part: args} of ``commands`` in simulator children, all at the same time,
+    and wait for all of them; returns {part: (exit status, stdout, stderr)}. A simulator child is one
+    single-threaded Python process while the pytest process only waits for it, so the independent parts of
+    one check use both cores of the CI machine.
+    """
+    import subprocess
+    import sys
+    import tempfile
+    import time
+
+    procs = {}
+    try:
+        for part, args in commands.items():
+            out, err = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
+            p = subprocess.Popen([sys.executable, *map(str, args)], env=child_env(), cwd=ROOT, stdout=out,
+                                 stderr=err, text=True)
+            procs[part] = (p, out, err)
+        end = time.monotonic() + timeout
+        res = {}
+        for part, (p, out, err) in procs.items():
+            rc = p.wait(timeout=max(1.0, end - time.monotonic()))
+            out.seek(0)
+            err.seek(0)
+            res[part] = (rc, out.read(), err.read())
+        return res
+    finally:
+        for p, out, err in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+            out.close()
+            err.close()

@@ -4,20 +4,16 @@
 - The three list modes (GPU list, CPU list sequential, CPU list pipelined) give the same trajectory to
   rounding (different neighbour order only changes the summation order of the forces).
 
-The simulator must be switched on before numba.cuda is first imported, so each check runs in a child.
+The simulator must be switched on before numba.cuda is first imported, so the checks run in two children,
+side by side (one per core of the CI machine).
 """
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.cudasim import child_env
-
-ROOT = Path(__file__).resolve().parents[2]
+from tests.cudasim import run_children
 
 
 def poly_system(n, ratio, phi, seed, speed=1.0):
@@ -164,18 +160,23 @@ def _growth(gpu_ref) -> dict:
             "springs_at_growth": springs}
 
 
-def _run(which):
+@pytest.fixture(scope="module")
+def results():
+    """The two children of this module, run side by side: the contact sets; the list modes and the growth."""
+    parts = ("_child_sets", "_child_modes_and_growth")
     code = ("from tests.cudasim import fast_block_polling; fast_block_polling(); "
-            f"from tests.engine.test_cuda_lists_simulator import {which}; {which}()")
-    p = subprocess.run([sys.executable, "-c", code], env=child_env(), capture_output=True, text=True, timeout=1800,
-                       cwd=ROOT)
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1]
-    return json.loads(line[7:])
+            "from tests.engine.test_cuda_lists_simulator import {0}; {0}()")
+    res = run_children({p: ["-c", code.format(p)] for p in parts}, timeout=1800)
+    out = {}
+    for part, (rc, stdout, stderr) in res.items():
+        assert rc == 0, (part, stdout[-3000:] + stderr[-3000:])
+        line = [x for x in stdout.splitlines() if x.startswith("RESULT ")][-1]
+        out[part] = json.loads(line[7:])
+    return out
 
 
-def test_multigrid_gpu_contact_set_equals_brute_force():
-    res = _run("_child_sets")
+def test_multigrid_gpu_contact_set_equals_brute_force(results):
+    res = results["_child_sets"]
     print(res)
     for ratio, r in res.items():
         assert r["pairs"] > 0
@@ -183,13 +184,8 @@ def test_multigrid_gpu_contact_set_equals_brute_force():
     assert res["1"]["levels"] == 1 and res["10"]["levels"] >= 3
 
 
-@pytest.fixture(scope="module")
-def modes_and_growth():
-    return _run("_child_modes_and_growth")
-
-
-def test_three_list_modes_same_trajectory(modes_and_growth):
-    res = modes_and_growth["modes"]
+def test_three_list_modes_same_trajectory(results):
+    res = results["_child_modes_and_growth"]["modes"]
     print(res)
     for loop, r in res.items():
         assert min(r["builds"].values()) >= 3, (loop, r)  # the lists were rebuilt several times
@@ -200,8 +196,8 @@ def test_three_list_modes_same_trajectory(modes_and_growth):
         assert r["cpu-pipelined"]["stages"] >= 3, (loop, r)
 
 
-def test_cpu_list_growth_keeps_the_contact_history(modes_and_growth):
-    res = modes_and_growth["growth"]
+def test_cpu_list_growth_keeps_the_contact_history(results):
+    res = results["_child_modes_and_growth"]["growth"]
     print(res)
     assert res["stride"][1] > res["stride"][0]          # the list did grow
     assert res["springs_at_growth"] and res["springs_at_growth"][0] > 0  # with springs to carry over
