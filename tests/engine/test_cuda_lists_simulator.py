@@ -66,7 +66,21 @@ def contact(skin, dt, **kw):
     return ContactParams(**base)
 
 
-def _child_sets() -> None:
+def _child_sets_and_per_phase() -> None:
+    """The contact sets and the list modes in the one-launch-per-phase loop (one of the two children)."""
+    modes, _ = _modes(multistep=False)
+    print("RESULT", json.dumps({"sets": _sets(), "modes": modes}))
+
+
+def _child_multistep_and_growth() -> None:
+    """The list modes in the many-steps-per-launch loop and the list growth (the other child): the growth
+    check's reference is the GPU-list run of the same scene in that loop (the default at 40 particles), so
+    that run is not repeated."""
+    modes, gpu_ref = _modes(multistep=True)
+    print("RESULT", json.dumps({"modes": modes, "growth": _growth(gpu_ref)}))
+
+
+def _sets() -> dict:
     from engine.backends.cuda import CudaEnsemble
 
     out = {}
@@ -80,50 +94,40 @@ def _child_sets() -> None:
         dup = sum(int(nn[i]) for i in range(ens.n)) - len(got)
         out[str(ratio)] = {"levels": ens.levels[0].n_levels if ens.multigrid else 1, "pairs": len(want),
                            "missing": len(want - got), "extra": len(got - want), "duplicates": dup}
-    print("RESULT", json.dumps(out))
+    return out
 
 
-def _child_modes_and_growth() -> None:
-    """Both list checks in one child: the growth check's reference is the list-modes check's GPU-list run of
-    the same scene (multistep, the default at 40 particles), so that run is not repeated."""
-    modes, gpu_ref = _modes()
-    print("RESULT", json.dumps({"modes": modes, "growth": _growth(gpu_ref)}))
-
-
-def _modes():
+def _modes(multistep: bool):
+    """The list modes of one time loop (multistep: all three; per-phase: GPU list and CPU list pipelined) on
+    one scene; returns {loop: their comparison} and the GPU-list run's final positions."""
     from engine.backends.cuda import CudaBackend
 
-    out = {}
-    gpu_ref = None
-    for multistep, modes in ((True, ("gpu", "cpu-sequential", "cpu-pipelined")), (False, ("gpu", "cpu-pipelined"))):
-        runs = {}
-        for mode in modes:
-            sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
-            skin = 0.3 * float(sy.radius.min())
-            m12 = 0.5 * float(sy.mass.min())
-            dt = np.pi * np.sqrt(m12 / 1.0e5) / 50
-            be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
-            assert be.e.multistep  # the default here: the growth check's GPU reference is the multistep run
-            be.e.multistep = multistep
-            be.advance(100)
-            st = be.state()
-            if multistep and mode == "gpu":
-                gpu_ref = st["position"]
-            runs[mode] = {"pos": st["position"], "vel": st["velocity"], "builds": be.builds,
-                          "summary": None if be.e.lists is None else be.e.lists.summary(),
-                          "contacts": be.observe()["contacts"]}
-        ref = runs["gpu"]
-        box = sy.box_length
-        res = {"builds": {m: r["builds"] for m, r in runs.items()},
-               "contacts": {m: r["contacts"] for m, r in runs.items()}}
-        for mode in modes[1:]:
-            d = runs[mode]["pos"] - ref["pos"]
-            d -= box * np.round(d / box)
-            res[mode] = {"dx": float(np.abs(d).max() / box),
-                         "dv": float(np.abs(runs[mode]["vel"] - ref["vel"]).max() / np.abs(ref["vel"]).max()),
-                         "stages": runs[mode]["summary"]["stages"], "restarts": runs[mode]["summary"]["restarts"]}
-        out["multistep" if multistep else "per-phase"] = res
-    return out, gpu_ref
+    modes = ("gpu", "cpu-sequential", "cpu-pipelined") if multistep else ("gpu", "cpu-pipelined")
+    runs = {}
+    for mode in modes:
+        sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
+        skin = 0.3 * float(sy.radius.min())
+        m12 = 0.5 * float(sy.mass.min())
+        dt = np.pi * np.sqrt(m12 / 1.0e5) / 50
+        be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
+        assert be.e.multistep  # the default here: the growth check's GPU reference is the multistep run
+        be.e.multistep = multistep
+        be.advance(100)
+        st = be.state()
+        runs[mode] = {"pos": st["position"], "vel": st["velocity"], "builds": be.builds,
+                      "summary": None if be.e.lists is None else be.e.lists.summary(),
+                      "contacts": be.observe()["contacts"]}
+    ref = runs["gpu"]
+    box = sy.box_length
+    res = {"builds": {m: r["builds"] for m, r in runs.items()},
+           "contacts": {m: r["contacts"] for m, r in runs.items()}}
+    for mode in modes[1:]:
+        d = runs[mode]["pos"] - ref["pos"]
+        d -= box * np.round(d / box)
+        res[mode] = {"dx": float(np.abs(d).max() / box),
+                     "dv": float(np.abs(runs[mode]["vel"] - ref["vel"]).max() / np.abs(ref["vel"]).max()),
+                     "stages": runs[mode]["summary"]["stages"], "restarts": runs[mode]["summary"]["restarts"]}
+    return {"multistep" if multistep else "per-phase": res}, ref["pos"]
 
 
 def _growth(gpu_ref) -> dict:
@@ -162,8 +166,9 @@ def _growth(gpu_ref) -> dict:
 
 @pytest.fixture(scope="module")
 def results():
-    """The two children of this module, run side by side: the contact sets; the list modes and the growth."""
-    parts = ("_child_sets", "_child_modes_and_growth")
+    """The two children of this module, run side by side: contact sets + per-phase list modes; multistep list
+    modes + list growth."""
+    parts = ("_child_sets_and_per_phase", "_child_multistep_and_growth")
     code = ("from tests.cudasim import fast_block_polling; fast_block_polling(); "
             "from tests.engine.test_cuda_lists_simulator import {0}; {0}()")
     res = run_children({p: ["-c", code.format(p)] for p in parts}, timeout=1800)
@@ -176,7 +181,7 @@ def results():
 
 
 def test_multigrid_gpu_contact_set_equals_brute_force(results):
-    res = results["_child_sets"]
+    res = results["_child_sets_and_per_phase"]["sets"]
     print(res)
     for ratio, r in res.items():
         assert r["pairs"] > 0
@@ -185,7 +190,8 @@ def test_multigrid_gpu_contact_set_equals_brute_force(results):
 
 
 def test_three_list_modes_same_trajectory(results):
-    res = results["_child_modes_and_growth"]["modes"]
+    res = {**results["_child_multistep_and_growth"]["modes"], **results["_child_sets_and_per_phase"]["modes"]}
+    assert set(res) == {"multistep", "per-phase"}
     print(res)
     for loop, r in res.items():
         assert min(r["builds"].values()) >= 3, (loop, r)  # the lists were rebuilt several times
@@ -197,7 +203,7 @@ def test_three_list_modes_same_trajectory(results):
 
 
 def test_cpu_list_growth_keeps_the_contact_history(results):
-    res = results["_child_modes_and_growth"]["growth"]
+    res = results["_child_multistep_and_growth"]["growth"]
     print(res)
     assert res["stride"][1] > res["stride"][0]          # the list did grow
     assert res["springs_at_growth"] and res["springs_at_growth"][0] > 0  # with springs to carry over
