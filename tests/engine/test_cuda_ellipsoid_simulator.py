@@ -6,16 +6,16 @@ list at the same step as the CPU; so in float64 the GPU run under the simulator 
 host's IEEE double arithmetic, and whose physics calls are the very CPU-compiled njit functions) is expected
 to equal the CPU run bit for bit. The one-launch-per-phase loop decides rebuilds one step ahead (it may
 rebuild earlier than the CPU, which reorders neighbours), so there only rounding differences are allowed.
-The comparison runs in a child process because the simulator must be switched on before numba.cuda is
-first imported.
+The comparison runs in child processes because the simulator must be switched on before numba.cuda is first
+imported; two of them side by side (single scenes; ensemble), one per core of the CI machine.
 """
 
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from tests.cudasim import run_children
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -96,11 +96,27 @@ def _compare(label, cpu, gpu, worst, exact):
     return ca
 
 
-def _child() -> None:
+def _child(part: str) -> None:
+    """One of the two independent parts of the check (the test runs them side by side): "scenes" (single
+    scenes, both loops, float64 and float32) or "ensemble"."""
+    worst = {}
+    if part == "scenes":
+        _scenes(worst)
+        _float32(worst)
+    else:
+        assert part == "ensemble", part
+        _ensemble(worst)
+    for (label, key, exact), v in worst.items():
+        print("max rel diff", label, key, f"{v:.2e}", "(expected 0)" if exact else "(rounding allowed)")
+    for (label, key, exact), v in worst.items():
+        assert v == 0.0 if exact else v < 1e-11, (label, key, v)
+    print("SIMULATOR-OK")
+
+
+def _scenes(worst: dict) -> None:
     from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
     from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
 
-    worst = {}
     for label, system, c, multistep in (
             ("xi=1.5 multistep", tiny_ellipsoids(1.5, seed=1), contact(), True),
             ("xi=2.5 multistep", tiny_ellipsoids(2.5, seed=2), contact(), True),
@@ -118,13 +134,6 @@ def _child() -> None:
         assert gpu.late_rebuilds == 0 and gpu.builds >= 2 and cpu.builds >= 2, (label, cpu.builds, gpu.builds)
         print(label, "contacts", obs["contacts"], "max overlap / b", f"{obs['max_overlap']:.3g}",
               "builds cpu/gpu", cpu.builds, gpu.builds)
-    _float32(worst)
-    _ensemble(worst)
-    for (label, key, exact), v in worst.items():
-        print("max rel diff", label, key, f"{v:.2e}", "(expected 0)" if exact else "(rounding allowed)")
-    for (label, key, exact), v in worst.items():
-        assert v == 0.0 if exact else v < 1e-11, (label, key, v)
-    print("SIMULATOR-OK")
 
 
 def _float32(worst: dict) -> None:
@@ -201,11 +210,14 @@ class _SceneOf:
 
 
 def test_cuda_ellipsoid_backend_matches_cpu_under_simulator():
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, __file__, "--child"], env=env, cwd=ROOT, capture_output=True,
-                       text=True, timeout=900)
-    assert r.returncode == 0 and "SIMULATOR-OK" in r.stdout, r.stdout[-4000:] + r.stderr[-4000:]
+    children = {part: [__file__, "--child", part] for part in ("scenes", "ensemble")}
+    for part, (rc, out, err) in run_children(children, timeout=900).items():
+        assert rc == 0 and "SIMULATOR-OK" in out, (part, out[-4000:] + err[-4000:])
 
 
 if __name__ == "__main__" and "--child" in sys.argv:
-    _child()
+    sys.path.insert(0, str(ROOT))
+    from tests.cudasim import fast_block_polling
+
+    fast_block_polling()
+    _child(sys.argv[sys.argv.index("--child") + 1])

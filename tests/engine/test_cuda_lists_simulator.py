@@ -4,18 +4,16 @@
 - The three list modes (GPU list, CPU list sequential, CPU list pipelined) give the same trajectory to
   rounding (different neighbour order only changes the summation order of the forces).
 
-The simulator must be switched on before numba.cuda is first imported, so each check runs in a child.
+The simulator must be switched on before numba.cuda is first imported, so the checks run in two children,
+side by side (one per core of the CI machine).
 """
 
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
+import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.cudasim import run_children
 
 
 def poly_system(n, ratio, phi, seed, speed=1.0):
@@ -68,7 +66,21 @@ def contact(skin, dt, **kw):
     return ContactParams(**base)
 
 
-def _child_sets() -> None:
+def _child_sets_and_per_phase() -> None:
+    """The contact sets and the list modes in the one-launch-per-phase loop (one of the two children)."""
+    modes, _ = _modes(multistep=False)
+    print("RESULT", json.dumps({"sets": _sets(), "modes": modes}))
+
+
+def _child_multistep_and_growth() -> None:
+    """The list modes in the many-steps-per-launch loop and the list growth (the other child): the growth
+    check's reference is the GPU-list run of the same scene in that loop (the default at 40 particles), so
+    that run is not repeated."""
+    modes, gpu_ref = _modes(multistep=True)
+    print("RESULT", json.dumps({"modes": modes, "growth": _growth(gpu_ref)}))
+
+
+def _sets() -> dict:
     from engine.backends.cuda import CudaEnsemble
 
     out = {}
@@ -82,90 +94,94 @@ def _child_sets() -> None:
         dup = sum(int(nn[i]) for i in range(ens.n)) - len(got)
         out[str(ratio)] = {"levels": ens.levels[0].n_levels if ens.multigrid else 1, "pairs": len(want),
                            "missing": len(want - got), "extra": len(got - want), "duplicates": dup}
-    print("RESULT", json.dumps(out))
+    return out
 
 
-def _child_modes() -> None:
+def _modes(multistep: bool):
+    """The list modes of one time loop (multistep: all three; per-phase: GPU list and CPU list pipelined) on
+    one scene; returns {loop: their comparison} and the GPU-list run's final positions."""
     from engine.backends.cuda import CudaBackend
 
-    out = {}
-    for multistep, modes in ((True, ("gpu", "cpu-sequential", "cpu-pipelined")), (False, ("gpu", "cpu-pipelined"))):
-        runs = {}
-        for mode in modes:
-            sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
-            skin = 0.3 * float(sy.radius.min())
-            m12 = 0.5 * float(sy.mass.min())
-            dt = np.pi * np.sqrt(m12 / 1.0e5) / 50
-            be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
-            be.e.multistep = multistep
-            be.advance(100)
-            st = be.state()
-            runs[mode] = {"pos": st["position"], "vel": st["velocity"], "builds": be.builds,
-                          "summary": None if be.e.lists is None else be.e.lists.summary(),
-                          "contacts": be.observe()["contacts"]}
-        ref = runs["gpu"]
-        box = sy.box_length
-        res = {"builds": {m: r["builds"] for m, r in runs.items()},
-               "contacts": {m: r["contacts"] for m, r in runs.items()}}
-        for mode in modes[1:]:
-            d = runs[mode]["pos"] - ref["pos"]
-            d -= box * np.round(d / box)
-            res[mode] = {"dx": float(np.abs(d).max() / box),
-                         "dv": float(np.abs(runs[mode]["vel"] - ref["vel"]).max() / np.abs(ref["vel"]).max()),
-                         "stages": runs[mode]["summary"]["stages"], "restarts": runs[mode]["summary"]["restarts"]}
-        out["multistep" if multistep else "per-phase"] = res
-    print("RESULT", json.dumps(out))
-
-
-def _child_growth() -> None:
-    """A CPU-built list that overflows its stride mid-run: the list grows and the contact history (springs)
-    must survive it, so the run equals the GPU-list run."""
-    from engine.backends.cuda import CudaBackend
-
-    out = {}
-    for mode in ("gpu", "cpu-sequential"):
+    modes = ("gpu", "cpu-sequential", "cpu-pipelined") if multistep else ("gpu", "cpu-pipelined")
+    runs = {}
+    for mode in modes:
         sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
         skin = 0.3 * float(sy.radius.min())
-        dt = np.pi * np.sqrt(0.5 * float(sy.mass.min()) / 1.0e5) / 50
+        m12 = 0.5 * float(sy.mass.min())
+        dt = np.pi * np.sqrt(m12 / 1.0e5) / 50
         be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
-        stride0 = be.e.max_nb
-        springs = []
-        if mode != "gpu":
-            lists = be.e.lists
-            real = lists.builder.build
-            calls = []
-
-            def build(pos, nbr, nn, x_ref=None):
-                need = real(pos, nbr, nn, x_ref)
-                calls.append(need)
-                if len(calls) == 2:  # the second CPU build claims an overflow: the list must grow
-                    h, k = be.e.hist.copy_to_host(), be.e.nn.copy_to_host()
-                    live = np.arange(h.shape[1])[:, None] < k[None, :]
-                    springs.append(int(((h[0] != 0) & live).sum()))
-                    return nbr.shape[1] + 1
-                return need
-
-            lists.builder.build = build
+        assert be.e.multistep  # the default here: the growth check's GPU reference is the multistep run
+        be.e.multistep = multistep
         be.advance(100)
-        out[mode] = {"pos": be.state()["position"], "stride": [stride0, be.e.max_nb], "springs": springs}
-    d = out["cpu-sequential"]["pos"] - out["gpu"]["pos"]
+        st = be.state()
+        runs[mode] = {"pos": st["position"], "vel": st["velocity"], "builds": be.builds,
+                      "summary": None if be.e.lists is None else be.e.lists.summary(),
+                      "contacts": be.observe()["contacts"]}
+    ref = runs["gpu"]
+    box = sy.box_length
+    res = {"builds": {m: r["builds"] for m, r in runs.items()},
+           "contacts": {m: r["contacts"] for m, r in runs.items()}}
+    for mode in modes[1:]:
+        d = runs[mode]["pos"] - ref["pos"]
+        d -= box * np.round(d / box)
+        res[mode] = {"dx": float(np.abs(d).max() / box),
+                     "dv": float(np.abs(runs[mode]["vel"] - ref["vel"]).max() / np.abs(ref["vel"]).max()),
+                     "stages": runs[mode]["summary"]["stages"], "restarts": runs[mode]["summary"]["restarts"]}
+    return {"multistep" if multistep else "per-phase": res}, ref["pos"]
+
+
+def _growth(gpu_ref) -> dict:
+    """A CPU-built list that overflows its stride mid-run: the list grows and the contact history (springs)
+    must survive it, so the run equals the GPU-list run (gpu_ref: the final positions of the GPU-list run of
+    the same scene, 100 steps in one call, from _modes)."""
+    from engine.backends.cuda import CudaBackend
+
+    sy = poly_system(40, 3.0, 0.3, seed=7, speed=1.0)
+    skin = 0.3 * float(sy.radius.min())
+    dt = np.pi * np.sqrt(0.5 * float(sy.mass.min()) / 1.0e5) / 50
+    be = CudaBackend(sy, contact(skin, dt, list_mode="cpu-sequential"))
+    stride0 = be.e.max_nb
+    springs = []
+    lists = be.e.lists
+    real = lists.builder.build
+    calls = []
+
+    def build(pos, nbr, nn, x_ref=None):
+        need = real(pos, nbr, nn, x_ref)
+        calls.append(need)
+        if len(calls) == 2:  # the second CPU build claims an overflow: the list must grow
+            h, k = be.e.hist.copy_to_host(), be.e.nn.copy_to_host()
+            live = np.arange(h.shape[1])[:, None] < k[None, :]
+            springs.append(int(((h[0] != 0) & live).sum()))
+            return nbr.shape[1] + 1
+        return need
+
+    lists.builder.build = build
+    be.advance(100)
+    d = be.state()["position"] - gpu_ref
     d -= sy.box_length * np.round(d / sy.box_length)
-    print("RESULT", json.dumps({"dx": float(np.abs(d).max() / sy.box_length),
-                                "stride": out["cpu-sequential"]["stride"],
-                                "springs_at_growth": out["cpu-sequential"]["springs"]}))
+    return {"dx": float(np.abs(d).max() / sy.box_length), "stride": [stride0, be.e.max_nb],
+            "springs_at_growth": springs}
 
 
-def _run(which):
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", PYTHONPATH=str(ROOT))
-    p = subprocess.run([sys.executable, "-c", f"from tests.engine.test_cuda_lists_simulator import {which}; "
-                        f"{which}()"], env=env, capture_output=True, text=True, timeout=1800, cwd=ROOT)
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")][-1]
-    return json.loads(line[7:])
+@pytest.fixture(scope="module")
+def results():
+    """The two children of this module, run side by side: contact sets + per-phase list modes; multistep list
+    modes + list growth."""
+    parts = ("_child_sets_and_per_phase", "_child_multistep_and_growth")
+    code = ("from tests.cudasim import fast_block_polling; fast_block_polling(); "
+            "from tests.engine.test_cuda_lists_simulator import {0}; {0}()")
+    res = run_children({p: ["-c", code.format(p)] for p in parts}, timeout=1800)
+    out = {}
+    for part, (rc, stdout, stderr) in res.items():
+        assert rc == 0, (part, stdout[-3000:] + stderr[-3000:])
+        line = [x for x in stdout.splitlines() if x.startswith("RESULT ")][-1]
+        out[part] = json.loads(line[7:])
+    return out
 
 
-def test_multigrid_gpu_contact_set_equals_brute_force():
-    res = _run("_child_sets")
+def test_multigrid_gpu_contact_set_equals_brute_force(results):
+    res = results["_child_sets_and_per_phase"]["sets"]
     print(res)
     for ratio, r in res.items():
         assert r["pairs"] > 0
@@ -173,19 +189,21 @@ def test_multigrid_gpu_contact_set_equals_brute_force():
     assert res["1"]["levels"] == 1 and res["10"]["levels"] >= 3
 
 
-def test_three_list_modes_same_trajectory():
-    res = _run("_child_modes")
+def test_three_list_modes_same_trajectory(results):
+    res = {**results["_child_multistep_and_growth"]["modes"], **results["_child_sets_and_per_phase"]["modes"]}
+    assert set(res) == {"multistep", "per-phase"}
     print(res)
     for loop, r in res.items():
         assert min(r["builds"].values()) >= 3, (loop, r)  # the lists were rebuilt several times
+        assert min(r["contacts"].values()) > 0, (loop, r)  # with contacts (forces and springs) at the end
         for mode in [m for m in ("cpu-sequential", "cpu-pipelined") if m in r]:
             # same physics and lists; only the order of the force sums differs: rounding, not O(dt)
             assert r[mode]["dx"] < 1e-11 and r[mode]["dv"] < 1e-8, (loop, mode, r[mode])
         assert r["cpu-pipelined"]["stages"] >= 3, (loop, r)
 
 
-def test_cpu_list_growth_keeps_the_contact_history():
-    res = _run("_child_growth")
+def test_cpu_list_growth_keeps_the_contact_history(results):
+    res = results["_child_multistep_and_growth"]["growth"]
     print(res)
     assert res["stride"][1] > res["stride"][0]          # the list did grow
     assert res["springs_at_growth"] and res["springs_at_growth"][0] > 0  # with springs to carry over

@@ -1,15 +1,16 @@
 """CUDA backend under the Numba CUDA simulator (CI has no GPU): same trajectory as the CPU backend.
 
 The simulator must be switched on before numba.cuda is first imported, and other tests in the same
-pytest process may import it first, so the comparison runs in a child process.
+pytest process may import it first, so the comparison runs in child processes: two side by side (single
+scenes; ensemble), one per core of the CI machine.
 """
 
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from tests.cudasim import run_children
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -46,11 +47,25 @@ def contact(**kw):
     return ContactParams(**base)
 
 
-def _child() -> None:
+def _child(part: str) -> None:
+    """One of the two independent parts of the check (the test runs them side by side): "scenes" (single
+    scenes, both loops) or "ensemble"."""
+    worst = {}
+    if part == "scenes":
+        _scenes(worst)
+    else:
+        assert part == "ensemble", part
+        _ensemble(worst)
+    for k, v in worst.items():
+        print("max rel diff", k, f"{v:.2e}")
+        assert v < 1e-11, (k, v)
+    print("SIMULATOR-OK")
+
+
+def _scenes(worst: dict) -> None:
     from engine.backends.cpu import CpuBackend
     from engine.backends.cuda import CudaBackend
 
-    worst = {}
     for label, c, multistep in (("rough+coulomb", contact(), True), ("rough", contact(friction=None), True),
                                 ("smooth", contact(k_t=None, friction=None), True),
                                 ("rough+coulomb per-phase", contact(), False)):
@@ -78,11 +93,6 @@ def _child() -> None:
             assert abs(ca[key] - cb[key]) <= 1e-9 * abs(ca[key]) + 1e-300, (label, key, ca[key], cb[key])
         assert gpu.late_rebuilds == 0 and gpu.builds >= 2, (label, gpu.builds, gpu.late_rebuilds)
         print(label, "contacts", ca["contacts"], "builds cpu/gpu", cpu.builds, gpu.builds)
-    _ensemble(worst)
-    for k, v in worst.items():
-        print("max rel diff", k, f"{v:.2e}")
-        assert v < 1e-11, (k, v)
-    print("SIMULATOR-OK")
 
 
 def _ensemble(worst: dict) -> None:
@@ -126,11 +136,14 @@ def _ensemble(worst: dict) -> None:
 
 
 def test_cuda_backend_matches_cpu_under_simulator():
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, __file__, "--child"], env=env, cwd=ROOT, capture_output=True,
-                       text=True, timeout=600)
-    assert r.returncode == 0 and "SIMULATOR-OK" in r.stdout, r.stdout[-4000:] + r.stderr[-4000:]
+    children = {part: [__file__, "--child", part] for part in ("scenes", "ensemble")}
+    for part, (rc, out, err) in run_children(children, timeout=600).items():
+        assert rc == 0 and "SIMULATOR-OK" in out, (part, out[-4000:] + err[-4000:])
 
 
 if __name__ == "__main__" and "--child" in sys.argv:
-    _child()
+    sys.path.insert(0, str(ROOT))
+    from tests.cudasim import fast_block_polling
+
+    fast_block_polling()
+    _child(sys.argv[sys.argv.index("--child") + 1])

@@ -2,10 +2,11 @@
 simulator, after a few steps with contacts (child process: the simulator must be on before numba.cuda is
 imported). Tolerance 1e-10 relative: the same float64 per-particle terms summed in another order."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path
+
+from tests.cudasim import child_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -45,7 +46,7 @@ def _child() -> None:
 
 
 def test_cuda_observe_sonine_moments_match_cpu_under_simulator():
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(ROOT)}
+    env = child_env()
     r = subprocess.run([sys.executable, __file__, "--child"], env=env, cwd=ROOT, capture_output=True,
                        text=True, timeout=600)
     assert r.returncode == 0 and "SONINE-SIMULATOR-OK" in r.stdout, r.stdout[-4000:] + r.stderr[-4000:]
@@ -53,4 +54,7 @@ def test_cuda_observe_sonine_moments_match_cpu_under_simulator():
 
 if __name__ == "__main__" and "--child" in sys.argv:
     sys.path.insert(0, str(ROOT))
+    from tests.cudasim import fast_block_polling
+
+    fast_block_polling()
     _child()

@@ -208,18 +208,30 @@ def test_auto_probes_only_when_the_rest_of_the_run_can_repay_it():
 # ---- the GPU output path under the CUDA simulator (a child process: the simulator must be on before numba.cuda
 # is imported) -------------------------------------------------------------------------------------------------
 
-_SIM_SCRIPT = r"""
+_SIM_HEAD = r"""
+from tests.cudasim import fast_block_polling
+fast_block_polling()
 import sys, h5py, numpy as np
 from engine.simulate import run
 from engine.ensemble import run_ensemble
 out = sys.argv[1]
 spec = dict(n_particles=27, volume_fraction=0.05, box_length=0.6, t_end=4e-4, output_interval=4e-5,
             snapshots=4, thermalization=0, seed=3)
+"""
+
+# the CPU reference runs (seed 3; seed 4 with 3 snapshots; seeds 4, 5) and the CUDA runs are two children that
+# run side by side
+_SIM_CPU = _SIM_HEAD + r"""
 run({**spec, "backend": "cpu"}, f"{out}/cpu.h5")
+run({**spec, "seed": 4, "snapshots": 3, "backend": "cpu"}, f"{out}/cpu1.h5")
+for s in (4, 5):
+    run({**spec, "seed": s, "backend": "cpu"}, f"{out}/cpu{s}.h5")
+"""
+
+_SIM_CUDA = _SIM_HEAD + r"""
 run({**spec, "backend": "cuda"}, f"{out}/gpu.h5")                 # one scene: SerialEnsemble(CudaBackend)
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/e0.h5", f"{out}/e1.h5"],
              backend="cuda")                                       # packed CudaEnsemble
-run({**spec, "seed": 4, "snapshots": 3, "backend": "cpu"}, f"{out}/cpu1.h5")
 import engine.simulate
 engine.simulate.DEFER_MIN_SCENES = 2                               # files written by writer processes
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/d0.h5", f"{out}/d1.h5"],
@@ -231,8 +243,6 @@ _write_frame = H5MDWriter._write_frame
 H5MDWriter._write_frame = lambda self, *a: (time.sleep(0.2), _write_frame(self, *a))[1]
 engine.simulate.DEFER_MIN_SCENES = 100
 run_ensemble([{**spec, "seed": s} for s in (3, 4, 5)], [f"{out}/s{s}.h5" for s in (3, 4, 5)], backend="cuda")
-for s in (4, 5):
-    run({**spec, "seed": s, "backend": "cpu"}, f"{out}/cpu{s}.h5")
 """
 
 
@@ -240,16 +250,11 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
     """Frames taken through the two alternating pinned buffer slots (one scene and a packed ensemble) are the
     CPU run's frames: the simulated CUDA backend is bit-identical to the CPU one, so any frame written from a
     buffer that was overwritten too early would differ."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
+    from tests.cudasim import run_children
 
-    root = Path(__file__).resolve().parents[2]
-    env = {**os.environ, "NUMBA_ENABLE_CUDASIM": "1", "PYTHONPATH": str(root)}
-    p = subprocess.run([sys.executable, "-c", _SIM_SCRIPT, str(tmp_path)], env=env, capture_output=True, text=True,
-                       cwd=str(root), timeout=900)
-    assert p.returncode == 0, p.stderr[-3000:]
+    res = run_children({"cpu": ["-c", _SIM_CPU, tmp_path], "cuda": ["-c", _SIM_CUDA, tmp_path]}, timeout=900)
+    for part, (rc, _, err) in res.items():
+        assert rc == 0, (part, err[-3000:])
     for gpu, cpu in (("gpu", "cpu"), ("e0", "cpu"), ("e1", "cpu1"), ("d0", "cpu"), ("d1", "cpu1"), ("s3", "cpu"),
                      ("s4", "cpu4"), ("s5", "cpu5")):
         a, b = _datasets(tmp_path / f"{gpu}.h5"), _datasets(tmp_path / f"{cpu}.h5")
