@@ -16,7 +16,7 @@ The step is the CPU backend's:
   1. kick + drift: v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham with L(t) and L(t + dt/2);
      predicted end-of-step v and w = R I^-1 R^T (L + tau dt/2) stored for the dashpot;
   2. rebuild when some particle has moved more than L_v/2 since the last build (bounding spheres of
-     radius a: the sphere module's list kernels with radius = a);
+     radius a: the shared list kernels of engine/backends/cuda_kernels.py with radius = a);
   3. forces: for each list slot whose bounding spheres overlap (or that was in contact at the previous
      step) the Perram-Wertheim contact with the lower id as "A", summed in list order.
 State on the device is the space-frame angular momentum L; ``state()`` returns the space-frame angular
