@@ -1,9 +1,13 @@
 """CUDA backend: the whole time loop on the GPU with Numba CUDA, state resident on the device.
 
 :class:`CudaEnsemble` advances K independent scenes (own box, contact constants, dt, seed, clock) stored
-back to back on the device with the same kernels (:mod:`engine.backends.cuda_kernels`, which call the
-same njit physics functions as the CPU backend). :class:`CudaBackend` is the one-scene case (K = 1) with
-the public interface of :class:`engine.backends.cpu.CpuBackend`.
+back to back on the device with the same kernels: the one CUDA time loop (:mod:`engine.backends.cuda_loop`)
+specialised by the sphere's device functions (engine/shapes/sphere_cuda.py), the list kernels of
+:mod:`engine.backends.cuda_kernels` and :mod:`engine.backends.cuda_lists`; all call the same njit physics
+functions as the CPU backend. :class:`CudaBackend` is the one-scene case (K = 1) with the public interface of
+:class:`engine.backends.cpu.CpuBackend`. This class is also the host side of every other shape (a subclass
+allocates the shape's state and names its arrays for the kernels: ``shape``, ``_upload_particles``,
+``_step_arrays``, ``_observe_args``, ``_observables``; engine/backends/cuda_ellipsoid.py is the example).
 
 Step (velocity Verlet, closing and opening half kicks fused as on the CPU):
   1. kick + drift with periodic wrap + orientation; the largest displacement since the list build and
@@ -39,11 +43,13 @@ from numba import cuda
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends import cuda_kernels as K
+from engine.backends import cuda_loop
 from engine.backends.cuda_device import copy_device as _copy
 from engine.backends.cuda_lists import list_kernels
 from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
+from engine.shapes import sphere_cuda as SC
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
@@ -61,6 +67,8 @@ class CudaEnsemble:
     """
 
     name = "cuda"
+    #: the particle shape (engine/shapes/SHAPES key) whose CUDA parts specialise the time loop
+    shape = "sphere"
     #: widths of the per-scene constant tables (a subclass may append columns)
     _ND, _NF = K.ND, K.NF
     #: device arrays permuted into cell order at a rebuild (besides the per-particle constants)
@@ -263,7 +271,7 @@ class CudaEnsemble:
         rough = any(c.k_t is not None for c in act)
         coulomb = rough and any(c.friction is not None for c in act)
         orient = any(c.orientation for c in act)
-        self.k = K.kernels(self.dtype, rough, coulomb, orient, self.uniform, self.tpb)
+        self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb, orient), self.uniform, self.tpb)
         self._coop_blocks = None
 
     def _upload_params(self) -> None:
@@ -483,11 +491,17 @@ class CudaEnsemble:
                     break
         self.hist.copy_to_device(hist, stream=self.stream)
 
-    def _forces(self, step: int) -> None:
-        self.k["forces"][self._grid(self.n)](
-            self.n, self.pos, self.vel, self.omega, self.radius1, self.inv_m1, self.f_cur, self.f_nxt,
-            self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
-            self.status, step)
+    def _step_arrays(self) -> tuple:
+        """(spin, spin_inv, list radius, ext) of the time loop's kernels (engine/backends/cuda_loop.py):
+        spheres: the angular velocity, 1/I, the radius, no extra arrays."""
+        return self.omega, self.inv_i1, self.radius1, ()
+
+    def _forces(self, step: int, n: int | None = None, grid=None) -> None:
+        spin, _, rad, ext = self._step_arrays()
+        n = self.n if n is None else n
+        self.k["forces"][grid or self._grid(n)](
+            n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
+            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
 
     # ---- time loop ---------------------------------------------------------------------------------
 
@@ -504,39 +518,38 @@ class CudaEnsemble:
                 self._coop_blocks = max(1, min(fit, (self.n + self.tpb - 1) // self.tpb))
         return self._coop_blocks, self.tpb, self.stream
 
-    def _kick_drift(self, first: int, step: int) -> None:
-        self.k["kick_drift"][self._grid(self.n)](
-            self.n, first, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque, self.inv_m1,
-            self.inv_i1, self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step)
+    def _kick_drift(self, first: int, step: int, n: int | None = None, grid=None) -> None:
+        spin, spin_inv, _, ext = self._step_arrays()
+        n = self.n if n is None else n
+        self.k["kick_drift"][grid or self._grid(n)](
+            n, first, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.inv_m1, spin_inv,
+            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
 
-    def _half_kick(self) -> None:
-        self.k["half_kick"][self._grid(self.n)](self.n, self.vel, self.omega, self.f_cur, self.torque,
-                                                self.inv_m1, self.inv_i1, self.sc, self.spd, self.spi)
+    def _half_kick(self, n: int | None = None, grid=None) -> None:
+        spin, spin_inv, _, _ = self._step_arrays()
+        n = self.n if n is None else n
+        self.k["half_kick"][grid or self._grid(n)](n, self.vel, spin, self.f_cur, self.torque, self.inv_m1,
+                                                   spin_inv, self.sc, self.spd, self.spi)
 
-    def _run_steps(self, nmax: int, first: int, step0: int, grid=None) -> None:
+    def _run_steps(self, nmax: int, first: int, step0: int, grid=None, n: int | None = None, thr=None,
+                   status=None) -> None:
+        spin, spin_inv, rad, ext = self._step_arrays()
         self.k["run_steps"][grid or self._coop_grid()](
-            self.n, nmax, first, 0, self._exit_thr, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
-            self.torque, self.inv_m1, self.inv_i1, self.radius1, self.x_ref, self.nbr, self.nn, self.hist,
-            self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step0)
+            self.n if n is None else n, nmax, first, 0, self._exit_thr if thr is None else thr, self.pos, self.vel,
+            spin, self.quat, self.f_cur, self.f_nxt, self.torque, self.inv_m1, spin_inv, rad, self.x_ref, self.nbr,
+            self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
+            self.status if status is None else status, step0, ext)
 
     def warmup(self) -> None:
         """Compile the kernels of the current specialisation without advancing (launches with n = 0)."""
-        k, s = self.k, self.stream
+        s = self.stream
         g = (1, self.tpb, s)
-        k["kick_drift"][g](0, 1, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.torque,
-                           self.inv_m1, self.inv_i1, self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi,
-                           self.status, 0)
-        k["forces"][g](0, self.pos, self.vel, self.omega, self.radius1, self.inv_m1, self.f_cur, self.f_nxt,
-                       self.torque, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
-                       self.spi, self.status, 0)
-        k["half_kick"][g](0, self.vel, self.omega, self.f_cur, self.torque, self.inv_m1, self.inv_i1, self.sc,
-                          self.spd, self.spi)
+        self._kick_drift(1, 0, n=0, grid=g)
+        self._forces(0, n=0, grid=g)
+        self._half_kick(n=0, grid=g)
         self._observe_sums()
         if self.multistep:
-            scratch = cuda.to_device(self._fresh_status(), stream=s)
-            k["run_steps"][g](0, 1, 1, 0, 1.0, self.pos, self.vel, self.omega, self.quat, self.f_cur, self.f_nxt,
-                              self.torque, self.inv_m1, self.inv_i1, self.radius1, self.x_ref, self.nbr, self.nn,
-                              self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, scratch, 0)
+            self._run_steps(1, 1, 0, grid=g, n=0, thr=1.0, status=cuda.to_device(self._fresh_status(), stream=s))
         s.synchronize()
 
     def plan(self, steps: int) -> None:
@@ -704,12 +717,13 @@ class CudaEnsemble:
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
-    #: the observe kernel's sums per scene (cuda_kernels.NOBS; the ellipsoid ensemble has its own)
-    _NOBS = K.NOBS
+    #: the observe kernel's sums per scene (the shape's NOBS)
+    _NOBS = SC.NOBS
 
     def _observe_args(self) -> tuple:
-        return (self.pos, self.vel, self.omega, self.radius1, self.mass1, self.inertia1, self.nbr, self.nn,
-                self.hist, self.spd, self.spf, self.spi)
+        """observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi) (cuda_loop)."""
+        return (self.pos, self.vel, self.omega, self.quat, self.radius1, self.mass1, self.inertia1, self.nbr,
+                self.nn, self.hist, self.spd, self.spf, self.spi)
 
     def _observe_sums(self) -> np.ndarray:
         """The observe kernel's per-scene sums (K, _NOBS) on the host (issue 14): one zeroing copy, one launch
@@ -730,19 +744,17 @@ class CudaEnsemble:
         return self._acc_h
 
     def observe(self) -> list:
-        """Per scene: the observables of :meth:`CudaBackend.observe`, None for an inactive scene."""
+        """Per scene: the observables of :meth:`CudaBackend.observe` (:meth:`_observables`), None for an
+        inactive scene."""
         a = self._observe_sums()
-        out = []
-        for s in range(self.n_scenes):
-            if not self.active[s]:
-                out.append(None)
-                continue
-            r = a[s].tolist()
-            out.append({"kinetic_energy_translational": r[0], "kinetic_energy_rotational": r[1],
-                        "contacts": int(round(r[2])) // 2, "elastic_energy": r[3],
-                        "max_overlap": r[7], "momentum": (r[4], r[5], r[6]),
-                        **sonine_sums(r[K.O_TR2], r[K.O_ROT2], r[K.O_X], DOF_ROTATION_SPHERE)})
-        return out
+        return [self._observables(s, a[s].tolist()) if self.active[s] else None for s in range(self.n_scenes)]
+
+    def _observables(self, s: int, r: list) -> dict:
+        """Scene s's observables from its observe sums r (sphere_cuda.observe_one)."""
+        return {"kinetic_energy_translational": r[0], "kinetic_energy_rotational": r[1],
+                "contacts": int(round(r[2])) // 2, "elastic_energy": r[3],
+                "max_overlap": r[SC.O_MAX], "momentum": (r[4], r[5], r[6]),
+                **sonine_sums(r[SC.O_TR2], r[SC.O_ROT2], r[SC.O_X], DOF_ROTATION_SPHERE)}
 
     #: state() keys and the device arrays (3 or 4 rows, particle index fastest) they are copied from
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angular_velocity", "omega"), ("orientation", "quat"))

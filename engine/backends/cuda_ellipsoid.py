@@ -4,17 +4,19 @@
 built exactly as the sphere :class:`engine.backends.cuda.CudaEnsemble` (it is a subclass: per-scene
 constant tables, scene index per particle, cell grids per scene, compact contact-history store, the
 cooperative many-steps-per-launch loop for small scenes and the per-phase loop for large ones, a scene that
-blows up stops alone). Only the particle state and the step kernels differ
-(:mod:`engine.backends.cuda_ellipsoid_kernels`, which call the njit physics of
-engine/backends/cpu_ellipsoid.py: Perram-Wertheim contact, Fincham's leap-frog on the body-frame angular
-velocity, paper 003 Eqs. 13-24). :class:`CudaEllipsoidBackend` is the one-scene case (K = 1) with the
-interface of :class:`engine.backends.cpu_ellipsoid.CpuEllipsoidBackend`.
+blows up stops alone) and runs the same kernels: the one CUDA time loop (:mod:`engine.backends.cuda_loop`)
+specialised by the spheroid's device functions (engine/shapes/spheroid_cuda.py, which call the njit physics
+of the CPU plug-in engine/shapes/spheroid.py: Perram-Wertheim contact, Fincham's leap-frog on the
+body-frame angular velocity, paper 003 Eqs. 13-24). This module owns only the spheroid's host side: its state
+and per-scene constants on the device, the arrays it hands to the kernels and its observables.
+:class:`CudaEllipsoidBackend` is the one-scene case (K = 1) with the interface of
+:class:`engine.backends.cpu_ellipsoid.CpuEllipsoidBackend`.
 
 The step is the CPU backend's:
   1. kick + drift: v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham with L(t) and L(t + dt/2);
      predicted end-of-step v and w = R I^-1 R^T (L + tau dt/2) stored for the dashpot;
   2. rebuild when some particle has moved more than L_v/2 since the last build (bounding spheres of
-     radius a: the sphere module's list kernels with radius = a);
+     radius a: the shared list kernels of engine/backends/cuda_kernels.py with radius = a);
   3. forces: for each list slot whose bounding spheres overlap (or that was in contact at the previous
      step) the Perram-Wertheim contact with the lower id as "A", summed in list order.
 State on the device is the space-frame angular momentum L; ``state()`` returns the space-frame angular
@@ -26,12 +28,16 @@ from __future__ import annotations
 import numpy as np
 from numba import cuda
 
-from engine.backends import cuda_ellipsoid_kernels as CE
 from engine.backends import cuda_kernels as K
+from engine.backends import cuda_loop
 from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.backends.cpu_ellipsoid import PW_SCREEN, PW_TOL, angm_from_omega, omega_from_angm
 from engine.backends.cuda import CudaBackend, CudaEnsemble
 from engine.physics.sonine import DOF_ROTATION_SPHEROID, sonine_sums
+from engine.shapes import spheroid_cuda as CE
+
+#: the spheroid columns of spd (engine/shapes/spheroid_cuda.py: offsets from the common K.ND)
+E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR = (K.ND + c for c in range(CE.NCOL))
 
 
 class CudaEllipsoidEnsemble(CudaEnsemble):
@@ -42,7 +48,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
     the call, ``observe`` the keys of the CPU ellipsoid backend's observe per scene.
     """
 
-    _ND = CE.NDE
+    shape = "ellipsoid"
+    _ND = K.ND + CE.NCOL
     _permuted = ("pos", "vel", "angm", "quat", "vel_p", "omega_p", "pos_prev", "quat_prev")
     _view_names = ("radius1", "inv_m1")
 
@@ -120,19 +127,19 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         self.spd_h[s, K.D_R0] = np.max(ax)
         self.spd_h[s, K.D_M0] = c(m0)
         self.spd_h[s, K.D_IM0] = (1.0 / np.array([m0], c))[0]
-        self.spd_h[s, [CE.E_A, CE.E_B, CE.E_C]] = ax
-        self.spd_h[s, [CE.E_II1, CE.E_II2, CE.E_II3]] = (1.0 / np.asarray(i0, c)).astype(c)
-        self.spd_h[s, CE.E_BMIN] = min(ax[1], ax[2])
+        self.spd_h[s, [E_A, E_B, E_C]] = ax
+        self.spd_h[s, [E_II1, E_II2, E_II3]] = (1.0 / np.asarray(i0, c)).astype(c)
+        self.spd_h[s, E_BMIN] = min(ax[1], ax[2])
 
     def _set_scene_contact(self, s: int, contact: ContactParams) -> None:
         if contact.k_t is not None or contact.friction not in (None, 0.0):
             raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
         super()._set_scene_contact(s, contact)
-        self.spd_h[s, CE.E_TOL] = self.dtype(PW_TOL[contact.precision])
-        self.spd_h[s, CE.E_SCR] = self.dtype(PW_SCREEN[contact.precision])
+        self.spd_h[s, E_TOL] = self.dtype(PW_TOL[contact.precision])
+        self.spd_h[s, E_SCR] = self.dtype(PW_SCREEN[contact.precision])
 
     def _specialise(self) -> None:
-        self.k = CE.kernels(self.dtype, self.uniform, self.tpb)
+        self.k = cuda_loop.kernels(self.shape, self.dtype, (), self.uniform, self.tpb)
         self._coop_blocks = None
 
     def _prime(self, systems) -> None:
@@ -146,76 +153,30 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         self._forces(step=0)
         self._pending = self._collect(self._read_status_now())
 
-    # ---- kernels of one step (hooks of CudaEnsemble's loops) ---------------------------------------
+    # ---- the time loop's arrays (engine/backends/cuda_loop.py) -------------------------------------
 
-    def _kick_drift(self, first: int, step: int) -> None:
-        self.k["kick_drift"][self._grid(self.n)](
-            self.n, first, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1,
-            self.inv_i, self.x_ref, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev, self.ids, self.sc,
-            self.spd, self.spf, self.spi, self.status, step)
-
-    def _forces(self, step: int) -> None:
-        self.k["forces"][self._grid(self.n)](
-            self.n, self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.radius1, self.inv_m1,
-            self.force, self.torque, self.nbr, self.nn, self.hist, self.pos_prev, self.quat_prev, self.ids,
-            self.sc, self.spd, self.spf, self.spi, self.status, step)
-
-    def _half_kick(self) -> None:
-        self.k["half_kick"][self._grid(self.n)](self.n, self.vel, self.angm, self.force, self.torque,
-                                                self.inv_m1, self.sc, self.spd, self.spi)
-
-    def _run_steps(self, nmax: int, first: int, step0: int, grid=None) -> None:
-        self.k["run_steps"][grid or self._coop_grid()](
-            self.n, nmax, first, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1,
-            self.inv_i, self.axes, self.radius1, self.x_ref, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev,
-            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step0)
-
-    def warmup(self) -> None:
-        """Compile the kernels without advancing (launches with n = 0)."""
-        k, s = self.k, self.stream
-        g = (1, self.tpb, s)
-        k["kick_drift"][g](
-            0, 1, self.pos, self.vel, self.angm, self.quat, self.force, self.torque, self.inv_m1, self.inv_i,
-            self.x_ref, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev, self.ids, self.sc, self.spd,
-            self.spf, self.spi, self.status, 0)
-        k["forces"][g](0, self.pos, self.vel_p, self.omega_p, self.quat, self.axes, self.radius1, self.inv_m1,
-                       self.force, self.torque, self.nbr, self.nn, self.hist, self.pos_prev, self.quat_prev, self.ids,
-                       self.sc, self.spd, self.spf, self.spi, self.status, 0)
-        k["half_kick"][g](0, self.vel, self.angm, self.force, self.torque, self.inv_m1, self.sc, self.spd, self.spi)
-        self._observe_sums()
-        if self.multistep:
-            scratch = cuda.to_device(self._fresh_status(), stream=s)
-            k["run_steps"][g](0, 1, 1, self.pos, self.vel, self.angm, self.quat, self.force, self.torque,
-                              self.inv_m1, self.inv_i, self.axes, self.radius1, self.x_ref, self.vel_p, self.omega_p,
-                              self.pos_prev, self.quat_prev, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd,
-                              self.spf, self.spi, scratch, 0)
-        s.synchronize()
+    def _step_arrays(self) -> tuple:
+        """(spin, spin_inv, list radius, ext): the angular momentum L, the principal 1/I, the bounding radius a,
+        and (axes, vel_p, omega_p, pos_prev, quat_prev) (engine/shapes/spheroid_cuda.py)."""
+        return self.angm, self.inv_i, self.radius1, (self.axes, self.vel_p, self.omega_p, self.pos_prev,
+                                                     self.quat_prev)
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
     _NOBS = CE.NACC
 
     def _observe_args(self) -> tuple:
-        return (self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.spd, self.spf,
-                self.spi)
+        """observe(pos, vel, spin, quat, rad, mass, inertia, ...) with inertia = the principal 1/I."""
+        return (self.pos, self.vel, self.angm, self.quat, self.radius1, self.mass, self.inv_i, self.nbr, self.nn,
+                self.hist, self.spd, self.spf, self.spi)
 
-    def observe(self) -> list:
-        """Per scene the keys of CpuEllipsoidBackend.observe (None for an inactive scene)."""
-        a = self._observe_sums()
-        out = []
-        for s in range(self.n_scenes):
-            if not self.active[s]:
-                out.append(None)
-                continue
-            r = a[s].tolist()
-            out.append({"kinetic_energy_translational": r[CE.A_TR],
-                        "kinetic_energy_rotational": r[CE.A_ROT],
-                        "kinetic_energy_rotational_active": r[CE.A_PERP], "rotational_dof": 2,
-                        "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": r[CE.A_EL],
-                        "max_overlap": r[CE.A_OVL] / self._bmin[s],
-                        "momentum": (r[CE.A_PX], r[CE.A_PY], r[CE.A_PZ]),
-                        **sonine_sums(r[CE.A_TR2], r[CE.A_ROT2], r[CE.A_X], DOF_ROTATION_SPHEROID)})
-        return out
+    def _observables(self, s: int, r: list) -> dict:
+        """Scene s's keys of CpuEllipsoidBackend.observe from its observe sums r (spheroid_cuda.observe_one)."""
+        return {"kinetic_energy_translational": r[CE.A_TR], "kinetic_energy_rotational": r[CE.A_ROT],
+                "kinetic_energy_rotational_active": r[CE.A_PERP], "rotational_dof": 2,
+                "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": r[CE.A_EL],
+                "max_overlap": r[CE.A_OVL] / self._bmin[s], "momentum": (r[CE.A_PX], r[CE.A_PY], r[CE.A_PZ]),
+                **sonine_sums(r[CE.A_TR2], r[CE.A_ROT2], r[CE.A_X], DOF_ROTATION_SPHEROID)}
 
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat"))
 

@@ -1,25 +1,31 @@
-"""CUDA kernels of the GPU backend: K independent scenes advanced together (K = 1 for one run).
+"""CUDA layout and neighbour-list kernels of the GPU backend: K independent scenes advanced together (K = 1 for
+one run), for every particle shape.
 
-Every kernel calls the same ``@numba.njit`` physics functions as the CPU backend
-(:mod:`engine.physics`); this module owns only layout, loops and launches. The kernels are built by
-factories keyed on what the scenes need (DESIGN §1): precision, rough or smooth, Coulomb limit,
-orientation, uniform particles.
+This module owns the device layout (below), the per-scene tables and status words, the block reductions and
+the blow-up record shared by every kernel (:func:`device_helpers`, :func:`observe_reducer`), and the
+single-grid neighbour-list kernels (:func:`grid_kernels`: cells, scan, scatter, per-cell id sort, permutation,
+compact history store, full Verlet list build; the cell arithmetic is engine/cells.py's). The time loop is
+engine/backends/cuda_loop.py's, specialised by a shape's device functions (engine/shapes/<shape>_cuda.py);
+the multigrid and CPU-built lists are engine/backends/cuda_lists.py's. Kernels are built by factories keyed on
+what the scenes need (DESIGN §1) and call the same ``@numba.njit`` functions as the CPU backend.
 
 Layout (device, structure of arrays, particle index fastest). The scenes lie back to back: scene s owns
 the slots [start_s, start_s + n_s) and keeps them (its cells come before the next scene's, so the cell
 sort never moves a particle into another scene's range); ``sc[i]`` is the scene of slot i.
-    pos, vel, omega (3, N); quat (4, N); f0/f1 (3, N) (double buffer: the force kernel reads the previous
-    step's forces for the predicted velocities of *other* particles while writing its own); torque (3, N);
-    x_ref (3, N); ids (N) int32 = ensemble-wide particle id (start_s + id within the scene).
-    Neighbour list: nbr (M, N) int32, nn (N) int32, hist (H, M, N) per-slot contact history (H = 5:
-    tangential spring x, y, z, previous overlap, previous dashpot force).
+    pos, vel, spin (3, N) (spin: the rotational state the torque kicks, the shape's); quat (4, N); f0/f1
+    (3, N) (double buffer: the sphere force phase reads the previous step's forces for the predicted
+    velocities of *other* particles while writing its own); torque (3, N); x_ref (3, N); ids (N) int32 =
+    ensemble-wide particle id (start_s + id within the scene); a shape's own arrays (``ext``).
+    Neighbour list (of the list radius: a sphere's radius, a spheroid's bounding radius): nbr (M, N) int32,
+    nn (N) int32, hist (H, M, N) per-slot contact history (H = 5: tangential spring x, y, z, previous
+    overlap, previous dashpot force).
     Compact history store (rebuilds only): the slots whose history matters across a rebuild (in contact
     at the previous step or overlapping now) are copied to cj/chist before the list is rebuilt in place;
     every other slot restarts from zero history with the current gap as its previous overlap, which gives
     the same forces bit for bit (a pair apart at the previous step has zero spring, and its previous
     dashpot force is never read). This keeps one list buffer instead of two (issue 3's memory target).
-Per-scene constants: spd (K, ND) in the working precision, spf (K, NF) float64, spi (K, NI) int32; a
-scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or failed: a blow-up
+Per-scene constants: spd (K, ND + the shape's columns) in the working precision, spf (K, NF) float64,
+spi (K, NI) int32; a scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or failed: a blow-up
 clears it on the device so a failing scene cannot disturb the others).
 
 Status (float64): global slots S_* (rebuild decision, list stride, compaction count, multi-step exit)
@@ -36,10 +42,7 @@ from numba.cuda import types as ct
 
 from engine.backends.cuda_cache import cache_kernels
 from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
-from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
-                                    sphere_contact_end)
-from engine.physics.integrate import drift_wrap, kick
-from engine.physics.rotation import fincham_quat_step_space
+from engine.physics.contact import min_image
 
 # per-scene constants: spd (working precision)
 D_BOX, D_INVBOX, D_DT, D_HP, D_KN, D_GN, D_KT, D_MU, D_R0, D_M0, D_I0, D_IM0, D_II0, D_SKIN = range(14)
@@ -60,10 +63,6 @@ SS0 = 8
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5
 HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force
-# observe sums per scene: E_tr, E_rot, contacts x 2, elastic energy, P_x, P_y, P_z, max overlap (slot 7, a max),
-# then the Sonine moments sum e_tr^2, sum e_rot^2, sum e_tr e_rot (J^2; engine/physics/sonine.py)
-NOBS = 11
-O_TR2, O_ROT2, O_X = 8, 9, 10
 
 _cache: dict = {}
 
@@ -72,12 +71,13 @@ def status_len(k: int) -> int:
     return SS0 + NSS * k
 
 
-def kernels(dtype, rough: bool, coulomb: bool, orient: bool, uniform: bool, tpb: int):
-    """The kernel set for one specialisation (cached)."""
-    key = (np.dtype(dtype).str, rough, coulomb, orient, uniform, tpb)
+def grid_kernels(dtype, uniform: bool, tpb: int) -> dict:
+    """The neighbour-list kernels (cells, scan, scatter, sort, permute, compact history store, build) for one
+    precision, uniformity and block size (cached): every shape's broad phase is this list of its list radius
+    (a sphere's radius, a spheroid's bounding radius)."""
+    key = (np.dtype(dtype).str, uniform, tpb)
     if key not in _cache:
-        _cache[key] = cache_kernels(_make(np.dtype(dtype).type, rough, coulomb, orient, uniform, tpb),
-                                    ("spheres",) + key)
+        _cache[key] = cache_kernels(_make(np.dtype(dtype).type, uniform, tpb), ("grid",) + key)
     return _cache[key]
 
 
@@ -163,290 +163,13 @@ def _make_helpers(TPB):
     return block_max2, fail
 
 
-def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
+def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     ZERO = DT(0)
     HALF = DT(0.5)
-    BIG = DT(np.finfo(DT).max)
     f64 = np.float64
     SH2 = 2 * TPB
 
     block_max2, fail = device_helpers(TPB)
-
-    # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
-
-    @cuda.jit(device=True)
-    def kick_drift_one(i, first, pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, ids, sc, spd,
-                       spf, spi, status, step):
-        """v += F/m hk, w += tau/I hk (hk = dt/2 on the first step of a call, else dt), x += v dt wrapped,
-        q advanced; returns the normalised squared displacement and speed (0, 0 for a skipped scene)."""
-        s = sc[i]
-        if spi[s, I_ACTIVE] == 0:
-            return 0.0, 0.0
-        dt = spd[s, D_DT]
-        hk = spd[s, D_HP] if first else dt
-        box = spd[s, D_BOX]
-        inv_box = spd[s, D_INVBOX]
-        im = spd[s, D_IM0] if UNIFORM else inv_m[i]
-        v2 = ZERO
-        dsp = ZERO
-        for k in range(3):
-            v = kick(vel[k, i], force[k, i], im, hk)
-            vel[k, i] = v
-            x = drift_wrap(pos[k, i], v, dt, box, inv_box)
-            pos[k, i] = x
-            d = min_image(x - x_ref[k, i], box, inv_box, HALF)
-            dsp += d * d
-            v2 += v * v
-        w2 = ZERO
-        if ROUGH:
-            ii = spd[s, D_II0] if UNIFORM else inv_i[i]
-            for k in range(3):
-                w = kick(omega[k, i], torque[k, i], ii, hk)
-                omega[k, i] = w
-                w2 += w * w
-        if ORIENT:
-            if spi[s, I_ORIENT] != 0:
-                q0, q1, q2, q3 = fincham_quat_step_space(quat[0, i], quat[1, i], quat[2, i], quat[3, i],
-                                                         omega[0, i], omega[1, i], omega[2, i], dt, HALF)
-                quat[0, i] = q0
-                quat[1, i] = q1
-                quat[2, i] = q2
-                quat[3, i] = q3
-        if not (dsp < BIG) or not (v2 < BIG) or not (w2 < BIG):
-            fail(status, spi, s, SS_BAD_ID, ids[i], step)
-            return 0.0, 0.0
-        return f64(dsp) * spf[s, F_LIM2INV], f64(v2) * spf[s, F_V2F]
-
-    @cuda.jit(device=True)
-    def forces_one(i, pos, vel, omega, radius, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
-                   spf, spi, status, step):
-        """Contact forces and torque on particle i from its list; per-slot history advanced in place."""
-        s = sc[i]
-        if spi[s, I_ACTIVE] == 0:
-            return
-        box = spd[s, D_BOX]
-        inv_box = spd[s, D_INVBOX]
-        hp = spd[s, D_HP]
-        dt = spd[s, D_DT]
-        k_n = spd[s, D_KN]
-        gn_coef = spd[s, D_GN]
-        k_t = spd[s, D_KT]
-        mu = spd[s, D_MU]
-        r0 = spd[s, D_R0]
-        im0 = spd[s, D_IM0]
-        one = HALF + HALF
-        fx = ZERO
-        fy = ZERO
-        fz = ZERO
-        tx = ZERO
-        ty = ZERO
-        tz = ZERO
-        xi = pos[0, i]
-        yi = pos[1, i]
-        zi = pos[2, i]
-        ri = r0 if UNIFORM else radius[i]
-        imi = im0 if UNIFORM else inv_m[i]
-        wsi = ZERO
-        for kk in range(nn[i]):
-            j = nbr[kk, i]
-            rx = min_image(xi - pos[0, j], box, inv_box, HALF)
-            ry = min_image(yi - pos[1, j], box, inv_box, HALF)
-            rz = min_image(zi - pos[2, j], box, inv_box, HALF)
-            d = math.sqrt(rx * rx + ry * ry + rz * rz)
-            rj = r0 if UNIFORM else radius[j]
-            delta = ri + rj - d
-            delta_prev = hist[3, kk, i]
-            if delta > ZERO:
-                imj = im0 if UNIFORM else inv_m[j]
-                m12 = one / (imi + imj)
-                vix = vel[0, i]
-                viy = vel[1, i]
-                viz = vel[2, i]
-                vjx = vel[0, j]
-                vjy = vel[1, j]
-                vjz = vel[2, j]
-                # predicted end-of-step velocities v + F/m dt/2 (CPU: vel_p in kick_drift)
-                uix = kick(vix, f_old[0, i], imi, hp)
-                uiy = kick(viy, f_old[1, i], imi, hp)
-                uiz = kick(viz, f_old[2, i], imi, hp)
-                ujx = kick(vjx, f_old[0, j], imj, hp)
-                ujy = kick(vjy, f_old[1, j], imj, hp)
-                ujz = kick(vjz, f_old[2, j], imj, hp)
-                if ROUGH and COULOMB:
-                    g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                       uix - ujx, uiy - ujy, uiz - ujz,
-                                       omega[0, i], omega[1, i], omega[2, i],
-                                       omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                       hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
-                                       hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, HALF)
-                elif ROUGH:
-                    g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                       uix - ujx, uiy - ujy, uiz - ujz,
-                                       omega[0, i], omega[1, i], omega[2, i],
-                                       omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                       hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
-                                       hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, None, dt, HALF)
-                else:
-                    g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                       uix - ujx, uiy - ujy, uiz - ujz,
-                                       ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
-                                       hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
-                                       hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), None, None, dt, HALF)
-                fx += g[0]
-                fy += g[1]
-                fz += g[2]
-                if ROUGH:
-                    tx += g[3]
-                    ty += g[4]
-                    tz += g[5]
-                    hist[0, kk, i] = g[6]
-                    hist[1, kk, i] = g[7]
-                    hist[2, kk, i] = g[8]
-                hist[4, kk, i] = g[10]
-                ov = delta / min(ri, rj)
-                if ov > wsi:
-                    wsi = ov
-            elif delta_prev > ZERO:
-                pe = contact_end_fraction(delta_prev, delta)
-                vjx = vel[0, j]
-                vjy = vel[1, j]
-                vjz = vel[2, j]
-                if ROUGH:
-                    e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
-                                           omega[0, i], omega[1, i], omega[2, i],
-                                           omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                           hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
-                                           k_t, pe, dt, HALF)
-                else:
-                    e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
-                                           ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
-                                           hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
-                                           None, pe, dt, HALF)
-                fx += e[0]
-                fy += e[1]
-                fz += e[2]
-                if ROUGH:
-                    tx += e[3]
-                    ty += e[4]
-                    tz += e[5]
-                    hist[0, kk, i] = ZERO
-                    hist[1, kk, i] = ZERO
-                    hist[2, kk, i] = ZERO
-            hist[3, kk, i] = delta
-        f_new[0, i] = fx
-        f_new[1, i] = fy
-        f_new[2, i] = fz
-        if ROUGH:
-            torque[0, i] = tx
-            torque[1, i] = ty
-            torque[2, i] = tz
-        w64 = f64(wsi)
-        if w64 > spf[s, F_OVL]:
-            b = SS0 + NSS * s
-            cuda.atomic.max(status, b + SS_OVL, w64)
-            fail(status, spi, s, SS_OVL_ID, ids[i], step)
-
-    # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
-
-    @cuda.jit
-    def kick_drift(n, first, pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, ids, sc, spd, spf,
-                   spi, status, step):
-        sh = cuda.shared.array(SH2, ct.float64)
-        md = 0.0
-        mv = 0.0
-        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            d2, v2 = kick_drift_one(i, first, pos, vel, omega, quat, force, torque, inv_m, inv_i, x_ref, ids,
-                                    sc, spd, spf, spi, status, step)
-            md = max(md, d2)
-            mv = max(mv, v2)
-        block_max2(sh, md, mv)
-        if cuda.threadIdx.x == 0:
-            cuda.atomic.max(status, S_D2, sh[0])
-            cuda.atomic.max(status, S_V2, sh[TPB])
-
-    @cuda.jit
-    def forces(n, pos, vel, omega, radius, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
-               spi, status, step):
-        i0 = cuda.grid(1)
-        if i0 == 0:  # reset the per-step maxima for the next kick_drift (stream-ordered after its copy)
-            status[S_D2] = 0.0
-            status[S_V2] = 0.0
-        for i in range(i0, n, cuda.gridsize(1)):
-            forces_one(i, pos, vel, omega, radius, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
-                       spf, spi, status, step)
-
-    @cuda.jit
-    def half_kick(n, vel, omega, force, torque, inv_m, inv_i, sc, spd, spi):
-        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
-            if spi[s, I_ACTIVE] == 0:
-                continue
-            hk = spd[s, D_HP]
-            im = spd[s, D_IM0] if UNIFORM else inv_m[i]
-            for k in range(3):
-                vel[k, i] = kick(vel[k, i], force[k, i], im, hk)
-            if ROUGH:
-                ii = spd[s, D_II0] if UNIFORM else inv_i[i]
-                for k in range(3):
-                    omega[k, i] = kick(omega[k, i], torque[k, i], ii, hk)
-
-    # ---- many steps per launch (small scenes and ensembles: launch overhead paid once per chunk) -------
-
-    @cuda.jit
-    def run_steps(n, nmax, first, skip_kick, thr, pos, vel, omega, quat, f0, f1, torque, inv_m, inv_i, radius,
-                  x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0):
-        """Up to nmax whole steps in one cooperative launch, the phases separated by grid syncs.
-
-        Stops early, after the drift of a step and before its forces, when a particle has moved more than
-        sqrt(thr) L_v/2 since the list build (thr = 1: the rebuild rule; thr = 1/4: the L_v/4 signal of the
-        pipelined CPU-list mode): status[S_RUN_REBUILD] = 1 and status[S_RUN_DONE] = the whole steps
-        completed (the host rebuilds or starts a CPU build, computes that step's forces and relaunches). Step st reads forces
-        from f0 when st is even (f1 when odd) and writes the other buffer. skip_kick = 1: the drift of
-        step 0 is already done (the host computes its forces first).
-        """
-        g = cuda.cg.this_grid()
-        sh = cuda.shared.array(SH2, ct.float64)
-        i0 = cuda.grid(1)
-        stride = cuda.gridsize(1)
-        if i0 == 0:
-            status[S_D2] = 0.0
-            status[S_D2B] = 0.0
-            status[S_RUN_DONE] = 0.0
-            status[S_RUN_REBUILD] = 0.0
-        g.sync()
-        done = 0
-        for st in range(nmax):
-            even = (st & 1) == 0
-            slot = S_D2 if even else S_D2B
-            if even:
-                fa = f0
-                fb = f1
-            else:
-                fa = f1
-                fb = f0
-            step = step0 + st
-            if not (st == 0 and skip_kick != 0):
-                if i0 == 0:
-                    status[S_D2B if even else S_D2] = 0.0  # the other parity's slot, free until next step
-                md = 0.0
-                for i in range(i0, n, stride):
-                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, pos, vel, omega, quat, fa, torque,
-                                            inv_m, inv_i, x_ref, ids, sc, spd, spf, spi, status, step)
-                    md = max(md, d2)
-                block_max2(sh, md, 0.0)
-                if cuda.threadIdx.x == 0:
-                    cuda.atomic.max(status, slot, sh[0])
-                g.sync()
-                if status[slot] > thr:
-                    break
-            for i in range(i0, n, stride):
-                forces_one(i, pos, vel, omega, radius, inv_m, fa, fb, torque, nbr, nn, hist, ids, sc, spd,
-                           spf, spi, status, step)
-            done += 1
-            g.sync()
-        if i0 == 0:
-            status[S_RUN_DONE] = f64(done)
-            status[S_RUN_REBUILD] = 1.0 if done < nmax else 0.0
 
     # ---- neighbour list: cells, sort, permute, compact history, build -----------------------------------
 
@@ -595,21 +318,11 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
         max_nb = nbr.shape[0]
         need = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            xi = pos[0, i]
-            yi = pos[1, i]
-            zi = pos[2, i]
-            x_ref[0, i] = xi
-            x_ref[1, i] = yi
-            x_ref[2, i] = zi
-            s = sc[i]
-            if spi[s, I_ACTIVE] == 0:
-                nn[i] = 0
+            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
+            if s < 0:
                 continue
             nc = spi[s, I_NC]
             coff = spi[s, I_COFF]
-            box = spd[s, D_BOX]
-            inv_box = spd[s, D_INVBOX]
-            skin = spd[s, D_SKIN]
             r0 = spd[s, D_R0]
             cx, cy, cz = cell_coords(xi, yi, zi, spf[s, F_INVCELL], nc)
             ri = r0 if UNIFORM else radius[i]
@@ -620,16 +333,11 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
             for k in range(neighbour_cell_count(nc)):
                 cc = coff + neighbour_cell(cx, cy, cz, k, nc)
                 for j in range(cell_start[cc], cell_start[cc + 1]):
-                    if j == i:
-                        continue
-                    d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, HALF)
                     rj = r0 if UNIFORM else radius[j]
-                    rc = ri + rj + skin
-                    if d2 < rc * rc:
-                        if cnt < max_nb:
-                            nbr[cnt, i] = j
-                            init_slot(i, cnt, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
-                        cnt += 1
+                    c2, d2 = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr)
+                    if c2 > cnt and cnt < max_nb:
+                        init_slot(i, cnt, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
+                    cnt = c2
             nn[i] = cnt
             if cnt > need:
                 need = f64(cnt)
@@ -637,70 +345,9 @@ def _make(DT, ROUGH, COULOMB, ORIENT, UNIFORM, TPB):  # noqa: C901  (one closure
         if cuda.threadIdx.x == 0:
             cuda.atomic.max(status, S_NEED_NB, sh[0])
 
-    # ---- observables ----------------------------------------------------------------------------------
-
-    block_accumulate = observe_reducer(TPB, NOBS, 7)
-    SH_OBS = NOBS * TPB
-
-    @cuda.jit
-    def observe(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, spd, spf, spi, acc):
-        """acc[s] += (E_tr, E_rot, contacts (x2), elastic energy, P_x, P_y, P_z); acc[s, 7] = max overlap;
-        acc[s, 8:11] += (sum e_tr^2, sum e_rot^2, sum e_tr e_rot), the Sonine moments (cpu.observe_kernel).
-
-        One block row per scene (blockIdx.y = s); per particle in float64, reduced per block
-        (observe_reducer): O(blocks) atomics, not O(N) on K x 8 addresses (issue 14)."""
-        s = cuda.blockIdx.y
-        sh = cuda.shared.array(SH_OBS, ct.float64)
-        vals = cuda.local.array(NOBS, ct.float64)
-        for q in range(NOBS):
-            vals[q] = 0.0
-        if spi[s, I_ACTIVE] != 0:
-            a0 = spi[s, I_START]
-            box = spd[s, D_BOX]
-            inv_box = spd[s, D_INVBOX]
-            r0 = spd[s, D_R0]
-            for li in range(cuda.blockIdx.x * TPB + cuda.threadIdx.x, spi[s, I_N], cuda.gridDim.x * TPB):
-                i = a0 + li
-                m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
-                ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
-                vx = f64(vel[0, i])
-                vy = f64(vel[1, i])
-                vz = f64(vel[2, i])
-                wx = f64(omega[0, i])
-                wy = f64(omega[1, i])
-                wz = f64(omega[2, i])
-                vals[0] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
-                vals[1] += 0.5 * ii * (wx * wx + wy * wy + wz * wz)
-                vals[4] += m * vx
-                vals[5] += m * vy
-                vals[6] += m * vz
-                et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
-                er_i = 0.5 * ii * (wx * wx + wy * wy + wz * wz)
-                vals[O_TR2] += et_i * et_i
-                vals[O_ROT2] += er_i * er_i
-                vals[O_X] += et_i * er_i
-                ri = r0 if UNIFORM else radius[i]
-                for kk in range(nn[i]):
-                    j = nbr[kk, i]
-                    rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
-                    ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
-                    rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
-                    rj = r0 if UNIFORM else radius[j]
-                    rs = ri + rj
-                    d2 = rx * rx + ry * ry + rz * rz
-                    if d2 < rs * rs:
-                        vals[2] += 1.0
-                        delta = f64(rs - math.sqrt(d2))
-                        # each pair appears in both partners' lists
-                        vals[3] += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
-                                                                f64(hist[2, kk, i]), spf[s, F_KN], spf[s, F_KT], 0.5)
-                        vals[7] = max(vals[7], delta / f64(min(ri, rj)))
-        block_accumulate(sh, vals, acc, s)
-
-    return dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps,
-                fill_i32=fill_i32, count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets,
+    return dict(fill_i32=fill_i32, count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets,
                 scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32,
-                inverse_perm=inverse_perm, compact=compact, build=build, observe=observe)
+                inverse_perm=inverse_perm, compact=compact, build=build)
 
 
 @cuda.jit
@@ -715,6 +362,42 @@ def gather_scene(src, ids, a0, n_k, dst):
 
 
 cache_kernels({"gather_scene": gather_scene}, ("gather",))
+
+
+@cuda.jit(device=True)
+def list_origin(i, pos, x_ref, nn, sc, spd, spi):
+    """Start of particle i's row of a list build: its position, recorded as the list's reference x_ref, its
+    scene s and the scene's box, 1/box and skin; s = -1 (and an empty row) when the scene is inactive."""
+    xi = pos[0, i]
+    yi = pos[1, i]
+    zi = pos[2, i]
+    x_ref[0, i] = xi
+    x_ref[1, i] = yi
+    x_ref[2, i] = zi
+    s = sc[i]
+    box = spd[s, D_BOX]
+    inv_box = spd[s, D_INVBOX]
+    skin = spd[s, D_SKIN]
+    if spi[s, I_ACTIVE] == 0:
+        nn[i] = 0
+        return xi, yi, zi, -1, box, inv_box, skin
+    return xi, yi, zi, s, box, inv_box, skin
+
+
+@cuda.jit(device=True)
+def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, nbr):
+    """The candidate test of every CUDA list build (engine/cells.distance2): j (!= i) joins i's row at slot cnt
+    when |r_ij| < R_i + R_j + L_v (a row longer than the stride is only counted). Returns (the new count, the
+    squared distance; 0 for j = i)."""
+    if j == i:
+        return cnt, half - half
+    d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, half)
+    rc = ri + rj + skin
+    if d2 < rc * rc:
+        if cnt < nbr.shape[0]:
+            nbr[cnt, i] = j
+        return cnt + 1, d2
+    return cnt, d2
 
 
 @cuda.jit(device=True)

@@ -14,6 +14,9 @@
 - ``check_snapshot``: the a-posteriori test of a list built from earlier positions (paper 004 §3, B10):
   max over particles of (|x - x_snapshot| / (L_v/2))^2 into status[S_CHECK].
 
+The row start and the candidate test are the single-grid build's (:func:`cuda_kernels.list_origin`,
+:func:`cuda_kernels.add_candidate`); the cell arithmetic is engine/cells.py's.
+
 Layout and per-scene tables as in :mod:`engine.backends.cuda_kernels`.
 """
 
@@ -27,8 +30,8 @@ from numba.cuda import types as ct
 
 from engine.backends import cuda_kernels as K
 from engine.backends.cuda_cache import cache_kernels
-from engine.backends.cuda_kernels import init_slot
-from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.backends.cuda_kernels import add_candidate, init_slot, list_origin
+from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
 _cache: dict = {}
@@ -46,7 +49,7 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
     HALF = DT(0.5)
     SH2 = 2 * TPB
     block_max2, _fail = K.device_helpers(TPB)
-    D_BOX, D_INVBOX, D_SKIN, D_R0 = K.D_BOX, K.D_INVBOX, K.D_SKIN, K.D_R0
+    D_BOX, D_INVBOX, D_R0 = K.D_BOX, K.D_INVBOX, K.D_R0
     I_ACTIVE, F_LIM2INV = K.I_ACTIVE, K.F_LIM2INV
     S_NEED_NB, S_CHECK = K.S_NEED_NB, K.S_CHECK
 
@@ -87,23 +90,13 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
         """Full Verlet list over the grid levels (module docstring); kept history from the compact store
         (indexed by the previous order, as in the single-grid build); true counts in nn, the largest in
         status[S_NEED_NB] (the host grows the list and reruns when it does not fit)."""
+        need = 0.0
         sh = cuda.shared.array(SH2, ct.float64)
         max_nb = nbr.shape[0]
-        need = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            xi = pos[0, i]
-            yi = pos[1, i]
-            zi = pos[2, i]
-            x_ref[0, i] = xi
-            x_ref[1, i] = yi
-            x_ref[2, i] = zi
-            s = sc[i]
-            if spi[s, I_ACTIVE] == 0:
-                nn[i] = 0
+            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
+            if s < 0:
                 continue
-            box = spd[s, D_BOX]
-            inv_box = spd[s, D_INVBOX]
-            skin = spd[s, D_SKIN]
             ri = radius[i]
             li = lvl[i]
             cnt = 0
@@ -117,13 +110,8 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                         b = mgi[s, l, 1 + kind] + cc
                         for p in range(start[b], start[b + 1]):
                             j = items[p]
-                            if j == i:
-                                continue
-                            rc = ri + radius[j] + skin
-                            if distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, HALF) < rc * rc:
-                                if cnt < max_nb:
-                                    nbr[cnt, i] = j
-                                cnt += 1
+                            cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, radius[j], skin, pos, box, inv_box,
+                                                   HALF, nbr)
             nn[i] = cnt
             if cnt > need:
                 need = np.float64(cnt)

@@ -1,0 +1,249 @@
+"""The sphere shape's CUDA parts (papers 001, 002, 004): what a sphere adds to the one CUDA time loop.
+
+engine/backends/cuda_loop.py builds the GPU time loop (kick-drift, forces, closing half kick, the many-steps
+cooperative kernel, observe) once for every shape; a shape's ``<module>_cuda`` sibling (this file for
+engine/shapes/sphere.py) provides :func:`make_cuda`, which returns the device functions that specialise it at
+compile time (closures over the precision, uniform particles and the shape's own flags, as
+engine/shapes/sphere.py's njit functions specialise the CPU loop). The interface, for any shape:
+
+- ``make_cuda(L, DT, UNIFORM, TPB, *flags)``: ``L`` is the layout module (engine/backends/cuda_kernels.py: the
+  per-scene table columns D_*, F_*; passed in so that a shape module never imports a backend), ``DT`` the
+  working precision, ``flags`` the shape's compile-time switches (``FLAGS`` names them; the host passes them
+  in that order). Returns a SimpleNamespace with:
+  - ``PREDICTS``: the translation hook ``translated`` needs the predicted-velocity half step hp = dt/2;
+  - ``TORQUE``: the force phase writes the torque (False: no torque array is ever written);
+  - ``NOBS``, ``OBS_MAX``: the observe sums per scene and the slot that is a maximum;
+  - ``translated(k, i, x_old, v, f, im, hp, ext)``: after the shared kick of component k of particle i
+    (v = the new velocity, f = the force, x_old = the position before the drift);
+  - ``rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt)``: the shape's rotation step after
+    the shared translation; returns True when the rotational state is finite;
+  - ``spin_kick(i, s, spin, torque, spin_inv, spd, hk)``: the closing half kick of the rotational state;
+  - ``particle(i, s, pos, rad, inv_m, ids, spd)``: what the force loop of particle i reads once (a tuple);
+  - ``pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)``: the pair
+    evaluator of list slot kk (neighbour j): adds the force and torque on i to ``acc`` = (F_x, F_y, F_z, T_x,
+    T_y, T_z, worst overlap relative to the pair's size) and returns it; advances the slot's history in place;
+  - ``observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf)``: particle
+    i's share of the observe sums ``vals`` (float64);
+  - ``kernels``: the shape's own kernels (a dict, may be empty).
+
+Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = () (no
+extra arrays); the force phase reads the previous step's forces ``f_old`` of both partners for the predicted
+end-of-step velocities (the double buffer of engine/backends/cuda.py). Flags: rough (tangential spring and
+torque), Coulomb limit, orientation tracked. The physics is engine/physics/contact.py (sphere_contact,
+sphere_contact_end), engine/physics/integrate.py and engine/physics/rotation.py, as on the CPU.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+from numba import cuda
+
+from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
+                                    sphere_contact_end)
+from engine.physics.integrate import kick
+from engine.physics.rotation import fincham_quat_step_space
+
+#: the compile-time flags of make_cuda, in order
+FLAGS = ("rough", "coulomb", "orient")
+#: observe sums per scene: E_tr, E_rot, contacts x 2, elastic energy, P_x, P_y, P_z, max overlap (slot 7, a max),
+#: then the Sonine moments sum e_tr^2, sum e_rot^2, sum e_tr e_rot (J^2; engine/physics/sonine.py)
+NOBS = 11
+O_MAX = 7
+O_TR2, O_ROT2, O_X = 8, 9, 10
+
+
+def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one closure per specialisation)
+    """The sphere's device functions for one specialisation (module docstring)."""
+    ZERO = DT(0)
+    HALF = DT(0.5)
+    BIG = DT(np.finfo(DT).max)
+    f64 = np.float64
+    D_BOX, D_INVBOX, D_DT, D_HP, D_KN, D_GN, D_KT, D_MU = L.D_BOX, L.D_INVBOX, L.D_DT, L.D_HP, L.D_KN, L.D_GN, \
+        L.D_KT, L.D_MU
+    D_R0, D_M0, D_I0, D_IM0, D_II0 = L.D_R0, L.D_M0, L.D_I0, L.D_IM0, L.D_II0
+    I_ORIENT, F_KN, F_KT = L.I_ORIENT, L.F_KN, L.F_KT
+
+    @cuda.jit(device=True)
+    def translated(k, i, x_old, v, f, im, hp, ext):
+        """Nothing beyond the shared translation (the force phase predicts from the previous forces)."""
+        return
+
+    @cuda.jit(device=True)
+    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt):
+        """w += tau/I hk (rough); q by Fincham's leap-frog in the space frame (when tracked)."""
+        omega = spin
+        w2 = ZERO
+        if ROUGH:
+            ii = spd[s, D_II0] if UNIFORM else spin_inv[i]
+            for k in range(3):
+                w = kick(omega[k, i], torque[k, i], ii, hk)
+                omega[k, i] = w
+                w2 += w * w
+        if ORIENT:
+            if spi[s, I_ORIENT] != 0:
+                q0, q1, q2, q3 = fincham_quat_step_space(quat[0, i], quat[1, i], quat[2, i], quat[3, i],
+                                                         omega[0, i], omega[1, i], omega[2, i], dt, HALF)
+                quat[0, i] = q0
+                quat[1, i] = q1
+                quat[2, i] = q2
+                quat[3, i] = q3
+        return w2 < BIG
+
+    @cuda.jit(device=True)
+    def spin_kick(i, s, spin, torque, spin_inv, spd, hk):
+        if ROUGH:
+            ii = spd[s, D_II0] if UNIFORM else spin_inv[i]
+            for k in range(3):
+                spin[k, i] = kick(spin[k, i], torque[k, i], ii, hk)
+
+    @cuda.jit(device=True)
+    def particle(i, s, pos, rad, inv_m, ids, spd):
+        """Position, radius, 1/m of i and the scene's contact constants, read once per particle."""
+        r0 = spd[s, D_R0]
+        im0 = spd[s, D_IM0]
+        return (pos[0, i], pos[1, i], pos[2, i], r0 if UNIFORM else rad[i], im0 if UNIFORM else inv_m[i],
+                spd[s, D_BOX], spd[s, D_INVBOX], spd[s, D_HP], spd[s, D_DT], spd[s, D_KN], spd[s, D_GN],
+                spd[s, D_KT], spd[s, D_MU], r0, im0)
+
+    @cuda.jit(device=True)
+    def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
+        """The sphere law of list slot kk (sphere_contact / sphere_contact_end), history advanced in place."""
+        xi, yi, zi, ri, imi, box, inv_box, hp, dt, k_n, gn_coef, k_t, mu, r0, im0 = p
+        fx, fy, fz, tx, ty, tz, wsi = acc
+        omega = spin
+        one = HALF + HALF
+        rx = min_image(xi - pos[0, j], box, inv_box, HALF)
+        ry = min_image(yi - pos[1, j], box, inv_box, HALF)
+        rz = min_image(zi - pos[2, j], box, inv_box, HALF)
+        d = math.sqrt(rx * rx + ry * ry + rz * rz)
+        rj = r0 if UNIFORM else rad[j]
+        delta = ri + rj - d
+        delta_prev = hist[3, kk, i]
+        if delta > ZERO:
+            imj = im0 if UNIFORM else inv_m[j]
+            m12 = one / (imi + imj)
+            vix = vel[0, i]
+            viy = vel[1, i]
+            viz = vel[2, i]
+            vjx = vel[0, j]
+            vjy = vel[1, j]
+            vjz = vel[2, j]
+            # predicted end-of-step velocities v + F/m dt/2 (CPU: vel_p in kick_drift)
+            uix = kick(vix, f_old[0, i], imi, hp)
+            uiy = kick(viy, f_old[1, i], imi, hp)
+            uiz = kick(viz, f_old[2, i], imi, hp)
+            ujx = kick(vjx, f_old[0, j], imj, hp)
+            ujy = kick(vjy, f_old[1, j], imj, hp)
+            ujz = kick(vjz, f_old[2, j], imj, hp)
+            if ROUGH and COULOMB:
+                g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
+                                   uix - ujx, uiy - ujy, uiz - ujz,
+                                   omega[0, i], omega[1, i], omega[2, i],
+                                   omega[0, j], omega[1, j], omega[2, j], ri, rj,
+                                   hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                   hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, HALF)
+            elif ROUGH:
+                g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
+                                   uix - ujx, uiy - ujy, uiz - ujz,
+                                   omega[0, i], omega[1, i], omega[2, i],
+                                   omega[0, j], omega[1, j], omega[2, j], ri, rj,
+                                   hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                   hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, None, dt, HALF)
+            else:
+                g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
+                                   uix - ujx, uiy - ujy, uiz - ujz,
+                                   ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
+                                   hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
+                                   hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), None, None, dt, HALF)
+            fx += g[0]
+            fy += g[1]
+            fz += g[2]
+            if ROUGH:
+                tx += g[3]
+                ty += g[4]
+                tz += g[5]
+                hist[0, kk, i] = g[6]
+                hist[1, kk, i] = g[7]
+                hist[2, kk, i] = g[8]
+            hist[4, kk, i] = g[10]
+            ov = delta / min(ri, rj)
+            if ov > wsi:
+                wsi = ov
+        elif delta_prev > ZERO:
+            pe = contact_end_fraction(delta_prev, delta)
+            vjx = vel[0, j]
+            vjy = vel[1, j]
+            vjz = vel[2, j]
+            if ROUGH:
+                e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
+                                       omega[0, i], omega[1, i], omega[2, i],
+                                       omega[0, j], omega[1, j], omega[2, j], ri, rj,
+                                       hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
+                                       k_t, pe, dt, HALF)
+            else:
+                e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
+                                       ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
+                                       hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
+                                       None, pe, dt, HALF)
+            fx += e[0]
+            fy += e[1]
+            fz += e[2]
+            if ROUGH:
+                tx += e[3]
+                ty += e[4]
+                tz += e[5]
+                hist[0, kk, i] = ZERO
+                hist[1, kk, i] = ZERO
+                hist[2, kk, i] = ZERO
+        hist[3, kk, i] = delta
+        return fx, fy, fz, tx, ty, tz, wsi
+
+    @cuda.jit(device=True)
+    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf):
+        """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments of particle i
+        (cpu.observe_kernel)."""
+        omega = spin
+        box = spd[s, D_BOX]
+        inv_box = spd[s, D_INVBOX]
+        r0 = spd[s, D_R0]
+        m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
+        ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
+        vx = f64(vel[0, i])
+        vy = f64(vel[1, i])
+        vz = f64(vel[2, i])
+        wx = f64(omega[0, i])
+        wy = f64(omega[1, i])
+        wz = f64(omega[2, i])
+        vals[0] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
+        vals[1] += 0.5 * ii * (wx * wx + wy * wy + wz * wz)
+        vals[4] += m * vx
+        vals[5] += m * vy
+        vals[6] += m * vz
+        et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
+        er_i = 0.5 * ii * (wx * wx + wy * wy + wz * wz)
+        vals[O_TR2] += et_i * et_i
+        vals[O_ROT2] += er_i * er_i
+        vals[O_X] += et_i * er_i
+        ri = r0 if UNIFORM else rad[i]
+        for kk in range(nn[i]):
+            j = nbr[kk, i]
+            rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
+            ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
+            rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
+            rj = r0 if UNIFORM else rad[j]
+            rs = ri + rj
+            d2 = rx * rx + ry * ry + rz * rz
+            if d2 < rs * rs:
+                vals[2] += 1.0
+                delta = f64(rs - math.sqrt(d2))
+                # each pair appears in both partners' lists
+                vals[3] += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
+                                                        f64(hist[2, kk, i]), spf[s, F_KN], spf[s, F_KT], 0.5)
+                vals[O_MAX] = max(vals[O_MAX], delta / f64(min(ri, rj)))
+
+    return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, NOBS=NOBS, OBS_MAX=O_MAX, translated=translated,
+                           rotate=rotate, spin_kick=spin_kick, particle=particle, pair=pair,
+                           observe_one=observe_one, kernels={})

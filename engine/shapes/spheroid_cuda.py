@@ -1,0 +1,262 @@
+"""The spheroid shape's CUDA parts (frictionless prolate ellipsoids, paper 003): what an ellipsoid adds to the
+one CUDA time loop (engine/backends/cuda_loop.py; the interface is in engine/shapes/sphere_cuda.py).
+
+The device functions call the same ``@numba.njit`` physics as the CPU plug-in (engine/shapes/spheroid.py):
+:func:`engine.physics.ellipsoid.ellipsoid_pair_screened` (exact disjointness screens, Perram-Wertheim contact
+function, contact point and normal, overlap, force with the contact start/end corrections, torques) and
+:func:`~engine.physics.ellipsoid.ellipsoid_contact` for the previous step's gap of a contact that starts right
+after a screened step; :func:`engine.physics.rotation.fincham_quat_step_body`,
+:func:`~engine.physics.rotation.space_omega`, :func:`~engine.physics.rotation.body_omega` (Euler's equations in
+the body frame through the space-frame angular momentum L, Fincham's leap-frog for the quaternion, paper 003
+Eqs. 13-21, renormalised every step).
+
+Layout (device, particle index fastest; engine/backends/cuda_ellipsoid.py allocates it):
+    ``spin`` = angm (3, N): space-frame angular momentum L (kg m^2/s), kicked by the torque with unit factor;
+    ``spin_inv`` = inv_i (3, N): principal 1/I about the body axes; ``rad`` = the bounding radius a (largest
+    semi-axis: the broad phase is the bounding-sphere list of engine/backends/cuda_kernels.py);
+    ``ext`` = (axes (3, N), vel_p (3, N), omega_p (3, N), pos_prev (3, N), quat_prev (4, N)): semi-axes, the
+    predicted end-of-step velocities v + F/m dt/2 and angular velocities R I^-1 R^T (L + tau dt/2) written by the
+    kick-drift (so the force phase reads no force of another particle: one force buffer), and the positions and
+    orientations before the current step (read only when a contact starts right after a screened step).
+    hist (5, M, N): slots 3 and 4 hold the previous overlap (m; negative: the gap; -inf: screened) and the
+    previous dashpot force (N); slots 0-2 unused (frictionless).
+Per-scene constants: the common tables, D_R0 = a, with :data:`NCOL` spheroid columns appended to spd after the
+backend's ND (:data:`C_A` ... :data:`C_SCR` are offsets from ND): semi-axes, principal 1/I, Perram-Wertheim
+tolerance, smallest semi-axis (overlap guard), margin of the exact screens.
+Each pair is evaluated with the lower particle id as "A" in both partners' loops (CPU: the lower index), so
+F_ji = -F_ij to the last bit without atomics and the GPU repeats the CPU's arithmetic exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+from numba import cuda
+
+from engine.physics.contact import contact_elastic_energy, min_image
+from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
+from engine.physics.integrate import kick
+from engine.physics.rotation import body_omega, fincham_quat_step_body, space_omega
+
+#: the compile-time flags of make_cuda (none: frictionless, orientation always tracked)
+FLAGS = ()
+#: spheroid columns of spd, offsets from the backend's ND (working precision)
+C_A, C_B, C_C, C_II1, C_II2, C_II3, C_TOL, C_BMIN, C_SCR = range(9)
+NCOL = 9
+#: observe accumulators per scene: E_tr, E_rot, E_rot perpendicular to body x, contacts (x2), elastic
+#: energy, P_x, P_y, P_z, largest overlap (m), then the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp
+A_TR, A_ROT, A_PERP, A_CON, A_EL, A_PX, A_PY, A_PZ, A_OVL, A_TR2, A_ROT2, A_X = range(12)
+NACC = 12
+
+
+def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
+    """The spheroid's device functions and its own kernel (clamp_history) for one specialisation."""
+    ZERO = DT(0)
+    HALF = DT(0.5)
+    SCREENED_GAP = DT(-np.inf)
+    ONE = DT(1)
+    BIG = DT(np.finfo(DT).max)
+    f64 = np.float64
+    D_BOX, D_INVBOX, D_DT, D_KN, D_GN, D_R0, D_M0, D_IM0 = L.D_BOX, L.D_INVBOX, L.D_DT, L.D_KN, L.D_GN, L.D_R0, \
+        L.D_M0, L.D_IM0
+    F_KN = L.F_KN
+    E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR = (L.ND + c for c in range(NCOL))
+
+    @cuda.jit(device=True)
+    def translated(k, i, x_old, v, f, im, hp, ext):
+        """Keep the position before the step; predicted end-of-step velocity v + F/m dt/2."""
+        ext[3][k, i] = x_old
+        ext[1][k, i] = kick(v, f, im, hp)
+
+    @cuda.jit(device=True)
+    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt):
+        """L += tau hk; q by Fincham's leap-frog with L(t) = L - tau dt/2 and L(t + dt/2) = L
+        (cpu_ellipsoid / shapes/spheroid.rotate); predicted space-frame w at t + dt into omega_p; the
+        orientation before the step into quat_prev. True when L and q are finite."""
+        angm = spin
+        omega_p = ext[2]
+        quat_prev = ext[4]
+        for k in range(4):
+            quat_prev[k, i] = quat[k, i]
+        tx = torque[0, i]
+        ty = torque[1, i]
+        tz = torque[2, i]
+        lx = angm[0, i] + tx * hk
+        ly = angm[1, i] + ty * hk
+        lz = angm[2, i] + tz * hk
+        angm[0, i] = lx
+        angm[1, i] = ly
+        angm[2, i] = lz
+        if UNIFORM:
+            ii1 = spd[s, E_II1]
+            ii2 = spd[s, E_II2]
+            ii3 = spd[s, E_II3]
+        else:
+            ii1 = spin_inv[0, i]
+            ii2 = spin_inv[1, i]
+            ii3 = spin_inv[2, i]
+        q0, q1, q2, q3 = fincham_quat_step_body(quat[0, i], quat[1, i], quat[2, i], quat[3, i],
+                                                lx - tx * hp, ly - ty * hp, lz - tz * hp, lx, ly, lz,
+                                                ii1, ii2, ii3, dt, HALF)
+        quat[0, i] = q0
+        quat[1, i] = q1
+        quat[2, i] = q2
+        quat[3, i] = q3
+        wx, wy, wz = space_omega(q0, q1, q2, q3, lx + tx * hp, ly + ty * hp, lz + tz * hp, ii1, ii2, ii3, HALF)
+        omega_p[0, i] = wx
+        omega_p[1, i] = wy
+        omega_p[2, i] = wz
+        l1 = abs(lx) + abs(ly) + abs(lz)
+        return (l1 < BIG) and (abs(q0) <= ONE + HALF)
+
+    @cuda.jit(device=True)
+    def spin_kick(i, s, spin, torque, spin_inv, spd, hk):
+        """L += tau dt/2 (unit factor: the torque is dL/dt)."""
+        for k in range(3):
+            spin[k, i] = kick(spin[k, i], torque[k, i], ONE, hk)
+
+    @cuda.jit(device=True)
+    def particle(i, s, pos, rad, inv_m, ids, spd):
+        """The id of i (the lower id of a pair is "A") and the scene's constants, read once per particle."""
+        return (ids[i], spd[s, D_BOX], spd[s, D_INVBOX], spd[s, D_DT], spd[s, D_KN], spd[s, D_GN], spd[s, E_TOL],
+                spd[s, E_SCR], spd[s, D_R0], spd[s, D_IM0])
+
+    @cuda.jit(device=True)
+    def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
+        """Perram-Wertheim contact of list slot kk (behind the exact screens) when the bounding spheres overlap
+        or the pair was in contact at the previous step; a contact starting after a screened step gets that
+        step's gap from pos_prev/quat_prev; overlap and dashpot history advanced in place."""
+        idi, box, inv_box, dt, k_n, gn_coef, tol, margin, r0, im0 = p
+        fx, fy, fz, tx, ty, tz, worst = acc
+        axes = ext[0]
+        vel_p = ext[1]
+        omega_p = ext[2]
+        pos_prev = ext[3]
+        quat_prev = ext[4]
+        if idi < ids[j]:
+            a = i
+            b = j
+        else:
+            a = j
+            b = i
+        rx = min_image(pos[0, b] - pos[0, a], box, inv_box, HALF)
+        ry = min_image(pos[1, b] - pos[1, a], box, inv_box, HALF)
+        rz = min_image(pos[2, b] - pos[2, a], box, inv_box, HALF)
+        rc = (r0 + r0) if UNIFORM else (rad[a] + rad[b])
+        d2 = rx * rx + ry * ry + rz * rz
+        if d2 >= rc * rc and hist[3, kk, i] <= ZERO:
+            hist[3, kk, i] = rc - math.sqrt(d2)  # negative: no contact possible
+            hist[4, kk, i] = ZERO
+            return acc
+        if UNIFORM:
+            m12 = ONE / (im0 + im0)
+            aa = spd[s, E_A]
+            ba = spd[s, E_B]
+            ca = spd[s, E_C]
+            ab = aa
+            bb = ba
+            cb = ca
+        else:
+            m12 = ONE / (inv_m[a] + inv_m[b])
+            aa, ba, ca = axes[0, a], axes[1, a], axes[2, a]
+            ab, bb, cb = axes[0, b], axes[1, b], axes[2, b]
+        d_prev = hist[3, kk, i]
+        for _ in range(2):
+            g = ellipsoid_pair_screened(
+                rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
+                quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
+                vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
+                omega_p[0, a], omega_p[1, a], omega_p[2, a],
+                omega_p[0, b], omega_p[1, b], omega_p[2, b],
+                d_prev, hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, margin, SCREENED_GAP,
+                HALF)
+            if g[11] != PAIR_NEEDS_PREV:
+                break
+            # a contact starts after a screened step: the gap of that step, from its state
+            d_prev = ellipsoid_contact(
+                min_image(pos_prev[0, b] - pos_prev[0, a], box, inv_box, HALF),
+                min_image(pos_prev[1, b] - pos_prev[1, a], box, inv_box, HALF),
+                min_image(pos_prev[2, b] - pos_prev[2, a], box, inv_box, HALF),
+                quat_prev[0, a], quat_prev[1, a], quat_prev[2, a], quat_prev[3, a], aa, ba, ca,
+                quat_prev[0, b], quat_prev[1, b], quat_prev[2, b], quat_prev[3, b], ab, bb, cb, tol, HALF)[2]
+        if i == a:
+            fx += g[0]
+            fy += g[1]
+            fz += g[2]
+            tx += g[3]
+            ty += g[4]
+            tz += g[5]
+        else:
+            fx -= g[0]
+            fy -= g[1]
+            fz -= g[2]
+            tx += g[6]
+            ty += g[7]
+            tz += g[8]
+        delta = g[9]
+        hist[3, kk, i] = delta
+        hist[4, kk, i] = g[10]
+        if delta > ZERO:
+            bmin = spd[s, E_BMIN] if UNIFORM else min(min(ba, ca), min(bb, cb))
+            ov = delta / bmin
+            if ov > worst:
+                worst = ov
+        return fx, fy, fz, tx, ty, tz, worst
+
+    @cuda.jit(device=True)
+    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf):
+        """Particle i's share of the sums of cpu_ellipsoid.observe_ell (``inertia`` is 1/I here): E_tr = m v^2/2;
+        E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
+        perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in PHYSICS-NOTES §3.3);
+        contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
+        slot); momentum; largest delta; the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp."""
+        angm = spin
+        if UNIFORM:
+            m = f64(spd[s, D_M0])
+            ii1 = spd[s, E_II1]
+            ii2 = spd[s, E_II2]
+            ii3 = spd[s, E_II3]
+        else:
+            m = f64(mass[0, i])
+            ii1 = inertia[0, i]
+            ii2 = inertia[1, i]
+            ii3 = inertia[2, i]
+        vx = f64(vel[0, i])
+        vy = f64(vel[1, i])
+        vz = f64(vel[2, i])
+        wb0, wb1, wb2 = body_omega(quat[0, i], quat[1, i], quat[2, i], quat[3, i], angm[0, i], angm[1, i],
+                                   angm[2, i], ii1, ii2, ii3, HALF)
+        w0 = f64(wb0)
+        w1 = f64(wb1)
+        w2 = f64(wb2)
+        ep = 0.5 * (w1 * w1 / f64(ii2) + w2 * w2 / f64(ii3))
+        vals[A_TR] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
+        vals[A_ROT] += 0.5 * w0 * w0 / f64(ii1) + ep
+        vals[A_PERP] += ep
+        vals[A_PX] += m * vx
+        vals[A_PY] += m * vy
+        vals[A_PZ] += m * vz
+        et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
+        vals[A_TR2] += et_i * et_i
+        vals[A_ROT2] += ep * ep
+        vals[A_X] += et_i * ep
+        for kk in range(nn[i]):
+            d = f64(hist[3, kk, i])
+            if d > 0.0:
+                vals[A_CON] += 1.0
+                vals[A_EL] += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, spf[s, F_KN], 0.0, 0.5)
+                vals[A_OVL] = max(vals[A_OVL], d)
+
+    @cuda.jit
+    def clamp_history(n, nn, hist):
+        """A fresh list holds bounding-sphere overlaps in slot 3: no contact history at t = 0 (CPU _prime)."""
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            for kk in range(min(nn[i], hist.shape[1])):
+                if hist[3, kk, i] > ZERO:
+                    hist[3, kk, i] = ZERO
+
+    return SimpleNamespace(PREDICTS=True, TORQUE=True, NOBS=NACC, OBS_MAX=A_OVL, translated=translated,
+                           rotate=rotate, spin_kick=spin_kick, particle=particle, pair=pair,
+                           observe_one=observe_one, kernels=dict(clamp_history=clamp_history))
