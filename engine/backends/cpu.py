@@ -42,7 +42,7 @@ from engine.backends.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability
 from engine.cells import cell_coords_of, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.errors import InstabilityError
 from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
-from engine.physics.contact import contact_elastic_energy, min_image
+from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
 from engine.shapes import sphere
@@ -349,64 +349,6 @@ def make_run_steps(shape):
     return loop
 
 
-@numba.njit(cache=True)
-def observe_kernel(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, inv_box, half, k_n_val, k_t_val):
-    """(E_tr, E_rot, contacts, elastic energy, max overlap/radius, P_x, P_y, P_z, S_tr2, S_rot2, S_x) in SI units.
-
-    The elastic energy is that of the normal springs (k_n delta^2 / 2) and of the tangential springs
-    (k_t |xi|^2 / 2) of the contacts; each pair appears twice in the full list, hence the factors 1/4.
-    S_tr2 = sum_i e_tr,i^2, S_rot2 = sum_i e_rot,i^2, S_x = sum_i e_tr,i e_rot,i (J^2) with the particle
-    energies e_tr,i = m_i |v_i|^2 / 2 and e_rot,i = I_i |omega_i|^2 / 2: the moments of the Sonine
-    coefficients (engine/physics/sonine.py), in sums of their own (the existing sums are unchanged).
-    """
-    n = pos.shape[0]
-    e_tr = 0.0
-    e_rot = 0.0
-    contacts = 0
-    e_spring = 0.0
-    px = 0.0
-    py = 0.0
-    pz = 0.0
-    worst = 0.0
-    s_tr2 = 0.0
-    s_rot2 = 0.0
-    s_x = 0.0
-    for i in range(n):
-        m = mass[i]
-        e_tr += 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
-        e_rot += 0.5 * inertia[i] * (omega[i, 0] ** 2 + omega[i, 1] ** 2 + omega[i, 2] ** 2)
-        et_i = 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
-        er_i = 0.5 * inertia[i] * (omega[i, 0] ** 2 + omega[i, 1] ** 2 + omega[i, 2] ** 2)
-        s_tr2 += et_i * et_i
-        s_rot2 += er_i * er_i
-        s_x += et_i * er_i
-        px += m * vel[i, 0]
-        py += m * vel[i, 1]
-        pz += m * vel[i, 2]
-        ci = 0
-        es = 0.0
-        wi = 0.0
-        for kk in range(nn[i]):
-            j = nbr[i, kk]
-            rx = min_image(pos[i, 0] - pos[j, 0], box, inv_box, half)
-            ry = min_image(pos[i, 1] - pos[j, 1], box, inv_box, half)
-            rz = min_image(pos[i, 2] - pos[j, 2], box, inv_box, half)
-            s = radius[i] + radius[j]
-            d2 = rx * rx + ry * ry + rz * rz
-            if d2 < s * s:
-                ci += 1
-                delta = s - math.sqrt(d2)
-                # each pair appears in both partners' lists
-                es += 0.5 * contact_elastic_energy(delta, hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2],
-                                                   k_n_val, k_t_val, 0.5)
-                ov = delta / min(radius[i], radius[j])
-                wi = max(wi, ov)
-        contacts += ci
-        e_spring += es
-        worst = max(worst, wi)
-    return e_tr, e_rot, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
-
-
 class CpuLoop:
     """What every CPU shape backend shares: cells, the Verlet list and its slot store, the list build, the
     time loop (``make_run_steps`` of the subclass's ``shape``) and its error handling.
@@ -608,7 +550,7 @@ class CpuBackend(CpuLoop):
 
     def observe(self) -> dict:
         k_t = 0.0 if self.k_t is None else float(self.k_t)
-        e_tr, e_rot, contacts, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x = observe_kernel(
+        e_tr, e_rot, contacts, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x = sphere.observe(
             self.pos, self.vel, self.omega, self.radius, self.mass, self.inertia, self.nbr, self.nn,
             self.hist, self.box_c, self.inv_box, self.half, float(self.k_n), k_t)
         return {"kinetic_energy_translational": float(e_tr), "kinetic_energy_rotational": float(e_rot),

@@ -4,7 +4,7 @@ CpuBackend.
 
 This module holds only what is the ellipsoid's own on the host side: the state it keeps (angular momentum L
 instead of the angular velocity, semi-axes, bounding radii, the state before the step for the screens), the
-Perram-Wertheim tolerances, the observables (observe_ell) and the conversions between L and the angular
+Perram-Wertheim tolerances, the observables (engine.shapes.spheroid.observe) and the conversions between L and the angular
 velocity. Cells, the Verlet list of bounding spheres, its slot store, the time loop and its error handling are
 the shared ones; the contact, force law and rotation step are the plug-in's (its docstring has the details:
 broad phase, exact screens, lower id as "A", Fincham's leap-frog on L).
@@ -20,9 +20,8 @@ import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the di
 from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.backends.cpu import CpuLoop
 from engine.backends.cpu_shared import collect_springs, restore_springs
-from engine.physics.contact import contact_elastic_energy
 from engine.physics.sonine import DOF_ROTATION_SPHEROID, sonine_sums
-from engine.physics.rotation import angular_momentum, body_omega, space_omega
+from engine.physics.rotation import angular_momentum, space_omega
 from engine.shapes import spheroid
 
 #: Newton tolerance on the Perram-Wertheim lambda per precision (bench/RESULTS.md, issue 4 section).
@@ -31,51 +30,6 @@ PW_TOL = {"float64": 1e-15, "float32": 1e-7}
 #: (engine.physics.ellipsoid.ellipsoid_contact_screened; far above the rounding of F in each precision, so the
 #: screens change no result: tests/engine/test_ellipsoid_screen.py); a negative value disables them
 PW_SCREEN = {"float64": 1e-9, "float32": 1e-3}
-
-
-@numba.njit(cache=True)
-def observe_ell(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
-    """(E_tr, E_rot, E_rot of the two axes perpendicular to body x, contacts, elastic energy,
-    max overlap (m), P_x, P_y, P_z, S_tr2, S_rot2, S_x): the last three are the Sonine moments
-    sum e_tr,i^2, sum e_perp,i^2 and sum e_tr,i e_perp,i (J^2) with e_perp,i the energy of the two active
-    rotational dof (engine/physics/sonine.py, d = 2)."""
-    n = vel.shape[0]
-    e_tr = 0.0
-    e_rot = 0.0
-    e_perp = 0.0
-    contacts = 0
-    e_spring = 0.0
-    worst = 0.0
-    px = 0.0
-    py = 0.0
-    pz = 0.0
-    s_tr2 = 0.0
-    s_rot2 = 0.0
-    s_x = 0.0
-    for i in range(n):
-        m = mass[i]
-        e_tr += 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
-        et_i = 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
-        px += m * vel[i, 0]
-        py += m * vel[i, 1]
-        pz += m * vel[i, 2]
-        wb = body_omega(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], angm[i, 0], angm[i, 1], angm[i, 2],
-                        inv_i[i, 0], inv_i[i, 1], inv_i[i, 2], half)
-        e1 = 0.5 * wb[0] * wb[0] / inv_i[i, 0]
-        ep = 0.5 * (wb[1] * wb[1] / inv_i[i, 1] + wb[2] * wb[2] / inv_i[i, 2])
-        e_rot += e1 + ep
-        e_perp += ep
-        s_tr2 += et_i * et_i
-        s_rot2 += ep * ep
-        s_x += et_i * ep
-        for kk in range(nn[i]):
-            d = hist[i, kk, 3]
-            if d > 0:
-                contacts += 1
-                # each pair appears in both partners' lists; frictionless: no tangential spring
-                e_spring += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, k_n_val, 0.0, 0.5)
-                worst = max(worst, d)
-    return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
 
 
 @numba.njit(cache=True)
@@ -169,7 +123,7 @@ class CpuEllipsoidBackend(CpuLoop):
     # ---- host copies (output steps only) -----------------------------------------------------------
 
     def observe(self) -> dict:
-        e_tr, e_rot, e_perp, contacts, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x = observe_ell(
+        e_tr, e_rot, e_perp, contacts, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x = spheroid.observe(
             self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.half,
             float(self.k_n))
         bmin = float(np.min(self.axes))

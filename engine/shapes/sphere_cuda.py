@@ -204,7 +204,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     @cuda.jit(device=True)
     def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf):
         """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments of particle i
-        (cpu.observe_kernel)."""
+        (engine.shapes.sphere.observe)."""
         omega = spin
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]

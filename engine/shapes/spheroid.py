@@ -28,9 +28,9 @@ import numba
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
-from engine.physics.contact import min_image
+from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
-from engine.physics.rotation import fincham_quat_step_body, space_omega
+from engine.physics.rotation import body_omega, fincham_quat_step_body, space_omega
 
 NAME = "ellipsoid"
 EXACT_DISPLACEMENT = True
@@ -146,3 +146,48 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
     if i == a:
         return g[0], g[1], g[2], g[3], g[4], g[5], ov
     return -g[0], -g[1], -g[2], g[6], g[7], g[8], ov
+
+
+@numba.njit(cache=True)  # a plain loop over particles: the CPU backend calls it once per record
+def observe(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
+    """(E_tr, E_rot, E_rot of the two axes perpendicular to body x, contacts, elastic energy,
+    max overlap (m), P_x, P_y, P_z, S_tr2, S_rot2, S_x): the last three are the Sonine moments
+    sum e_tr,i^2, sum e_perp,i^2 and sum e_tr,i e_perp,i (J^2) with e_perp,i the energy of the two active
+    rotational dof (engine/physics/sonine.py, d = 2)."""
+    n = vel.shape[0]
+    e_tr = 0.0
+    e_rot = 0.0
+    e_perp = 0.0
+    contacts = 0
+    e_spring = 0.0
+    worst = 0.0
+    px = 0.0
+    py = 0.0
+    pz = 0.0
+    s_tr2 = 0.0
+    s_rot2 = 0.0
+    s_x = 0.0
+    for i in range(n):
+        m = mass[i]
+        e_tr += 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
+        et_i = 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
+        px += m * vel[i, 0]
+        py += m * vel[i, 1]
+        pz += m * vel[i, 2]
+        wb = body_omega(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], angm[i, 0], angm[i, 1], angm[i, 2],
+                        inv_i[i, 0], inv_i[i, 1], inv_i[i, 2], half)
+        e1 = 0.5 * wb[0] * wb[0] / inv_i[i, 0]
+        ep = 0.5 * (wb[1] * wb[1] / inv_i[i, 1] + wb[2] * wb[2] / inv_i[i, 2])
+        e_rot += e1 + ep
+        e_perp += ep
+        s_tr2 += et_i * et_i
+        s_rot2 += ep * ep
+        s_x += et_i * ep
+        for kk in range(nn[i]):
+            d = hist[i, kk, 3]
+            if d > 0:
+                contacts += 1
+                # each pair appears in both partners' lists; frictionless: no tangential spring
+                e_spring += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, k_n_val, 0.0, 0.5)
+                worst = max(worst, d)
+    return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x

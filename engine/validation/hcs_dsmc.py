@@ -20,14 +20,14 @@ s = (3/4) tau in an elastic gas).
 The soft-contact part (:func:`soft_contact_correction`) runs the DEM contact itself on binary collisions:
 what the finite contact adds beyond a constant-restitution collision.
 
-``python -m engine.validation.hcs_dsmc REPORT_DIR`` adds dsmc.md, dsmc.json and dsmc.png to a report of
-``demq validate hcs-long`` (it reads that report's series.npz and summary.json, so it runs anywhere in
-seconds, after the GPU run).
+``demq validate hcs-long`` runs it on its own report; ``python -m engine.validation.hcs_long dsmc REPORT_DIR``
+adds dsmc.md, dsmc.json and dsmc.png to an existing report (it reads that report's series.npz and summary.json,
+so it runs anywhere, in minutes, after the GPU run). This module does not import hcs_long: the caller passes
+the scene's spec.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from concurrent.futures import ThreadPoolExecutor
@@ -79,14 +79,11 @@ def cooling(e_n: float, beta: float, r0: float, tau, *, n: int = 100_000, repeat
             "R_err": r_all.std(0, ddof=1) / se, "n": n, "repeats": repeats}
 
 
-def compare(report: Path, *, n: int = 100_000, repeats: int = 8, samples: int = 4000,
-            velocity_rms: float | None = None) -> dict:
+def compare(report: Path, spec_for, *, n: int = 100_000, repeats: int = 8, samples: int = 4000) -> dict:
     """For every linearly stable case (L < L_c) of an hcs-long report folder: DEM and DSMC deviations from the
     ODE (T and R) on the report's tau grid, the soft-contact part (:func:`soft_contact_correction`, ``samples``
-    DEM binary collisions per temperature level, at the run's velocity_rms: the scene's unless given) and the
-    residual DEM - DSMC - soft. Unstable boxes are left out: their deviation is the shear mode's."""
-    from engine.validation.hcs_long import scene_spec
-
+    DEM binary collisions per temperature level, with ``spec_for(case_key, e_n)``: the case's spec, as run) and
+    the residual DEM - DSMC - soft. Unstable boxes are left out: their deviation is the shear mode's."""
     summary = json.loads((report / "summary.json").read_text())
     series = np.load(report / "series.npz")
     out = {}
@@ -103,7 +100,7 @@ def compare(report: Path, *, n: int = 100_000, repeats: int = 8, samples: int = 
             "dem_R": series[f"{key}/R"] / r_ode - 1.0, "dem_R_err": series[f"{key}/R_err"] / r_ode,
             "dsmc_T": d["T"] / t_ode - 1.0, "dsmc_T_err": d["T_err"] / t_ode,
             "dsmc_R": d["R"] / r_ode - 1.0, "dsmc_R_err": d["R_err"] / r_ode, "n": n, "repeats": repeats}
-        spec = scene_spec(key.split()[0], c["e_n"], 0, "cpu", velocity_rms=velocity_rms)
+        spec = spec_for(key, c["e_n"])
         if abs(spec.e_t - c["e_t"]) > 1e-12:
             raise ValueError(f"{key}: the scene's e_t {spec.e_t} is not the report's {c['e_t']}")
         soft = soft_contact_correction(spec, beta, c["R0"], tau, samples=samples)
@@ -184,24 +181,6 @@ def write(report: Path, res: dict, command: str) -> None:
     fig.tight_layout()
     fig.savefig(report / "dsmc.png", dpi=110)
     plt.close(fig)
-
-
-def _cli(argv=None) -> int:
-    import sys
-
-    ap = argparse.ArgumentParser(prog="python -m engine.validation.hcs_dsmc", description=__doc__.split("\n")[0])
-    ap.add_argument("report", help="an hcs-long report folder (series.npz, summary.json)")
-    ap.add_argument("--n", type=int, default=100_000, help="DSMC particles per run")
-    ap.add_argument("--repeats", type=int, default=8, help="independent DSMC runs per case")
-    ap.add_argument("--samples", type=int, default=4000, help="DEM binary collisions per temperature level")
-    ap.add_argument("--velocity-rms", type=float, default=None, help="the run's v_rms if it overrode the scene's")
-    args = ap.parse_args(argv)
-    report = Path(args.report)
-    res = compare(report, n=args.n, repeats=args.repeats, samples=args.samples, velocity_rms=args.velocity_rms)
-    write(report, res, "python -m engine.validation.hcs_dsmc " + " ".join(sys.argv[1:]))
-    print((report / "dsmc.md").read_text())
-    return 0
-
 
 
 # ---- the soft-contact part: DEM binary collisions against the constant-restitution rule ------------------
@@ -318,6 +297,3 @@ def soft_contact_correction(spec, beta: float, r0: float, tau, *, samples: int =
     sol = solve_ivp(rhs, (0.0, float(tau.max())), [1.0, r0], method="LSODA", t_eval=tau, rtol=1e-10, atol=1e-13)
     return {"points": pts, "fit": fit, "T": sol.y[0] / t_ode - 1.0, "R": sol.y[1] / r_ode - 1.0}
 
-
-if __name__ == "__main__":
-    raise SystemExit(_cli())

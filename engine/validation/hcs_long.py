@@ -463,7 +463,7 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
     if not quick:
         from engine.validation import hcs_dsmc
 
-        parts = hcs_dsmc.compare(out, velocity_rms=velocity_rms)
+        parts = hcs_dsmc.compare(out, _spec_for(velocity_rms))
         if parts:
             hcs_dsmc.write(out, parts, f"{command} (then engine/validation/hcs_dsmc.py on its report)")
             print(f"hcs-long: the deviation's parts (DSMC, soft contact) in {out / 'dsmc.md'}", flush=True)
@@ -523,6 +523,11 @@ def quick_checks(results: dict) -> list:
     return problems
 
 
+def _spec_for(velocity_rms):
+    """spec_for(case key, e_n) of engine.validation.hcs_dsmc.compare: the case's scene at the run's v_rms."""
+    return lambda key, e_n: scene_spec(key.split()[0], e_n, 0, "cpu", velocity_rms=velocity_rms)
+
+
 def _cli(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m engine.validation.hcs_long",
                                  description="Long-time HCS validation (run) or analysis of result files.")
@@ -538,6 +543,13 @@ def _cli(argv=None) -> int:
     r.add_argument("--keep", action="store_true", help="keep the result files")
     r.add_argument("--velocity-rms", type=float, default=None, help="override the scenes' v_rms (m/s)")
     r.add_argument("--tau-end", type=float, default=None, help="override the scenes' tau_end")
+    d = sub.add_parser("dsmc", help="add the deviation's parts (DSMC, soft contact; engine/validation/hcs_dsmc.py) "
+                                    "to a report folder")
+    d.add_argument("report", help="a report folder (series.npz, summary.json)")
+    d.add_argument("--velocity-rms", type=float, default=None, help="the run's v_rms if it overrode the scene's")
+    d.add_argument("--n", type=int, default=100_000, help="DSMC particles per run")
+    d.add_argument("--repeats", type=int, default=8, help="independent DSMC runs per case")
+    d.add_argument("--samples", type=int, default=4000, help="DEM binary collisions per temperature level")
     a = sub.add_parser("analyse", help="seed-averaged series of result files of one case -> CSV")
     a.add_argument("files", nargs="+")
     a.add_argument("-o", "--output", default=None, help="CSV path (default: stdout)")
@@ -549,6 +561,17 @@ def _cli(argv=None) -> int:
                     scenes=args.scenes, scratch=args.scratch, keep=args.keep, velocity_rms=args.velocity_rms,
                     tau_end=args.tau_end, unstable_seeds=args.unstable_seeds,
                     command="python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
+    if args.cmd == "dsmc":
+        import sys
+
+        from engine.validation import hcs_dsmc
+
+        report = Path(args.report)
+        parts = hcs_dsmc.compare(report, _spec_for(args.velocity_rms), n=args.n, repeats=args.repeats,
+                                 samples=args.samples)
+        hcs_dsmc.write(report, parts, "python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
+        print((report / "dsmc.md").read_text())
+        return 0
     c = analyse(args.files)
     lines = ["tau,T,T_err,T_ode,dev,dev_err,x_shear,x_shear_err,x_pred,S,S_err"]
     for j, tf in enumerate(c["tau_f"]):
