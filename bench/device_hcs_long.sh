@@ -4,8 +4,10 @@
 #     12 seeds each, v_rms = 10 m/s;
 #   - the shear-unstable box (N = 32768, phi = 0.1, L = 4 m; L/L_c = 2.6, 3.4) to tau = 100, 4 seeds each;
 #   all 32 runs as one CUDA ensemble (5.9e11 particle-steps, ~200-300 s), then the analysis on the device
-#   (result files, ~3.8 GB, stay in /tmp there); only the report comes back: $OUT/hcs-long/{README.md,
-#   deviation.png, modes.png, summary.json, series.npz} and $OUT/hcs-long.log.
+#   (result files, ~3.8 GB, stay in /tmp there); only the report comes back, packed as $OUT/hcs-long.tgz:
+#   hcs-long/{README.md, deviation.png, modes.png, summary.json, series.npz, dsmc.md, dsmc.json, dsmc.png}
+#   and hcs-long.log. The stable boxes' deviation is then split into its parts (engine/validation/hcs_dsmc.py:
+#   a DSMC and DEM binary collisions, ~2-5 min on the host cores, after the report is written).
 # Run from the repository root with .whl carried (../shared/tools/device-wheels.sh):
 #   bash bench/device_hcs_long.sh
 # Extra arguments go to `python -m engine.validation.hcs_long run`. Split into two calls if one overruns
@@ -24,3 +26,5 @@ timeout ${HCS_TIMEOUT:-395} python3 -m engine.validation.hcs_long run --backend 
 echo "hcs-long exit $?" >> "$OUT/$name.log"
 tail -n 20 "$OUT/$name.log"
 rm -rf "/tmp/$name"
+# the device tool returns few files per call: one archive of the report and the log
+tar czf "$OUT/$name.tgz" -C "$OUT" "$name" "$name.log" && rm -rf "$OUT/$name" "$OUT/$name.log"
