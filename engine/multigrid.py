@@ -316,7 +316,7 @@ class MultigridBuilder:
         if self.radius.dtype not in (np.float32, np.float64):
             self.radius = self.radius.astype(np.float64)
         ft = self.radius.dtype.type
-        self.n = n = self.radius.shape[0]
+        self.n = self.radius.shape[0]
         self.levels = levels
         self.box = ft(box)
         self.inv_box = ft(1.0 / box)

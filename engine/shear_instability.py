@@ -56,7 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from engine.params import carnahan_starling_g, e_t_effective
-from engine.theory import luding_coefficients, luding_ode, r_infinity
+from engine.theory import collisions_per_particle, luding_coefficients, luding_ode, r_infinity
 
 
 def effective_restitution(e_n: float, e_t: float) -> float:
@@ -153,8 +153,7 @@ def predicted_mode_energy(e_n: float, e_t: float, stab: ShearStability, tau, r0:
     mu = stab.mu_kmin * k_over_kmin**2
     grid = np.unique(np.concatenate([[0.0], np.linspace(0.0, max(float(tau.max()), 1e-9), 2001)]))
     T, R = luding_ode(e_n, e_t, grid, 1.0, r0)
-    ds = 0.75 * np.sqrt(np.maximum(T, 0.0))
-    s_grid = np.concatenate([[0.0], np.cumsum(0.5 * (ds[1:] + ds[:-1]) * np.diff(grid))])
+    s_grid = collisions_per_particle(T, grid)
     ratio = R / np.maximum(T, 1e-300)
 
     def rhs(s, y):

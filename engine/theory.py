@@ -38,10 +38,13 @@ def r_infinity(e_n: float, e_t: float, q: float = Q_SPHERE) -> float:
     return h + math.sqrt(1.0 + h * h)
 
 
-def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q: float = Q_SPHERE):
+def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q: float = Q_SPHERE,
+               rates=None):
     """T(tau)/T(0) and R(tau)/T(0) solving paper 001 Eqs. 1-2 (LSODA, rtol 1e-10).
 
     tau: increasing array of scaled times starting anywhere >= 0; returns two arrays like tau.
+    rates: optional callable T -> (f_tr, f_rot) that scales the right-hand sides of dT/dtau and dR/dtau (a
+    correction to the collision operator measured elsewhere, e.g. engine.validation.hcs_dsmc's soft contact).
     """
     from scipy.integrate import solve_ivp
 
@@ -51,7 +54,10 @@ def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q:
     def rhs(_, y):
         t, r = max(y[0], 0.0), y[1]
         st = math.sqrt(t)
-        return [-a * t * st + b * st * r, b * t * st - c * st * r]
+        if rates is None:
+            return [-a * t * st + b * st * r, b * t * st - c * st * r]
+        f_tr, f_rot = rates(t)
+        return [f_tr * (-a * t * st + b * st * r), f_rot * (b * t * st - c * st * r)]
 
     if tau.size == 0:
         return tau.copy(), tau.copy()
@@ -61,6 +67,13 @@ def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q:
     sol = solve_ivp(rhs, span, [t0, r0], method="LSODA", t_eval=np.clip(tau, 0.0, None),
                     rtol=1e-10, atol=1e-13)
     return sol.y[0], sol.y[1]
+
+
+def collisions_per_particle(t_over_t0, tau) -> np.ndarray:
+    """s(tau) = (3/4) int_0^tau (T/T0)^(1/2) dtau': collisions per particle by tau for a Maxwellian gas (paper
+    001's tau, in which the Enskog collision frequency is (3/4) (T/T0)^(1/2)); cumulative trapezoid on the grid."""
+    root = np.sqrt(np.maximum(np.asarray(t_over_t0, dtype=float), 0.0))
+    return 0.75 * np.concatenate([[0.0], np.cumsum(0.5 * (root[1:] + root[:-1]) * np.diff(tau))])
 
 
 def collision_g(radius: float, number_density: float, mass: float, volume_fraction: float) -> float:

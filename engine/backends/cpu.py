@@ -263,7 +263,6 @@ def make_forces(shape):
     return loop
 
 
-
 def make_run_steps(shape):
     """The compiled time loop of a shape plug-in (engine/shapes/): one loop for every shape, specialised by the
     shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.jitcache).

@@ -637,7 +637,7 @@ def run_dsmc(xi: float, e_n: float, rule: str = "soft", n: int = 20000, coll_per
     ncoll, sampled, rejected, capped = 0, 0, 0, 0
     contacts_hist = {}
     loss_sum, loss_n = 0.0, 0
-    worst, steps_sum, back_sum, axial = 0.0, 0.0, 0.0, 0.0
+    worst, steps_sum, back_sum = 0.0, 0.0, 0.0
     hist = []
     t0 = time.time()
     e_start = 0.5 * m * np.sum(v * v) + 0.5 * ip * np.sum(w2 * w2)

@@ -37,8 +37,8 @@ import numba
 import numpy as np
 
 from engine.params import Q_SPHERE
-from engine.theory import luding_ode
-from engine.validation.sonine import _dsmc
+from engine.theory import collisions_per_particle, luding_ode
+from engine.validation.sonine import _dsmc, collision_normal, constant_restitution_impulse
 
 #: tau values of the comparison table
 TABLE_TAU = (1, 2, 5, 10, 20, 30, 40, 50, 60, 70, 80, 90, 99.5)
@@ -49,8 +49,7 @@ def collisions_to(e_n: float, beta: float, tau_end: float, r0: float = 1.0) -> f
     with 5 % to spare so the DSMC reaches tau_end."""
     tau = np.linspace(0.0, tau_end, 2001)
     t, _ = luding_ode(e_n, beta, tau, 1.0, r0)
-    s = 0.75 * np.trapezoid(np.sqrt(np.maximum(t, 0.0)), tau)
-    return 1.05 * s + 1.0
+    return 1.05 * float(collisions_per_particle(t, tau)[-1]) + 1.0
 
 
 def cooling(e_n: float, beta: float, r0: float, tau, *, n: int = 100_000, repeats: int = 8, seed: int = 7,
@@ -185,17 +184,14 @@ def write(report: Path, res: dict, command: str) -> None:
 
 # ---- the soft-contact part: DEM binary collisions against the constant-restitution rule ------------------
 
-def _hard_rule(v1, v2, w1, w2, n, a, m, q, e_n, beta):
-    """Post-collision (v1, v2, w1, w2) of two equal rough spheres (mass m, radius a, I = q m a^2) under the
-    constant-restitution rule of the DSMC and Luding's ODE (n from 2 to 1, impulse at the contact point:
-    normal -(1 + e_n) m12 g_n, tangential -(1 + beta) q/(1 + q) m12 c_t, m12 = m/2)."""
-    g = v1 - v2
-    c = g - a * np.cross(w1 + w2, n)
-    gn = g.dot(n)
-    ct = c - c.dot(n) * n
-    j = -0.5 * m * (1.0 + e_n) * gn * n - 0.5 * m * (1.0 + beta) * q / (1.0 + q) * ct
-    dw = np.cross(-a * n, j) / (q * m * a * a)
-    return v1 + j / m, v2 - j / m, w1 + dw, w2 + dw
+def _hard_rule(v1, v2, w1, w2, n, a, q, e_n, beta):
+    """Post-collision (v1, v2, w1, w2) of two equal rough spheres (radius a, I = q m a^2) under the
+    constant-restitution rule of the DSMC and Luding's ODE (engine.validation.sonine.
+    constant_restitution_impulse); n the unit normal from 1 to 2."""
+    s = w1 + w2
+    j = np.array(constant_restitution_impulse(*(v1 - v2), *s, *n, a, e_n, beta, q))
+    dw = np.cross(n, j) / (q * a)
+    return v1 + j, v2 - j, w1 + dw, w2 + dw
 
 
 def soft_contact_loss(spec, t_over_t0: float, r_over_t: float, samples: int, seed: int = 1) -> dict:
@@ -225,22 +221,17 @@ def soft_contact_loss(spec, t_over_t0: float, r_over_t: float, samples: int, see
         v1, v2, w1, w2 = (rng.normal(0.0, x, 3) for x in (sv, sv, sw, sw))
         g = v1 - v2
         gabs = float(np.linalg.norm(g))
-        u = -g / gabs
-        e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(u, e1)
-        ct = math.sqrt(rng.random())
-        st, ph = math.sqrt(1.0 - ct * ct), 2.0 * math.pi * rng.random()
-        n = ct * u + st * math.cos(ph) * e1 + st * math.sin(ph) * e2
-        gap = 1.5 * (-g.dot(n)) * p.dt  # the contact starts inside the second step
-        pos = np.array([mid + (a + gap / 2) * n, mid - (a + gap / 2) * n])
+        # n from 1 to 2, drawn as in the DSMC (density (g_hat.n)_+)
+        n = np.array(collision_normal(*(g / gabs), math.sqrt(rng.random()), 2.0 * math.pi * rng.random()))
+        gap = 1.5 * g.dot(n) * p.dt  # the contact starts inside the second step
+        pos = np.array([mid - (a + gap / 2) * n, mid + (a + gap / 2) * n])
         system = SphereSystem(spec.box_length, pos, np.array([v1, v2]), np.array([w1, w2]),
                               np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)), np.full(2, a), np.full(2, m),
                               np.full(2, inertia))
         be = CpuBackend(system, contact)
         be.advance(steps)
         vel, om = be.vel, be.omega
-        h = _hard_rule(v1, v2, w1, w2, n, a, m, Q_SPHERE, spec.e_n, beta)
+        h = _hard_rule(v1, v2, w1, w2, n, a, Q_SPHERE, spec.e_n, beta)
         e_tr0 = 0.5 * m * (v1 @ v1 + v2 @ v2)
         e_rot0 = 0.5 * inertia * (w1 @ w1 + w2 @ w2)
         rows[s] = (gabs, 0.5 * m * (vel[0] @ vel[0] + vel[1] @ vel[1]) - e_tr0,
@@ -264,10 +255,6 @@ def soft_contact_correction(spec, beta: float, r0: float, tau, *, samples: int =
     speed; the one-parameter fit eps = c (T/T0)^(1/2) and its chi^2 are reported as a check of that picture),
     and Luding's ODE integrated with its translational and rotational rates scaled by (1 + eps_tr) and
     (1 + eps_rot). Returns the deviations T/T_ODE - 1 and R/R_ODE - 1 on ``tau``, the points and the fit."""
-    from scipy.integrate import solve_ivp
-
-    from engine.theory import luding_coefficients
-
     tau = np.asarray(tau, dtype=float)
     t_ode, r_ode = luding_ode(spec.e_n, beta, tau, 1.0, r0)
     pts = []
@@ -282,18 +269,15 @@ def soft_contact_correction(spec, beta: float, r0: float, tau, *, samples: int =
         c = float(np.sum(x * y / s ** 2) / np.sum(x * x / s ** 2))
         fit[name] = {"c": c, "c_err": float(1.0 / math.sqrt(np.sum(x * x / s ** 2))),
                      "chi2": float(np.sum(((y - c * x) / s) ** 2)), "dof": len(pts) - 1}
-    a, b, cc = luding_coefficients(spec.e_n, beta)
     order = np.argsort([p["t_over_t0"] for p in pts])
     xs = np.concatenate([[0.0], np.sqrt([pts[i]["t_over_t0"] for i in order])])
     e_tr = np.concatenate([[0.0], [pts[i]["eps_tr"] for i in order]])
     e_rot = np.concatenate([[0.0], [pts[i]["eps_rot"] for i in order]])
 
-    def rhs(_, y):
-        t, r = max(y[0], 0.0), y[1]
+    def rates(t):
         st = math.sqrt(t)
-        ftr, frot = 1.0 + np.interp(st, xs, e_tr), 1.0 + np.interp(st, xs, e_rot)
-        return [ftr * (-a * t * st + b * st * r), frot * (b * t * st - cc * st * r)]
+        return 1.0 + np.interp(st, xs, e_tr), 1.0 + np.interp(st, xs, e_rot)
 
-    sol = solve_ivp(rhs, (0.0, float(tau.max())), [1.0, r0], method="LSODA", t_eval=tau, rtol=1e-10, atol=1e-13)
-    return {"points": pts, "fit": fit, "T": sol.y[0] / t_ode - 1.0, "R": sol.y[1] / r_ode - 1.0}
+    t_soft, r_soft = luding_ode(spec.e_n, beta, tau, 1.0, r0, rates=rates)
+    return {"points": pts, "fit": fit, "T": t_soft / t_ode - 1.0, "R": r_soft / r_ode - 1.0}
 

@@ -58,7 +58,7 @@ from engine.h5md import read_parameters, read_series
 from engine.params import Q_SPHERE, derive, e_t_effective
 from engine.physics.sonine import a2_van_noije_ernst, a11_sampling_sigma, a2_sampling_sigma, sonine_a2
 from engine.spec import SimulationSpec
-from engine.theory import luding_coefficients, luding_ode, tau_factor
+from engine.theory import collisions_per_particle, luding_coefficients, luding_ode, tau_factor
 
 SMOOTH = (0.9, 0.8, 0.6, 0.4)
 ROUGH = ((0.8, 0.8), (0.8, 0.4))
@@ -104,7 +104,7 @@ def tau_for_collisions(e_n: float, e_t: float, s: float) -> float:
     tau = np.linspace(0.0, 1.0, 2001)
     while True:
         T, _ = luding_ode(e_n, et, tau, 1.0, 1.0)
-        sv = 0.75 * np.concatenate([[0.0], np.cumsum(0.5 * (np.sqrt(T[1:]) + np.sqrt(T[:-1])) * np.diff(tau))])
+        sv = collisions_per_particle(T, tau)
         if sv[-1] >= s:
             return float(np.interp(s, sv, tau))
         tau = np.linspace(0.0, tau[-1] * 2.0, 2001)
@@ -145,6 +145,40 @@ def ensemble_stats(runs: list, key: str) -> tuple[float, float]:
 # ---- the DSMC reference ----------------------------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
+def collision_normal(ux, uy, uz, ct, ph):
+    """The unit vector n with u.n = ct and azimuth ph about the unit vector u (an orthonormal pair e1, e2
+    perpendicular to u): the DSMC's collision normal, drawn with ct = sqrt(U) for the density (g_hat.n)_+."""
+    if abs(ux) < 0.9:
+        e1x, e1y, e1z = 0.0, uz, -uy
+    else:
+        e1x, e1y, e1z = -uz, 0.0, ux
+    e1 = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+    e1x, e1y, e1z = e1x / e1, e1y / e1, e1z / e1
+    e2x, e2y, e2z = uy * e1z - uz * e1y, uz * e1x - ux * e1z, ux * e1y - uy * e1x
+    st = math.sqrt(max(0.0, 1.0 - ct * ct))
+    c1, c2 = st * math.cos(ph), st * math.sin(ph)
+    return ct * ux + c1 * e1x + c2 * e2x, ct * uy + c1 * e1y + c2 * e2y, ct * uz + c1 * e1z + c2 * e2z
+
+
+@numba.njit(cache=True, nogil=True)
+def constant_restitution_impulse(gx, gy, gz, sx, sy, sz, nx, ny, nz, a, alpha, beta, q):
+    """Velocity change of sphere 1 (sphere 2 gets minus it) in a collision of two equal rough spheres with
+    constant normal and tangential restitution (alpha, beta; q = I/(m a^2)): the collision rule of the DSMC and
+    of Luding's ODE (paper 001; Huthmann & Zippelius 1997). g = v1 - v2, s = w1 + w2, n the unit normal from 1
+    to 2 (1's contact point at +a n), a the radius; J/m = -(1 + alpha)/2 g_n n - (1 + beta) q/(2 (1 + q)) c_t
+    with c = g + a s x n the contact-point relative velocity. Both spins change by (n x J/m)/(q a)."""
+    kn = (1.0 + alpha) / 2.0
+    kt = (1.0 + beta) * q / (2.0 * (1.0 + q))
+    gn = gx * nx + gy * ny + gz * nz
+    cx = gx + a * (sy * nz - sz * ny)
+    cy = gy + a * (sz * nx - sx * nz)
+    cz = gz + a * (sx * ny - sy * nx)
+    ctn = cx * nx + cy * ny + cz * nz
+    tx, ty, tz = cx - ctn * nx, cy - ctn * ny, cz - ctn * nz
+    return -kn * gn * nx - kt * tx, -kn * gn * ny - kt * ty, -kn * gn * nz - kt * tz
+
+
+@numba.njit(cache=True, nogil=True)
 def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed, r0=1.0):
     """Homogeneous DSMC of inelastic (rough) hard spheres, m = 1, radius 1, I = q; returns per sample
     (s, sum e_tr, sum e_tr^2, sum e_rot, sum e_rot^2, sum e_tr e_rot, tau, T_unit). The hard-sphere kernel
@@ -164,8 +198,6 @@ def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed, r0=1.0):
         for i in range(n):
             v[i, c] -= mv
             w[i, c] -= mw
-    kn = (1.0 + alpha) / 2.0
-    kt = (1.0 + beta) * q / (2.0 * (1.0 + q))
     n_coll_total = int(s_end * n / 2.0)
     every = max(1, int(n / (2.0 * samples_per_collision)))
     n_samples = n_coll_total // every + 1
@@ -226,32 +258,9 @@ def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed, r0=1.0):
             continue
         # n given the pair: density proportional to (g_hat . n)_+ -> cos = sqrt(U), azimuth uniform
         ct = math.sqrt(np.random.random())
-        st = math.sqrt(max(0.0, 1.0 - ct * ct))
-        ph = 2.0 * math.pi * np.random.random()
-        ux, uy, uz = gx / g, gy / g, gz / g
-        # an orthonormal pair (e1, e2) perpendicular to u
-        if abs(ux) < 0.9:
-            e1x, e1y, e1z = 0.0, uz, -uy
-        else:
-            e1x, e1y, e1z = -uz, 0.0, ux
-        e1 = math.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
-        e1x, e1y, e1z = e1x / e1, e1y / e1, e1z / e1
-        e2x, e2y, e2z = uy * e1z - uz * e1y, uz * e1x - ux * e1z, ux * e1y - uy * e1x
-        c1, c2 = st * math.cos(ph), st * math.sin(ph)
-        nx = ct * ux + c1 * e1x + c2 * e2x
-        ny = ct * uy + c1 * e1y + c2 * e2y
-        nz = ct * uz + c1 * e1z + c2 * e2z
-        gn = gx * nx + gy * ny + gz * nz
-        # contact-point relative velocity g + (w_i + w_j) x n (radius 1), its tangential part
-        sx_, sy_, sz_ = w[i, 0] + w[j, 0], w[i, 1] + w[j, 1], w[i, 2] + w[j, 2]
-        cx = gx + (sy_ * nz - sz_ * ny)
-        cy = gy + (sz_ * nx - sx_ * nz)
-        cz = gz + (sx_ * ny - sy_ * nx)
-        ctn = cx * nx + cy * ny + cz * nz
-        tx, ty, tz = cx - ctn * nx, cy - ctn * ny, cz - ctn * nz
-        jx = -kn * gn * nx - kt * tx
-        jy = -kn * gn * ny - kt * ty
-        jz = -kn * gn * nz - kt * tz
+        nx, ny, nz = collision_normal(gx / g, gy / g, gz / g, ct, 2.0 * math.pi * np.random.random())
+        jx, jy, jz = constant_restitution_impulse(gx, gy, gz, w[i, 0] + w[j, 0], w[i, 1] + w[j, 1],
+                                                  w[i, 2] + w[j, 2], nx, ny, nz, 1.0, alpha, beta, q)
         v[i, 0] += jx
         v[i, 1] += jy
         v[i, 2] += jz

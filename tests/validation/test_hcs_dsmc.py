@@ -48,9 +48,9 @@ def test_hard_rule_conserves_momenta_and_energy_when_elastic_and_rough():
         w1, w2 = rng.normal(size=3) / a, rng.normal(size=3) / a
         n = rng.normal(size=3)
         n /= np.linalg.norm(n)
-        x1, x2 = a * n, -a * n  # centres; the contact point is the origin
+        x1, x2 = -a * n, a * n  # centres (n from 1 to 2); the contact point is the origin
         for e_n, beta in ((0.7, 0.4), (1.0, 1.0)):
-            u1, u2, o1, o2 = _hard_rule(v1, v2, w1, w2, n, a, m, q, e_n, beta)
+            u1, u2, o1, o2 = _hard_rule(v1, v2, w1, w2, n, a, q, e_n, beta)
             assert np.allclose(m * (u1 + u2), m * (v1 + v2), atol=1e-12)
             l0 = m * (np.cross(x1, v1) + np.cross(x2, v2)) + inertia * (w1 + w2)
             l1 = m * (np.cross(x1, u1) + np.cross(x2, u2)) + inertia * (o1 + o2)
