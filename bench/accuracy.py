@@ -10,7 +10,7 @@ Knobs (all through the public spec / backend parameters; nothing here changes an
 - rebuild policy: the engine has exactly one (rebuild when a particle has moved more than L_v/2,
   engine/backends/cpu.py run_steps); there is no switch, so no rows;
 - ellipsoids: the contact algorithm. The spec exposes none: the engine always runs the Perram-Wertheim
-  (PW) maximisation by safeguarded Newton. Its iteration tolerance (engine.backends.cpu_ellipsoid.PW_TOL,
+  (PW) maximisation by safeguarded Newton. Its iteration tolerance (engine.shapes.spheroid.cpu_backend.PW_TOL,
   a run-time argument of the kernel) is varied here by this bench only; paper 003's Delta/P overlap test,
   which the engine does not use, is measured beside it as an overlap classifier.
 
@@ -81,7 +81,7 @@ PRECISIONS = ("float64", "float32")
 SKINS = (0.1, 0.2, 0.4, 0.8, 1.6)
 PW_TOLS = {"float64": (1e-15, 1e-13, 1e-12, 1e-10, 1e-8, 1e-6), "float32": (1e-7, 1e-6, 1e-5, 1e-4)}
 #: engine defaults (engine/params.py: dt = t_c/50; engine/spec.py: float64, verlet_skin = 0.4;
-#: engine/backends/cpu_ellipsoid.py: PW_TOL)
+#: engine/shapes/spheroid/cpu_backend.py: PW_TOL)
 #: "skin" is the backend's default at the gas scenes' phi (engine.spec.default_verlet_skin), set by main() per
 #: report; analyse() takes the skin the default rows ran at from summary.json ("default_skin").
 DEFAULT = {"dt_fraction": 50, "precision": "float64", "skin": 0.4}
@@ -658,7 +658,7 @@ def _timed_batch(fn, reps=3):
 def build_ellipsoid(size: Size, reps: int, tmp: Path, log) -> dict:
     """Geometry error against the oracle and ellipsoid-gas cost, per precision and PW tolerance (CPU)."""
     from bench.ellipsoid_geometry_accuracy import paper_batch
-    from engine.backends import cpu_ellipsoid
+    from engine.shapes.spheroid import cpu_backend as cpu_ellipsoid
     from tests.engine.test_ellipsoid_geometry import H, contact_batch, errors
     from tests.engine.test_ellipsoid_oracle import random_overlapping
 
@@ -1135,7 +1135,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
               f"xi = {es['elongation']}, phi = {es['volume_fraction']}, dt = t_c/50, {size['ell_collisions']} "
               "collisions per particle from the lattice start; its energy drift is the last column. The PW "
               "tolerance is the stop criterion on the Newton step in lambda "
-              "(engine.backends.cpu_ellipsoid.PW_TOL, set by this bench for the run).", "",
+              "(engine.shapes.spheroid.cpu_backend.PW_TOL, set by this bench for the run).", "",
               "| precision | PW tolerance | error | max abs(d delta) (b) | p99 abs(d delta) | max abs(d n) (rad) | "
               "max abs(d C) (b) | NaN | missed overlaps | PW pairs/s | gas Cundall | gas drift | front |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]

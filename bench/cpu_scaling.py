@@ -21,7 +21,7 @@ import time
 
 import numba
 
-from engine.backends.cpu import CpuBackend
+from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.params import derive
 from engine.scene import initial_spheres
 from engine.simulate import contact_params

@@ -21,6 +21,7 @@ that the step count is exact):
   worker-256x4096-20k       the same batch submitted over HTTP to `demq serve` (embedded worker)  (b)
   quickstart                the README quick-start default spec, through engine.run       (c)
   ellipsoids-2M             2 097 152 ellipsoids, xi = 2 x 2000 steps, 2 snapshots    (d)
+  ellipsoids-rough-2M       the same with rough contacts (e_t = 0.8, the spec default; issue 17)
   cpu-16x512                CPU: 16 x 512 spheres x 3000 steps with default records through run_ensemble,
                             against one such scene with 4 records, in the same process (the issue's
                             must-show ratio)
@@ -46,7 +47,7 @@ if str(ROOT) not in sys.path:
 
 BREAKDOWN = ("setup", "build", "compile", "loop", "records", "snapshots", "checkpoints", "open", "close")
 GPU_CASES = ("spheres-2M-f64", "spheres-2M-f32", "spheres-8M-f64", "spheres-8M-f32", "batch-256x4096-2k",
-             "batch-256x4096-20k", "worker-256x4096-20k", "ellipsoids-2M")
+             "batch-256x4096-20k", "worker-256x4096-20k", "ellipsoids-2M", "ellipsoids-rough-2M")
 CPU_CASES = ("quickstart", "cpu-16x512")
 
 
@@ -66,8 +67,9 @@ def case_specs(case: str, quick: bool) -> dict:
         steps = s20k if case.endswith("20k") else s2k
         return {"path": "worker" if case.startswith("worker") else "ensemble",
                 "specs": [sph(nk, steps, snapshots=0, seed=i, backend="auto") for i in range(k)]}
-    if case == "ellipsoids-2M":
-        return {"path": "run", "specs": [sph(n2m, s2k, shape="ellipsoid", elongation=2.0, e_t=-1.0)]}
+    if case in ("ellipsoids-2M", "ellipsoids-rough-2M"):
+        e_t = 0.8 if "rough" in case else -1.0
+        return {"path": "run", "specs": [sph(n2m, s2k, shape="ellipsoid", elongation=2.0, e_t=e_t)]}
     if case == "quickstart":
         return {"path": "run", "specs": [{} if not quick else {"n_particles": 512, "t_end": 0.002, "thermalization": 0}]}
     if case == "cpu-16x512":

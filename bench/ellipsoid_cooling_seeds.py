@@ -80,7 +80,7 @@ def steps_of(spec):
 def probe(specs, steps):
     """Seconds per step of an ensemble of random gases with the scenes' N and xi (cooling contact)."""
     from bench.gpu_ellipsoid_scaling import ellipsoid_gas
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidEnsemble
 
     made = [ellipsoid_gas(s.n_particles, 0.058, "float64", seed=900 + k, xi=s.elongation, e_n=s.e_n)
             for k, s in enumerate(specs)]

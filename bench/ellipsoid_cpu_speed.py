@@ -44,8 +44,8 @@ def main(argv=None):
     ap.add_argument("--pw-tol", type=float, default=None, help="Perram-Wertheim tolerance (default: PW_TOL)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    from engine.backends import cpu_ellipsoid
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+    from engine.shapes.spheroid import cpu_backend as cpu_ellipsoid
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
 
     if args.no_screen:
         cpu_ellipsoid.PW_SCREEN[args.precision] = -1.0

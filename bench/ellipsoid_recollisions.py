@@ -29,7 +29,7 @@ from bench.gpu_ellipsoid_scaling import ellipsoid_gas  # noqa: E402
 
 
 def count(xi, n, steps, e_n, seed=1):
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
 
     system, c = ellipsoid_gas(n, 0.058, "float64", seed=seed, xi=xi, e_n=e_n)
     be = CpuEllipsoidBackend(system, c)

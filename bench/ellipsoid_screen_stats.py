@@ -94,7 +94,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    from engine.backends.cpu_ellipsoid import PW_SCREEN, PW_TOL, CpuEllipsoidBackend
+    from engine.shapes.spheroid.cpu_backend import PW_SCREEN, PW_TOL, CpuEllipsoidBackend
 
     system, c = ellipsoid_gas(args.n, args.phi, "float64", xi=args.xi)
     be = CpuEllipsoidBackend(system, c)

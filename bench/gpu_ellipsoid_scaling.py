@@ -21,7 +21,7 @@ reported per N and precision.
     python bench/gpu_ellipsoid_scaling.py --n 2097152 16777216 --no-ensemble --spheres-last --controls
 
 ``--controls`` adds float64 rows at N = 2 097 152 with the exact screens before the Perram-Wertheim solve
-switched off (engine.backends.cpu_ellipsoid.PW_SCREEN < 0: the code path before the screens) and with the PW
+switched off (engine.shapes.spheroid.cpu_backend.PW_SCREEN < 0: the code path before the screens) and with the PW
 tolerance 1e-10 instead of 1e-15, measured in the same process as the default row.
 """
 
@@ -195,8 +195,8 @@ VARIANTS = {"default": (None, None), "noscreen": (-1.0, None), "tol1e-10": (None
 
 
 def measure_scaling(n, precision, reps, target_s, shape, variant="default"):
-    from engine.backends import cpu_ellipsoid
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+    from engine.shapes.spheroid import cpu_backend as cpu_ellipsoid
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
     if shape == "ellipsoid":
         screen, tol = VARIANTS[variant]
@@ -222,7 +222,7 @@ def measure_ensemble(k, precision, multistep, reps, target_s, n=4096):
     """K scenes of n ellipsoids (xi = 2, own seed, e_n cycling 0.9/0.95/0.98) in one CudaEllipsoidEnsemble."""
     from numba import cuda
 
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidEnsemble
 
     t0 = time.perf_counter()
     made = [ellipsoid_gas(n, PHI, precision, seed=1000 + s, e_n=E_N[s % 3]) for s in range(k)]

@@ -51,7 +51,7 @@ def steps_of(cell, seed=0):
 def probe(cells, steps):
     """Seconds per step of one ensemble of the cells (random gas starts, cooling contact)."""
     from bench.gpu_ellipsoid_scaling import ellipsoid_gas
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidEnsemble
 
     made = [ellipsoid_gas(4096, 0.058, "float64", seed=500 + k, xi=xi, e_n=e) for k, (xi, e) in enumerate(cells)]
     t0 = time.perf_counter()

@@ -11,7 +11,7 @@ piece of physics does not pay for it (engine/backends/cpu.py module doc):
 - snapshot output off/on: host copies and HDF5 frames only at snapshot steps (measured through the
   driver, with orientation on in both rows, so that only the output differs);
 - float32 vs float64 (``precision``);
-- ellipsoids: the bounding-sphere broad phase has **no switch** in engine/backends/cpu_ellipsoid.py (it is
+- ellipsoids: the bounding-sphere broad phase has **no switch** in engine/shapes/spheroid/cpu_backend.py (it is
   always on), so it cannot be measured on and off; this bench measures the ellipsoid float32/float64 rows
   and *estimates* what the broad phase saves (list pairs it rejects x the measured cost of one
   Perram-Wertheim evaluation), labelled as an estimate.
@@ -271,7 +271,7 @@ def write_report(out: Path, res: dict, cmd: str) -> str:
         for r in ell["rows"]:
             L.append(f"| {r['scene']} | {r['variant']} | {r['cundall']:.3g} | {r['vs_baseline']:.2f} |")
         e = ell["broad_phase_estimate"]
-        L += ["", "**Broad phase on/off: no switch exists** in engine/backends/cpu_ellipsoid.py (the bounding-sphere "
+        L += ["", "**Broad phase on/off: no switch exists** in engine/shapes/spheroid/cpu_backend.py (the bounding-sphere "
               "test before the Perram-Wertheim solve is always on), so it cannot be measured off. Estimate, not "
               f"a measurement: the Verlet list holds {e['list_entries_per_step']} entries, of which the broad "
               f"phase rejects {e['rejected_per_step']} per step"]

@@ -217,7 +217,7 @@ def _run_pair(cell: dict) -> dict:
     import numpy as np
 
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.errors import InstabilityError
     from engine.params import Q_SPHERE
 

@@ -24,12 +24,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="physics validation runs that write a report")
-    v.add_argument("case", choices=["hcs-spheres", "hcs-ellipsoids", "hcs-long", "sonine", "encounter-dsmc"],
+    v.add_argument("case", choices=["hcs-spheres", "hcs-ellipsoids", "hcs-rough-spheroids", "hcs-long", "sonine",
+                                    "encounter-dsmc"],
                    help="which validation to run")
     v.add_argument("-o", "--out-dir", default=None, help="report folder (default reports/<case>)")
     v.add_argument("--seeds", type=int, default=None,
-                   help="seeds per case (default 4 spheres, 1 ellipsoids, 12 hcs-long, sonine 64 (quick: 6), "
-                        "encounter-dsmc 4 (quick: 2) per rule)")
+                   help="seeds per case (default 4 spheres, 1 ellipsoids, 8 rough spheroids (quick: 2), 12 "
+                        "hcs-long, sonine 64 (quick: 6), encounter-dsmc 4 (quick: 2) per rule)")
     v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
     v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
     v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")
@@ -141,6 +142,13 @@ def cmd_validate(args) -> int:
 
         return hcs_ellipsoids.main(out_dir=out_dir, seeds=args.seeds or 1, quick=args.quick, backend=args.backend,
                                    jobs=args.jobs, threads=args.threads, ensemble=args.ensemble)
+    if args.case == "hcs-rough-spheroids":
+        from engine.validation import hcs_rough_spheroids
+
+        return hcs_rough_spheroids.main(
+            out_dir=out_dir, seeds=args.seeds or (2 if args.quick else 8), quick=args.quick, backend=args.backend,
+            command=f"demq validate hcs-rough-spheroids -o {out_dir}" + (f" --seeds {args.seeds}" if args.seeds else "")
+            + (" --quick" if args.quick else "") + f" --backend {args.backend}")
     if args.case == "hcs-long":
         from engine.validation import hcs_long
 

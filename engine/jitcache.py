@@ -20,8 +20,8 @@ _ENGINE = Path(__file__).resolve().parent
 def source_digest() -> str:
     h = hashlib.sha1()
     for sub in ("physics", "backends", "shapes"):
-        for f in sorted((_ENGINE / sub).glob("*.py")):
-            h.update(f.name.encode())
+        for f in sorted((_ENGINE / sub).rglob("*.py")):          # shape packages are sub-folders
+            h.update(str(f.relative_to(_ENGINE)).encode())
             h.update(f.read_bytes())
     # kernels the backends compile in from engine/ itself
     for name in ("multigrid.py", "cells.py", "scene.py"):

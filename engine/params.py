@@ -191,7 +191,7 @@ def derive(spec) -> Derived:
     n_th = int(math.ceil(t_th / dt)) if t_th > 0 else 0
     # null skin: the default of spec.backend (resolved by the driver)
     skin = (spec.verlet_skin if spec.verlet_skin is not None else default_verlet_skin(spec.backend, spec.shape, spec.volume_fraction)) \
-        * semi[1 if spec.shape == "ellipsoid" else 0]
+        * min(semi)                       # in units of the smallest semi-axis (the radius of a sphere)
     if sp is not None:
         skin *= min(sp.radius) / r_eq     # species: L_v in units of the smallest radius (module doc)
     one = sp is None

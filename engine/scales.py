@@ -1,10 +1,11 @@
 """Particle sizes, masses and the contact time scale of a spec's fields: what engine.spec's own checks need.
 
 Owns the first half of the derivation (engine.params.derive does the rest from it): the radius from N, phi
-and L, the spheroid semi-axes and inertia, the species table of a polydisperse spec, the reduced mass and
+and L, the semi-axes and principal moments (the shape's ``body``: engine/shapes/), the species table of a polydisperse spec, the reduced mass and
 contact time of the shortest contact, the time step and the initial temperature (rules in the docstring of
 engine/params.py). It reads the spec's fields only (a SimulationSpec or anything with its fields) and
-imports no other engine module, so engine/spec.py can validate without importing engine/params.py.
+imports no other engine module but the shapes' traits, so engine/spec.py can validate without importing
+engine/params.py.
 SI units: m, kg, kg m^2, s, J.
 """
 
@@ -14,8 +15,8 @@ import math
 from dataclasses import dataclass
 from typing import Optional
 
-#: Moment-of-inertia factor of a solid sphere, I = q m a^2.
-Q_SPHERE = 0.4
+from engine.shapes import traits
+from engine.shapes.sphere import Q_SPHERE  # noqa: F401  (I = q m a^2 of a solid sphere; re-exported by params)
 
 
 def radius_from_volume_fraction(n: int, phi: float, box_length: float) -> float:
@@ -55,7 +56,7 @@ def species_table(spec):
     A one-entry species list is the monodisperse scene and goes the monodisperse way (bit-identical).
     """
     sp = getattr(spec, "species", None)
-    if sp is None or len(sp) < 2 or spec.shape != "sphere":
+    if sp is None or len(sp) < 2 or not traits(spec.shape).SPECIES:
         return None
     ratios = [float(s.radius_ratio) for s in sp]
     counts = species_counts(spec.n_particles, [float(s.number_fraction) for s in sp])
@@ -97,16 +98,7 @@ def scales(spec) -> Scales:
     volume = 4.0 / 3.0 * math.pi * r_eq**3
     mass = spec.density * volume
     xi = spec.elongation
-    if spec.shape == "sphere":
-        semi = (r_eq, r_eq, r_eq)
-        inertia = (Q_SPHERE * mass * r_eq**2,) * 3
-    else:
-        # prolate spheroid with a*b^2 = r_eq^3 (paper 003 Table 1 keeps the volume fixed)
-        b = r_eq / xi ** (1.0 / 3.0)
-        a = xi * b
-        semi = (a, b, b)
-        i_perp = mass * (a * a + b * b) / 5.0
-        inertia = (2.0 * mass * b * b / 5.0, i_perp, i_perp)
+    semi, inertia = traits(spec.shape).body(r_eq, xi, mass)
     # reduced mass of an equal pair; species: of the smallest pair, which has the shortest contact
     m12 = 0.5 * mass if sp is None else 0.5 * min(sp.mass)
     mass_mean = mass if sp is None else sum(c * m for c, m in zip(sp.count, sp.mass)) / n

@@ -261,8 +261,9 @@ def initial_spheres(spec, p: Derived) -> SphereSystem:
 def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
     """Start of an ellipsoid spec (paper 003 §4): bounding spheres (radius a) placed without overlap,
     uniformly random orientations, Maxwellian velocities, and spins about the two axes perpendicular to
-    the symmetry axis at the translational temperature per degree of freedom (no spin about the axis,
-    which frictionless contacts can neither create nor use: paper 003 sets omega_y(0) = 0)."""
+    the symmetry axis at the translational temperature per degree of freedom; no spin about the axis when
+    the contacts are frictionless (they can neither create nor use it: paper 003 sets omega_y(0) = 0), a
+    thermal one when they are rough (issue 17: all three rotational dof exchange energy)."""
     n = spec.n_particles
     a = p.semi_axes[0]
     parallel = start_generator(spec) == PARALLEL_GENERATOR
@@ -290,6 +291,18 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
     e2 = np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], 1)
     e3 = np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], 1)
     omega = w_b[:, :1] * e2 + w_b[:, 1:] * e3
+    if not spec.smooth:
+        # rough contacts exchange spin about the symmetry axis too: that dof starts thermal as well
+        # (drawn after the others, from its own stream, so a smooth start is unchanged)
+        w1_rms = spec.velocity_rms * math.sqrt(p.mass / (3.0 * p.inertia[0]))
+        if parallel:
+            w_a = _parallel_maxwellian(n, w1_rms, spec.seed, STREAM_SPIN_AXIS, 1)
+        else:
+            w_a = rng.normal(size=(n, 1))
+            w_a -= w_a.mean(axis=0) if n > 1 else 0.0
+            w_a *= w1_rms / math.sqrt(np.mean(w_a * w_a))
+        e1 = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], 1)
+        omega = omega + w_a * e1
     return EllipsoidSystem(
         box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
         semi_axes=np.tile(np.asarray(p.semi_axes, float), (n, 1)), mass=np.full(n, p.mass),
@@ -302,7 +315,7 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
 PARALLEL_START_MIN = 1 << 20
 SEQUENTIAL_GENERATOR = "numpy-pcg64"
 PARALLEL_GENERATOR = "splitmix64-counter"
-STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION = range(5)
+STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION, STREAM_SPIN_AXIS = range(6)
 _DRAWS = 8           # counter values reserved per particle and stream
 _BLOCK = 1 << 14     # particles per block of the deterministic sums
 

@@ -199,15 +199,15 @@ class SceneRun:
     def __init__(self, spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
                  should_cancel: Optional[Callable[[], bool]] = None, checkpoint_dir=None,
                  checkpoint_interval: float = 60.0, backend: Optional[str] = None):
-        from engine.scene import initial_ellipsoids, initial_spheres
+        from engine.shapes import host, traits
 
         t_setup = time.perf_counter()
         spec = load_spec(spec)
         self.spec = spec
-        self.ellipsoid = ellipsoid = spec.shape == "ellipsoid"
-        if ellipsoid and not spec.smooth:
-            raise SpecError(f"shape = 'ellipsoid' runs frictionless contacts only (paper 003): e_t = {spec.e_t:g} "
-                            f"and friction = {spec.friction} must be e_t = -1 (or friction = 0)")
+        self.shape = host(spec.shape)
+        refused = traits(spec.shape).spec_error(spec)
+        if refused:
+            raise SpecError(refused)
         # the backend ('cpu' or 'cuda') this scene runs on: `backend` overrides the spec's, 'auto' resolved here
         self.backend = resolve_backend(backend or spec.backend, spec.shape)
         # a null verlet_skin is the resolved backend's default at this volume fraction (species: the total
@@ -221,7 +221,7 @@ class SceneRun:
         self.ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
         self.resume = resume = self.ck.load(self.spec_json)
 
-        system = initial_ellipsoids(spec, p) if ellipsoid else initial_spheres(spec, p)
+        system = self.shape.initial_system(spec, p)
         phase, step_done = "thermalization", 0
         # a cooling checkpoint was written after its own record at step_done, which the file already holds
         self.resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"
@@ -305,13 +305,9 @@ class SceneRun:
             self.writer = H5MDWriter(self.output, resume=True, **common)
             self.writer.truncate(json.loads(str(self.resume["counts"])))
         else:
-            from engine.scene import species_index
-
             system = self.system
             # file work on the I/O thread, overlapping the time loop (engine/h5md.py)
-            self.writer = H5MDWriter(self.output, radius=None if self.ellipsoid else system.radius,
-                                     semi_axes=system.semi_axes if self.ellipsoid else None, mass=system.mass,
-                                     species=None if self.ellipsoid else species_index(system.radius, p),
+            self.writer = H5MDWriter(self.output, mass=system.mass, **self.shape.writer_fields(system, p),
                                      creator_version=__version__, background=True,
                                      deferred=self.defer_file, **common)
         self.timings["open"] += time.perf_counter() - t0

@@ -21,6 +21,7 @@ from typing import List, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from engine.scales import scales
+from engine.shapes import SHAPES, traits
 
 #: Random close packing of monodisperse spheres; no homogeneous gas start exists above it.
 RANDOM_CLOSE_PACKING = 0.64
@@ -113,7 +114,7 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
     serves only callers of ``engine.params.derive`` that run no backend. ``volume_fraction=None`` (a caller
     that does not know phi) gives L_max, the dilute value.
     """
-    if shape == "ellipsoid":
+    if not traits(shape).SKIN_BY_VOLUME_FRACTION:
         return DEFAULT_VERLET_SKIN["cpu"]
     top = DEFAULT_VERLET_SKIN.get(backend, DEFAULT_VERLET_SKIN["cpu"])
     if volume_fraction is None:
@@ -138,8 +139,10 @@ class SimulationSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", validate_assignment=False)
 
-    shape: Literal["sphere", "ellipsoid"] = Field(
-        "sphere", description="Particle shape: 'sphere' or 'ellipsoid' (prolate spheroid, paper 003).")
+    shape: str = Field(
+        "sphere", json_schema_extra={"enum": list(SHAPES)},
+        description="Particle shape, a plug-in of engine/shapes/: "
+                    + "; ".join(f"'{k}' ({traits(k).SUMMARY})" for k in SHAPES) + ".")
     n_particles: int = Field(
         4096, description="Number of particles N (2 ... 2**31-1).")
     volume_fraction: float = Field(
@@ -201,6 +204,14 @@ class SimulationSpec(BaseModel):
                             "ignores it.")
 
     # ---- field checks: each message names the value and the allowed range ------------------------
+
+    @field_validator("shape")
+    @classmethod
+    def _known_shape(cls, v: str) -> str:
+        if v not in SHAPES:   # looked up at validation time: a registered plug-in needs no edit here
+            raise ValueError(f"shape = {v!r} is not a registered shape; expected "
+                             + " or ".join(repr(k) for k in SHAPES))
+        return v
 
     @field_validator("n_particles")
     @classmethod
@@ -321,12 +332,15 @@ class SimulationSpec(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> "SimulationSpec":
-        if self.shape == "sphere" and self.elongation != 1.0:
-            raise ValueError(f"elongation = {self.elongation} but shape is 'sphere': elongation must be 1 for spheres")
+        shape = traits(self.shape)
+        if not shape.ELONGATED and self.elongation != 1.0:
+            raise ValueError(f"elongation = {self.elongation} but shape is {self.shape!r}: elongation must be 1 "
+                             f"for {self.shape}s")
         poly = self.species is not None and len(self.species) > 1
-        if self.species is not None and self.shape != "sphere":
+        if self.species is not None and not shape.SPECIES:
+            which = " or ".join(repr(k) for k in SHAPES if traits(k).SPECIES)
             raise ValueError(f"species is given but shape is {self.shape!r}: size distributions are for "
-                             f"shape 'sphere' only; set species to null")
+                             f"shape {which} only; set species to null")
         if poly and self.volume_fraction > SPECIES_MAX_VOLUME_FRACTION:
             raise ValueError(
                 f"volume_fraction = {self.volume_fraction:g} is above {SPECIES_MAX_VOLUME_FRACTION:g}, the largest "

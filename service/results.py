@@ -48,7 +48,8 @@ def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
 
     Spheres: tau of paper 001 and Luding's ODE with the effective tangential restitution (engine.params)
     -> {"x", "xlabel", "T", "R", "name"}. Ellipsoids: Haff's law with Gamma_0(xi) of paper 003 Eq. 28
-    (engine/validation/hcs_ellipsoids.py) and D_f = 5 -> x = t/t0, R is None.
+    (engine/validation/hcs_ellipsoids.py) and D_f = 5 -> x = t/t0, R is None. Rough ellipsoids: no theory
+    (T and R None, x = t).
     """
     from engine.params import derive
     from engine.spec import SimulationSpec
@@ -62,6 +63,9 @@ def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
         theory_t, theory_r = luding_ode(spec.e_n, p.e_t_effective, x, t0=1.0, r0=r0_over_t0) if x.size > 1 \
             else (np.ones_like(x), np.full_like(x, r0_over_t0))
         return {"x": x, "xlabel": r"scaled time $\tau$", "T": theory_t, "R": theory_r, "name": "Luding ODE"}
+    if not spec.smooth:
+        # rough spheroids: no mean-field cooling theory is known (bench/reports/hcs-rough-spheroids/)
+        return {"x": t, "xlabel": "time t / s", "T": None, "R": None, "name": "no theory for rough spheroids"}
     from engine.validation.hcs_ellipsoids import gamma0
 
     g0 = gamma0(spec.elongation, spec.e_n, p.radius, p.number_density, p.mass, spec.volume_fraction, t0)["gamma0"]
@@ -135,7 +139,7 @@ def cooling_plot_png(path: Path, title: str) -> bytes:
     ax = fig.add_subplot()
     ax.plot(tau, temp / t0, "o", ms=3, label="T/T$_0$ (simulation)")
     ax.plot(tau, rot / t0, "s", ms=3, label="R/T$_0$ (simulation)")
-    if th is not None and tau.size > 1:
+    if th is not None and th["T"] is not None and tau.size > 1:
         ax.plot(tau, th["T"], "-", color="C0", label=f"T/T$_0$ ({th['name']})")
         if th["R"] is not None:
             ax.plot(tau, th["R"], "-", color="C1", label=f"R/T$_0$ ({th['name']})")

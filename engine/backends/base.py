@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, replace
-from typing import Optional
+from typing import ClassVar, Optional
 
 import numpy as np
 
@@ -26,6 +26,8 @@ class SphereSystem:
     carried over from a checkpoint (both orderings present); empty for a fresh start.
     """
 
+    #: the shape (engine/shapes/ registry key) whose plug-in runs this system
+    shape: ClassVar[str] = "sphere"
     box_length: float
     position: np.ndarray
     velocity: np.ndarray
@@ -52,6 +54,7 @@ class EllipsoidSystem:
     from a checkpoint (overlap and dashpot force in columns 3, 4), empty for a fresh start.
     """
 
+    shape: ClassVar[str] = "ellipsoid"
     box_length: float
     position: np.ndarray
     velocity: np.ndarray

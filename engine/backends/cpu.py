@@ -5,8 +5,9 @@ What lives here, shared by every shape: the cells and the Verlet list build (eng
 engine/multigrid.py), the list-slot history store (engine/backends/cpu_shared.py), the time loop
 (:func:`make_run_steps`, specialised at compile time by a shape plug-in of engine/shapes/: its kick-drift
 ``step`` and its ``forces``), the closing half kick, and the host class :class:`CpuLoop` (list growth,
-overflow recovery, instability errors). :class:`CpuBackend` is the sphere's host class; ellipsoids are
-engine/backends/cpu_ellipsoid.py.
+overflow recovery, instability errors). Each shape's host class (a :class:`CpuLoop` subclass holding its state
+arrays and observables) lives in its plug-in package: engine/shapes/sphere/cpu_backend.py,
+engine/shapes/spheroid/cpu_backend.py.
 
 Layout: arrays of shape (N, 3) (and (N, 4) for quaternions) in the working precision; a full Verlet
 neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` per particle with one
@@ -36,16 +37,13 @@ from numba import prange
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 from engine.jitcache import cache_closure
 
-from engine.backends.base import ContactParams, SphereSystem, cell_grid
-from engine.backends.cpu_shared import SLOT, collect_springs, cpu_name, restore_springs, worst_overlap
+from engine.backends.base import ContactParams, cell_grid
+from engine.backends.cpu_shared import SLOT, cpu_name, worst_overlap
 from engine.backends.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
 from engine.cells import cell_coords_of, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
-from engine.errors import InstabilityError
 from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
-from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
-from engine.shapes import sphere
 
 
 @numba.njit(parallel=True, cache=True)
@@ -163,7 +161,7 @@ def make_step(shape):
     chunk_a, chunk_b)``: per particle, the shape's ``pre_step``, then the shared translation v += F/m hk,
     predicted end-of-step velocity v + F/m dt/2 (the normal dashpot's), x += v dt wrapped into the box, then
     the shape's ``rotate``, which returns the particle's displacement measure (module docstring of
-    engine/shapes/sphere.py: |v|^2 or the exact squared displacement) and whether its state is finite. Per
+    engine/shapes/sphere/kernels.py: |v|^2 or the exact squared displacement) and whether its state is finite. Per
     chunk: the largest measure into ``chunk_a``, the first non-finite particle into ``chunk_b`` (-1: none).
     """
     if shape.NAME in _step_loops:
@@ -360,6 +358,8 @@ class CpuLoop:
 
     name = "cpu"
     shape = None
+    #: history words per list slot (cpu_shared.SLOT; a shape whose pair law keeps more sets its own)
+    slot_words = SLOT
 
     def _init_loop(self, n: int, rmax: float, rmin: float, skin: float) -> None:
         self.disp_bound = np.zeros(1)     # upper bound of the displacement since the last build (m)
@@ -399,7 +399,7 @@ class CpuLoop:
         self.max_nb = max_nb
         self.nbr = np.zeros((n, max_nb), np.int32)
         self.nn = np.zeros(n, np.int32)
-        self.hist = np.zeros((n, max_nb, SLOT), dt_)
+        self.hist = np.zeros((n, max_nb, self.slot_words), dt_)
         self.nbr_new = np.zeros_like(self.nbr)
         self.nn_new = np.zeros_like(self.nn)
         self.hist_new = np.zeros_like(self.hist)
@@ -489,100 +489,3 @@ class CpuLoop:
                 continue
             self.steps_done = step
             raise instability_error(status, step, int(who), value, self)
-
-
-class CpuBackend(CpuLoop):
-    """The CPU time loop for spheres (engine/shapes/sphere.py); see the module docstring for layout and
-    specialisation."""
-
-    shape = sphere
-
-    def __init__(self, system: SphereSystem, contact: ContactParams):
-        self.dtype = np.float64 if contact.precision == "float64" else np.float32
-        dt_ = self.dtype
-        n = system.n
-        self.n = n
-        self.box = float(system.box_length)
-        self.pos = np.array(system.position, dtype=dt_, order="C", copy=True)
-        self.vel = np.array(system.velocity, dtype=dt_, order="C", copy=True)
-        self.omega = np.array(system.angular_velocity, dtype=dt_, order="C", copy=True)
-        self.quat = np.array(system.orientation, dtype=dt_, order="C", copy=True)
-        self.radius = np.array(system.radius, dtype=dt_, order="C", copy=True)
-        self.mass = np.array(system.mass, dtype=dt_, order="C", copy=True)
-        self.inertia = np.array(system.inertia, dtype=dt_, order="C", copy=True)
-        self.inv_m = (1.0 / self.mass).astype(dt_)
-        self.inv_i = (1.0 / self.inertia).astype(dt_)
-        self.force = np.zeros((n, 3), dt_)
-        self.torque = np.zeros((n, 3), dt_)
-        self.x_ref = self.pos.copy()
-        self.vel_p = self.vel.copy()      # predicted end-of-step velocities (see shapes/sphere.kick_drift)
-        self._rad_list = self.radius
-        self._spin, self._spin_inv, self._ext = self.omega, self.inv_i, None
-        self._init_loop(n, float(np.max(system.radius)) if n else 0.0,
-                        float(np.min(system.radius)) if n else 0.0, contact.skin)
-        self.set_contact(contact)
-        self._prime(system)
-
-    def set_contact(self, contact: ContactParams) -> None:
-        """Switch contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
-        self._set_common(contact)
-        c = self.dtype
-        self.k_t = None if contact.k_t is None else c(contact.k_t)
-        self.mu = None if contact.friction is None else c(contact.friction)
-        self._law = (self.k_t, self.mu)
-        self._torque_arg = self.torque if contact.rough else None
-        self._quat_arg = self.quat if contact.orientation else None
-
-    def _prime(self, system: SphereSystem) -> None:
-        """First list build (restoring checkpointed springs) and forces at t = 0."""
-        self._build()
-        if system.contact_pairs is not None and len(system.contact_pairs):
-            restore_springs(self.nbr, self.nn, self.hist, np.asarray(system.contact_pairs, np.int64),
-                            np.asarray(system.contact_springs, self.dtype))
-        self._forces()
-        worst, who = worst_overlap(self.chunk_a, self.chunk_b)
-        if worst > self.overlap_limit:
-            raise _start_overlap(self, int(who), float(worst))
-
-
-    # ---- host copies (output steps only) -----------------------------------------------------------
-
-    def observe(self) -> dict:
-        k_t = 0.0 if self.k_t is None else float(self.k_t)
-        e_tr, e_rot, contacts, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x = sphere.observe(
-            self.pos, self.vel, self.omega, self.radius, self.mass, self.inertia, self.nbr, self.nn,
-            self.hist, self.box_c, self.inv_box, self.half, float(self.k_n), k_t)
-        return {"kinetic_energy_translational": float(e_tr), "kinetic_energy_rotational": float(e_rot),
-                "contacts": int(contacts), "elastic_energy": float(e_spring), "max_overlap": float(worst),
-                "momentum": (float(px), float(py), float(pz)),
-                **sonine_sums(s_tr2, s_rot2, s_x, DOF_ROTATION_SPHERE)}
-
-    def state(self) -> dict:
-        """Copies of the state arrays in id order."""
-        return {"position": self.pos.copy(), "velocity": self.vel.copy(),
-                "angular_velocity": self.omega.copy(), "orientation": self.quat.copy()}
-
-    def contacts(self):
-        """(pairs (M,2) int64 ids, slots (M,5)) of the list slots in contact, for checkpoints.
-
-        A slot holds the tangential spring (3), the overlap and the dashpot force of the last step.
-        """
-        return collect_springs(self.pos, self.radius, self.nbr, self.nn, self.hist, self.box_c,
-                               self.inv_box, self.half)
-
-
-def _start_overlap(backend, who: int, worst: float) -> InstabilityError:
-    """The initial positions already overlap beyond the limit: name the deepest pair."""
-    pos, rad = backend.pos.astype(np.float64), backend.radius.astype(np.float64)
-    partner, depth = -1, -math.inf
-    for j in backend.nbr[who, :backend.nn[who]]:
-        r = pos[who] - pos[j]
-        r -= backend.box * np.round(r / backend.box)
-        ov = (rad[who] + rad[j] - math.sqrt(float(r @ r))) / min(rad[who], rad[j])
-        if ov > depth:
-            partner, depth = int(j), ov
-    coincident = " (coincident centres)" if depth >= 2.0 - 1e-12 else ""
-    return InstabilityError(
-        f"particles {who} and {partner} overlap by {worst:.3g} radii{coincident} at the start (step 0), "
-        f"above overlap_limit {backend.overlap_limit:g}: the initial positions overlap; place the particles "
-        f"apart", step=0, particle=who)

@@ -1,7 +1,7 @@
 """What the CPU backends of every shape share and none owns: the list-slot layout, checkpoint springs, the
 worst-overlap reduction and the device name.
 
-Used by engine/backends/cpu.py (spheres) and engine/backends/cpu_ellipsoid.py (ellipsoids), so neither
+Used by engine/backends/cpu.py (spheres) and engine/shapes/spheroid/cpu_backend.py (ellipsoids), so neither
 imports the other's private helpers. Everything ``cache=True`` (see engine/jitcache.py).
 """
 

@@ -2,12 +2,12 @@
 
 :class:`CudaEnsemble` advances K independent scenes (own box, contact constants, dt, seed, clock) stored
 back to back on the device with the same kernels: the one CUDA time loop (:mod:`engine.backends.cuda_loop`)
-specialised by the sphere's device functions (engine/shapes/sphere_cuda.py), the list kernels of
+specialised by the sphere's device functions (engine/shapes/sphere/device.py), the list kernels of
 :mod:`engine.backends.cuda_kernels` and :mod:`engine.backends.cuda_lists`; all call the same njit physics
 functions as the CPU backend. :class:`CudaBackend` is the one-scene case (K = 1) with the public interface of
-:class:`engine.backends.cpu.CpuBackend`. This class is also the host side of every other shape (a subclass
+:class:`engine.shapes.sphere.cpu_backend.CpuBackend`. This class is also the host side of every other shape (a subclass
 allocates the shape's state and names its arrays for the kernels: ``shape``, ``_upload_particles``,
-``_step_arrays``, ``_observe_args``, ``_observables``; engine/backends/cuda_ellipsoid.py is the example).
+``_step_arrays``, ``_observe_args``, ``_observables``; engine/shapes/spheroid/cuda_backend.py is the example).
 
 Step (velocity Verlet, closing and opening half kicks fused as on the CPU):
   1. kick + drift with periodic wrap + orientation; the largest displacement since the list build and
@@ -49,7 +49,7 @@ from engine.backends.cuda_lists import list_kernels
 from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
-from engine.shapes import sphere_cuda as SC
+from engine.shapes.sphere import device as SC
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
@@ -71,6 +71,8 @@ class CudaEnsemble:
     shape = "sphere"
     #: widths of the per-scene constant tables (a subclass may append columns)
     _ND, _NF = K.ND, K.NF
+    #: history words per list slot (a shape whose pair law keeps more sets its own before the lists exist)
+    hist_words = K.HW
     #: device arrays permuted into cell order at a rebuild (besides the per-particle constants)
     _permuted = ("pos", "vel", "omega", "quat", "f_cur")
     #: 1-D views of other device arrays (not counted by device_bytes)
@@ -243,12 +245,12 @@ class CudaEnsemble:
         self.max_nb = max_nb
         self.nbr = cuda.device_array((max_nb, self.n), np.int32, stream=s)
         self.nn = cuda.to_device(np.zeros(self.n, np.int32), stream=s)
-        self.hist = cuda.device_array((K.HW, max_nb, self.n), self.dtype, stream=s)
+        self.hist = cuda.device_array((self.hist_words, max_nb, self.n), self.dtype, stream=s)
 
     def _alloc_store(self, cap: int) -> None:
         self.store_cap = cap
         self.cj = cuda.device_array(cap, np.int32, stream=self.stream)
-        self.chist = cuda.device_array((K.HW, cap), self.dtype, stream=self.stream)
+        self.chist = cuda.device_array((self.hist_words, cap), self.dtype, stream=self.stream)
 
     def _set_scene_contact(self, s: int, contact: ContactParams) -> None:
         c = self.dtype
@@ -486,7 +488,7 @@ class CudaEnsemble:
             j = slot_of[pairs[p, 1]]
             for kk in range(min(nn[i], nbr.shape[0])):
                 if nbr[kk, i] == j:
-                    q = min(K.HW, springs.shape[1])
+                    q = min(self.hist_words, springs.shape[1])
                     hist[0:q, kk, i] = springs[p, :q]
                     break
         self.hist.copy_to_device(hist, stream=self.stream)
@@ -750,7 +752,7 @@ class CudaEnsemble:
         return [self._observables(s, a[s].tolist()) if self.active[s] else None for s in range(self.n_scenes)]
 
     def _observables(self, s: int, r: list) -> dict:
-        """Scene s's observables from its observe sums r (sphere_cuda.observe_one)."""
+        """Scene s's observables from its observe sums r (engine/shapes/sphere/device.py: observe_one)."""
         return {"kinetic_energy_translational": r[0], "kinetic_energy_rotational": r[1],
                 "contacts": int(round(r[2])) // 2, "elastic_energy": r[3],
                 "max_overlap": r[SC.O_MAX], "momentum": (r[4], r[5], r[6]),

@@ -62,7 +62,8 @@ SS0 = 8
 # per-scene status words
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5
-HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force
+HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force (a shape's
+#        pair law may keep more: the host allocates hist/chist with its own count, the kernels read shape[0])
 
 _cache: dict = {}
 
@@ -301,7 +302,7 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                     j = nbr[kk, i]
                     if keeps_history(i, kk, j, pos, radius, hist, s, spd):
                         cj[q] = j
-                        for w in range(HW):
+                        for w in range(chist.shape[0]):
                             chist[w, q] = hist[w, kk, i]
                         q += 1
 
@@ -407,9 +408,9 @@ def init_slot(i, kk, j, gap, k0, k1, cj, chist, inv_old, hist):
     (zero spring, zero dashpot force, previous overlap = the current gap, m)."""
     for q in range(k0, k1):
         if inv_old[cj[q]] == j:
-            for w in range(HW):
+            for w in range(hist.shape[0]):
                 hist[w, kk, i] = chist[w, q]
             return
-    for w in range(HW):
+    for w in range(hist.shape[0]):
         hist[w, kk, i] = 0
     hist[3, kk, i] = gap

@@ -1,6 +1,6 @@
 """The one CUDA time loop: kick-drift, forces, closing half kick, the many-steps cooperative kernel and the
 observe reduction, built once for every particle shape and specialised at compile time by the shape's device
-functions (engine/shapes/<shape>_cuda.py, ``make_cuda``; the interface is in engine/shapes/sphere_cuda.py).
+functions (engine/shapes/<shape>_cuda.py, ``make_cuda``; the interface is in engine/shapes/sphere/device.py).
 
 This module owns the step skeleton (which phase runs when, the shared translation v += F/m hk, x += v dt
 wrapped, the displacement and speed maxima that decide a list rebuild, the per-particle force accumulation
@@ -36,7 +36,7 @@ from engine.backends.cuda_kernels import (D_BOX, D_DT, D_HP, D_IM0, D_INVBOX, F_
                                           SS_BAD_ID, SS_OVL, SS_OVL_ID)
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
-from engine.shapes import shape_cuda_module
+from engine.shapes import device as shape_device
 
 _cache: dict = {}
 
@@ -48,7 +48,7 @@ def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
     key = (shape, np.dtype(dtype).str, tuple(bool(f) for f in flags), uniform, tpb)
     if key not in _cache:
         dt = np.dtype(dtype).type
-        parts = shape_cuda_module(shape).make_cuda(L, dt, uniform, tpb, *key[2])
+        parts = shape_device(shape).make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
         k.update(cache_kernels(_make(parts, dt, uniform, tpb), ("loop",) + key[:2] + tuple(map(str, key[2:]))))
         k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))

@@ -24,7 +24,7 @@ Implementations:
   steps per scene in one call), which the driver uses when present so that every scene is advanced in
   exactly the chunks a lone run would use (the velocity-Verlet half kicks at chunk ends make the last
   bits depend on the chunking).
-- ``engine.backends.cuda.CudaEnsemble`` (spheres) and ``engine.backends.cuda_ellipsoid.CudaEllipsoidEnsemble``
+- ``engine.backends.cuda.CudaEnsemble`` (spheres) and ``engine.shapes.spheroid.cuda_backend.CudaEllipsoidEnsemble``
   (ellipsoids) store the scenes back to back on the GPU and advance them with the same kernel launches
   (packed ensemble).
 
@@ -36,9 +36,10 @@ from __future__ import annotations
 
 from typing import Mapping, Optional, Protocol, Sequence, runtime_checkable
 
-from engine.backends.base import ContactParams, EllipsoidSystem, cuda_available
+from engine.backends.base import ContactParams, cuda_available
 from engine.backends.registry import make_backend
 from engine.errors import BackendUnavailable
+from engine.shapes import host, shape_of
 
 BACKEND_NAMES = ("auto", "cpu", "cuda")
 
@@ -204,19 +205,16 @@ def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams
     'cpu' -> :class:`SerialEnsemble` of CPU backends; 'cuda' -> the packed
     ``engine.backends.cuda.CudaEnsemble`` (a :class:`SerialEnsemble` of single CUDA backends where that
     class is not available); 'auto' -> 'cuda' when a CUDA GPU is present, else 'cpu'. All scenes must
-    have the same shape (spheres or ellipsoids).
+    have the same shape; the packed CUDA class is the shape's (engine.shapes.host(shape).cuda_ensemble).
     """
-    shapes = {"ellipsoid" if isinstance(s, EllipsoidSystem) else "sphere" for s in systems}
+    shapes = {shape_of(s) for s in systems}
     if len(shapes) > 1:
-        raise ValueError("an ensemble holds scenes of one shape: got spheres and ellipsoids together")
+        raise ValueError(f"an ensemble holds scenes of one shape: got {' and '.join(sorted(shapes))} together")
     shape = shapes.pop() if shapes else "sphere"
     resolved = resolve_backend(name, shape)
     if resolved == "cuda":
         try:
-            if shape == "ellipsoid":
-                from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble as CudaEnsemble
-            else:
-                from engine.backends.cuda import CudaEnsemble
+            CudaEnsemble = host(shape).cuda_ensemble()  # noqa: N806
         except ImportError:
             CudaEnsemble = None  # noqa: N806
         if CudaEnsemble is not None:

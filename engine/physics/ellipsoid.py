@@ -409,7 +409,7 @@ def ellipsoid_contact_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, 
     Perram-Wertheim iteration stopped at the first iterate with F(lambda_k) > 1 + margin (F(lambda_k) <=
     F_max = W_0^2). Otherwise the entries are those of :func:`ellipsoid_contact`, bit for bit (the same
     arithmetic; the screens only add work). ``margin`` (1e-9 in float64, 1e-3 in float32;
-    engine.backends.cpu_ellipsoid.PW_SCREEN) is far above the rounding of F, so a screened pair always
+    engine.shapes.spheroid.cpu_backend.PW_SCREEN) is far above the rounding of F, so a screened pair always
     has delta < 0 in ellipsoid_contact (tests/engine/test_ellipsoid_screen.py); margin < 0 disables both.
     """
     one = half + half
@@ -500,6 +500,53 @@ PAIR_DONE, PAIR_SCREENED, PAIR_NEEDS_PREV = 0, 1, 2
 
 
 @numba.njit
+def ellipsoid_pair_geometry_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb,
+                                     cb, ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n,
+                                     gamma_n, dt, tol, margin, screened_gap, half):
+    """:func:`ellipsoid_pair_screened` that also returns the contact geometry: (F_A (3), tau_A (3), tau_B (3),
+    delta, F_dashpot, status, n (3), C (3)); n the unit normal from A to B, C the contact point relative to c_A
+    (m; B's lever arm is C - r). Zero n and C when the pair was screened or needs the previous gap. The rough
+    spheroid law (engine/physics/rough_spheroid.py) adds its tangential force at C."""
+    zero = half - half
+    one = half + half
+    m = margin if not (delta_prev > zero) else -one  # a contact that may end needs its gap: no screen
+    screened, f, lam, delta, nx, ny, nz, cx, cy, cz = ellipsoid_contact_screened(
+        rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, tol, m, half)
+    if screened:
+        return (zero, zero, zero, zero, zero, zero, zero, zero, zero, screened_gap, zero, PAIR_SCREENED,
+                zero, zero, zero, zero, zero, zero)
+    if delta > zero:
+        if margin >= zero and delta_prev == screened_gap:
+            return (zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero, PAIR_NEEDS_PREV,
+                    zero, zero, zero, zero, zero, zero)
+        # velocity of B's surface point at C relative to A's: u + w_B x (C - r) - w_A x C
+        bx = cx - rx
+        by = cy - ry
+        bz = cz - rz
+        vx = ux + (wby * bz - wbz * by) - (way * cz - waz * cy)
+        vy = uy + (wbz * bx - wbx * bz) - (waz * cx - wax * cz)
+        vz = uz + (wbx * by - wby * bx) - (wax * cy - way * cx)
+        vn = vx * nx + vy * ny + vz * nz
+        fm, fd = ellipsoid_normal_force(delta, vn, delta_prev, fd_prev, m12, k_n, gamma_n, dt, half)
+    elif delta_prev > zero:
+        p = delta_prev / (delta_prev - delta)
+        fm = fd_prev * (p - half)
+        fd = zero
+    else:
+        return zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero, PAIR_DONE, nx, ny, nz, cx, cy, cz
+    fax = -fm * nx
+    fay = -fm * ny
+    faz = -fm * nz
+    bx = cx - rx
+    by = cy - ry
+    bz = cz - rz
+    return (fax, fay, faz,
+            cy * faz - cz * fay, cz * fax - cx * faz, cx * fay - cy * fax,
+            -(by * faz - bz * fay), -(bz * fax - bx * faz), -(bx * fay - by * fax),
+            delta, fd, PAIR_DONE, nx, ny, nz, cx, cy, cz)
+
+
+@numba.njit
 def ellipsoid_pair_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
                             ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n, gamma_n, dt,
                             tol, margin, screened_gap, half):
@@ -527,41 +574,10 @@ def ellipsoid_pair_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1
     Returns (F_A (3), tau_A (3), tau_B (3), delta, F_dashpot, status); delta < 0 is the gap of a
     separated pair.
     """
-    zero = half - half
-    one = half + half
-    m = margin if not (delta_prev > zero) else -one  # a contact that may end needs its gap: no screen
-    screened, f, lam, delta, nx, ny, nz, cx, cy, cz = ellipsoid_contact_screened(
-        rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, tol, m, half)
-    if screened:
-        return zero, zero, zero, zero, zero, zero, zero, zero, zero, screened_gap, zero, PAIR_SCREENED
-    if delta > zero:
-        if margin >= zero and delta_prev == screened_gap:
-            return zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero, PAIR_NEEDS_PREV
-        # velocity of B's surface point at C relative to A's: u + w_B x (C - r) - w_A x C
-        bx = cx - rx
-        by = cy - ry
-        bz = cz - rz
-        vx = ux + (wby * bz - wbz * by) - (way * cz - waz * cy)
-        vy = uy + (wbz * bx - wbx * bz) - (waz * cx - wax * cz)
-        vz = uz + (wbx * by - wby * bx) - (wax * cy - way * cx)
-        vn = vx * nx + vy * ny + vz * nz
-        fm, fd = ellipsoid_normal_force(delta, vn, delta_prev, fd_prev, m12, k_n, gamma_n, dt, half)
-    elif delta_prev > zero:
-        p = delta_prev / (delta_prev - delta)
-        fm = fd_prev * (p - half)
-        fd = zero
-    else:
-        return zero, zero, zero, zero, zero, zero, zero, zero, zero, delta, zero, PAIR_DONE
-    fax = -fm * nx
-    fay = -fm * ny
-    faz = -fm * nz
-    bx = cx - rx
-    by = cy - ry
-    bz = cz - rz
-    return (fax, fay, faz,
-            cy * faz - cz * fay, cz * fax - cx * faz, cx * fay - cy * fax,
-            -(by * faz - bz * fay), -(bz * fax - bx * faz), -(bx * fay - by * fax),
-            delta, fd, PAIR_DONE)
+    g = ellipsoid_pair_geometry_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
+                                         ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n,
+                                         gamma_n, dt, tol, margin, screened_gap, half)
+    return g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[9], g[10], g[11]
 
 
 @numba.njit

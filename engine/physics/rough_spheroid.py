@@ -1,8 +1,8 @@
 """The tangential contact law of rough spheres applied to spheroids (issue 17): pure njit functions.
 
-Not yet called by the backends (the rough-ellipsoid time loop comes with issue 19's one loop per device);
-these are the single physics source that both backends will call, tested on their own
-(tests/engine/test_rough_spheroid_physics.py). Derivation: docs/rough-spheroids.md.
+:func:`rough_spheroid_pair` is the whole pair law that both backends call (engine/shapes/spheroid/kernels.py and
+device.py); the functions above it are its parts, tested on their own (tests/engine/test_rough_spheroid_physics.py).
+Derivation: docs/rough-spheroids.md.
 
 Conventions (those of engine.physics.ellipsoid.ellipsoid_pair_screened): body A at c_A, body B at c_B,
 r = c_B - c_A, the contact point C, lever arms r_A = C - c_A and r_B = C - c_B, the unit normal n from A to B.
@@ -41,8 +41,9 @@ import math
 
 import numba
 
-from engine.physics.contact import tangential_spring_step
-from engine.physics.ellipsoid import sym_mul_vec, sym_quad, sym_rotated
+from engine.physics.contact import rotate_spring_into_plane, tangential_spring_step
+from engine.physics.ellipsoid import (PAIR_DONE, ellipsoid_pair_geometry_screened, sym_mul_vec, sym_quad,
+                                      sym_rotated)
 
 
 @numba.njit
@@ -142,3 +143,89 @@ def impulse_response(inv_m12, sa, ra_x, ra_y, ra_z, sb, rb_x, rb_y, rb_z, jx, jy
     return (inv_m12 * jx + (say * ra_z - saz * ra_y) + (sby * rb_z - sbz * rb_y),
             inv_m12 * jy + (saz * ra_x - sax * ra_z) + (sbz * rb_x - sbx * rb_z),
             inv_m12 * jz + (sax * ra_y - say * ra_x) + (sbx * rb_y - sby * rb_x))
+
+
+@numba.njit
+def rough_spheroid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
+                        ux, uy, uz, wax, way, waz, wbx, wby, wbz,
+                        vx, vy, vz, mwax, mway, mwaz, mwbx, mwby, mwbz,
+                        ia1, ia2, ia3, ib1, ib2, ib3,
+                        delta_prev, fd_prev, xix, xiy, xiz, kt_prev,
+                        m12, k_n, gamma_n, f_t, mu, dt, tol, margin, screened_gap, half):
+    """The rough spheroid pair law (issue 17): paper 003's normal contact plus paper 001's tangential spring at
+    the contact point C. The one source both backends call (engine/shapes/spheroid/kernels.py, device.py).
+
+    Geometry and normal force are :func:`engine.physics.ellipsoid.ellipsoid_pair_geometry_screened` (same
+    arguments, same screens and contact start/end rules), so the normal part is bit for bit the smooth law's.
+    u, w_A, w_B: predicted end-of-step relative velocity u_B - u_A and spins (the normal dashpot, as smooth);
+    v, mw_A, mw_B: mid-step relative velocity and spins, which load the spring (the midpoint rule of the
+    sphere code, engine.physics.contact.sphere_contact). ia, ib: principal 1/I of A and B (1/(kg m^2)).
+    History: delta_prev, fd_prev (overlap m, dashpot force N), the spring xi (m) and the contact's k_t (N/m; 0
+    before its first step: then k_t = k_n f_t m_t/m12, :func:`tangential_stiffness`, with the tangential mass of
+    the undeformed contact, lever arms to the surface points C -+ (delta/2) n, which makes k_t paper 001's value
+    for spheres; kept for the contact's lifetime). f_t = (arccos(-e_t)/pi)^2; mu the Coulomb coefficient or None (no cap).
+
+    In contact: the spring is rotated into the new tangent plane, loaded by the contact-point slip for the step
+    (for the part of the step since the contact began at its first step), F_t = -k_t xi on B (capped at
+    mu |F_n| with F_n = k_n delta + F_dashpot, the spring shortened on sliding), -F_t on A, torques
+    r_A x (-F_t), r_B x F_t about the centres with the common point C (angular momentum conserved to rounding).
+    Ended inside the step (delta <= 0 < delta_prev): the cut spring's missing impulse is settled as in
+    engine.physics.contact.sphere_contact_end, -k_t [xi (p - 1/2) + v_t dt (p^2 - 1/4)/2] with p the part of the
+    step the contact lasted; the spring and k_t are reset. Otherwise nothing tangential.
+
+    Returns (F_A (3), tau_A (3), tau_B (3), delta, F_dashpot, xi (3), k_t, status): status as the smooth law's
+    (PAIR_NEEDS_PREV: call again with the previous step's gap).
+    """
+    g = ellipsoid_pair_geometry_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
+                                         ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n,
+                                         gamma_n, dt, tol, margin, screened_gap, half)
+    zero = half - half
+    delta = g[9]
+    fd = g[10]
+    status = g[11]
+    in_contact = delta > zero
+    ended = (not in_contact) and delta_prev > zero
+    # f_t = 0: a frictionless scene in a rough-compiled GPU ensemble; it keeps an empty spring, as it would alone
+    if status != PAIR_DONE or not (in_contact or ended) or not (f_t > zero):
+        return (g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], delta, fd, zero, zero, zero, zero, status)
+    nx, ny, nz, cx, cy, cz = g[12], g[13], g[14], g[15], g[16], g[17]
+    rbx = cx - rx
+    rby = cy - ry
+    rbz = cz - rz
+    k_t = kt_prev
+    if not (k_t > zero):
+        # the tangential mass of the undeformed contact: lever arms to the two surface points C -+ (delta/2) n
+        # (for spheres |r| = a, so k_t is paper 001's k_n f q/(1 + q) to rounding); the forces act at C
+        hd = half * delta
+        sa = inverse_inertia_space(qa0, qa1, qa2, qa3, ia1, ia2, ia3, half)
+        sb = inverse_inertia_space(qb0, qb1, qb2, qb3, ib1, ib2, ib3, half)
+        inv_mt = tangential_inverse_mass((half + half) / m12, sa, cx + hd * nx, cy + hd * ny, cz + hd * nz,
+                                         sb, rbx - hd * nx, rby - hd * ny, rbz - hd * nz, nx, ny, nz, half)
+        k_t = tangential_stiffness(k_n, m12, inv_mt, f_t)
+    tx, ty, tz = contact_point_slip(vx, vy, vz, mwax, mway, mwaz, mwbx, mwby, mwbz, cx, cy, cz, rbx, rby, rbz,
+                                    nx, ny, nz)
+    if in_contact:
+        h = dt if delta_prev > zero else dt * (delta / (delta - delta_prev))
+        fn = k_n * delta + fd
+        gx, gy, gz, ta_x, ta_y, ta_z, tb_x, tb_y, tb_z, px, py, pz = spheroid_tangential(
+            nx, ny, nz, cx, cy, cz, rbx, rby, rbz, tx, ty, tz, xix, xiy, xiz, k_t, fn, mu, h)
+    else:
+        p = delta_prev / (delta_prev - delta)
+        weight = p - half
+        s = dt * (p * p - half * half) * half
+        px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
+        gx = -k_t * (px * weight + tx * s)
+        gy = -k_t * (py * weight + ty * s)
+        gz = -k_t * (pz * weight + tz * s)
+        ta_x = -(cy * gz - cz * gy)
+        ta_y = -(cz * gx - cx * gz)
+        ta_z = -(cx * gy - cy * gx)
+        tb_x = rby * gz - rbz * gy
+        tb_y = rbz * gx - rbx * gz
+        tb_z = rbx * gy - rby * gx
+        px = zero
+        py = zero
+        pz = zero
+        k_t = zero
+    return (g[0] - gx, g[1] - gy, g[2] - gz, g[3] + ta_x, g[4] + ta_y, g[5] + ta_z, g[6] + tb_x, g[7] + tb_y,
+            g[8] + tb_z, delta, fd, px, py, pz, k_t, status)

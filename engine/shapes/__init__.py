@@ -1,42 +1,62 @@
-"""Particle shapes as plug-ins of the CPU and CUDA time loops: one module per shape (plus its ``_cuda`` sibling for
-the GPU), one registry line each.
+"""Particle shapes as plug-ins: the registry (one line per shape) and the lookups every other layer uses.
 
-A shape module (engine/shapes/sphere.py documents the interface) provides ``NAME``, ``EXACT_DISPLACEMENT`` and
-njit functions of one particle or one list slot: ``pre_step`` and ``rotate`` (the shape's part of the
-kick-drift; the translation is shared) and ``pair`` (the pair evaluator: contact geometry and force law). engine/backends/cpu.py builds one compiled time
-loop, one kick-drift and one force loop per shape from them (``make_run_steps``, ``make_step``,
-``make_forces``); the list/cell machinery
-(engine/cells.py, engine/multigrid.py) and the list-slot history store (engine/backends/cpu_shared.py) are shared by every shape.
+A shape is one package under engine/shapes/ (engine/shapes/README.md lists the steps to add one):
 
-On the GPU the same holds: a shape's sibling module ``<module>_cuda`` (engine/shapes/sphere_cuda.py documents the
-interface) provides ``make_cuda``, a factory of numba.cuda device functions (its rotation step, pair evaluator and
-observables on the device layout); engine/backends/cuda_loop.py builds the one CUDA time loop from them, and the
-list kernels (engine/backends/cuda_kernels.py, cuda_lists.py) are shared. Shape modules import only
-engine/physics/ (and numba); they never import a backend (the CUDA layout is handed to ``make_cuda``).
+- ``<package>/__init__.py``: the shape's traits, plain Python that imports no other engine module, so that the
+  spec and the scales can ask them (``NAME``, ``ELONGATED``, ``SPECIES``, ``SKIN_BY_VOLUME_FRACTION``,
+  ``body`` for the semi-axes and principal moments, ``spec_error`` for combinations the shape refuses);
+- ``kernels.py``: njit functions of one particle or one list slot (``pre_step``, ``rotate``, ``pair``,
+  ``observe``) that specialise the one CPU time loop (engine/backends/cpu.py);
+- ``device.py``: ``make_cuda``, the factory of numba.cuda device functions that specialise the one CUDA time
+  loop (engine/backends/cuda_loop.py);
+- ``host.py``: the run-time hooks (the host-side system type, the start of a spec, the result file's particle
+  fields, the contact models it runs, and its backend classes);
+- its backend classes where the shared ones need the shape's own state (``cpu_backend.py``,
+  ``cuda_backend.py``; the sphere's CUDA host side is the base class engine.backends.cuda.CudaEnsemble).
+
+Nothing outside engine/shapes/ names a shape package: engine/backends/registry.py, engine/backends/ensemble.py,
+engine/simulate.py, engine/spec.py and engine/scales.py reach a shape through these functions.
 """
 
 from __future__ import annotations
 
 import importlib
 
-#: spec shape name -> module (the one line a new shape adds)
+#: spec shape name -> package (the one line a new shape adds)
 SHAPES = {
     "sphere": "engine.shapes.sphere",
     "ellipsoid": "engine.shapes.spheroid",
 }
 
 
-def shape_module(name: str):
-    """The plug-in module of shape ``name`` (a key of SHAPES)."""
+def _part(name: str, part: str):
     try:
-        return importlib.import_module(SHAPES[name])
-    except KeyError:
+        package = SHAPES[name]
+    except (KeyError, TypeError):
         raise ValueError(f"shape = {name!r}: unknown; expected one of {sorted(SHAPES)}") from None
+    return importlib.import_module(package + part)
 
 
-def shape_cuda_module(name: str):
-    """The CUDA parts of shape ``name``: the ``_cuda`` sibling of its module (``make_cuda``, ``FLAGS``)."""
-    try:
-        return importlib.import_module(SHAPES[name] + "_cuda")
-    except KeyError:
-        raise ValueError(f"shape = {name!r}: unknown; expected one of {sorted(SHAPES)}") from None
+def traits(name: str):
+    """The traits of shape ``name`` (its package: ``NAME``, ``ELONGATED``, ``SPECIES``, ``body``, ...)."""
+    return _part(name, "")
+
+
+def kernels(name: str):
+    """The njit plug-in of shape ``name`` for the CPU time loop (``pre_step``, ``rotate``, ``pair``, ``observe``)."""
+    return _part(name, ".kernels")
+
+
+def device(name: str):
+    """The CUDA parts of shape ``name`` (``make_cuda``, ``FLAGS``) for the CUDA time loop."""
+    return _part(name, ".device")
+
+
+def host(name: str):
+    """The run-time hooks of shape ``name`` (``SYSTEM``, ``initial_system``, ``writer_fields``, backends)."""
+    return _part(name, ".host")
+
+
+def shape_of(system) -> str:
+    """The shape name of a host-side system (its class attribute ``shape``)."""
+    return type(system).shape

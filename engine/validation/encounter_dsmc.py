@@ -8,7 +8,7 @@ impulse. Here the SAME sampling feeds three collision rules, chosen by ``rule``:
   dashpot gives at that geometry, e_eff(D) (PHYSICS-NOTES §3.2; hcs_ellipsoids.e_effective). This is
   dsmc_ratio(dem=True) in Numba.
 - ``RULE_SOFT`` (1): the real DEM pair, integrated through the whole encounter with the engine's own njit
-  functions, in the order of engine/backends/cpu_ellipsoid.py (kick_drift_ell, compute_forces_ell):
+  functions, in the order of engine/shapes/spheroid/cpu_backend.py (kick_drift_ell, compute_forces_ell):
   leap-frog kick/drift of v and of the space-frame angular momentum L, Fincham's body-frame quaternion
   step (engine.physics.rotation.fincham_quat_step_body), predicted end-of-step v and w for the dashpot,
   and engine.physics.ellipsoid.ellipsoid_pair (Perram-Wertheim contact, k_n delta - gamma_n v_n with the
@@ -62,7 +62,7 @@ RULE_IMPULSE, RULE_SOFT, RULE_HARD, RULE_FIRST = 0, 1, 2, 3
 RULES = {"impulse": RULE_IMPULSE, "soft": RULE_SOFT, "hard": RULE_HARD, "first": RULE_FIRST}
 #: encounter status
 ENC_OK, ENC_REJECTED, ENC_CAPPED = 0, 1, 2
-#: Perram-Wertheim Newton tolerance of the float64 engine (engine.backends.cpu_ellipsoid.PW_TOL)
+#: Perram-Wertheim Newton tolerance of the float64 engine (engine.shapes.spheroid.cpu_backend.PW_TOL)
 PW_TOL = 1e-15
 HALF = 0.5
 #: first (and smallest) step of the backward first-contact check, in units of dt: the pair separates

@@ -202,7 +202,7 @@ def soft_contact_loss(spec, t_over_t0: float, r_over_t: float, samples: int, see
     weighted by |g| (the collision rate). Returns eps_tr = <dE_tr>_DEM / <dE_tr>_rule - 1 and eps_rot (same for
     the rotational energy), each with its standard error (paired samples)."""
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.params import derive, e_t_effective
 
     p = derive(spec)

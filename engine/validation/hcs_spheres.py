@@ -94,7 +94,7 @@ def compare(runs: list, e_n: float, e_t: float) -> dict:
 def measured_restitution(spec: SimulationSpec) -> tuple[float, float]:
     """e_n (head-on) and e_t (10 degrees, sticking) of two spheres with the spec's contact law."""
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.params import Q_SPHERE
 
     p = derive(spec)

@@ -3,7 +3,7 @@
 import numpy as np
 
 from engine.backends.base import SphereSystem
-from engine.backends.cpu import CpuBackend
+from engine.shapes.sphere.cpu_backend import CpuBackend
 from tests.engine.scenes import MASS, RADIUS, gas, total_energy
 
 

@@ -1,6 +1,6 @@
 """CUDA ellipsoid backend under the Numba CUDA simulator (CI has no GPU): the CPU ellipsoid backend's trajectory.
 
-The GPU kernels call the same njit physics as engine/backends/cpu_ellipsoid.py, evaluate each pair with the
+The GPU kernels call the same njit physics as engine/shapes/spheroid/cpu_backend.py, evaluate each pair with the
 lower id as "A" and sum the forces in the same list order, and the many-steps-per-launch loop rebuilds the
 list at the same step as the CPU; so in float64 the GPU run under the simulator (whose arithmetic is the
 host's IEEE double arithmetic, and whose physics calls are the very CPU-compiled njit functions) is expected
@@ -88,12 +88,22 @@ def _compare(label, cpu, gpu, worst, exact):
         worst[(label, "contact slots", exact)] = float(np.max(np.abs(sa[oa] - sb[ob])) / np.max(np.abs(sa)))
     ca, cb = cpu.observe(), gpu.observe()
     assert ca["contacts"] == cb["contacts"] and ca["contacts"] > 0, (label, ca, cb)
-    assert cb["rotational_dof"] == 2
+    assert cb["rotational_dof"] == ca["rotational_dof"] == (3 if cpu_rough(cpu) else 2)
     for key in ("kinetic_energy_translational", "kinetic_energy_rotational", "kinetic_energy_rotational_active",
                 "elastic_energy", "max_overlap"):
         assert abs(ca[key] - cb[key]) <= 1e-12 * abs(ca[key]) + 1e-300, (label, key, ca[key], cb[key])
     assert np.allclose(ca["momentum"], cb["momentum"], rtol=0, atol=1e-12 * np.abs(a["velocity"]).sum())
     return ca
+
+
+def cpu_rough(be) -> bool:
+    return bool(getattr(be, "rough", False) or getattr(getattr(be, "ens", None), "rough", False))
+
+
+def _rough(e_t=0.5, **kw):
+    from engine.params import k_t_paper
+
+    return contact(k_t=k_t_paper(e_t, 1.0e5), **kw)
 
 
 def _child(part: str) -> None:
@@ -114,14 +124,18 @@ def _child(part: str) -> None:
 
 
 def _scenes(worst: dict) -> None:
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
     for label, system, c, multistep in (
             ("xi=1.5 multistep", tiny_ellipsoids(1.5, seed=1), contact(), True),
             ("xi=2.5 multistep", tiny_ellipsoids(2.5, seed=2), contact(), True),
             ("xi=2.5 per-phase", tiny_ellipsoids(2.5, seed=2), contact(), False),
-            ("mixed xi 1.5/2.5 multistep", tiny_ellipsoids(2.5, seed=3, mixed=True), contact(), True)):
+            ("mixed xi 1.5/2.5 multistep", tiny_ellipsoids(2.5, seed=3, mixed=True), contact(), True),
+            # rough contacts (issue 17): the spring and the contact's k_t in the list slots
+            ("rough xi=2.0 multistep", tiny_ellipsoids(2.0, seed=8), _rough(), True),
+            ("rough Coulomb mixed xi per-phase", tiny_ellipsoids(2.5, seed=7, mixed=True), _rough(0.8, friction=0.1),
+             False)):
         cpu = CpuEllipsoidBackend(system, c)
         gpu = CudaEllipsoidBackend(system, c)
         gpu.e.multistep = multistep
@@ -139,8 +153,8 @@ def _scenes(worst: dict) -> None:
 def _float32(worst: dict) -> None:
     """float32 on the GPU kernels against float64 on the CPU (the float32 path runs and stays close; the
     CPU float32 loop promotes m12 to float64, the GPU one does not, so no bitwise comparison)."""
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
     system = tiny_ellipsoids(2.5, seed=2)
     cpu = CpuEllipsoidBackend(system, contact())
@@ -157,32 +171,35 @@ def _float32(worst: dict) -> None:
 
 
 def _ensemble(worst: dict) -> None:
-    """Three different ellipsoid scenes advanced together equal each scene run alone on the CPU (both GPU
-    loops); a fourth that blows up (time step far too large) fails alone without disturbing the others."""
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble
+    """Four different ellipsoid scenes (one rough) advanced together equal each scene run alone on the CPU (both
+    GPU loops); a fifth that blows up (time step far too large) fails alone without disturbing the others."""
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidEnsemble
     from engine.errors import InstabilityError
 
     t_c = np.pi * np.sqrt(0.5e-5)
+    # a rough scene packed with frictionless ones (the worker packs them together): the ensemble compiles the
+    # rough law, the frictionless scenes run it with f_t = 0 and must still equal their lone runs
     scenes = [(tiny_ellipsoids(1.5, seed=4), contact()),
               (tiny_ellipsoids(2.5, seed=8), contact(gamma_n_coef=2.0 * np.sqrt(1e5) * 0.4)),
               (tiny_ellipsoids(2.0, n_side=2, seed=9), contact(skin=0.015, dt=t_c / 35)),
+              (tiny_ellipsoids(2.0, seed=8), _rough()),
               (tiny_ellipsoids(2.0, seed=7, speed=3.0), contact(dt=t_c * 3, overlap_limit=0.05))]
     for multistep in (True, False):
         ens = CudaEllipsoidEnsemble([s for s, _ in scenes], [c for _, c in scenes])
         ens.multistep = multistep
         ens.warmup()
-        cpus = [CpuEllipsoidBackend(s, c) for s, c in scenes[:3]]
+        cpus = [CpuEllipsoidBackend(s, c) for s, c in scenes[:4]]
         failed = {}
         for chunk in (17, 23):
             failed.update(ens.advance(chunk))
             for cpu in cpus:
                 cpu.advance(chunk)
-        assert list(failed) == [3] and isinstance(failed[3], InstabilityError), failed
-        assert 0 <= failed[3].step < 40, str(failed[3])
-        assert not ens.active[3] and ens.active[:3].all()
+        assert list(failed) == [4] and isinstance(failed[4], InstabilityError), failed
+        assert 0 <= failed[4].step < 40, str(failed[4])
+        assert not ens.active[4] and ens.active[:4].all()
         obs = ens.observe()
-        assert obs[3] is None
+        assert obs[4] is None
         loop = "multistep" if multistep else "per-phase"
         for k, cpu in enumerate(cpus):
             view = _SceneOf(ens, k)

@@ -63,7 +63,7 @@ def _child(part: str) -> None:
 
 
 def _scenes(worst: dict) -> None:
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.backends.cuda import CudaBackend
 
     for label, c, multistep in (("rough+coulomb", contact(), True), ("rough", contact(friction=None), True),
@@ -98,7 +98,7 @@ def _scenes(worst: dict) -> None:
 def _ensemble(worst: dict) -> None:
     """Three different scenes advanced together equal each scene run alone on the CPU; a fourth that
     blows up (time step far too large) fails alone, at its own step, without disturbing the others."""
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.backends.cuda import CudaEnsemble
     from engine.errors import InstabilityError
 

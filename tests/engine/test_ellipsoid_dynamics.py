@@ -6,11 +6,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from engine.backends.base import ContactParams, EllipsoidSystem
-from engine.backends.cpu import CpuBackend
-from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+from engine.shapes.sphere.cpu_backend import CpuBackend
+from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
 from engine.params import gamma_n_from_restitution
 from engine.physics.rotation import body_omega, fincham_quat_step_body
 from engine.scene import maxwellian, place_spheres, random_quaternions
@@ -165,12 +164,3 @@ def test_end_to_end_ellipsoid_run_writes_h5md(tmp_path):
         # 2 active rotational dof, no spin about the symmetry axis: T_rot = E_rot / N
         assert np.allclose(t_rot, e_rot / 32, rtol=1e-9)
         assert f["h5md/modules/dem"].attrs["shape_data"] == "semi_axes"
-
-
-def test_ellipsoid_spec_with_friction_is_refused(tmp_path):
-    from engine.errors import SpecError
-    from engine.simulate import run
-
-    with pytest.raises(SpecError, match="frictionless"):
-        run({"shape": "ellipsoid", "elongation": 2.0, "n_particles": 32, "volume_fraction": 0.05, "e_t": 0.5,
-             "t_end": 0.01, "backend": "cpu"}, tmp_path / "x.h5")

@@ -22,9 +22,9 @@ import numba
 import numpy as np
 import pytest
 
-from engine.backends import cpu_ellipsoid
+from engine.shapes.spheroid import cpu_backend as cpu_ellipsoid
 from engine.backends.base import EllipsoidSystem
-from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
 from engine.physics.ellipsoid import (PAIR_DONE, PAIR_NEEDS_PREV, PAIR_SCREENED, ellipsoid_contact,
                                       ellipsoid_contact_screened, ellipsoid_overlap_pw, ellipsoid_pair,
                                       ellipsoid_pair_screened, plane_separated, shape_matrix_inverse)

@@ -151,7 +151,7 @@ def test_backend_resolution():
     from engine.backends.base import cuda_available
 
     assert resolve_backend("cpu") == "cpu" and resolve_backend("cpu", "ellipsoid") == "cpu"
-    # ellipsoids have a CUDA backend (engine/backends/cuda_ellipsoid.py): same rules as spheres
+    # ellipsoids have a CUDA backend (engine/shapes/spheroid/cuda_backend.py): same rules as spheres
     assert resolve_backend("cuda", "ellipsoid") == "cuda"
     assert resolve_backend("auto", "ellipsoid") == resolve_backend("auto") == ("cuda" if cuda_available() else "cpu")
     with pytest.raises(BackendUnavailable, match="unknown backend 'gpu'"):

@@ -192,7 +192,7 @@ def test_cpu_backend_uses_multigrid_and_keeps_springs():
     """CPU backend on a polydisperse gas: multigrid lists hold every contact between rebuilds, and
     the same scene with a thin skin (many rebuilds) and a thick one (few) gives the same trajectory."""
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.params import gamma_n_from_restitution, k_t_paper
     from engine.scene import place_species
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from engine.backends.cpu import CpuBackend
+from engine.shapes.sphere.cpu_backend import CpuBackend
 from tests.engine.scenes import gas
 
 

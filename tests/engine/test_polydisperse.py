@@ -160,7 +160,7 @@ def test_equipartition_and_momentum():
 def test_head_on_collision_of_unequal_spheres(e_n):
     """Radius ratio 3 (mass ratio 27) at the default dt of such a spec (t_c/50 of the SMALL pair)."""
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
 
     r1, r2, rho, k_n = 0.01, 0.03, 2000.0, 1e5
     m1, m2 = rho * 4 / 3 * math.pi * r1**3, rho * 4 / 3 * math.pi * r2**3

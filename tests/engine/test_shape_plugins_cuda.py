@@ -10,7 +10,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 
-#: the names engine/shapes/sphere_cuda.py's docstring promises (the interface of make_cuda's result)
+#: the names engine/shapes/sphere/device.py's docstring promises (the interface of make_cuda's result)
 PARTS = ("PREDICTS", "TORQUE", "NOBS", "OBS_MAX", "translated", "rotate", "spin_kick", "particle", "pair",
          "observe_one", "kernels")
 
@@ -19,10 +19,10 @@ def _child() -> None:
     import numpy as np
 
     from engine.backends import cuda_kernels, cuda_loop
-    from engine.shapes import SHAPES, shape_cuda_module
+    from engine.shapes import SHAPES, device
 
     for name in SHAPES:
-        mod = shape_cuda_module(name)
+        mod = device(name)
         assert isinstance(mod.FLAGS, tuple), name
         for flags in ((False,) * len(mod.FLAGS), (True,) * len(mod.FLAGS)):
             parts = mod.make_cuda(cuda_kernels, np.float64, True, 32, *flags)
@@ -34,7 +34,7 @@ def _child() -> None:
                 assert kernel in k, (name, kernel)
             assert set(parts.kernels) <= set(k), name
     try:
-        shape_cuda_module("cube")
+        device("cube")
     except ValueError as e:
         assert "cube" in str(e)
     else:

@@ -129,7 +129,7 @@ def test_van_noije_ernst_values():
 
 def _sphere_backend(seed=3, n_side=5):
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
 
     rng = np.random.default_rng(seed)
     a, spacing = 0.1, 0.25
@@ -165,7 +165,7 @@ def test_cpu_observe_moments_equal_numpy():
 
 
 def test_cpu_ellipsoid_observe_moments_use_the_active_rotational_energy():
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
     from engine.physics.rotation import body_omega
     from tests.engine.test_cuda_ellipsoid_simulator import contact, tiny_ellipsoids
 

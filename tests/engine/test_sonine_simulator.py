@@ -18,10 +18,10 @@ def _close(a, b, rel=1e-10):
 def _child() -> None:
     import numpy as np
 
-    from engine.backends.cpu import CpuBackend
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
     from engine.backends.cuda import CudaBackend
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
     from engine.physics.sonine import sonine_observables
     from tests.engine import test_cuda_ellipsoid_simulator as E
     from tests.engine import test_cuda_simulator as S

@@ -10,7 +10,7 @@ from pydantic import ValidationError
 
 from bench.stability import cells, run_cell_inprocess
 from engine.backends.base import ContactParams, SphereSystem
-from engine.backends.cpu import CpuBackend
+from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.errors import InstabilityError
 from engine.params import Q_SPHERE
 from engine.spec import SimulationSpec

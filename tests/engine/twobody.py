@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from engine.backends.base import ContactParams, SphereSystem
-from engine.backends.cpu import CpuBackend
+from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.params import Q_SPHERE, gamma_n_from_restitution, k_t_paper
 
 RADIUS = 0.01     # m

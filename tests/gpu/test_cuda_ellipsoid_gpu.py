@@ -112,8 +112,8 @@ def test_real_gpu_ellipsoid_kernels_compile_and_device_is_named():
 @pytest.mark.parametrize("xi,multistep", [(2.0, True), (2.0, False), (1.5, True)])
 def test_cpu_and_gpu_agree_float64_200_steps(xi, multistep):
     """Issue 4 must-show 4: 4096 ellipsoids with contacts, 200 steps, positions within 1e-9 of L."""
-    from engine.backends.cpu_ellipsoid import CpuEllipsoidBackend
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
     system, c = _dense(xi=xi)
     cpu, gpu = CpuEllipsoidBackend(system, c), CudaEllipsoidBackend(system, c)
@@ -140,7 +140,7 @@ def test_cpu_and_gpu_agree_float64_200_steps(xi, multistep):
 
 def test_float32_accuracy_against_float64():
     """float32 on the GPU against float64 on the GPU after 200 steps (measured, printed)."""
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
     s64, c64 = _dense(precision="float64")
     s32, c32 = _dense(precision="float32")
@@ -156,7 +156,7 @@ def test_float32_accuracy_against_float64():
 
 
 def test_instability_is_reported_on_gpu():
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
     from engine.errors import InstabilityError
 
     system, c = _gas(n=512)
@@ -171,7 +171,7 @@ def test_ensemble_scenes_equal_single_runs_and_both_loops_agree():
     """Four paper-size ellipsoid scenes (own xi, seed and e_n) advanced together equal each run alone, in
     float64, after 400 steps; half of the single runs use the per-phase loop. Bound: rounding growth,
     1e-9 of L (a list built at a different step orders neighbours differently)."""
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidBackend, CudaEllipsoidEnsemble
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend, CudaEllipsoidEnsemble
 
     scenes = [_gas(n=4096, xi=xi, seed=10 + k, e_n=e) for k, (xi, e) in
               enumerate(((1.15, 0.9), (1.5, 0.95), (2.5, 0.98), (3.0, 0.9)))]
@@ -197,7 +197,7 @@ def test_ensemble_scenes_equal_single_runs_and_both_loops_agree():
 
 def test_ensemble_scene_failure_stays_local():
     """A scene with a far too large time step fails alone; the others complete their steps."""
-    from engine.backends.cuda_ellipsoid import CudaEllipsoidEnsemble
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidEnsemble
     from engine.errors import InstabilityError
 
     good, c = _gas(n=512, seed=1)
@@ -207,3 +207,38 @@ def test_ensemble_scene_failure_stays_local():
     failed = ens.advance(500)
     assert list(failed) == [1] and isinstance(failed[1], InstabilityError)
     assert ens.active[0] and not ens.active[1] and ens.observe()[0]["kinetic_energy_translational"] > 0
+
+
+@pytest.mark.parametrize("friction,multistep", [(None, True), (0.2, False)])
+def test_rough_cpu_and_gpu_agree_float64_200_steps(friction, multistep):
+    """Issue 17: rough spheroids (e_t = 0.5; with and without a Coulomb limit), 4096 with contacts, 200 steps:
+    positions within 1e-9 of L, the list slots' springs and k_t alike."""
+    from engine.params import k_t_paper
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
+
+    system, c = _dense(xi=2.0)
+    c = c.with_(k_t=k_t_paper(0.5, c.k_n), friction=friction)
+    cpu, gpu = CpuEllipsoidBackend(system, c), CudaEllipsoidBackend(system, c)
+    gpu.e.multistep = multistep
+    contacts = []
+    for _ in range(4):
+        cpu.advance(50)
+        gpu.advance(50)
+        contacts.append(cpu.observe()["contacts"])
+    a, b = cpu.state(), gpu.state()
+    r = _rel(a, b, system)
+    (pa, sa), (pb, sb) = cpu.contacts(), gpu.contacts()
+    oa, ob = np.lexsort(pa.T[::-1]), np.lexsort(pb.T[::-1])
+    spring = float(np.abs(sa[oa][:, :3] - sb[ob][:, :3]).max() / np.abs(sa[:, :3]).max()) \
+        if len(sa) == len(sb) and len(sa) else float("nan")
+    print(f"\nrough xi=2 friction={friction} {'multistep' if multistep else 'per-phase'}: contacts {contacts}; max "
+          f"rel diff x {r['x']:.2e} v {r['v']:.2e} w {r['w']:.2e} |q.q'|-1 {r['q']:.2e} spring {spring:.2e}")
+    assert contacts[-1] > 100 and sa.shape[1] == 6
+    assert r["x"] <= 1e-9, r
+    assert r["v"] <= 1e-6 and r["w"] <= 1e-6 and r["q"] <= 1e-9, r
+    assert np.array_equal(pa[oa], pb[ob]) and spring <= 1e-6
+    o1, o2 = cpu.observe(), gpu.observe()
+    assert o1["rotational_dof"] == o2["rotational_dof"] == 3
+    for key in ("kinetic_energy_translational", "kinetic_energy_rotational", "elastic_energy"):
+        assert math.isclose(o2[key], o1[key], rel_tol=1e-8), (key, o2[key], o1[key])

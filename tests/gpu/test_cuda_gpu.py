@@ -65,7 +65,7 @@ def test_real_gpu_kernels_compile_and_device_is_named():
 
 @pytest.mark.parametrize("friction", [0.5, None])
 def test_cpu_and_gpu_agree_float64_200_steps(friction):
-    from engine.backends.cpu import CpuBackend
+    from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.backends.cuda import CudaBackend
 
     system, c = _dense(friction=friction)

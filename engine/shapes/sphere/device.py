@@ -1,10 +1,10 @@
 """The sphere shape's CUDA parts (papers 001, 002, 004): what a sphere adds to the one CUDA time loop.
 
 engine/backends/cuda_loop.py builds the GPU time loop (kick-drift, forces, closing half kick, the many-steps
-cooperative kernel, observe) once for every shape; a shape's ``<module>_cuda`` sibling (this file for
-engine/shapes/sphere.py) provides :func:`make_cuda`, which returns the device functions that specialise it at
+cooperative kernel, observe) once for every shape; a shape package's ``device.py`` (this file for the sphere,
+found by engine.shapes.device(name)) provides :func:`make_cuda`, which returns the device functions that specialise it at
 compile time (closures over the precision, uniform particles and the shape's own flags, as
-engine/shapes/sphere.py's njit functions specialise the CPU loop). The interface, for any shape:
+engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The interface, for any shape:
 
 - ``make_cuda(L, DT, UNIFORM, TPB, *flags)``: ``L`` is the layout module (engine/backends/cuda_kernels.py: the
   per-scene table columns D_*, F_*; passed in so that a shape module never imports a backend), ``DT`` the
@@ -204,7 +204,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     @cuda.jit(device=True)
     def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf):
         """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments of particle i
-        (engine.shapes.sphere.observe)."""
+        (engine.shapes.sphere.kernels.observe)."""
         omega = spin
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]

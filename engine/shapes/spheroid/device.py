@@ -1,7 +1,7 @@
-"""The spheroid shape's CUDA parts (frictionless prolate ellipsoids, paper 003): what an ellipsoid adds to the
-one CUDA time loop (engine/backends/cuda_loop.py; the interface is in engine/shapes/sphere_cuda.py).
+"""The spheroid shape's CUDA parts (prolate ellipsoids, paper 003; frictionless or rough, issue 17): what an ellipsoid adds to the
+one CUDA time loop (engine/backends/cuda_loop.py; the interface is in engine/shapes/sphere/device.py).
 
-The device functions call the same ``@numba.njit`` physics as the CPU plug-in (engine/shapes/spheroid.py):
+The device functions call the same ``@numba.njit`` physics as the CPU plug-in (engine/shapes/spheroid/kernels.py):
 :func:`engine.physics.ellipsoid.ellipsoid_pair_screened` (exact disjointness screens, Perram-Wertheim contact
 function, contact point and normal, overlap, force with the contact start/end corrections, torques) and
 :func:`~engine.physics.ellipsoid.ellipsoid_contact` for the previous step's gap of a contact that starts right
@@ -10,19 +10,22 @@ after a screened step; :func:`engine.physics.rotation.fincham_quat_step_body`,
 the body frame through the space-frame angular momentum L, Fincham's leap-frog for the quaternion, paper 003
 Eqs. 13-21, renormalised every step).
 
-Layout (device, particle index fastest; engine/backends/cuda_ellipsoid.py allocates it):
+Layout (device, particle index fastest; engine/shapes/spheroid/cuda_backend.py allocates it):
     ``spin`` = angm (3, N): space-frame angular momentum L (kg m^2/s), kicked by the torque with unit factor;
     ``spin_inv`` = inv_i (3, N): principal 1/I about the body axes; ``rad`` = the bounding radius a (largest
     semi-axis: the broad phase is the bounding-sphere list of engine/backends/cuda_kernels.py);
-    ``ext`` = (axes (3, N), vel_p (3, N), omega_p (3, N), pos_prev (3, N), quat_prev (4, N)): semi-axes, the
-    predicted end-of-step velocities v + F/m dt/2 and angular velocities R I^-1 R^T (L + tau dt/2) written by the
-    kick-drift (so the force phase reads no force of another particle: one force buffer), and the positions and
-    orientations before the current step (read only when a contact starts right after a screened step).
-    hist (5, M, N): slots 3 and 4 hold the previous overlap (m; negative: the gap; -inf: screened) and the
-    previous dashpot force (N); slots 0-2 unused (frictionless).
+    ``ext`` = (axes (3, N), vel_p (3, N), omega_p (3, N), pos_prev (3, N), quat_prev (4, N), inv_i (3, N)):
+    semi-axes, the predicted end-of-step velocities v + F/m dt/2 and angular velocities R I^-1 R^T (L + tau dt/2)
+    written by the kick-drift (so the force phase reads no force of another particle: one force buffer), the
+    positions and orientations before the current step (read when a contact starts right after a screened step,
+    and by the rough spring's mid-step angular velocity), and the principal 1/I again (the rough law's
+    tangential mass; a (3, 1) dummy for uniform scenes, which read spd).
+    hist (5 or 6, M, N): slots 3 and 4 hold the previous overlap (m; negative: the gap; -inf: screened) and the
+    previous dashpot force (N); rough contacts (flag ROUGH, 6 words): the tangential spring in 0-2 (m) and the
+    contact's k_t in 5 (N/m; engine.physics.rough_spheroid.rough_spheroid_pair); frictionless: 0-2 unused.
 Per-scene constants: the common tables, D_R0 = a, with :data:`NCOL` spheroid columns appended to spd after the
-backend's ND (:data:`C_A` ... :data:`C_SCR` are offsets from ND): semi-axes, principal 1/I, Perram-Wertheim
-tolerance, smallest semi-axis (overlap guard), margin of the exact screens.
+backend's ND (:data:`C_A` ... :data:`C_FT` are offsets from ND): semi-axes, principal 1/I, Perram-Wertheim
+tolerance, smallest semi-axis (overlap guard), margin of the exact screens, the rough law's factor f_t.
 Each pair is evaluated with the lower particle id as "A" in both partners' loops (CPU: the lower index), so
 F_ji = -F_ij to the last bit without atomics and the GPU repeats the CPU's arithmetic exactly.
 """
@@ -36,22 +39,25 @@ import numpy as np
 from numba import cuda
 
 from engine.physics.contact import contact_elastic_energy, min_image
-from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
+from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
 from engine.physics.integrate import kick
 from engine.physics.rotation import body_omega, fincham_quat_step_body, space_omega
+from engine.physics.rough_spheroid import rough_spheroid_pair
 
-#: the compile-time flags of make_cuda (none: frictionless, orientation always tracked)
-FLAGS = ()
-#: spheroid columns of spd, offsets from the backend's ND (working precision)
-C_A, C_B, C_C, C_II1, C_II2, C_II3, C_TOL, C_BMIN, C_SCR = range(9)
-NCOL = 9
+#: the compile-time flags of make_cuda, in order: rough contacts (tangential spring, 6 history words), Coulomb
+#: limit (orientation is always tracked)
+FLAGS = ("rough", "coulomb")
+#: spheroid columns of spd, offsets from the backend's ND (working precision); C_FT: the rough law's factor
+#: (arccos(-e_t)/pi)^2 (engine.shapes.spheroid.cpu_backend.tangential_factor_of); mu is the common D_MU
+C_A, C_B, C_C, C_II1, C_II2, C_II3, C_TOL, C_BMIN, C_SCR, C_FT = range(10)
+NCOL = 10
 #: observe accumulators per scene: E_tr, E_rot, E_rot perpendicular to body x, contacts (x2), elastic
 #: energy, P_x, P_y, P_z, largest overlap (m), then the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp
 A_TR, A_ROT, A_PERP, A_CON, A_EL, A_PX, A_PY, A_PZ, A_OVL, A_TR2, A_ROT2, A_X = range(12)
 NACC = 12
 
 
-def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
+def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure per specialisation)
     """The spheroid's device functions and its own kernel (clamp_history) for one specialisation."""
     ZERO = DT(0)
     HALF = DT(0.5)
@@ -62,7 +68,8 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
     D_BOX, D_INVBOX, D_DT, D_KN, D_GN, D_R0, D_M0, D_IM0 = L.D_BOX, L.D_INVBOX, L.D_DT, L.D_KN, L.D_GN, L.D_R0, \
         L.D_M0, L.D_IM0
     F_KN = L.F_KN
-    E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR = (L.ND + c for c in range(NCOL))
+    D_MU = L.D_MU
+    E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR, E_FT = (L.ND + c for c in range(NCOL))
 
     @cuda.jit(device=True)
     def translated(k, i, x_old, v, f, im, hp, ext):
@@ -73,7 +80,7 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
     @cuda.jit(device=True)
     def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt):
         """L += tau hk; q by Fincham's leap-frog with L(t) = L - tau dt/2 and L(t + dt/2) = L
-        (cpu_ellipsoid / shapes/spheroid.rotate); predicted space-frame w at t + dt into omega_p; the
+        (engine/shapes/spheroid/kernels.py: rotate); predicted space-frame w at t + dt into omega_p; the
         orientation before the step into quat_prev. True when L and q are finite."""
         angm = spin
         omega_p = ext[2]
@@ -123,6 +130,35 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
         return (ids[i], spd[s, D_BOX], spd[s, D_INVBOX], spd[s, D_DT], spd[s, D_KN], spd[s, D_GN], spd[s, E_TOL],
                 spd[s, E_SCR], spd[s, D_R0], spd[s, D_IM0])
 
+    if COULOMB:
+        @cuda.jit(device=True)
+        def friction_of(spd, s):
+            """The scene's Coulomb coefficient (inf: no cap in a Coulomb-compiled ensemble)."""
+            return spd[s, D_MU]
+    else:
+        @cuda.jit(device=True)
+        def friction_of(spd, s):
+            """No Coulomb limit compiled: None prunes the cap (engine.physics.contact.tangential_spring_step)."""
+            return None
+
+    @cuda.jit(device=True)
+    def spin_inv_of(i, ext):
+        """Principal 1/I of particle i (per-particle constants: ext[5])."""
+        inv_i = ext[5]
+        return inv_i[0, i], inv_i[1, i], inv_i[2, i]
+
+    @cuda.jit(device=True)
+    def mid_step_omega(i, quat, quat_prev, angm, ii1, ii2, ii3):
+        """Mid-step space-frame angular velocity for the rough spring: L(t + dt/2) with the orientation
+        normalize(q(t) + q(t + dt)) (engine/shapes/spheroid/kernels.py: mid_step_omega)."""
+        q0 = quat_prev[0, i] + quat[0, i]
+        q1 = quat_prev[1, i] + quat[1, i]
+        q2 = quat_prev[2, i] + quat[2, i]
+        q3 = quat_prev[3, i] + quat[3, i]
+        sc = ONE / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+        return space_omega(q0 * sc, q1 * sc, q2 * sc, q3 * sc, angm[0, i], angm[1, i], angm[2, i], ii1, ii2, ii3,
+                           HALF)
+
     @cuda.jit(device=True)
     def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
         """Perram-Wertheim contact of list slot kk (behind the exact screens) when the bounding spheres overlap
@@ -163,16 +199,45 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
             aa, ba, ca = axes[0, a], axes[1, a], axes[2, a]
             ab, bb, cb = axes[0, b], axes[1, b], axes[2, b]
         d_prev = hist[3, kk, i]
+        if ROUGH:
+            if UNIFORM:
+                ia1 = spd[s, E_II1]
+                ia2 = spd[s, E_II2]
+                ia3 = spd[s, E_II3]
+                ib1 = ia1
+                ib2 = ia2
+                ib3 = ia3
+            else:
+                ia1, ia2, ia3 = spin_inv_of(a, ext)
+                ib1, ib2, ib3 = spin_inv_of(b, ext)
+            wa = mid_step_omega(a, quat, quat_prev, spin, ia1, ia2, ia3)
+            wb = mid_step_omega(b, quat, quat_prev, spin, ib1, ib2, ib3)
+            f_t = spd[s, E_FT]
+            mu = friction_of(spd, s)
         for _ in range(2):
-            g = ellipsoid_pair_screened(
-                rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
-                quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
-                vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
-                omega_p[0, a], omega_p[1, a], omega_p[2, a],
-                omega_p[0, b], omega_p[1, b], omega_p[2, b],
-                d_prev, hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, margin, SCREENED_GAP,
-                HALF)
-            if g[11] != PAIR_NEEDS_PREV:
+            if ROUGH:
+                g = rough_spheroid_pair(
+                    rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
+                    quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
+                    vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
+                    omega_p[0, a], omega_p[1, a], omega_p[2, a],
+                    omega_p[0, b], omega_p[1, b], omega_p[2, b],
+                    vel[0, b] - vel[0, a], vel[1, b] - vel[1, a], vel[2, b] - vel[2, a],
+                    wa[0], wa[1], wa[2], wb[0], wb[1], wb[2], ia1, ia2, ia3, ib1, ib2, ib3,
+                    d_prev, hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[5, kk, i],
+                    m12, k_n, gn_coef * math.sqrt(m12), f_t, mu, dt, tol, margin, SCREENED_GAP, HALF)
+                status = g[15]
+            else:
+                g = ellipsoid_pair_screened(
+                    rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
+                    quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
+                    vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
+                    omega_p[0, a], omega_p[1, a], omega_p[2, a],
+                    omega_p[0, b], omega_p[1, b], omega_p[2, b],
+                    d_prev, hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, margin, SCREENED_GAP,
+                    HALF)
+                status = g[11]
+            if status != PAIR_NEEDS_PREV:
                 break
             # a contact starts after a screened step: the gap of that step, from its state
             d_prev = ellipsoid_contact(
@@ -198,6 +263,11 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
         delta = g[9]
         hist[3, kk, i] = delta
         hist[4, kk, i] = g[10]
+        if ROUGH and status == PAIR_DONE:
+            hist[0, kk, i] = g[11]
+            hist[1, kk, i] = g[12]
+            hist[2, kk, i] = g[13]
+            hist[5, kk, i] = g[14]
         if delta > ZERO:
             bmin = spd[s, E_BMIN] if UNIFORM else min(min(ba, ca), min(bb, cb))
             ov = delta / bmin
@@ -207,7 +277,7 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
 
     @cuda.jit(device=True)
     def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf):
-        """Particle i's share of the sums of engine.shapes.spheroid.observe (``inertia`` is 1/I here): E_tr = m v^2/2;
+        """Particle i's share of the sums of engine.shapes.spheroid.kernels.observe (``inertia`` is 1/I here): E_tr = m v^2/2;
         E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
         perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in PHYSICS-NOTES §3.3);
         contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
@@ -234,6 +304,8 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
         ep = 0.5 * (w1 * w1 / f64(ii2) + w2 * w2 / f64(ii3))
         vals[A_TR] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
         vals[A_ROT] += 0.5 * w0 * w0 / f64(ii1) + ep
+        if ROUGH and spd[s, E_FT] > ZERO:
+            ep = 0.5 * w0 * w0 / f64(ii1) + ep      # rough contacts exchange energy with all three dof
         vals[A_PERP] += ep
         vals[A_PX] += m * vx
         vals[A_PY] += m * vy
@@ -246,7 +318,12 @@ def make_cuda(L, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisati
             d = f64(hist[3, kk, i])
             if d > 0.0:
                 vals[A_CON] += 1.0
-                vals[A_EL] += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, spf[s, F_KN], 0.0, 0.5)
+                if ROUGH:
+                    vals[A_EL] += 0.5 * contact_elastic_energy(d, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
+                                                               f64(hist[2, kk, i]), spf[s, F_KN],
+                                                               f64(hist[5, kk, i]), 0.5)
+                else:
+                    vals[A_EL] += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, spf[s, F_KN], 0.0, 0.5)
                 vals[A_OVL] = max(vals[A_OVL], d)
 
     @cuda.jit

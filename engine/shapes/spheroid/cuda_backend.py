@@ -1,16 +1,16 @@
-"""CUDA backend for frictionless ellipsoids (paper 003): the CPU ellipsoid backend's step on the GPU.
+"""CUDA backend for ellipsoids (paper 003; frictionless or rough, issue 17): the CPU ellipsoid backend's step on the GPU.
 
 :class:`CudaEllipsoidEnsemble` advances K independent ellipsoid scenes stored back to back on the device,
 built exactly as the sphere :class:`engine.backends.cuda.CudaEnsemble` (it is a subclass: per-scene
 constant tables, scene index per particle, cell grids per scene, compact contact-history store, the
 cooperative many-steps-per-launch loop for small scenes and the per-phase loop for large ones, a scene that
 blows up stops alone) and runs the same kernels: the one CUDA time loop (:mod:`engine.backends.cuda_loop`)
-specialised by the spheroid's device functions (engine/shapes/spheroid_cuda.py, which call the njit physics
-of the CPU plug-in engine/shapes/spheroid.py: Perram-Wertheim contact, Fincham's leap-frog on the
+specialised by the spheroid's device functions (engine/shapes/spheroid/device.py, which call the njit physics
+of the CPU plug-in engine/shapes/spheroid/kernels.py: Perram-Wertheim contact, Fincham's leap-frog on the
 body-frame angular velocity, paper 003 Eqs. 13-24). This module owns only the spheroid's host side: its state
 and per-scene constants on the device, the arrays it hands to the kernels and its observables.
 :class:`CudaEllipsoidBackend` is the one-scene case (K = 1) with the interface of
-:class:`engine.backends.cpu_ellipsoid.CpuEllipsoidBackend`.
+:class:`engine.shapes.spheroid.cpu_backend.CpuEllipsoidBackend`.
 
 The step is the CPU backend's:
   1. kick + drift: v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham with L(t) and L(t + dt/2);
@@ -31,17 +31,18 @@ from numba import cuda
 from engine.backends import cuda_kernels as K
 from engine.backends import cuda_loop
 from engine.backends.base import ContactParams, EllipsoidSystem
-from engine.backends.cpu_ellipsoid import PW_SCREEN, PW_TOL, angm_from_omega, omega_from_angm
+from engine.shapes.spheroid.cpu_backend import (PW_SCREEN, PW_TOL, SLOT_ROUGH, angm_from_omega, omega_from_angm,
+                                                rotational_dof, tangential_factor_of)
 from engine.backends.cuda import CudaBackend, CudaEnsemble
-from engine.physics.sonine import DOF_ROTATION_SPHEROID, sonine_sums
-from engine.shapes import spheroid_cuda as CE
+from engine.physics.sonine import sonine_sums
+from engine.shapes.spheroid import device as CE
 
-#: the spheroid columns of spd (engine/shapes/spheroid_cuda.py: offsets from the common K.ND)
-E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR = (K.ND + c for c in range(CE.NCOL))
+#: the spheroid columns of spd (engine/shapes/spheroid/device.py: offsets from the common K.ND)
+E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR, E_FT = (K.ND + c for c in range(CE.NCOL))
 
 
 class CudaEllipsoidEnsemble(CudaEnsemble):
-    """K scenes of frictionless ellipsoids advanced together on the GPU (see the module docstring).
+    """K scenes of ellipsoids advanced together on the GPU (see the module docstring).
 
     All scenes share the precision; N, box, semi-axes, masses, contact constants, dt, skin are per scene.
     The ensemble protocol of engine/backends/ensemble.py: ``advance`` returns the scenes that blew up in
@@ -57,9 +58,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         for k, s in enumerate(systems):
             if not isinstance(s, EllipsoidSystem):
                 raise TypeError(f"scene {k}: CudaEllipsoidEnsemble needs EllipsoidSystem scenes, got {type(s).__name__}")
-        for c in contacts:
-            if c.k_t is not None or c.friction not in (None, 0.0):
-                raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
+        # rough contacts keep the spring and the contact's k_t: 6 history words (engine/shapes/spheroid/device.py)
+        self.hist_words = SLOT_ROUGH if any(c.rough for c in contacts) else K.HW
         super().__init__(systems, contacts)
 
     # ---- set-up (hooks of CudaEnsemble) -------------------------------------------------------------
@@ -132,14 +132,21 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         self.spd_h[s, E_BMIN] = min(ax[1], ax[2])
 
     def _set_scene_contact(self, s: int, contact: ContactParams) -> None:
-        if contact.k_t is not None or contact.friction not in (None, 0.0):
-            raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
+        if contact.rough and self.hist_words < SLOT_ROUGH:
+            raise ValueError("an ellipsoid ensemble built for frictionless scenes cannot switch a scene to rough "
+                             "contacts (the list slots hold no spring)")
         super()._set_scene_contact(s, contact)
-        self.spd_h[s, E_TOL] = self.dtype(PW_TOL[contact.precision])
-        self.spd_h[s, E_SCR] = self.dtype(PW_SCREEN[contact.precision])
+        c = self.dtype
+        self.spd_h[s, E_TOL] = c(PW_TOL[contact.precision])
+        self.spd_h[s, E_SCR] = c(PW_SCREEN[contact.precision])
+        self.spd_h[s, E_FT] = c(tangential_factor_of(contact.k_t, contact.k_n)) if contact.rough else c(0.0)
 
     def _specialise(self) -> None:
-        self.k = cuda_loop.kernels(self.shape, self.dtype, (), self.uniform, self.tpb)
+        act = [c for c, a in zip(self.contact, self.active) if a] or self.contact
+        rough = self.hist_words >= SLOT_ROUGH and any(c.rough for c in act)
+        coulomb = rough and any(c.friction is not None for c in act)
+        self.rough = rough          # the observe sums count the active rotational dof of the compiled law
+        self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb), self.uniform, self.tpb)
         self._coop_blocks = None
 
     def _prime(self, systems) -> None:
@@ -157,9 +164,9 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
 
     def _step_arrays(self) -> tuple:
         """(spin, spin_inv, list radius, ext): the angular momentum L, the principal 1/I, the bounding radius a,
-        and (axes, vel_p, omega_p, pos_prev, quat_prev) (engine/shapes/spheroid_cuda.py)."""
+        and (axes, vel_p, omega_p, pos_prev, quat_prev) (engine/shapes/spheroid/device.py)."""
         return self.angm, self.inv_i, self.radius1, (self.axes, self.vel_p, self.omega_p, self.pos_prev,
-                                                     self.quat_prev)
+                                                     self.quat_prev, self.inv_i)
 
     # ---- host copies (output steps only) -----------------------------------------------------------
 
@@ -171,12 +178,22 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
                 self.hist, self.spd, self.spf, self.spi)
 
     def _observables(self, s: int, r: list) -> dict:
-        """Scene s's keys of CpuEllipsoidBackend.observe from its observe sums r (spheroid_cuda.observe_one)."""
+        """Scene s's keys of CpuEllipsoidBackend.observe from its observe sums r (engine/shapes/spheroid/device.py: observe_one)."""
         return {"kinetic_energy_translational": r[CE.A_TR], "kinetic_energy_rotational": r[CE.A_ROT],
-                "kinetic_energy_rotational_active": r[CE.A_PERP], "rotational_dof": 2,
+                "kinetic_energy_rotational_active": r[CE.A_PERP], "rotational_dof": rotational_dof(self._scene_rough(s)),
                 "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": r[CE.A_EL],
                 "max_overlap": r[CE.A_OVL] / self._bmin[s], "momentum": (r[CE.A_PX], r[CE.A_PY], r[CE.A_PZ]),
-                **sonine_sums(r[CE.A_TR2], r[CE.A_ROT2], r[CE.A_X], DOF_ROTATION_SPHEROID)}
+                **sonine_sums(r[CE.A_TR2], r[CE.A_ROT2], r[CE.A_X], rotational_dof(self._scene_rough(s)))}
+
+    def contacts(self, k: int):
+        """As CudaEnsemble.contacts, with the scene's own history words (a frictionless scene in a rough-compiled
+        ensemble: the 5 of the CPU backend)."""
+        pairs, slots = super().contacts(k)
+        return pairs, (slots if self.contact[k].rough else slots[:, :K.HW].copy())
+
+    def _scene_rough(self, s: int) -> bool:
+        """Scene s runs the rough law (a frictionless scene may share a rough-compiled ensemble: f_t = 0)."""
+        return bool(self.rough and self.contact[s].rough)
 
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat"))
 
@@ -193,7 +210,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
 
 class CudaEllipsoidBackend(CudaBackend):
     """One ellipsoid scene on the GPU (K = 1 of :class:`CudaEllipsoidEnsemble`), with the interface of
-    :class:`engine.backends.cpu_ellipsoid.CpuEllipsoidBackend`."""
+    :class:`engine.shapes.spheroid.cpu_backend.CpuEllipsoidBackend`."""
 
     ensemble_class = CudaEllipsoidEnsemble
 

@@ -1,5 +1,5 @@
 """The spheroid shape plug-in (frictionless prolate ellipsoids, paper 003): what an ellipsoid adds to the
-shared CPU time loop (engine/backends/cpu.py ``make_run_steps``, ``make_forces``; the interface is in engine/shapes/sphere.py).
+shared CPU time loop (engine/backends/cpu.py ``make_run_steps``, ``make_forces``; the interface is in engine/shapes/sphere/kernels.py).
 
 - Broad phase: the list radius ``rad`` is the bounding-sphere radius (largest semi-axis); the force loop runs the
   Perram-Wertheim contact (engine/physics/ellipsoid.py) only for pairs whose bounding spheres overlap, behind
@@ -29,7 +29,8 @@ import numba
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.physics.contact import contact_elastic_energy, min_image
-from engine.physics.ellipsoid import PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
+from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
+from engine.physics.rough_spheroid import rough_spheroid_pair
 from engine.physics.rotation import body_omega, fincham_quat_step_body, space_omega
 
 NAME = "ellipsoid"
@@ -86,6 +87,64 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
 
 
 @numba.njit
+def mid_step_omega(i, quat, quat_prev, angm, inv_i, half):
+    """Space-frame angular velocity (rad/s) of particle i at mid-step: L(t + dt/2) (after the kick) with the
+    orientation normalize(q(t) + q(t + dt)) (second order in dt), for the rough contact's spring (the midpoint
+    rule of the sphere code)."""
+    q0 = quat_prev[i, 0] + quat[i, 0]
+    q1 = quat_prev[i, 1] + quat[i, 1]
+    q2 = quat_prev[i, 2] + quat[i, 2]
+    q3 = quat_prev[i, 3] + quat[i, 3]
+    s = (half + half) / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    return space_omega(q0 * s, q1 * s, q2 * s, q3 * s, angm[i, 0], angm[i, 1], angm[i, 2], inv_i[i, 0],
+                       inv_i[i, 1], inv_i[i, 2], half)
+
+
+@numba.njit
+def pair_law(f_t, mu, a, b, i, kk, rx, ry, rz, d_prev, vel, vel_p, spin, quat, hist, m12, k_n, gn, dt, law, ext,
+             half):
+    """The pair law of list slot kk of i for the ordered pair (a, b): frictionless (f_t None, pruned at compile
+    time: engine.physics.ellipsoid.ellipsoid_pair_screened) or rough (engine.physics.rough_spheroid.
+    rough_spheroid_pair with the slot's spring and k_t, history words 0-2 and 5, written here). Returns
+    (F_A (3), tau_A (3), tau_B (3), delta, F_dashpot, status)."""
+    inv_i = ext[0]
+    axes = ext[1]
+    omega_p = ext[2]
+    if f_t is None:
+        return ellipsoid_pair_screened(
+            rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
+            axes[a, 0], axes[a, 1], axes[a, 2],
+            quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
+            axes[b, 0], axes[b, 1], axes[b, 2],
+            vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
+            omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
+            omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
+            d_prev, hist[i, kk, 4], m12, k_n, gn, dt, law[0], law[1], law[2], half)
+    quat_prev = ext[4]
+    wa = mid_step_omega(a, quat, quat_prev, spin, inv_i, half)
+    wb = mid_step_omega(b, quat, quat_prev, spin, inv_i, half)
+    g = rough_spheroid_pair(
+        rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
+        axes[a, 0], axes[a, 1], axes[a, 2],
+        quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
+        axes[b, 0], axes[b, 1], axes[b, 2],
+        vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
+        omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
+        omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
+        vel[b, 0] - vel[a, 0], vel[b, 1] - vel[a, 1], vel[b, 2] - vel[a, 2],
+        wa[0], wa[1], wa[2], wb[0], wb[1], wb[2],
+        inv_i[a, 0], inv_i[a, 1], inv_i[a, 2], inv_i[b, 0], inv_i[b, 1], inv_i[b, 2],
+        d_prev, hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], hist[i, kk, 5],
+        m12, k_n, gn, f_t, mu, dt, law[0], law[1], law[2], half)
+    if g[15] == PAIR_DONE:
+        hist[i, kk, 0] = g[11]
+        hist[i, kk, 1] = g[12]
+        hist[i, kk, 2] = g[13]
+        hist[i, kk, 5] = g[14]
+    return g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[9], g[10], g[15]
+
+
+@numba.njit
 def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
          ext):
     """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), overlap/dashpot history updated,
@@ -94,11 +153,12 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
 
     Pairs proven disjoint by the exact screens (margin >= 0) store screened_gap (-inf) as their gap; a contact
     that starts right after such a step gets the previous gap evaluated from pos_prev/quat_prev (see
-    engine.physics.ellipsoid.ellipsoid_pair_screened). law = (tol, margin, screened_gap); ext = (inv_i, axes,
-    omega_p, pos_prev, quat_prev).
+    engine.physics.ellipsoid.ellipsoid_pair_screened). law = (tol, margin, screened_gap, f_t, mu): f_t None for
+    frictionless contacts (paper 003), else (arccos(-e_t)/pi)^2 of the rough law (:func:`pair_law`); mu None: no
+    Coulomb cap. ext = (inv_i, axes, omega_p, pos_prev, quat_prev). Both partners evaluate the pair as
+    (a, b) = (lower id, higher id): their slots hold the same (a, b) spring, bit for bit.
     """
     axes = ext[1]
-    omega_p = ext[2]
     pos_prev = ext[3]
     quat_prev = ext[4]
     tol = law[0]
@@ -116,16 +176,8 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
     m12 = 1 / (inv_m[a] + inv_m[b])
     d_prev = hist[i, kk, 3]
     for _ in range(2):
-        g = ellipsoid_pair_screened(
-            rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
-            axes[a, 0], axes[a, 1], axes[a, 2],
-            quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
-            axes[b, 0], axes[b, 1], axes[b, 2],
-            vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
-            omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
-            omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
-            d_prev, hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, law[1],
-            law[2], half)
+        g = pair_law(law[3], law[4], a, b, i, kk, rx, ry, rz, d_prev, vel, vel_p, spin, quat, hist, m12, k_n,
+                     gn_coef * math.sqrt(m12), dt, law, ext, half)
         if g[11] != PAIR_NEEDS_PREV:
             break
         # a contact starts after a screened step: the gap of that step, from its state
@@ -150,23 +202,16 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
 
 @numba.njit(cache=True)  # a plain loop over particles: the CPU backend calls it once per record
 def observe(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
-    """(E_tr, E_rot, E_rot of the two axes perpendicular to body x, contacts, elastic energy,
-    max overlap (m), P_x, P_y, P_z, S_tr2, S_rot2, S_x): the last three are the Sonine moments
-    sum e_tr,i^2, sum e_perp,i^2 and sum e_tr,i e_perp,i (J^2) with e_perp,i the energy of the two active
-    rotational dof (engine/physics/sonine.py, d = 2)."""
+    """(E_tr, E_rot, E_rot of the active dof, contacts, elastic energy, max overlap (m), P_x, P_y, P_z, S_tr2,
+    S_rot2, S_x): the last three are the Sonine moments sum e_tr,i^2, sum e_act,i^2 and sum e_tr,i e_act,i (J^2)
+    with e_act,i the energy of the active rotational dof (engine/physics/sonine.py): smooth contacts (5 history
+    words) the two axes perpendicular to body x (d = 2), rough ones (6 words) all three (d = 3)."""
     n = vel.shape[0]
-    e_tr = 0.0
-    e_rot = 0.0
-    e_perp = 0.0
+    rough = hist.shape[2] > 5
     contacts = 0
-    e_spring = 0.0
-    worst = 0.0
-    px = 0.0
-    py = 0.0
-    pz = 0.0
-    s_tr2 = 0.0
-    s_rot2 = 0.0
-    s_x = 0.0
+    e_tr = e_rot = e_perp = e_spring = worst = 0.0       # energies (J), largest overlap (m)
+    px = py = pz = 0.0                                    # momentum (kg m/s)
+    s_tr2 = s_rot2 = s_x = 0.0                            # energy moments (J^2)
     for i in range(n):
         m = mass[i]
         e_tr += 0.5 * m * (vel[i, 0] ** 2 + vel[i, 1] ** 2 + vel[i, 2] ** 2)
@@ -179,6 +224,8 @@ def observe(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
         e1 = 0.5 * wb[0] * wb[0] / inv_i[i, 0]
         ep = 0.5 * (wb[1] * wb[1] / inv_i[i, 1] + wb[2] * wb[2] / inv_i[i, 2])
         e_rot += e1 + ep
+        if rough:
+            ep = e1 + ep          # rough contacts exchange energy with all three rotational dof
         e_perp += ep
         s_tr2 += et_i * et_i
         s_rot2 += ep * ep
@@ -187,7 +234,11 @@ def observe(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
             d = hist[i, kk, 3]
             if d > 0:
                 contacts += 1
-                # each pair appears in both partners' lists; frictionless: no tangential spring
-                e_spring += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, k_n_val, 0.0, 0.5)
+                # each pair appears in both partners' lists; rough: the spring with the contact's own k_t
+                if rough:
+                    e_spring += 0.5 * contact_elastic_energy(d, hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2],
+                                                             k_n_val, hist[i, kk, 5], 0.5)
+                else:
+                    e_spring += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, k_n_val, 0.0, 0.5)
                 worst = max(worst, d)
     return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x

@@ -1,6 +1,6 @@
 """The sphere shape plug-in (papers 001, 002, 004): what a sphere adds to the shared CPU time loop.
 
-A shape module provides, for engine/backends/cpu.py's one time loop (``make_run_steps``, built from the shared
+A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/backends/cpu.py's one time loop (``make_run_steps``, built from the shared
 kick-drift ``make_step`` and force loop ``make_forces``), plain ``@numba.njit`` functions of one particle or one
 list slot:
 

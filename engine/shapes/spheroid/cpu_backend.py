@@ -1,10 +1,10 @@
-"""CPU backend for frictionless ellipsoids (paper 003): the spheroid plug-in (engine/shapes/spheroid.py) in
+"""CPU backend for ellipsoids (paper 003; frictionless, or rough with the tangential law of issue 17): the spheroid plug-in (engine/shapes/spheroid/kernels.py) in
 the shared CPU machinery (engine/backends/cpu.py: CpuLoop, make_run_steps), with the same interface as
 CpuBackend.
 
 This module holds only what is the ellipsoid's own on the host side: the state it keeps (angular momentum L
 instead of the angular velocity, semi-axes, bounding radii, the state before the step for the screens), the
-Perram-Wertheim tolerances, the observables (engine.shapes.spheroid.observe) and the conversions between L and the angular
+Perram-Wertheim tolerances, the observables (engine.shapes.spheroid.kernels.observe) and the conversions between L and the angular
 velocity. Cells, the Verlet list of bounding spheres, its slot store, the time loop and its error handling are
 the shared ones; the contact, force law and rotation step are the plug-in's (its docstring has the details:
 broad phase, exact screens, lower id as "A", Fincham's leap-frog on L).
@@ -19,10 +19,25 @@ import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the di
 
 from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.backends.cpu import CpuLoop
-from engine.backends.cpu_shared import collect_springs, restore_springs
-from engine.physics.sonine import DOF_ROTATION_SPHEROID, sonine_sums
+from engine.backends.cpu_shared import SLOT, collect_springs, restore_springs
+from engine.params import Q_SPHERE
+from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
 from engine.physics.rotation import angular_momentum, space_omega
-from engine.shapes import spheroid
+from engine.shapes.spheroid import kernels as spheroid
+
+#: history words per list slot of a rough contact: spring (3), overlap, dashpot force, the contact's k_t
+SLOT_ROUGH = SLOT + 1
+
+def rotational_dof(rough: bool) -> int:
+    """Rotational dof that exchange energy in collisions: 2 for frictionless spheroids (no torque about the
+    symmetry axis), 3 for rough ones."""
+    return DOF_ROTATION_SPHERE if rough else DOF_ROTATION_SPHEROID
+
+
+def tangential_factor_of(k_t: float, k_n: float) -> float:
+    """f = (arccos(-e_t)/pi)^2 of paper 001 Eq. 4 from the sphere-convention k_t = k_n f q/(1 + q) (q = 2/5)."""
+    return k_t * (1.0 + Q_SPHERE) / (Q_SPHERE * k_n)
+
 
 #: Newton tolerance on the Perram-Wertheim lambda per precision (bench/RESULTS.md, issue 4 section).
 PW_TOL = {"float64": 1e-15, "float32": 1e-7}
@@ -53,14 +68,14 @@ def angm_from_omega(quat, omega, inertia, half, out):
 
 
 class CpuEllipsoidBackend(CpuLoop):
-    """The CPU time loop for frictionless ellipsoids (engine/shapes/spheroid.py); interface of
-    :class:`engine.backends.cpu.CpuBackend`."""
+    """The CPU time loop for ellipsoids (engine/shapes/spheroid/kernels.py); interface of
+    :class:`engine.shapes.sphere.cpu_backend.CpuBackend`."""
 
     shape = spheroid
 
     def __init__(self, system: EllipsoidSystem, contact: ContactParams):
-        if contact.k_t is not None or contact.friction not in (None, 0.0):
-            raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
+        self.rough = contact.rough
+        self.slot_words = SLOT_ROUGH if self.rough else SLOT
         self.dtype = np.float64 if contact.precision == "float64" else np.float32
         dt_ = self.dtype
         n = system.n
@@ -101,15 +116,22 @@ class CpuEllipsoidBackend(CpuLoop):
         self._prime(system)
 
     def set_contact(self, contact: ContactParams) -> None:
-        """Switch contact constants (thermalisation -> cooling); keeps lists and contact history."""
-        if contact.k_t is not None:
-            raise ValueError("the ellipsoid backend is frictionless (paper 003): k_t must be None")
+        """Switch contact constants (thermalisation -> cooling); keeps lists and contact history.
+
+        Rough contacts (k_t given): the spheroid's own k_t of each contact follows from the factor
+        f = (arccos(-e_t)/pi)^2 of paper 001 Eq. 4, recovered from the sphere-convention k_t of ContactParams
+        (k_t = k_n f q/(1 + q), engine.params.k_t_paper), and the pair's tangential mass at the contact point
+        (engine/physics/rough_spheroid.py)."""
+        if contact.rough != self.rough:
+            raise ValueError("an ellipsoid backend keeps its contact model: rough (k_t given) or smooth throughout")
         self._set_common(contact)
         c = self.dtype
         self.tol = c(PW_TOL[contact.precision])
         self.margin = c(PW_SCREEN[contact.precision])
         self.screened_gap = c(-np.inf)
-        self._law = (self.tol, self.margin, self.screened_gap)
+        self.f_t = None if not self.rough else c(tangential_factor_of(contact.k_t, contact.k_n))
+        self.mu = None if contact.friction is None or not self.rough else c(contact.friction)
+        self._law = (self.tol, self.margin, self.screened_gap, self.f_t, self.mu)
 
     def _prime(self, system: EllipsoidSystem) -> None:
         self._build()
@@ -127,11 +149,12 @@ class CpuEllipsoidBackend(CpuLoop):
             self.vel, self.angm, self.quat, self.mass, self.inv_i, self.nn, self.hist, self.half,
             float(self.k_n))
         bmin = float(np.min(self.axes))
+        dof = rotational_dof(self.rough)
         return {"kinetic_energy_translational": float(e_tr), "kinetic_energy_rotational": float(e_rot),
-                "kinetic_energy_rotational_active": float(e_perp), "rotational_dof": 2,
+                "kinetic_energy_rotational_active": float(e_perp), "rotational_dof": dof,
                 "contacts": int(contacts), "elastic_energy": float(e_spring),
                 "max_overlap": float(worst) / bmin, "momentum": (float(px), float(py), float(pz)),
-                **sonine_sums(s_tr2, s_rot2, s_x, DOF_ROTATION_SPHEROID)}
+                **sonine_sums(s_tr2, s_rot2, s_x, dof)}
 
     def omega(self) -> np.ndarray:
         out = np.zeros((self.n, 3), self.dtype)

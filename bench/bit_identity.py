@@ -1,0 +1,67 @@
+"""Trajectory fingerprints: SHA-1 of a result file's trajectory and observables for a fixed set of specs.
+
+For refactors that must not change a bit (issue 19): run this in two checkouts and compare the printed
+digests. Only the public path (``engine.run``) and the result file (H5MD contract) are used, so it runs on any
+commit that has them. Cases: spheres smooth, rough, Coulomb, two species; frictionless ellipsoids (xi = 2).
+
+    python -m bench.bit_identity --backend cpu
+    NUMBA_ENABLE_CUDASIM=1 python -m bench.bit_identity --backend cuda      # the CUDA simulator (slow: tiny N)
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import tempfile
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+#: 64 particles, soft contacts (k_n = 1e5 N/m: dt = t_c/50 = 62 us), ~300 thermalisation + ~800 cooling steps
+TINY = dict(n_particles=64, volume_fraction=0.05, box_length=0.5, t_end=0.05, thermalization=0.2, snapshots=2,
+            velocity_rms=0.5, stiffness=1.0e5, seed=3)
+CASES = {
+    "spheres-smooth": dict(e_t=-1.0),
+    "spheres-rough": dict(e_t=0.8),
+    "spheres-coulomb": dict(e_t=0.8, friction=0.2),
+    "spheres-species": dict(e_t=0.8, species=[{"radius_ratio": 1.0, "number_fraction": 0.5},
+                                               {"radius_ratio": 0.6, "number_fraction": 0.5}]),
+    "ellipsoids-smooth": dict(shape="ellipsoid", elongation=2.0, e_t=-1.0),
+}
+DATASETS = ("particles/all/position/value", "particles/all/velocity/value", "particles/all/angular_velocity/value",
+            "particles/all/orientation/value", "observables/kinetic_energy_translational/value",
+            "observables/kinetic_energy_rotational/value", "observables/contacts/value")
+
+
+def fingerprint(path: Path) -> str:
+    h = hashlib.sha1()
+    with h5py.File(path) as f:
+        for name in DATASETS:
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(f[name][()]).tobytes())
+    return h.hexdigest()[:16]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--backend", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--cases", nargs="*", default=list(CASES))
+    args = ap.parse_args(argv)
+    from engine import run
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.cases:
+            spec = dict(TINY, backend=args.backend, **CASES[name])
+            path = Path(tmp) / f"{name}.h5"
+            run(spec, path)
+            out[name] = fingerprint(path)
+            print(f"{name:20s} {out[name]}", flush=True)
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

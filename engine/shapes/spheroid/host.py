@@ -1,0 +1,44 @@
+"""The spheroid plug-in's run-time hooks: its host-side system, the start of a spec, the result file's
+particle fields and its backend classes (looked up through engine.shapes.host by the backend factory, the
+ensembles and the job driver)."""
+
+from __future__ import annotations
+
+from engine.backends.base import EllipsoidSystem
+
+#: the host-side state a backend is built from
+SYSTEM = EllipsoidSystem
+
+
+def initial_system(spec, p) -> EllipsoidSystem:
+    """The start of an ellipsoid spec (engine.scene.initial_ellipsoids: bounding spheres placed without
+    overlap, random orientations, Maxwellian velocities, spins about the two perpendicular axes)."""
+    from engine.scene import initial_ellipsoids
+
+    return initial_ellipsoids(spec, p)
+
+
+def writer_fields(system: EllipsoidSystem, p) -> dict:
+    """The per-particle fields of the result file (engine.h5md.H5MDWriter): the semi-axes (a, b, c)."""
+    return {"radius": None, "semi_axes": system.semi_axes, "species": None}
+
+
+def cpu_backend():
+    """The CPU host class (engine/shapes/spheroid/cpu_backend.py)."""
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
+
+    return CpuEllipsoidBackend
+
+
+def cuda_ensemble():
+    """The packed CUDA ensemble (engine/shapes/spheroid/cuda_backend.py)."""
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidEnsemble
+
+    return CudaEllipsoidEnsemble
+
+
+def cuda_backend():
+    """One scene on the GPU (engine/shapes/spheroid/cuda_backend.py)."""
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
+
+    return CudaEllipsoidBackend
