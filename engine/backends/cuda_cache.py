@@ -1,11 +1,11 @@
 """On-disk cache of the factory-built CUDA kernels (issue 14: a job's time to result includes compilation).
 
 The kernels are closures over compile-time constants (precision, rough/smooth, Coulomb, orientation, ...), built
-by factories in cuda_kernels.py, cuda_loop.py (with a shape's engine/shapes/<shape>_cuda.py) and cuda_lists.py.
+by factories in cuda_kernels.py, cuda_loop.py (with a shape's engine/shapes/<shape>/device.py) and cuda_lists.py.
 numba-cuda can cache closures, but it keys them by a pickle of the closure's cell contents, which here holds
-other dispatchers whose pickles are not stable across processes, so a fresh process would compile again. :func:`cache_kernels` gives every
-kernel of a set a cache keyed instead by (the hash of every engine source the kernels compile in,
-engine.jitcache.source_digest; the factory's specialisation key; the kernel's name), stored in Numba's cache
+other dispatchers whose pickles are not stable across processes, so a fresh process would compile again.
+:func:`cache_kernels` gives every kernel of a set a cache keyed instead by (the hash of every engine source the
+kernels compile in, engine.jitcache.source_digest; the factory's specialisation key; the kernel's name), stored in Numba's cache
 folder (engine/jitcache.py). An edit to any engine source changes the key, so stale machine code is never
 loaded. Under the CUDA simulator nothing is cached.
 """

@@ -5,7 +5,7 @@ This module owns the device layout (below), the per-scene tables and status word
 the blow-up record shared by every kernel (:func:`device_helpers`, :func:`observe_reducer`), and the
 single-grid neighbour-list kernels (:func:`grid_kernels`: cells, scan, scatter, per-cell id sort, permutation,
 compact history store, full Verlet list build; the cell arithmetic is engine/cells.py's). The time loop is
-engine/backends/cuda_loop.py's, specialised by a shape's device functions (engine/shapes/<shape>_cuda.py);
+engine/backends/cuda_loop.py's, specialised by a shape's device functions (engine/shapes/<shape>/device.py);
 the multigrid and CPU-built lists are engine/backends/cuda_lists.py's. Kernels are built by factories keyed on
 what the scenes need (DESIGN §1) and call the same ``@numba.njit`` functions as the CPU backend.
 
@@ -25,8 +25,8 @@ sort never moves a particle into another scene's range); ``sc[i]`` is the scene 
     the same forces bit for bit (a pair apart at the previous step has zero spring, and its previous
     dashpot force is never read). This keeps one list buffer instead of two (issue 3's memory target).
 Per-scene constants: spd (K, ND + the shape's columns) in the working precision, spf (K, NF) float64,
-spi (K, NI) int32; a scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or failed: a blow-up
-clears it on the device so a failing scene cannot disturb the others).
+spi (K, NI) int32; a scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or
+failed: a blow-up clears it on the device so a failing scene cannot disturb the others).
 
 Status (float64): global slots S_* (rebuild decision, list stride, compaction count, multi-step exit)
 then NSS words per scene at SS0 + NSS s (first bad value, worst overlap beyond the limit).

@@ -1,6 +1,6 @@
 """The one CUDA time loop: kick-drift, forces, closing half kick, the many-steps cooperative kernel and the
 observe reduction, built once for every particle shape and specialised at compile time by the shape's device
-functions (engine/shapes/<shape>_cuda.py, ``make_cuda``; the interface is in engine/shapes/sphere/device.py).
+functions (engine/shapes/<shape>/device.py, ``make_cuda``; the interface is in engine/shapes/sphere/device.py).
 
 This module owns the step skeleton (which phase runs when, the shared translation v += F/m hk, x += v dt
 wrapped, the displacement and speed maxima that decide a list rebuild, the per-particle force accumulation

@@ -550,6 +550,8 @@ def _cli(argv=None) -> int:
     d.add_argument("--n", type=int, default=100_000, help="DSMC particles per run")
     d.add_argument("--repeats", type=int, default=8, help="independent DSMC runs per case")
     d.add_argument("--samples", type=int, default=4000, help="DEM binary collisions per temperature level")
+    d.add_argument("--unstable", action="store_true",
+                   help="compare the linearly unstable boxes too (rows after the measured shear onset marked)")
     a = sub.add_parser("analyse", help="seed-averaged series of result files of one case -> CSV")
     a.add_argument("files", nargs="+")
     a.add_argument("-o", "--output", default=None, help="CSV path (default: stdout)")
@@ -568,7 +570,7 @@ def _cli(argv=None) -> int:
 
         report = Path(args.report)
         parts = hcs_dsmc.compare(report, _spec_for(args.velocity_rms), n=args.n, repeats=args.repeats,
-                                 samples=args.samples)
+                                 samples=args.samples, unstable=args.unstable)
         hcs_dsmc.write(report, parts, "python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
         print((report / "dsmc.md").read_text())
         return 0

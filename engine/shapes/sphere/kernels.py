@@ -1,8 +1,8 @@
 """The sphere shape plug-in (papers 001, 002, 004): what a sphere adds to the shared CPU time loop.
 
-A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/backends/cpu.py's one time loop (``make_run_steps``, built from the shared
-kick-drift ``make_step`` and force loop ``make_forces``), plain ``@numba.njit`` functions of one particle or one
-list slot:
+A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/backends/cpu.py's one time loop
+(``make_run_steps``, built from the shared kick-drift ``make_step`` and force loop ``make_forces``), plain
+``@numba.njit`` functions of one particle or one list slot:
 
 - ``NAME``: the shape's name in the spec (``SimulationSpec.shape``);
 - ``EXACT_DISPLACEMENT``: False = ``rotate`` returns |v|^2 (m^2/s^2) and the loop bounds the displacement since
