@@ -211,11 +211,14 @@ def make_forces(shape):
     k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx)`` sums the forces and torques of every list slot of
     every particle (each thread owns its particles: no atomics; the full list holds each pair twice), lets the
     evaluator advance the slot's history in place, and records per chunk the largest relative overlap and its
-    particle (the stability guard). ``torque = None`` (smooth spheres): torques are neither summed nor written.
+    particle (the stability guard). ``torque = None`` (smooth spheres): torques are neither summed nor written;
+    otherwise the shape's ``torqued`` sees each particle's torque as soon as it is summed (spheres: a torque
+    that will change the spin at the next kick first brings the lazy orientation up to date).
     """
     if shape.NAME in _force_loops:
         return _force_loops[shape.NAME]
     pair = shape.pair
+    torqued = shape.torqued
 
     def compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                        k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx):
@@ -253,6 +256,7 @@ def make_forces(shape):
                     torque[i, 0] = tx
                     torque[i, 1] = ty
                     torque[i, 2] = tz
+                    torqued(i, tx, ty, tz, spin, quat, ext, dt, half)
             chunk_ovl[c] = worst
             chunk_ovl_idx[c] = worst_i
 
@@ -268,7 +272,8 @@ def make_run_steps(shape):
     ``run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
     ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
     inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg)`` advances up to nsteps
-    velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and on exit.
+    velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and on exit, and the shape's
+    ``settle`` has left nothing pending in the orientations (spheres advance theirs lazily: shapes/sphere/kernels.py).
 
     Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
     current step have been drifted but its forces not computed: the caller grows the list, rebuilds,
@@ -286,6 +291,7 @@ def make_run_steps(shape):
         return _loops[shape.NAME]
     step = make_step(shape)
     forces = make_forces(shape)
+    settle = shape.settle
     exact = bool(shape.EXACT_DISPLACEMENT)
 
     def run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
@@ -301,6 +307,7 @@ def make_run_steps(shape):
                  half, chunk_a, chunk_b)
             for c in range(chunk_b.shape[0]):
                 if chunk_b[c] >= 0:
+                    settle(spin, quat, ext, dt, half, True)
                     return BAD_VALUE, s, chunk_b[c], 0.0, builds
             m2 = 0.0
             for c in range(chunk_a.shape[0]):
@@ -331,13 +338,18 @@ def make_run_steps(shape):
                     if nn_new[i] > need:
                         need = nn_new[i]
                 if need > nbr_new.shape[1]:
+                    settle(spin, quat, ext, dt, half, True)
                     return OVERFLOW, s, -1, float(need), builds
                 copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
             forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                    k_n, gn_coef, law, dt, ext, chunk_a, chunk_b)
+            if torque is not None:
+                settle(spin, quat, ext, dt, half, False)     # what the forces' torques are about to change
             worst, who = worst_overlap(chunk_a, chunk_b)
             if worst > overlap_limit:
+                settle(spin, quat, ext, dt, half, True)
                 return OVERLAP, s, who, worst, builds
+        settle(spin, quat, ext, dt, half, True)
         half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
         return OK, nsteps, -1, 0.0, builds
 

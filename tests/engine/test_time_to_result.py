@@ -248,8 +248,8 @@ run_ensemble([{**spec, "seed": s} for s in (3, 4, 5)], [f"{out}/s{s}.h5" for s i
 
 def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
     """Frames taken through the two alternating pinned buffer slots (one scene and a packed ensemble) are the
-    CPU run's frames: the simulated CUDA backend is bit-identical to the CPU one, so any frame written from a
-    buffer that was overwritten too early would differ."""
+    CPU run's frames: the simulated CUDA backend is bit-identical to the CPU one (orientations: to rounding), so
+    any frame written from a buffer that was overwritten too early would differ."""
     from tests.cudasim import run_children
 
     res = run_children({"cpu": ["-c", _SIM_CPU, tmp_path], "cuda": ["-c", _SIM_CUDA, tmp_path]}, timeout=900)
@@ -261,7 +261,12 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
         for el in ("position", "velocity", "angular_velocity", "orientation"):
             key = f"particles/all/{el}/value"
             assert a[key].shape == b[key].shape and a[key].shape[0] in (3, 4)
-            assert np.array_equal(a[key], b[key]), (gpu, el)
+            if el == "orientation":
+                # the CPU turns a sphere's quaternion lazily (closed form of the Fincham steps since its last
+                # update), the CUDA loop step by step: equal to rounding; a stale or foreign frame is off by O(1)
+                assert np.abs(a[key] - b[key]).max() < 1e-12, (gpu, el)
+            else:
+                assert np.array_equal(a[key], b[key]), (gpu, el)
         # the records are reduced on the device in another order: equal to rounding
         assert np.allclose(a["observables/kinetic_energy_translational/value"],
                            b["observables/kinetic_energy_translational/value"], rtol=1e-12, atol=0)

@@ -12,6 +12,11 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
 - ``rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half)``: the
   shape's rotation step of particle i after the shared translation (kick hk, predicted velocity at hp = dt/2,
   drift dt); returns (displacement measure, state finite);
+- ``torqued(i, tx, ty, tz, spin, quat, ext, dt, half)``: particle i's torque as the force loop has just summed
+  it (rough shapes only; before the kick that applies it);
+- ``settle(spin, quat, ext, dt, half, everything)``: called by the loop after the forces of a rough scene
+  (``everything`` False: what ``torqued`` marked) and before it returns (True): whatever the shape's ``rotate``
+  left pending is brought up to date (spheres: lazy orientations; a shape that advances every step: nothing);
 - ``pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
   ext)``: the pair evaluator (contact geometry and force law) of list slot kk of particle i (neighbour j):
   returns (F_x, F_y, F_z, T_x, T_y, T_z, overlap relative to the pair's size or 0) on i and advances the slot's
@@ -21,7 +26,8 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
 ``spin`` is what the closing half kick advances with ``torque * spin_inv`` (spheres: the angular velocity and
 1/I), ``rad`` the list radius, ``law`` the shape's contact constants beyond k_n and gamma_n, ``ext`` its own
 extra arrays. For spheres: ``law = (k_t, mu)`` (None = smooth / no Coulomb limit: pruned at compile time,
-as are ``torque = None`` and ``quat = None``), ``ext = None``. The physics is in engine/physics/contact.py
+as are ``torque = None`` and ``quat = None``), ``ext`` = the steps since each sphere's orientation was last
+brought up to date (int64, N; zero whenever the loop has returned). The physics is in engine/physics/contact.py
 (sphere_contact, sphere_contact_end), engine/physics/integrate.py and engine/physics/rotation.py.
 Array layout: (N, 3) / (N, 4) rows per particle, the CPU backend's.
 """
@@ -31,13 +37,14 @@ from __future__ import annotations
 import math
 
 import numba
+from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import kick
-from engine.physics.rotation import fincham_quat_step_space
+from engine.physics.rotation import fincham_quat_steps_space
 
 NAME = "sphere"
 EXACT_DISPLACEMENT = False
@@ -52,8 +59,13 @@ def pre_step(i, pos, quat, ext):
 @numba.njit
 def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
     """The sphere's half of the kick-drift of particle i after the shared translation (v += F/m hk, predicted
-    v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), the orientation
-    advanced by Fincham's leap-frog in the space frame (when tracked). Returns (|v|^2, finite).
+    v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), and the orientation
+    (when tracked) advanced lazily: ``ext`` counts, per sphere, the steps since q was last brought up to date,
+    all turned with the spin w has now. Only when a torque is about to change w is q brought up to date
+    (marked by :func:`torqued` in the force loop, turned by :func:`settle` right after it: Fincham's space-frame
+    leap-frog over those steps in closed form, engine.physics.rotation.fincham_quat_steps_space); :func:`settle`
+    does it for every sphere when the loop returns. A free sphere does no quaternion work.
+    Returns (|v|^2, finite).
 
     The predicted end-of-step velocity: with the mid-step velocity instead, the damping force lags by dt/2,
     which acts like a stiffness change of gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at
@@ -69,13 +81,42 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
             omega[i, k] = w
             w2 += w * w
     if quat is not None:
-        q0, q1, q2, q3 = fincham_quat_step_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
-                                                 omega[i, 0], omega[i, 1], omega[i, 2], dt, half)
-        quat[i, 0] = q0
-        quat[i, 1] = q1
-        quat[i, 2] = q2
-        quat[i, 3] = q3
+        ext[i] += 1
     return v2, (v2 < 1e300) and (w2 < 1e300)
+
+
+@numba.njit
+def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
+    """The force loop has summed sphere i's torque: if it will change the spin at the next kick, mark the steps
+    pending (ext < 0) for :func:`settle`, which the loop calls right after the forces. Only a mark here: a call
+    that may reach the trigonometric catch-up slows the force loop fourfold even when it is never taken."""
+    if quat is not None:
+        if ext[i] > 0 and (tx != 0 or ty != 0 or tz != 0):
+            ext[i] = -ext[i]
+
+
+@numba.njit
+def _catch_up(i, omega, quat, ext, dt, half):
+    """Bring sphere i's orientation up to date: |ext[i]| steps with its present spin, then none pending."""
+    k = ext[i] if ext[i] > 0 else -ext[i]
+    q0, q1, q2, q3 = fincham_quat_steps_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+                                              omega[i, 0], omega[i, 1], omega[i, 2], dt, k, half)
+    quat[i, 0] = q0
+    quat[i, 1] = q1
+    quat[i, 2] = q2
+    quat[i, 3] = q3
+    ext[i] = 0
+
+
+@numba.njit(parallel=True)
+def settle(spin, quat, ext, dt, half, everything):
+    """Orientations brought up to date: those marked by :func:`torqued` (the loop calls this after every force
+    evaluation, before the kick that changes their spin), or every sphere's (``everything``: before the loop
+    returns, so that the state the host sees and the closing half kick find no step pending)."""
+    if quat is not None:
+        for i in prange(quat.shape[0]):
+            if ext[i] < 0 or (everything and ext[i] > 0):
+                _catch_up(i, spin, quat, ext, dt, half)
 
 
 @numba.njit

@@ -87,6 +87,19 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
 
 
 @numba.njit
+def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
+    """Nothing to do when a torque is summed (the spheroid kicks L and turns q at every step)."""
+    return
+
+
+@numba.njit
+def settle(spin, quat, ext, dt, half, everything):
+    """Nothing pending when the loop returns: a spheroid's orientation is advanced at every step (its w changes
+    between contacts)."""
+    return
+
+
+@numba.njit
 def mid_step_omega(i, quat, quat_prev, angm, inv_i, half):
     """Space-frame angular velocity (rad/s) of particle i at mid-step: L(t + dt/2) (after the kick) with the
     orientation normalize(q(t) + q(t + dt)) (second order in dt), for the rough contact's spring (the midpoint
