@@ -273,7 +273,8 @@ def make_run_steps(shape):
     ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
     inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg)`` advances up to nsteps
     velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and on exit, and the shape's
-    ``settle`` has left nothing pending in the orientations (spheres advance theirs lazily: shapes/sphere/kernels.py).
+    ``settle`` has left nothing pending in the orientations (spheres turn theirs lazily:
+    engine/shapes/sphere/kernels.py).
 
     Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
     current step have been drifted but its forces not computed: the caller grows the list, rebuilds,
@@ -307,7 +308,8 @@ def make_run_steps(shape):
                  half, chunk_a, chunk_b)
             for c in range(chunk_b.shape[0]):
                 if chunk_b[c] >= 0:
-                    settle(spin, quat, ext, dt, half, True)
+                    if quat is not None:
+                        settle(spin, quat, ext, dt, half, True)
                     return BAD_VALUE, s, chunk_b[c], 0.0, builds
             m2 = 0.0
             for c in range(chunk_a.shape[0]):
@@ -338,18 +340,21 @@ def make_run_steps(shape):
                     if nn_new[i] > need:
                         need = nn_new[i]
                 if need > nbr_new.shape[1]:
-                    settle(spin, quat, ext, dt, half, True)
+                    if quat is not None:
+                        settle(spin, quat, ext, dt, half, True)
                     return OVERFLOW, s, -1, float(need), builds
                 copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
             forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                    k_n, gn_coef, law, dt, ext, chunk_a, chunk_b)
-            if torque is not None:
-                settle(spin, quat, ext, dt, half, False)     # what the forces' torques are about to change
+            if torque is not None and quat is not None:
+                settle(spin, quat, ext, dt, half, False)         # what the forces' torques are about to change
             worst, who = worst_overlap(chunk_a, chunk_b)
             if worst > overlap_limit:
-                settle(spin, quat, ext, dt, half, True)
+                if quat is not None:
+                    settle(spin, quat, ext, dt, half, True)
                 return OVERLAP, s, who, worst, builds
-        settle(spin, quat, ext, dt, half, True)
+        if quat is not None:
+            settle(spin, quat, ext, dt, half, True)
         half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
         return OK, nsteps, -1, 0.0, builds
 
