@@ -309,7 +309,7 @@ def make_run_steps(shape):
             for c in range(chunk_b.shape[0]):
                 if chunk_b[c] >= 0:
                     if quat is not None:
-                        settle(spin, quat, ext, dt, half, True)
+                        settle(spin, quat, ext, dt, half)
                     return BAD_VALUE, s, chunk_b[c], 0.0, builds
             m2 = 0.0
             for c in range(chunk_a.shape[0]):
@@ -341,20 +341,18 @@ def make_run_steps(shape):
                         need = nn_new[i]
                 if need > nbr_new.shape[1]:
                     if quat is not None:
-                        settle(spin, quat, ext, dt, half, True)
+                        settle(spin, quat, ext, dt, half)
                     return OVERFLOW, s, -1, float(need), builds
                 copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
             forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                    k_n, gn_coef, law, dt, ext, chunk_a, chunk_b)
-            if torque is not None and quat is not None:
-                settle(spin, quat, ext, dt, half, False)         # what the forces' torques are about to change
             worst, who = worst_overlap(chunk_a, chunk_b)
             if worst > overlap_limit:
                 if quat is not None:
-                    settle(spin, quat, ext, dt, half, True)
+                    settle(spin, quat, ext, dt, half)
                 return OVERLAP, s, who, worst, builds
         if quat is not None:
-            settle(spin, quat, ext, dt, half, True)
+            settle(spin, quat, ext, dt, half)
         half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
         return OK, nsteps, -1, 0.0, builds
 

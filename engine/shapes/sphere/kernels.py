@@ -14,8 +14,7 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
   drift dt); returns (displacement measure, state finite);
 - ``torqued(i, tx, ty, tz, spin, quat, ext, dt, half)``: particle i's torque as the force loop has just summed
   it (rough shapes only; before the kick that applies it);
-- ``settle(spin, quat, ext, dt, half, everything)``: called by the loop after the forces of a rough scene
-  (``everything`` False: what ``torqued`` marked) and before it returns (True): whatever the shape's ``rotate``
+- ``settle(spin, quat, ext, dt, half)``: called by the loop before it returns: whatever the shape's ``rotate``
   left pending is brought up to date (spheres: lazy orientations; a shape that advances every step: nothing);
 - ``pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
   ext)``: the pair evaluator (contact geometry and force law) of list slot kk of particle i (neighbour j):
@@ -50,21 +49,21 @@ NAME = "sphere"
 EXACT_DISPLACEMENT = False
 
 
-@numba.njit
+@numba.njit(inline="always")
 def pre_step(i, pos, quat, ext):
     """Nothing to keep from before the step (spheres)."""
     return
 
 
-@numba.njit
+@numba.njit(inline="always")
 def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
     """The sphere's half of the kick-drift of particle i after the shared translation (v += F/m hk, predicted
     v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), and the orientation
     (when tracked) advanced lazily: ``ext`` counts, per sphere, the steps since q was last brought up to date,
     all turned with the spin w has now. Only when a torque is about to change w is q brought up to date
-    (marked by :func:`torqued` in the force loop, turned by :func:`settle` right after it: Fincham's space-frame
-    leap-frog over those steps in closed form, engine.physics.rotation.fincham_quat_steps_space); :func:`settle`
-    does it for every sphere when the loop returns. A free sphere does no quaternion work.
+    (marked by :func:`torqued` in the force loop, turned here before the kick: Fincham's space-frame leap-frog
+    over those steps in closed form, engine.physics.rotation.fincham_quat_steps_space); :func:`settle` does it
+    for every sphere when the loop returns. A free sphere does no quaternion work.
     Returns (|v|^2, finite).
 
     The predicted end-of-step velocity: with the mid-step velocity instead, the damping force lags by dt/2,
@@ -75,6 +74,9 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
     omega = spin
     w2 = 0.0
     if torque is not None:
+        if quat is not None:
+            if ext[i] < 0:                       # marked by torqued: turn q before the kick changes w
+                _catch_up(i, omega, quat, ext, dt, half)
         ii = spin_inv[i]
         for k in range(3):
             w = kick(omega[i, k], torque[i, k], ii, hk)
@@ -85,11 +87,11 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
     return v2, (v2 < 1e300) and (w2 < 1e300)
 
 
-@numba.njit
+@numba.njit(inline="always")
 def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
     """The force loop has summed sphere i's torque: if it will change the spin at the next kick, mark the steps
-    pending (ext < 0) for :func:`settle`, which the loop calls right after the forces. Only a mark here: a call
-    that may reach the trigonometric catch-up slows the force loop fourfold even when it is never taken."""
+    pending (ext < 0); :func:`rotate` turns the orientation before that kick. Only a mark here: a catch-up in
+    the force loop cost it as much as the whole loop."""
     if quat is not None:
         if ext[i] > 0 and (tx != 0 or ty != 0 or tz != 0):
             ext[i] = -ext[i]
@@ -109,17 +111,16 @@ def _catch_up(i, omega, quat, ext, dt, half):
 
 
 @numba.njit(parallel=True)
-def settle(spin, quat, ext, dt, half, everything):
-    """Orientations brought up to date: those marked by :func:`torqued` (the loop calls this after every force
-    evaluation, before the kick that changes their spin), or every sphere's (``everything``: before the loop
-    returns, so that the state the host sees and the closing half kick find no step pending)."""
+def settle(spin, quat, ext, dt, half):
+    """Every sphere's orientation brought up to date (the loop calls it before it returns, so that the state the
+    host sees and the closing half kick find no step pending)."""
     if quat is not None:
         for i in prange(quat.shape[0]):
-            if ext[i] < 0 or (everything and ext[i] > 0):
+            if ext[i] != 0:
                 _catch_up(i, spin, quat, ext, dt, half)
 
 
-@numba.njit
+@numba.njit(inline="always")  # inlined into the force loop: a call would pass and refcount ~12 arrays
 def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
          ext):
     """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), slot history advanced in place,

@@ -93,7 +93,7 @@ def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
 
 
 @numba.njit
-def settle(spin, quat, ext, dt, half, everything):
+def settle(spin, quat, ext, dt, half):
     """Nothing pending when the loop returns: a spheroid's orientation is advanced at every step (its w changes
     between contacts)."""
     return
