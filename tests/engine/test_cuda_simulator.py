@@ -15,8 +15,9 @@ from tests.cudasim import run_children
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def tiny_system(n_side=3, seed=1):
-    """27 spheres on a lattice with small gaps: contacts start within ~20 steps."""
+def tiny_system(n_side=3, seed=1, speed=1.0, spin=10.0):
+    """27 spheres on a lattice with small gaps: contacts start within ~20 steps (speed = 0: never, the spheres
+    only spin)."""
     from engine.backends.base import SphereSystem
 
     rng = np.random.default_rng(seed)
@@ -25,9 +26,9 @@ def tiny_system(n_side=3, seed=1):
     pos = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     n = len(pos)
     pos = pos + rng.uniform(-0.001, 0.001, size=pos.shape)
-    vel = rng.normal(size=(n, 3))
+    vel = rng.normal(size=(n, 3)) * speed
     vel -= vel.mean(0)
-    omega = rng.normal(size=(n, 3)) * 10.0
+    omega = rng.normal(size=(n, 3)) * spin
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     m = np.full(n, 1.0)

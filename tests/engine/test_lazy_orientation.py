@@ -7,9 +7,10 @@ import numba
 import numpy as np
 import pytest
 
-from engine.backends.base import ContactParams, SphereSystem
+from engine.backends.base import ContactParams
 from engine.physics.rotation import fincham_quat_step_space, fincham_quat_steps_space
 from engine.shapes.sphere.cpu_backend import CpuBackend
+from tests.engine.test_cuda_simulator import tiny_system as lattice_gas
 
 K_N = 1.0e5
 T_C = np.pi * np.sqrt(0.5 / K_N)       # unit masses: m12 = 1/2
@@ -20,24 +21,6 @@ def contact(**kw):
                 dt=T_C / 50, skin=0.02, precision="float64", orientation=True, overlap_limit=0.2)
     base.update(kw)
     return ContactParams(**base)
-
-
-def lattice_gas(n_side=3, seed=1, speed=1.0, spin=10.0):
-    """27 spheres (a = 0.1) on a lattice with small gaps; speed = 0 leaves them free (no contact ever)."""
-    rng = np.random.default_rng(seed)
-    a, spacing = 0.1, 0.204
-    g = (np.arange(n_side) + 0.5) * spacing
-    pos = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    n = len(pos)
-    pos = pos + rng.uniform(-0.001, 0.001, size=pos.shape)
-    vel = rng.normal(size=(n, 3)) * speed
-    vel -= vel.mean(0)
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    m = np.full(n, 1.0)
-    return SphereSystem(box_length=n_side * spacing, position=pos % (n_side * spacing), velocity=vel,
-                        angular_velocity=rng.normal(size=(n, 3)) * spin, orientation=q, radius=np.full(n, a),
-                        mass=m, inertia=0.4 * m * a * a)
 
 
 @numba.njit
