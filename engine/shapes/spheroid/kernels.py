@@ -37,7 +37,7 @@ NAME = "ellipsoid"
 EXACT_DISPLACEMENT = True
 
 
-@numba.njit
+@numba.njit(inline="always")
 def pre_step(i, pos, quat, ext):
     """Keep position and orientation before the step (ext[3], ext[4]) for a contact that starts after a screened
     step (engine.physics.ellipsoid.ellipsoid_pair_screened)."""
@@ -49,7 +49,7 @@ def pre_step(i, pos, quat, ext):
         pos_prev[i, k] = pos[i, k]
 
 
-@numba.njit
+@numba.njit(inline="always")
 def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
     """The ellipsoid's half of the kick-drift of particle i after the shared translation: L += tau hk, q by
     Fincham's leap-frog on the body-frame angular velocity, predicted space-frame angular velocity at t + dt
@@ -86,7 +86,7 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
     return d2, ok
 
 
-@numba.njit
+@numba.njit(inline="always")
 def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
     """Nothing to do when a torque is summed (the spheroid kicks L and turns q at every step)."""
     return
@@ -157,7 +157,7 @@ def pair_law(f_t, mu, a, b, i, kk, rx, ry, rz, d_prev, vel, vel_p, spin, quat, h
     return g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[9], g[10], g[15]
 
 
-@numba.njit
+@numba.njit(inline="always")
 def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
          ext):
     """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), overlap/dashpot history updated,
