@@ -295,9 +295,10 @@ def make_run_steps(shape):
     settle = shape.settle
     exact = bool(shape.EXACT_DISPLACEMENT)
 
-    def run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
-                  ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
-                  cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg):
+    def steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
+              ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
+              cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg):
+        # the steps themselves; run_steps settles the orientations and closes the last step, on every exit
         builds = 0
         if nsteps <= 0:
             return OK, 0, -1, 0.0, builds
@@ -308,8 +309,6 @@ def make_run_steps(shape):
                  half, chunk_a, chunk_b)
             for c in range(chunk_b.shape[0]):
                 if chunk_b[c] >= 0:
-                    if quat is not None:
-                        settle(spin, quat, ext, dt, half)
                     return BAD_VALUE, s, chunk_b[c], 0.0, builds
             m2 = 0.0
             for c in range(chunk_a.shape[0]):
@@ -340,21 +339,30 @@ def make_run_steps(shape):
                     if nn_new[i] > need:
                         need = nn_new[i]
                 if need > nbr_new.shape[1]:
-                    if quat is not None:
-                        settle(spin, quat, ext, dt, half)
                     return OVERFLOW, s, -1, float(need), builds
                 copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
             forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                    k_n, gn_coef, law, dt, ext, chunk_a, chunk_b)
             worst, who = worst_overlap(chunk_a, chunk_b)
             if worst > overlap_limit:
-                if quat is not None:
-                    settle(spin, quat, ext, dt, half)
                 return OVERLAP, s, who, worst, builds
-        if quat is not None:
-            settle(spin, quat, ext, dt, half)
-        half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
         return OK, nsteps, -1, 0.0, builds
+
+    steps = numba.njit(steps)
+
+    def run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
+                  ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
+                  cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg):
+        status, done, who, value, builds = steps(
+            nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound, ext, nbr,
+            nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box, inv_box,
+            half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg)
+        if nsteps > 0:
+            if quat is not None:
+                settle(spin, quat, ext, dt, half)        # nothing left pending, whatever the exit
+            if status == OK:
+                half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
+        return status, done, who, value, builds
 
     loop = cache_closure(numba.njit(run_steps), ("cpu.run_steps", shape.NAME))
     _loops[shape.NAME] = loop

@@ -75,11 +75,13 @@ def fincham_quat_steps_space(q0, q1, q2, q3, wx, wy, wz, dt, k, half):
     (0, w/|w|) q: the per-step scheme to rounding, at the cost of one step whatever k is. A sphere's w changes
     only in contacts, so between them its orientation is brought up to date lazily (issue 15: a free sphere
     costs no quaternion work per step). Per step theta = h |w| + (h |w|)^3 / 6 + ..., Fincham's phase error;
-    the exact rotation would have h |w|. k = 0 returns q as it is.
+    the exact rotation would have h |w|. k = 0 returns q as it is; k = 1 is :func:`fincham_quat_step_space`.
     """
-    w2 = wx * wx + wy * wy + wz * wz
     if k == 0:
         return q0, q1, q2, q3
+    if k == 1:                      # one step: the step itself (the CUDA loop's), bit for bit
+        return fincham_quat_step_space(q0, q1, q2, q3, wx, wy, wz, dt, half)
+    w2 = wx * wx + wy * wy + wz * wz
     if w2 == 0:
         return quat_normalize(q0, q1, q2, q3)
     h = dt * half

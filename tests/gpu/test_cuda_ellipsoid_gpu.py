@@ -109,13 +109,12 @@ def test_real_gpu_ellipsoid_kernels_compile_and_device_is_named():
     assert type(ens).__name__ == "CudaEllipsoidEnsemble"
 
 
-@pytest.mark.parametrize("xi,multistep", [(2.0, True), (2.0, False), (1.5, True)])
-def test_cpu_and_gpu_agree_float64_200_steps(xi, multistep):
-    """Issue 4 must-show 4: 4096 ellipsoids with contacts, 200 steps, positions within 1e-9 of L."""
+def _lockstep(system, c, multistep):
+    """The CPU and the GPU backend of one scene advanced side by side, 4 x 50 steps: (cpu, gpu, contacts after
+    each 50)."""
     from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
     from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
-    system, c = _dense(xi=xi)
     cpu, gpu = CpuEllipsoidBackend(system, c), CudaEllipsoidBackend(system, c)
     gpu.e.multistep = multistep
     contacts = []
@@ -123,6 +122,14 @@ def test_cpu_and_gpu_agree_float64_200_steps(xi, multistep):
         cpu.advance(50)
         gpu.advance(50)
         contacts.append(cpu.observe()["contacts"])
+    return cpu, gpu, contacts
+
+
+@pytest.mark.parametrize("xi,multistep", [(2.0, True), (2.0, False), (1.5, True)])
+def test_cpu_and_gpu_agree_float64_200_steps(xi, multistep):
+    """Issue 4 must-show 4: 4096 ellipsoids with contacts, 200 steps, positions within 1e-9 of L."""
+    system, c = _dense(xi=xi)
+    cpu, gpu, contacts = _lockstep(system, c, multistep)
     a, b = cpu.state(), gpu.state()
     obs, o2 = cpu.observe(), gpu.observe()
     r = _rel(a, b, system)
@@ -214,18 +221,10 @@ def test_rough_cpu_and_gpu_agree_float64_200_steps(friction, multistep):
     """Issue 17: rough spheroids (e_t = 0.5; with and without a Coulomb limit), 4096 with contacts, 200 steps:
     positions within 1e-9 of L, the list slots' springs and k_t alike."""
     from engine.params import k_t_paper
-    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
-    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
     system, c = _dense(xi=2.0)
     c = c.with_(k_t=k_t_paper(0.5, c.k_n), friction=friction)
-    cpu, gpu = CpuEllipsoidBackend(system, c), CudaEllipsoidBackend(system, c)
-    gpu.e.multistep = multistep
-    contacts = []
-    for _ in range(4):
-        cpu.advance(50)
-        gpu.advance(50)
-        contacts.append(cpu.observe()["contacts"])
+    cpu, gpu, contacts = _lockstep(system, c, multistep)
     a, b = cpu.state(), gpu.state()
     r = _rel(a, b, system)
     (pa, sa), (pb, sb) = cpu.contacts(), gpu.contacts()
