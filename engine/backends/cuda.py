@@ -75,6 +75,8 @@ class CudaEnsemble:
     hist_words = K.HW
     #: device arrays permuted into cell order at a rebuild (besides the per-particle constants)
     _permuted = ("pos", "vel", "omega", "quat", "f_cur")
+    #: int64 device arrays (N) permuted with them (spheres: the lazy orientations' marks)
+    _permuted_i64 = ("q_last",)
     #: 1-D views of other device arrays (not counted by device_bytes)
     _view_names = ("radius1", "inv_m1", "inv_i1", "mass1", "inertia1")
 
@@ -119,6 +121,7 @@ class CudaEnsemble:
         # scratch for permutations (4 rows covers the quaternion)
         self.scratch = cuda.device_array((4, n), dt_, stream=self.stream)
         self.scratch_i = cuda.device_array(n, np.int32, stream=self.stream)
+        self.scratch_l = cuda.device_array(n if self._permuted_i64 else 1, np.int64, stream=self.stream)
         self.order = cuda.device_array(n, np.int32, stream=self.stream)
         self.inv_old = cuda.device_array(n, np.int32, stream=self.stream)
         self.c_off = cuda.to_device(np.zeros(n, np.int32), stream=self.stream)
@@ -183,6 +186,8 @@ class CudaEnsemble:
         self.f_cur = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
         self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
         self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
+        # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
+        self.q_last = cuda.to_device(np.zeros(n, np.int64), stream=self.stream)
         if self.uniform:
             dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
             self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
@@ -349,6 +354,10 @@ class CudaEnsemble:
             a = getattr(self, name)
             k["gather_i32"][self._grid(n)](n, a, self.scratch_i, self.order)
             _copy(a, self.scratch_i, s)
+        for name in self._permuted_i64:
+            a = getattr(self, name)
+            k["gather_i32"][self._grid(n)](n, a, self.scratch_l, self.order)
+            _copy(a, self.scratch_l, s)
 
     def _set_status(self, slot: int, value: float) -> None:
         self.status[slot:slot + 1].copy_to_device(np.full(1, value), stream=self.stream)
@@ -495,8 +504,8 @@ class CudaEnsemble:
 
     def _step_arrays(self) -> tuple:
         """(spin, spin_inv, list radius, ext) of the time loop's kernels (engine/backends/cuda_loop.py):
-        spheres: the angular velocity, 1/I, the radius, no extra arrays."""
-        return self.omega, self.inv_i1, self.radius1, ()
+        spheres: the angular velocity, 1/I, the radius, (the lazy orientations' marks,)."""
+        return self.omega, self.inv_i1, self.radius1, (self.q_last,)
 
     def _forces(self, step: int, n: int | None = None, grid=None) -> None:
         spin, _, rad, ext = self._step_arrays()
@@ -533,6 +542,14 @@ class CudaEnsemble:
         self.k["half_kick"][grid or self._grid(n)](n, self.vel, spin, self.f_cur, self.torque, self.inv_m1,
                                                    spin_inv, self.sc, self.spd, self.spi)
 
+    def _settle(self, n: int | None = None, grid=None) -> None:
+        """The shape's end-of-call work (cuda_loop ``settle``), when it has some, at step ``steps_done``."""
+        if "settle" in self.k:
+            spin, _, _, ext = self._step_arrays()
+            n = self.n if n is None else n
+            self.k["settle"][grid or self._grid(n)](n, spin, self.quat, self.sc, self.spd, self.spi, self.steps_done,
+                                                    ext)
+
     def _run_steps(self, nmax: int, first: int, step0: int, grid=None, n: int | None = None, thr=None,
                    status=None) -> None:
         spin, spin_inv, rad, ext = self._step_arrays()
@@ -549,6 +566,7 @@ class CudaEnsemble:
         self._kick_drift(1, 0, n=0, grid=g)
         self._forces(0, n=0, grid=g)
         self._half_kick(n=0, grid=g)
+        self._settle(n=0, grid=g)
         self._observe_sums()
         if self.multistep:
             self._run_steps(1, 1, 0, grid=g, n=0, thr=1.0, status=cuda.to_device(self._fresh_status(), stream=s))
@@ -577,6 +595,7 @@ class CudaEnsemble:
             self._advance_multistep(nsteps, failed)
         else:
             self._advance_per_phase(nsteps, failed)
+        self._settle()
         self._half_kick()
         self._collect(self._read_status_now(), failed)
         return failed

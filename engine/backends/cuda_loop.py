@@ -15,6 +15,7 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
     forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf, spi,
            status, step, ext)
     half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi)
+    settle(n, spin, quat, sc, spd, spi, step, ext)       (only for a shape with ``settle_one``)
     run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad, x_ref,
               nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
     observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, acc)
@@ -102,7 +103,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             d = min_image(x - x_ref[k, i], box, inv_box, HALF)
             dsp += d * d
             v2 += v * v
-        ok = rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt)
+        ok = rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)
         if not (dsp < BIG) or not (v2 < BIG) or not ok:
             fail(status, spi, s, SS_BAD_ID, ids[i], step)
             return 0.0, 0.0
@@ -175,6 +176,15 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             for k in range(3):
                 vel[k, i] = kick(vel[k, i], force[k, i], im, hk)
             spin_kick(i, s, spin, torque, spin_inv, spd, hk)
+
+    settle_one = P.settle_one
+
+    @cuda.jit
+    def settle(n, spin, quat, sc, spd, spi, step, ext):
+        """The shape's end-of-call work (``settle_one``: spheres bring their lazy orientations up to date), before
+        the closing half kick; launched only when the shape has some."""
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            settle_one(i, sc[i], spin, quat, ext, spd, spi, step)
 
     # ---- many steps per launch (small scenes and ensembles: launch overhead paid once per chunk) -------
 
@@ -256,4 +266,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                 observe_one(a0 + li, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf)
         block_accumulate(sh, vals, acc, s)
 
-    return dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
+    k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
+    if settle_one is not None:
+        k["settle"] = settle
+    return k

@@ -51,7 +51,8 @@ def quat_rate_space(q0, q1, q2, q3, wx, wy, wz, half):
 
 @numba.njit
 def fincham_quat_step_space(q0, q1, q2, q3, wx, wy, wz, dt, half):
-    """Advance the orientation by dt given the mid-step space-frame angular velocity w(t + dt/2).
+    """Advance the orientation by dt given the mid-step space-frame angular velocity w(t + dt/2): paper 001's
+    per-step scheme for spheres, kept as the reference the tests measure :func:`sphere_quat_turn` against.
 
     Fincham's leap-frog (Mol. Sim. 8, 165 (1992)): estimate q(t + dt/2) = q(t) + dt/2 q'(t), then
     q(t + dt) = q(t) + dt q'(t + dt/2) with q'(t + dt/2) from w(t + dt/2) and q(t + dt/2);
@@ -66,31 +67,29 @@ def fincham_quat_step_space(q0, q1, q2, q3, wx, wy, wz, dt, half):
 
 
 @numba.njit
-def fincham_quat_steps_space(q0, q1, q2, q3, wx, wy, wz, dt, k, half):
-    """k steps of :func:`fincham_quat_step_space` with one space-frame angular velocity w, in closed form.
+def sphere_quat_turn(q0, q1, q2, q3, wx, wy, wz, dt, k, half):
+    """The orientation of a sphere after k steps of dt at one space-frame angular velocity w (rad/s), exactly.
 
-    One step is the linear map M = c + h W (h = dt/2, c = 1 - h^2 |w|^2 / 2, W q = (0, w) q with W^2 = -|w|^2),
-    then a renormalisation. W / |w| squares to -1, so M = rho (cos(theta) + sin(theta) W/|w|) with
-    theta = atan2(h |w|, c), and k steps are, after the renormalisation, q_k = cos(k theta) q + sin(k theta)
-    (0, w/|w|) q: the per-step scheme to rounding, at the cost of one step whatever k is. A sphere's w changes
-    only in contacts, so between them its orientation is brought up to date lazily (issue 15: a free sphere
-    costs no quaternion work per step). Per step theta = h |w| + (h |w|)^3 / 6 + ..., Fincham's phase error;
-    the exact rotation would have h |w|. k = 0 returns q as it is; k = 1 is :func:`fincham_quat_step_space`.
+    Between two changes of its spin a sphere turns about a fixed axis at a fixed rate, so
+    q(t0 + k dt) = exp(k dt/2 (0, w)) q(t0) = cos(a) q + sin(a) (0, w/|w|) q with a = k dt |w| / 2
+    (dq/dt = 1/2 (0, w) q), renormalised against rounding. This is the sphere's orientation step (issue 15):
+    the time loops call it with the spin each step had (the mid-step w of the leap-frog, as paper 001's Fincham
+    update uses), for all the steps since the orientation was last brought up to date, when a torque is about
+    to change the spin and when the loop returns. A free sphere is thus exact to rounding over any number of
+    steps (Fincham's per-step scheme, :func:`fincham_quat_step_space`, turns by atan2(h |w|, 1 - h^2 |w|^2 / 2)
+    with h = dt/2, a phase error of (h |w|)^3 / 6 per step); in contact both are second order in dt.
+    k = 0 returns q unchanged.
     """
     if k == 0:
         return q0, q1, q2, q3
-    if k == 1:                      # one step: the step itself (the CUDA loop's), bit for bit
-        return fincham_quat_step_space(q0, q1, q2, q3, wx, wy, wz, dt, half)
     w2 = wx * wx + wy * wy + wz * wz
     if w2 == 0:
         return quat_normalize(q0, q1, q2, q3)
-    h = dt * half
     wn = math.sqrt(w2)
-    c = half + half - h * h * w2 * half
-    a = k * math.atan2(h * wn, c)
+    a = (k * (dt * half)) * wn
     ca = math.cos(a)
     sa = math.sin(a) / wn
-    d0, d1, d2, d3 = quat_mul(h - h, wx, wy, wz, q0, q1, q2, q3)
+    d0, d1, d2, d3 = quat_mul(wx - wx, wx, wy, wz, q0, q1, q2, q3)
     return quat_normalize(ca * q0 + sa * d0, ca * q1 + sa * d1, ca * q2 + sa * d2, ca * q3 + sa * d3)
 
 

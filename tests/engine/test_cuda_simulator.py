@@ -122,7 +122,7 @@ def _ensemble(worst: dict) -> None:
     assert obs[3] is None
     for k, cpu in enumerate(cpus):
         a, b = cpu.state(), ens.state(k)
-        for key in ("position", "velocity", "angular_velocity"):
+        for key in ("position", "velocity", "angular_velocity", "orientation"):
             scale = np.max(np.abs(a[key])) + 1e-300
             worst[(f"ensemble scene {k}", key)] = float(np.max(np.abs(a[key] - b[key])) / scale)
         ca = cpu.observe()

@@ -15,8 +15,12 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``NOBS``, ``OBS_MAX``: the observe sums per scene and the slot that is a maximum;
   - ``translated(k, i, x_old, v, f, im, hp, ext)``: after the shared kick of component k of particle i
     (v = the new velocity, f = the force, x_old = the position before the drift);
-  - ``rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt)``: the shape's rotation step after
-    the shared translation; returns True when the rotational state is finite;
+  - ``rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)``: the shape's rotation step
+    after the shared translation (``step``: the index of the step); returns True when the rotational state is
+    finite;
+  - ``settle_one(i, s, spin, quat, ext, spd, spi, step)`` or None: what the loop does to particle i when an
+    advance call ends at ``step``, before the closing half kick (spheres: the lazy orientations brought up to
+    date); None: nothing, no kernel launched;
   - ``spin_kick(i, s, spin, torque, spin_inv, spd, hk)``: the closing half kick of the rotational state;
   - ``particle(i, s, pos, rad, inv_m, ids, spd)``: what the force loop of particle i reads once (a tuple);
   - ``pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)``: the pair
@@ -26,8 +30,8 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
     i's share of the observe sums ``vals`` (float64);
   - ``kernels``: the shape's own kernels (a dict, may be empty).
 
-Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = () (no
-extra arrays); the force phase reads the previous step's forces ``f_old`` of both partners for the predicted
+Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,):
+int64 (N), the step from which each sphere's orientation turns are pending (issue 15's lazy orientations); the force phase reads the previous step's forces ``f_old`` of both partners for the predicted
 end-of-step velocities (the double buffer of engine/backends/cuda.py). Flags: rough (tangential spring and
 torque), Coulomb limit, orientation tracked. The physics is engine/physics/contact.py (sphere_contact,
 sphere_contact_end), engine/physics/integrate.py and engine/physics/rotation.py, as on the CPU.
@@ -44,7 +48,7 @@ from numba import cuda
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import kick
-from engine.physics.rotation import fincham_quat_step_space
+from engine.physics.rotation import sphere_quat_turn
 
 #: the compile-time flags of make_cuda, in order
 FLAGS = ("rough", "coulomb", "orient")
@@ -64,7 +68,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     D_BOX, D_INVBOX, D_DT, D_HP, D_KN, D_GN, D_KT, D_MU = L.D_BOX, L.D_INVBOX, L.D_DT, L.D_HP, L.D_KN, L.D_GN, \
         L.D_KT, L.D_MU
     D_R0, D_M0, D_I0, D_IM0, D_II0 = L.D_R0, L.D_M0, L.D_I0, L.D_IM0, L.D_II0
-    I_ORIENT, F_KN, F_KT = L.I_ORIENT, L.F_KN, L.F_KT
+    I_ORIENT, I_ACTIVE, F_KN, F_KT = L.I_ORIENT, L.I_ACTIVE, L.F_KN, L.F_KT
 
     @cuda.jit(device=True)
     def translated(k, i, x_old, v, f, im, hp, ext):
@@ -72,25 +76,53 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         return
 
     @cuda.jit(device=True)
-    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt):
-        """w += tau/I hk (rough); q by Fincham's leap-frog in the space frame (when tracked)."""
+    def turn(i, omega, quat, last, step, dt):
+        """Bring sphere i's orientation up to date at step ``step``: the steps since last[i] all turned with the
+        spin it has now (sphere_quat_turn, exact), then none pending."""
+        k = step - last[i]
+        if k > 0:
+            q0, q1, q2, q3 = sphere_quat_turn(quat[0, i], quat[1, i], quat[2, i], quat[3, i],
+                                              omega[0, i], omega[1, i], omega[2, i], dt, k, HALF)
+            quat[0, i] = q0
+            quat[1, i] = q1
+            quat[2, i] = q2
+            quat[3, i] = q3
+            last[i] = step
+
+    @cuda.jit(device=True)
+    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step):
+        """w += tau/I hk (rough); the orientation (when tracked) lazily, as on the CPU
+        (engine/shapes/sphere/kernels.py ``rotate``): ext[0][i] is the step from which sphere i's turns are
+        pending, all with the spin it has; only a torque about to change that spin brings q up to date (before
+        the kick), and :func:`settle_one` when the loop returns. A free sphere reads and writes no quaternion."""
         omega = spin
         w2 = ZERO
         if ROUGH:
             ii = spd[s, D_II0] if UNIFORM else spin_inv[i]
-            for k in range(3):
-                w = kick(omega[k, i], torque[k, i], ii, hk)
-                omega[k, i] = w
-                w2 += w * w
-        if ORIENT:
-            if spi[s, I_ORIENT] != 0:
-                q0, q1, q2, q3 = fincham_quat_step_space(quat[0, i], quat[1, i], quat[2, i], quat[3, i],
-                                                         omega[0, i], omega[1, i], omega[2, i], dt, HALF)
-                quat[0, i] = q0
-                quat[1, i] = q1
-                quat[2, i] = q2
-                quat[3, i] = q3
+            tx = torque[0, i]
+            ty = torque[1, i]
+            tz = torque[2, i]
+            if ORIENT:
+                if spi[s, I_ORIENT] != 0 and (tx != ZERO or ty != ZERO or tz != ZERO):
+                    turn(i, omega, quat, ext[0], step, dt)
+            wx = kick(omega[0, i], tx, ii, hk)
+            wy = kick(omega[1, i], ty, ii, hk)
+            wz = kick(omega[2, i], tz, ii, hk)
+            omega[0, i] = wx
+            omega[1, i] = wy
+            omega[2, i] = wz
+            w2 = wx * wx + wy * wy + wz * wz
         return w2 < BIG
+
+    @cuda.jit(device=True)
+    def settle_one(i, s, spin, quat, ext, spd, spi, step):
+        """Sphere i's orientation brought up to date when the loop returns at ``step`` (before the closing half
+        kick: the pending turns had the mid-step spin); a scene that does not track orientations, or no longer
+        runs, only moves its mark."""
+        if ORIENT:
+            if spi[s, I_ACTIVE] != 0 and spi[s, I_ORIENT] != 0:
+                turn(i, spin, quat, ext[0], step, spd[s, D_DT])
+            ext[0][i] = step
 
     @cuda.jit(device=True)
     def spin_kick(i, s, spin, torque, spin_inv, spd, hk):
@@ -245,5 +277,5 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                 vals[O_MAX] = max(vals[O_MAX], delta / f64(min(ri, rj)))
 
     return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, NOBS=NOBS, OBS_MAX=O_MAX, translated=translated,
-                           rotate=rotate, spin_kick=spin_kick, particle=particle, pair=pair,
+                           rotate=rotate, settle_one=settle_one if ORIENT else None, spin_kick=spin_kick, particle=particle, pair=pair,
                            observe_one=observe_one, kernels={})

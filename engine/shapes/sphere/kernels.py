@@ -43,7 +43,7 @@ import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the di
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
                                     sphere_contact_end)
 from engine.physics.integrate import kick
-from engine.physics.rotation import fincham_quat_steps_space
+from engine.physics.rotation import sphere_quat_turn
 
 NAME = "sphere"
 EXACT_DISPLACEMENT = False
@@ -61,8 +61,8 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
     v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), and the orientation
     (when tracked) advanced lazily: ``ext`` counts, per sphere, the steps since q was last brought up to date,
     all turned with the spin w has now. Only when a torque is about to change w is q brought up to date
-    (marked by :func:`torqued` in the force loop, turned here before the kick: Fincham's space-frame leap-frog
-    over those steps in closed form, engine.physics.rotation.fincham_quat_steps_space); :func:`settle` does it
+    (marked by :func:`torqued` in the force loop, turned here before the kick: the exact rotation over those
+    steps, engine.physics.rotation.sphere_quat_turn); :func:`settle` does it
     for every sphere when the loop returns. A free sphere does no quaternion work.
     Returns (|v|^2, finite).
 
@@ -101,8 +101,8 @@ def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
 def _catch_up(i, omega, quat, ext, dt, half):
     """Bring sphere i's orientation up to date: |ext[i]| steps with its present spin, then none pending."""
     k = ext[i] if ext[i] > 0 else -ext[i]
-    q0, q1, q2, q3 = fincham_quat_steps_space(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
-                                              omega[i, 0], omega[i, 1], omega[i, 2], dt, k, half)
+    q0, q1, q2, q3 = sphere_quat_turn(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+                                      omega[i, 0], omega[i, 1], omega[i, 2], dt, k, half)
     quat[i, 0] = q0
     quat[i, 1] = q1
     quat[i, 2] = q2

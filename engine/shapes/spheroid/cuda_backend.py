@@ -52,6 +52,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
     shape = "ellipsoid"
     _ND = K.ND + CE.NCOL
     _permuted = ("pos", "vel", "angm", "quat", "vel_p", "omega_p", "pos_prev", "quat_prev")
+    _permuted_i64 = ()
     _view_names = ("radius1", "inv_m1")
 
     def __init__(self, systems: list, contacts: list):

@@ -78,7 +78,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
         ext[1][k, i] = kick(v, f, im, hp)
 
     @cuda.jit(device=True)
-    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt):
+    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step):
         """L += tau hk; q by Fincham's leap-frog with L(t) = L - tau dt/2 and L(t + dt/2) = L
         (engine/shapes/spheroid/kernels.py: rotate); predicted space-frame w at t + dt into omega_p; the
         orientation before the step into quat_prev. True when L and q are finite."""
@@ -335,5 +335,5 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
                     hist[3, kk, i] = ZERO
 
     return SimpleNamespace(PREDICTS=True, TORQUE=True, NOBS=NACC, OBS_MAX=A_OVL, translated=translated,
-                           rotate=rotate, spin_kick=spin_kick, particle=particle, pair=pair,
+                           rotate=rotate, settle_one=None, spin_kick=spin_kick, particle=particle, pair=pair,
                            observe_one=observe_one, kernels=dict(clamp_history=clamp_history))
