@@ -1,0 +1,89 @@
+"""GPU time per step phase, kernel by kernel (issue 15: what the lazy sphere orientations save in kick_drift).
+
+A diagnostic of the one-launch-per-phase loop, less noisy than the phase shares of bench/gpu_scaling.py (CUDA
+events around the phases of whole steps, host waits included): on the paper-001 rough scene (lattice start,
+phi = 0.058, e_t = 0.5, Coulomb 0.5, orientations tracked), after ``--warm-s`` seconds of steps (lists and
+contacts settle, the GPU's clocks ramp up: without it the first scene timed in a process ran up to 40 % slow), it
+times ``--launches`` back-to-back launches of kick_drift alone, then of forces alone, with CUDA events (GPU time
+per launch), and the whole loop: N x steps / wall of ``advance`` (the loop Cundall number; bench/e2e.py gives the
+end-to-end one). One JSON line per (precision, N).
+
+    python3 bench/step_phases.py --n 2097152 16777216 --precision float64 float32
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+
+def measure(n: int, precision: str, launches: int, loop_steps: int, warm_s: float) -> dict:
+    from numba import cuda
+
+    from bench.gpu_scaling import lattice_scene
+    from engine.backends.cuda import CudaBackend
+
+    system, c = lattice_scene(n, 0.058, precision)
+    be = CudaBackend(system, c)
+    del system
+    e = be.e
+    e.multistep = False
+    be.warmup()
+    be.advance(50)
+    t = time.perf_counter()
+    while time.perf_counter() - t < warm_s:   # the GPU's clocks ramp up under load: time it at speed
+        be.advance(50)
+    cuda.synchronize()
+    out = dict(n=n, precision=precision, gpu=e.device, launches=launches)
+    for name in ("kick_drift", "forces"):
+        ms = []
+        for _ in range(3):
+            a, b = cuda.event(timing=True), cuda.event(timing=True)
+            a.record(e.stream)
+            for j in range(launches):
+                step = e.steps_done + j
+                if name == "kick_drift":
+                    e._kick_drift(0, step)
+                else:
+                    e._forces(step)
+            b.record(e.stream)
+            b.synchronize()
+            ms.append(cuda.event_elapsed_time(a, b) / launches)
+        out[name + "_ms"] = float(np.median(ms))
+    be.advance(10)
+    walls = []
+    for _ in range(5):
+        t = time.perf_counter()
+        be.advance(loop_steps)
+        walls.append(time.perf_counter() - t)
+    out["loop_cundall"] = n * loop_steps / float(np.median(walls))
+    out["loop_ms_per_step"] = 1e3 * float(np.median(walls)) / loop_steps
+    out["kick_drift_share"] = out["kick_drift_ms"] / (out["kick_drift_ms"] + out["forces_ms"])
+    out["contacts_per_particle"] = be.observe()["contacts"] / n
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, nargs="*", default=[2097152, 16777216])
+    ap.add_argument("--precision", nargs="*", default=["float64", "float32"])
+    ap.add_argument("--launches", type=int, default=200)
+    ap.add_argument("--loop-steps", type=int, default=300)
+    ap.add_argument("--warm-s", type=float, default=3.0, help="seconds of steps before timing (clock ramp-up)")
+    ap.add_argument("--label", default="")
+    args = ap.parse_args()
+    for prec in args.precision:
+        for n in args.n:
+            r = measure(n, prec, args.launches, args.loop_steps, args.warm_s)
+            r["label"] = args.label
+            print(json.dumps(r), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, ".")
+    sys.exit(main())
