@@ -158,7 +158,7 @@ def make_step(shape):
     """The one CPU kick-drift, specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
 
     ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-    chunk_a, chunk_b)``: per particle, the shape's ``pre_step``, then the shared translation v += F/m hk,
+    chunk_a, chunk_b, s)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``, then the shared translation v += F/m hk,
     predicted end-of-step velocity v + F/m dt/2 (the normal dashpot's), x += v dt wrapped into the box, then
     the shape's ``rotate``, which returns the particle's displacement measure (module docstring of
     engine/shapes/sphere/kernels.py: |v|^2 or the exact squared displacement) and whether its state is finite. Per
@@ -170,7 +170,7 @@ def make_step(shape):
     rotate = shape.rotate
 
     def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-             chunk_a, chunk_b):
+             chunk_a, chunk_b, s):
         n = pos.shape[0]
         nch = chunk_a.shape[0]
         hp = dt * half
@@ -190,7 +190,7 @@ def make_step(shape):
                     pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
                     v2 += v * v
                 measure, ok = rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box,
-                                     inv_box, half)
+                                     inv_box, half, s)
                 if not ok:
                     if bad < 0:
                         bad = i
@@ -211,14 +211,11 @@ def make_forces(shape):
     k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx)`` sums the forces and torques of every list slot of
     every particle (each thread owns its particles: no atomics; the full list holds each pair twice), lets the
     evaluator advance the slot's history in place, and records per chunk the largest relative overlap and its
-    particle (the stability guard). ``torque = None`` (smooth spheres): torques are neither summed nor written;
-    otherwise the shape's ``torqued`` sees each particle's torque as soon as it is summed (spheres: a torque
-    that will change the spin at the next kick first brings the lazy orientation up to date).
+    particle (the stability guard). ``torque = None`` (smooth spheres): torques are neither summed nor written.
     """
     if shape.NAME in _force_loops:
         return _force_loops[shape.NAME]
     pair = shape.pair
-    torqued = shape.torqued
 
     def compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                        k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx):
@@ -256,7 +253,6 @@ def make_forces(shape):
                     torque[i, 0] = tx
                     torque[i, 1] = ty
                     torque[i, 2] = tz
-                    torqued(i, tx, ty, tz, spin, quat, ext, dt, half)
             chunk_ovl[c] = worst
             chunk_ovl_idx[c] = worst_i
 
@@ -306,7 +302,7 @@ def make_run_steps(shape):
         for s in range(nsteps):
             hk = dt * half if s == 0 else dt
             step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box,
-                 half, chunk_a, chunk_b)
+                 half, chunk_a, chunk_b, s)
             for c in range(chunk_b.shape[0]):
                 if chunk_b[c] >= 0:
                     return BAD_VALUE, s, chunk_b[c], 0.0, builds
@@ -359,7 +355,8 @@ def make_run_steps(shape):
             half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg)
         if nsteps > 0:
             if quat is not None:
-                settle(spin, quat, ext, dt, half)        # nothing left pending, whatever the exit
+                # nothing left pending, whatever the exit (a step that stopped early had drifted already)
+                settle(spin, quat, ext, nsteps if status == OK else done + 1, dt, half)
             if status == OK:
                 half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
         return status, done, who, value, builds

@@ -26,7 +26,14 @@ def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):
         x = series[f"{case}/x_shear"]
         assert x.shape == (9,) and np.all(np.isfinite(x))
         assert abs(x[0] - 1.0) < 0.75                            # thermal noise at tau = 0
+    for case in summary:
+        # collision rate from the open contacts over Enskog's: 1 in this dilute stable box; all records of 4
+        # seeds hold ~1 contact each, so the run mean carries ~5 % of count noise (a factor-2 slip would show)
+        coll = series[f"{case}/coll"]
+        assert np.all(np.isfinite(coll)) and 0.85 < float(np.mean(coll[1:])) < 1.15, (case, np.mean(coll))
+        assert np.all(np.isfinite(series[f"{case}/dev_rate"]))
     readme = (tmp_path / "README.md").read_text()
+    assert "Collision rate against Enskog" in readme
     assert "Garzó" in readme and "Luding" in readme and "| quick e=0.8 |" in readme
     assert (tmp_path / "deviation.png").stat().st_size > 1000 and (tmp_path / "modes.png").stat().st_size > 1000
     # the analysis CLI on one case's result files: seed-mean series at the frame times
@@ -38,6 +45,35 @@ def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):
     table = np.array([[float(v) for v in r.split(",")] for r in rows[1:]])
     assert np.all(np.isfinite(table))
     assert np.allclose(table[:, 6], series["quick e=0.8/x_shear"], rtol=1e-4)
+
+
+def test_contact_duration_is_how_long_the_engine_keeps_two_spheres_in_contact():
+    """The collision-rate measure divides the open contacts by pi/omega: check it against two real spheres."""
+    from types import SimpleNamespace
+
+    from engine.backends.base import ContactParams, SphereSystem
+    from engine.params import gamma_n_from_restitution
+    from engine.shapes.sphere.cpu_backend import CpuBackend
+
+    k_n, m, a, e_n = 1.0e5, 1.0e-2, 0.01, 0.6
+    m12 = m / 2
+    gamma = gamma_n_from_restitution(e_n, k_n, m12)
+    t_c = hcs_long.contact_duration(SimpleNamespace(gamma_n=gamma, m12=m12, omega0=math.sqrt(k_n / m12)))
+    assert t_c > math.pi * math.sqrt(m12 / k_n)                  # damping lengthens it
+    dt = t_c / 400
+    system = SphereSystem(box_length=1.0, position=np.array([[0.5 - a - 1e-6, 0.5, 0.5], [0.5 + a + 1e-6, 0.5, 0.5]]),
+                          velocity=np.array([[0.5, 0.1, 0.0], [-0.5, 0.0, 0.0]]), angular_velocity=np.zeros((2, 3)),
+                          orientation=np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)), radius=np.full(2, a), mass=np.full(2, m),
+                          inertia=np.full(2, 0.4 * m * a * a))
+    be = CpuBackend(system, ContactParams(k_n=k_n, gamma_n_coef=gamma / math.sqrt(m12), k_t=None, friction=None,
+                                          dt=dt, skin=0.2 * a, precision="float64", orientation=False,
+                                          overlap_limit=0.5))
+    steps_in_contact = 0
+    for _ in range(800):
+        be.advance(1)
+        steps_in_contact += be.observe()["contacts"]
+    # the overlap opens within the first step (gap 1e-6 m at 1 m/s) and closes within a step of pi/omega
+    assert abs(steps_in_contact * dt - t_c) <= 2 * dt, (steps_in_contact, t_c / dt)
 
 
 def test_quick_checks_fail_on_a_deviating_or_clustered_case():

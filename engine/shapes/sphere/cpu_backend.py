@@ -50,8 +50,8 @@ class CpuBackend(CpuLoop):
         self.x_ref = self.pos.copy()
         self.vel_p = self.vel.copy()      # predicted end-of-step velocities (see shapes/sphere.kick_drift)
         self._rad_list = self.radius
-        # ext: steps since each sphere's orientation was last brought up to date (shapes/sphere/kernels.py
-        # rotate/settle); zero whenever the time loop has returned
+        # ext: the step of the loop's call from which each sphere's orientation turns are pending
+        # (shapes/sphere/kernels.py rotate/settle); zero whenever the time loop has returned
         self._lag = np.zeros(n, np.int64)
         self._spin, self._spin_inv, self._ext = self.omega, self.inv_i, self._lag
         self._init_loop(n, float(np.max(system.radius)) if n else 0.0,

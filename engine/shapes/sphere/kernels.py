@@ -9,13 +9,12 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
   the last list build by sum max|v| dt (the exact displacement is read only when the bound passes L_v/2);
   True = ``rotate`` returns the exact squared displacement since the last build (m^2);
 - ``pre_step(i, pos, quat, ext)``: anything to keep from before particle i's step;
-- ``rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half)``: the
+- ``rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s)``: the
   shape's rotation step of particle i after the shared translation (kick hk, predicted velocity at hp = dt/2,
-  drift dt); returns (displacement measure, state finite);
-- ``torqued(i, tx, ty, tz, spin, quat, ext, dt, half)``: particle i's torque as the force loop has just summed
-  it (rough shapes only; before the kick that applies it);
-- ``settle(spin, quat, ext, dt, half)``: called by the loop before it returns: whatever the shape's ``rotate``
-  left pending is brought up to date (spheres: lazy orientations; a shape that advances every step: nothing);
+  drift dt) in step s of the loop's call (0, 1, ...); returns (displacement measure, state finite);
+- ``settle(spin, quat, ext, drifted, dt, half)``: called by the loop before it returns, after ``drifted``
+  kick-drifts in the call: whatever the shape's ``rotate`` left pending is brought up to date (spheres: lazy
+  orientations; a shape that advances every step: nothing);
 - ``pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
   ext)``: the pair evaluator (contact geometry and force law) of list slot kk of particle i (neighbour j):
   returns (F_x, F_y, F_z, T_x, T_y, T_z, overlap relative to the pair's size or 0) on i and advances the slot's
@@ -25,8 +24,8 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
 ``spin`` is what the closing half kick advances with ``torque * spin_inv`` (spheres: the angular velocity and
 1/I), ``rad`` the list radius, ``law`` the shape's contact constants beyond k_n and gamma_n, ``ext`` its own
 extra arrays. For spheres: ``law = (k_t, mu)`` (None = smooth / no Coulomb limit: pruned at compile time,
-as are ``torque = None`` and ``quat = None``), ``ext`` = the steps since each sphere's orientation was last
-brought up to date (int64, N; zero whenever the loop has returned). The physics is in engine/physics/contact.py
+as are ``torque = None`` and ``quat = None``), ``ext`` = the step of the loop's call from which each sphere's
+orientation turns are pending (int64, N; zero whenever the loop has returned). The physics is in engine/physics/contact.py
 (sphere_contact, sphere_contact_end), engine/physics/integrate.py and engine/physics/rotation.py.
 Array layout: (N, 3) / (N, 4) rows per particle, the CPU backend's.
 """
@@ -56,15 +55,14 @@ def pre_step(i, pos, quat, ext):
 
 
 @numba.njit(inline="always")
-def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
-    """The sphere's half of the kick-drift of particle i after the shared translation (v += F/m hk, predicted
-    v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), and the orientation
-    (when tracked) advanced lazily: ``ext`` counts, per sphere, the steps since q was last brought up to date,
-    all turned with the spin w has now. Only when a torque is about to change w is q brought up to date
-    (marked by :func:`torqued` in the force loop, turned here before the kick: the exact rotation over those
-    steps, engine.physics.rotation.sphere_quat_turn); :func:`settle` does it
-    for every sphere when the loop returns. A free sphere does no quaternion work.
-    Returns (|v|^2, finite).
+def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
+    """The sphere's half of the kick-drift of particle i in step s of the call, after the shared translation (v +=
+    F/m hk, predicted v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), and the
+    orientation (when tracked) lazily, as the GPU does (engine/shapes/sphere/device.py): ``ext[i]`` is the step
+    of the call from which sphere i's turns are pending, all with the spin it has now. Only a torque about to
+    change that spin brings q up to date, here before the kick (the exact rotation over those steps,
+    engine.physics.rotation.sphere_quat_turn); :func:`settle` does it for every sphere when the loop returns. A
+    free sphere does no orientation work at all. Returns (|v|^2, finite).
 
     The predicted end-of-step velocity: with the mid-step velocity instead, the damping force lags by dt/2,
     which acts like a stiffness change of gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at
@@ -74,50 +72,47 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
     omega = spin
     w2 = 0.0
     if torque is not None:
+        tx = torque[i, 0]
+        ty = torque[i, 1]
+        tz = torque[i, 2]
         if quat is not None:
-            if ext[i] < 0:                       # marked by torqued: turn q before the kick changes w
-                _catch_up(i, omega, quat, ext, dt, half)
+            if tx != 0 or ty != 0 or tz != 0:    # the kick will change w: turn q with the w it had first
+                _catch_up(i, omega, quat, ext, s, dt, half)
         ii = spin_inv[i]
-        for k in range(3):
-            w = kick(omega[i, k], torque[i, k], ii, hk)
-            omega[i, k] = w
-            w2 += w * w
-    if quat is not None:
-        ext[i] += 1
+        wx = kick(omega[i, 0], tx, ii, hk)
+        wy = kick(omega[i, 1], ty, ii, hk)
+        wz = kick(omega[i, 2], tz, ii, hk)
+        omega[i, 0] = wx
+        omega[i, 1] = wy
+        omega[i, 2] = wz
+        w2 = wx * wx + wy * wy + wz * wz
     return v2, (v2 < 1e300) and (w2 < 1e300)
 
 
-@numba.njit(inline="always")
-def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
-    """The force loop has summed sphere i's torque: if it will change the spin at the next kick, mark the steps
-    pending (ext < 0); :func:`rotate` turns the orientation before that kick. Only a mark here: a catch-up in
-    the force loop cost it as much as the whole loop."""
-    if quat is not None:
-        if ext[i] > 0 and (tx != 0 or ty != 0 or tz != 0):
-            ext[i] = -ext[i]
-
-
 @numba.njit
-def _catch_up(i, omega, quat, ext, dt, half):
-    """Bring sphere i's orientation up to date: |ext[i]| steps with its present spin, then none pending."""
-    k = ext[i] if ext[i] > 0 else -ext[i]
-    q0, q1, q2, q3 = sphere_quat_turn(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
-                                      omega[i, 0], omega[i, 1], omega[i, 2], dt, k, half)
-    quat[i, 0] = q0
-    quat[i, 1] = q1
-    quat[i, 2] = q2
-    quat[i, 3] = q3
-    ext[i] = 0
+def _catch_up(i, omega, quat, ext, s, dt, half):
+    """Bring sphere i's orientation up to step s of the call: the s - ext[i] steps pending, turned with its present
+    spin; then none pending."""
+    k = s - ext[i]
+    if k > 0:
+        q0, q1, q2, q3 = sphere_quat_turn(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
+                                          omega[i, 0], omega[i, 1], omega[i, 2], dt, k, half)
+        quat[i, 0] = q0
+        quat[i, 1] = q1
+        quat[i, 2] = q2
+        quat[i, 3] = q3
+        ext[i] = s
 
 
 @numba.njit(parallel=True)
-def settle(spin, quat, ext, dt, half):
-    """Every sphere's orientation brought up to date (the loop calls it before it returns, so that the state the
-    host sees and the closing half kick find no step pending)."""
+def settle(spin, quat, ext, drifted, dt, half):
+    """Every sphere's orientation brought up to date after ``drifted`` kick-drifts of the call (the loop calls it
+    before it returns, so that the state the host sees and the closing half kick find nothing pending); the marks
+    start again from 0 in the next call."""
     if quat is not None:
         for i in prange(quat.shape[0]):
-            if ext[i] != 0:
-                _catch_up(i, spin, quat, ext, dt, half)
+            _catch_up(i, spin, quat, ext, drifted, dt, half)
+            ext[i] = 0
 
 
 @numba.njit(inline="always")  # inlined into the force loop: a call would pass and refcount ~12 arrays

@@ -50,7 +50,7 @@ def pre_step(i, pos, quat, ext):
 
 
 @numba.njit(inline="always")
-def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half):
+def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
     """The ellipsoid's half of the kick-drift of particle i after the shared translation: L += tau hk, q by
     Fincham's leap-frog on the body-frame angular velocity, predicted space-frame angular velocity at t + dt
     into ext[2]. Returns (squared displacement since the last list build (m^2), finite)."""
@@ -86,14 +86,8 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
     return d2, ok
 
 
-@numba.njit(inline="always")
-def torqued(i, tx, ty, tz, spin, quat, ext, dt, half):
-    """Nothing to do when a torque is summed (the spheroid kicks L and turns q at every step)."""
-    return
-
-
 @numba.njit
-def settle(spin, quat, ext, dt, half):
+def settle(spin, quat, ext, drifted, dt, half):
     """Nothing pending when the loop returns: a spheroid's orientation is advanced at every step (its w changes
     between contacts)."""
     return
