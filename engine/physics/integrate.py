@@ -2,8 +2,10 @@
 
 A step is kick(dt/2) - drift(dt) - forces - kick(dt/2); backends fuse the closing half kick with the
 next opening one into a single full kick and split it again only where synchronous velocities are
-needed (output, checkpoints). The angular velocity of a sphere obeys the same kick (torque / I), which
-together with :func:`engine.physics.rotation.fincham_quat_step_space` is Fincham's leap-frog.
+needed (output, checkpoints). The angular velocity of a sphere obeys the same kick (torque / I); its
+orientation turns by the exact rotation of the mid-step spin (:func:`engine.physics.rotation.sphere_quat_turn`,
+applied lazily by the backends), which is at least as accurate as paper 001's Fincham leap-frog
+(:func:`engine.physics.rotation.fincham_quat_step_space`).
 """
 
 import numba
