@@ -278,6 +278,10 @@ class CudaEnsemble:
         rough = any(c.k_t is not None for c in act)
         coulomb = rough and any(c.friction is not None for c in act)
         orient = any(c.orientation for c in act)
+        if orient and not getattr(self, "_orient", True) and "q_last" in self._permuted_i64:
+            # orientations tracked from now on: nothing is pending from the steps run without them
+            self.q_last.copy_to_device(np.full(self.n, self.steps_done, np.int64), stream=self.stream)
+        self._orient = orient
         self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb, orient), self.uniform, self.tpb)
         self._coop_blocks = None
 

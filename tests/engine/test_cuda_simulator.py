@@ -94,6 +94,17 @@ def _scenes(worst: dict) -> None:
             assert abs(ca[key] - cb[key]) <= 1e-9 * abs(ca[key]) + 1e-300, (label, key, ca[key], cb[key])
         assert gpu.late_rebuilds == 0 and gpu.builds >= 2, (label, gpu.builds, gpu.late_rebuilds)
         print(label, "contacts", ca["contacts"], "builds cpu/gpu", cpu.builds, gpu.builds)
+    # orientations switched on mid-run (set_contact): the steps run without them leave nothing pending
+    c_off = contact(orientation=False)
+    cpu = CpuBackend(tiny_system(), c_off)
+    gpu = CudaBackend(tiny_system(), c_off)
+    for be in (cpu, gpu):
+        be.advance(17)
+        be.set_contact(contact())
+        be.advance(23)
+    a, b = cpu.state(), gpu.state()
+    assert np.abs(a["orientation"] - np.asarray(tiny_system().orientation)).max() > 1e-3
+    worst[("orientation switched on", "orientation")] = float(np.max(np.abs(a["orientation"] - b["orientation"])))
 
 
 def _ensemble(worst: dict) -> None:
