@@ -158,11 +158,12 @@ def make_step(shape):
     """The one CPU kick-drift, specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
 
     ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-    chunk_a, chunk_b, s)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``, then the shared translation v += F/m hk,
-    predicted end-of-step velocity v + F/m dt/2 (the normal dashpot's), x += v dt wrapped into the box, then
-    the shape's ``rotate``, which returns the particle's displacement measure (module docstring of
-    engine/shapes/sphere/kernels.py: |v|^2 or the exact squared displacement) and whether its state is finite. Per
-    chunk: the largest measure into ``chunk_a``, the first non-finite particle into ``chunk_b`` (-1: none).
+    chunk_a, chunk_b, s)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``,
+    then the shared translation v += F/m hk, predicted end-of-step velocity v + F/m dt/2 (the normal
+    dashpot's), x += v dt wrapped into the box, then the shape's ``rotate``, which returns the particle's
+    displacement measure (module docstring of engine/shapes/sphere/kernels.py: |v|^2 or the exact squared
+    displacement) and whether its state is finite. Per chunk: the largest measure into ``chunk_a``, the first
+    non-finite particle into ``chunk_b`` (-1: none).
     """
     if shape.NAME in _step_loops:
         return _step_loops[shape.NAME]

@@ -31,9 +31,10 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``kernels``: the shape's own kernels (a dict, may be empty).
 
 Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,):
-int64 (N), the step from which each sphere's orientation turns are pending (issue 15's lazy orientations); the force phase reads the previous step's forces ``f_old`` of both partners for the predicted
-end-of-step velocities (the double buffer of engine/backends/cuda.py). Flags: rough (tangential spring and
-torque), Coulomb limit, orientation tracked. The physics is engine/physics/contact.py (sphere_contact,
+int64 (N), the step from which each sphere's orientation turns are pending (issue 15's lazy orientations); the
+force phase reads the previous step's forces ``f_old`` of both partners for the predicted end-of-step velocities
+(the double buffer of engine/backends/cuda.py). Flags: rough (tangential spring and torque), Coulomb limit,
+orientation tracked. The physics is engine/physics/contact.py (sphere_contact,
 sphere_contact_end), engine/physics/integrate.py and engine/physics/rotation.py, as on the CPU.
 """
 
@@ -277,5 +278,5 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                 vals[O_MAX] = max(vals[O_MAX], delta / f64(min(ri, rj)))
 
     return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, NOBS=NOBS, OBS_MAX=O_MAX, translated=translated,
-                           rotate=rotate, settle_one=settle_one if ORIENT else None, spin_kick=spin_kick, particle=particle, pair=pair,
-                           observe_one=observe_one, kernels={})
+                           rotate=rotate, settle_one=settle_one if ORIENT else None, spin_kick=spin_kick,
+                           particle=particle, pair=pair, observe_one=observe_one, kernels={})

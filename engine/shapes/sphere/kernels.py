@@ -25,8 +25,9 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
 1/I), ``rad`` the list radius, ``law`` the shape's contact constants beyond k_n and gamma_n, ``ext`` its own
 extra arrays. For spheres: ``law = (k_t, mu)`` (None = smooth / no Coulomb limit: pruned at compile time,
 as are ``torque = None`` and ``quat = None``), ``ext`` = the step of the loop's call from which each sphere's
-orientation turns are pending (int64, N; zero whenever the loop has returned). The physics is in engine/physics/contact.py
-(sphere_contact, sphere_contact_end), engine/physics/integrate.py and engine/physics/rotation.py.
+orientation turns are pending (int64, N; zero whenever the loop has returned). The physics is in
+engine/physics/contact.py (sphere_contact, sphere_contact_end), engine/physics/integrate.py and
+engine/physics/rotation.py.
 Array layout: (N, 3) / (N, 4) rows per particle, the CPU backend's.
 """
 
