@@ -109,7 +109,27 @@ def compare(report: Path, spec_for, *, n: int = 100_000, repeats: int = 8, sampl
         soft = soft_contact_correction(spec, beta, c["R0"], tau, samples=samples)
         out[key].update(soft_T=soft["T"], soft_R=soft["R"], soft_points=soft["points"], soft_fit=soft["fit"],
                         samples=samples, velocity_rms=spec.velocity_rms)
+        if f"{key}/dev_rate" in series.files:
+            # the measured collision rate (hcs_long.collision_rate_ratio): used where it is precise
+            se = rate_window_se(tau, series[f"{key}/coll_err"])
+            out[key].update(rate_T=series[f"{key}/dev_rate"], rate_R=series[f"{key}/dev_R_rate"], rate_se=se,
+                            rate_used=bool(se <= RATE_SE_MAX))
     return out
+
+
+#: the collision-rate part enters the decomposition when the ratio's SE over tau +- 10 % windows is below this
+#: (a rate error delta shifts the ODE's T by ~2 delta at late times)
+RATE_SE_MAX = 0.015
+
+
+def rate_window_se(tau, coll_err) -> float:
+    """Median over the table's tau windows (tau +- 10 %) of the SE of the window-mean collision-rate ratio."""
+    out = []
+    for t in TABLE_TAU:
+        sel = np.abs(tau - t) <= 0.1 * t
+        if sel.any():
+            out.append(float(np.sqrt(np.sum(coll_err[sel] ** 2)) / sel.sum()))
+    return float(np.median(out)) if out else math.inf
 
 
 def _row(c: dict, i: int) -> str:
@@ -122,6 +142,8 @@ def _row(c: dict, i: int) -> str:
         cells += [f"{100 * c[f'dem_{q}'][i]:+.2f} ± {100 * c[f'dem_{q}_err'][i]:.2f}",
                   f"{100 * c[f'dsmc_{q}'][i]:+.2f} ± {100 * c[f'dsmc_{q}_err'][i]:.2f}",
                   f"{100 * c[f'soft_{q}'][i]:+.2f}", f"{100 * res:+.2f} ± {100 * err:.2f}"]
+        if c.get("rate_used"):
+            cells += [f"{100 * c[f'rate_{q}'][i]:+.2f}", f"{100 * (res - c[f'rate_{q}'][i]):+.2f} ± {100 * err:.2f}"]
     return "| " + " | ".join(cells) + " |"
 
 
@@ -141,7 +163,12 @@ def write(report: Path, res: dict, command: str) -> None:
              "by (1 + eps(T)) gives this column. The contact lasts t_c at any speed, so the normal turns by "
              "~|g| t_c/(2a) during it and grazing collisions lose more than the rule says; eps grows with "
              "the speed (v_rms = 10 m/s here) and fades as the gas cools;",
-             "- **rest** = DEM - DSMC - soft (± the DEM and DSMC errors combined): what neither explains.", ""]
+             "- **rest** = DEM - DSMC - soft (± the DEM and DSMC errors combined): what neither explains;",
+             "- **rate** (where the collision rate is measured precisely, SE <= "
+             f"{100 * RATE_SE_MAX:.1f} % per tau window): Luding's ODE run at the DEM's measured collision rate "
+             "(engine/validation/hcs_long.py collision_rate_ratio, from the contacts open at each record) minus the "
+             "ODE, and **rest - rate**. The measured rate includes the distribution's own effect on the rate "
+             "(~a2/16, a few 0.1 % at most), which the DSMC column holds too.", ""]
     for key, c in res.items():
         lines += [f"## {key} (DEM: {c['seeds']} seeds, v_rms = {c['velocity_rms']} m/s; DSMC: N = {c['n']}, "
                   f"{c['repeats']} runs; soft: {c['samples']} collisions per level)", ""]
@@ -149,7 +176,15 @@ def write(report: Path, res: dict, command: str) -> None:
             lines += [f"Linearly unstable box (L/L_c = {c['L_over_Lc']:.2f}): shear-mode energy x > 2 measured from "
                       f"tau = {c['tau_shear_measured']:.1f}; the rows from there on compare an inhomogeneous gas "
                       "with the homogeneous Boltzmann reference.", ""]
-        lines += [
+        if c.get("rate_used"):
+            lines += ["| tau | DEM T % | DSMC T % | soft T % | rest T % | rate T % | rest - rate T % | DEM R % | "
+                      "DSMC R % | soft R % | rest R % | rate R % | rest - rate R % |",
+                      "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        else:
+            if "rate_se" in c:
+                lines += [f"Collision rate not used here: its SE per tau window is {100 * c['rate_se']:.1f} % "
+                          f"(> {100 * RATE_SE_MAX:.1f} %).", ""]
+            lines += [
                   "| tau | DEM T % | DSMC T % | soft T % | rest T % | DEM R % | DSMC R % | soft R % | rest R % |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for t in TABLE_TAU:
@@ -183,6 +218,9 @@ def write(report: Path, res: dict, command: str) -> None:
                 ax.fill_between(c["tau"], y - e, y + e, color=col, alpha=0.25, lw=0)
             ax.plot(c["tau"], 100 * c[f"soft_{q}"], color="C2", ls="--", label="soft contact (binary collisions)")
             ax.plot(c["tau"], 100 * (c[f"dsmc_{q}"] + c[f"soft_{q}"]), color="C3", label="DSMC + soft")
+            if c.get("rate_used"):
+                ax.plot(c["tau"], 100 * (c[f"dsmc_{q}"] + c[f"soft_{q}"] + c[f"rate_{q}"]), color="C4",
+                        label="DSMC + soft + measured collision rate")
             ax.axhline(0, color="k", lw=0.8)
             ax.set_xlabel("tau")
             ax.set_ylabel(f"{q}: deviation from the ODE (%)")

@@ -72,3 +72,31 @@ def test_soft_contact_loss_vanishes_at_low_speed_and_grows_with_it():
     assert abs(slow["eps_tr"]) < 0.003 and abs(slow["eps_rot"]) < 0.003, slow
     assert fast["eps_tr"] > 5 * fast["eps_tr_err"] and fast["eps_tr"] > 5 * abs(slow["eps_tr"]), (slow, fast)
     assert math.isfinite(fast["eps_rot"])
+
+
+def test_decomposition_takes_the_collision_rate_only_where_it_is_precise(tmp_path):
+    """hcs_dsmc.write: the measured-rate columns (rate, rest - rate) appear for a case whose rate SE passes the
+    cut, and a case above it says why they are left out."""
+    import numpy as np
+
+    from engine.validation import hcs_dsmc
+
+    tau = np.linspace(0.0, 100.0, 401)
+    coll_err = {"precise": np.full_like(tau, 0.05), "noisy": np.full_like(tau, 0.5)}
+    res = {}
+    for key, err in coll_err.items():
+        se = hcs_dsmc.rate_window_se(tau, err)
+        z = np.zeros_like(tau)
+        res[key] = dict(e_n=0.8, beta=0.5, R0=1.0, seeds=8, tau=tau, n=1000, repeats=2, samples=10,
+                        velocity_rms=5.0, dem_T=z + 0.02, dem_T_err=z + 0.001, dem_R=z, dem_R_err=z + 0.001,
+                        dsmc_T=z, dsmc_T_err=z, dsmc_R=z, dsmc_R_err=z, soft_T=z - 0.01, soft_R=z,
+                        soft_points=[], soft_fit={"tr": dict(c=0, c_err=0, chi2=0, dof=1),
+                                                  "rot": dict(c=0, c_err=0, chi2=0, dof=1)},
+                        rate_T=z + 0.02, rate_R=z + 0.005, rate_se=se, rate_used=bool(se <= hcs_dsmc.RATE_SE_MAX))
+    # ~10 records per tau window at tau >= 5: the window SE is err / sqrt(records)
+    assert res["precise"]["rate_used"] and not res["noisy"]["rate_used"]
+    hcs_dsmc.write(tmp_path, res, "test")
+    md = (tmp_path / "dsmc.md").read_text()
+    precise, noisy = md.split("## noisy")
+    assert "rest - rate T %" in precise and "| +3.00 ± 0.10 | +2.00 | +1.00 ± 0.10 |" in precise
+    assert "rest - rate T %" not in noisy and "Collision rate not used here" in noisy
