@@ -278,7 +278,7 @@ class CudaEnsemble:
         rough = any(c.k_t is not None for c in act)
         coulomb = rough and any(c.friction is not None for c in act)
         orient = any(c.orientation for c in act)
-        if orient and not getattr(self, "_orient", True) and "q_last" in self._permuted_i64:
+        if orient and not getattr(self, "_orient", True) and getattr(self, "q_last", None) is not None:
             # orientations tracked from now on: nothing is pending from the steps run without them
             self.q_last.copy_to_device(np.full(self.n, self.steps_done, np.int64), stream=self.stream)
         self._orient = orient
@@ -358,7 +358,7 @@ class CudaEnsemble:
             a = getattr(self, name)
             k["gather_i32"][self._grid(n)](n, a, self.scratch_i, self.order)
             _copy(a, self.scratch_i, s)
-        for name in self._permuted_i64:
+        for name in self._permuted_i64:   # (gather_i32 is typed at launch: the same kernel for int64)
             a = getattr(self, name)
             k["gather_i32"][self._grid(n)](n, a, self.scratch_l, self.order)
             _copy(a, self.scratch_l, s)

@@ -130,7 +130,8 @@ def _read_run(path) -> dict:
 def contact_duration(p) -> float:
     """How long two spheres overlap in a collision (s): pi / omega with omega^2 = omega0^2 - (gamma_n / 2 m12)^2,
     the damped spring's half period (the contact ends when the overlap returns to 0, rule (a) of
-    engine/physics/contact.py), the same for every impact speed and angle (the normal motion is linear)."""
+    engine/physics/contact.py), the same for every impact speed and angle (the normal motion is linear). p: the
+    engine.params.Derived of a monodisperse spec (its m12 and gamma_n are those of the smallest pair)."""
     eta = p.gamma_n / (2.0 * p.m12)
     return math.pi / math.sqrt(p.omega0 ** 2 - eta ** 2)
 
@@ -419,16 +420,17 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
               "the paper-001 box has ~1), the smoothed ratio is count noise and so is the ODE run with it.", "",
               "| case | tau | rate / Enskog (± SE) | DEM T dev % (± SE) | ODE at the measured rate: T dev % | "
               "DEM R dev % | ODE at the measured rate: R dev % |", "|---|---|---|---|---|---|---|"]
+    from engine.validation.hcs_dsmc import window_mean
+
     for key, c in results.items():
         for tt in TABLE_TAU:
             if tt > c["tau"][-1] + 0.5:
                 break
-            sel = np.abs(c["tau"] - tt) <= 0.1 * tt
-            if not sel.any():
+            w = window_mean(c["tau"], c["coll"], c["coll_err"], tt)
+            if w is None:
                 continue
+            ratio, ratio_se = w
             i = int(np.argmin(np.abs(c["tau"] - tt)))
-            ratio = float(np.mean(c["coll"][sel]))
-            ratio_se = float(np.sqrt(np.sum(c["coll_err"][sel] ** 2)) / sel.sum())
             lines.append(f"| {key} | {c['tau'][i]:.1f} | {ratio:.4f} ± {ratio_se:.4f} | "
                          f"{100 * c['dev'][i]:+.2f} ± {100 * c['dev_err'][i]:.2f} | {100 * c['dev_rate'][i]:+.2f} | "
                          f"{100 * c['dev_R'][i]:+.2f} | {100 * c['dev_R_rate'][i]:+.2f} |")
