@@ -3,7 +3,8 @@
 Knobs (all through the public spec / backend parameters; nothing here changes an engine default):
 
 - time step dt = t_c/k, k in DT_FRACTIONS (spec field ``dt``, in seconds; the spec refuses dt > t_c/10);
-- precision float64 / float32 (spec ``precision``);
+- precision float64 / float32 / mixed (spec ``precision``; mixed = float64 positions, float32 state,
+  engine/precision.py; sphere scenes only: the ellipsoid rows run float64 and float32);
 - Verlet skin L_v in radii (spec ``verlet_skin``; its default depends on the backend and the volume
   fraction, engine.spec.default_verlet_skin): cost only, in the cooling gas and in a sweep over volume
   fractions, where the default rule's skin at each phi is compared with the fastest;
@@ -77,7 +78,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 DT_FRACTIONS = (10, 20, 35, 50, 100, 200)
-PRECISIONS = ("float64", "float32")
+PRECISIONS = ("float64", "float32", "mixed")
+#: the ellipsoid contact solver's precisions (no mixed variant: engine/precision.py)
+ELLIPSOID_PRECISIONS = ("float64", "float32")
 SKINS = (0.1, 0.2, 0.4, 0.8, 1.6)
 PW_TOLS = {"float64": (1e-15, 1e-13, 1e-12, 1e-10, 1e-8, 1e-6), "float32": (1e-7, 1e-6, 1e-5, 1e-4)}
 #: engine defaults (engine/params.py: dt = t_c/50; engine/spec.py: float64, verlet_skin = 0.4;
@@ -668,7 +671,7 @@ def build_ellipsoid(size: Size, reps: int, tmp: Path, log) -> dict:
     rows, paper_rows = [], []
     saved = dict(cpu_ellipsoid.PW_TOL)
     try:
-        for prec in PRECISIONS:
+        for prec in ELLIPSOID_PRECISIONS:
             dtype = np.float64 if prec == "float64" else np.float32
 
             def c(x, dtype=dtype):
@@ -823,7 +826,7 @@ def plot(panels: list, path: Path, backend: str = "cpu") -> None:
 
         def yv(r, ymin=ymin):
             return max(r[ykey], ymin)
-        for prec, mk in (("float64", "o"), ("float32", "s")):
+        for prec, mk in (("float64", "o"), ("float32", "s"), ("mixed", "^")):
             for kind, color in (("dt", "C0"), ("skin", "C2"), ("tol", "C4")):
                 pts = [r for r in rows if r["precision"] == prec and _kind(r) == kind]
                 if pts:
@@ -1199,13 +1202,16 @@ def advice(res: dict) -> list:
                    f"so by this criterion the default t_c/{d['dt_fraction']} is not the cheapest choice")
             out.append(f"- The cheapest float64 dt whose worst restitution error stays below 1e-3 (the issue-2 "
                        f"tolerance) down to e_n = {E_N_LOW} is t_c/{best} ({_e(ok[0]['error'])}), {why}.")
-    c32 = pick("collisions", d["dt_fraction"], "float32")
-    k32 = pick("cooling", d["dt_fraction"], "float32")
-    s32 = pick("elastic_smooth", d["dt_fraction"], "float32")
-    if c and c32 and k and k32 and s32:
-        out.append(f"- float32 at t_c/50: abs(de_n) {_e(c32['err_e_n'])} (float64 {_e(c['err_e_n'])}), smooth energy "
-                   f"error per collision {_e(s32['error'])} (float64 {_e(es['error'])}); Cundall {k32['cundall']:.3g} "
-                   f"vs {k['cundall']:.3g} in the cooling gas on this backend.")
+    for prec in ("float32", "mixed"):
+        c32 = pick("collisions", d["dt_fraction"], prec)
+        k32 = pick("cooling", d["dt_fraction"], prec)
+        s32 = pick("elastic_smooth", d["dt_fraction"], prec)
+        if c and c32 and k and k32 and s32:
+            out.append(f"- {prec} at t_c/50: abs(de_n) {_e(c32['err_e_n'])} (float64 {_e(c['err_e_n'])}), at e_n = "
+                       f"{E_N_LOW} {_e(c32['err_e_n_low'])} (float64 {_e(c['err_e_n_low'])}); smooth energy error per "
+                       f"collision {_e(s32['error'])} (float64 {_e(es['error'])}); cooling-curve error "
+                       f"{_e(k32['error'])} (float64 {_e(k['error'])}, chaos floor {_e(sc['cooling'].get('floor', 0))}); "
+                       f"Cundall {k32['cundall']:.3g} vs {k['cundall']:.3g} in the cooling gas on this backend.")
     sk = sorted([r for r in sc["cooling"]["rows"] if r["dt_fraction"] == d["dt_fraction"]
                  and r["precision"] == d["precision"]], key=lambda r: r["skin"])
     if len(sk) > 1:

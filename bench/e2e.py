@@ -46,7 +46,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 BREAKDOWN = ("setup", "build", "compile", "loop", "records", "snapshots", "checkpoints", "open", "close")
-GPU_CASES = ("spheres-2M-f64", "spheres-2M-f32", "spheres-8M-f64", "spheres-8M-f32", "batch-256x4096-2k",
+GPU_CASES = ("spheres-2M-f64", "spheres-2M-f32", "spheres-2M-mixed", "spheres-8M-f64", "spheres-8M-f32",
+             "spheres-8M-mixed", "batch-256x4096-2k",
              "batch-256x4096-20k", "worker-256x4096-20k", "ellipsoids-2M", "ellipsoids-rough-2M")
 CPU_CASES = ("quickstart", "cpu-16x512")
 
@@ -62,7 +63,8 @@ def case_specs(case: str, quick: bool) -> dict:
 
     if case.startswith("spheres-"):
         n, steps = (n2m, s5k) if "-2M-" in case else (n8m, s2k)
-        return {"path": "run", "specs": [sph(n, steps, "float32" if case.endswith("f32") else "float64")]}
+        prec = {"f64": "float64", "f32": "float32", "mixed": "mixed"}[case.rsplit("-", 1)[1]]
+        return {"path": "run", "specs": [sph(n, steps, prec)]}
     if case.startswith("batch-") or case.startswith("worker-"):
         steps = s20k if case.endswith("20k") else s2k
         return {"path": "worker" if case.startswith("worker") else "ensemble",

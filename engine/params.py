@@ -32,6 +32,9 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import numpy as np
+
+from engine.precision import position_dtype, state_dtype
 from engine.scales import (Q_SPHERE, SpeciesTable, radius_from_volume_fraction, scales, species_counts,  # noqa: F401
                            species_table)
 from engine.spec import default_verlet_skin
@@ -212,8 +215,9 @@ def derive(spec) -> Derived:
 #: refuse oversize specs before they are queued. float64: ~25 doubles of state + 32 list entries
 #: (``slots``: the list stride, larger for wide size distributions, see :func:`list_slots`).
 def estimate_bytes_per_particle(precision: str, slots: int = 32) -> int:
-    word = 8 if precision == "float64" else 4
-    state = 25 * word                     # x, v, omega, q, F, tau, x_ref, mass, inertia, radius
+    word = np.dtype(state_dtype(precision)).itemsize
+    pos_word = np.dtype(position_dtype(precision)).itemsize
+    state = 19 * word + 6 * pos_word      # v, omega, q, F, tau, mass, inertia, radius; x and x_ref
     lists = slots * (4 + 3 * word)        # neighbour index + tangential history per list slot
     return state + lists + 16             # cell index, order
 

@@ -44,6 +44,7 @@ from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path, writer_process_ready
 from engine.params import Q_SPHERE, Derived, derive
 from engine.physics.sonine import sonine_observables
+from engine.precision import output_dtype
 from engine.spec import SimulationSpec, default_verlet_skin, load_spec
 
 #: In a dissipative run the total mechanical energy may not rise between records by more than this
@@ -293,7 +294,7 @@ class SceneRun:
 
         t0 = time.perf_counter()
         spec, p = self.spec, self.p
-        dtype = np.float64 if spec.precision == "float64" else np.float32
+        dtype = output_dtype(spec.precision)
         derived = {k: v for k, v in p.as_dict().items()}
         derived.update(engine_version=__version__, q=Q_SPHERE, e_n=spec.e_n, e_t=spec.e_t,
                        start_generator=start_generator(spec),
@@ -670,7 +671,7 @@ def _defer_files(ens, runs: list) -> bool:
     if ens.name != "cuda" or len(runs) < DEFER_MIN_SCENES:
         return False
     for r in runs:
-        frames = len(r.snaps) * r.n * 13 * (8 if r.spec.precision == "float64" else 4)
+        frames = len(r.snaps) * r.n * 13 * np.dtype(output_dtype(r.spec.precision)).itemsize
         if r.resume is not None or frames > DEFER_MAX_BYTES:
             return False
     return True

@@ -20,6 +20,7 @@ from typing import List, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from engine.precision import check_shape
 from engine.scales import scales
 from engine.shapes import SHAPES, traits
 
@@ -173,8 +174,10 @@ class SimulationSpec(BaseModel):
         None, description="Interval between observable records in s; null = t_end / 200.")
     snapshots: int = Field(
         5, description="Number of full particle snapshots, evenly spaced over [0, t_end] (0 ... 10000).")
-    precision: Literal["float64", "float32"] = Field(
-        "float64", description="Floating-point precision of the state and the arithmetic.")
+    precision: Literal["float64", "float32", "mixed"] = Field(
+        "float64", description="Floating-point precision of the state and the arithmetic: 'float64'; "
+                               "'float32'; 'mixed' = positions in float64, every other array in float32, "
+                               "separations and overlaps formed in float64 (spheres only; engine/precision.py).")
     seed: int = Field(0, description="Seed of the random initial state (0 ... 2**63-1).")
     backend: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="'auto' = CUDA when a GPU is present, else CPU.")
@@ -336,6 +339,7 @@ class SimulationSpec(BaseModel):
         if not shape.ELONGATED and self.elongation != 1.0:
             raise ValueError(f"elongation = {self.elongation} but shape is {self.shape!r}: elongation must be 1 "
                              f"for {self.shape}s")
+        check_shape(self.precision, self.shape)
         poly = self.species is not None and len(self.species) > 1
         if self.species is not None and not shape.SPECIES:
             which = " or ".join(repr(k) for k in SHAPES if traits(k).SPECIES)

@@ -49,6 +49,7 @@ from engine.backends.cuda_lists import list_kernels
 from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
+from engine.precision import position_dtype, state_dtype
 from engine.shapes.sphere import device as SC
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
@@ -88,7 +89,8 @@ class CudaEnsemble:
         precisions = {c.precision for c in contacts}
         if len(precisions) != 1:
             raise ValueError(f"all scenes of an ensemble share one precision, got {sorted(precisions)}")
-        self.dtype = dt_ = np.float64 if contacts[0].precision == "float64" else np.float32
+        self.dtype = dt_ = state_dtype(contacts[0].precision)
+        self.pos_dtype = position_dtype(contacts[0].precision)  # float64 in 'mixed' (engine/precision.py)
         self.n_scenes = nk = len(systems)
         self.sizes = np.array([s.n for s in systems], np.int64)
         self.starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
@@ -113,13 +115,16 @@ class CudaEnsemble:
         self.contact = list(contacts)
         self.box = np.array([float(s.box_length) for s in systems])
 
-        self.x_ref = cuda.device_array((3, n), dt_, stream=self.stream)
+        self.x_ref = cuda.device_array((3, n), self.pos_dtype, stream=self.stream)
         self.ids = cuda.to_device(np.arange(n, dtype=np.int32), stream=self.stream)
         self.sc = cuda.to_device(np.repeat(np.arange(nk, dtype=np.int32), self.sizes), stream=self.stream)
         self._upload_particles(systems)
         self._views()
         # scratch for permutations (4 rows covers the quaternion)
         self.scratch = cuda.device_array((4, n), dt_, stream=self.stream)
+        # ... and for the positions when they are kept in another precision ('mixed')
+        self.scratch_x = self.scratch if self.pos_dtype is dt_ else cuda.device_array((3, n), self.pos_dtype,
+                                                                                      stream=self.stream)
         self.scratch_i = cuda.device_array(n, np.int32, stream=self.stream)
         self.scratch_l = cuda.device_array(n if self._permuted_i64 else 1, np.int64, stream=self.stream)
         self.order = cuda.device_array(n, np.int32, stream=self.stream)
@@ -158,9 +163,9 @@ class CudaEnsemble:
 
     # ---- set-up -----------------------------------------------------------------------------------
 
-    def _up(self, a, rows):
-        """Host (N, rows) float64 -> device (rows, N) in the working precision."""
-        a = np.ascontiguousarray(np.asarray(a, self.dtype).reshape(self.n, rows).T)
+    def _up(self, a, rows, dtype=None):
+        """Host (N, rows) float64 -> device (rows, N) in the working precision (or ``dtype``)."""
+        a = np.ascontiguousarray(np.asarray(a, dtype or self.dtype).reshape(self.n, rows).T)
         return cuda.to_device(a, stream=self.stream)
 
     @staticmethod
@@ -179,7 +184,7 @@ class CudaEnsemble:
         self._scene0 = [(rad[i], mass[i], inertia[i]) if s_n else (0, 0, 0)
                         for i, s_n in zip(self.starts, self.sizes)]
         up, cat = self._up, lambda attr: self._cat(systems, attr)
-        self.pos = up(cat("position"), 3)
+        self.pos = up(cat("position"), 3, self.pos_dtype)
         self.vel = up(cat("velocity"), 3)
         self.omega = up(cat("angular_velocity"), 3)
         self.quat = up(cat("orientation"), 4)
@@ -351,7 +356,7 @@ class CudaEnsemble:
         # (torque need not move: the next force step rewrites it before any kick reads it)
         for name in list(self._permuted) + self._per_particle:
             a = getattr(self, name)
-            tmp = self.scratch[:a.shape[0]]
+            tmp = (self.scratch if a.dtype == self.scratch.dtype else self.scratch_x)[:a.shape[0]]
             k["gather_rows"][self._grid(n)](n, a, tmp, self.order)
             _copy(a, tmp, s)
         for name in ("ids", "lvl") if self.multigrid else ("ids",):
@@ -797,11 +802,13 @@ class CudaEnsemble:
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         nmax = int(self.sizes.max())
         if getattr(self, "_stage", None) is None:
-            self._stage = cuda.device_array(max(1, 4 * nmax), self.dtype, stream=s)
+            self._stage = {np.dtype(t).str: cuda.device_array(max(1, 4 * nmax), t, stream=s)
+                           for t in {self.dtype, self.pos_dtype}}
             self._stage_h = {}
         slot = 0 if reuse is False or reuse is True else int(reuse)
         if slot not in self._stage_h:
-            self._stage_h[slot] = {key: cuda.pinned_array((nmax, getattr(self, name).shape[0]), self.dtype)
+            self._stage_h[slot] = {key: cuda.pinned_array((nmax, getattr(self, name).shape[0]),
+                                                          getattr(self, name).dtype)
                                    for key, name in self._STATE}
         out = {}
         for key, name in self._STATE:
@@ -809,7 +816,7 @@ class CudaEnsemble:
             rows = src.shape[0]
             host = self._stage_h[slot][key][:n_k]
             if n_k:
-                dst = self._stage[:n_k * rows].reshape(n_k, rows)
+                dst = self._stage[src.dtype.str][:n_k * rows].reshape(n_k, rows)
                 K.gather_scene[self._grid(n_k)](src, self.ids, a0, n_k, dst)
                 dst.copy_to_host(host, stream=s)
             out[key] = host

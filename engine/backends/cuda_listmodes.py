@@ -132,12 +132,12 @@ class HostLists:
         self.builder = MultigridBuilder(float(ens.box[0]), r, levels, skin=skin)
         self._alloc_host(ens.max_nb)
         if self.snap is None:
-            self.snap = cuda.device_array((3, ens.n), ens.dtype, stream=st)
+            self.snap = cuda.device_array((3, ens.n), ens.pos_dtype, stream=st)
 
     def _alloc_host(self, max_nb: int) -> None:
         n = self.ens.n
         if self._host is None or self._host["nbr"].shape[0] != max_nb:
-            pos = self._host["pos"] if self._host is not None else cuda.pinned_array((3, n), self.ens.dtype)
+            pos = self._host["pos"] if self._host is not None else cuda.pinned_array((3, n), self.ens.pos_dtype)
             self._host = {"pos": pos, "nbr": cuda.pinned_array((max_nb, n), np.int32),
                           "nn": cuda.pinned_array(n, np.int32)}
 
@@ -301,7 +301,7 @@ class HostLists:
         t_cpu, t_down = self._probe
         ens = self.ens
         list_bytes = ens.max_nb * ens.n * 4 + ens.n * 4
-        pos_bytes = 3 * ens.n * np.dtype(ens.dtype).itemsize
+        pos_bytes = 3 * ens.n * np.dtype(ens.pos_dtype).itemsize
         t_exch = t_down * (1.0 + list_bytes / pos_bytes)
         steps = max(1.0, np.mean([r["steps"] for r in self.stages if r["mode"] == "gpu"][-8:]))
         t_gpu = g["tau_gpu"]

@@ -39,6 +39,21 @@ def min_image(d, box, inv_box, half):
 
 
 @numba.njit
+def sphere_separation(rx, ry, rz, rs, half):
+    """(r_x, r_y, r_z, d, delta) of a sphere pair in the state precision, the precision of ``half``: the
+    minimum-image separation r (m) in the position precision, its length d = |r| and the overlap
+    delta = a_i + a_j - d (rs = a_i + a_j, m) formed in the position precision, then rounded once.
+
+    With one precision for both (float64, float32) the rounding is no operation. In 'mixed' (float64 positions,
+    engine/precision.py) d and delta are taken in float64 before they are rounded to float32, so delta keeps
+    float32's relative precision of delta itself (not of the box edge) and the force law that follows runs in
+    float32."""
+    c = type(half)
+    d = math.sqrt(rx * rx + ry * ry + rz * rz)
+    return c(rx), c(ry), c(rz), c(d), c(rs - d)
+
+
+@numba.njit
 def normal_force(delta, vn, k_n, gamma_n):
     """Normal force magnitude in N along n: k_n delta - gamma_n v_n (repulsive > 0; paper 001)."""
     return k_n * delta - gamma_n * vn

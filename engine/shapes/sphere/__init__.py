@@ -14,6 +14,8 @@ NAME = "sphere"
 ELONGATED = False
 #: accepts a size distribution (spec ``species``)
 SPECIES = True
+#: runs precision "mixed": positions in float64, the rest in float32 (engine/precision.py)
+MIXED = True
 #: a null verlet_skin follows the volume-fraction rule of engine.spec.default_verlet_skin (else its CPU value)
 SKIN_BY_VOLUME_FRACTION = True
 #: moment of inertia of a solid sphere in units of m a^2

@@ -1,7 +1,8 @@
 """The sphere's CPU host class: :class:`CpuBackend`, the sphere plug-in (engine/shapes/sphere/kernels.py) in the
 shared CPU machinery (engine/backends/cpu.py: CpuLoop, make_run_steps).
 
-Owns only what is the sphere's own on the host: its state arrays in the working precision (space-frame angular
+Owns only what is the sphere's own on the host: its state arrays in the working precision (positions in the
+position precision, engine/precision.py; space-frame angular
 velocity, radius, scalar inertia), the smooth/rough/Coulomb/orientation specialisation of the pair law
 (``_law``, ``_torque_arg``, ``_quat_arg``: None switches a part off at compile time), the start-overlap error
 and the observables (engine.shapes.sphere.kernels.observe). Cells, lists, slot store, time loop and error
@@ -21,6 +22,7 @@ from engine.backends.cpu import CpuLoop
 from engine.backends.cpu_shared import collect_springs, restore_springs, worst_overlap
 from engine.errors import InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
+from engine.precision import position_dtype, state_dtype
 from engine.shapes.sphere import kernels as sphere
 
 
@@ -31,12 +33,12 @@ class CpuBackend(CpuLoop):
     shape = sphere
 
     def __init__(self, system: SphereSystem, contact: ContactParams):
-        self.dtype = np.float64 if contact.precision == "float64" else np.float32
-        dt_ = self.dtype
+        self.dtype = dt_ = state_dtype(contact.precision)
+        self.pos_dtype = position_dtype(contact.precision)
         n = system.n
         self.n = n
         self.box = float(system.box_length)
-        self.pos = np.array(system.position, dtype=dt_, order="C", copy=True)
+        self.pos = np.array(system.position, dtype=self.pos_dtype, order="C", copy=True)
         self.vel = np.array(system.velocity, dtype=dt_, order="C", copy=True)
         self.omega = np.array(system.angular_velocity, dtype=dt_, order="C", copy=True)
         self.quat = np.array(system.orientation, dtype=dt_, order="C", copy=True)

@@ -47,7 +47,7 @@ import numpy as np
 from numba import cuda
 
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
-                                    sphere_contact_end)
+                                    sphere_contact_end, sphere_separation)
 from engine.physics.integrate import kick
 from engine.physics.rotation import sphere_quat_turn
 
@@ -148,12 +148,10 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         fx, fy, fz, tx, ty, tz, wsi = acc
         omega = spin
         one = HALF + HALF
-        rx = min_image(xi - pos[0, j], box, inv_box, HALF)
-        ry = min_image(yi - pos[1, j], box, inv_box, HALF)
-        rz = min_image(zi - pos[2, j], box, inv_box, HALF)
-        d = math.sqrt(rx * rx + ry * ry + rz * rz)
         rj = r0 if UNIFORM else rad[j]
-        delta = ri + rj - d
+        rx, ry, rz, d, delta = sphere_separation(min_image(xi - pos[0, j], box, inv_box, HALF),
+                                                 min_image(yi - pos[1, j], box, inv_box, HALF),
+                                                 min_image(zi - pos[2, j], box, inv_box, HALF), ri + rj, HALF)
         delta_prev = hist[3, kk, i]
         if delta > ZERO:
             imj = im0 if UNIFORM else inv_m[j]

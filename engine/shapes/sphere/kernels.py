@@ -41,7 +41,7 @@ from numba import prange
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
-                                    sphere_contact_end)
+                                    sphere_contact_end, sphere_separation)
 from engine.physics.integrate import kick
 from engine.physics.rotation import sphere_quat_turn
 
@@ -127,13 +127,11 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
     """
     k_t = law[0]
     omega = spin
-    rx = min_image(pos[i, 0] - pos[j, 0], box, inv_box, half)
-    ry = min_image(pos[i, 1] - pos[j, 1], box, inv_box, half)
-    rz = min_image(pos[i, 2] - pos[j, 2], box, inv_box, half)
-    d = math.sqrt(rx * rx + ry * ry + rz * rz)
     ri = rad[i]
     rj = rad[j]
-    delta = ri + rj - d
+    rx, ry, rz, d, delta = sphere_separation(min_image(pos[i, 0] - pos[j, 0], box, inv_box, half),
+                                             min_image(pos[i, 1] - pos[j, 1], box, inv_box, half),
+                                             min_image(pos[i, 2] - pos[j, 2], box, inv_box, half), ri + rj, half)
     delta_prev = hist[i, kk, 3]
     fx = 0.0
     fy = 0.0

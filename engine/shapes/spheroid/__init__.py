@@ -16,6 +16,8 @@ NAME = "ellipsoid"
 ELONGATED = True
 #: accepts a size distribution (spec ``species``)
 SPECIES = False
+#: runs precision "mixed": the contact solver has no mixed-precision variant
+MIXED = False
 #: a null verlet_skin is the CPU default (the skin rule over phi was measured for spheres only)
 SKIN_BY_VOLUME_FRACTION = False
 

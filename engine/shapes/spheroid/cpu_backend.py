@@ -22,6 +22,7 @@ from engine.backends.cpu import CpuLoop
 from engine.backends.cpu_shared import SLOT, collect_springs, restore_springs
 from engine.params import Q_SPHERE
 from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
+from engine.precision import check_shape
 from engine.physics.rotation import angular_momentum, space_omega
 from engine.shapes.spheroid import kernels as spheroid
 
@@ -76,6 +77,7 @@ class CpuEllipsoidBackend(CpuLoop):
     def __init__(self, system: EllipsoidSystem, contact: ContactParams):
         self.rough = contact.rough
         self.slot_words = SLOT_ROUGH if self.rough else SLOT
+        check_shape(contact.precision, spheroid.NAME)
         self.dtype = np.float64 if contact.precision == "float64" else np.float32
         dt_ = self.dtype
         n = system.n
