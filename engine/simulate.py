@@ -141,6 +141,8 @@ def record(obs: dict, n: int) -> dict:
         "elastic_energy": obs["elastic_energy"],
         "max_overlap": obs["max_overlap"],
         **sonine_observables(obs, n),
+        # contacts begun since the scene started, thermalisation included (spheres; issue 18's collision counter)
+        **({"collisions": np.int64(obs["collisions"])} if "collisions" in obs else {}),
     }
 
 
@@ -249,6 +251,8 @@ class SceneRun:
         self.wall = 0.0       # wall seconds of this attempt's time loop (advances this scene took part in)
         self.steps_run = 0
         self.prev_energy = float(resume["prev_energy"]) if resume is not None else math.inf
+        # collisions counted before a resume (the new backend's counter starts at 0)
+        self.coll_base = int(resume["collisions"]) if resume is not None and "collisions" in resume else 0
         self.dissipative = spec.e_n < 1.0 or (not spec.smooth and spec.e_t < 1.0) or spec.friction is not None
         self.writer: Optional[H5MDWriter] = None
         self.done = False
@@ -323,7 +327,7 @@ class SceneRun:
             if self.ck.due():
                 t0 = time.perf_counter()
                 self.ck.save(writer, view, phase="thermalization", step_done=self.step_done,
-                             extra={"spec": self.spec_json, "prev_energy": self.prev_energy})
+                             extra=self._ck_extra(view.observe()))
                 self.timings["checkpoints"] += time.perf_counter() - t0
             if self.step_done >= p.n_thermalization_steps:
                 self.phase, self.step_done = "cooling", 0
@@ -337,7 +341,7 @@ class SceneRun:
         t_sim = step_done * p.dt
         tm = self.timings
         t0 = time.perf_counter()
-        obs = view.observe()
+        obs = self._counted(view.observe())
         if step_done % p.output_every == 0 or step_done == p.n_steps:
             writer.observables(step_done, t_sim, record(obs, self.n))
             energy = obs["kinetic_energy_translational"] + obs["kinetic_energy_rotational"] + obs["elastic_energy"]
@@ -364,10 +368,23 @@ class SceneRun:
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
         if self.ck.due() and step_done < p.n_steps:
             t0 = time.perf_counter()
-            self.ck.save(writer, view, phase="cooling", step_done=step_done,
-                         extra={"spec": self.spec_json, "prev_energy": self.prev_energy})
+            self.ck.save(writer, view, phase="cooling", step_done=step_done, extra=self._ck_extra(obs, counted=True))
             tm["checkpoints"] += time.perf_counter() - t0
         self._next_event()
+
+    def _counted(self, obs: dict) -> dict:
+        """The observables with the collisions counted before a resume added (a copy: ``obs`` may be shared)."""
+        if "collisions" not in obs or not self.coll_base:
+            return obs
+        return {**obs, "collisions": obs["collisions"] + self.coll_base}
+
+    def _ck_extra(self, obs: dict, counted: bool = False) -> dict:
+        """What a checkpoint keeps beside the state: the spec, the energy check's reference and the collision
+        count (the resumed run's series continues from it)."""
+        extra = {"spec": self.spec_json, "prev_energy": self.prev_energy}
+        if "collisions" in obs:
+            extra["collisions"] = obs["collisions"] if counted else obs["collisions"] + self.coll_base
+        return extra
 
     def finish(self, backend: str, device: str, builds: int, info: Optional[dict] = None,
                shared_timings: Optional[dict] = None) -> RunSummary:

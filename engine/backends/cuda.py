@@ -77,7 +77,7 @@ class CudaEnsemble:
     #: device arrays permuted into cell order at a rebuild (besides the per-particle constants)
     _permuted = ("pos", "vel", "omega", "quat", "f_cur")
     #: int64 device arrays (N) permuted with them (spheres: the lazy orientations' marks)
-    _permuted_i64 = ("q_last",)
+    _permuted_i64 = ("q_last", "begun")
     #: 1-D views of other device arrays (not counted by device_bytes)
     _view_names = ("radius1", "inv_m1", "inv_i1", "mass1", "inertia1")
 
@@ -193,6 +193,8 @@ class CudaEnsemble:
         self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
         # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
         self.q_last = cuda.to_device(np.zeros(n, np.int64), stream=self.stream)
+        # the contacts each sphere has begun (collision counter, issue 18; shapes/sphere/device.py pair)
+        self.begun = cuda.to_device(np.zeros(n, np.int64), stream=self.stream)
         if self.uniform:
             dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
             self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
@@ -513,8 +515,8 @@ class CudaEnsemble:
 
     def _step_arrays(self) -> tuple:
         """(spin, spin_inv, list radius, ext) of the time loop's kernels (engine/backends/cuda_loop.py):
-        spheres: the angular velocity, 1/I, the radius, (the lazy orientations' marks,)."""
-        return self.omega, self.inv_i1, self.radius1, (self.q_last,)
+        spheres: the angular velocity, 1/I, the radius, (the lazy orientations' marks, the contacts begun)."""
+        return self.omega, self.inv_i1, self.radius1, (self.q_last, self.begun)
 
     def _forces(self, step: int, n: int | None = None, grid=None) -> None:
         spin, _, rad, ext = self._step_arrays()
@@ -751,9 +753,9 @@ class CudaEnsemble:
     _NOBS = SC.NOBS
 
     def _observe_args(self) -> tuple:
-        """observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi) (cuda_loop)."""
+        """observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext) (cuda_loop)."""
         return (self.pos, self.vel, self.omega, self.quat, self.radius1, self.mass1, self.inertia1, self.nbr,
-                self.nn, self.hist, self.spd, self.spf, self.spi)
+                self.nn, self.hist, self.spd, self.spf, self.spi, self._step_arrays()[3])
 
     def _observe_sums(self) -> np.ndarray:
         """The observe kernel's per-scene sums (K, _NOBS) on the host (issue 14): one zeroing copy, one launch
@@ -784,6 +786,7 @@ class CudaEnsemble:
         return {"kinetic_energy_translational": r[0], "kinetic_energy_rotational": r[1],
                 "contacts": int(round(r[2])) // 2, "elastic_energy": r[3],
                 "max_overlap": r[SC.O_MAX], "momentum": (r[4], r[5], r[6]),
+                "collisions": int(round(r[SC.O_COLL])) // 2,
                 **sonine_sums(r[SC.O_TR2], r[SC.O_ROT2], r[SC.O_X], DOF_ROTATION_SPHERE)}
 
     #: state() keys and the device arrays (3 or 4 rows, particle index fastest) they are copied from

@@ -18,7 +18,7 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
     settle(n, spin, quat, sc, spd, spi, step, ext)       (only for a shape with ``settle_one``)
     run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad, x_ref,
               nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
-    observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, acc)
+    observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc)
 ``spin`` is the rotational state the torque kicks (spheres: angular velocity; spheroids: angular momentum),
 ``rad`` the list radius, ``ext`` a tuple of the shape's own arrays; f_old/f_new (f0/f1) are the double buffer
 of the forces (a shape that does not read other particles' old forces gets the same array twice).
@@ -251,7 +251,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     SH_OBS = NOBS * TPB
 
     @cuda.jit
-    def observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, acc):
+    def observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc):
         """acc[s] += the shape's observe sums (its ``observe_one``), one slot a maximum; per particle in
         float64, one block row per scene (blockIdx.y = s), reduced per block (observe_reducer): O(blocks)
         atomics, not O(N) on K x NOBS addresses (issue 14)."""
@@ -263,7 +263,8 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         if spi[s, I_ACTIVE] != 0:
             a0 = spi[s, I_START]
             for li in range(cuda.blockIdx.x * TPB + cuda.threadIdx.x, spi[s, I_N], cuda.gridDim.x * TPB):
-                observe_one(a0 + li, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf)
+                observe_one(a0 + li, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf,
+                            ext)
         block_accumulate(sh, vals, acc, s)
 
     k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)

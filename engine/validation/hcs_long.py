@@ -59,7 +59,8 @@ CASES = (0.8, 0.6)
 
 #: scene -> (spec fields, tau_end, seeds by default, records, snapshots)
 SCENES = {
-    # 4000 records: the collision rate is measured from the contacts open at each record, ~1 in this dilute box
+    # 4000 records: files without the collision counter measure the rate from the contacts open at each record,
+    # ~1 in this dilute box
     "paper001": (dict(n_particles=4096, volume_fraction=0.008, box_length=2.0, velocity_rms=10.0,
                       thermalization=4.0), 100.0, 12, 4000, 101),
     "unstable": (dict(n_particles=32768, volume_fraction=0.1, box_length=4.0, velocity_rms=5.0,
@@ -124,6 +125,11 @@ def _read_run(path) -> dict:
     r = {**measure_run(path), "modes": file_mode_series(path)}
     r["contacts"] = np.asarray(read_series(path, "contacts")["value"], dtype=float)
     r["t_contact"] = contact_duration(derive(SimulationSpec(**r["spec"])))
+    try:   # the collision counter (spheres, from issue 18 on; older files lack it)
+        c = read_series(path, "collisions")
+        r["collisions"] = (np.asarray(c["time"], dtype=float), np.asarray(c["value"], dtype=float))
+    except KeyError:
+        r["collisions"] = None
     return r
 
 
@@ -139,15 +145,21 @@ def contact_duration(p) -> float:
 def collision_rate_ratio(run: dict) -> np.ndarray:
     """The DEM's collision rate over Enskog's at each record of one run.
 
-    A collision lasts t_contact whatever its speed, so the contacts C open at an instant measure the rate:
-    collisions per particle per second = 2 C / (N t_contact) (each collision involves two particles), per unit
-    tau divided by k = tau/t. Enskog's (with the Carnahan-Starling g(2a) of paper 001's tau, as Luding's ODE
-    assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.theory.collisions_per_particle). Ratio 1: the gas
+    Where the file has the collision counter (series ``collisions``: every contact begun, engine/shapes/sphere),
+    the rate is its time derivative: collisions per particle per second = 2 dC/dt / N (each collision involves
+    two particles), taken between the records around each one. Otherwise, from the contacts C open at the
+    record: a collision lasts t_contact whatever its speed, so the rate is 2 C / (N t_contact). Per unit tau
+    both are divided by k = tau/t. Enskog's (with the Carnahan-Starling g(2a) of paper 001's tau, as Luding's
+    ODE assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.theory.collisions_per_particle). Ratio 1: the gas
     collides as often as the ODE assumes; below 1: velocity or position correlations (or a distribution other
     than Maxwell's, a ~ a2/16 effect) make collisions rarer.
     """
     n = run["spec"]["n_particles"]
-    rate = 2.0 * run["contacts"] / (n * run["t_contact"] * run["k"])
+    if run.get("collisions") is not None:
+        t, c = run["collisions"]
+        rate = np.interp(run["time"], t, 2.0 * np.gradient(c, t) / n) / run["k"]
+    else:
+        rate = 2.0 * run["contacts"] / (n * run["t_contact"] * run["k"])
     return rate / (0.75 * np.sqrt(run["T"]))
 
 
@@ -188,7 +200,8 @@ def analyse(paths) -> dict:
            "tau": tau, "T": T, "T_err": T_err, "R": R, "R_err": R_err, "T_ode": T_ode, "R_ode": R_ode,
            "dev": T / T_ode - 1.0, "dev_err": T_err / T_ode, "dev_R": R / R_ode - 1.0, "dev_R_err": R_err / R_ode,
            "tau_f": tau_f, "max_overlap": max(r["max_overlap"] for r in runs),
-           "backend": runs[0]["backend"], "device": runs[0]["device"], "coll": coll, "coll_err": coll_err}
+           "backend": runs[0]["backend"], "device": runs[0]["device"], "coll": coll, "coll_err": coll_err,
+           "coll_source": "counter" if all(r["collisions"] is not None for r in runs) else "contacts"}
     # Luding's ODE run at the measured collision rate (both equations' rates scaled by the smoothed ratio, as a
     # function of T): what the DEM's rarer or more frequent collisions alone do to T
     w = max(1, len(tau) // 40)
@@ -410,14 +423,19 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
                          f"{c['x_shear'][j]:.2f} ± {c['x_shear_err'][j]:.2f} | {c['x_pred'][j]:.2f} | "
                          f"{100 * c['shear_fraction'][j]:.3f} % | {c['S'][j]:.2f} ± {c['S_err'][j]:.2f} |")
         lines.append("")
+    counted = all(c.get("coll_source") == "counter" for c in results.values())
+    how = ("Counted: every contact begun (the result files' `collisions` series, engine/shapes/sphere), rate = "
+           "2 dC/dt / N per particle between records" if counted else
+           "Measured from the contacts open at each record (a collision lasts t_c = pi/omega whatever its speed: "
+           "rate = 2 C / (N t_c) per particle)")
     lines += ["## Collision rate against Enskog's", "",
-              "Measured from the contacts open at each record (a collision lasts t_c = pi/omega whatever its speed: "
-              "rate = 2 C / (N t_c) per particle; collision_rate_ratio), over Enskog's (3/4) (T/T0)^(1/2) per "
+              how + " (collision_rate_ratio), over Enskog's (3/4) (T/T0)^(1/2) per "
               "unit tau that Luding's ODE assumes, seed mean ± SE, averaged over the records in tau ± 10 % (count "
               "noise). 'ODE at the measured rate': Luding's ODE with both rates scaled by the smoothed ratio "
               "(as a function of T); its deviation from the plain ODE is what the rarer (or more frequent) "
-              "collisions alone do to T. Where the ratio's SE is more than a few % (few contacts open per record: "
-              "the paper-001 box has ~1), the smoothed ratio is count noise and so is the ODE run with it.", "",
+              "collisions alone do to T. Where the ratio's SE is more than a few % (files without the counter: "
+              "few contacts open per record, the paper-001 box has ~1), the smoothed ratio is count noise and so "
+              "is the ODE run with it.", "",
               "| case | tau | rate / Enskog (± SE) | DEM T dev % (± SE) | ODE at the measured rate: T dev % | "
               "DEM R dev % | ODE at the measured rate: R dev % |", "|---|---|---|---|---|---|---|"]
     from engine.validation.hcs_dsmc import window_mean

@@ -115,7 +115,7 @@ def test_checkpoint_resume_matches_uninterrupted_run(tmp_path, precision):
     assert s.resumed_from_step is not None and s.resumed_from_step > 0
     assert not ck.exists()                                   # cleared after success
     with h5py.File(ref) as a, h5py.File(out) as b:
-        for name in ("kinetic_energy_translational", "kinetic_energy_rotational", "contacts"):
+        for name in ("kinetic_energy_translational", "kinetic_energy_rotational", "contacts", "collisions"):
             va = a[f"observables/{name}/value"][()]
             vb = b[f"observables/{name}/value"][()]
             assert va.shape == vb.shape

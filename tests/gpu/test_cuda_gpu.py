@@ -127,6 +127,10 @@ def test_lazy_orientations_agree_with_the_cpu_in_a_dilute_gas():
               f"rel dw {rel_w:.2e}, rel dx {dx.max() / box:.2e}, max |q - q0| {turned:.2f}")
         assert turned > 0.1 and hit > 100 and gpu.builds > 1
         assert d_q <= 1e-9 and rel_w <= 1e-9, (d_q, rel_w)
+        # the collision counter (issue 18): the same contacts begun on both backends
+        cc, gc = cpu.observe()["collisions"], gpu.observe()["collisions"]
+        print(f"collisions: CPU {cc}, GPU {gc}")
+        assert cc == gc and cc > 100, (cc, gc)
 
 
 def test_float32_accuracy_against_float64():

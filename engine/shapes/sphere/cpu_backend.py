@@ -55,7 +55,9 @@ class CpuBackend(CpuLoop):
         # ext: the step of the loop's call from which each sphere's orientation turns are pending
         # (shapes/sphere/kernels.py rotate/settle); zero whenever the time loop has returned
         self._lag = np.zeros(n, np.int64)
-        self._spin, self._spin_inv, self._ext = self.omega, self.inv_i, self._lag
+        # ... and the contacts each sphere has begun (collision counter, issue 18)
+        self.begun = np.zeros(n, np.int64)
+        self._spin, self._spin_inv, self._ext = self.omega, self.inv_i, (self._lag, self.begun)
         self._init_loop(n, float(np.max(system.radius)) if n else 0.0,
                         float(np.min(system.radius)) if n else 0.0, contact.skin)
         self.set_contact(contact)
@@ -92,7 +94,7 @@ class CpuBackend(CpuLoop):
             self.hist, self.box_c, self.inv_box, self.half, float(self.k_n), k_t)
         return {"kinetic_energy_translational": float(e_tr), "kinetic_energy_rotational": float(e_rot),
                 "contacts": int(contacts), "elastic_energy": float(e_spring), "max_overlap": float(worst),
-                "momentum": (float(px), float(py), float(pz)),
+                "momentum": (float(px), float(py), float(pz)), "collisions": int(self.begun.sum()) // 2,
                 **sonine_sums(s_tr2, s_rot2, s_x, DOF_ROTATION_SPHERE)}
 
     def state(self) -> dict:

@@ -26,12 +26,14 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)``: the pair
     evaluator of list slot kk (neighbour j): adds the force and torque on i to ``acc`` = (F_x, F_y, F_z, T_x,
     T_y, T_z, worst overlap relative to the pair's size) and returns it; advances the slot's history in place;
-  - ``observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf)``: particle
+  - ``observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)``: particle
     i's share of the observe sums ``vals`` (float64);
   - ``kernels``: the shape's own kernels (a dict, may be empty).
 
-Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,):
-int64 (N), the step from which each sphere's orientation turns are pending (issue 15's lazy orientations); the
+Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,
+begun): int64 (N), the step from which each sphere's orientation turns are pending (issue 15's lazy
+orientations), and the contacts each sphere has begun (cumulative; each pair counts in both partners' lists, so
+the collisions are sum / 2; issue 18's collision counter, as on the CPU); the
 force phase reads the previous step's forces ``f_old`` of both partners for the predicted end-of-step velocities
 (the double buffer of engine/backends/cuda.py). Flags: rough (tangential spring and torque), Coulomb limit,
 orientation tracked. The physics is engine/physics/contact.py (sphere_contact,
@@ -54,10 +56,12 @@ from engine.physics.rotation import sphere_quat_turn
 #: the compile-time flags of make_cuda, in order
 FLAGS = ("rough", "coulomb", "orient")
 #: observe sums per scene: E_tr, E_rot, contacts x 2, elastic energy, P_x, P_y, P_z, max overlap (slot 7, a max),
-#: then the Sonine moments sum e_tr^2, sum e_rot^2, sum e_tr e_rot (J^2; engine/physics/sonine.py)
-NOBS = 11
+#: then the Sonine moments sum e_tr^2, sum e_rot^2, sum e_tr e_rot (J^2; engine/physics/sonine.py), then the
+#: contact starts (2 x the pair collisions so far)
+NOBS = 12
 O_MAX = 7
 O_TR2, O_ROT2, O_X = 8, 9, 10
+O_COLL = 11
 
 
 def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one closure per specialisation)
@@ -154,6 +158,8 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                                                  min_image(zi - pos[2, j], box, inv_box, HALF), ri + rj, HALF)
         delta_prev = hist[3, kk, i]
         if delta > ZERO:
+            if not delta_prev > ZERO:
+                ext[1][i] += 1      # a contact begins: one collision (counted in both partners' lists)
             imj = im0 if UNIFORM else inv_m[j]
             m12 = one / (imi + imj)
             vix = vel[0, i]
@@ -233,9 +239,10 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)
-    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf):
-        """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments of particle i
-        (engine.shapes.sphere.kernels.observe)."""
+    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
+        """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments, contact starts of
+        particle i (engine.shapes.sphere.kernels.observe)."""
+        vals[O_COLL] += f64(ext[1][i])
         omega = spin
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]

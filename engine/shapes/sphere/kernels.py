@@ -24,8 +24,10 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
 ``spin`` is what the closing half kick advances with ``torque * spin_inv`` (spheres: the angular velocity and
 1/I), ``rad`` the list radius, ``law`` the shape's contact constants beyond k_n and gamma_n, ``ext`` its own
 extra arrays. For spheres: ``law = (k_t, mu)`` (None = smooth / no Coulomb limit: pruned at compile time,
-as are ``torque = None`` and ``quat = None``), ``ext`` = the step of the loop's call from which each sphere's
-orientation turns are pending (int64, N; zero whenever the loop has returned). The physics is in
+as are ``torque = None`` and ``quat = None``), ``ext = (marks, begun)``: ``marks`` the step of the loop's call from
+which each sphere's orientation turns are pending (int64, N; zero whenever the loop has returned), ``begun`` the
+contacts each sphere has begun (int64, N, cumulative; each pair counts once in each partner's list: the pair
+collisions are sum(begun) / 2; issue 18). The physics is in
 engine/physics/contact.py (sphere_contact, sphere_contact_end), engine/physics/integrate.py and
 engine/physics/rotation.py.
 Array layout: (N, 3) / (N, 4) rows per particle, the CPU backend's.
@@ -59,7 +61,7 @@ def pre_step(i, pos, quat, ext):
 def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
     """The sphere's half of the kick-drift of particle i in step s of the call, after the shared translation (v +=
     F/m hk, predicted v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), and the
-    orientation (when tracked) lazily, as the GPU does (engine/shapes/sphere/device.py): ``ext[i]`` is the step
+    orientation (when tracked) lazily, as the GPU does (engine/shapes/sphere/device.py): ``ext[0][i]`` is the step
     of the call from which sphere i's turns are pending, all with the spin it has now. Only a torque about to
     change that spin brings q up to date, here before the kick (the exact rotation over those steps,
     engine.physics.rotation.sphere_quat_turn); :func:`settle` does it for every sphere when the loop returns. A
@@ -92,9 +94,9 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
 
 @numba.njit
 def _catch_up(i, omega, quat, ext, s, dt, half):
-    """Bring sphere i's orientation up to step s of the call: the s - ext[i] steps pending, turned with its present
-    spin; then none pending."""
-    k = s - ext[i]
+    """Bring sphere i's orientation up to step s of the call: the s - ext[0][i] steps pending, turned with its
+    present spin; then none pending."""
+    k = s - ext[0][i]
     if k > 0:
         q0, q1, q2, q3 = sphere_quat_turn(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
                                           omega[i, 0], omega[i, 1], omega[i, 2], dt, k, half)
@@ -102,7 +104,7 @@ def _catch_up(i, omega, quat, ext, s, dt, half):
         quat[i, 1] = q1
         quat[i, 2] = q2
         quat[i, 3] = q3
-        ext[i] = s
+        ext[0][i] = s
 
 
 @numba.njit(parallel=True)
@@ -113,7 +115,7 @@ def settle(spin, quat, ext, drifted, dt, half):
     if quat is not None:
         for i in prange(quat.shape[0]):
             _catch_up(i, spin, quat, ext, drifted, dt, half)
-            ext[i] = 0
+            ext[0][i] = 0
 
 
 @numba.njit(inline="always")  # inlined into the force loop: a call would pass and refcount ~12 arrays
@@ -141,6 +143,8 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
     tz = 0.0
     ov = 0.0
     if delta > 0:
+        if not delta_prev > 0:
+            ext[1][i] += 1      # a contact begins: one collision (counted in both partners' lists)
         m12 = 1 / (inv_m[i] + inv_m[j])
         g = sphere_contact(rx, ry, rz, d,
                            vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],

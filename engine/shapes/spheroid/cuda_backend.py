@@ -178,9 +178,9 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
     _NOBS = CE.NACC
 
     def _observe_args(self) -> tuple:
-        """observe(pos, vel, spin, quat, rad, mass, inertia, ...) with inertia = the principal 1/I."""
+        """observe(pos, vel, spin, quat, rad, mass, inertia, ..., ext) with inertia = the principal 1/I."""
         return (self.pos, self.vel, self.angm, self.quat, self.radius1, self.mass, self.inv_i, self.nbr, self.nn,
-                self.hist, self.spd, self.spf, self.spi)
+                self.hist, self.spd, self.spf, self.spi, self._step_arrays()[3])
 
     def _observables(self, s: int, r: list) -> dict:
         """Scene s's keys of CpuEllipsoidBackend.observe from its observe sums r (engine/shapes/spheroid/device.py: observe_one)."""

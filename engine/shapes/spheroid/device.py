@@ -276,7 +276,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
         return fx, fy, fz, tx, ty, tz, worst
 
     @cuda.jit(device=True)
-    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf):
+    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
         """Particle i's share of the sums of engine.shapes.spheroid.kernels.observe (``inertia`` is 1/I here): E_tr = m v^2/2;
         E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
         perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in PHYSICS-NOTES §3.3);
