@@ -11,7 +11,8 @@ Layout (DESIGN §4)::
                                kinetic_energy_rotational, temperature_translational, temperature_rotational
                                (J), contacts, elastic_energy (J), max_overlap (/radius), and the
                                dimensionless velocity-distribution cumulants sonine_a2_translational,
-                               sonine_a2_rotational, sonine_a11 (engine/physics/sonine.py, issue 18)
+                               sonine_a2_rotational, sonine_a11 (engine/physics/sonine.py, issue 18), and for
+                               spheres collisions (contacts begun since the scene started, cumulative)
     /parameters                @spec (JSON), derived parameters, engine version, backend, device,
                                wall time, Cundall number
 
@@ -60,7 +61,7 @@ UNITS = {
     "kinetic_energy_translational": "J", "kinetic_energy_rotational": "J",
     "temperature_translational": "J", "temperature_rotational": "J", "contacts": "",
     "elastic_energy": "J", "max_overlap": "", "momentum": "kg m s-1",
-    "sonine_a2_translational": "", "sonine_a2_rotational": "", "sonine_a11": "",
+    "sonine_a2_translational": "", "sonine_a2_rotational": "", "sonine_a11": "", "collisions": "",
 }
 SNAPSHOT_ELEMENTS = ("position", "velocity", "orientation", "angular_velocity")
 DEM_MODULE_VERSION = [1, 0]
