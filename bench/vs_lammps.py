@@ -72,12 +72,13 @@ def default_phi(n: int) -> float:
     return 0.008 if n <= 4096 else 0.058
 
 
-def scene_spec(n: int, phi: float, steps: int, seed: int = 1) -> SimulationSpec:
-    """The spec of the compared scene: default radius, box from N and phi, t_end = steps x dt."""
+def scene_spec(n: int, phi: float, steps: int, seed: int = 1, skin: float | None = None) -> SimulationSpec:
+    """The spec of the compared scene: default radius, box from N and phi, t_end = steps x dt; ``skin``: demq's
+    verlet_skin in radii (None: its default)."""
     a = default_radius()
     box = (n * 4.0 / 3.0 * math.pi * a**3 / phi) ** (1.0 / 3.0)
     base = dict(n_particles=n, volume_fraction=phi, box_length=box, velocity_rms=VELOCITY_RMS, e_n=0.8, e_t=0.8,
-                stiffness=1.0e8, density=2000.0, thermalization=0.0, backend="cpu", seed=seed)
+                stiffness=1.0e8, density=2000.0, thermalization=0.0, backend="cpu", seed=seed, verlet_skin=skin)
     dt = derive(SimulationSpec(**base)).dt
     return SimulationSpec(**base, t_end=steps * dt)
 
@@ -201,15 +202,16 @@ def run_demq(spec: SimulationSpec, threads: int, workdir: Path) -> dict:
     n = spec.n_particles
     return {"threads": numba.get_num_threads(), "steps": s.steps, "loop_s": s.wall_s, "wall_s": wall,
             "cundall_loop": s.cundall, "cundall_end_to_end": n * s.steps / wall,
-            "timings": s.extra.get("timings"), "skin_m": derive(spec.model_copy(update={"verlet_skin": None})).skin,
+            "timings": s.extra.get("timings"), "skin_m": derive(spec).skin,
             "ke_translational_end": ket, "ke_rotational_end": ker}
 
 
-def compare(n: int, phi: float, steps: int, threads: int, skin_radii: float, out_dir, seed: int = 1) -> dict:
+def compare(n: int, phi: float, steps: int, threads: int, skin_radii: float, out_dir, seed: int = 1,
+            demq_skin: float | None = None) -> dict:
     """One side-by-side comparison: write the LAMMPS input from demq's start, run both, return a row."""
     from engine.scene import initial_spheres
 
-    spec = scene_spec(n, phi, steps, seed)
+    spec = scene_spec(n, phi, steps, seed, demq_skin)
     prm = lammps_params(spec, skin_radii)
     with tempfile.TemporaryDirectory(prefix="vs_lammps_") as tmp:
         work = Path(tmp)
@@ -266,6 +268,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, choices=(1, 2), default=1,
                     help="demq Numba threads and LAMMPS MPI ranks")
     ap.add_argument("--lammps-skin", type=float, default=1.0, help="LAMMPS neighbor skin in radii")
+    ap.add_argument("--demq-skin", type=float, default=None,
+                    help="demq's verlet_skin in radii (default: the spec's default for the backend and density)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-warmup", action="store_true", help="skip the tiny run that fills the Numba cache")
     ap.add_argument("--out", default=None, help="folder for LAMMPS inputs and logs, results.json, results.md")
@@ -283,7 +287,7 @@ def main(argv=None):
     rows = []
     for n, k in zip(a.n, steps):
         phi = a.phi if a.phi is not None else default_phi(n)
-        r = compare(n, phi, k, a.threads, a.lammps_skin, a.out, a.seed)
+        r = compare(n, phi, k, a.threads, a.lammps_skin, a.out, a.seed, a.demq_skin)
         rows.append(r)
         lm = r["lammps"]
         lmp_txt = (f"LAMMPS loop {lm['cundall_loop']:.3g}, demq/LAMMPS x{r['ratio_loop']:.2f}" if lm["available"]
