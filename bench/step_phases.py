@@ -8,7 +8,10 @@ times ``--launches`` back-to-back launches of kick_drift alone, then of forces a
 per launch), and the whole loop: N x steps / wall of ``advance`` (the loop Cundall number; bench/e2e.py gives the
 end-to-end one). One JSON line per (precision, N).
 
-    python3 bench/step_phases.py --n 2097152 16777216 --precision float64 float32
+The state the lone-phase launches change (positions moved without forces, springs advanced at fixed positions) is
+put back before the loop is timed.
+
+    python3 bench/step_phases.py --n 2097152 16777216 --precision float64 float32 mixed
 """
 
 from __future__ import annotations
@@ -82,7 +85,7 @@ def measure(n: int, precision: str, launches: int, loop_steps: int, warm_s: floa
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, nargs="*", default=[2097152, 16777216])
-    ap.add_argument("--precision", nargs="*", default=["float64", "float32"])
+    ap.add_argument("--precision", nargs="*", default=["float64", "float32", "mixed"])
     ap.add_argument("--launches", type=int, default=200)
     ap.add_argument("--loop-steps", type=int, default=300)
     ap.add_argument("--warm-s", type=float, default=3.0, help="seconds of steps before timing (clock ramp-up)")
