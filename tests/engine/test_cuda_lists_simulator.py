@@ -69,7 +69,8 @@ def contact(skin, dt, **kw):
 def _child_sets_and_per_phase() -> None:
     """The contact sets and the list modes in the one-launch-per-phase loop (one of the two children)."""
     modes, _ = _modes(multistep=False)
-    print("RESULT", json.dumps({"sets": _sets(), "modes": modes}))
+    mixed, _ = _modes(multistep=False, precision="mixed")
+    print("RESULT", json.dumps({"sets": _sets(), "modes": modes, "mixed": mixed}))
 
 
 def _child_multistep_and_growth() -> None:
@@ -97,9 +98,10 @@ def _sets() -> dict:
     return out
 
 
-def _modes(multistep: bool):
+def _modes(multistep: bool, precision: str = "float64"):
     """The list modes of one time loop (multistep: all three; per-phase: GPU list and CPU list pipelined) on
-    one scene; returns {loop: their comparison} and the GPU-list run's final positions."""
+    one scene; returns {loop: their comparison} and the GPU-list run's final positions. ``precision`` 'mixed':
+    the CPU-built lists read float64 positions (engine/precision.py)."""
     from engine.backends.cuda import CudaBackend
 
     modes = ("gpu", "cpu-sequential", "cpu-pipelined") if multistep else ("gpu", "cpu-pipelined")
@@ -109,7 +111,7 @@ def _modes(multistep: bool):
         skin = 0.3 * float(sy.radius.min())
         m12 = 0.5 * float(sy.mass.min())
         dt = np.pi * np.sqrt(m12 / 1.0e5) / 50
-        be = CudaBackend(sy, contact(skin, dt, list_mode=mode))
+        be = CudaBackend(sy, contact(skin, dt, list_mode=mode, precision=precision))
         assert be.e.multistep  # the default here: the growth check's GPU reference is the multistep run
         be.e.multistep = multistep
         be.advance(100)
@@ -200,6 +202,16 @@ def test_three_list_modes_same_trajectory(results):
             # same physics and lists; only the order of the force sums differs: rounding, not O(dt)
             assert r[mode]["dx"] < 1e-11 and r[mode]["dv"] < 1e-8, (loop, mode, r[mode])
         assert r["cpu-pipelined"]["stages"] >= 3, (loop, r)
+
+
+def test_list_modes_agree_in_mixed_precision(results):
+    """'mixed' keeps float64 positions: the CPU-built list reads them from float64 host buffers; the modes differ
+    only in the order of the float32 force sums (6e-8 per sum), through 100 steps with contacts."""
+    r = results["_child_sets_and_per_phase"]["mixed"]["per-phase"]
+    print(r)
+    assert min(r["builds"].values()) >= 3 and min(r["contacts"].values()) > 0, r
+    assert r["cpu-pipelined"]["stages"] >= 3, r
+    assert r["cpu-pipelined"]["dx"] < 1e-7 and r["cpu-pipelined"]["dv"] < 1e-4, r
 
 
 def test_cpu_list_growth_keeps_the_contact_history(results):
