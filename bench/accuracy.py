@@ -1210,7 +1210,8 @@ def advice(res: dict) -> list:
             out.append(f"- {prec} at t_c/50: abs(de_n) {_e(c32['err_e_n'])} (float64 {_e(c['err_e_n'])}), at e_n = "
                        f"{E_N_LOW} {_e(c32['err_e_n_low'])} (float64 {_e(c['err_e_n_low'])}); smooth energy error per "
                        f"collision {_e(s32['error'])} (float64 {_e(es['error'])}); cooling-curve error "
-                       f"{_e(k32['error'])} (float64 {_e(k['error'])}, chaos floor {_e(sc['cooling'].get('floor', 0))}); "
+                       f"{_e(k32['error'])} (float64 {_e(k['error'])}, chaos floor "
+                       f"{_e(sc['cooling'].get('floor', 0))}); "
                        f"Cundall {k32['cundall']:.3g} vs {k['cundall']:.3g} in the cooling gas on this backend.")
     sk = sorted([r for r in sc["cooling"]["rows"] if r["dt_fraction"] == d["dt_fraction"]
                  and r["precision"] == d["precision"]], key=lambda r: r["skin"])

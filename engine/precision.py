@@ -6,9 +6,10 @@
   1e-2 (bench/RESULTS.md, issue 6).
 - ``mixed`` (issue 15): positions and the list's reference positions x_ref in float64, every other array
   (velocities, spins, orientations, forces, torques, contact histories, constants) in float32. A pair's separation,
-  distance and overlap are then formed from float64 positions, so the overlap is exact to float32's relative
-  rounding of delta itself (not of L), and the contact law that takes them is evaluated in float64 by type
-  promotion; what is stored per particle and per contact is float32. The box edge is the float32 value, as in
+  distance and overlap are then formed from float64 positions and rounded once to float32
+  (engine.physics.contact.sphere_separation), so the overlap is exact to float32's relative rounding of delta
+  itself (not of L); the force law that takes them runs in float32, and what is stored per particle and per
+  contact is float32. The box edge is the float32 value, as in
   float32 (the per-scene constant tables are in the state precision; positions wrap at that edge on every
   backend alike). Spheres only (shape trait ``MIXED``): the spheroid's contact solver has no mixed variant.
 """
@@ -29,7 +30,8 @@ def state_dtype(precision: str):
 
 def position_dtype(precision: str):
     """NumPy type of the positions and of the list's reference positions."""
-    return np.float32 if state_dtype(precision) is np.float32 and precision != "mixed" else np.float64
+    state_dtype(precision)   # validates the name
+    return np.float32 if precision == "float32" else np.float64
 
 
 def output_dtype(precision: str):

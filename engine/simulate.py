@@ -327,7 +327,7 @@ class SceneRun:
             if self.ck.due():
                 t0 = time.perf_counter()
                 self.ck.save(writer, view, phase="thermalization", step_done=self.step_done,
-                             extra=self._ck_extra(view.observe()))
+                             extra=self._ck_extra(self._counted(view.observe())))
                 self.timings["checkpoints"] += time.perf_counter() - t0
             if self.step_done >= p.n_thermalization_steps:
                 self.phase, self.step_done = "cooling", 0
@@ -368,7 +368,7 @@ class SceneRun:
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
         if self.ck.due() and step_done < p.n_steps:
             t0 = time.perf_counter()
-            self.ck.save(writer, view, phase="cooling", step_done=step_done, extra=self._ck_extra(obs, counted=True))
+            self.ck.save(writer, view, phase="cooling", step_done=step_done, extra=self._ck_extra(obs))
             tm["checkpoints"] += time.perf_counter() - t0
         self._next_event()
 
@@ -378,12 +378,12 @@ class SceneRun:
             return obs
         return {**obs, "collisions": obs["collisions"] + self.coll_base}
 
-    def _ck_extra(self, obs: dict, counted: bool = False) -> dict:
+    def _ck_extra(self, obs: dict) -> dict:
         """What a checkpoint keeps beside the state: the spec, the energy check's reference and the collision
-        count (the resumed run's series continues from it)."""
+        count of :meth:`_counted` observables (the resumed run's series continues from it)."""
         extra = {"spec": self.spec_json, "prev_energy": self.prev_energy}
         if "collisions" in obs:
-            extra["collisions"] = obs["collisions"] if counted else obs["collisions"] + self.coll_base
+            extra["collisions"] = obs["collisions"]
         return extra
 
     def finish(self, backend: str, device: str, builds: int, info: Optional[dict] = None,

@@ -49,7 +49,7 @@ from engine.backends.cuda_lists import list_kernels
 from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
-from engine.precision import position_dtype, state_dtype
+from engine.precision import check_shape, position_dtype, state_dtype
 from engine.shapes.sphere import device as SC
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
@@ -89,6 +89,7 @@ class CudaEnsemble:
         precisions = {c.precision for c in contacts}
         if len(precisions) != 1:
             raise ValueError(f"all scenes of an ensemble share one precision, got {sorted(precisions)}")
+        check_shape(contacts[0].precision, self.shape)
         self.dtype = dt_ = state_dtype(contacts[0].precision)
         self.pos_dtype = position_dtype(contacts[0].precision)  # float64 in 'mixed' (engine/precision.py)
         self.n_scenes = nk = len(systems)

@@ -54,6 +54,13 @@ def sphere_separation(rx, ry, rz, rs, half):
 
 
 @numba.njit
+def contact_begins(delta, delta_prev):
+    """Whether a contact begins in this step: overlap delta > 0 now, none (delta_prev <= 0, m) the step before
+    (one collision; the collision counter of issue 18 counts these)."""
+    return delta > 0 and not delta_prev > 0
+
+
+@numba.njit
 def normal_force(delta, vn, k_n, gamma_n):
     """Normal force magnitude in N along n: k_n delta - gamma_n v_n (repulsive > 0; paper 001)."""
     return k_n * delta - gamma_n * vn

@@ -171,10 +171,10 @@ def write(report: Path, res: dict, command: str) -> None:
              "- **rest** = DEM - DSMC - soft (± the DEM and DSMC errors combined): what neither explains;",
              "- **rate** (where the collision rate is measured precisely, SE <= "
              f"{100 * RATE_SE_MAX:.1f} % per tau window): Luding's ODE run at the DEM's measured collision rate "
-             "(engine/validation/hcs_long.py collision_rate_ratio: the collision counter, or in older files the contacts "
-             "open at each record) minus the "
-             "ODE, and **rest - rate**. The measured rate includes the distribution's own effect on the rate "
-             "(~a2/16, a few 0.1 % at most), which the DSMC column holds too.", ""]
+             "(engine/validation/hcs_long.py collision_rate_ratio: the collision counter, or in older files the "
+             "contacts open at each record) minus the ODE, and **rest - rate**. The measured rate includes the "
+             "distribution's own effect on the rate (~a2/16, a few 0.1 % at most), which the DSMC column holds too.",
+             ""]
     for key, c in res.items():
         lines += [f"## {key} (DEM: {c['seeds']} seeds, v_rms = {c['velocity_rms']} m/s; DSMC: N = {c['n']}, "
                   f"{c['repeats']} runs; soft: {c['samples']} collisions per level)", ""]

@@ -48,8 +48,8 @@ from types import SimpleNamespace
 import numpy as np
 from numba import cuda
 
-from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
-                                    sphere_contact_end, sphere_separation)
+from engine.physics.contact import (contact_begins, contact_elastic_energy, contact_end_fraction, min_image,
+                                    sphere_contact, sphere_contact_end, sphere_separation)
 from engine.physics.integrate import kick
 from engine.physics.rotation import sphere_quat_turn
 
@@ -158,8 +158,8 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                                                  min_image(zi - pos[2, j], box, inv_box, HALF), ri + rj, HALF)
         delta_prev = hist[3, kk, i]
         if delta > ZERO:
-            if not delta_prev > ZERO:
-                ext[1][i] += 1      # a contact begins: one collision (counted in both partners' lists)
+            if contact_begins(delta, delta_prev):
+                ext[1][i] += 1      # one collision (counted in both partners' lists)
             imj = im0 if UNIFORM else inv_m[j]
             m12 = one / (imi + imj)
             vix = vel[0, i]

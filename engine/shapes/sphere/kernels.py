@@ -42,8 +42,8 @@ from numba import prange
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
-from engine.physics.contact import (contact_elastic_energy, contact_end_fraction, min_image, sphere_contact,
-                                    sphere_contact_end, sphere_separation)
+from engine.physics.contact import (contact_begins, contact_elastic_energy, contact_end_fraction, min_image,
+                                    sphere_contact, sphere_contact_end, sphere_separation)
 from engine.physics.integrate import kick
 from engine.physics.rotation import sphere_quat_turn
 
@@ -143,8 +143,8 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
     tz = 0.0
     ov = 0.0
     if delta > 0:
-        if not delta_prev > 0:
-            ext[1][i] += 1      # a contact begins: one collision (counted in both partners' lists)
+        if contact_begins(delta, delta_prev):
+            ext[1][i] += 1      # one collision (counted in both partners' lists)
         m12 = 1 / (inv_m[i] + inv_m[j])
         g = sphere_contact(rx, ry, rz, d,
                            vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],

@@ -21,9 +21,9 @@ from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.backends.cpu import CpuLoop
 from engine.backends.cpu_shared import SLOT, collect_springs, restore_springs
 from engine.params import Q_SPHERE
-from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
-from engine.precision import check_shape
 from engine.physics.rotation import angular_momentum, space_omega
+from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
+from engine.precision import check_shape, state_dtype
 from engine.shapes.spheroid import kernels as spheroid
 
 #: history words per list slot of a rough contact: spring (3), overlap, dashpot force, the contact's k_t
@@ -78,7 +78,7 @@ class CpuEllipsoidBackend(CpuLoop):
         self.rough = contact.rough
         self.slot_words = SLOT_ROUGH if self.rough else SLOT
         check_shape(contact.precision, spheroid.NAME)
-        self.dtype = np.float64 if contact.precision == "float64" else np.float32
+        self.dtype = state_dtype(contact.precision)
         dt_ = self.dtype
         n = system.n
         self.n = n

@@ -35,9 +35,7 @@ from engine.shapes.spheroid.cpu_backend import (PW_SCREEN, PW_TOL, SLOT_ROUGH, a
                                                 rotational_dof, tangential_factor_of)
 from engine.backends.cuda import CudaBackend, CudaEnsemble
 from engine.physics.sonine import sonine_sums
-from engine.precision import check_shape
 from engine.shapes.spheroid import device as CE
-from engine.shapes.spheroid import kernels as spheroid_kernels
 
 #: the spheroid columns of spd (engine/shapes/spheroid/device.py: offsets from the common K.ND)
 E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR, E_FT = (K.ND + c for c in range(CE.NCOL))
@@ -61,8 +59,6 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         for k, s in enumerate(systems):
             if not isinstance(s, EllipsoidSystem):
                 raise TypeError(f"scene {k}: CudaEllipsoidEnsemble needs EllipsoidSystem scenes, got {type(s).__name__}")
-        for c in contacts:
-            check_shape(c.precision, spheroid_kernels.NAME)
         # rough contacts keep the spring and the contact's k_t: 6 history words (engine/shapes/spheroid/device.py)
         self.hist_words = SLOT_ROUGH if any(c.rough for c in contacts) else K.HW
         super().__init__(systems, contacts)
