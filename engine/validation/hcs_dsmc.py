@@ -37,7 +37,7 @@ import numba
 import numpy as np
 
 from engine.params import Q_SPHERE
-from engine.theory import collisions_per_particle, luding_ode
+from engine.theory import collisions_per_particle, luding_coefficients, luding_ode
 from engine.validation.sonine import _dsmc, collision_normal, constant_restitution_impulse
 
 #: tau values of the comparison table
@@ -60,11 +60,14 @@ def cooling(e_n: float, beta: float, r0: float, tau, *, n: int = 100_000, repeat
     tau = np.asarray(tau, dtype=float)
     s_end = collisions_to(e_n, beta, float(tau.max()), r0)
 
+    coeffs = luding_coefficients(e_n, beta, Q_SPHERE)
+
     def one(r):
         out = _dsmc(n, e_n, beta, Q_SPHERE, s_end, samples_per_collision, seed + 1000 * r, r0)
         t_axis = out[:, 6]
-        return (np.interp(tau, t_axis, out[:, 7] * 2.0 * out[:, 1] / (3.0 * n)),
-                np.interp(tau, t_axis, out[:, 7] * 2.0 * out[:, 3] / (3.0 * n)), float(t_axis[-1]))
+        t_run, r_run = out[:, 7] * 2.0 * out[:, 1] / (3.0 * n), out[:, 7] * 2.0 * out[:, 3] / (3.0 * n)
+        return (np.interp(tau, t_axis, t_run), np.interp(tau, t_axis, r_run), float(t_axis[-1]),
+                collision_change_windows(t_axis, t_run, r_run, out[:, 0], coeffs, tau))
 
     _dsmc(100, 0.5, 0.5, Q_SPHERE, 1.0, 1.0, 0, 1.0)  # compile once, before the threads
     with ThreadPoolExecutor(max(1, min(repeats, numba.config.NUMBA_NUM_THREADS))) as pool:
@@ -74,8 +77,11 @@ def cooling(e_n: float, beta: float, r0: float, tau, *, n: int = 100_000, repeat
     t_all = np.array([r[0] for r in runs])
     r_all = np.array([r[1] for r in runs])
     se = math.sqrt(repeats) if repeats > 1 else math.nan
+    loss_t, loss_t_err = ratio_of_sums([r[3][0] for r in runs], [r[3][1] for r in runs])
+    loss_r, loss_r_err = ratio_of_sums([r[3][2] for r in runs], [r[3][3] for r in runs])
     return {"tau": tau, "T": t_all.mean(0), "T_err": t_all.std(0, ddof=1) / se, "R": r_all.mean(0),
-            "R_err": r_all.std(0, ddof=1) / se, "n": n, "repeats": repeats}
+            "R_err": r_all.std(0, ddof=1) / se, "n": n, "repeats": repeats,
+            "loss_T": loss_t, "loss_T_err": loss_t_err, "loss_R": loss_r, "loss_R_err": loss_r_err}
 
 
 def compare(report: Path, spec_for, *, n: int = 100_000, repeats: int = 8, samples: int = 4000,
@@ -94,7 +100,8 @@ def compare(report: Path, spec_for, *, n: int = 100_000, repeats: int = 8, sampl
             continue
         tau = series[f"{key}/tau"]
         beta = c["e_t_effective"]
-        d = cooling(c["e_n"], beta, c["R0"], tau, n=n, repeats=repeats)
+        # 20 samples per collision and particle: >= 3 in the +-10 % tau windows of the per-collision changes from tau = 1
+        d = cooling(c["e_n"], beta, c["R0"], tau, n=n, repeats=repeats, samples_per_collision=20.0)
         t_ode, r_ode = luding_ode(c["e_n"], beta, tau, 1.0, c["R0"])
         out[key] = {
             "e_n": c["e_n"], "beta": beta, "R0": c["R0"], "seeds": c["seeds"], "tau": tau,
@@ -108,7 +115,15 @@ def compare(report: Path, spec_for, *, n: int = 100_000, repeats: int = 8, sampl
             raise ValueError(f"{key}: the scene's e_t {spec.e_t} is not the report's {c['e_t']}")
         soft = soft_contact_correction(spec, beta, c["R0"], tau, samples=samples)
         out[key].update(soft_T=soft["T"], soft_R=soft["R"], soft_points=soft["points"], soft_fit=soft["fit"],
-                        samples=samples, velocity_rms=spec.velocity_rms)
+                        samples=samples, velocity_rms=spec.velocity_rms, soft_eps_T=soft["eps_T"],
+                        soft_eps_R=soft["eps_R"])
+        if f"{key}/loss_T" in series.files:
+            # the energy change per collision (the collision counter): DEM and DSMC against the Maxwellian closure
+            for q in ("T", "R"):
+                out[key].update({f"dem_loss_{q}": series[f"{key}/loss_{q}"],
+                                 f"dem_loss_{q}_err": series[f"{key}/loss_{q}_err"],
+                                 f"dsmc_loss_{q}": d[f"loss_{q}"], f"dsmc_loss_{q}_err": d[f"loss_{q}_err"]})
+            out[key].update(coll=series[f"{key}/coll"], coll_err=series[f"{key}/coll_err"])
         if f"{key}/dev_rate" in series.files:
             # the measured collision rate (hcs_long.collision_rate_ratio): used where it is precise
             se = rate_window_se(tau, series[f"{key}/coll_err"])
@@ -129,6 +144,52 @@ def window_mean(tau, y, err, t):
     if not sel.any():
         return None
     return float(np.mean(y[sel])), float(np.sqrt(np.sum(err[sel] ** 2)) / sel.sum())
+
+
+#: half width of the tau windows of the per-collision energy changes (:func:`collision_change_windows`), relative
+#: to tau (the same windows as :func:`window_mean`'s)
+LOSS_WINDOW = 0.1
+
+
+def collision_change_windows(tau, t, r, s, coeffs, grid, width: float = LOSS_WINDOW):
+    """What the collisions in a window changed, against what Luding's ODE says those collisions change.
+
+    One run's series on its own records: tau, t = T/T0, r = R/T0 and s = collisions per particle so far (each
+    collision counts for both partners: s = 2 C / N). For each grid point g, over the records in
+    [g (1 - width), g (1 + width)]: the measured changes dT and dR, and the Maxwellian closure's changes for the
+    collisions that happened there at the measured state, sum of (4/3) (-a T + b R) ds and (4/3) (b T - c R) ds
+    over the record intervals (T and R at the interval's midpoint). Per collision and particle these are Luding's
+    right-hand sides (paper 001 Eqs. 1-2, coefficients ``coeffs`` = (a, b, c) of engine.theory.
+    luding_coefficients) over Enskog's rate (3/4) T^(1/2) per unit tau, so the ratio measured / closure is the
+    energy change per collision relative to uncorrelated Maxwellian pairs, whatever the rate. Returns
+    (dT, dT_closure, dR, dR_closure), arrays like grid; NaN where a window holds fewer than two records.
+    """
+    tau, t, r, s = (np.asarray(x, dtype=float) for x in (tau, t, r, s))
+    a, b, c = coeffs
+    tm, rm, ds = 0.5 * (t[1:] + t[:-1]), 0.5 * (r[1:] + r[:-1]), np.diff(s)
+    cum_t = np.concatenate([[0.0], np.cumsum(4.0 / 3.0 * (-a * tm + b * rm) * ds)])
+    cum_r = np.concatenate([[0.0], np.cumsum(4.0 / 3.0 * (b * tm - c * rm) * ds)])
+    grid = np.asarray(grid, dtype=float)
+    j0 = np.searchsorted(tau, grid * (1.0 - width), side="left")
+    j1 = np.searchsorted(tau, grid * (1.0 + width), side="right") - 1
+    ok = j1 > j0
+    j0, j1 = np.where(ok, j0, 0), np.where(ok, j1, 0)
+    nan = np.where(ok, 1.0, np.nan)
+    return ((t[j1] - t[j0]) * nan, (cum_t[j1] - cum_t[j0]) * nan,
+            (r[j1] - r[j0]) * nan, (cum_r[j1] - cum_r[j0]) * nan)
+
+
+def ratio_of_sums(num, den) -> tuple[np.ndarray, np.ndarray]:
+    """sum_i num_i / sum_i den_i over runs (axis 0) and its jackknife standard error (leave one run out): a ratio
+    of means, robust where a single run's denominator is small. num, den: (runs, points)."""
+    num, den = np.asarray(num, dtype=float), np.asarray(den, dtype=float)
+    n = num.shape[0]
+    with np.errstate(divide="ignore", invalid="ignore"):   # a closure change of 0 (smooth spheres' R): NaN
+        ratio = np.where(den.sum(0) != 0.0, num.sum(0) / den.sum(0), np.nan)
+        if n < 2:
+            return ratio, np.full_like(ratio, np.nan)
+        loo = (num.sum(0) - num) / (den.sum(0) - den)
+        return ratio, np.sqrt((n - 1) / n * np.sum((loo - loo.mean(0)) ** 2, axis=0)) + 0.0 * ratio
 
 
 def rate_window_se(tau, coll_err) -> float:
@@ -205,6 +266,7 @@ def write(report: Path, res: dict, command: str) -> None:
                   f"{f['tr']['c_err']:.4f} (chi^2 {f['tr']['chi2']:.1f} / {f['tr']['dof']}), c_rot = "
                   f"{f['rot']['c']:.4f} ± {f['rot']['c_err']:.4f} (chi^2 {f['rot']['chi2']:.1f} / {f['rot']['dof']}); "
                   "the ODE uses the measured points (linear in (T/T0)^(1/2) between them), not this fit.", ""]
+    lines += _loss_tables(res)
     lines += ["![dsmc](dsmc.png)", ""]
     (report / "dsmc.md").write_text("\n".join(lines))
     (report / "dsmc.json").write_text(json.dumps(
@@ -235,6 +297,56 @@ def write(report: Path, res: dict, command: str) -> None:
     fig.tight_layout()
     fig.savefig(report / "dsmc.png", dpi=110)
     plt.close(fig)
+
+
+def loss_rest(c: dict, q: str, i: int) -> tuple[float, float]:
+    """Per collision, what the distribution (DSMC) and the soft contact leave of the DEM's energy change:
+    lambda_DEM / (lambda_DSMC (1 + eps)) - 1 at grid point i, with its SE (DEM and DSMC errors combined)."""
+    dem, dsmc = c[f"dem_loss_{q}"][i], c[f"dsmc_loss_{q}"][i]
+    rest = dem / (dsmc * (1.0 + c[f"soft_eps_{q}"][i])) - 1.0
+    err = (1.0 + rest) * math.hypot(c[f"dem_loss_{q}_err"][i] / dem, c[f"dsmc_loss_{q}_err"][i] / dsmc)
+    return float(rest), float(err)
+
+
+def _loss_tables(res: dict) -> list:
+    """dsmc.md's section on the energy change per collision (cases whose files had the collision counter)."""
+    cases = {k: c for k, c in res.items() if "dem_loss_T" in c}
+    if not cases:
+        return []
+    lines = ["## Energy change per collision", "",
+             "The collision counter gives the collisions per particle s between records, so the energy change per "
+             "collision is measured directly, apart from how often the gas collides. In tau windows of ± "
+             f"{100 * LOSS_WINDOW:.0f} % (collision_change_windows): lambda = the measured change of T/T0 (or R/T0) "
+             "over what Luding's Maxwellian closure gives for the same collisions at the measured (T, R), "
+             "(4/3) (-a T + b R) ds (and (4/3) (b T - c R) ds). lambda = 1: each collision changes the energy as "
+             "an uncorrelated Maxwellian pair would. Ratio of the seed sums, jackknife SE over seeds (DEM) or over "
+             "runs (DSMC, which counts its collisions the same way). The soft contact's factor is 1 + eps at "
+             "the ODE's T (the table above). rest = lambda_DEM / (lambda_DSMC (1 + eps)) - 1: the part of the "
+             "change per collision that neither the distribution nor the soft contact explains; below 0 for T: "
+             "colliding pairs lose less translational energy than uncorrelated pairs of the same distribution "
+             "(velocity correlations lower their normal relative speed). The rate over Enskog's and lambda "
+             "multiply to the cooling rate over the ODE's.", "",
+             "| case | tau | rate / Enskog | lambda_T DEM | lambda_T DSMC | 1 + eps_tr | rest T % | lambda_R DEM | "
+             "lambda_R DSMC | 1 + eps_rot | rest R % |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for key, c in cases.items():
+        onset = c.get("tau_shear_measured")
+        for t in TABLE_TAU:
+            if t > c["tau"][-1] + 0.5:
+                break
+            i = int(np.argmin(np.abs(c["tau"] - t)))
+            if not np.isfinite(c["dem_loss_T"][i]) or not np.isfinite(c["dsmc_loss_T"][i]):
+                continue
+            late = onset is not None and (c.get("L_over_Lc") or 0.0) >= 1.0 and c["tau"][i] >= onset
+            w = window_mean(c["tau"], c["coll"], c["coll_err"], t)
+            cells = [key, f"{c['tau'][i]:.1f}" + (" (shear grown)" if late else ""),
+                     f"{w[0]:.4f} ± {w[1]:.4f}" if w else "–"]
+            for q in ("T", "R"):
+                rest, err = loss_rest(c, q, i)
+                cells += [f"{c[f'dem_loss_{q}'][i]:.4f} ± {c[f'dem_loss_{q}_err'][i]:.4f}",
+                          f"{c[f'dsmc_loss_{q}'][i]:.4f} ± {c[f'dsmc_loss_{q}_err'][i]:.4f}",
+                          f"{1.0 + c[f'soft_eps_{q}'][i]:.4f}", f"{100 * rest:+.2f} ± {100 * err:.2f}"]
+            lines.append("| " + " | ".join(cells) + " |")
+    return lines + [""]
 
 
 # ---- the soft-contact part: DEM binary collisions against the constant-restitution rule ------------------
@@ -334,5 +446,7 @@ def soft_contact_correction(spec, beta: float, r0: float, tau, *, samples: int =
         return 1.0 + np.interp(st, xs, e_tr), 1.0 + np.interp(st, xs, e_rot)
 
     t_soft, r_soft = luding_ode(spec.e_n, beta, tau, 1.0, r0, rates=rates)
-    return {"points": pts, "fit": fit, "T": t_soft / t_ode - 1.0, "R": r_soft / r_ode - 1.0}
+    root = np.sqrt(np.maximum(t_ode, 0.0))
+    return {"points": pts, "fit": fit, "T": t_soft / t_ode - 1.0, "R": r_soft / r_ode - 1.0,
+            "eps_T": np.interp(root, xs, e_tr), "eps_R": np.interp(root, xs, e_rot)}
 

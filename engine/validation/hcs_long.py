@@ -52,7 +52,7 @@ from engine.params import derive, e_t_effective
 from engine.shear_instability import (onset_tau, predicted_mode_energy, predicted_unstable_excess,
                                       shear_stability)
 from engine.spec import SimulationSpec
-from engine.theory import luding_ode, tau_factor
+from engine.theory import luding_coefficients, luding_ode, tau_factor
 from engine.validation.hcs_spheres import measure_run
 
 CASES = (0.8, 0.6)
@@ -142,6 +142,65 @@ def contact_duration(p) -> float:
     return math.pi / math.sqrt(p.omega0 ** 2 - eta ** 2)
 
 
+def save_runs(path, cases: dict, meta: dict) -> None:
+    """The runs of a report, reduced (:func:`_read_run` dicts: records, mode series, collision counts; a few MB
+    instead of the GB of result files), as one npz: ``cases`` = {case key: [(seed, run dict), ...]}. Reports of
+    several calls are then analysed together by ``merge`` (:func:`load_runs`)."""
+    arrays = {"meta": np.array(json.dumps(meta, default=str))}
+    for key, runs in cases.items():
+        for seed, r in runs:
+            base = f"{key}/{seed}/"
+            scalars = {}
+            for name, v in r.items():
+                if name == "modes":
+                    for m, mv in v.items():
+                        if isinstance(mv, np.ndarray):
+                            arrays[base + "modes/" + m] = mv
+                        else:
+                            scalars["modes/" + m] = mv
+                elif name == "collisions":
+                    if v is not None:
+                        arrays[base + "collisions/time"], arrays[base + "collisions/value"] = v
+                elif isinstance(v, np.ndarray):
+                    arrays[base + name] = v
+                else:
+                    scalars[name] = v
+            arrays[base + "scalars"] = np.array(json.dumps(scalars, default=float))
+    np.savez_compressed(path, **arrays)
+
+
+def load_runs(path) -> tuple[dict, dict]:
+    """(cases, meta) of a :func:`save_runs` file: cases = {case key: {seed: run dict}}."""
+    z = np.load(path)
+    cases: dict = {}
+    for name in z.files:
+        if name == "meta" or not name.endswith("/scalars"):
+            continue
+        key, seed = name.split("/")[:2]
+        base = f"{key}/{seed}/"
+        r = {}
+        for k, v in json.loads(str(z[name])).items():
+            if k.startswith("modes/"):
+                r.setdefault("modes", {})[k[6:]] = v
+            else:
+                r[k] = v
+        r["collisions"] = None
+        for full in z.files:
+            if not full.startswith(base) or full == name:
+                continue
+            sub = full[len(base):]
+            if sub.startswith("modes/"):
+                r.setdefault("modes", {})[sub[6:]] = z[full]
+            elif sub.startswith("collisions/"):
+                continue
+            else:
+                r[sub] = z[full]
+        if base + "collisions/time" in z.files:
+            r["collisions"] = (z[base + "collisions/time"], z[base + "collisions/value"])
+        cases.setdefault(key, {})[int(seed)] = r
+    return cases, json.loads(str(z["meta"]))
+
+
 def collision_rate_ratio(run: dict) -> np.ndarray:
     """The DEM's collision rate over Enskog's at each record of one run.
 
@@ -175,11 +234,36 @@ def analyse(paths) -> dict:
 
     Returns tau (records), T, T_err, R, R_err, T_ode, R_ode, dev (T/T_ode - 1), dev_err; on the frames:
     tau_f, x_shear(+_err), x_long(+_err), S(+_err), shear_fraction(+_err); the linear theory (stab,
-    x_pred at k_min, dev_pred from the unstable modes) and the onsets (see :func:`onsets`).
+    x_pred at k_min, dev_pred from the unstable modes) and the onsets (see :func:`onsets`); where the files
+    have the collision counter, the energy change per collision (:func:`collision_loss`).
     """
-    runs = [_read_run(p) for p in paths]
+    return analyse_runs([_read_run(p) for p in paths], [str(p) for p in paths])
+
+
+def collision_loss(runs: list, tau, coeffs) -> dict:
+    """The energy change per collision against the Maxwellian closure (engine.validation.hcs_dsmc.
+    collision_change_windows), seed ratio of sums with jackknife SE, on the tau grid: loss_T, loss_T_err,
+    loss_R, loss_R_err. Empty where a run lacks the collision counter."""
+    from engine.validation.hcs_dsmc import collision_change_windows, ratio_of_sums
+
+    if any(r.get("collisions") is None for r in runs):
+        return {}
+    rows = []
+    for r in runs:
+        t_c, c = r["collisions"]
+        s = np.interp(r["time"], t_c, 2.0 * c / r["spec"]["n_particles"])
+        rows.append(collision_change_windows(r["k"] * r["time"], r["T"], r["R"], s, coeffs, tau))
+    out = {}
+    for q, (num, den) in (("T", (0, 1)), ("R", (2, 3))):
+        out[f"loss_{q}"], out[f"loss_{q}_err"] = ratio_of_sums([x[num] for x in rows], [x[den] for x in rows])
+    return out
+
+
+def analyse_runs(runs: list, names: list) -> dict:
+    """:func:`analyse` of runs already read (:func:`_read_run` dicts, e.g. from :func:`load_runs`)."""
     if not runs:
         raise ValueError("analyse: no result files given")
+    paths = names
     s0 = runs[0]["spec"]
     for p, r in zip(paths, runs):
         for key in ("e_n", "e_t", "n_particles", "volume_fraction", "box_length", "t_end"):
@@ -217,6 +301,7 @@ def analyse(paths) -> dict:
 
     T_rate, R_rate = luding_ode(e_n, e_eff, tau, 1.0, r0, rates=rates)
     out["coll_smooth"] = smooth
+    out.update(collision_loss(runs, tau, luding_coefficients(e_n, e_eff)))
     out["dev_rate"] = T_rate / T_ode - 1.0
     out["dev_R_rate"] = R_rate / R_ode - 1.0
     for key in ("x_shear", "x_long", "S", "shear_fraction"):
@@ -475,8 +560,10 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
                             T_final=float(c["T"][-1]))
         for name in ("tau", "T", "T_err", "R", "R_err", "T_ode", "R_ode", "dev", "dev_err", "tau_f", "x_shear",
                      "x_shear_err", "x_long", "x_long_err", "S", "S_err", "shear_fraction", "x_pred", "dev_pred",
-                     "coll", "coll_err", "coll_smooth", "dev_rate", "dev_R", "dev_R_rate"):
-            arrays[f"{key}/{name}"] = np.asarray(c[name])
+                     "coll", "coll_err", "coll_smooth", "dev_rate", "dev_R", "dev_R_rate", "loss_T", "loss_T_err",
+                     "loss_R", "loss_R_err"):
+            if name in c:
+                arrays[f"{key}/{name}"] = np.asarray(c[name])
     summary = json.loads(json.dumps(summary, default=float).replace("Infinity", "null"))
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     np.savez_compressed(out / "series.npz", **arrays)
@@ -486,14 +573,16 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
 
 def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = False, backend: str = "auto",
          scenes=None, scratch=None, keep: bool = False, velocity_rms: float | None = None,
-         tau_end: float | None = None, unstable_seeds: int | None = None,
-         command: str = "demq validate hcs-long") -> int:
+         tau_end: float | None = None, unstable_seeds: int | None = None, seed_offset: int = 0,
+         dsmc: bool = True, command: str = "demq validate hcs-long") -> int:
     """Run every (scene, e, seed) as one ensemble, analyse, write the report to out_dir.
 
     scenes: default ('paper001', 'unstable'), quick: ('quick',). seeds: per e of the paper001 and quick
     scenes, unstable_seeds of the unstable scene (default: the scene's, SCENES).
     scratch: folder for the result files (default out_dir/runs); they are deleted after the analysis
-    unless ``keep``. Returns 0 when the issue's goal holds for every case (quick: the CI checks, see
+    unless ``keep``; their reduced series stay in out_dir/runs.npz (:func:`save_runs`), so that runs with other
+    seeds (``seed_offset``: seeds seed_offset, seed_offset + 1, ...) made in another call can be analysed
+    with them (``merge``). Returns 0 when the issue's goal holds for every case (quick: the CI checks, see
     :func:`quick_checks`), else 1.
     """
     from engine.ensemble import run_ensemble
@@ -509,7 +598,7 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
         if n_seeds < 2:
             raise ValueError(f"seeds = {n_seeds} for scene {scene}: need >= 2 for a standard error")
         for e in CASES:
-            for seed in range(n_seeds):
+            for seed in range(seed_offset, seed_offset + n_seeds):
                 tasks.append((scene, e, seed, scene_spec(scene, e, seed, backend, velocity_rms, tau_end),
                               work / f"{scene}_e{e}_seed{seed}.h5"))
     specs = [t[3] for t in tasks]
@@ -533,14 +622,17 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
         if isinstance(s, BaseException):
             raise s
     print(f"hcs-long: ensemble done in {wall:.1f} s", flush=True)
-    results = {}
+    results, cases = {}, {}
     for scene in scenes:
         for e in CASES:
-            paths = [t[4] for t in tasks if t[0] == scene and t[1] == e]
-            results[f"{scene} e={e}"] = analyse(paths)
+            sel = [t for t in tasks if t[0] == scene and t[1] == e]
+            runs = [_read_run(t[4]) for t in sel]
+            cases[f"{scene} e={e}"] = [(t[2], r) for t, r in zip(sel, runs)]
+            results[f"{scene} e={e}"] = analyse_runs(runs, [str(t[4]) for t in sel])
     first = next(iter(results.values()))
     meta = {"backend": first["backend"], "device": first["device"], "wall_s": wall, "runs": c["runs"],
-            "particle_steps": c["particle_steps"]}
+            "particle_steps": c["particle_steps"], "command": command}
+    save_runs(out / "runs.npz", cases, meta)
     write_report(results, out, command, meta)
     if not keep:
         for t in tasks:
@@ -552,7 +644,7 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
               f"{_fmt_tau(r['tau_dev_significant'])}; shear x > 2 from {_fmt_tau(r['tau_shear_measured'])} "
               f"(predicted {_fmt_tau(r['tau_shear_predicted'])}); L/L_c = {r['stab'].box_over_Lc:.2f}; "
               f"goal {'met' if criterion(r) else 'NOT met'}", flush=True)
-    if not quick:
+    if not quick and dsmc:
         from engine.validation import hcs_dsmc
 
         parts = hcs_dsmc.compare(out, _spec_for(velocity_rms))
@@ -565,6 +657,38 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
             print("quick check failed:", p)
         return 1 if problems else 0
     return 0 if all(criterion(r) for r in results.values()) else 1
+
+
+def merge(reports, out_dir, command: str) -> dict:
+    """Analyse together the runs of several reports (their runs.npz, :func:`save_runs`; e.g. the seeds of one
+    scene split over two device calls with ``--seed-offset``) and write the report to out_dir. A seed that two
+    reports both hold is an error (the same run twice would shrink the SE). Returns the results."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cases: dict = {}
+    metas = []
+    for rep in reports:
+        got, meta = load_runs(Path(rep) / "runs.npz")
+        metas.append(meta)
+        for key, runs in got.items():
+            have = cases.setdefault(key, {})
+            for seed, r in runs.items():
+                if seed in have:
+                    raise ValueError(f"{rep}: {key} seed {seed} is already in another report")
+                have[seed] = r
+    results = {}
+    for key, runs in cases.items():
+        seeds = sorted(runs)
+        results[key] = analyse_runs([runs[k] for k in seeds], [f"{key} seed {k}" for k in seeds])
+    first = next(iter(results.values()))
+    meta = {"backend": first["backend"], "device": first["device"],
+            "wall_s": sum(float(m.get("wall_s", 0.0)) for m in metas),
+            "runs": sum(int(m.get("runs", 0)) for m in metas),
+            "particle_steps": sum(float(m.get("particle_steps", 0.0)) for m in metas)}
+    write_report(results, out, command + "; merged from: " + "; ".join(
+        f"{rep} (`{m.get('command', '?')}`)" for rep, m in zip(reports, metas)), meta)
+    save_runs(out / "runs.npz", {k: sorted(v.items()) for k, v in cases.items()}, {**meta, "command": command})
+    return results
 
 
 #: quick scene: |T/T_ODE - 1| <= QUICK_DEV_SYSTEMATIC + QUICK_DEV_SIGMAS * SE at every record, and <= QUICK_DEV_MAX
@@ -635,6 +759,13 @@ def _cli(argv=None) -> int:
     r.add_argument("--keep", action="store_true", help="keep the result files")
     r.add_argument("--velocity-rms", type=float, default=None, help="override the scenes' v_rms (m/s)")
     r.add_argument("--tau-end", type=float, default=None, help="override the scenes' tau_end")
+    r.add_argument("--seed-offset", type=int, default=0, help="first seed (runs of other seeds made elsewhere "
+                   "can then be merged with these: the merge command)")
+    r.add_argument("--no-dsmc", action="store_true", help="leave out the DSMC and soft-contact parts (run the dsmc "
+                   "command on the report later, e.g. after a merge)")
+    g = sub.add_parser("merge", help="analyse the runs of several reports together (their runs.npz)")
+    g.add_argument("out_dir")
+    g.add_argument("reports", nargs="+")
     d = sub.add_parser("dsmc", help="add the deviation's parts (DSMC, soft contact; engine/validation/hcs_dsmc.py) "
                                     "to a report folder")
     d.add_argument("report", help="a report folder (series.npz, summary.json)")
@@ -653,8 +784,15 @@ def _cli(argv=None) -> int:
 
         return main(out_dir=args.out_dir, seeds=args.seeds, quick=args.quick, backend=args.backend,
                     scenes=args.scenes, scratch=args.scratch, keep=args.keep, velocity_rms=args.velocity_rms,
-                    tau_end=args.tau_end, unstable_seeds=args.unstable_seeds,
-                    command="python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
+                    tau_end=args.tau_end, unstable_seeds=args.unstable_seeds, seed_offset=args.seed_offset,
+                    dsmc=not args.no_dsmc, command="python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
+    if args.cmd == "merge":
+        import sys
+
+        results = merge(args.reports, args.out_dir, "python -m engine.validation.hcs_long " + " ".join(sys.argv[1:]))
+        for key, r in results.items():
+            print(f"{key}: {r['seeds']} seeds; within 1 % to tau {r['tau_within_1pct']:.1f}")
+        return 0
     if args.cmd == "dsmc":
         import sys
 

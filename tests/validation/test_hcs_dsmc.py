@@ -100,3 +100,46 @@ def test_decomposition_takes_the_collision_rate_only_where_it_is_precise(tmp_pat
     precise, noisy = md.split("## noisy")
     assert "rest - rate T %" in precise and "| +3.00 ± 0.10 | +2.00 | +1.00 ± 0.10 |" in precise
     assert "rest - rate T %" not in noisy and "Collision rate not used here" in noisy
+
+
+def test_collision_change_windows_recover_the_energy_change_per_collision():
+    # Luding's ODE with its two right-hand sides scaled by (f_tr, f_rot) and collisions at Enskog's rate
+    # (3/4) T^(1/2): per collision, T and R change f_tr and f_rot times what the Maxwellian closure says, so
+    # the windows must return exactly those factors (to the midpoint rule's O(h^2) on this grid: < 1e-5).
+    from engine.theory import collisions_per_particle, luding_coefficients
+    from engine.validation.hcs_dsmc import collision_change_windows, ratio_of_sums
+
+    e_n, beta = 0.7, 0.5
+    tau = np.linspace(0.0, 30.0, 6001)
+    grid = np.array([1.0, 5.0, 20.0])
+    for f_tr, f_rot in ((1.0, 1.0), (1.3, 0.8)):
+        t, r = luding_ode(e_n, beta, tau, 1.0, 0.9, rates=lambda _t: (f_tr, f_rot))
+        s = collisions_per_particle(t, tau)
+        dt, dt0, dr, dr0 = collision_change_windows(tau, t, r, s, luding_coefficients(e_n, beta), grid)
+        assert np.allclose(dt / dt0, f_tr, rtol=1e-5) and np.allclose(dr / dr0, f_rot, rtol=1e-5), (dt / dt0, dr / dr0)
+        # twice the collisions for the same change (a rate/count slip of 2) halves the ratio
+        dt2, dt20, _, _ = collision_change_windows(tau, t, r, 2.0 * s, luding_coefficients(e_n, beta), grid)
+        assert np.allclose(dt2 / dt20, f_tr / 2.0, rtol=1e-5)
+    # windows with fewer than two records give NaN, not a ratio of one point
+    out = collision_change_windows(tau[:3], t[:3], r[:3], s[:3], luding_coefficients(e_n, beta), [100.0])
+    assert all(np.isnan(x[0]) for x in out)
+    # ratio of sums and its jackknife SE, against the definition
+    num = np.array([[2.0, 1.0], [4.0, 3.0], [3.0, 2.5]])
+    den = np.array([[1.0, 1.0], [2.0, 1.0], [1.5, 1.0]])
+    ratio, se = ratio_of_sums(num, den)
+    assert np.allclose(ratio, num.sum(0) / den.sum(0))
+    loo = np.array([(num.sum(0) - num[i]) / (den.sum(0) - den[i]) for i in range(3)])
+    assert np.allclose(se, np.sqrt(2 / 3 * ((loo - loo.mean(0)) ** 2).sum(0)))
+    assert se[0] == 0.0                          # every run has num = 2 den: no scatter
+    assert np.isnan(ratio_of_sums(np.ones((2, 1)), np.zeros((2, 1)))[0][0])
+
+
+def test_dsmc_energy_change_per_collision_is_the_maxwellian_closure_near_the_start():
+    # the DSMC counts its collisions per particle s = 2 C / N like the DEM's counter; from a Maxwellian start its
+    # energy change per collision is the closure's up to the Sonine cumulants (|lambda - 1| ~ a2/4 < 0.5 % for
+    # e = 0.8 smooth) and sampling: ~1e4 collisions per window and run, per-collision losses spread by ~100 %
+    # (relative SE ~1 % per run, 0.5 % over 4). A factor 2 in s would give 0.5.
+    tau = np.array([2.0, 4.0])
+    d = cooling(0.8, -1.0, 1.0, tau, n=20_000, repeats=4, seed=5, samples_per_collision=20.0)
+    assert np.all(np.abs(d["loss_T"] - 1.0) < 0.03), (d["loss_T"], d["loss_T_err"])
+    assert np.all(np.isnan(d["loss_R"]))         # smooth spheres: no rotational change to compare
