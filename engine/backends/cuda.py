@@ -46,6 +46,7 @@ from engine.backends import cuda_kernels as K
 from engine.backends import cuda_loop
 from engine.backends.cuda_device import copy_device as _copy
 from engine.backends.cuda_lists import list_kernels
+from engine.backends.cuda_launch import LaunchCache
 from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
@@ -106,6 +107,7 @@ class CudaEnsemble:
         self.multistep = (env == "1") if env in ("0", "1") else n <= MULTISTEP_MAX_PARTICLES
         self._exit_thr = 1.0  # run_steps exits when (displacement / (L_v/2))^2 exceeds it
         self.stream = cuda.stream()
+        self._lc = LaunchCache()   # the per-step kernels' launches (engine/backends/cuda_launch.py)
         self.steps_done = 0
         self.builds = 0
         self.late_rebuilds = 0
@@ -522,9 +524,9 @@ class CudaEnsemble:
     def _forces(self, step: int, n: int | None = None, grid=None) -> None:
         spin, _, rad, ext = self._step_arrays()
         n = self.n if n is None else n
-        self.k["forces"][grid or self._grid(n)](
+        self._lc.launch("forces", self.k["forces"], grid or self._grid(n), (
             n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
-            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
+            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
 
     # ---- time loop ---------------------------------------------------------------------------------
 
@@ -544,9 +546,9 @@ class CudaEnsemble:
     def _kick_drift(self, first: int, step: int, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, ext = self._step_arrays()
         n = self.n if n is None else n
-        self.k["kick_drift"][grid or self._grid(n)](
+        self._lc.launch("kick_drift", self.k["kick_drift"], grid or self._grid(n), (
             n, first, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.inv_m1, spin_inv,
-            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
+            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
 
     def _half_kick(self, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, _ = self._step_arrays()
