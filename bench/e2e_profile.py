@@ -3,8 +3,8 @@
 Runs, each in a fresh Python process: two plain jobs (the first fills the kernel caches), two probes of the
 one-off start-up (numba import, numba.cuda import and driver check, context creation, engine.scene import),
 one job under cProfile (written to $OUT/profile.txt and $OUT/run.prof, cumulative and internal time) and a
-last plain job (their JSON lines also go to $OUT/runs.jsonl). The job is bench/e2e.py's spheres-2M-f64 case with PSTEPS steps (default 200). On the GPU
-machine:
+last plain job (their JSON lines also go to $OUT/runs.jsonl). The job is bench/e2e.py's spheres-2M-f64 case
+with PSTEPS steps (default 200). On the GPU machine:
 
     OUT=/tmp/prof python3 bench/e2e_profile.py
 
