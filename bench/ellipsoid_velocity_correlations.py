@@ -56,7 +56,8 @@ def main(argv=None) -> int:
             c = file_correlations(path, fac * 2.0 * a)
             late = c["time"] >= 0.5 * c["time"][-1]
             per[fac] = {"c_v0": float(c["c_v"][0]), "g_n0": float(c["g_n_ratio"][0]),
-                        "c_v_late": float(np.nanmean(c["c_v"][late])), "g_n_late": float(np.nanmean(c["g_n_ratio"][late])),
+                        "c_v_late": float(np.nanmean(c["c_v"][late])),
+                        "g_n_late": float(np.nanmean(c["g_n_ratio"][late])),
                         "c_v": c["c_v"].tolist(), "g_n_ratio": c["g_n_ratio"].tolist(), "time": c["time"].tolist(),
                         "pairs_late": float(np.mean(c["pairs"][late]))}
         runs.setdefault(f"xi = {m[1]}, e = {m[2]}, N = {m[3]}", []).append({"seed": int(m[4]), "factors": per})

@@ -100,7 +100,8 @@ def compare(report: Path, spec_for, *, n: int = 100_000, repeats: int = 8, sampl
             continue
         tau = series[f"{key}/tau"]
         beta = c["e_t_effective"]
-        # 20 samples per collision and particle: >= 3 in the +-10 % tau windows of the per-collision changes from tau = 1
+        # 20 samples per collision and particle: >= 3 in the +-10 % tau windows of the per-collision changes
+        # from tau = 1 on
         d = cooling(c["e_n"], beta, c["R0"], tau, n=n, repeats=repeats, samples_per_collision=20.0)
         t_ode, r_ode = luding_ode(c["e_n"], beta, tau, 1.0, c["R0"])
         out[key] = {
