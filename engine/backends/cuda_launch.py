@@ -43,10 +43,22 @@ def _ident(a):
     return id(a)
 
 
+def _array_ids(args) -> frozenset:
+    """Identities of the non-scalar arguments (tuple elements included)."""
+    out = set()
+    for a in args:
+        if isinstance(a, tuple):
+            out |= _array_ids(a)
+        elif not isinstance(a, _SCALAR):
+            out.add(id(a))
+    return frozenset(out)
+
+
 class LaunchCache:
-    """Cached flattened arguments per (kernel name, launch configuration, argument arrays); ``size`` entries
-    per kernel (the loop alternates between two force buffers; an entry holds references to its arrays, so a
-    reallocated array's old entry is dropped, with its references, once ``size`` newer ones exist)."""
+    """Cached flattened arguments per (kernel name, launch configuration, argument arrays); at most ``size``
+    entries per kernel (the loop alternates between two force buffers). An entry holds its arrays, so their
+    identities stay unique; when a launch brings an array that is new (a list reallocated on growth), the entries
+    holding arrays it no longer gets are dropped, and their device memory can be freed."""
 
     def __init__(self, size: int = 4, enabled: bool | None = None):
         self.size = size
@@ -84,13 +96,18 @@ class LaunchCache:
                 self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
                 self.entries.clear()
                 return
+            # entries that hold an array the kernel no longer gets (a list reallocated on growth) go, so that the
+            # old array's device memory is freed; the force buffers' swap keeps the same set of arrays
+            current = _array_ids(args)
+            for old in [k for k, e in per.items() if not e[-1] <= current]:
+                del per[old]
             if entry is not None:
-                per[key] = entry
+                per[key] = entry + (current,)
                 if len(per) > self.size:
                     per.popitem(last=False)
             return
         per.move_to_end(key)
-        core_launch, stream, launch_config, kernel, kargs, slots, _refs = entry
+        core_launch, stream, launch_config, kernel, kargs, slots = entry[:6]
         for pos, slot, ctype in slots:
             kargs[slot] = ctype(args[pos]) if ctype is not None else args[pos]
         core_launch(stream, launch_config, kernel, *kargs)
@@ -128,4 +145,4 @@ class LaunchCache:
             launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0,
                                             cooperative_launch=False)
         cufunc = kernel._codelibrary.get_cufunc()
-        return (nd.launch, stream, launch_config, cufunc.kernel, kargs, slots, args)
+        return (nd.launch, stream, launch_config, cufunc.kernel, kargs, slots, args)   # + array ids, by launch()

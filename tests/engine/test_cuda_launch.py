@@ -31,3 +31,30 @@ def test_disabled_cache_launches_directly():
     lc = LaunchCache(enabled=False)
     lc.launch("kick_drift", k, (1, 32, None), (1, 2.0))
     assert k.calls == [((1, 32, None), (1, 2.0))] and lc.off_reason is not None
+
+
+def test_hits_replace_scalars_and_stale_arrays_are_let_go():
+    """The cache's own bookkeeping, with the numba-cuda part (_prepare's flattened list and cuda.core's launch)
+    stood in for by a recorder: scalars are refreshed per launch, the force-buffer swap keeps both entries,
+    and an entry whose array was replaced is dropped (its device memory can then be freed)."""
+    launched = []
+
+    def prepare(dispatcher, config, args):
+        kargs = [a if isinstance(a, int) else id(a) for a in args]
+        slots = [(i, i, None) for i, a in enumerate(args) if isinstance(a, int)]
+        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, kargs, slots, args)
+
+    k, a, b, c = _Kernel(), object(), object(), object()
+    lc = LaunchCache(enabled=True)
+    lc._prepare = prepare
+    cfg = (4, 256, None)
+    lc.launch("forces", k, cfg, (100, a, b, 0))           # miss: through the dispatcher
+    lc.launch("forces", k, cfg, (100, a, b, 1))           # hit: the recorder, with step 1
+    assert len(k.calls) == 1 and launched == [(100, id(a), id(b), 1)]
+    lc.launch("forces", k, cfg, (100, b, a, 2))           # the swap: a second entry, the first one kept
+    lc.launch("forces", k, cfg, (100, a, b, 3))           # hit again
+    assert len(k.calls) == 2 and launched[-1] == (100, id(a), id(b), 3) and len(lc.entries["forces"]) == 2
+    lc.launch("forces", k, cfg, (100, a, c, 4))           # b replaced by c: the entries holding b go
+    assert len(k.calls) == 3 and len(lc.entries["forces"]) == 1
+    lc.launch("forces", k, cfg, (100, a, c, 5))
+    assert launched[-1] == (100, id(a), id(c), 5) and lc.hits == 3 and lc.misses == 3
