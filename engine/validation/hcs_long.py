@@ -693,6 +693,10 @@ def merge(reports, out_dir, command: str) -> dict:
 
 #: quick scene: |T/T_ODE - 1| <= QUICK_DEV_SYSTEMATIC + QUICK_DEV_SIGMAS * SE at every record, and <= QUICK_DEV_MAX
 QUICK_DEV_SYSTEMATIC, QUICK_DEV_SIGMAS, QUICK_DEV_MAX = 0.01, 3.0, 0.05
+#: quick scene: the SE-weighted energy change per collision (collision_loss) within 1 +- this: the soft contact and
+#: the distribution move it by ~1-2 % at this speed, the 4-seed window SEs are 5-50 % (their weighted mean ~3 %);
+#: a factor 2 in the collision count or in the closure fails
+QUICK_LOSS_TOL = 0.2
 
 
 def quick_checks(results: dict) -> list:
@@ -708,6 +712,8 @@ def quick_checks(results: dict) -> list:
       shear and longitudinal mode energies are thermal noise, x within 1 +- 0.75: per frame the mean of
       6 (3) exponential variables scatters by 41 % (58 %), over 4 seeds SE 0.20 (0.29), so 0.75 is > 2.5 SE;
       a wrong normalisation (factor 2 or N) fails.
+    - the energy change per collision (the collision counter against Luding's closure at the measured state),
+      SE-weighted over tau >= 1: 1 within QUICK_LOSS_TOL.
     - the box is stable (L/L_c = 0.51, 0.65): x_shear < 4 at every frame (theory x* = 1.36, 1.74; the 4-seed
       SE is ~0.35, so 4 is > 6 SE above x*) and 0 < S(k_min) <= 2.5 S_CS (no clustering; the seed-mean S
       scatters with SE ~0.2 around <= 0.8 here, so the bound is > 4 SE away). S starts low (0.4): the fcc
@@ -733,6 +739,13 @@ def quick_checks(results: dict) -> list:
             problems.append(f"{key}: longitudinal mode energy at tau = 0 is {c['x_long'][0]:.2f} T, not 1")
         if not float(np.max(c["x_shear"])) < 4.0:
             problems.append(f"{key}: shear-mode energy reached {np.max(c['x_shear']):.2f} T in a stable box")
+        if "loss_T" in c:
+            lam, se = np.asarray(c["loss_T"]), np.asarray(c["loss_T_err"])
+            sel = (np.asarray(c["tau"]) >= 1.0) & np.isfinite(lam) & np.isfinite(se) & (se > 0)
+            mean = float(np.average(lam[sel], weights=se[sel] ** -2.0)) if sel.sum() > 5 else float("nan")
+            if not abs(mean - 1.0) <= QUICK_LOSS_TOL:
+                problems.append(f"{key}: energy change per collision over the Maxwellian closure's is {mean:.3f} "
+                                f"(SE-weighted over tau >= 1), not 1 within {QUICK_LOSS_TOL}")
         if not (np.all(c["S"] > 0) and float(np.max(c["S"])) <= 2.5 * c["S_cs"]):
             problems.append(f"{key}: S(k_min) left (0, {2.5 * c['S_cs']:.2f}] in a stable box: "
                             f"max {np.max(c['S']):.2f}")

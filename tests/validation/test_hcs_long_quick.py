@@ -111,6 +111,10 @@ def test_quick_checks_fail_on_a_deviating_or_clustered_case():
     assert hcs_long.quick_checks({"b": dict(good, x_shear=np.full(9, 2.0))})   # x(0) = 2: not noise
     assert hcs_long.quick_checks({"b": dict(good, S=np.full(9, 3.0))})          # clustered
     assert hcs_long.quick_checks({"b": dict(good, x_shear=np.linspace(1, 5, 9))})  # shear grew
+    lam = {"loss_T": np.ones_like(tau), "loss_T_err": np.full_like(tau, 0.05)}
+    assert hcs_long.quick_checks({"ok": dict(good, **lam)}) == []
+    halved = dict(good, **{**lam, "loss_T": np.full_like(tau, 0.5)})   # a factor 2 in the collision count
+    assert any("per collision" in p for p in hcs_long.quick_checks({"b": halved}))
 
 
 def test_cli_dispatches_hcs_long(monkeypatch):
