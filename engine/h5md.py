@@ -445,3 +445,20 @@ def read_parameters(path) -> dict:
         out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f["parameters"].attrs.items()}
     out["spec"] = json.loads(out["spec"])
     return out
+
+
+def read_frames(path):
+    """The snapshot frames of a result file, one at a time (the layout above): yields dicts with ``step``,
+    ``time`` (s), ``position`` (N, 3; m), ``velocity`` (N, 3; m/s), ``box`` (edge, m) and ``mass`` ((N,) kg,
+    or None where the file stores none), for the frames that hold both positions and velocities. A file without
+    snapshot frames raises ValueError naming it."""
+    with h5py.File(path, "r") as f:
+        part = f["particles/all"]
+        if "position" not in part or "velocity" not in part:
+            raise ValueError(f"{path}: no snapshot frames (spec 'snapshots' was 0)")
+        box = float(np.asarray(part["box/edges"][()]).ravel()[0])
+        mass = part["mass"][()] if "mass" in part else None
+        pg, vg = part["position"], part["velocity"]
+        for j in range(min(pg["value"].shape[0], vg["value"].shape[0])):
+            yield {"step": int(pg["step"][j]), "time": float(pg["time"][j]), "position": pg["value"][j],
+                   "velocity": vg["value"][j], "box": box, "mass": mass}

@@ -113,26 +113,19 @@ def file_mode_series(path) -> dict:
     ``shear_fraction``, ``S``, ``S_dir`` (K, 3), and ``n_particles``, ``box_length``. A file without
     snapshot frames raises ValueError naming it.
     """
-    import h5py
+    from engine.h5md import read_frames
 
-    with h5py.File(path, "r") as f:
-        part = f["particles/all"]
-        if "position" not in part or "velocity" not in part:
-            raise ValueError(f"{path}: no snapshot frames (spec 'snapshots' was 0): no mode observables")
-        box = float(np.asarray(part["box/edges"][()]).ravel()[0])
-        mass = part["mass"][()] if "mass" in part else None
-        pg, vg = part["position"], part["velocity"]
-        k = min(pg["value"].shape[0], vg["value"].shape[0])
-        keys = ("temperature", "x_shear", "x_long", "shear_fraction", "S")
-        out = {key: np.empty(k) for key in keys}
-        out["S_dir"] = np.empty((k, 3))
-        for j in range(k):
-            fm = frame_modes(pg["value"][j], vg["value"][j], box, mass)
-            for key in keys:
-                out[key][j] = fm[key]
-            out["S_dir"][j] = fm["S_dir"]
-        out["step"] = pg["step"][:k]
-        out["time"] = pg["time"][:k]
-        out["n_particles"] = int(pg["value"].shape[1])
-        out["box_length"] = box
+    keys = ("temperature", "x_shear", "x_long", "shear_fraction", "S")
+    rows, steps, times, n, box = [], [], [], 0, 0.0
+    for fr in read_frames(path):
+        rows.append(frame_modes(fr["position"], fr["velocity"], fr["box"], fr["mass"]))
+        steps.append(fr["step"])
+        times.append(fr["time"])
+        n, box = fr["position"].shape[0], fr["box"]
+    out = {key: np.array([r[key] for r in rows], dtype=float) for key in keys}
+    out["S_dir"] = np.array([r["S_dir"] for r in rows], dtype=float).reshape(len(rows), 3)
+    out["step"] = np.array(steps, dtype=np.int64)
+    out["time"] = np.array(times, dtype=float)
+    out["n_particles"] = int(n)
+    out["box_length"] = float(box)
     return out

@@ -29,6 +29,15 @@ def luding_coefficients(e_n: float, e_t: float, q: float = Q_SPHERE) -> tuple[fl
     return a, b, c
 
 
+def luding_per_collision(t, r, coeffs):
+    """Changes of T/T0 and R/T0 per collision and particle in Luding's Maxwellian closure, at the state (t, r)
+    = (T/T0, R/T0): paper 001 Eqs. 1-2 divided by the Enskog collision frequency (3/4) (T/T0)^(1/2) per unit tau,
+    i.e. (4/3) (-A t + B r) and (4/3) (B t - C r). coeffs = (A, B, C) of :func:`luding_coefficients`; t, r scalars
+    or arrays. :func:`luding_ode` integrates these times the Enskog frequency."""
+    a, b, c = coeffs
+    return 4.0 / 3.0 * (-a * t + b * r), 4.0 / 3.0 * (b * t - c * r)
+
+
 def r_infinity(e_n: float, e_t: float, q: float = Q_SPHERE) -> float:
     """Asymptotic R/T of the homogeneous cooling state, h + sqrt(1 + h^2), h = (A - C)/(2B)."""
     a, b, c = luding_coefficients(e_n, e_t, q)
@@ -49,15 +58,16 @@ def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q:
     from scipy.integrate import solve_ivp
 
     tau = np.asarray(tau, dtype=float)
-    a, b, c = luding_coefficients(e_n, e_t, q)
+    coeffs = luding_coefficients(e_n, e_t, q)
 
     def rhs(_, y):
         t, r = max(y[0], 0.0), y[1]
-        st = math.sqrt(t)
+        freq = 0.75 * math.sqrt(t)          # Enskog's collisions per particle per unit tau
+        d_t, d_r = luding_per_collision(t, r, coeffs)
         if rates is None:
-            return [-a * t * st + b * st * r, b * t * st - c * st * r]
+            return [freq * d_t, freq * d_r]
         f_tr, f_rot = rates(t)
-        return [f_tr * (-a * t * st + b * st * r), f_rot * (b * t * st - c * st * r)]
+        return [f_tr * freq * d_t, f_rot * freq * d_r]
 
     if tau.size == 0:
         return tau.copy(), tau.copy()

@@ -52,14 +52,11 @@ def neighbour_velocity_correlation(position, velocity, box: float, r_cut: float)
 def file_correlations(path, r_cut: float) -> dict:
     """:func:`neighbour_velocity_correlation` of every snapshot frame of a result file (engine/h5md.py layout):
     arrays ``time`` (s), ``c_v``, ``g_n_ratio``, ``pairs``."""
-    import h5py
+    from engine.h5md import read_frames
 
-    with h5py.File(path, "r") as f:
-        part = f["particles/all"]
-        box = float(np.asarray(part["box/edges"][()]).ravel()[0])
-        pg, vg = part["position"], part["velocity"]
-        k = min(pg["value"].shape[0], vg["value"].shape[0])
-        rows = [neighbour_velocity_correlation(pg["value"][j], vg["value"][j], box, r_cut) for j in range(k)]
-        time = np.asarray(pg["time"][:k], dtype=float)
-    return {"time": time, **{key: np.array([r[key] for r in rows], dtype=float)
-                             for key in ("c_v", "g_n_ratio", "pairs")}}
+    rows, times = [], []
+    for fr in read_frames(path):
+        rows.append(neighbour_velocity_correlation(fr["position"], fr["velocity"], fr["box"], r_cut))
+        times.append(fr["time"])
+    return {"time": np.array(times, dtype=float),
+            **{key: np.array([r[key] for r in rows], dtype=float) for key in ("c_v", "g_n_ratio", "pairs")}}

@@ -118,6 +118,8 @@ class LaunchCache:
         """The cache entry of one launch, or None where the cache must not be used for this kernel."""
         from numba.cuda import dispatcher as nd
 
+        if any(isinstance(a, tuple) and any(isinstance(x, _SCALAR) for x in a) for a in args):
+            return None     # a scalar inside a tuple would keep its first value: only top-level scalars are refilled
         griddim, blockdim, stream = config
         if getattr(dispatcher, "_launch_config_sensitive", False):
             return None

@@ -37,7 +37,7 @@ import numba
 import numpy as np
 
 from engine.params import Q_SPHERE
-from engine.theory import collisions_per_particle, luding_coefficients, luding_ode
+from engine.theory import collisions_per_particle, luding_coefficients, luding_ode, luding_per_collision
 from engine.validation.sonine import _dsmc, collision_normal, constant_restitution_impulse
 
 #: tau values of the comparison table
@@ -139,20 +139,20 @@ RATE_SE_MAX = 0.015
 
 
 def window_mean(tau, y, err, t):
-    """Mean of y over the records with |tau - t| <= 0.1 t and its SE (the records' SEs taken as independent:
+    """Mean of y over the records with |tau - t| <= WINDOW t and its SE (the records' SEs taken as independent:
     each holds its own contacts, t_c far below the record interval); None when no record falls there."""
-    sel = np.abs(tau - t) <= 0.1 * t
+    sel = np.abs(tau - t) <= WINDOW * t
     if not sel.any():
         return None
     return float(np.mean(y[sel])), float(np.sqrt(np.sum(err[sel] ** 2)) / sel.sum())
 
 
-#: half width of the tau windows of the per-collision energy changes (:func:`collision_change_windows`), relative
-#: to tau (the same windows as :func:`window_mean`'s)
-LOSS_WINDOW = 0.1
+#: half width of the tau windows of the table rows (:func:`window_mean`) and of the per-collision energy changes
+#: (:func:`collision_change_windows`), relative to tau
+WINDOW = 0.1
 
 
-def collision_change_windows(tau, t, r, s, coeffs, grid, width: float = LOSS_WINDOW):
+def collision_change_windows(tau, t, r, s, coeffs, grid, width: float = WINDOW):
     """What the collisions in a window changed, against what Luding's ODE says those collisions change.
 
     One run's series on its own records: tau, t = T/T0, r = R/T0 and s = collisions per particle so far (each
@@ -160,16 +160,16 @@ def collision_change_windows(tau, t, r, s, coeffs, grid, width: float = LOSS_WIN
     [g (1 - width), g (1 + width)]: the measured changes dT and dR, and the Maxwellian closure's changes for the
     collisions that happened there at the measured state, sum of (4/3) (-a T + b R) ds and (4/3) (b T - c R) ds
     over the record intervals (T and R at the interval's midpoint). Per collision and particle these are Luding's
-    right-hand sides (paper 001 Eqs. 1-2, coefficients ``coeffs`` = (a, b, c) of engine.theory.
-    luding_coefficients) over Enskog's rate (3/4) T^(1/2) per unit tau, so the ratio measured / closure is the
+    right-hand sides over Enskog's rate (engine.theory.luding_per_collision, ``coeffs`` = (a, b, c) of
+    engine.theory.luding_coefficients), so the ratio measured / closure is the
     energy change per collision relative to uncorrelated Maxwellian pairs, whatever the rate. Returns
     (dT, dT_closure, dR, dR_closure), arrays like grid; NaN where a window holds fewer than two records.
     """
     tau, t, r, s = (np.asarray(x, dtype=float) for x in (tau, t, r, s))
-    a, b, c = coeffs
-    tm, rm, ds = 0.5 * (t[1:] + t[:-1]), 0.5 * (r[1:] + r[:-1]), np.diff(s)
-    cum_t = np.concatenate([[0.0], np.cumsum(4.0 / 3.0 * (-a * tm + b * rm) * ds)])
-    cum_r = np.concatenate([[0.0], np.cumsum(4.0 / 3.0 * (b * tm - c * rm) * ds)])
+    per_t, per_r = luding_per_collision(0.5 * (t[1:] + t[:-1]), 0.5 * (r[1:] + r[:-1]), coeffs)
+    ds = np.diff(s)
+    cum_t = np.concatenate([[0.0], np.cumsum(per_t * ds)])
+    cum_r = np.concatenate([[0.0], np.cumsum(per_r * ds)])
     grid = np.asarray(grid, dtype=float)
     j0 = np.searchsorted(tau, grid * (1.0 - width), side="left")
     j1 = np.searchsorted(tau, grid * (1.0 + width), side="right") - 1
@@ -190,7 +190,8 @@ def ratio_of_sums(num, den) -> tuple[np.ndarray, np.ndarray]:
         if n < 2:
             return ratio, np.full_like(ratio, np.nan)
         loo = (num.sum(0) - num) / (den.sum(0) - den)
-        return ratio, np.sqrt((n - 1) / n * np.sum((loo - loo.mean(0)) ** 2, axis=0)) + 0.0 * ratio
+        se = np.sqrt((n - 1) / n * np.sum((loo - loo.mean(0)) ** 2, axis=0))
+    return ratio, np.where(np.isfinite(ratio), se, np.nan)
 
 
 def rate_window_se(tau, coll_err) -> float:
@@ -317,7 +318,7 @@ def _loss_tables(res: dict) -> list:
     lines = ["## Energy change per collision", "",
              "The collision counter gives the collisions per particle s between records, so the energy change per "
              "collision is measured directly, apart from how often the gas collides. In tau windows of ± "
-             f"{100 * LOSS_WINDOW:.0f} % (collision_change_windows): lambda = the measured change of T/T0 (or R/T0) "
+             f"{100 * WINDOW:.0f} % (collision_change_windows): lambda = the measured change of T/T0 (or R/T0) "
              "over what Luding's Maxwellian closure gives for the same collisions at the measured (T, R), "
              "(4/3) (-a T + b R) ds (and (4/3) (b T - c R) ds). lambda = 1: each collision changes the energy as "
              "an uncorrelated Maxwellian pair would. Ratio of the seed sums, jackknife SE over seeds (DEM) or over "
@@ -442,12 +443,17 @@ def soft_contact_correction(spec, beta: float, r0: float, tau, *, samples: int =
     e_tr = np.concatenate([[0.0], [pts[i]["eps_tr"] for i in order]])
     e_rot = np.concatenate([[0.0], [pts[i]["eps_rot"] for i in order]])
 
+    def eps(t):
+        """(eps_tr, eps_rot) at T/T0 = t: linear in (T/T0)^(1/2) between the measured points."""
+        root = np.sqrt(np.maximum(t, 0.0))
+        return np.interp(root, xs, e_tr), np.interp(root, xs, e_rot)
+
     def rates(t):
-        st = math.sqrt(t)
-        return 1.0 + np.interp(st, xs, e_tr), 1.0 + np.interp(st, xs, e_rot)
+        e_t, e_r = eps(t)
+        return 1.0 + e_t, 1.0 + e_r
 
     t_soft, r_soft = luding_ode(spec.e_n, beta, tau, 1.0, r0, rates=rates)
-    root = np.sqrt(np.maximum(t_ode, 0.0))
+    eps_t, eps_r = eps(t_ode)
     return {"points": pts, "fit": fit, "T": t_soft / t_ode - 1.0, "R": r_soft / r_ode - 1.0,
-            "eps_T": np.interp(root, xs, e_tr), "eps_R": np.interp(root, xs, e_rot)}
+            "eps_T": eps_t, "eps_R": eps_r}
 

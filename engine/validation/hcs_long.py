@@ -172,33 +172,32 @@ def save_runs(path, cases: dict, meta: dict) -> None:
 def load_runs(path) -> tuple[dict, dict]:
     """(cases, meta) of a :func:`save_runs` file: cases = {case key: {seed: run dict}}."""
     z = np.load(path)
-    cases: dict = {}
+    items: dict = {}          # (case key, seed) -> {name below the seed: value}
     for name in z.files:
-        if name == "meta" or not name.endswith("/scalars"):
+        if name == "meta":
             continue
-        key, seed = name.split("/")[:2]
-        base = f"{key}/{seed}/"
-        r = {}
-        for k, v in json.loads(str(z[name])).items():
-            if k.startswith("modes/"):
-                r.setdefault("modes", {})[k[6:]] = v
-            else:
-                r[k] = v
-        r["collisions"] = None
-        for full in z.files:
-            if not full.startswith(base) or full == name:
-                continue
-            sub = full[len(base):]
+        key, seed, sub = name.split("/", 2)
+        value = json.loads(str(z[name])) if sub == "scalars" else z[name]
+        items.setdefault((key, int(seed)), {})[sub] = value
+    cases: dict = {}
+    for (key, seed), got in items.items():
+        r = {"collisions": None}
+        for sub, v in {**got.pop("scalars"), **got}.items():
             if sub.startswith("modes/"):
-                r.setdefault("modes", {})[sub[6:]] = z[full]
-            elif sub.startswith("collisions/"):
-                continue
-            else:
-                r[sub] = z[full]
-        if base + "collisions/time" in z.files:
-            r["collisions"] = (z[base + "collisions/time"], z[base + "collisions/value"])
-        cases.setdefault(key, {})[int(seed)] = r
+                r.setdefault("modes", {})[sub[6:]] = v
+            elif not sub.startswith("collisions/"):
+                r[sub] = v
+        if "collisions/time" in got:
+            r["collisions"] = (got["collisions/time"], got["collisions/value"])
+        cases.setdefault(key, {})[seed] = r
     return cases, json.loads(str(z["meta"]))
+
+
+def collisions_per_particle(run: dict) -> np.ndarray:
+    """Collisions per particle since the scene started, s = 2 C / N, at the run's records (C: the ``collisions``
+    series, contacts begun; each collision involves two particles)."""
+    t, c = run["collisions"]
+    return np.interp(run["time"], t, 2.0 * c / run["spec"]["n_particles"])
 
 
 def collision_rate_ratio(run: dict) -> np.ndarray:
@@ -215,8 +214,7 @@ def collision_rate_ratio(run: dict) -> np.ndarray:
     """
     n = run["spec"]["n_particles"]
     if run.get("collisions") is not None:
-        t, c = run["collisions"]
-        rate = np.interp(run["time"], t, 2.0 * np.gradient(c, t) / n) / run["k"]
+        rate = np.gradient(collisions_per_particle(run), run["time"]) / run["k"]
     else:
         rate = 2.0 * run["contacts"] / (n * run["t_contact"] * run["k"])
     return rate / (0.75 * np.sqrt(run["T"]))
@@ -248,22 +246,19 @@ def collision_loss(runs: list, tau, coeffs) -> dict:
 
     if any(r.get("collisions") is None for r in runs):
         return {}
-    rows = []
-    for r in runs:
-        t_c, c = r["collisions"]
-        s = np.interp(r["time"], t_c, 2.0 * c / r["spec"]["n_particles"])
-        rows.append(collision_change_windows(r["k"] * r["time"], r["T"], r["R"], s, coeffs, tau))
+    rows = [collision_change_windows(r["k"] * r["time"], r["T"], r["R"], collisions_per_particle(r), coeffs, tau)
+            for r in runs]
     out = {}
     for q, (num, den) in (("T", (0, 1)), ("R", (2, 3))):
         out[f"loss_{q}"], out[f"loss_{q}_err"] = ratio_of_sums([x[num] for x in rows], [x[den] for x in rows])
     return out
 
 
-def analyse_runs(runs: list, names: list) -> dict:
-    """:func:`analyse` of runs already read (:func:`_read_run` dicts, e.g. from :func:`load_runs`)."""
+def analyse_runs(runs: list, paths: list) -> dict:
+    """:func:`analyse` of runs already read (:func:`_read_run` dicts, e.g. from :func:`load_runs`); ``paths``
+    name them in error messages."""
     if not runs:
         raise ValueError("analyse: no result files given")
-    paths = names
     s0 = runs[0]["spec"]
     for p, r in zip(paths, runs):
         for key in ("e_n", "e_t", "n_particles", "volume_fraction", "box_length", "t_end"):

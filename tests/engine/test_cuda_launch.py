@@ -58,3 +58,13 @@ def test_hits_replace_scalars_and_stale_arrays_are_let_go():
     assert len(k.calls) == 3 and len(lc.entries["forces"]) == 1
     lc.launch("forces", k, cfg, (100, a, c, 5))
     assert launched[-1] == (100, id(a), id(c), 5) and lc.hits == 3 and lc.misses == 3
+
+
+def test_a_scalar_inside_a_tuple_argument_is_not_cached():
+    # only top-level scalars are refilled per launch: a tuple holding one must go through numba-cuda every time
+    k, a = _Kernel(), object()
+    lc = LaunchCache(enabled=True)
+    assert LaunchCache._prepare(k, (1, 32, None), (5, (a, 3))) is None
+    for step in range(3):
+        lc.launch("observe", k, (1, 32, None), (5, (a, step)))
+    assert [c[1][1][1] for c in k.calls] == [0, 1, 2] and lc.hits == 0

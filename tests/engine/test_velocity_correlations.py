@@ -44,3 +44,21 @@ def test_partners_with_equal_or_opposite_velocities():
 def test_r_cut_beyond_half_the_box_is_refused():
     with pytest.raises(ValueError, match="r_cut"):
         neighbour_velocity_correlation(np.zeros((2, 3)), np.ones((2, 3)), 1.0, 0.6)
+
+
+def test_file_correlations_read_every_snapshot_frame(tmp_path):
+    from engine.h5md import read_frames
+    from engine.simulate import run
+    from engine.spec import SimulationSpec
+    from engine.velocity_correlations import file_correlations
+
+    spec = SimulationSpec(n_particles=256, volume_fraction=0.05, t_end=2e-4, thermalization=0, snapshots=3,
+                          backend="cpu")
+    run(spec, tmp_path / "out.h5")
+    frames = list(read_frames(tmp_path / "out.h5"))
+    r_cut = 0.2 * frames[0]["box"]
+    got = file_correlations(tmp_path / "out.h5", r_cut)
+    assert len(frames) >= 3 and got["time"].tolist() == [f["time"] for f in frames]
+    for j, fr in enumerate(frames):
+        one = neighbour_velocity_correlation(fr["position"], fr["velocity"], fr["box"], r_cut)
+        assert got["c_v"][j] == one["c_v"] and got["pairs"][j] == one["pairs"]
