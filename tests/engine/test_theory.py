@@ -1,5 +1,7 @@
 """Luding's mean-field ODE and the collision frequency against PHYSICS-NOTES §2 (LSODA oracle)."""
 
+import math
+
 import pytest
 
 from engine.theory import collision_g, luding_coefficients, luding_ode, r_infinity
@@ -34,3 +36,14 @@ def test_collision_frequency_paper_001():
 
     p = derive(SimulationSpec())
     assert collision_g(p.radius, p.number_density, p.mass, 0.008) == pytest.approx(40.313, rel=1e-4)
+
+
+def test_per_collision_change_of_smooth_spheres():
+    # smooth equal spheres: a collision loses (1 - e^2) m (g.n)^2 / 4, and Maxwellian colliding pairs have
+    # <(g.n)^2> = 4 T / m, so each collision takes (1 - e^2) T from E_tr = 3 N T / 2 shared by 2 particles:
+    # dT per collision and particle = -(1 - e^2) T / 3, and R is untouched (exact; independent of paper 001's A, B, C)
+    from engine.theory import luding_per_collision
+
+    for e in (0.9, 0.6):
+        d_t, d_r = luding_per_collision(0.7, 0.4, luding_coefficients(e, -1.0))
+        assert math.isclose(d_t, -(1 - e * e) * 0.7 / 3, rel_tol=1e-12) and d_r == 0.0
