@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import weakref
 from collections import OrderedDict
 
 import numpy as np
@@ -43,22 +44,31 @@ def _ident(a):
     return id(a)
 
 
-def _array_ids(args) -> frozenset:
-    """Identities of the non-scalar arguments (tuple elements included)."""
-    out = set()
+def _weak_arrays(args) -> tuple:
+    """Weak references to the non-scalar arguments (tuple elements included); TypeError for an object that
+    takes none."""
+    out = []
     for a in args:
         if isinstance(a, tuple):
-            out |= _array_ids(a)
+            out.extend(_weak_arrays(a))
         elif not isinstance(a, _SCALAR):
-            out.add(id(a))
-    return frozenset(out)
+            out.append(weakref.ref(a))
+    return tuple(out)
+
+
+def _alive(entry) -> bool:
+    for ref in entry[-1]:
+        if ref() is None:
+            return False
+    return True
 
 
 class LaunchCache:
     """Cached flattened arguments per (kernel name, launch configuration, argument arrays); at most ``size``
-    entries per kernel (the loop alternates between two force buffers). An entry holds its arrays, so their
-    identities stay unique; when a launch brings an array that is new (a list reallocated on growth), the entries
-    holding arrays it no longer gets are dropped, and their device memory can be freed."""
+    entries per kernel (the loop alternates between two force buffers). An entry holds weak references to its
+    arrays: it keeps no device memory alive (a list reallocated on growth is freed as soon as the backend lets
+    it go), and an entry whose array is gone is never used again, even when a new array gets the old one's
+    identity; it is dropped at the next miss."""
 
     def __init__(self, size: int = 4, enabled: bool | None = None):
         self.size = size
@@ -82,6 +92,8 @@ class LaunchCache:
         key = (config[0], config[1], id(config[2])) + tuple(_ident(a) for a in args)
         per = self.entries.setdefault(name, OrderedDict())
         entry = per.get(key)
+        if entry is not None and not _alive(entry):
+            entry = None        # an array of the entry is gone: the identities may now be another array's
         if entry is None:
             dispatcher[config](*args)        # compiles or loads, and launches, as always
             self.misses += 1
@@ -96,13 +108,13 @@ class LaunchCache:
                 self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
                 self.entries.clear()
                 return
-            # entries that hold an array the kernel no longer gets (a list reallocated on growth) go, so that the
-            # old array's device memory is freed; the force buffers' swap keeps the same set of arrays
-            current = _array_ids(args)
-            for old in [k for k, e in per.items() if not e[-1] <= current]:
+            for old in [k for k, e in per.items() if not _alive(e)]:
                 del per[old]
             if entry is not None:
-                per[key] = entry + (current,)
+                try:
+                    per[key] = entry[:6] + (_weak_arrays(args),)
+                except TypeError:   # an argument that takes no weak reference: not cached
+                    return
                 if len(per) > self.size:
                     per.popitem(last=False)
             return
@@ -147,4 +159,4 @@ class LaunchCache:
             launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0,
                                             cooperative_launch=False)
         cufunc = kernel._codelibrary.get_cufunc()
-        return (nd.launch, stream, launch_config, cufunc.kernel, kargs, slots, args)   # + array ids, by launch()
+        return (nd.launch, stream, launch_config, cufunc.kernel, kargs, slots)   # + weak references, by launch()

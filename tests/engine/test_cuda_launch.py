@@ -33,31 +33,66 @@ def test_disabled_cache_launches_directly():
     assert k.calls == [((1, 32, None), (1, 2.0))] and lc.off_reason is not None
 
 
+class _Array:
+    """Stands for a device array (it takes weak references, as numba-cuda's DeviceNDArray does)."""
+
+
 def test_hits_replace_scalars_and_stale_arrays_are_let_go():
     """The cache's own bookkeeping, with the numba-cuda part (_prepare's flattened list and cuda.core's launch)
-    stood in for by a recorder: scalars are refreshed per launch, the force-buffer swap keeps both entries,
-    and an entry whose array was replaced is dropped (its device memory can then be freed)."""
+    stood in for by a recorder: scalars are refreshed per launch, the force-buffer swap keeps both entries for
+    good (each launch passes only one of the buffers), the cache keeps no array alive, and an entry whose array
+    is gone is not used again."""
+    import gc
+    import weakref
+
     launched = []
 
     def prepare(dispatcher, config, args):
         kargs = [a if isinstance(a, int) else id(a) for a in args]
         slots = [(i, i, None) for i, a in enumerate(args) if isinstance(a, int)]
-        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, kargs, slots, args)
+        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, kargs, slots)
 
-    k, a, b, c = _Kernel(), object(), object(), object()
+    k, a, f0, f1 = _Kernel(), _Array(), _Array(), _Array()
     lc = LaunchCache(enabled=True)
     lc._prepare = prepare
     cfg = (4, 256, None)
-    lc.launch("forces", k, cfg, (100, a, b, 0))           # miss: through the dispatcher
-    lc.launch("forces", k, cfg, (100, a, b, 1))           # hit: the recorder, with step 1
-    assert len(k.calls) == 1 and launched == [(100, id(a), id(b), 1)]
-    lc.launch("forces", k, cfg, (100, b, a, 2))           # the swap: a second entry, the first one kept
-    lc.launch("forces", k, cfg, (100, a, b, 3))           # hit again
-    assert len(k.calls) == 2 and launched[-1] == (100, id(a), id(b), 3) and len(lc.entries["forces"]) == 2
-    lc.launch("forces", k, cfg, (100, a, c, 4))           # b replaced by c: the entries holding b go
-    assert len(k.calls) == 3 and len(lc.entries["forces"]) == 1
-    lc.launch("forces", k, cfg, (100, a, c, 5))
-    assert launched[-1] == (100, id(a), id(c), 5) and lc.hits == 3 and lc.misses == 3
+    lc.launch("kick", k, cfg, (100, a, f0, 0))            # miss: through the dispatcher
+    lc.launch("kick", k, cfg, (100, a, f0, 1))            # hit: the recorder, with step 1
+    assert len(k.calls) == 1 and launched == [(100, id(a), id(f0), 1)]
+    for step in range(2, 40):                             # the swap: one buffer per launch, alternating
+        lc.launch("kick", k, cfg, (100, a, (f0, f1)[step % 2], step))
+    assert len(k.calls) == 2 and lc.misses == 2 and lc.hits == 38 and len(lc.entries["kick"]) == 2
+    assert launched[-1] == (100, id(a), id(f1), 39)
+    gone = weakref.ref(f1)
+    k.calls.clear()                                       # (the recorder's own references)
+    del f1
+    gc.collect()
+    assert gone() is None                                 # the cache held no reference to it
+    f2 = _Array()
+    lc.launch("kick", k, cfg, (100, a, f2, 40))           # a new buffer: a miss, and the dead entry goes
+    assert len(k.calls) == 1 and len(lc.entries["kick"]) == 2
+    lc.launch("kick", k, cfg, (100, a, f2, 41))
+    assert launched[-1] == (100, id(a), id(f2), 41)
+
+
+def test_an_entry_whose_array_died_is_not_used_even_under_a_reused_identity():
+    """The key holds identities; a new array may get a dead one's id. The entry's weak reference tells them
+    apart, so the launch goes through the dispatcher with the new array."""
+    launched = []
+
+    def prepare(dispatcher, config, args):
+        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, [args[0]], [(0, 0, None)])
+
+    k, a = _Kernel(), _Array()
+    lc = LaunchCache(enabled=True)
+    lc._prepare = prepare
+    lc.launch("forces", k, (1, 32, None), (1, a))
+    (key,) = lc.entries["forces"]
+    (entry,) = lc.entries["forces"].values()
+    stale = entry[:6] + (((lambda: None),),)              # as if a had died: its reference answers None
+    lc.entries["forces"][key] = stale
+    lc.launch("forces", k, (1, 32, None), (2, a))         # same key, dead entry: through the dispatcher
+    assert len(k.calls) == 2 and launched == [] and lc.hits == 0
 
 
 def test_a_scalar_inside_a_tuple_argument_is_not_cached():
