@@ -11,6 +11,7 @@ compilation or its disk-cache load is part of the figure, as for a user who star
 * where the rest went (RunSummary.extra["timings"], engine/simulate.py TIMINGS): setup (spec, placement,
   velocities), build (device upload, first list), compile (or cache load), loop, records, snapshots,
   checkpoints, open and close of the file, and "other" (imports excluded: the clock starts at the call).
+  ``DEMQ_GPU_STARTUP=0`` turns off the GPU start-up thread (engine/startup.py) for an A/B.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
 that the step count is exact):
@@ -19,6 +20,9 @@ that the step count is exact):
   spheres-8M-f64 / -f32     8 388 608 spheres x 2000 steps, 2 snapshots        (issue 14 (a))
   batch-256x4096-2k / -20k  256 scenes x 4096 spheres x 2000 / 20 000 steps, one run_ensemble (b)
   worker-256x4096-20k       the same batch submitted over HTTP to `demq serve` (embedded worker)  (b)
+  worker-2M-f64             spheres-2M-f64 as one job submitted over HTTP to `demq serve`
+                            (DEMQ_E2E_WORKER_IDLE_S: seconds the worker idles before the submit, default 0;
+                            DEMQ_WORKER_STANDBY=off|on: its standby simulation process, jobs/worker.py)
   quickstart                the README quick-start default spec, through engine.run       (c)
   ellipsoids-2M             2 097 152 ellipsoids, xi = 2 x 2000 steps, 2 snapshots    (d)
   ellipsoids-rough-2M       the same with rough contacts (e_t = 0.8, the spec default; issue 17)
@@ -48,7 +52,7 @@ if str(ROOT) not in sys.path:
 BREAKDOWN = ("setup", "build", "compile", "loop", "records", "snapshots", "checkpoints", "open", "close")
 GPU_CASES = ("spheres-2M-f64", "spheres-2M-f32", "spheres-2M-mixed", "spheres-8M-f64", "spheres-8M-f32",
              "spheres-8M-mixed", "batch-256x4096-2k",
-             "batch-256x4096-20k", "worker-256x4096-20k", "ellipsoids-2M", "ellipsoids-rough-2M")
+             "batch-256x4096-20k", "worker-256x4096-20k", "worker-2M-f64", "ellipsoids-2M", "ellipsoids-rough-2M")
 CPU_CASES = ("quickstart", "cpu-16x512")
 
 
@@ -65,6 +69,8 @@ def case_specs(case: str, quick: bool) -> dict:
         n, steps = (n2m, s5k) if "-2M-" in case else (n8m, s2k)
         prec = {"f64": "float64", "f32": "float32", "mixed": "mixed"}[case.rsplit("-", 1)[1]]
         return {"path": "run", "specs": [sph(n, steps, prec)]}
+    if case == "worker-2M-f64":   # spheres-2M-f64 as one job through the service
+        return {"path": "worker", "specs": [sph(n2m, s5k)]}
     if case.startswith("batch-") or case.startswith("worker-"):
         steps = s20k if case.endswith("20k") else s2k
         return {"path": "worker" if case.startswith("worker") else "ensemble",
@@ -139,7 +145,9 @@ def run_case(case: str, quick: bool, workdir: Path) -> dict:
                    {"backend": summary.backend, "device": summary.device,
                     "records": int(specs[0].t_end / (specs[0].output_interval or specs[0].t_end / 200)) + 1,
                     "precision": specs[0].precision, "shape": specs[0].shape,
-                    "list_mode": summary.extra.get("list_mode")})
+                    "list_mode": summary.extra.get("list_mode"),
+                    # engine/startup.py's thread (None: off, DEMQ_GPU_STARTUP=0, or no GPU)
+                    "gpu_startup": summary.extra.get("gpu_startup")})
         return row
     outs = [workdir / f"s{k}.h5" for k in range(len(specs))]
     results = run_ensemble(specs, outs)
@@ -213,6 +221,9 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
                 except httpx.HTTPError:
                     pass
                 time.sleep(0.1)
+            # a service is usually up for a while before a submit: DEMQ_E2E_WORKER_IDLE_S seconds of idle worker
+            # (its standby simulation process starts up meanwhile, jobs/worker.py); 0: submit at once
+            time.sleep(float(os.environ.get("DEMQ_E2E_WORKER_IDLE_S", "0")))
             base = to_spec(raw[0]).model_dump(mode="json")
             base.pop("seed")
             t0 = time.perf_counter()
@@ -296,7 +307,8 @@ def main(argv=None, out_dir=None) -> int:
         reps = [once(case) for _ in range(max(1, args.reps))]
         row = sorted(reps, key=lambda r: r["wall_s"])[(len(reps) - 1) // 2]   # median (lower for even)
         row["walls"] = [r["wall_s"] for r in reps]
-        row["runs"] = [{"wall_s": r["wall_s"], "loop_s": r["loop_s"], "timings": r["timings"]} for r in reps]
+        row["runs"] = [{"wall_s": r["wall_s"], "loop_s": r["loop_s"], "timings": r["timings"],
+                        "gpu_startup": r.get("gpu_startup")} for r in reps]
         if first is not None:
             row["first_run"] = {"wall_s": first["wall_s"], "timings": first["timings"]}
         rows.append(row)

@@ -1,12 +1,14 @@
 """Where a fresh process's 2M-sphere job spends its time outside the loop (issue 14): cProfile of engine.run.
 
 Runs, each in a fresh Python process: two plain jobs (the first fills the kernel caches), two probes of the
-one-off start-up (numba import, numba.cuda import and driver check, context creation, engine.scene import),
+one-off start-up stage by stage (numba import, numba.cuda import, driver check, context creation, scipy.linalg
+import, numba's CPU target registries, the GPU start-up thread's stand-in scene: CUDA registries and kernel
+cache loads),
 one job under cProfile (written to $OUT/profile.txt and $OUT/run.prof, cumulative and internal time) and a
 last plain job (their JSON lines also go to $OUT/runs.jsonl). The job is bench/e2e.py's spheres-2M-f64 case
 with PSTEPS steps (default 200). On the GPU machine:
 
-    OUT=/tmp/prof python3 bench/e2e_profile.py
+    OUT=/tmp/prof python3 bench/e2e_profile.py          (MODES="probe probe" for the probes alone)
 
 The 2026-11-25 H100 profile is in bench/reports/e2e-cuda/fresh-process-profile/profile.txt.
 """
@@ -36,20 +38,38 @@ def child(mode: str) -> None:
     d["_steps"] = STEPS
     spec = to_spec(d)
     if mode == "probe":
+        # the one-off start-up, stage by stage, in this order (each stage's imports included)
         import numba  # noqa: F401  (its import time is what is measured)
 
-        t2 = time.perf_counter()
+        t = [time.perf_counter()]
         from numba import cuda
 
+        t.append(time.perf_counter())
         cuda.is_available()
-        t3 = time.perf_counter()
+        t.append(time.perf_counter())
         cuda.current_context()
-        t4 = time.perf_counter()
-        import engine.scene  # noqa: F401
+        t.append(time.perf_counter())
+        import scipy.linalg  # noqa: F401  (numba's BLAS check imports it with the first target registries)
 
-        t5 = time.perf_counter()
-        print(json.dumps(dict(mode=mode, imports=t1 - t0, numba=t2 - t1, is_available=t3 - t2, context=t4 - t3,
-                              scene_import=t5 - t4)))
+        t.append(time.perf_counter())
+        import engine.scene as scene
+
+        scene._stream_key(1, 1)    # the first cached njit call: numba's CPU target registries
+        t.append(time.perf_counter())
+        from engine.params import derive
+        from engine.shapes import host
+        from engine.simulate import contact_params
+        from engine.startup import STANDIN_EDGE, GpuStartup
+
+        p = derive(spec)
+        s = GpuStartup("sphere", host("sphere").standin_system(p, STANDIN_EDGE),
+                       (contact_params(spec, p, thermalization=False),))
+        s.wait()                   # the stand-in backend: CUDA registries and the kernels' cache loads
+        t.append(time.perf_counter())
+        d = [b - a for a, b in zip(t, t[1:])]
+        print(json.dumps(dict(mode=mode, imports=t1 - t0, numba=t[0] - t1, numba_cuda_import=d[0],
+                              is_available=d[1], context=d[2], scipy_linalg=d[3], cpu_registries=d[4],
+                              kernels=d[5], startup_error=s.error)))
         return
     prof = None
     if mode == "profile":
@@ -77,7 +97,7 @@ def child(mode: str) -> None:
 
 def main() -> None:
     with open(os.path.join(OUT, "runs.jsonl"), "a") as log:
-        for mode in ("plain", "probe", "probe", "plain", "profile", "plain"):
+        for mode in os.environ.get("MODES", "plain probe probe plain profile plain").split():
             t = time.perf_counter()
             p = subprocess.run([sys.executable, __file__, mode], capture_output=True, text=True)
             line = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else ""

@@ -39,13 +39,14 @@ from typing import Callable, Optional
 import numpy as np
 
 from engine.backends.base import ContactParams
-from engine.backends.ensemble import SerialEnsemble, ensemble_scene_builds, resolve_backend
+from engine.backends.ensemble import SerialEnsemble, check_backend_name, ensemble_scene_builds, resolve_backend
 from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path, writer_process_ready
 from engine.params import Q_SPHERE, Derived, derive
 from engine.physics.sonine import sonine_observables
 from engine.precision import output_dtype
 from engine.spec import SimulationSpec, default_verlet_skin, load_spec
+from engine.startup import begin as begin_gpu_startup
 
 #: In a dissipative run the total mechanical energy may not rise between records by more than this
 #: fraction (integration error is O(dt^2) ~ 1e-4 at dt = t_c/50; a real rise means instability).
@@ -100,6 +101,12 @@ def contact_params(spec: SimulationSpec, p: Derived, *, thermalization: bool) ->
                          friction=spec.friction, dt=p.dt, skin=p.skin, precision=spec.precision,
                          orientation=spec.snapshots > 0, overlap_limit=spec.overlap_limit,
                          list_mode=spec.list_mode)
+
+
+def run_contacts(spec: SimulationSpec, p: Derived) -> tuple:
+    """The contact constants a fresh run uses, in order: the thermalisation's (when it has one), the cooling's."""
+    cool = contact_params(spec, p, thermalization=False)
+    return (contact_params(spec, p, thermalization=True), cool) if p.n_thermalization_steps > 0 else (cool,)
 
 
 def schedule(p: Derived, snapshots: int) -> tuple[np.ndarray, set]:
@@ -211,6 +218,17 @@ class SceneRun:
         refused = traits(spec.shape).spec_error(spec)
         if refused:
             raise SpecError(refused)
+        self.output = Path(output)
+        self.progress, self.should_cancel = progress, should_cancel
+        self.spec_json = spec.to_json()
+        self.ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
+        self.resume = resume = self.ck.load(self.spec_json)
+        # the start does not depend on the Verlet skin, so the particles are placed before the backend is
+        # resolved: meanwhile the GPU starts up on its own thread (engine/startup.py)
+        check_backend_name(backend or spec.backend)
+        p0 = derive(spec)
+        self.startup = begin_gpu_startup(spec, backend or spec.backend, run_contacts(spec, p0), p0)
+        system = self.shape.initial_system(spec, p0)
         # the backend ('cpu' or 'cuda') this scene runs on: `backend` overrides the spec's, 'auto' resolved here
         self.backend = resolve_backend(backend or spec.backend, spec.shape)
         # a null verlet_skin is the resolved backend's default at this volume fraction (species: the total
@@ -218,13 +236,6 @@ class SceneRun:
         self.verlet_skin = spec.verlet_skin if spec.verlet_skin is not None else \
             default_verlet_skin(self.backend, spec.shape, spec.volume_fraction)
         self.p = p = derive(spec.model_copy(update={"verlet_skin": self.verlet_skin}))
-        self.spec_json = spec.to_json()
-        self.output = Path(output)
-        self.progress, self.should_cancel = progress, should_cancel
-        self.ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
-        self.resume = resume = self.ck.load(self.spec_json)
-
-        system = self.shape.initial_system(spec, p)
         phase, step_done = "thermalization", 0
         # a cooling checkpoint was written after its own record at step_done, which the file already holds
         self.resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"
@@ -420,7 +431,12 @@ class SceneRun:
         tm["close"] += time.perf_counter() - t0
         return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
                           wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
-                          extra={**(info or {}), "timings": dict(tm)})
+                          extra={**(info or {}), "timings": dict(tm), **self._startup_info()})
+
+    def _startup_info(self) -> dict:
+        """The GPU start-up thread's wall seconds and error (engine/startup.py), when this scene had one."""
+        s = self.startup
+        return {} if s is None else {"gpu_startup": {"seconds": s.seconds, "error": s.error}}
 
     def abort(self) -> None:
         """Delete the partial result (checkpoints stay for a later attempt)."""
@@ -531,6 +547,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     if not live:
         return results
     t0 = time.perf_counter()
+    # the GPU start-up threads (engine/startup.py) end before the job's own backend uses the GPU
+    for startup in {id(scenes[k].startup): scenes[k].startup for k in live if scenes[k].startup}.values():
+        startup.wait()
     ens, live = _build(scenes, live, results, build, build_one)
     shared = {"build": time.perf_counter() - t0, "compile": 0.0}
     if on_result is not None:
@@ -718,6 +737,25 @@ def _build(scenes, live, results, build, build_one):
             results[k] = first
         return None, []
     return _build(scenes, ok, results, build, build_one)
+
+
+def warm_process(spec=None) -> None:
+    """Pay this process's one-off start-up ahead of its first job (the worker's standby process, jobs/runner.py):
+    numba's CPU target with the parallel start's functions (a start of engine.scene.PARALLEL_START_MIN spheres,
+    milliseconds), and on a GPU the driver, the context and the kernels of ``spec``'s specialisation (default: the
+    default spec; engine/startup.py). Later jobs' results are unchanged: nothing of this is kept but loaded code."""
+    from engine.scene import PARALLEL_START_MIN
+    from engine.shapes import host
+
+    spec = spec if spec is not None else SimulationSpec()
+    p = derive(spec)
+    started = begin_gpu_startup(spec, spec.backend, run_contacts(spec, p), p)
+    n = PARALLEL_START_MIN
+    big = SimulationSpec(n_particles=n, volume_fraction=0.058, box_length=2.0 * (n / 4096) ** (1.0 / 3.0),
+                         thermalization=0)
+    host("sphere").initial_system(big, derive(big))
+    if started is not None:
+        started.wait()
 
 
 def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,

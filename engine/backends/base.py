@@ -10,6 +10,7 @@ Host copies happen only in ``observe``/``state``/``contacts`` (output steps).
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass, replace
 from typing import ClassVar, Optional
 
@@ -114,10 +115,30 @@ def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
     return nc
 
 
+#: the answer of the GPU probe in this process (None: not asked yet); a GPU does not come or go while it runs
+_cuda_answer: Optional[bool] = None
+_cuda_lock = threading.Lock()
+
+
 def cuda_available() -> bool:
-    """True when a real CUDA GPU can be used (the simulator does not count)."""
+    """True when a real CUDA GPU can be used (the simulator does not count).
+
+    Asked once per process: the first call imports numba.cuda and starts the CUDA driver; a call from a
+    second thread while the first is under way waits for its answer (engine/startup.py asks from a
+    background thread while the job's host thread places particles).
+    """
+    global _cuda_answer
     if os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
         return False
+    with _cuda_lock:
+        if _cuda_answer is None:
+            try:
+                from numba import cuda
+
+                _cuda_answer = bool(cuda.is_available())
+            except Exception:  # numba-cuda missing or no driver
+                _cuda_answer = False
+        return _cuda_answer
     try:
         from numba import cuda
 

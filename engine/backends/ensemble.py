@@ -70,14 +70,19 @@ class Ensemble(Protocol):
     def contacts(self, k: int): ...
 
 
+def check_backend_name(name: str) -> None:
+    """BackendUnavailable unless ``name`` is 'auto', 'cpu' or 'cuda'."""
+    if name not in BACKEND_NAMES:
+        raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")
+
+
 def resolve_backend(name: str, shape: str = "sphere") -> str:
     """The backend ('cpu' or 'cuda') that ``name`` ('auto', 'cpu', 'cuda') resolves to for ``shape``.
 
     Same rules as :func:`engine.backends.base.make_backend`, for spheres and ellipsoids alike: 'auto'
     takes CUDA when a real GPU is present.
     """
-    if name not in BACKEND_NAMES:
-        raise BackendUnavailable(f"unknown backend {name!r}; expected 'auto', 'cpu' or 'cuda'")
+    check_backend_name(name)
     if name == "auto":
         return "cuda" if cuda_available() else "cpu"
     return name

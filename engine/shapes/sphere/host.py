@@ -4,6 +4,8 @@ the job driver)."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from engine.backends.base import SphereSystem
 
 #: the host-side state a backend is built from
@@ -15,6 +17,24 @@ def initial_system(spec, p) -> SphereSystem:
     from engine.scene import initial_spheres
 
     return initial_spheres(spec, p)
+
+
+def standin_system(p, n_edge: int) -> SphereSystem:
+    """n_edge^3 resting spheres of the spec's size on a simple cubic lattice of spacing 2.5 radii (no contact):
+    the small scene of the GPU start-up (engine/startup.py), made with NumPy only."""
+    return SphereSystem(**_lattice(n_edge, 2.5 * p.radius), radius=np.full(n_edge ** 3, p.radius),
+                        mass=np.full(n_edge ** 3, p.mass), inertia=np.full(n_edge ** 3, p.inertia[0]))
+
+
+def _lattice(n_edge: int, spacing: float) -> dict:
+    """Box, positions (cell centres), zero velocities and spins, identity orientations of a cubic lattice."""
+    g = (np.arange(n_edge) + 0.5) * spacing
+    pos = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    n = pos.shape[0]
+    quat = np.zeros((n, 4))
+    quat[:, 0] = 1.0
+    return dict(box_length=n_edge * spacing, position=pos, velocity=np.zeros((n, 3)),
+                angular_velocity=np.zeros((n, 3)), orientation=quat)
 
 
 def writer_fields(system: SphereSystem, p) -> dict:

@@ -4,6 +4,8 @@ ensembles and the job driver)."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from engine.backends.base import EllipsoidSystem
 
 #: the host-side state a backend is built from
@@ -16,6 +18,17 @@ def initial_system(spec, p) -> EllipsoidSystem:
     from engine.scene import initial_ellipsoids
 
     return initial_ellipsoids(spec, p)
+
+
+def standin_system(p, n_edge: int) -> EllipsoidSystem:
+    """n_edge^3 resting spheroids of the spec's size and one orientation on a simple cubic lattice of spacing
+    2.5 a (bounding spheres apart): the small scene of the GPU start-up (engine/startup.py), NumPy only."""
+    from engine.shapes.sphere.host import _lattice
+
+    n = n_edge ** 3
+    return EllipsoidSystem(**_lattice(n_edge, 2.5 * p.semi_axes[0]),
+                           semi_axes=np.tile(np.asarray(p.semi_axes, float), (n, 1)), mass=np.full(n, p.mass),
+                           inertia=np.tile(np.asarray(p.inertia, float), (n, 1)))
 
 
 def writer_fields(system: EllipsoidSystem, p) -> dict:

@@ -1,0 +1,128 @@
+"""The GPU's start-up, overlapped with the host's set-up of a job (issue 14: time to result).
+
+A process's first CUDA job pays one-off costs before its first step: the CUDA driver's start-up and the primary
+context (driver calls, which release the GIL), and the load of its kernels from numba-cuda's disk cache (their
+modules go to the driver, which also releases the GIL). :func:`begin` starts them on a background thread on a
+small stand-in scene of the job's specialisation (shape, precision, contact law, orientation: the compile-time
+choices of engine/backends/cuda_loop.py), while the calling thread places the job's particles; the job's backend
+then finds a live context and loaded kernels. What cannot overlap is Python work under the GIL (imports, numba's
+typing registries), which either thread pays once.
+
+It changes no result. The stand-in (the shape plug-in's ``standin_system``: a resting lattice, no contact) shares
+no state with the job: kernels are compiled per argument types, never per values. A failure on the thread is
+recorded in :attr:`GpuStartup.error` and otherwise ignored; the job then loads its kernels itself. The driver
+(engine/simulate.py) waits for the thread before it builds the job's backend, so the two never use the GPU at
+the same time.
+
+Two rules keep the thread safe beside the caller:
+- every module the thread needs is imported by the caller before the thread starts: an import on a second thread
+  could meet the caller's imports halfway, where Python's per-module import locks report a deadlock; the imports
+  left to the thread (numba's target registries) happen under numba's compiler lock, which the caller's numba
+  work takes too;
+- the thread runs no parallel (prange) njit code: numba's default threading layer may not be entered by two
+  threads at once. The stand-in is made with NumPy.
+
+``DEMQ_GPU_STARTUP=0`` turns it off (A/B timings: ``python3 -m bench.e2e``).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from typing import Optional
+
+#: particles per edge of the stand-in lattice (8^3 = 512: every kernel launches with real data, in microseconds)
+STANDIN_EDGE = 8
+#: environment switch: "0" = no start-up thread
+ENV = "DEMQ_GPU_STARTUP"
+
+_lock = threading.Lock()
+#: specialisation key -> its GpuStartup (one per process and key: later jobs find the kernels loaded)
+_started: dict = {}
+
+
+class GpuStartup:
+    """The start-up thread of one specialisation (see the module docstring)."""
+
+    def __init__(self, shape: str, system, contacts: tuple):
+        self.error: Optional[str] = None
+        self.seconds: Optional[float] = None   # the thread's own wall time
+        self._thread = threading.Thread(target=self._work, args=(shape, system, contacts),
+                                        name="demq-gpu-startup")
+        self._thread.start()
+
+    def wait(self) -> None:
+        """Return when the thread has ended (at once if it has)."""
+        self._thread.join()
+
+    def _work(self, shape, system, contacts) -> None:
+        from engine.backends.base import cuda_available
+        from engine.backends.registry import make_backend
+
+        t0 = time.perf_counter()
+        try:
+            if not cuda_available():
+                return
+            if system is None:          # no stand-in for this shape: the driver and the context only
+                from numba import cuda
+
+                cuda.current_context()
+                return
+            backend = make_backend("cuda", system, contacts[0])
+            for c in contacts:          # what engine.simulate.drive compiles for, in its order
+                backend.set_contact(c)
+                backend.warmup()
+            backend.observe()
+        except Exception as exc:  # noqa: BLE001  (the job loads its kernels itself)
+            self.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            self.seconds = time.perf_counter() - t0
+
+
+def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
+    """Start the GPU start-up for a job of ``spec`` on ``backend`` ('auto', 'cuda' or 'cpu', unresolved), with
+    ``contacts`` the contact constants the driver compiles for (in order) and ``p`` its derived parameters.
+
+    None when there is nothing to start: backend 'cpu', the CUDA simulator, no NVIDIA driver, ``DEMQ_GPU_STARTUP=0``. A second
+    job of the same specialisation in this process gets the first one's (finished or running) start-up.
+    """
+    if backend == "cpu" or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or os.environ.get(ENV) == "0" \
+            or not nvidia_driver():
+        return None
+    key = (spec.shape, spec.precision, bool(getattr(spec, "species", None))) + tuple((c.k_t is None, c.friction is None, c.orientation,
+                                                c.list_mode) for c in contacts)
+    with _lock:
+        started = _started.get(key)
+        if started is not None:
+            return started
+        system = _standin(spec, p)
+        # the thread's imports, here (see the module docstring)
+        try:
+            import numba.cuda  # noqa: F401
+
+            import engine.backends.registry  # noqa: F401
+            from engine.shapes import host
+            if system is not None:
+                host(spec.shape).cuda_backend()
+        except Exception:  # noqa: BLE001  (numba-cuda unusable: cuda_available() says so to the driver)
+            return None
+        started = _started[key] = GpuStartup(spec.shape, system, contacts)
+    return started
+
+
+def nvidia_driver() -> bool:
+    """An NVIDIA driver is loaded here (Linux, or WSL's GPU device): without one there is nothing to overlap,
+    and the backend probe (engine.backends.base.cuda_available) answers at once."""
+    return any(os.path.exists(x) for x in ("/proc/driver/nvidia", "/dev/nvidiactl", "/dev/dxg"))
+
+
+def _standin(spec, p):
+    """The stand-in scene of ``spec``'s shape, or None (a species mixture: its multigrid lists are not those of
+    one size; a shape without the hook)."""
+    from engine.shapes import host
+
+    make = getattr(host(spec.shape), "standin_system", None)
+    if make is None or getattr(spec, "species", None):
+        return None
+    return make(p, STANDIN_EDGE)

@@ -1,0 +1,142 @@
+"""Issue 14: the GPU start-up thread (engine/startup.py) and the reordered set-up it overlaps with.
+
+The time it saves is measured by bench/e2e.py on a GPU (``DEMQ_GPU_STARTUP=0|1``); that a run with it writes
+the same file as one without is tests/gpu/test_startup_gpu.py. Here: when it starts, that its stand-in scenes
+are valid starts of their shape, that its kernel warm-up runs through the CUDA simulator for every shape, and
+that the start of a spec does not depend on the Verlet skin (the driver places before it resolves the
+backend and the skin).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import engine.startup as startup
+from engine.params import derive
+from engine.shapes import host
+from engine.simulate import run_contacts
+from engine.spec import SimulationSpec
+from tests.cudasim import ROOT, child_env
+
+
+def _contacts(spec, p):
+    return run_contacts(spec, p)
+
+
+@pytest.mark.parametrize("shape", ["sphere", "ellipsoid"])
+def test_standin_is_a_resting_lattice_without_contacts(shape):
+    kw = {"elongation": 2.0} if shape == "ellipsoid" else {}
+    spec = SimulationSpec(shape=shape, n_particles=4096, volume_fraction=0.3, verlet_skin=4.0, **kw)
+    p = derive(spec)
+    sy = host(shape).standin_system(p, startup.STANDIN_EDGE)
+    n = startup.STANDIN_EDGE ** 3
+    assert sy.n == n and type(sy) is host(shape).SYSTEM
+    a = p.radius if shape == "sphere" else p.semi_axes[0]      # bounding radius
+    x = sy.position
+    assert np.all((x > 0) & (x < sy.box_length))
+    d = np.abs(x[:, None, :] - x[None, :, :])
+    d = np.minimum(d, sy.box_length - d)
+    r = np.sqrt((d ** 2).sum(-1)) + np.eye(n) * 1e9
+    assert r.min() >= 2.5 * a * (1 - 1e-12)        # bounding spheres 0.5 a apart: no contact
+    assert sy.box_length >= 3.0 * p.cutoff          # the largest skin a spec allows still fits 3 cells
+    assert not sy.velocity.any() and not sy.angular_velocity.any()
+    assert np.allclose(np.linalg.norm(sy.orientation, axis=1), 1.0)
+
+
+def test_when_the_startup_thread_starts(monkeypatch):
+    spec = SimulationSpec()
+    p = derive(spec)
+    c = _contacts(spec, p)
+    monkeypatch.setattr(startup, "nvidia_driver", lambda: True)
+    monkeypatch.setattr(startup, "_started", {})
+    monkeypatch.delenv("NUMBA_ENABLE_CUDASIM", raising=False)
+    assert startup.begin(spec, "cpu", c, p) is None
+    monkeypatch.setenv(startup.ENV, "0")
+    assert startup.begin(spec, "auto", c, p) is None
+    monkeypatch.delenv(startup.ENV)
+    monkeypatch.setenv("NUMBA_ENABLE_CUDASIM", "1")
+    assert startup.begin(spec, "cuda", c, p) is None
+    monkeypatch.delenv("NUMBA_ENABLE_CUDASIM")
+    monkeypatch.setattr(startup, "nvidia_driver", lambda: False)
+    assert startup.begin(spec, "auto", c, p) is None
+
+
+def test_one_startup_per_specialisation(monkeypatch):
+    """A second job of the same specialisation gets the first one's start-up; another precision its own.
+    (No real thread runs: GpuStartup is replaced by a recorder.)"""
+    made = []
+
+    class Recorder:
+        def __init__(self, shape, system, contacts):
+            made.append((shape, system.n if system is not None else None, contacts))
+
+        def wait(self):
+            pass
+
+    monkeypatch.setattr(startup, "nvidia_driver", lambda: True)
+    monkeypatch.setattr(startup, "_started", {})
+    monkeypatch.setattr(startup, "GpuStartup", Recorder)
+    monkeypatch.delenv("NUMBA_ENABLE_CUDASIM", raising=False)
+    monkeypatch.delenv(startup.ENV, raising=False)
+    a, b = SimulationSpec(seed=1), SimulationSpec(seed=2)
+    pa, pb = derive(a), derive(b)
+    s1 = startup.begin(a, "auto", _contacts(a, pa), pa)
+    s2 = startup.begin(b, "cuda", _contacts(b, pb), pb)
+    assert s1 is s2 and len(made) == 1
+    assert made[0][1] == startup.STANDIN_EDGE ** 3
+    f32 = SimulationSpec(precision="float32")
+    p32 = derive(f32)
+    assert startup.begin(f32, "auto", _contacts(f32, p32), p32) is not s1 and len(made) == 2
+    species = SimulationSpec(species=[{"radius_ratio": 1.0, "number_fraction": 0.5},
+                                      {"radius_ratio": 0.5, "number_fraction": 0.5}])
+    ps = derive(species)
+    startup.begin(species, "auto", _contacts(species, ps), ps)
+    assert made[-1][1] is None      # a mixture: the driver and the context only, no stand-in scene
+
+
+_SIM_CHILD = """
+import sys
+from tests.cudasim import fast_block_polling
+fast_block_polling()
+import engine.backends.base as base
+import engine.startup as startup
+from engine.params import derive
+from engine.simulate import run_contacts
+from engine.shapes import host
+from engine.spec import SimulationSpec
+base.cuda_available = lambda: True          # the simulator stands in for the GPU
+shape = sys.argv[1]
+kw = {"elongation": 2.0} if shape == "ellipsoid" else {}
+spec = SimulationSpec(shape=shape, n_particles=512, volume_fraction=0.1, e_t=0.5, snapshots=2, **kw)
+p = derive(spec)
+contacts = run_contacts(spec, p)
+s = startup.GpuStartup(shape, host(shape).standin_system(p, 3), contacts)
+s.wait()
+print("ERROR", s.error, "SECONDS", s.seconds)
+"""
+
+
+@pytest.mark.parametrize("shape", ["sphere", "ellipsoid"])
+def test_kernel_warmup_runs_for_every_shape_in_the_simulator(shape):
+    """The thread's work (stand-in backend, warm-up per contact, observe) runs without error on each shape."""
+    p = subprocess.run([sys.executable, "-c", _SIM_CHILD, shape], env=child_env(), cwd=ROOT, capture_output=True,
+                       text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "ERROR None" in p.stdout, p.stdout + p.stderr[-3000:]
+
+
+@pytest.mark.parametrize("kw", [{}, {"shape": "ellipsoid", "elongation": 2.5},
+                                {"species": [{"radius_ratio": 1.0, "number_fraction": 0.3},
+                                             {"radius_ratio": 0.4, "number_fraction": 0.7}]}])
+def test_the_start_does_not_depend_on_the_skin(kw):
+    """SceneRun places the particles with the unresolved skin and resolves the backend afterwards."""
+    spec = SimulationSpec(n_particles=500, volume_fraction=0.1, seed=7, **kw)
+    shape = host(spec.shape)
+    a = shape.initial_system(spec, derive(spec.model_copy(update={"verlet_skin": 0.2})))
+    b = shape.initial_system(spec, derive(spec.model_copy(update={"verlet_skin": 3.0})))
+    for f in ("position", "velocity", "angular_velocity", "orientation", "mass", "inertia"):
+        assert np.array_equal(getattr(a, f), getattr(b, f)), f
