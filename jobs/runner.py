@@ -1,5 +1,7 @@
 """The simulation process: one per claim — one job, or a pack of jobs run as one ensemble (issue 8) —
-started by the worker with the ``spawn`` context.
+started by the worker with the ``spawn`` context, either with its claim (:func:`child_main`) or ahead of it as
+a standby (:func:`standby_main`: started up while the worker waits or runs the previous claim, then handed
+its claim over a pipe; issue 14).
 
 It validates the specs, calls the engine with a progress callback and a cancel check per job (one job:
 ``DEMQ_ENGINE_RUN``, engine.simulate.run; a pack: ``DEMQ_ENGINE_RUN_ENSEMBLE``,
@@ -66,6 +68,39 @@ def child_main(engine_target: str, spec_jsons: list, outputs: list, checkpoint_d
         pass  # the worker is gone; nothing to report to
     finally:
         conn.close()
+
+
+def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Optional[str] = None) -> None:
+    """Entry point of a standby simulation process: started by the worker before its claim, it pays the
+    process's one-off start-up (the engine's imports, numba's targets, on a GPU the driver, the context and
+    the kernels of ``warm_spec_json``'s specialisation: engine.simulate.warm_process) while the worker waits
+    for work or runs the previous claim, then runs the one claim it receives on ``claims`` as
+    :func:`child_main` would, and exits. ``None`` instead of a claim (or a closed pipe): exit at once.
+    ``warm_spec_json`` None: only the imports of the engine entry points (a non-default engine)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _die_with_parent()
+    if warm_spec_json is not None:
+        try:
+            import engine.ensemble  # noqa: F401  (the pack entry point's imports)
+            from engine.simulate import warm_process
+            from engine.spec import SimulationSpec
+
+            warm_process(SimulationSpec.model_validate_json(warm_spec_json))
+        except Exception:  # noqa: BLE001  (a start-up that fails here is paid again, and reported, by the job)
+            pass
+    try:
+        claim = claims.recv()
+    except (EOFError, OSError):
+        claim = None
+    finally:
+        claims.close()
+    if claim is None:
+        conn.close()
+        return
+    engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, ensemble = claim
+    child_main(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
+               parent_pid, ensemble)
 
 
 def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):

@@ -22,7 +22,9 @@ DEMQ_MAX_ATTEMPTS              ``3``                               Claims of a j
 DEMQ_LEASE_SECONDS             ``60``                              Lease of a claimed job; an unrenewed lease expires
                                                                    and the reaper returns the job to the queue.
 DEMQ_HEARTBEAT_SECONDS         ``10``                              Interval of lease renewals (must be < lease).
-DEMQ_POLL_SECONDS              ``1.0``                             Idle worker: wait between claim attempts.
+DEMQ_POLL_SECONDS              ``1.0``                             Idle worker: wait between claim attempts (the
+                                                                   embedded worker of ``demq serve`` is also woken
+                                                                   by every submit).
 DEMQ_PROGRESS_SECONDS          ``1.0``                             Least interval between progress writes to the row.
 DEMQ_CANCEL_GRACE_SECONDS      ``10``                              Time a simulation gets to stop on cancel/shutdown
                                                                    before the worker kills its process.
@@ -43,6 +45,11 @@ DEMQ_ENSEMBLE_MAX_PARTICLES    ``4194304``                         Most particle
 DEMQ_HOST / DEMQ_PORT          ``127.0.0.1`` / ``8000``            Where ``demq serve`` listens.
 DEMQ_URL                       ``http://127.0.0.1:8000``           Service that ``demq submit/status/fetch`` talk to.
 DEMQ_WORKER_ID                 ``<hostname>:<pid>:<random>``       Lease owner name of a worker.
+DEMQ_WORKER_STANDBY            ``auto``                            ``on``: a running worker keeps the next claim's
+                                                                   simulation process started up (interpreter,
+                                                                   imports, GPU context and kernels) while it waits
+                                                                   or runs a claim; ``off``: each claim spawns its
+                                                                   own; ``auto``: on where an NVIDIA driver is.
 =============================  ==================================  =================================================
 
 Test hook (not a setting): ``DEMQ_TEST_CRASH=<seed>`` makes the simulation process of a job whose
@@ -82,10 +89,12 @@ _ENV = {
     "port": "DEMQ_PORT",
     "url": "DEMQ_URL",
     "worker_id": "DEMQ_WORKER_ID",
+    "standby": "DEMQ_WORKER_STANDBY",
 }
 
 
 DEFAULT_ENGINE_RUN = "engine.simulate:run"
+STANDBY_VALUES = ("auto", "on", "off", "1", "0")
 DEFAULT_ENGINE_RUN_ENSEMBLE = "engine.ensemble:run_ensemble"
 
 
@@ -120,6 +129,7 @@ class Settings:
     port: int = 8000
     url: str = "http://127.0.0.1:8000"
     worker_id: str = ""
+    standby: str = "auto"
 
     @classmethod
     def from_env(cls, environ=None, **overrides) -> "Settings":
@@ -149,12 +159,23 @@ class Settings:
             raise ValueError(f"heartbeat ({s.heartbeat_s} s) must be positive and shorter than the lease ({s.lease_s} s)")
         if s.max_attempts < 1:
             raise ValueError(f"max_attempts = {s.max_attempts} must be >= 1")
+        if s.standby not in STANDBY_VALUES:
+            raise ValueError(f"DEMQ_WORKER_STANDBY = {s.standby!r} must be one of {', '.join(STANDBY_VALUES)}")
         if s.ensemble_max_jobs < 1:
             raise ValueError(f"DEMQ_ENSEMBLE_MAX_JOBS = {s.ensemble_max_jobs} must be >= 1 (1 disables packing)")
         if s.ensemble_max_particles < 2:
             raise ValueError(f"DEMQ_ENSEMBLE_MAX_PARTICLES = {s.ensemble_max_particles} must be >= 2 "
                              f"(the smallest job has 2 particles)")
         return s
+
+    @property
+    def standby_enabled(self) -> bool:
+        """Whether a running worker keeps its next claim's simulation process started up (jobs/worker.py)."""
+        if self.standby == "auto":
+            from engine.startup import nvidia_driver
+
+            return nvidia_driver()
+        return self.standby in ("on", "1")
 
     @property
     def packing(self) -> bool:

@@ -5,7 +5,9 @@ the queued jobs that can share an ensemble with it (same shape, precision and re
 DEMQ_ENSEMBLE_MAX_JOBS jobs and DEMQ_ENSEMBLE_MAX_PARTICLES particles; jobs/packing.py). One attempt
 (:meth:`Worker.execute_pack`; :meth:`Worker.execute` for one job)::
 
-    spawn the simulation process (jobs/runner.py) --pipe--> per job: progress, then done | error | cancelled
+    spawn the simulation process (jobs/runner.py; a running worker hands the claim to the standby process it
+                    started ahead, DEMQ_WORKER_STANDBY, and starts the next one)
+                    --pipe--> per job: progress, then done | error | cancelled
     every heartbeat (or progress, rate-limited): renew every job's lease and write its progress (one
                     transaction), read its cancel_requested
     cancel requested / worker stopping / lease lost -> set that job's cancel flag; its scene stops alone
@@ -40,15 +42,22 @@ from typing import Callable, Optional
 from sqlalchemy.exc import SQLAlchemyError
 
 from jobs.packing import SOLO, Packer
-from jobs.runner import child_main
+from jobs.runner import child_main, standby_main
 from jobs.schema import CANCELLED, DONE, FAILED, FINAL_STATES, QUEUED, RUNNING
-from jobs.settings import Settings
+from jobs.settings import DEFAULT_ENGINE_RUN, Settings
 from jobs.store import Job, JobStore
 
 log = logging.getLogger("demq.worker")
 
 #: Queued rows read per claim to find jobs to pack, per allowed job of a pack.
 PEEK_FACTOR = 4
+
+#: Seconds a standby process that gets no claim has to exit before it is killed.
+STANDBY_CLOSE_S = 0.5
+
+#: What a standby process warms when the worker has run no claim yet: the default spec (the service's form and
+#: `demq submit`'s default job).
+DEFAULT_WARM_SPEC = "{}"
 
 #: Progress keys (from engine Progress) -> job-table columns.
 _PROGRESS_COLUMNS = {"fraction": "progress", "phase": "phase", "step": "step", "time": "sim_time",
@@ -72,12 +81,20 @@ class Worker:
         self.store, self.settings, self.on_progress = store, settings, on_progress
         self.owner = settings.worker_id
         self._stop = threading.Event()
+        self._wake = threading.Event()
         self._last_reap = 0.0
         self._packer = Packer(settings.ensemble_max_jobs, settings.ensemble_max_particles)
+        self._standby: Optional[_SimProcess] = None   # the next claim's process, started up (run_forever)
+        self._keep_standby = False
 
     def stop(self) -> None:
         """Stop claiming; a running job is stopped (checkpointed by the engine) and released."""
         self._stop.set()
+        self._wake.set()
+
+    def wake(self) -> None:
+        """Look for queued jobs now instead of at the end of the idle wait (the service calls it on submit)."""
+        self._wake.set()
 
     @property
     def stopping(self) -> bool:
@@ -88,15 +105,25 @@ class Worker:
         """Claim and run jobs until :meth:`stop`; with ``exit_when_idle`` (drain mode, for Slurm job
         arrays), also return once the table holds no queued and no running job."""
         log.info("worker %s started on %s", self.owner, _safe_url(self.settings.database_url))
-        while not self._stop.is_set():
-            jobs = self._next(None)
-            if not jobs:
-                if exit_when_idle and self._drained():
-                    log.info("worker %s: no queued or running job left; exiting (drain mode)", self.owner)
-                    break
-                self._stop.wait(self.settings.poll_s)
-            else:
-                self.execute_pack(jobs)
+        self._keep_standby = self.settings.standby_enabled
+        if self._keep_standby:
+            self._standby = self._spawn_standby(None)
+        try:
+            while not self._stop.is_set():
+                jobs = self._next(None)
+                if not jobs:
+                    if exit_when_idle and self._drained():
+                        log.info("worker %s: no queued or running job left; exiting (drain mode)", self.owner)
+                        break
+                    self._wake.wait(self.settings.poll_s)
+                    self._wake.clear()
+                else:
+                    self.execute_pack(jobs)
+        finally:
+            self._keep_standby = False
+            if self._standby is not None:
+                self._standby.close()
+                self._standby = None
         log.info("worker %s stopped", self.owner)
 
     def _drained(self) -> bool:
@@ -168,20 +195,68 @@ class Worker:
         if ensemble:
             log.info("packing %d jobs into one ensemble run: %s", len(slots), " ".join(j.id for j in jobs))
 
-        ctx = multiprocessing.get_context("spawn")
-        receiver, sender = ctx.Pipe(duplex=False)
-        flags = ctx.RawArray("b", len(slots))  # per-job cancel flags, read by the simulation's cancel checks
-        proc = ctx.Process(target=child_main, name=f"demq-job-{jobs[0].id}", args=(
-            s.engine_run_ensemble if ensemble else s.engine_run, [_spec_json(j) for j in jobs],
-            [str(x.output) for x in slots], [str(x.checkpoints) for x in slots], s.checkpoint_interval,
-            sender, flags, os.getpid(), ensemble))
-        proc.start()
-        sender.close()
-        pack_error = self._supervise(slots, proc, receiver, flags)
-        receiver.close()
-        proc.join()
-        self._conclude_rest(slots, proc.exitcode, pack_error)
+        claim = (s.engine_run_ensemble if ensemble else s.engine_run, [_spec_json(j) for j in jobs],
+                 [str(x.output) for x in slots], [str(x.checkpoints) for x in slots], s.checkpoint_interval,
+                 ensemble)
+        sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
+        if sim is None:
+            ctx = multiprocessing.get_context("spawn")
+            receiver, sender = ctx.Pipe(duplex=False)
+            flags = ctx.RawArray("b", len(slots))  # per-job cancel flags, read by the simulation's cancel checks
+            proc = ctx.Process(target=child_main, name=f"demq-job-{jobs[0].id}",
+                               args=claim[:5] + (sender, flags, os.getpid(), ensemble))
+            proc.start()
+            sender.close()
+            sim = _SimProcess(proc, receiver, flags)
+        if self._keep_standby:    # the next claim's process starts up while this one runs
+            self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
+        pack_error = self._supervise(slots, sim.proc, sim.receiver, sim.flags)
+        sim.receiver.close()
+        sim.proc.join()
+        self._conclude_rest(slots, sim.proc.exitcode, pack_error)
         return {slot.job.id: slot.outcome for slot in slots}
+
+    # ---- the standby simulation process (issue 14: time to result) ----------------------------------
+    def _spawn_standby(self, warm_spec_json: Optional[str]) -> Optional["_SimProcess"]:
+        """Start the next claim's simulation process now (jobs/runner.py standby_main): its start-up
+        (interpreter, imports, on a GPU the driver, context and kernels of ``warm_spec_json``'s
+        specialisation, the default spec's when None and the engine is the default one) overlaps the
+        worker's idle wait or the running claim. None if it cannot be started (the claim then spawns its own)."""
+        s = self.settings
+        if warm_spec_json is None and s.engine_run == DEFAULT_ENGINE_RUN:
+            warm_spec_json = DEFAULT_WARM_SPEC
+        try:
+            ctx = multiprocessing.get_context("spawn")
+            receiver, sender = ctx.Pipe(duplex=False)
+            claims_in, claims_out = ctx.Pipe(duplex=False)
+            flags = ctx.RawArray("b", s.ensemble_max_jobs if s.packing else 1)
+            proc = ctx.Process(target=standby_main, name="demq-standby",
+                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json))
+            proc.start()
+        except Exception as exc:  # noqa: BLE001  (out of processes or memory: claims spawn their own)
+            log.error("cannot start a standby simulation process: %s", exc)
+            return None
+        sender.close()
+        claims_in.close()
+        return _SimProcess(proc, receiver, flags, claims_out)
+
+    def _hand_to_standby(self, claim: tuple, n_jobs: int, job_id: str) -> Optional["_SimProcess"]:
+        """Give ``claim`` to the standby process; None if there is none fit to take it."""
+        sim, self._standby = self._standby, None
+        if sim is None:
+            return None
+        if not sim.proc.is_alive() or len(sim.flags) < n_jobs:
+            sim.close()
+            return None
+        try:
+            sim.claims.send(claim)
+        except (BrokenPipeError, OSError):
+            sim.close()
+            return None
+        sim.claims.close()
+        sim.claims = None
+        log.info("job %s: handed to the standby simulation process (pid %s)", job_id, sim.proc.pid)
+        return sim
 
     def _supervise(self, slots: list["_Slot"], proc, receiver, flags) -> Optional[str]:
         """Relay progress and heartbeats (per job) until the process ends, concluding each job as its
@@ -209,6 +284,8 @@ class Worker:
                     if slot.outcome is None:
                         self._conclude(slot)
             elif not proc.is_alive():
+                if receiver.poll(0):
+                    continue   # it sent its last messages and exited between the poll and this check: read them
                 break
             now = time.monotonic()
             beating = [x for x in slots if x.outcome is None and x.stop_reason != "lease lost"]
@@ -323,6 +400,31 @@ class Worker:
                                                                f"as a whole ({reason})")
                 log.warning("job %s: its pack failed as a whole (%s); requeued to run alone", x.job.id, reason)
                 x.outcome = "requeued"
+
+
+@dataclass
+class _SimProcess:
+    """A simulation process and the worker's ends of its pipes."""
+
+    proc: object                       # multiprocessing Process
+    receiver: object                   # its messages (jobs/runner.py's protocol)
+    flags: object                      # per-job cancel bytes (shared memory)
+    claims: Optional[object] = None    # a standby's claim pipe, until it has its claim
+
+    def close(self) -> None:
+        """End a standby that will get no claim (or a process that died): tell it, then wait or kill."""
+        if self.claims is not None:
+            try:
+                self.claims.send(None)
+            except (BrokenPipeError, OSError):
+                pass
+            self.claims.close()
+            self.claims = None
+        self.proc.join(timeout=STANDBY_CLOSE_S)
+        if self.proc.is_alive():   # still starting up (it reads the pipe only then): its start-up is not needed
+            self.proc.kill()
+            self.proc.join()
+        self.receiver.close()
 
 
 @dataclass

@@ -41,6 +41,7 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
         worker, thread = None, None
         if embedded_worker:
             worker = Worker(store, settings)
+            app.state.wake_worker = worker.wake     # submits wake it (service/deps.py wake_worker)
             thread = threading.Thread(target=worker.run_forever, name="demq-embedded-worker", daemon=True)
             thread.start()
         try:

@@ -22,6 +22,14 @@ def get_store(request: Request) -> JobStore:
     return request.app.state.store
 
 
+def wake_worker(request: Request) -> None:
+    """Tell the embedded worker (`demq serve`) that jobs were queued, so it claims them now rather than at the
+    end of its idle wait (DEMQ_POLL_SECONDS); external workers keep polling."""
+    wake = getattr(request.app.state, "wake_worker", None)
+    if wake is not None:
+        wake()
+
+
 #: The HttpOnly cookie in which the dashboard keeps the token (set by its token form, /ui/login).
 TOKEN_COOKIE = "demq_token"
 

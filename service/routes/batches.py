@@ -7,14 +7,14 @@ import uuid
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query, status
+from fastapi import APIRouter, HTTPException, Query, Request, status
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
 from jobs.batch_results import BatchNotFound, BatchNotReady, batch_result
 from jobs.specs import admit, expand_sweep, sweep_size
 from jobs.store import NewJob
-from service.deps import SettingsDep, StoreDep
+from service.deps import SettingsDep, StoreDep, wake_worker
 from service.errors import InvalidRequest, rejected
 from service.results import batch_plot_png
 from service.schemas import BatchIn, BatchOut
@@ -25,7 +25,7 @@ router = APIRouter(prefix="/batches", tags=["batches"])
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=BatchOut,
              responses={413: {"description": "request body too large"},
                         422: {"description": "an invalid spec (all errors listed), or too many jobs"}})
-def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep) -> BatchOut:
+def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep, request: Request) -> BatchOut:
     """Queue a list of specs or a parameter sweep. All jobs are queued, or none (any error -> 422)."""
     if batch.specs is not None:
         items, loc = [s.model_dump() for s in batch.specs], ["body", "specs"]
@@ -43,6 +43,7 @@ def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep) -> Batc
     batch_id = uuid.uuid4().hex
     jobs = store.submit([NewJob(s.to_json(), batch.priority) for s in specs], batch_id=batch_id,
                         max_attempts=settings.max_attempts)
+    wake_worker(request)
     return BatchOut(batch_id=batch_id, count=len(jobs), job_ids=[j.id for j in jobs])
 
 

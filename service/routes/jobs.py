@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated, Optional
 
-from fastapi import APIRouter, HTTPException, Query, status
+from fastapi import APIRouter, HTTPException, Query, Request, status
 
 from jobs.schema import CANCELLED, FINAL_STATES
 from jobs.specs import QueueSpec, check_limits
 from jobs.store import NewJob
-from service.deps import JobDep, SettingsDep, StoreDep
+from service.deps import JobDep, SettingsDep, StoreDep, wake_worker
 from service.errors import rejected
 from service.schemas import JobOut, JobPage, JobState
 
@@ -20,12 +20,13 @@ NOT_FOUND = {404: {"description": "no job with this id"}}
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
              responses={413: {"description": "request body too large"},
                         422: {"description": "invalid spec, or its estimated cost exceeds a limit"}})
-def submit_job(spec: QueueSpec, store: StoreDep, settings: SettingsDep,
+def submit_job(spec: QueueSpec, store: StoreDep, settings: SettingsDep, request: Request,
                priority: Annotated[int, Query(ge=-1000, le=1000, description="Higher runs first.")] = 0) -> JobOut:
     """Queue one simulation. The body is a spec (the engine's JSON keys; missing keys take defaults)."""
     with rejected():
         check_limits(spec, settings.max_particle_steps, settings.max_memory_bytes, ["body"])
     (job,) = store.submit([NewJob(spec.to_json(), priority)], max_attempts=settings.max_attempts)
+    wake_worker(request)
     return JobOut.of(job)
 
 

@@ -36,3 +36,16 @@ def test_bad_values_are_named():
         open_store("mysql://x")
     with pytest.raises(ValueError, match="needs a file"):
         open_store("sqlite:///:memory:")
+
+
+def test_worker_standby_setting(monkeypatch):
+    import engine.startup
+
+    assert Settings.from_env(environ={"DEMQ_WORKER_STANDBY": "on"}).standby_enabled
+    assert not Settings.from_env(environ={"DEMQ_WORKER_STANDBY": "0"}).standby_enabled
+    monkeypatch.setattr(engine.startup, "nvidia_driver", lambda: True)
+    assert Settings.from_env(environ={}).standby_enabled           # auto: where an NVIDIA driver is
+    monkeypatch.setattr(engine.startup, "nvidia_driver", lambda: False)
+    assert not Settings.from_env(environ={}).standby_enabled
+    with pytest.raises(ValueError, match="DEMQ_WORKER_STANDBY = 'maybe' must be one of auto, on, off"):
+        Settings.from_env(environ={"DEMQ_WORKER_STANDBY": "maybe"})

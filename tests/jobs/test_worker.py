@@ -130,3 +130,123 @@ def test_unresponsive_simulation_is_killed_after_grace(tmp_path, monkeypatch):
     finally:
         worker.stop()
         thread.join(30)
+
+
+# ---- the standby simulation process (issue 14) ----------------------------------------------------------------
+
+def _standby_worker(tmp_path, **kw):
+    from tests.jobs.conftest import make_settings
+
+    settings = make_settings(tmp_path, standby="on", **kw)
+    store = open_store(settings.database_url)
+    return settings, store, Worker(store, settings)
+
+
+def test_claims_run_in_standby_processes_and_none_is_left_behind(tmp_path, caplog):
+    """A running worker hands each claim to the process it started ahead (the first one at its own start); when
+    it stops, the unused standby goes too."""
+    import logging
+    import multiprocessing
+
+    settings, store, worker = _standby_worker(tmp_path, ensemble_max_jobs=1)
+    jobs = [_enqueue(store, seed=s) for s in (1, 2, 3)]
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        worker.run_forever(exit_when_idle=True)
+    assert [store.get(j.id).state for j in jobs] == [DONE] * 3
+    handed = [r.getMessage() for r in caplog.records if "handed to the standby" in r.getMessage()]
+    assert [m.split()[1][:-1] for m in handed] == [j.id for j in jobs]
+    assert multiprocessing.active_children() == []
+    store.close()
+
+
+def test_cancel_and_stop_reach_a_job_in_a_standby_process(tmp_path):
+    settings, store, worker = _standby_worker(tmp_path)
+    cancel, stop = _enqueue(store, t_end=30.0, seed=5), None
+    thread = threading.Thread(target=worker.run_forever)
+    thread.start()
+    try:
+        _wait(lambda: store.get(cancel.id).progress > 0)
+        store.request_cancel(cancel.id)
+        _wait(lambda: store.get(cancel.id).state == CANCELLED, timeout=10)
+        stop = _enqueue(store, t_end=30.0, seed=6)
+        _wait(lambda: store.get(stop.id).progress > 0)
+    finally:
+        worker.stop()
+        thread.join(30)
+    assert not thread.is_alive()
+    got = store.get(stop.id)
+    assert (got.state, got.attempts, got.lease_owner) == (QUEUED, 0, None)
+    store.close()
+
+
+def test_a_standby_that_died_is_replaced_by_a_fresh_process(tmp_path):
+    settings, store, worker = _standby_worker(tmp_path)
+    thread = threading.Thread(target=worker.run_forever)
+    thread.start()
+    try:
+        _wait(lambda: worker._standby is not None)
+        dead = worker._standby.proc
+        dead.kill()
+        dead.join()
+        job = _enqueue(store)
+        worker.wake()
+        _wait(lambda: store.get(job.id).state == DONE)
+    finally:
+        worker.stop()
+        thread.join(30)
+    assert not thread.is_alive()
+    store.close()
+
+
+def test_a_standby_process_writes_the_same_file_as_engine_run(tmp_path):
+    """The real engine through a started-up standby process (warmed for the default spec: imports, numba's CPU
+    target, a parallel start) against engine.run in this process: the same result, bit for bit (CPU)."""
+    from engine.simulate import run
+    from jobs.settings import DEFAULT_ENGINE_RUN
+
+    settings, store, worker = _standby_worker(tmp_path, engine_run=DEFAULT_ENGINE_RUN, ensemble_max_jobs=1)
+    spec = {**TINY, "t_end": 0.05, "seed": 11, "backend": "cpu"}
+    job = _enqueue(store, **spec)
+    worker.run_forever(exit_when_idle=True)
+    got = store.get(job.id)
+    assert got.state == DONE, got.error
+    direct = run(parse_spec({**TINY, **spec}), tmp_path / "direct.h5")
+    with h5py.File(got.result_path) as a, h5py.File(direct.output) as b:
+        names = []
+        a.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) else None)
+        assert names and "observables/kinetic_energy_translational/value" in names
+        for n in names:
+            assert (a[n][()] == b[n][()]).all(), n
+    store.close()
+
+
+def test_a_last_message_sent_just_before_the_process_exits_is_read(local, settings):
+    """The supervisor's poll can time out just before the simulation sends its result and exits; the exit must
+    not hide the message still in the pipe (it did: 'exited with code 0 without reporting a result' under load)."""
+    from jobs.worker import _Slot
+
+    store, worker = local
+    job = store.claim(worker.owner, settings.lease_s) if _enqueue(store) else None
+    done = {"backend": "fake", "device": "cpu", "wall_s": 0.1, "cundall": 1.0, "steps": 1, "resumed_from_step": None,
+            "ensemble_size": 1}
+
+    class Receiver:                 # nothing at the first poll; the message is there once the process is gone
+        def __init__(self):
+            self.polls, self.messages = 0, [("done", 0, done)]
+
+        def poll(self, timeout=0.0):
+            self.polls += 1
+            return self.polls > 1
+
+        def recv(self):
+            if self.messages:
+                return self.messages.pop(0)
+            raise EOFError
+
+    class DeadProcess:
+        def is_alive(self):
+            return False
+
+    slot = _Slot(job, settings.result_path(job.id), settings.checkpoint_dir(job.id))
+    assert worker._supervise([slot], DeadProcess(), Receiver(), [0]) is None
+    assert slot.final == ("done", done) and store.get(job.id).state == DONE

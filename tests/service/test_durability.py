@@ -206,3 +206,17 @@ def test_cli_local_submit_wait_writes_result(tmp_path):
     r = subprocess.run([sys.executable, "-m", "service.cli", "submit", "--local", "--wait", "--set", "e_n=3"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "e_n = 3" in r.stderr
+
+
+def test_a_submit_wakes_the_embedded_worker(tmp_path):
+    """With a 60 s idle wait, jobs submitted over HTTP (one, then a batch) still start at once: the submit wakes
+    `demq serve`'s worker."""
+    settings = make_settings(tmp_path, poll_s=60.0)
+    with TestClient(create_app(settings, embedded_worker=True)) as c:
+        time.sleep(0.5)                        # the worker has found the queue empty and waits
+        t0 = time.monotonic()
+        job_id = c.post("/jobs", json=TINY).json()["id"]
+        wait_for(lambda: c.get(f"/jobs/{job_id}").json()["state"] == "done", 30, "the job")
+        ids = c.post("/batches", json={"base": TINY, "sweep": {"seed": [1, 2]}}).json()["job_ids"]
+        wait_for(lambda: all(c.get(f"/jobs/{i}").json()["state"] == "done" for i in ids), 30, "the batch")
+        assert time.monotonic() - t0 < 30

@@ -22,7 +22,8 @@ def test_concurrent_clients_two_workers_every_job_once(tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning"))
-    threading.Thread(target=server.run, daemon=True).start()
+    server_thread = threading.Thread(target=server.run, daemon=True)
+    server_thread.start()
     workers = [Worker(open_store(settings.database_url), settings) for _ in range(2)]
     worker_threads = [threading.Thread(target=w.run_forever) for w in workers]
     for t in worker_threads:
@@ -57,6 +58,7 @@ def test_concurrent_clients_two_workers_every_job_once(tmp_path):
         for t in worker_threads:
             t.join(30)
         server.should_exit = True
+        server_thread.join(30)   # not left running into the interpreter's exit
     assert listed["total"] == 30 and sorted(j["id"] for j in listed["items"]) == sorted(ids)
     bad = [(j["state"], j["attempts"], j.get("error")) for j in listed["items"]
            if not (j["state"] == "done" and j["attempts"] == 1)]
