@@ -84,14 +84,15 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
     """Start the GPU start-up for a job of ``spec`` on ``backend`` ('auto', 'cuda' or 'cpu', unresolved), with
     ``contacts`` the contact constants the driver compiles for (in order) and ``p`` its derived parameters.
 
-    None when there is nothing to start: backend 'cpu', the CUDA simulator, no NVIDIA driver, ``DEMQ_GPU_STARTUP=0``. A second
-    job of the same specialisation in this process gets the first one's (finished or running) start-up.
+    None when there is nothing to start: backend 'cpu', the CUDA simulator, no NVIDIA driver,
+    ``DEMQ_GPU_STARTUP=0``. A second job of the same specialisation in this process gets the first one's (finished
+    or running) start-up.
     """
     if backend == "cpu" or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or os.environ.get(ENV) == "0" \
             or not nvidia_driver():
         return None
-    key = (spec.shape, spec.precision, bool(getattr(spec, "species", None))) + tuple((c.k_t is None, c.friction is None, c.orientation,
-                                                c.list_mode) for c in contacts)
+    key = (spec.shape, spec.precision, bool(getattr(spec, "species", None))) + tuple(
+        (c.k_t is None, c.friction is None, c.orientation, c.list_mode) for c in contacts)
     with _lock:
         started = _started.get(key)
         if started is not None:

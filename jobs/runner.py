@@ -76,7 +76,7 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
     the kernels of ``warm_spec_json``'s specialisation: engine.simulate.warm_process) while the worker waits
     for work or runs the previous claim, then runs the one claim it receives on ``claims`` as
     :func:`child_main` would, and exits. ``None`` instead of a claim (or a closed pipe): exit at once.
-    ``warm_spec_json`` None: only the imports of the engine entry points (a non-default engine)."""
+    ``warm_spec_json`` None: nothing is warmed (a non-default engine: its module is imported with the claim)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()

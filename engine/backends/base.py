@@ -139,9 +139,3 @@ def cuda_available() -> bool:
             except Exception:  # numba-cuda missing or no driver
                 _cuda_answer = False
         return _cuda_answer
-    try:
-        from numba import cuda
-
-        return bool(cuda.is_available())
-    except Exception:  # numba-cuda missing or no driver
-        return False

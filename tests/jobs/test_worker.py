@@ -226,7 +226,8 @@ def test_a_last_message_sent_just_before_the_process_exits_is_read(local, settin
     from jobs.worker import _Slot
 
     store, worker = local
-    job = store.claim(worker.owner, settings.lease_s) if _enqueue(store) else None
+    _enqueue(store)
+    job = store.claim(worker.owner, settings.lease_s)
     done = {"backend": "fake", "device": "cpu", "wall_s": 0.1, "cundall": 1.0, "steps": 1, "resumed_from_step": None,
             "ensemble_size": 1}
 
