@@ -141,3 +141,15 @@ def test_the_start_does_not_depend_on_the_skin(kw):
     b = shape.initial_system(spec, derive(spec.model_copy(update={"verlet_skin": 3.0})))
     for f in ("position", "velocity", "angular_velocity", "orientation", "mass", "inertia"):
         assert np.array_equal(getattr(a, f), getattr(b, f)), f
+
+
+def test_an_unknown_backend_is_refused_before_the_placement(tmp_path, monkeypatch):
+    """The set-up now places before it resolves the backend; a misspelt backend still costs nothing."""
+    from engine.errors import BackendUnavailable
+    from engine.simulate import run
+
+    placed = []
+    monkeypatch.setattr(host("sphere"), "initial_system", lambda *a: placed.append(a))
+    with pytest.raises(BackendUnavailable, match="unknown backend 'gpu'"):
+        run(SimulationSpec(), tmp_path / "out.h5", backend="gpu")
+    assert placed == [] and list(tmp_path.iterdir()) == []
