@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from typing import List, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -351,6 +352,11 @@ class SimulationSpec(BaseModel):
                 f"for a species spec: the random sequential placement of several sizes cannot start denser "
                 f"reliably (it jams near 0.38)")
         p = scales(self)
+        if not p.temperature0 >= sys.float_info.min:
+            # T0 = <m> v_rms^2 / 3 underflows: the collision rate, hence the thermalisation time, would be 0 or nan
+            raise ValueError(
+                f"velocity_rms = {self.velocity_rms:g} m/s is too slow: the temperature <m> v_rms^2/3 = "
+                f"{p.temperature0:g} J is not a normal float64 (>= {sys.float_info.min:g}); use a larger velocity_rms")
         if self.dt is not None and self.dt > p.contact_time / MIN_STEPS_PER_CONTACT:
             raise ValueError(
                 f"dt = {self.dt:.6g} s cannot resolve a contact: the contact time is {p.contact_time:.6g} s, "
