@@ -55,15 +55,46 @@ def cache_closure(dispatcher, key: tuple):
     return dispatcher
 
 
+def fast_loads(namespace: dict) -> None:
+    """Make every ``cache=True`` njit dispatcher in ``namespace`` (a module's ``globals()``) load its disk cache
+    without refreshing numba's CPU target first; call it at the bottom of a module that defines them.
+
+    numba refreshes the target context before every cache load "to ensure it is initialized". On the CPU target
+    that installs every lowering registry and imports scipy.linalg for numba's BLAS check: 0.25-0.4 s of Python,
+    once per process, under the GIL (issue 14: a fresh process's time to result). A load needs only the symbols
+    its linked machine code calls: numba's C helpers and libm (registered when the context is created), the NRT
+    (the one part of the refresh kept here: ``rtsys.initialize``), the hash secret (``numba.cpython.hashing``,
+    imported here) and a parallel function's thread pool (started by the load's own ``reload_init``). Any
+    compilation (a cache miss, a new signature) still refreshes the context itself
+    (numba.core.compiler.CompilerBase). A dispatcher whose cache is not numba's plain FunctionCache is left alone.
+    """
+    if _FastLoadCache is None:
+        return
+    for obj in list(namespace.values()):
+        cache = getattr(obj, "_cache", None)
+        if type(cache) is _FunctionCache:
+            cache.__class__ = _FastLoadCache        # same state, one method different
+
+
 try:
     from numba.core.caching import FunctionCache as _FunctionCache
+    from numba.core.runtime import rtsys as _rtsys
 
-    class _StableKeyCache(_FunctionCache):
+    class _FastLoadCache(_FunctionCache):
+        """numba's FunctionCache, whose loads skip the target refresh (see :func:`fast_loads`)."""
+
+        def load_overload(self, sig, target_context):
+            _rtsys.initialize(target_context)      # the parts of the refresh a load needs (see fast_loads)
+            import numba.cpython.hashing  # noqa: F401
+            with self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
+
+    class _StableKeyCache(_FastLoadCache):
         def __init__(self, py_func, stable):
             self._stable = stable
             super().__init__(py_func)
 
         def _index_key(self, sig, codegen):
             return (sig, codegen.magic_tuple(), self._stable)
-except ImportError:  # another numba layout: cache_closure leaves the closure uncached
-    _StableKeyCache = None
+except ImportError:  # another numba layout: cache_closure leaves the closure uncached, fast_loads does nothing
+    _FunctionCache = _FastLoadCache = _StableKeyCache = None

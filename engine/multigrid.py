@@ -53,7 +53,7 @@ import numba
 import numpy as np
 from numba import prange
 
-import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
@@ -374,3 +374,6 @@ def level_arrays(box: float, level: np.ndarray, levels: Levels) -> tuple:
     cell_start = np.zeros(int(start_off[-1]), np.int64)
     cell_list = np.zeros(max(1, int(list_off[-1])), np.int32)
     return nc, inv_cell, start_off, list_off, cell_start, cell_list
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

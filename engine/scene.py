@@ -30,6 +30,7 @@ import math
 import numba
 import numpy as np
 
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.backends.base import EllipsoidSystem, SphereSystem
 from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.errors import SpecError
@@ -370,7 +371,7 @@ def _stream_key(seed: int, stream: int) -> np.uint64:
     return _U(_key(_U(seed % (1 << 64)), stream))
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
 def _site_keys(key, n_sites):
     out = np.empty(n_sites, np.uint64)
     for j in numba.prange(n_sites):
@@ -378,7 +379,7 @@ def _site_keys(key, n_sites):
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
 def _place_on_sites(chosen, m, a, key, half_gap, box):
     """Centres at the chosen fcc sites (as fcc_sites numbers them), each displaced uniformly in a ball of
     radius half_gap (direction from three normals, radius from a uniform), wrapped into [0, box)."""
@@ -420,7 +421,7 @@ def _parallel_place(n: int, box: float, radius: float, seed: int) -> np.ndarray:
     return _place_on_sites(chosen, m, a, _stream_key(seed, STREAM_DISPLACEMENT), 0.5 * gap, float(box))
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
 def _normals(key, n, dim):
     out = np.empty((n, dim))
     for i in numba.prange(n):
@@ -432,7 +433,7 @@ def _normals(key, n, dim):
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
 def _block_sums(v, power):
     """Per block of _BLOCK rows, the column sums of v**power (a fixed summation order for any thread count)."""
     n, dim = v.shape
@@ -445,7 +446,7 @@ def _block_sums(v, power):
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
 def _shift_scale(v, shift, scale):
     for i in numba.prange(v.shape[0]):
         for d in range(v.shape[1]):
@@ -462,7 +463,7 @@ def _parallel_maxwellian(n: int, rms: float, seed: int, stream: int, dim: int) -
     return v
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
 def _normalise_rows(q):
     for i in numba.prange(q.shape[0]):
         s = 0.0
@@ -478,3 +479,6 @@ def _parallel_quaternions(n: int, seed: int) -> np.ndarray:
     q = _normals(_stream_key(seed, STREAM_QUATERNION), n, 4)
     _normalise_rows(q)
     return q
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

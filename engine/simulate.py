@@ -31,6 +31,7 @@ import math
 import os
 import shutil
 import time
+from collections import deque
 from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -221,6 +222,8 @@ class SceneRun:
         self.output = Path(output)
         self.progress, self.should_cancel = progress, should_cancel
         self.spec_json = spec.to_json()
+        #: added to the RunSummary's extra only (not to the file): engine.ensemble's set-up wall time
+        self.summary_extra: dict = {}
         self.ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
         self.resume = resume = self.ck.load(self.spec_json)
         # the start does not depend on the Verlet skin, so the particles are placed before the backend is
@@ -328,8 +331,13 @@ class SceneRun:
                                      deferred=self.defer_file, **common)
         self.timings["open"] += time.perf_counter() - t0
 
-    def at_stop(self, view) -> None:
-        """Handle the stop the scene has reached (records, energy check, snapshot, progress, checkpoint)."""
+    def at_stop(self, view, defer: Optional[Callable[[Callable[[], None]], None]] = None) -> None:
+        """Handle the stop the scene has reached (records, energy check, snapshot, progress, checkpoint).
+
+        ``defer(fn)``, when given, takes the work of a stop that only records (no snapshot, checkpoint or end):
+        the driver runs ``fn`` while the GPU does the next steps, and in any case before this scene's next stop
+        (engine.simulate.drive, _Deferred). The observables are read now; the record, energy check and progress
+        report are the same, only later."""
         p, writer = self.p, self.writer
         if self.phase == "thermalization":
             # dissipation off, nothing recorded
@@ -351,18 +359,22 @@ class SceneRun:
         step_done = self.step_done
         t_sim = step_done * p.dt
         tm = self.timings
+        ck_due = self.ck.due() and step_done < p.n_steps
+        if defer is not None and step_done not in self.snaps and step_done < p.n_steps and not ck_due:
+            obs_later = view.observe_later()
+
+            def later() -> None:
+                t0 = time.perf_counter()
+                self._record(step_done, t_sim, self._counted(obs_later()))
+                tm["records"] += time.perf_counter() - t0
+                self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
+
+            defer(later)
+            self._next_event()
+            return
         t0 = time.perf_counter()
         obs = self._counted(view.observe())
-        if step_done % p.output_every == 0 or step_done == p.n_steps:
-            writer.observables(step_done, t_sim, record(obs, self.n))
-            energy = obs["kinetic_energy_translational"] + obs["kinetic_energy_rotational"] + obs["elastic_energy"]
-            if self.dissipative and energy > self.prev_energy * (1.0 + ENERGY_RISE_TOLERANCE):
-                raise InstabilityError(
-                    f"total energy rose by {100 * (energy / self.prev_energy - 1):.3g} % by step {step_done} "
-                    f"(t = {t_sim:.4g} s) in a dissipative run: likely cause: a time step too large "
-                    f"(dt = {p.dt:.3g} s, contact time {p.contact_time:.3g} s) or overlaps too deep",
-                    step=step_done)
-            self.prev_energy = min(self.prev_energy, energy)
+        self._record(step_done, t_sim, obs)
         t1 = time.perf_counter()
         tm["records"] += t1 - t0
         if step_done in self.snaps:
@@ -377,11 +389,25 @@ class SceneRun:
             slots.frames += 1
             tm["snapshots"] += time.perf_counter() - t1
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
-        if self.ck.due() and step_done < p.n_steps:
+        if ck_due:
             t0 = time.perf_counter()
             self.ck.save(writer, view, phase="cooling", step_done=step_done, extra=self._ck_extra(obs))
             tm["checkpoints"] += time.perf_counter() - t0
         self._next_event()
+
+    def _record(self, step_done: int, t_sim: float, obs: dict) -> None:
+        """Write the record of a record step and check that a dissipative run's energy did not rise."""
+        p = self.p
+        if step_done % p.output_every == 0 or step_done == p.n_steps:
+            self.writer.observables(step_done, t_sim, record(obs, self.n))
+            energy = obs["kinetic_energy_translational"] + obs["kinetic_energy_rotational"] + obs["elastic_energy"]
+            if self.dissipative and energy > self.prev_energy * (1.0 + ENERGY_RISE_TOLERANCE):
+                raise InstabilityError(
+                    f"total energy rose by {100 * (energy / self.prev_energy - 1):.3g} % by step {step_done} "
+                    f"(t = {t_sim:.4g} s) in a dissipative run: likely cause: a time step too large "
+                    f"(dt = {p.dt:.3g} s, contact time {p.contact_time:.3g} s) or overlaps too deep",
+                    step=step_done)
+            self.prev_energy = min(self.prev_energy, energy)
 
     def _counted(self, obs: dict) -> dict:
         """The observables with the collisions counted before a resume added (a copy: ``obs`` may be shared)."""
@@ -431,7 +457,8 @@ class SceneRun:
         tm["close"] += time.perf_counter() - t0
         return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
                           wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
-                          extra={**(info or {}), "timings": dict(tm), **self._startup_info()})
+                          extra={**(info or {}), "timings": dict(tm), **self._startup_info(),
+                                 **self.summary_extra})
 
     def _startup_info(self) -> dict:
         """The GPU start-up thread's wall seconds and error (engine/startup.py), when this scene had one."""
@@ -500,6 +527,18 @@ class _SceneView:
             self.cache["all"] = self.ens.observe()
         return self.cache["all"][self.i]
 
+    def observe_later(self) -> Callable[[], dict]:
+        """A function giving :meth:`observe`'s dict: the values are read now (one read per round, shared), the
+        dict is built when it is called (where the ensemble offers ``observe_later``)."""
+        later = getattr(self.ens, "observe_later", None)
+        if later is None or getattr(self.ens, "observe_scene", None) is not None:
+            obs = self.observe()
+            return lambda: obs
+        if "later" not in self.cache:
+            self.cache["later"] = later()
+        f, i = self.cache["later"], self.i
+        return lambda: f(i)
+
     def state(self, reuse=False) -> dict:
         """Scene i's state in id order; ``reuse`` (True or a buffer slot): the arrays may be buffers that the
         next call with the same slot overwrites."""
@@ -513,6 +552,64 @@ class _SceneView:
     def set_contact(self, contact: ContactParams) -> None:
         self.ens.set_contact(self.i, contact)
         self.cache.pop("all", None)
+        self.cache.pop("later", None)
+
+
+def _set_contacts(ens, contacts: dict) -> None:
+    """Set the contacts {scene: contact} of the ensemble, at once where it offers ``set_contacts``."""
+    many = getattr(ens, "set_contacts", None)
+    if many is not None:
+        many(contacts)
+    else:
+        for i, c in contacts.items():
+            ens.set_contact(i, c)
+
+
+#: environment switch: "0" = a stop's record work is done at once, not while the GPU does the next steps
+OVERLAP_RECORDS_ENV = "DEMQ_OVERLAP_RECORDS"
+
+
+class _Deferred:
+    """The record work of the last round's stops (issue 14 item 4: the GPU stays busy across records).
+
+    An ensemble with an ``idle`` hook (the packed CUDA ensemble) calls :meth:`run_one` while it waits for the
+    GPU in its next advance; what is left runs in :meth:`drain`, before the next round's stops. A scene's units
+    run in order, and all of them before its next stop, snapshot, checkpoint or end. A unit's error (e.g. the
+    energy check's InstabilityError) is kept for the driver, which ends that scene; its later units are dropped.
+    Off (``on`` False) for ensembles without the hook and with DEMQ_OVERLAP_RECORDS=0.
+    """
+
+    def __init__(self, ens):
+        self.on = hasattr(ens, "idle") and os.environ.get(OVERLAP_RECORDS_ENV) != "0"
+        self.units: deque = deque()
+        self.errors: list = []
+        if self.on:
+            ens.idle = self.run_one
+
+    def for_scene(self, i: int) -> Optional[Callable]:
+        return (lambda fn: self.units.append((i, fn))) if self.on else None
+
+    def run_one(self) -> bool:
+        if not self.units:
+            return False
+        i, fn = self.units.popleft()
+        try:
+            fn()
+        except Exception as exc:  # this scene's error: the driver ends it
+            self.errors.append((i, exc))
+            self.drop(i)
+        return True
+
+    def drain(self) -> list:
+        """Run every unit left; return [(scene, error)] of the units that failed since the last drain."""
+        while self.run_one():
+            pass
+        errors, self.errors = self.errors, []
+        return errors
+
+    def drop(self, i: int) -> None:
+        if any(u[0] == i for u in self.units):
+            self.units = deque(u for u in self.units if u[0] != i)
 
 
 def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
@@ -564,11 +661,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     try:
         rounds = max(len(r.warm_contacts) for r in runs)
         for r_ in range(rounds):
-            for i, r in enumerate(runs):
-                ens.set_contact(i, r.warm_contacts[min(r_, len(r.warm_contacts) - 1)])
+            _set_contacts(ens, {i: r.warm_contacts[min(r_, len(r.warm_contacts) - 1)] for i, r in enumerate(runs)})
             ens.warmup()
-        for i, r in enumerate(runs):
-            ens.set_contact(i, r.initial_contact)
+        _set_contacts(ens, {i: r.initial_contact for i, r in enumerate(runs)})
         shared["compile"] = time.perf_counter() - t0
     except Exception as exc:  # the ensemble cannot compile: every scene fails with the reason
         for k in live:
@@ -579,6 +674,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
 
     active: set = set()
     frame_slots = _FrameSlots()
+    deferred = _Deferred(ens)
 
     def settle(i: int, result, deactivated: bool = False) -> None:
         results[live[i]] = result
@@ -589,6 +685,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
             on_result(live[i], result)
 
     def end(i: int, exc: BaseException) -> None:
+        deferred.drop(i)
         runs[i].abort()
         settle(i, exc)
 
@@ -672,13 +769,15 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
                 for i in sorted(active):
                     end(i, exc)
                 break
-            for i, exc in failed.items():
-                end(i, exc)
+            # the last round's records first (what the GPU's steps left of them): an error there is earlier
+            for i, exc in list(deferred.drain()) + list(failed.items()):
+                if i in active:
+                    end(i, exc)
             cache: dict = {}
             done = []
             for i in sorted(i for i in active if runs[i].steps_to_next() == 0):
                 try:
-                    runs[i].at_stop(_SceneView(ens, i, cache, frame_slots))
+                    runs[i].at_stop(_SceneView(ens, i, cache, frame_slots), deferred.for_scene(i))
                 except Exception as exc:
                     end(i, exc)
                     continue

@@ -22,11 +22,17 @@ Two rules keep the thread safe beside the caller:
 - the thread runs no parallel (prange) njit code: numba's default threading layer may not be entered by two
   threads at once. The stand-in is made with NumPy.
 
-``DEMQ_GPU_STARTUP=0`` turns it off (A/B timings: ``python3 -m bench.e2e``).
+The driver's own start-up (``cuInit`` and the device's primary context) needs no Python at all: :func:`begin` hands
+it to a second small thread that calls the driver library through ctypes first, so it runs while the caller
+imports numba.cuda (about 0.2 s); numba-cuda then finds the driver started and retains the same primary context.
+That thread's own reference to the context is released once numba-cuda holds one.
+
+``DEMQ_GPU_STARTUP=0`` turns both off (A/B timings: ``python3 -m bench.e2e``).
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import threading
 import time
@@ -45,9 +51,10 @@ _started: dict = {}
 class GpuStartup:
     """The start-up thread of one specialisation (see the module docstring)."""
 
-    def __init__(self, shape: str, system, contacts: tuple):
+    def __init__(self, shape: str, system, contacts: tuple, driver: Optional["DriverStart"] = None):
         self.error: Optional[str] = None
         self.seconds: Optional[float] = None   # the thread's own wall time
+        self._driver = driver
         self._thread = threading.Thread(target=self._work, args=(shape, system, contacts),
                                         name="demq-gpu-startup")
         self._thread.start()
@@ -77,6 +84,8 @@ class GpuStartup:
         except Exception as exc:  # noqa: BLE001  (the job loads its kernels itself)
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
+            if self._driver is not None:    # numba-cuda holds the context now (or never will): let ours go
+                self._driver.release()
             self.seconds = time.perf_counter() - t0
 
 
@@ -88,8 +97,8 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
     ``DEMQ_GPU_STARTUP=0``. A second job of the same specialisation in this process gets the first one's (finished
     or running) start-up.
     """
-    if backend == "cpu" or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or os.environ.get(ENV) == "0" \
-            or not nvidia_driver():
+    global _early
+    if not _wanted(backend):
         return None
     key = (spec.shape, spec.precision, bool(getattr(spec, "species", None))) + tuple(
         (c.k_t is None, c.friction is None, c.orientation, c.list_mode) for c in contacts)
@@ -97,6 +106,8 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
         started = _started.get(key)
         if started is not None:
             return started
+        driver = DriverStart.begin() or _early   # before the imports below, which it overlaps
+        _early = None
         system = _standin(spec, p)
         # the thread's imports, here (see the module docstring)
         try:
@@ -107,9 +118,84 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
             if system is not None:
                 host(spec.shape).cuda_backend()
         except Exception:  # noqa: BLE001  (numba-cuda unusable: cuda_available() says so to the driver)
+            if driver is not None:
+                driver.release()
             return None
-        started = _started[key] = GpuStartup(spec.shape, system, contacts)
+        started = _started[key] = GpuStartup(spec.shape, system, contacts, driver)
     return started
+
+
+def start_driver(backend: str) -> None:
+    """Start only the driver's start-up (:class:`DriverStart`), for a caller that asks ``cuda_available()`` before
+    it can call :func:`begin` (engine.ensemble.run_ensemble resolves every scene's backend first). The context
+    reference it takes is released by the next :func:`begin`'s thread, or by :func:`release_early`."""
+    global _early
+    if _wanted(backend):
+        with _lock:
+            d = DriverStart.begin()
+            if d is not None:
+                _early = d
+
+
+_early: Optional["DriverStart"] = None
+
+
+def release_early() -> None:
+    """Drop :func:`start_driver`'s context reference if no :func:`begin` took it over (no scene reached it)."""
+    global _early
+    with _lock:
+        if _early is not None:
+            _early.release()
+            _early = None
+
+
+def _wanted(backend: str) -> bool:
+    return not (backend == "cpu" or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or os.environ.get(ENV) == "0"
+                or not nvidia_driver())
+
+
+class DriverStart:
+    """``cuInit`` and a reference to device 0's primary context, through the driver library and ctypes, on a
+    thread of its own (see the module docstring). Device 0 is numba-cuda's default device (after
+    CUDA_VISIBLE_DEVICES). Any failure leaves everything to numba-cuda, which reports it as before."""
+
+    _once = False           # one per process: later jobs find the driver started
+
+    def __init__(self):
+        self._lib = None
+        self._ctx = ctypes.c_void_p()
+        self._dev = ctypes.c_int()
+        self._held = False
+        self._done = threading.Lock()      # held by the thread until it has finished
+        self._done.acquire()
+        threading.Thread(target=self._work, name="demq-driver-start", daemon=True).start()
+
+    @classmethod
+    def begin(cls) -> Optional["DriverStart"]:
+        if cls._once:
+            return None
+        cls._once = True
+        return cls()
+
+    def _work(self) -> None:
+        try:
+            lib = ctypes.CDLL("libcuda.so.1")
+            if lib.cuInit(0) == 0 and lib.cuDeviceGet(ctypes.byref(self._dev), 0) == 0 \
+                    and lib.cuDevicePrimaryCtxRetain(ctypes.byref(self._ctx), self._dev) == 0:
+                self._lib, self._held = lib, True
+        except (OSError, AttributeError):   # no driver library here: numba-cuda will say so
+            pass
+        finally:
+            self._done.release()
+
+    def release(self) -> None:
+        """Drop this thread's reference to the primary context (after it has finished); numba-cuda's stays."""
+        with self._done:
+            if self._held:
+                self._held = False
+                release = getattr(self._lib, "cuDevicePrimaryCtxRelease_v2", None) \
+                    or self._lib.cuDevicePrimaryCtxRelease         # the _v2 name since CUDA 11
+                release(self._dev)
 
 
 def nvidia_driver() -> bool:

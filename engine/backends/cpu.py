@@ -34,7 +34,7 @@ import numba
 import numpy as np
 from numba import prange
 
-import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.jitcache import cache_closure
 
 from engine.backends.base import ContactParams, cell_grid
@@ -510,3 +510,6 @@ class CpuLoop:
                 continue
             self.steps_done = step
             raise instability_error(status, step, int(who), value, self)
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

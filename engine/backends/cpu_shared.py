@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 #: Per list slot: tangential spring (3, m), overlap (m) and dashpot force (N) at the previous step.
 SLOT = 5
@@ -71,3 +71,6 @@ def cpu_name() -> str:
     import platform
 
     return f"{platform.processor() or 'cpu'} x{numba.get_num_threads()} threads"
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

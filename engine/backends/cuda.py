@@ -37,6 +37,7 @@ import math
 import os
 import time
 from types import SimpleNamespace
+from typing import Callable, Optional
 
 import numpy as np
 from numba import cuda
@@ -71,6 +72,9 @@ class CudaEnsemble:
     name = "cuda"
     #: the particle shape (engine/shapes/SHAPES key) whose CUDA parts specialise the time loop
     shape = "sphere"
+    #: the driver's work for the host while it waits for the GPU (engine/simulate.py, _Deferred: the records
+    #: of the last stops): called in the waits, it runs one small unit and returns True, or False when none is left
+    idle: Optional[Callable[[], bool]] = None
     #: widths of the per-scene constant tables (a subclass may append columns)
     _ND, _NF = K.ND, K.NF
     #: history words per list slot (a shape whose pair law keeps more sets its own before the lists exist)
@@ -306,6 +310,18 @@ class CudaEnsemble:
             raise ValueError("the precision of a scene cannot change inside an ensemble")
         self._sync_active()
         self._set_scene_contact(k, contact)
+        self._upload_params()
+        self._specialise()
+
+    def set_contacts(self, contacts: dict) -> None:
+        """:meth:`set_contact` for several scenes ({scene: contact}) with one upload of the constant tables (the
+        driver sets every scene's contact before the first step: one upload instead of one per scene)."""
+        for k, contact in contacts.items():
+            if contact.precision != self.contact[k].precision:
+                raise ValueError("the precision of a scene cannot change inside an ensemble")
+        self._sync_active()
+        for k, contact in contacts.items():
+            self._set_scene_contact(k, contact)
         self._upload_params()
         self._specialise()
 
@@ -670,11 +686,11 @@ class CudaEnsemble:
             # displacements and speeds are normalised by each scene's L_v/2
             if prev is None:
                 # first step of the call: this step's displacement is known exactly
-                self.events[slot].synchronize()
+                self._wait_event(self.events[slot])
                 h = self.status_h[slot]
                 rebuild = math.sqrt(h[K.S_D2]) > 1.0
             else:
-                self.events[prev].synchronize()
+                self._wait_event(self.events[prev])
                 h = self.status_h[prev]
                 if not rebuilt_prev and math.sqrt(h[K.S_D2]) > 1.0:
                     self.late_rebuilds += 1
@@ -726,8 +742,18 @@ class CudaEnsemble:
         if getattr(self, "_poll_ev", None) is None:
             self._poll_ev = cuda.event(timing=False)
         self._poll_ev.record(self.stream)
+        idle = self.idle
         while not self._poll_ev.query():
-            time.sleep(2e-5)
+            if idle is None or not idle():
+                time.sleep(2e-5)
+
+    def _wait_event(self, ev) -> None:
+        """``ev.synchronize()``, running the driver's idle work while the GPU has not reached ``ev``."""
+        idle = self.idle
+        if idle is not None and not SIM:
+            while not ev.query() and idle():
+                pass
+        ev.synchronize()
 
     def _collect(self, h, failed: dict | None = None) -> dict:
         """Scenes that blew up according to status h (once each): deactivated, error recorded."""
@@ -783,6 +809,12 @@ class CudaEnsemble:
         inactive scene."""
         a = self._observe_sums()
         return [self._observables(s, a[s].tolist()) if self.active[s] else None for s in range(self.n_scenes)]
+
+    def observe_later(self) -> Callable[[int], dict]:
+        """:meth:`observe` with the dicts built later: the sums are read (and copied) now; returns f(s), scene s's
+        observables (engine/simulate.py builds them in the GPU's next steps)."""
+        a = self._observe_sums().copy()
+        return lambda s: self._observables(s, a[s].tolist())
 
     def _observables(self, s: int, r: list) -> dict:
         """Scene s's observables from its observe sums r (engine/shapes/sphere/device.py: observe_one)."""

@@ -24,6 +24,7 @@ def cache_kernels(kernels: dict, key: tuple) -> dict:
     try:
         import numba_cuda
         from numba.cuda.dispatcher import CUDACache, CUDADispatcher
+        from numba.cuda.utils import numba_target_override
     except ImportError:  # another numba-cuda layout: compile in every process, as before
         return kernels
     from engine.jitcache import source_digest
@@ -36,6 +37,14 @@ def cache_kernels(kernels: dict, key: tuple) -> dict:
         def _index_key(self, sig, codegen):
             k = (sig, codegen.magic_tuple(), numba_cuda.__version__, self._stable)
             return k if self._launch_config_key is None else k + (("launch_config", self._launch_config_key),)
+
+        def load_overload(self, sig, target_context):
+            # numba-cuda refreshes the CUDA target (every lowering and typing registry: about 0.3 s of Python
+            # under the GIL, once per process) before a load; a kernel is rebuilt from its linked code without
+            # the context (_Kernel._rebuild), and any compilation refreshes the context itself
+            # (engine/jitcache.py, fast_loads, says the same of the CPU target)
+            with numba_target_override(), self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
 
     digest = source_digest()
     for name, disp in kernels.items():

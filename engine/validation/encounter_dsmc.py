@@ -53,6 +53,7 @@ import numba
 import numpy as np
 from numba import prange
 
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.physics.ellipsoid import ellipsoid_contact, ellipsoid_pair
 from engine.physics.integrate import kick
 from engine.physics.rotation import (body_omega, fincham_quat_step_body, quat_matrix, quat_mul, quat_normalize,
@@ -704,3 +705,6 @@ def run_dsmc(xi: float, e_n: float, rule: str = "soft", n: int = 20000, coll_per
             "t_ref": t_ref, "temp_fraction": temp_fraction, "kn_factor": kn_factor,
             "softness_delta_over_b": math.sqrt(2 * t_ref / m) * math.sqrt(c["m12"] / c["k_n"]) / b,
             "constants": c, "wall_s": time.time() - t0}
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

@@ -194,7 +194,7 @@ def test_side_by_side_collision_unchanged(monkeypatch):
     """Two parallel xi = 2 spheroids approach side by side: the plane screen is exact here and holds until the
     step before contact, so the contact-start weight needs the recomputed previous gap."""
     system, params = spheroid_gas(n=2, phi=0.01, xi=2.0, e_n=0.7, seed=1)
-    a, b = system.semi_axes[0, 0], system.semi_axes[0, 1]
+    b = system.semi_axes[0, 1]
     box = system.box_length
     pos = np.array([[0.5 * box, 0.5 * box - 1.05 * b, 0.5 * box], [0.5 * box, 0.5 * box + 1.05 * b, 0.5 * box]])
     vel = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])

@@ -70,6 +70,7 @@ def test_each_scene_is_bit_identical_to_the_scene_run_alone(tmp_path, alone):
         assert seen[k][-1].fraction == pytest.approx(1.0) and seen[k][-1].phase == "cooling"
         extra = dict(results[k].extra)
         timings = extra.pop("timings")
+        assert extra.pop("ensemble_setup_s") > 0.0
         assert extra == {"ensemble_size": 3, "ensemble_index": k}
         assert set(timings) == set(TIMINGS) and all(v >= 0.0 for v in timings.values())
         assert timings["loop"] == results[k].wall_s and timings["records"] > 0.0
@@ -114,6 +115,91 @@ def test_unstable_scene_fails_alone(tmp_path, alone):
     assert not outs[1].exists() and not partial_path(outs[1]).exists()
     for k in (0, 2):
         assert isinstance(results[k], RunSummary)
+        assert_same_file(alone[k], outs[k])
+
+
+class _IdleSerial(SerialEnsemble):
+    """A CPU ensemble with the packed CUDA ensemble's ``idle`` hook: the driver then defers the record work of
+    its stops (engine.simulate._Deferred), and this ensemble runs some of it inside its advance, as the CUDA one
+    does while it waits for the GPU."""
+
+    idle = None
+    idle_units = 0
+
+    def advance_each(self, steps):
+        for _ in range(2):
+            if self.idle is not None and self.idle():
+                type(self).idle_units += 1
+        return super().advance_each(steps)
+
+
+def _drive_deferred(scenes):
+    return drive(scenes, lambda systems, contacts: _IdleSerial("cpu", systems, contacts))
+
+
+def test_records_done_during_the_next_steps_write_the_same_files(tmp_path, alone, monkeypatch):
+    """Issue 14 item 4: a stop that only records hands its record to the driver's deferred work, which the
+    ensemble runs while its next steps run; every file is bit for bit the scene's file run alone (snapshot,
+    final and record stops mixed, per-scene schedules), and the progress reports are the same."""
+    _IdleSerial.idle_units = 0
+    deferred = []
+    orig = SceneRun.at_stop
+
+    def spy(self, view, defer=None):
+        deferred.append(defer is not None)
+        return orig(self, view, defer)
+
+    monkeypatch.setattr(SceneRun, "at_stop", spy)
+    seen: dict = {}
+
+    def scenes(tag):
+        return [SceneRun(s, tmp_path / f"{tag}{k}.h5",
+                         progress=lambda p, k=k: seen.setdefault((tag, k), []).append((p.phase, p.step, p.time)))
+                for k, s in enumerate(SCENES)]
+
+    results = _drive_deferred(scenes("d"))
+    assert all(isinstance(r, RunSummary) for r in results), results
+    assert any(deferred) and _IdleSerial.idle_units > 10       # records ran inside the advance calls
+    drive(scenes("p"), lambda systems, contacts: SerialEnsemble("cpu", systems, contacts))   # not deferred
+    for k in range(len(SCENES)):
+        assert_same_file(alone[k], tmp_path / f"d{k}.h5")
+        assert seen[("d", k)] == seen[("p", k)]
+
+
+def test_a_deferred_record_that_fails_ends_its_scene_only(tmp_path, alone, monkeypatch):
+    """The energy check of a deferred record raises: that scene ends with the error and no file (its later
+    records are dropped), the others are unchanged."""
+    orig = SceneRun._record
+
+    def failing(self, step_done, t_sim, obs):
+        if self.output.name == "f1.h5" and step_done >= 10:
+            raise InstabilityError(f"total energy rose at step {step_done}", step=step_done)
+        return orig(self, step_done, t_sim, obs)
+
+    monkeypatch.setattr(SceneRun, "_record", failing)
+    outs = [tmp_path / f"f{k}.h5" for k in range(len(SCENES))]
+    results = _drive_deferred([SceneRun(s, o) for s, o in zip(SCENES, outs)])
+    assert isinstance(results[1], InstabilityError) and "energy rose" in str(results[1])
+    assert not outs[1].exists() and not partial_path(outs[1]).exists()
+    for k in (0, 2):
+        assert isinstance(results[k], RunSummary)
+        assert_same_file(alone[k], outs[k])
+
+
+def test_a_scene_cancelled_with_records_pending_leaves_no_file(tmp_path, alone):
+    outs = [tmp_path / f"k{k}.h5" for k in range(len(SCENES))]
+    calls = []
+
+    def cancel():
+        calls.append(1)
+        return len(calls) > 40
+
+    scenes = [SceneRun(s, o, should_cancel=cancel if k == 1 else None)
+              for k, (s, o) in enumerate(zip(SCENES, outs))]
+    results = _drive_deferred(scenes)
+    assert isinstance(results[1], Cancelled)
+    assert not outs[1].exists() and not partial_path(outs[1]).exists()
+    for k in (0, 2):
         assert_same_file(alone[k], outs[k])
 
 
@@ -184,3 +270,30 @@ def test_checkpointed_ensemble_resumes_per_scene(tmp_path, alone):
                 # the resumed scene rebuilds its neighbour list at the resume point: equal to rounding
                 assert np.allclose(fa[f"observables/{name}/value"][()], fb[f"observables/{name}/value"][()],
                                    rtol=1e-9, atol=0)
+
+
+def test_scenes_set_up_on_threads_write_the_same_files(tmp_path, monkeypatch):
+    """An ensemble of >= 8 small scenes is set up on several threads (engine.ensemble._setup_threads); each
+    scene's start comes from its own Generator, so every file equals the one-thread set-up's, bit for bit."""
+    import engine.ensemble as ens_mod
+
+    specs = [dict(TINY, seed=s, thermalization=0.0, t_end=0.005, snapshots=1,
+                  n_particles=64 + 8 * (s % 3)) for s in range(9)]
+    assert ens_mod._setup_threads([SimulationSpec(**s) for s in specs]) > 1 or ens_mod.os.cpu_count() == 1
+    threaded = [tmp_path / f"t{k}.h5" for k in range(len(specs))]
+    assert all(isinstance(r, RunSummary) for r in run_ensemble(specs, threaded))
+    monkeypatch.setattr(ens_mod, "_setup_threads", lambda specs: 1)
+    single = [tmp_path / f"s{k}.h5" for k in range(len(specs))]
+    assert all(isinstance(r, RunSummary) for r in run_ensemble(specs, single))
+    for a, b in zip(threaded, single):
+        assert_same_file(a, b)
+
+
+def test_which_ensembles_are_set_up_on_threads():
+    import engine.ensemble as ens_mod
+
+    small = [SimulationSpec(**dict(TINY, seed=s)) for s in range(8)]
+    assert ens_mod._setup_threads(small[:7]) == 1                      # too few scenes
+    big = SimulationSpec(n_particles=1 << 20, volume_fraction=0.058, box_length=2.0 * 256 ** (1 / 3))
+    assert ens_mod._setup_threads(small[:7] + [big]) == 1              # a parallel (prange) start
+    assert 1 <= ens_mod._setup_threads(small) <= 8

@@ -71,7 +71,7 @@ def test_one_startup_per_specialisation(monkeypatch):
     made = []
 
     class Recorder:
-        def __init__(self, shape, system, contacts):
+        def __init__(self, shape, system, contacts, driver=None):
             made.append((shape, system.n if system is not None else None, contacts))
 
         def wait(self):
@@ -80,6 +80,7 @@ def test_one_startup_per_specialisation(monkeypatch):
     monkeypatch.setattr(startup, "nvidia_driver", lambda: True)
     monkeypatch.setattr(startup, "_started", {})
     monkeypatch.setattr(startup, "GpuStartup", Recorder)
+    monkeypatch.setattr(startup.DriverStart, "begin", classmethod(lambda cls: None))
     monkeypatch.delenv("NUMBA_ENABLE_CUDASIM", raising=False)
     monkeypatch.delenv(startup.ENV, raising=False)
     a, b = SimulationSpec(seed=1), SimulationSpec(seed=2)
@@ -96,6 +97,47 @@ def test_one_startup_per_specialisation(monkeypatch):
     ps = derive(species)
     startup.begin(species, "auto", _contacts(species, ps), ps)
     assert made[-1][1] is None      # a mixture: the driver and the context only, no stand-in scene
+
+
+class _FakeDriver:
+    """The four driver calls DriverStart makes, recorded; ``fail`` names one that returns an error."""
+
+    def __init__(self, fail=None):
+        self.calls, self.fail = [], fail
+
+    def __getattr__(self, name):
+        if not name.startswith("cu"):
+            raise AttributeError(name)
+
+        def call(*args):
+            self.calls.append(name)
+            return 1 if name == self.fail else 0
+        return call
+
+
+@pytest.mark.parametrize("fail", [None, "cuInit", "cuDevicePrimaryCtxRetain"])
+def test_the_driver_start_holds_the_context_until_released_once(monkeypatch, fail):
+    fake = _FakeDriver(fail)
+    monkeypatch.setattr(startup.ctypes, "CDLL", lambda name: fake)
+    d = startup.DriverStart()
+    d.release()                  # waits for the thread
+    d.release()                  # a second release does nothing
+    if fail is None:
+        assert fake.calls == ["cuInit", "cuDeviceGet", "cuDevicePrimaryCtxRetain", "cuDevicePrimaryCtxRelease_v2"]
+    else:
+        assert "cuDevicePrimaryCtxRelease_v2" not in fake.calls and fake.calls[-1] == fail
+
+
+def test_the_driver_start_without_a_driver_library_does_nothing(monkeypatch):
+    def missing(name):
+        raise OSError(f"{name}: cannot open shared object file")
+
+    monkeypatch.setattr(startup.ctypes, "CDLL", missing)
+    d = startup.DriverStart()
+    d.release()
+    assert not d._held
+    monkeypatch.setattr(startup.DriverStart, "_once", False)
+    assert startup.DriverStart.begin() is not None and startup.DriverStart.begin() is None   # once per process
 
 
 _SIM_CHILD = """
@@ -153,3 +195,16 @@ def test_an_unknown_backend_is_refused_before_the_placement(tmp_path, monkeypatc
     with pytest.raises(BackendUnavailable, match="unknown backend 'gpu'"):
         run(SimulationSpec(), tmp_path / "out.h5", backend="gpu")
     assert placed == [] and list(tmp_path.iterdir()) == []
+
+
+def test_an_early_driver_start_is_released_when_no_startup_took_it(monkeypatch):
+    released = []
+
+    class Early:
+        def release(self):
+            released.append(1)
+
+    monkeypatch.setattr(startup, "_early", Early())
+    startup.release_early()
+    startup.release_early()
+    assert released == [1] and startup._early is None

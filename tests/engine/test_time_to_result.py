@@ -38,7 +38,7 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
     spec = _big()
     p = derive(spec)
     sy = initial_spheres(spec, p)
-    n, box = spec.n_particles, spec.box_length
+    box = spec.box_length
     v, w, q, x = sy.velocity, sy.angular_velocity, sy.orientation, sy.position
     assert np.all((x >= 0.0) & (x < box))
     # no two spheres overlap (periodic box)
@@ -311,3 +311,89 @@ def test_factory_kernels_get_a_cache_key_that_is_stable_across_rebuilds():
         assert not isinstance(ks["helper"]._cache, CUDACache)  # device functions compile into the kernels
         keys.append(ks["kern"]._cache._index_key(("float64[:]",), codegen))
     assert keys[0] == keys[1] and keys[0] != keys[2]
+
+
+def test_cuda_kernel_cache_loads_without_refreshing_the_target():
+    """numba-cuda refreshes every CUDA registry before a disk-cache load (about 0.3 s once per process); the
+    stable-key cache loads without it. No GPU needed: the load itself is replaced."""
+    from engine.backends import cuda_cache
+
+    if cuda_cache.SIM:
+        pytest.skip("the CUDA simulator caches nothing")
+    cache = cuda_cache.cache_kernels(_factory(True), ("test-load", True))["kern"]._cache
+
+    class NoRefresh:
+        def refresh(self):
+            raise AssertionError("the target context was refreshed")
+
+    cache._load_overload = lambda sig, ctx: ("loaded", sig)
+    assert cache.load_overload("sig", NoRefresh()) == ("loaded", "sig")
+
+
+# ---- the CPU kernels' disk-cache loads ---------------------------------------------------------------------
+
+_ENGINE_JIT_MODULES = ("engine.scene", "engine.multigrid", "engine.backends.cpu", "engine.backends.cpu_shared",
+                       "engine.shapes.sphere.kernels",
+                       "engine.shapes.spheroid.kernels", "engine.shapes.spheroid.cpu_backend",
+                       "engine.validation.encounter_dsmc", "engine.validation.sonine")
+
+
+def test_every_cached_engine_kernel_loads_without_the_target_refresh():
+    """Every ``cache=True`` njit function of the engine gets engine.jitcache's fast-load cache; a module that
+    defines one without calling fast_loads(globals()) fails here."""
+    import importlib
+    import pkgutil
+
+    import engine
+    from engine.jitcache import _FastLoadCache
+    from numba.core.caching import FunctionCache
+
+    found = set()
+    for info in pkgutil.walk_packages(engine.__path__, "engine."):
+        if info.name.startswith("engine.validation.") and info.name not in _ENGINE_JIT_MODULES:
+            continue   # scripts with heavy imports; the jit ones are listed
+        mod = importlib.import_module(info.name)
+        for name, obj in vars(mod).items():
+            cache = getattr(obj, "_cache", None)
+            if isinstance(cache, FunctionCache) and getattr(obj, "__module__", None) == info.name:
+                assert isinstance(cache, _FastLoadCache), f"{info.name}.{name}: call fast_loads(globals())"
+                found.add(info.name)
+    assert found == set(_ENGINE_JIT_MODULES)
+
+
+_FRESH_JOB = """
+import sys
+from engine.simulate import run
+from engine.spec import SimulationSpec
+run(SimulationSpec(**{spec!r}), sys.argv[1])
+print(sorted(m for m in ("numba.np.arraymath", "scipy.linalg") if m in sys.modules))
+"""
+
+
+def test_a_fresh_process_loads_the_cpu_kernels_without_numbas_registries_and_writes_the_same_file(tmp_path):
+    """A fresh process whose kernels are on disk runs a CPU job without installing numba's lowering registries
+    (nor scipy.linalg, numba's BLAS check): the refresh before every cache load is skipped. Its file equals this
+    process's, dataset for dataset (same spec, CPU: bit for bit)."""
+    import subprocess
+    import sys
+
+    from engine.simulate import run
+
+    d = dict(n_particles=256, t_end=0.002, thermalization=0, snapshots=2, backend="cpu", seed=3)
+    run(SimulationSpec(**d), tmp_path / "here.h5")       # compiles or loads, and leaves the kernels on disk
+    p = subprocess.run([sys.executable, "-c", _FRESH_JOB.format(spec=d), str(tmp_path / "fresh.h5")],
+                       capture_output=True, text=True, timeout=600, cwd=str(tmp_path),
+                       env={**__import__("os").environ, "PYTHONPATH": str(__import__("pathlib").Path(__file__)
+                                                                             .resolve().parents[2])})
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert p.stdout.strip().splitlines()[-1] == "[]", p.stdout
+    with h5py.File(tmp_path / "here.h5") as a, h5py.File(tmp_path / "fresh.h5") as b:
+        names = []
+        a.visit(lambda n: names.append(n) if isinstance(a[n], h5py.Dataset) else None)
+        compared = 0
+        for n in names:
+            x = a[n][()]
+            if isinstance(x, np.ndarray) and x.dtype.kind in "fiu":
+                assert np.array_equal(x, b[n][()], equal_nan=True), n
+                compared += 1
+        assert compared > 10

@@ -40,7 +40,7 @@ import math
 import numba
 from numba import prange
 
-import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.physics.contact import (contact_begins, contact_elastic_energy, contact_end_fraction, min_image,
                                     sphere_contact, sphere_contact_end, sphere_separation)
@@ -243,3 +243,6 @@ def observe(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, inv_box,
         e_spring += es
         worst = max(worst, wi)
     return e_tr, e_rot, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.backends.cpu import CpuLoop
@@ -172,3 +172,6 @@ class CpuEllipsoidBackend(CpuLoop):
         """(pairs (M,2), slots (M,5)) of the list slots in contact (overlap, dashpot force in 3, 4)."""
         return collect_springs(self.pos, self.bound, self.nbr, self.nn, self.hist, self.box_c,
                                self.inv_box, self.half)
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

@@ -26,7 +26,7 @@ import math
 
 import numba
 
-import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
@@ -249,3 +249,6 @@ def observe(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
                     e_spring += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, k_n_val, 0.0, 0.5)
                 worst = max(worst, d)
     return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
