@@ -1044,7 +1044,6 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
 
     es = sc["elastic_smooth"]["spec"]
     er = sc["elastic_rough"]
-    ml = er.get("model_loss", {})
     c = size["collisions"]
     apart = all(r["pairs_apart"] for k in ("elastic_smooth", "elastic_rough") for r in sc[k]["rows"])
     L += ["", "## Elastic gas: energy error", "",

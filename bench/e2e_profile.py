@@ -1,12 +1,13 @@
 """Where a fresh process's 2M-sphere job spends its time outside the loop (issue 14): cProfile of engine.run.
 
 Runs, each in a fresh Python process: two plain jobs (the first fills the kernel caches), two probes of the
-one-off start-up stage by stage (numba import, numba.cuda import, driver check, context creation, scipy.linalg
-import, numba's CPU target registries, the GPU start-up thread's stand-in scene: CUDA registries and kernel
+one-off start-up stage by stage (numba import, numba.cuda import, driver check, context creation, the first
+cached CPU kernel's load (numba's CPU target; engine/jitcache.py's fast loads skip its registries and scipy.linalg,
+which the probe reports as imported or not), the GPU start-up thread's stand-in scene: CUDA registries and kernel
 cache loads),
 one job under cProfile (written to $OUT/profile.txt and $OUT/run.prof, cumulative and internal time) and a
-last plain job (their JSON lines also go to $OUT/runs.jsonl). The job is bench/e2e.py's spheres-2M-f64 case
-with PSTEPS steps (default 200). On the GPU machine:
+last plain job (their JSON lines also go to $OUT/runs.jsonl). The job is bench/e2e.py's case PCASE (default
+spheres-2M-f64; a batch case runs through run_ensemble) with PSTEPS steps (default 200). On the GPU machine:
 
     OUT=/tmp/prof python3 bench/e2e_profile.py          (MODES="probe probe" for the probes alone)
 
@@ -25,6 +26,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 OUT = os.environ.get("OUT", "/tmp")
 STEPS = int(os.environ.get("PSTEPS", "200"))
+#: the bench/e2e.py case (a one-scene case through engine.run, or a batch case through engine.run_ensemble)
+CASE = os.environ.get("PCASE", "spheres-2M-f64")
 
 
 def child(mode: str) -> None:
@@ -34,9 +37,11 @@ def child(mode: str) -> None:
     import engine.simulate as simulate
 
     t1 = time.perf_counter()
-    d = case_specs("spheres-2M-f64", False)["specs"][0]
+    info = case_specs(CASE, False)
+    d = info["specs"][0]
     d["_steps"] = STEPS
     spec = to_spec(d)
+    batch = [to_spec(dict(x, _steps=STEPS)) for x in info["specs"]] if info["path"] == "ensemble" else None
     if mode == "probe":
         # the one-off start-up, stage by stage, in this order (each stage's imports included)
         import numba  # noqa: F401  (its import time is what is measured)
@@ -49,12 +54,9 @@ def child(mode: str) -> None:
         t.append(time.perf_counter())
         cuda.current_context()
         t.append(time.perf_counter())
-        import scipy.linalg  # noqa: F401  (numba's BLAS check imports it with the first target registries)
-
-        t.append(time.perf_counter())
         import engine.scene as scene
 
-        scene._stream_key(1, 1)    # the first cached njit call: numba's CPU target registries
+        scene._stream_key(1, 1)    # the first cached njit call: numba's CPU target
         t.append(time.perf_counter())
         from engine.params import derive
         from engine.shapes import host
@@ -68,8 +70,9 @@ def child(mode: str) -> None:
         t.append(time.perf_counter())
         d = [b - a for a, b in zip(t, t[1:])]
         print(json.dumps(dict(mode=mode, imports=t1 - t0, numba=t[0] - t1, numba_cuda_import=d[0],
-                              is_available=d[1], context=d[2], scipy_linalg=d[3], cpu_registries=d[4],
-                              kernels=d[5], startup_error=s.error)))
+                              is_available=d[1], context=d[2], cpu_first_load=d[3], kernels=d[4],
+                              startup_error=s.error,
+                              scipy_imported="scipy.linalg" in sys.modules)))
         return
     prof = None
     if mode == "profile":
@@ -78,7 +81,12 @@ def child(mode: str) -> None:
         prof = cProfile.Profile()
         prof.enable()
     ta = time.perf_counter()
-    summary = simulate.run(spec, f"/tmp/e2e_profile_{mode}.h5")
+    if batch is None:
+        summary = simulate.run(spec, f"/tmp/e2e_profile_{mode}.h5")
+    else:
+        from engine.ensemble import run_ensemble
+
+        summary = run_ensemble(batch, [f"/tmp/e2e_profile_{mode}_{k}.h5" for k in range(len(batch))])[-1]
     tb = time.perf_counter()
     if prof is not None:
         import io
