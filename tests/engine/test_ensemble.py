@@ -133,6 +133,19 @@ class _IdleSerial(SerialEnsemble):
         return super().advance_each(steps)
 
 
+def spy_deferred_stops(monkeypatch) -> list:
+    """Record, per call of SceneRun.at_stop from now on, whether the driver offered to defer its records."""
+    seen = []
+    orig = SceneRun.at_stop
+
+    def spy(self, view, defer=None):
+        seen.append(defer is not None)
+        return orig(self, view, defer)
+
+    monkeypatch.setattr(SceneRun, "at_stop", spy)
+    return seen
+
+
 def _drive_deferred(scenes):
     return drive(scenes, lambda systems, contacts: _IdleSerial("cpu", systems, contacts))
 
@@ -142,14 +155,7 @@ def test_records_done_during_the_next_steps_write_the_same_files(tmp_path, alone
     ensemble runs while its next steps run; every file is bit for bit the scene's file run alone (snapshot,
     final and record stops mixed, per-scene schedules), and the progress reports are the same."""
     _IdleSerial.idle_units = 0
-    deferred = []
-    orig = SceneRun.at_stop
-
-    def spy(self, view, defer=None):
-        deferred.append(defer is not None)
-        return orig(self, view, defer)
-
-    monkeypatch.setattr(SceneRun, "at_stop", spy)
+    deferred = spy_deferred_stops(monkeypatch)
     seen: dict = {}
 
     def scenes(tag):

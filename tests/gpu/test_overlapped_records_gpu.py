@@ -28,17 +28,10 @@ def _datasets(path):
 def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_path, monkeypatch, kw):
     from engine.backends import cuda as cuda_mod
     from engine.ensemble import run_ensemble
-    from engine.simulate import SceneRun
+    from tests.engine.test_ensemble import spy_deferred_stops
 
     specs = [dict(kw, seed=s, backend="cuda") for s in range(12)]
-    deferred = []
-    orig = SceneRun.at_stop
-
-    def spy(self, view, defer=None):
-        deferred.append(defer is not None)
-        return orig(self, view, defer)
-
-    monkeypatch.setattr(SceneRun, "at_stop", spy)
+    deferred = spy_deferred_stops(monkeypatch)
     in_waits = []
     orig_wait = cuda_mod.CudaEnsemble._wait_stream
 
