@@ -306,12 +306,7 @@ class CudaEnsemble:
 
     def set_contact(self, k: int, contact: ContactParams) -> None:
         """Switch scene k's contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
-        if contact.precision != self.contact[k].precision:
-            raise ValueError("the precision of a scene cannot change inside an ensemble")
-        self._sync_active()
-        self._set_scene_contact(k, contact)
-        self._upload_params()
-        self._specialise()
+        self.set_contacts({k: contact})
 
     def set_contacts(self, contacts: dict) -> None:
         """:meth:`set_contact` for several scenes ({scene: contact}) with one upload of the constant tables (the
@@ -751,7 +746,7 @@ class CudaEnsemble:
         """``ev.synchronize()``, running the driver's idle work while the GPU has not reached ``ev``."""
         idle = self.idle
         if idle is not None and not SIM:
-            while not ev.query() and idle():
+            while idle() and not ev.query():    # no driver call when there is no work
                 pass
         ev.synchronize()
 
@@ -807,8 +802,8 @@ class CudaEnsemble:
     def observe(self) -> list:
         """Per scene: the observables of :meth:`CudaBackend.observe` (:meth:`_observables`), None for an
         inactive scene."""
-        a = self._observe_sums()
-        return [self._observables(s, a[s].tolist()) if self.active[s] else None for s in range(self.n_scenes)]
+        f = self.observe_later()
+        return [f(s) if self.active[s] else None for s in range(self.n_scenes)]
 
     def observe_later(self) -> Callable[[int], dict]:
         """:meth:`observe` with the dicts built later: the sums are read (and copied) now; returns f(s), scene s's

@@ -21,36 +21,38 @@ def _datasets(path):
     return out
 
 
+@pytest.mark.parametrize("multistep", ["1", "0"])   # the waits of the many-steps kernel and of the per-phase loop
 @pytest.mark.parametrize("kw", [
     dict(n_particles=2048, volume_fraction=0.1, e_n=0.8, e_t=0.5, t_end=0.02, snapshots=2, thermalization=1),
     dict(shape="ellipsoid", elongation=2.0, n_particles=1024, volume_fraction=0.1, e_n=0.9, t_end=0.01,
          snapshots=2, thermalization=0)])
-def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_path, monkeypatch, kw):
+def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_path, monkeypatch, kw, multistep):
+    from engine import simulate
     from engine.backends import cuda as cuda_mod
     from engine.ensemble import run_ensemble
     from tests.engine.test_ensemble import spy_deferred_stops
 
+    monkeypatch.setenv("DEMQ_CUDA_MULTISTEP", multistep)
     specs = [dict(kw, seed=s, backend="cuda") for s in range(12)]
     deferred = spy_deferred_stops(monkeypatch)
-    in_waits = []
-    orig_wait = cuda_mod.CudaEnsemble._wait_stream
+    in_advance, in_waits = [False], []
+    orig_advance, orig_run_one = cuda_mod.CudaEnsemble.advance, simulate._Deferred.run_one
 
-    def wait(self):
-        if self.idle is not None:
-            idle = self.idle
+    def advance(self, nsteps):
+        in_advance[0] = True
+        try:
+            return orig_advance(self, nsteps)
+        finally:
+            in_advance[0] = False
 
-            def counted():
-                ran = idle()
-                in_waits.append(ran)
-                return ran
-            self.idle = counted
-            try:
-                return orig_wait(self)
-            finally:
-                self.idle = idle
-        return orig_wait(self)
+    def run_one(self):
+        ran = orig_run_one(self)
+        if ran and in_advance[0]:
+            in_waits.append(1)
+        return ran
 
-    monkeypatch.setattr(cuda_mod.CudaEnsemble, "_wait_stream", wait)
+    monkeypatch.setattr(cuda_mod.CudaEnsemble, "advance", advance)
+    monkeypatch.setattr(simulate._Deferred, "run_one", run_one)
     files = {}
     for on in ("0", "1"):
         monkeypatch.setenv("DEMQ_OVERLAP_RECORDS", on)
