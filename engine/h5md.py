@@ -204,12 +204,20 @@ class H5MDWriter:
 
     @staticmethod
     def _append(g: h5py.Group, step: int, time: float, value) -> None:
+        """Append one frame. A frame is one chunk: when the array is that chunk's bytes already (C order, the
+        dataset's type, no filter) it is written as the chunk (H5Dwrite_chunk), which skips HDF5's copy of a chunk
+        larger than its chunk cache: 218 MB took 0.07 s instead of 0.22-0.27 s on the H200 host (issue 14)."""
         k = g["step"].shape[0]
         for key in ("step", "time", "value"):
             g[key].resize(k + 1, axis=0)
         g["step"][k] = step
         g["time"][k] = time
-        g["value"][k] = value
+        v, a = g["value"], np.asarray(value)
+        if (v.chunks == (1,) + a.shape and a.dtype == v.dtype and a.flags.c_contiguous and a.size
+                and v.compression is None and not v.shuffle and not v.fletcher32 and v.scaleoffset is None):
+            v.id.write_direct_chunk((k,) + (0,) * a.ndim, a)
+        else:
+            v[k] = a
 
     def observables(self, step: int, time: float, values: dict) -> None:
         """Append one record of scalar observables (kept in memory, ``values`` itself: do not modify it;
@@ -376,7 +384,7 @@ class H5MDWriter:
             par.attrs[key] = _attr(value)
         frames = "position" in self.f["particles/all"]
         self.f.close()
-        os.replace(self.tmp, self.path)
+        replace_file(self.tmp, self.path)
         if frames:  # ParaView/VisIt sidecar <stem>.xmf (engine/xdmf.py; a result without frames has none)
             write_xdmf(self.path)
         return self.path
@@ -393,6 +401,21 @@ class H5MDWriter:
         finally:
             if self.tmp.exists():
                 self.tmp.unlink()
+
+
+def replace_file(src, dst) -> None:
+    """os.replace(src, dst), with the file it replaces freed on a thread: the blocks and cached pages of an
+    earlier result are freed when its last descriptor closes, which for a 2M-sphere file with two frames (436 MB)
+    took 0.1-0.2 s on the H200 host; the new file is in place at once either way."""
+    try:
+        old = os.open(dst, os.O_RDONLY)
+    except OSError:   # no earlier file (or not one to open): nothing to free
+        old = None
+    try:
+        os.replace(src, dst)
+    finally:
+        if old is not None:
+            threading.Thread(target=os.close, args=(old,), name="demq-free-old", daemon=True).start()
 
 
 def writer_process_ready() -> int:
@@ -415,8 +438,28 @@ def write_whole_file(path, kwargs: dict, blocks: list, frames: list, run_info: d
         raise
 
 
+#: arrays of more elements than this are checked for finite values in pieces, on several threads
+_FINITE_SPLIT = 1 << 21
+_finite_pool = None
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    """np.isfinite(a).all(), a large array in pieces on up to 8 threads (NumPy releases the GIL in them): one
+    2M-particle frame took 0.03-0.06 s on one thread, on the path from the last step to the closed file."""
+    global _finite_pool
+    flat = a.reshape(-1)
+    if flat.size <= _FINITE_SPLIT:
+        return bool(np.isfinite(flat).all())
+    with _io_lock:
+        if _finite_pool is None:
+            _finite_pool = ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1),
+                                              thread_name_prefix="demq-finite")
+    parts = np.array_split(flat, -(-flat.size // _FINITE_SPLIT))
+    return all(_finite_pool.map(lambda p: bool(np.isfinite(p).all()), parts))
+
+
 def _check_finite(name: str, a: np.ndarray, step: int, time: float) -> None:
-    if not np.all(np.isfinite(a)):
+    if not _all_finite(np.asarray(a)):
         raise InstabilityError(f"{name} is not finite at step {step} (t = {time:g} s): the run "
                                f"blew up; nothing non-finite is written", step=step)
 

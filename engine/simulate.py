@@ -42,7 +42,7 @@ import numpy as np
 from engine.backends.base import ContactParams
 from engine.backends.ensemble import SerialEnsemble, check_backend_name, ensemble_scene_builds, resolve_backend
 from engine.errors import Cancelled, InstabilityError, SpecError
-from engine.h5md import H5MDWriter, partial_path, writer_process_ready
+from engine.h5md import H5MDWriter, partial_path, replace_file, writer_process_ready
 from engine.params import Q_SPHERE, Derived, derive
 from engine.physics.sonine import sonine_observables
 from engine.precision import output_dtype
@@ -183,8 +183,8 @@ class _Checkpointer:
         tmp = self.dir / "state.tmp.npz"
         np.savez(tmp, phase=phase, step_done=step_done, counts=json.dumps(writer.frame_counts()),
                  pairs=pairs, springs=springs, **st, **extra)
-        os.replace(tmp_h5, self.dir / "partial.h5")
-        os.replace(tmp, self.dir / "state.npz")
+        replace_file(tmp_h5, self.dir / "partial.h5")
+        replace_file(tmp, self.dir / "state.npz")
         self.last = time.monotonic()
 
     def clear(self) -> None:
@@ -378,15 +378,11 @@ class SceneRun:
         t1 = time.perf_counter()
         tm["records"] += t1 - t0
         if step_done in self.snaps:
-            # two alternating buffer slots (pinned on CUDA), shared by all scenes of the ensemble (view.slots):
+            # two buffer slots (host memory reused on CUDA), shared by all scenes of the ensemble (view.slots):
             # the I/O thread writes one frame while the run goes on; a slot is reused, by any scene, only after
             # its previous frame is in the file (waited for, not raised: a failed write is its writer's error)
-            slots = view.slots
-            slot = slots.frames % 2
-            if slots.busy[slot] is not None:
-                futures_wait([slots.busy[slot]])
-            slots.busy[slot] = writer.snapshot(step_done, t_sim, view.state(reuse=2 + slot))
-            slots.frames += 1
+            slot = view.slots.take()
+            view.slots.busy[slot] = writer.snapshot(step_done, t_sim, view.state(reuse=2 + slot))
             tm["snapshots"] += time.perf_counter() - t1
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
         if ck_due:
@@ -505,8 +501,18 @@ class _FrameSlots:
     write still using each (a future, or None)."""
 
     def __init__(self):
-        self.frames = 0
         self.busy = [None, None]
+        self.last = 1
+
+    def take(self) -> int:
+        """A slot for the next frame, once its earlier frame is written: the first free one (frames far apart
+        all use one slot, so one set of buffers is allocated), else the one used less recently, waited for."""
+        free = [k for k in (0, 1) if self.busy[k] is None or self.busy[k].done()]
+        slot = free[0] if free else 1 - self.last
+        if self.busy[slot] is not None:
+            futures_wait([self.busy[slot]])
+        self.last = slot
+        return slot
 
 
 class _SceneView:
@@ -528,8 +534,12 @@ class _SceneView:
         return self.cache["all"][self.i]
 
     def observe_later(self) -> Callable[[], dict]:
-        """A function giving :meth:`observe`'s dict: the values are read now (one read per round, shared), the
-        dict is built when it is called (where the ensemble offers ``observe_later``)."""
+        """A function giving :meth:`observe`'s dict: the values are queued now (one observation per round, shared
+        by the round's scenes) and read and built when it is called, where the ensemble offers
+        ``observe_scene_later`` or ``observe_later`` (CUDA); else read now."""
+        one = getattr(self.ens, "observe_scene_later", None)
+        if one is not None:
+            return one(self.i)
         later = getattr(self.ens, "observe_later", None)
         if later is None or getattr(self.ens, "observe_scene", None) is not None:
             obs = self.observe()

@@ -35,12 +35,14 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import time
 from types import SimpleNamespace
 from typing import Callable, Optional
 
 import numpy as np
 from numba import cuda
+from numba.cuda.cudadrv.driver import device_memset
 
 from engine.backends.base import ContactParams, SphereSystem, cell_grid
 from engine.backends import cuda_kernels as K
@@ -55,6 +57,10 @@ from engine.precision import check_shape, position_dtype, state_dtype
 from engine.shapes.sphere import device as SC
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+#: a snapshot buffer slot (all state arrays of the largest scene) larger than this starts in pageable memory
+PINNED_SLOT_BYTES = 32 << 20
+#: ... and is pinned (on a thread) once the ensemble has taken this many large frames
+PIN_AFTER_FRAMES = 3
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
 #: measured on an H200 (bench/gpu_ensemble.py): 10x faster at 4096, equal at 2^20, 25 % slower at 2^22
 #: (a grid of co-resident blocks loops over many particles per thread); DEMQ_CUDA_MULTISTEP=0/1 forces it
@@ -136,8 +142,8 @@ class CudaEnsemble:
         self.scratch_l = cuda.device_array(n if self._permuted_i64 else 1, np.int64, stream=self.stream)
         self.order = cuda.device_array(n, np.int32, stream=self.stream)
         self.inv_old = cuda.device_array(n, np.int32, stream=self.stream)
-        self.c_off = cuda.to_device(np.zeros(n, np.int32), stream=self.stream)
-        self.c_cnt = cuda.to_device(np.zeros(n, np.int32), stream=self.stream)
+        self.c_off = self._zeros(n, np.int32)
+        self.c_cnt = self._zeros(n, np.int32)
         self._alloc_store(max(1024, n // 8))
         self.status = cuda.to_device(self._fresh_status(), stream=self.stream)
         self.status_h = [cuda.pinned_array(K.status_len(nk), np.float64) for _ in range(2)]
@@ -171,13 +177,33 @@ class CudaEnsemble:
     # ---- set-up -----------------------------------------------------------------------------------
 
     def _up(self, a, rows, dtype=None):
-        """Host (N, rows) float64 -> device (rows, N) in the working precision (or ``dtype``)."""
-        a = np.ascontiguousarray(np.asarray(a, dtype or self.dtype).reshape(self.n, rows).T)
-        return cuda.to_device(a, stream=self.stream)
+        """Host (N, rows) -> device (rows, N) in the working precision (or ``dtype``). The host array goes up as it
+        is (float32 and float64; anything else as float64) and the device transposes and casts it
+        (K.scatter_rows, the same round-to-nearest cast as NumPy's): a host transposition of a large start cost
+        more than the upload itself (issue 14, set-up)."""
+        a = np.asarray(a)
+        if a.dtype not in (np.float32, np.float64):
+            a = a.astype(np.float64)
+        a = np.ascontiguousarray(a.reshape(self.n, rows))
+        dst = cuda.device_array((rows, self.n), dtype or self.dtype, stream=self.stream)
+        if self.n:
+            K.scatter_rows[self._grid(self.n)](cuda.to_device(a, stream=self.stream), 0, dst)
+        return dst
+
+    def _zeros(self, shape, dtype):
+        """A device array of zeros: a memset on the stream, no host array to copy."""
+        a = cuda.device_array(shape, dtype, stream=self.stream)
+        if SIM:
+            a.copy_to_device(np.zeros(shape, dtype), stream=self.stream)
+        elif a.size:
+            device_memset(a, 0, a.nbytes, stream=self.stream)
+        return a
 
     @staticmethod
     def _cat(systems, attr):
-        return np.concatenate([np.asarray(getattr(s, attr), np.float64).reshape(s.n, -1) for s in systems])
+        """The scenes' (n_k, rows) float64 arrays of ``attr`` one after another (one scene's: not copied)."""
+        parts = [np.asarray(getattr(s, attr), np.float64).reshape(s.n, -1) for s in systems]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def _upload_particles(self, systems) -> None:
         """Sphere state and constants on the device (uniform scenes keep their constants in spd)."""
@@ -195,13 +221,13 @@ class CudaEnsemble:
         self.vel = up(cat("velocity"), 3)
         self.omega = up(cat("angular_velocity"), 3)
         self.quat = up(cat("orientation"), 4)
-        self.f_cur = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
+        self.f_cur = self._zeros((3, n), dt_)
         self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
-        self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=self.stream)
+        self.torque = self._zeros((3, n), dt_)
         # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
-        self.q_last = cuda.to_device(np.zeros(n, np.int64), stream=self.stream)
+        self.q_last = self._zeros(n, np.int64)
         # the contacts each sphere has begun (collision counter, issue 18; shapes/sphere/device.py pair)
-        self.begun = cuda.to_device(np.zeros(n, np.int64), stream=self.stream)
+        self.begun = self._zeros(n, np.int64)
         if self.uniform:
             dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
             self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
@@ -263,7 +289,7 @@ class CudaEnsemble:
         s = self.stream
         self.max_nb = max_nb
         self.nbr = cuda.device_array((max_nb, self.n), np.int32, stream=s)
-        self.nn = cuda.to_device(np.zeros(self.n, np.int32), stream=s)
+        self.nn = self._zeros(self.n, np.int32)
         self.hist = cuda.device_array((self.hist_words, max_nb, self.n), self.dtype, stream=s)
 
     def _alloc_store(self, cap: int) -> None:
@@ -782,22 +808,35 @@ class CudaEnsemble:
                 self.nn, self.hist, self.spd, self.spf, self.spi, self._step_arrays()[3])
 
     def _observe_sums(self) -> np.ndarray:
-        """The observe kernel's per-scene sums (K, _NOBS) on the host (issue 14): one zeroing copy, one launch
-        with one block row per scene, one copy of K x _NOBS float64 into pinned memory, one sync. The host
-        buffer is reused: read it before the next call."""
+        """The observe kernel's per-scene sums (K, _NOBS) on the host, now (a copy)."""
+        return self._observe_async().settle()
+
+    def _observe_async(self) -> "_LateSums":
+        """Queue the observe kernel's per-scene sums (K, _NOBS) on the stream (issue 14): one zeroing copy, one
+        launch with one block row per scene, one copy of K x _NOBS float64 into a pinned result slot, an event.
+        Nothing waits: the sums are those of the state at this point of the stream, whatever the GPU does next,
+        and :meth:`_LateSums.settle` reads them. Two result slots; reusing one settles its earlier sums first."""
         s, nk = self.stream, self.n_scenes
         if getattr(self, "_acc", None) is None:
             self._acc_zero = cuda.pinned_array((nk, self._NOBS), np.float64)
             self._acc_zero[:] = 0.0
-            self._acc_h = cuda.pinned_array((nk, self._NOBS), np.float64)
             self._acc = cuda.device_array((nk, self._NOBS), np.float64, stream=s)
+            self._late = [None, None]
+            self._late_h = [cuda.pinned_array((nk, self._NOBS), np.float64) for _ in range(2)]
+            self._late_ev = [(cuda.event() if SIM else cuda.event(timing=False)) for _ in range(2)]
+            self._late_next = 0
+        k = self._late_next
+        self._late_next = 1 - k
+        if self._late[k] is not None:
+            self._late[k].settle()
         self._acc.copy_to_device(self._acc_zero, stream=s)
         per_scene = (int(self.sizes.max()) + self.tpb - 1) // self.tpb
         bx = max(1, min(per_scene, max(1, self.max_blocks // nk)))
         self.k["observe"][(bx, nk), self.tpb, s](*self._observe_args(), self._acc)
-        self._acc.copy_to_host(self._acc_h, stream=s)
-        s.synchronize()
-        return self._acc_h
+        self._acc.copy_to_host(self._late_h[k], stream=s)
+        self._late_ev[k].record(s)
+        self._late[k] = late = _LateSums(self._late_h[k], self._late_ev[k])
+        return late
 
     def observe(self) -> list:
         """Per scene: the observables of :meth:`CudaBackend.observe` (:meth:`_observables`), None for an
@@ -806,10 +845,11 @@ class CudaEnsemble:
         return [f(s) if self.active[s] else None for s in range(self.n_scenes)]
 
     def observe_later(self) -> Callable[[int], dict]:
-        """:meth:`observe` with the dicts built later: the sums are read (and copied) now; returns f(s), scene s's
-        observables (engine/simulate.py builds them in the GPU's next steps)."""
-        a = self._observe_sums().copy()
-        return lambda s: self._observables(s, a[s].tolist())
+        """:meth:`observe` read later: the sums are queued now (:meth:`_observe_async`); f(s) waits for them if they
+        have not landed yet and builds scene s's observables (engine/simulate.py calls it in the GPU's next
+        steps)."""
+        late = self._observe_async()
+        return lambda s: self._observables(s, late.settle()[s].tolist())
 
     def _observables(self, s: int, r: list) -> dict:
         """Scene s's observables from its observe sums r (engine/shapes/sphere/device.py: observe_one)."""
@@ -821,15 +861,15 @@ class CudaEnsemble:
 
     #: state() keys and the device arrays (3 or 4 rows, particle index fastest) they are copied from
     _STATE = (("position", "pos"), ("velocity", "vel"), ("angular_velocity", "omega"), ("orientation", "quat"))
-    #: state(k, reuse=...) hands out reused pinned buffers (engine/simulate.py alternates two slots for snapshot
-    #: frames and reuses a slot only after the I/O thread has written its frame)
+    #: state(k, reuse=...) hands out reused host buffers (engine/simulate.py keeps two slots for snapshot frames
+    #: and reuses a slot only after the I/O thread has written its frame)
     reuses_state_buffers = True
 
     def _scene_rows(self, k: int, reuse=False) -> dict:
         """Scene k's state arrays (n_k, rows) in particle-id order, keyed as in ``_STATE`` (issue 14): per array
         a kernel gathers the scene's slots into id order on the device, into one reused staging buffer, and
-        one copy moves exactly those n_k rows into a reused pinned host buffer; one sync for all.
-        ``reuse``: False returns copies; True or a buffer slot number returns views of that slot's pinned
+        one copy moves exactly those n_k rows into a reused host buffer (:meth:`_host_slot`); one sync for all.
+        ``reuse``: False returns copies; True or a buffer slot number returns views of that slot's host
         buffers (slot 0 for True), valid until the next call with the same slot."""
         s = self.stream
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
@@ -839,15 +879,12 @@ class CudaEnsemble:
                            for t in {self.dtype, self.pos_dtype}}
             self._stage_h = {}
         slot = 0 if reuse is False or reuse is True else int(reuse)
-        if slot not in self._stage_h:
-            self._stage_h[slot] = {key: cuda.pinned_array((nmax, getattr(self, name).shape[0]),
-                                                          getattr(self, name).dtype)
-                                   for key, name in self._STATE}
+        bufs = self._host_slot(slot, nmax)
         out = {}
         for key, name in self._STATE:
             src = getattr(self, name)
             rows = src.shape[0]
-            host = self._stage_h[slot][key][:n_k]
+            host = bufs[key][:n_k]
             if n_k:
                 dst = self._stage[src.dtype.str][:n_k * rows].reshape(n_k, rows)
                 K.gather_scene[self._grid(n_k)](src, self.ids, a0, n_k, dst)
@@ -855,6 +892,38 @@ class CudaEnsemble:
             out[key] = host
         s.synchronize()
         return out if reuse is not False else {key: a.copy() for key, a in out.items()}
+
+    def _host_slot(self, slot: int, nmax: int) -> dict:
+        """The host buffers {key: (nmax, rows)} of a state buffer slot (:meth:`_scene_rows`).
+
+        Pinned at once when small (an ensemble of small scenes); larger ones start as plain (pageable) memory,
+        since allocating and pinning them costs more than a pageable copy of a few frames (218 MB, one 2M-sphere
+        frame, on an H200 host: 0.07-0.28 s to pin, 0.03-0.06 s to copy, 0.004 s to copy pinned). Once the
+        ensemble has taken PIN_AFTER_FRAMES large frames, a thread pins new buffers for the slots used so far while
+        the run goes on, and each changes over when it is next used (the caller's earlier frame from it is in the
+        file by then)."""
+        shapes = {key: ((nmax, getattr(self, name).shape[0]), getattr(self, name).dtype) for key, name in self._STATE}
+        big = sum(int(np.prod(sh)) * np.dtype(t).itemsize for sh, t in shapes.values()) > PINNED_SLOT_BYTES
+        pinned = getattr(self, "_pinned_slots", None)
+        if big and pinned is not None and pinned.get(slot) is not None:
+            self._stage_h[slot] = pinned.pop(slot)
+        elif slot not in self._stage_h:
+            alloc = np.empty if big else cuda.pinned_array
+            self._stage_h[slot] = {key: alloc(sh, t) for key, (sh, t) in shapes.items()}
+        self._frames_taken = getattr(self, "_frames_taken", 0) + 1
+        if big and pinned is None and self._frames_taken >= PIN_AFTER_FRAMES:
+            self._pinned_slots = pinned = {}
+            slots = sorted(self._stage_h)
+
+            def pin() -> None:
+                try:
+                    for k in slots:
+                        pinned[k] = {key: cuda.pinned_array(sh, t) for key, (sh, t) in shapes.items()}
+                except Exception:  # noqa: BLE001  (no pinned memory to be had: the pageable buffers stay)
+                    pass
+
+            threading.Thread(target=pin, name="demq-pin-frames", daemon=True).start()
+        return self._stage_h[slot]
 
     def state(self, k: int, reuse=False) -> dict:
         """Host copies of scene k's state arrays in particle-id order (``reuse``: see :meth:`_scene_rows`)."""
@@ -887,6 +956,22 @@ class CudaEnsemble:
                    and not (name == "f_nxt" and v is self.f_cur))
 
 
+class _LateSums:
+    """Observe sums on their way to a pinned host slot (:meth:`CudaEnsemble._observe_async`)."""
+
+    __slots__ = ("buf", "ev", "a")
+
+    def __init__(self, buf, ev):
+        self.buf, self.ev, self.a = buf, ev, None
+
+    def settle(self) -> np.ndarray:
+        """The sums (K, NOBS), once they have landed (a copy: the slot is reused)."""
+        if self.a is None:
+            self.ev.synchronize()
+            self.a = self.buf.copy()
+        return self.a
+
+
 class CudaBackend:
     """One scene on the GPU (K = 1 of :class:`CudaEnsemble`), with the CPU backend's interface."""
 
@@ -909,8 +994,8 @@ class CudaBackend:
         return getattr(self.__dict__["e"], attr)
 
     def __setattr__(self, attr, value):
-        if attr == "profile":
-            self.e.profile = value
+        if attr in ("profile", "idle"):   # the ensemble's phase timing and its hook for the driver's waits
+            setattr(self.e, attr, value)
         else:
             object.__setattr__(self, attr, value)
 
@@ -941,6 +1026,11 @@ class CudaBackend:
 
     #: state(reuse=...) hands out reused pinned buffers (CudaEnsemble._scene_rows)
     reuses_state_buffers = True
+
+    def observe_later(self) -> Callable[[], dict]:
+        """:meth:`observe`, read when the returned function is called (:meth:`CudaEnsemble.observe_later`)."""
+        f = self.e.observe_later()
+        return lambda: f(0)
 
     def state(self, reuse=False) -> dict:
         return self.e.state(0, reuse)

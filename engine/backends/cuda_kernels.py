@@ -362,7 +362,17 @@ def gather_scene(src, ids, a0, n_k, dst):
             dst[o, r] = src[r, i]
 
 
-cache_kernels({"gather_scene": gather_scene}, ("gather",))
+@cuda.jit
+def scatter_rows(src, a0, dst):
+    """dst[r, a0 + i] = src[i, r], cast to dst's type: a host (n, rows) array, uploaded as it is, into the rows
+    of a (rows, N) state array from column a0 (the transposition and the precision cast of an upload run on the
+    device: issue 14, set-up)."""
+    for i in range(cuda.grid(1), src.shape[0], cuda.gridsize(1)):
+        for r in range(src.shape[1]):
+            dst[r, a0 + i] = src[i, r]
+
+
+cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows}, ("gather",))
 
 
 @cuda.jit(device=True)

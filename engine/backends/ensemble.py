@@ -34,7 +34,7 @@ a single scene; :func:`resolve_backend` says which backend a name resolves to wi
 
 from __future__ import annotations
 
-from typing import Mapping, Optional, Protocol, Sequence, runtime_checkable
+from typing import Callable, Mapping, Optional, Protocol, Sequence, runtime_checkable
 
 from engine.backends.base import ContactParams, cuda_available
 from engine.backends.registry import make_backend
@@ -177,6 +177,30 @@ class SerialEnsemble:
 
     def observe_scene(self, k: int) -> dict:
         return self._backend(k).observe()
+
+    def observe_scene_later(self, k: int) -> Callable[[], dict]:
+        """A function giving scene k's observables: read later where its backend can (CUDA), else now."""
+        b = self._backend(k)
+        later = getattr(b, "observe_later", None)
+        if later is not None:
+            return later()
+        obs = b.observe()
+        return lambda: obs
+
+    @property
+    def idle(self):
+        """The driver's hook for work while a backend waits for its GPU (engine/simulate.py ``_Deferred``); only
+        where every backend has such waits (CUDA), so ``hasattr(ensemble, "idle")`` says whether it can."""
+        if not all(hasattr(b, "idle") for b in self._backends if b is not None):
+            raise AttributeError("idle: these backends do not wait for a device")
+        return getattr(self, "_idle", None)
+
+    @idle.setter
+    def idle(self, fn) -> None:
+        self._idle = fn
+        for b in self._backends:
+            if b is not None:
+                b.idle = fn
 
     @property
     def reuses_state_buffers(self) -> bool:

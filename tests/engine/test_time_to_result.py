@@ -3,6 +3,7 @@ probe rule. The speed itself is measured by bench/e2e.py, not here."""
 
 from __future__ import annotations
 
+import ast
 import math
 import types
 
@@ -181,6 +182,91 @@ def test_a_non_finite_frame_on_the_io_thread_never_reaches_a_result(tmp_path):
     assert not path.exists() and not partial_path(path).exists()
 
 
+def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp_path):
+    """H5MDWriter._append writes a C-ordered frame of the dataset's type as its chunk (H5Dwrite_chunk); any other
+    array (here Fortran-ordered copies, float32 into a float64 file) goes through HDF5's write. Same bytes."""
+    rng = np.random.default_rng(5)
+    frames = [{"position": rng.random((40, 3)), "orientation": rng.random((40, 4)),
+               "velocity": rng.random((40, 3)).astype(np.float32)} for _ in range(3)]
+    paths = {}
+    for label, conv in (("chunk", lambda a: a), ("copy", np.asfortranarray)):
+        w = H5MDWriter(tmp_path / f"{label}.h5", n=40, box_length=1.0, spec_json="{}", derived={},
+                       radius=np.ones(40))
+        for k, fr in enumerate(frames):
+            w.snapshot(k, 0.1 * k, {name: conv(a) for name, a in fr.items()})
+        paths[label] = w.finish({"wall_time": 1.0})
+    assert paths["chunk"].read_bytes() == paths["copy"].read_bytes()
+    d = _datasets(paths["chunk"])
+    assert np.array_equal(d["particles/all/position/value"], np.stack([f["position"] for f in frames]))
+    assert np.array_equal(d["particles/all/velocity/value"],
+                          np.stack([f["velocity"] for f in frames]).astype(np.float64))
+
+
+def test_a_large_frame_is_checked_for_finite_values_in_pieces(monkeypatch):
+    from engine import h5md
+
+    monkeypatch.setattr(h5md, "_FINITE_SPLIT", 7)   # 10 x 3 values: five pieces, on the thread pool
+    a = np.arange(30.0).reshape(10, 3)
+    assert h5md._all_finite(a)
+    for bad in (np.nan, np.inf, -np.inf):
+        for where in ((0, 0), (4, 1), (9, 2)):
+            b = a.copy()
+            b[where] = bad
+            assert not h5md._all_finite(b), (bad, where)
+    with pytest.raises(InstabilityError, match="velocity is not finite at step 3"):
+        h5md._check_finite("velocity", b, 3, 0.1)
+
+
+def test_a_result_replaces_an_earlier_one_and_frees_it_off_the_callers_thread(tmp_path):
+    import os
+    import threading
+
+    from engine.h5md import replace_file
+
+    fds = lambda: len(os.listdir("/proc/self/fd"))  # noqa: E731
+    base = fds()
+    (tmp_path / "new").write_bytes(b"new")
+    replace_file(tmp_path / "new", tmp_path / "r.h5")          # no earlier file
+    (tmp_path / "newer").write_bytes(b"newer")
+    replace_file(tmp_path / "newer", tmp_path / "r.h5")        # the earlier one is closed on a thread
+    for t in threading.enumerate():
+        if t.name == "demq-free-old":
+            t.join()
+    assert (tmp_path / "r.h5").read_bytes() == b"newer" and not (tmp_path / "newer").exists()
+    assert fds() == base
+
+
+def test_frame_slots_reuse_a_free_slot_and_else_wait_for_the_older_one():
+    from concurrent.futures import Future
+
+    from engine.simulate import _FrameSlots
+
+    slots = _FrameSlots()
+    assert slots.take() == 0
+    slots.busy[0] = done = Future()
+    done.set_result(None)
+    assert slots.take() == 0                 # its frame is written: the same buffers again
+    slots.busy[0] = pending0 = Future()
+    assert slots.take() == 1                 # slot 0 still being written
+    slots.busy[1] = pending1 = Future()
+    pending0.set_result(None)
+    assert slots.take() == 0
+    slots.busy[0] = Future()
+    pending1.set_result(None)                # both busy would wait for the less recently used one: slot 1
+    assert slots.take() == 1
+
+
+def test_a_cpu_ensemble_offers_no_idle_hook_and_reads_its_observables_at_once():
+    from engine.backends.ensemble import SerialEnsemble
+    from tests.engine.test_cuda_simulator import contact, tiny_system
+
+    ens = SerialEnsemble("cpu", [tiny_system()], [contact()])
+    assert not hasattr(ens, "idle")          # engine.simulate._Deferred stays off: CPU runs are unchanged
+    later = ens.observe_scene_later(0)
+    ens.advance(40)                          # contacts begin within ~20 steps (tiny_system)
+    assert later()["collisions"] == 0 < ens.observe_scene(0)["collisions"]
+
+
 # ---- the auto list mode's probe rule ---------------------------------------------------------------------
 
 def _lists(steps_left, per_step=1e-3, steps_per_stage=20):
@@ -223,6 +309,7 @@ spec = dict(n_particles=27, volume_fraction=0.05, box_length=0.6, t_end=4e-4, ou
 # run side by side
 _SIM_CPU = _SIM_HEAD + r"""
 run({**spec, "backend": "cpu"}, f"{out}/cpu.h5")
+run({**spec, "snapshots": 7, "backend": "cpu"}, f"{out}/cpu7.h5")
 run({**spec, "seed": 4, "snapshots": 3, "backend": "cpu"}, f"{out}/cpu1.h5")
 for s in (4, 5):
     run({**spec, "seed": s, "backend": "cpu"}, f"{out}/cpu{s}.h5")
@@ -230,6 +317,18 @@ for s in (4, 5):
 
 _SIM_CUDA = _SIM_HEAD + r"""
 run({**spec, "backend": "cuda"}, f"{out}/gpu.h5")                 # one scene: SerialEnsemble(CudaBackend)
+# frames of a large scene: plain host buffers for the first frames, then buffers a thread pinned meanwhile
+import engine.backends.cuda as cb
+cb.PINNED_SLOT_BYTES, _slot, _pinned_used = 0, cb.CudaEnsemble._host_slot, []
+def _spy(self, slot, nmax):
+    ready = dict(getattr(self, "_pinned_slots", None) or {})
+    bufs = _slot(self, slot, nmax)
+    _pinned_used.append(any(bufs is b for b in ready.values()))
+    return bufs
+cb.CudaEnsemble._host_slot = _spy
+run({**spec, "snapshots": 7, "backend": "cuda"}, f"{out}/p7.h5")
+print("PINNED-FRAMES", _pinned_used)
+cb.PINNED_SLOT_BYTES, cb.CudaEnsemble._host_slot = 32 << 20, _slot
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/e0.h5", f"{out}/e1.h5"],
              backend="cuda")                                       # packed CudaEnsemble
 import engine.simulate
@@ -247,7 +346,7 @@ run_ensemble([{**spec, "seed": s} for s in (3, 4, 5)], [f"{out}/s{s}.h5" for s i
 
 
 def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
-    """Frames taken through the two alternating pinned buffer slots (one scene and a packed ensemble) are the
+    """Frames taken through the two reused buffer slots (one scene and a packed ensemble) are the
     CPU run's frames: the simulated CUDA backend is bit-identical to the CPU one (orientations: to rounding), so
     any frame written from a buffer that was overwritten too early would differ."""
     from tests.cudasim import run_children
@@ -255,12 +354,16 @@ def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
     res = run_children({"cpu": ["-c", _SIM_CPU, tmp_path], "cuda": ["-c", _SIM_CUDA, tmp_path]}, timeout=900)
     for part, (rc, _, err) in res.items():
         assert rc == 0, (part, err[-3000:])
+    # p7: a scene whose frames are "large" (PINNED_SLOT_BYTES = 0): the first ones through plain host buffers,
+    # later ones through the buffers the thread pinned after the third
+    used = ast.literal_eval(res["cuda"][1].split("PINNED-FRAMES", 1)[1].splitlines()[0].strip())
+    assert len(used) == 7 and not any(used[:3]) and any(used[3:]), used
     for gpu, cpu in (("gpu", "cpu"), ("e0", "cpu"), ("e1", "cpu1"), ("d0", "cpu"), ("d1", "cpu1"), ("s3", "cpu"),
-                     ("s4", "cpu4"), ("s5", "cpu5")):
+                     ("s4", "cpu4"), ("s5", "cpu5"), ("p7", "cpu7")):
         a, b = _datasets(tmp_path / f"{gpu}.h5"), _datasets(tmp_path / f"{cpu}.h5")
         for el in ("position", "velocity", "angular_velocity", "orientation"):
             key = f"particles/all/{el}/value"
-            assert a[key].shape == b[key].shape and a[key].shape[0] in (3, 4)
+            assert a[key].shape == b[key].shape and a[key].shape[0] in (3, 4, 7)
             if el == "orientation":
                 # the CPU turns a sphere's quaternion lazily (closed form of the Fincham steps since its last
                 # update), the CUDA loop step by step: equal to rounding; a stale or foreign frame is off by O(1)

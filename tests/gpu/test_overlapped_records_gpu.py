@@ -1,7 +1,8 @@
-"""Real-GPU check of the records done while the GPU runs the next steps (engine/simulate.py, _Deferred; the packed
-CUDA ensemble's ``idle`` hook): a packed ensemble writes the same files with it as without it
-(DEMQ_OVERLAP_RECORDS=0), spheres and ellipsoids — the trajectories bit for bit, the observables to rounding as
-any two GPU runs — and the record work did run inside the waits. Skipped without a GPU."""
+"""Real-GPU check of the records done while the GPU runs the next steps (engine/simulate.py, _Deferred; the CUDA
+ensemble's ``idle`` hook): a packed ensemble (spheres and ellipsoids) and one scene write the same files with it as
+without it (DEMQ_OVERLAP_RECORDS=0) — the trajectories bit for bit, the observables to rounding as any two GPU
+runs — and the record work did run inside the waits; one scene's frames also through late-pinned buffers. Skipped
+without a GPU."""
 
 from __future__ import annotations
 
@@ -74,3 +75,65 @@ def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_pat
     for k in range(len(specs)):
         for name in differ:
             assert np.allclose(files["0"][k][name], files["1"][k][name], rtol=1e-9, atol=1e-12), name
+
+
+def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path, monkeypatch):
+    """engine.run of one scene on the GPU: its records are done in the next steps' waits too (SerialEnsemble
+    passes the hook to its CUDA backend), and frames of a large scene go through plain host buffers first and
+    through buffers pinned by a thread later (PINNED_SLOT_BYTES = 0 makes this scene's frames large). The three
+    runs write the same file: the trajectories bit for bit, the observables to rounding."""
+    from engine import simulate
+    from engine.backends import cuda as cuda_mod
+    from engine.simulate import run
+    from tests.engine.test_ensemble import spy_deferred_stops
+
+    spec = dict(n_particles=4096, volume_fraction=0.1, e_n=0.8, e_t=0.5, t_end=0.02, snapshots=7, thermalization=1,
+                seed=2, backend="cuda")
+    deferred = spy_deferred_stops(monkeypatch)
+    in_advance, ran_in_waits = [False], []
+    orig_advance, orig_run_one = cuda_mod.CudaEnsemble.advance, simulate._Deferred.run_one
+
+    def advance(self, nsteps):
+        in_advance[0] = True
+        try:
+            return orig_advance(self, nsteps)
+        finally:
+            in_advance[0] = False
+
+    def run_one(self):
+        ran = orig_run_one(self)
+        if ran and in_advance[0]:
+            ran_in_waits.append(1)
+        return ran
+
+    monkeypatch.setattr(cuda_mod.CudaEnsemble, "advance", advance)
+    monkeypatch.setattr(simulate._Deferred, "run_one", run_one)
+    pinned_frames = []
+    orig_slot = cuda_mod.CudaEnsemble._host_slot
+
+    def host_slot(self, slot, nmax):
+        ready = dict(getattr(self, "_pinned_slots", None) or {})
+        bufs = orig_slot(self, slot, nmax)
+        pinned_frames.append(any(bufs is b for b in ready.values()))
+        return bufs
+
+    monkeypatch.setattr(cuda_mod.CudaEnsemble, "_host_slot", host_slot)
+    files = {}
+    for label, overlap, slot_bytes in (("plain", "0", cuda_mod.PINNED_SLOT_BYTES), ("overlap", "1", 32 << 20),
+                                       ("late-pinned", "1", 0)):
+        monkeypatch.setenv("DEMQ_OVERLAP_RECORDS", overlap)
+        monkeypatch.setattr(cuda_mod, "PINNED_SLOT_BYTES", slot_bytes)
+        del deferred[:], pinned_frames[:]
+        run(spec, tmp_path / f"{label}.h5")
+        files[label] = _datasets(tmp_path / f"{label}.h5")
+        assert any(deferred) == (overlap == "1"), (label, deferred)
+    assert len(pinned_frames) == 7 and not any(pinned_frames[:3]) and any(pinned_frames[3:]), pinned_frames
+    assert sum(ran_in_waits) > 0
+    for label in ("overlap", "late-pinned"):
+        a, b = files["plain"], files[label]
+        assert a.keys() == b.keys()
+        for name in a:
+            if name.startswith("observables/"):   # block sums ending in float atomics: equal to rounding
+                assert np.allclose(a[name], b[name], rtol=1e-9, atol=1e-12), (label, name)
+            elif not name.startswith("parameters"):
+                assert np.array_equal(a[name], b[name]), (label, name)

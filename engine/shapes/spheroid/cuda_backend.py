@@ -101,8 +101,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         # state before the current step (a contact starting after a screened step needs that step's gap)
         self.pos_prev = up(cat("position"), 3)
         self.quat_prev = up(quat, 4)
-        self.force = cuda.to_device(np.zeros((3, n), dt_), stream=s)
-        self.torque = cuda.to_device(np.zeros((3, n), dt_), stream=s)
+        self.force = self._zeros((3, n), dt_)
+        self.torque = self._zeros((3, n), dt_)
         # one force buffer (the force phase reads vel_p/omega_p, not other particles' forces): the sphere
         # loop's double-buffer swaps exchange two references to it
         self.f_cur = self.f_nxt = self.force
