@@ -262,6 +262,7 @@ class SceneRun:
         self.n = spec.n_particles
         self.total_steps = p.n_thermalization_steps + p.n_steps
         self.events, self.snaps = schedule(p, spec.snapshots)
+        self._event_steps = self.events.tolist()   # the same as Python ints: read at every stop
         self.wall = 0.0       # wall seconds of this attempt's time loop (advances this scene took part in)
         self.steps_run = 0
         self.prev_energy = float(resume["prev_energy"]) if resume is not None else math.inf
@@ -479,11 +480,11 @@ class SceneRun:
         self._set_cooling_target()
 
     def _set_cooling_target(self) -> None:
-        if self._idx >= len(self.events):
+        if self._idx >= len(self._event_steps):
             self.done = True
             self._target = self.step_done
         else:
-            self._target = int(self.events[self._idx])
+            self._target = self._event_steps[self._idx]
 
     def _report(self, phase: str, done_total: int, t_sim: float, step: int) -> None:
         if self.progress is None:
@@ -686,6 +687,11 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     active: set = set()
     frame_slots = _FrameSlots()
     deferred = _Deferred(ens)
+    # per scene, made once (a stop costs host time while the GPU waits for the next round): its view of the
+    # ensemble, whose round cache is one dict cleared every round, and its deferral hook
+    cache: dict = {}
+    views = [_SceneView(ens, i, cache, frame_slots) for i in range(size)]
+    defers = [deferred.for_scene(i) for i in range(size)]
 
     def settle(i: int, result, deactivated: bool = False) -> None:
         results[live[i]] = result
@@ -784,11 +790,11 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
             for i, exc in list(deferred.drain()) + list(failed.items()):
                 if i in active:
                     end(i, exc)
-            cache: dict = {}
+            cache.clear()
             done = []
             for i in sorted(i for i in active if runs[i].steps_to_next() == 0):
                 try:
-                    runs[i].at_stop(_SceneView(ens, i, cache, frame_slots), deferred.for_scene(i))
+                    runs[i].at_stop(views[i], defers[i])
                 except Exception as exc:
                     end(i, exc)
                     continue
