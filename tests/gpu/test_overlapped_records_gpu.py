@@ -22,20 +22,11 @@ def _datasets(path):
     return out
 
 
-@pytest.mark.parametrize("multistep", ["1", "0"])   # the waits of the many-steps kernel and of the per-phase loop
-@pytest.mark.parametrize("kw", [
-    dict(n_particles=2048, volume_fraction=0.1, e_n=0.8, e_t=0.5, t_end=0.02, snapshots=2, thermalization=1),
-    dict(shape="ellipsoid", elongation=2.0, n_particles=1024, volume_fraction=0.1, e_n=0.9, t_end=0.01,
-         snapshots=2, thermalization=0)])
-def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_path, monkeypatch, kw, multistep):
+def spy_units_in_waits(monkeypatch) -> list:
+    """One entry per deferred record unit that ran inside CudaEnsemble.advance (in its waits for the GPU)."""
     from engine import simulate
     from engine.backends import cuda as cuda_mod
-    from engine.ensemble import run_ensemble
-    from tests.engine.test_ensemble import spy_deferred_stops
 
-    monkeypatch.setenv("DEMQ_CUDA_MULTISTEP", multistep)
-    specs = [dict(kw, seed=s, backend="cuda") for s in range(12)]
-    deferred = spy_deferred_stops(monkeypatch)
     in_advance, in_waits = [False], []
     orig_advance, orig_run_one = cuda_mod.CudaEnsemble.advance, simulate._Deferred.run_one
 
@@ -54,6 +45,22 @@ def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_pat
 
     monkeypatch.setattr(cuda_mod.CudaEnsemble, "advance", advance)
     monkeypatch.setattr(simulate._Deferred, "run_one", run_one)
+    return in_waits
+
+
+@pytest.mark.parametrize("multistep", ["1", "0"])   # the waits of the many-steps kernel and of the per-phase loop
+@pytest.mark.parametrize("kw", [
+    dict(n_particles=2048, volume_fraction=0.1, e_n=0.8, e_t=0.5, t_end=0.02, snapshots=2, thermalization=1),
+    dict(shape="ellipsoid", elongation=2.0, n_particles=1024, volume_fraction=0.1, e_n=0.9, t_end=0.01,
+         snapshots=2, thermalization=0)])
+def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_path, monkeypatch, kw, multistep):
+    from engine.ensemble import run_ensemble
+    from tests.engine.test_ensemble import spy_deferred_stops
+
+    monkeypatch.setenv("DEMQ_CUDA_MULTISTEP", multistep)
+    specs = [dict(kw, seed=s, backend="cuda") for s in range(12)]
+    deferred = spy_deferred_stops(monkeypatch)
+    in_waits = spy_units_in_waits(monkeypatch)
     files = {}
     for on in ("0", "1"):
         monkeypatch.setenv("DEMQ_OVERLAP_RECORDS", on)
@@ -82,7 +89,6 @@ def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path,
     passes the hook to its CUDA backend), and frames of a large scene go through plain host buffers first and
     through buffers pinned by a thread later (PINNED_SLOT_BYTES = 0 makes this scene's frames large). The three
     runs write the same file: the trajectories bit for bit, the observables to rounding."""
-    from engine import simulate
     from engine.backends import cuda as cuda_mod
     from engine.simulate import run
     from tests.engine.test_ensemble import spy_deferred_stops
@@ -90,24 +96,7 @@ def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path,
     spec = dict(n_particles=4096, volume_fraction=0.1, e_n=0.8, e_t=0.5, t_end=0.02, snapshots=7, thermalization=1,
                 seed=2, backend="cuda")
     deferred = spy_deferred_stops(monkeypatch)
-    in_advance, ran_in_waits = [False], []
-    orig_advance, orig_run_one = cuda_mod.CudaEnsemble.advance, simulate._Deferred.run_one
-
-    def advance(self, nsteps):
-        in_advance[0] = True
-        try:
-            return orig_advance(self, nsteps)
-        finally:
-            in_advance[0] = False
-
-    def run_one(self):
-        ran = orig_run_one(self)
-        if ran and in_advance[0]:
-            ran_in_waits.append(1)
-        return ran
-
-    monkeypatch.setattr(cuda_mod.CudaEnsemble, "advance", advance)
-    monkeypatch.setattr(simulate._Deferred, "run_one", run_one)
+    ran_in_waits = spy_units_in_waits(monkeypatch)
     pinned_frames = []
     orig_slot = cuda_mod.CudaEnsemble._host_slot
 
