@@ -525,9 +525,13 @@ class _SceneView:
 
     def __init__(self, ens, i: int, cache: dict, slots: "_FrameSlots"):
         self.ens, self.i, self.cache, self.slots = ens, i, cache, slots
+        # what the ensemble offers, looked up once (a view serves every stop of its scene)
+        self._one = getattr(ens, "observe_scene", None)
+        self._one_later = getattr(ens, "observe_scene_later", None)
+        self._later = getattr(ens, "observe_later", None)
 
     def observe(self) -> dict:
-        one = getattr(self.ens, "observe_scene", None)
+        one = self._one
         if one is not None:
             return one(self.i)
         if "all" not in self.cache:
@@ -538,11 +542,10 @@ class _SceneView:
         """A function giving :meth:`observe`'s dict: the values are queued now (one observation per round, shared
         by the round's scenes) and read and built when it is called, where the ensemble offers
         ``observe_scene_later`` or ``observe_later`` (CUDA); else read now."""
-        one = getattr(self.ens, "observe_scene_later", None)
-        if one is not None:
-            return one(self.i)
-        later = getattr(self.ens, "observe_later", None)
-        if later is None or getattr(self.ens, "observe_scene", None) is not None:
+        if self._one_later is not None:
+            return self._one_later(self.i)
+        later = self._later
+        if later is None or self._one is not None:
             obs = self.observe()
             return lambda: obs
         if "later" not in self.cache:
