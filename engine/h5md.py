@@ -54,6 +54,7 @@ import h5py
 import numpy as np
 
 from engine.errors import InstabilityError
+from engine.pieces import PIECE, map_pieces
 from engine.xdmf import write_xdmf
 
 UNITS = {
@@ -439,23 +440,13 @@ def write_whole_file(path, kwargs: dict, blocks: list, frames: list, run_info: d
 
 
 #: arrays of more elements than this are checked for finite values in pieces, on several threads
-_FINITE_SPLIT = 1 << 21
-_finite_pool = None
+_FINITE_SPLIT = PIECE
 
 
 def _all_finite(a: np.ndarray) -> bool:
-    """np.isfinite(a).all(), a large array in pieces on up to 8 threads (NumPy releases the GIL in them): one
-    2M-particle frame took 0.03-0.06 s on one thread, on the path from the last step to the closed file."""
-    global _finite_pool
-    flat = a.reshape(-1)
-    if flat.size <= _FINITE_SPLIT:
-        return bool(np.isfinite(flat).all())
-    with _io_lock:
-        if _finite_pool is None:
-            _finite_pool = ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1),
-                                              thread_name_prefix="demq-finite")
-    parts = np.array_split(flat, -(-flat.size // _FINITE_SPLIT))
-    return all(_finite_pool.map(lambda p: bool(np.isfinite(p).all()), parts))
+    """np.isfinite(a).all(), a large array in pieces on up to 8 threads (engine/pieces.py): one 2M-particle frame
+    took 0.03-0.06 s on one thread, on the path from the last step to the closed file."""
+    return all(map_pieces(a, lambda p: bool(np.isfinite(p).all()), _FINITE_SPLIT))
 
 
 def _check_finite(name: str, a: np.ndarray, step: int, time: float) -> None:

@@ -642,8 +642,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     own distances to their next stops when the ensemble offers ``advance_each`` (and ``lockstep`` is not
     True), else all by the distance to the nearest stop of any scene (``advance``); then every scene at a
     stop handles it (a stop that only records, on an ensemble with an ``idle`` hook, hands its record work to
-    the next advance's waits for the GPU: :class:`_Deferred`). A scene that blows up (InstabilityError from the ensemble or its own checks) drops
-    out with that error and only its file is aborted; a finished scene writes its file and drops out.
+    the next advance's waits for the GPU: :class:`_Deferred`). A scene that blows up (InstabilityError from the
+    ensemble or its own checks) drops out with that error and only its file is aborted; a finished scene writes
+    its file and drops out.
     An error of the ensemble itself (not of one scene) ends every active scene with that error;
     KeyboardInterrupt and other BaseExceptions abort every open file and propagate.
 

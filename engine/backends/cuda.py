@@ -52,6 +52,7 @@ from engine.backends.cuda_lists import list_kernels
 from engine.backends.cuda_launch import LaunchCache
 from engine.backends.status import BAD_VALUE, OVERLAP, instability_error as _instability
 from engine.errors import BackendUnavailable, InstabilityError
+from engine.pieces import map_pieces
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
 from engine.precision import check_shape, position_dtype, state_dtype
 from engine.shapes.sphere import device as SC
@@ -818,8 +819,8 @@ class CudaEnsemble:
         and :meth:`_LateSums.settle` reads them. Two result slots; reusing one settles its earlier sums first."""
         s, nk = self.stream, self.n_scenes
         if getattr(self, "_acc", None) is None:
-            self._acc_zero = cuda.pinned_array((nk, self._NOBS), np.float64)
-            self._acc_zero[:] = 0.0
+            if SIM:   # the simulator has no memset on a stream: zeros are copied in
+                self._acc_zero = np.zeros((nk, self._NOBS), np.float64)
             self._acc = cuda.device_array((nk, self._NOBS), np.float64, stream=s)
             self._late = [None, None]
             self._late_h = [cuda.pinned_array((nk, self._NOBS), np.float64) for _ in range(2)]
@@ -961,25 +962,13 @@ class CudaEnsemble:
                    and not (name == "f_nxt" and v is self.f_cur))
 
 
-_touch_pool = None
-
-
 def _touched_empty(shape, dtype) -> np.ndarray:
-    """np.empty(shape, dtype) with every page already faulted in, by up to 8 threads (NumPy releases the GIL in the
-    strided writes): a device copy into fresh pageable memory takes its page faults one at a time (218 MB: 0.06-0.08
-    s on the H200 host, 0.02 s into touched memory)."""
-    global _touch_pool
+    """np.empty(shape, dtype) with every page already faulted in, in pieces on up to 8 threads (engine/pieces.py):
+    a device copy into fresh pageable memory takes its page faults one at a time (218 MB: 0.06-0.08 s on the H200
+    host, 0.02 s into touched memory)."""
     a = np.empty(shape, dtype)
-    flat = a.reshape(-1)
-    step = max(1, 4096 // a.itemsize)
-    if flat.size < 64 * step:
-        return a
-    if _touch_pool is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _touch_pool = ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1), thread_name_prefix="demq-touch")
-    parts = np.array_split(flat, min(8, os.cpu_count() or 1))
-    list(_touch_pool.map(lambda p: p.__setitem__(slice(None, None, step), 0), parts))
+    page = max(1, 4096 // a.itemsize)
+    map_pieces(a, lambda p: p.__setitem__(slice(None, None, page), 0))
     return a
 
 
@@ -1051,7 +1040,7 @@ class CudaBackend:
     def observe(self) -> dict:
         return self.e.observe()[0]
 
-    #: state(reuse=...) hands out reused pinned buffers (CudaEnsemble._scene_rows)
+    #: state(reuse=...) hands out reused host buffers (CudaEnsemble._scene_rows)
     reuses_state_buffers = True
 
     def observe_later(self) -> Callable[[], dict]:

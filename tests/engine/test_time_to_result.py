@@ -202,10 +202,22 @@ def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp
                           np.stack([f["velocity"] for f in frames]).astype(np.float64))
 
 
+def test_pieces_cover_the_array_and_write_through_to_it():
+    from engine.backends.cuda import _touched_empty
+    from engine.pieces import map_pieces
+
+    a = np.zeros((25, 4))
+    sizes = map_pieces(a, lambda p: (p.__setitem__(slice(None), p.size), p.size)[1], piece=7)
+    assert sum(sizes) == a.size and len(sizes) == 15 and set(a.reshape(-1)) == set(sizes)
+    assert map_pieces(a, lambda p: p.size) == [a.size]              # one piece: on the caller's thread
+    b = _touched_empty((3000, 4), np.float64)                       # every page written once (0 at its start)
+    assert b.shape == (3000, 4) and b.dtype == np.float64 and np.all(b.reshape(-1)[::512] == 0)
+
+
 def test_a_large_frame_is_checked_for_finite_values_in_pieces(monkeypatch):
     from engine import h5md
 
-    monkeypatch.setattr(h5md, "_FINITE_SPLIT", 7)   # 10 x 3 values: five pieces, on the thread pool
+    monkeypatch.setattr(h5md, "_FINITE_SPLIT", 7)   # 10 x 3 values: five pieces, on engine/pieces.py's pool
     a = np.arange(30.0).reshape(10, 3)
     assert h5md._all_finite(a)
     for bad in (np.nan, np.inf, -np.inf):
