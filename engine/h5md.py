@@ -55,7 +55,7 @@ import numpy as np
 
 from engine.errors import InstabilityError
 from engine.pieces import PIECE, map_pieces
-from engine.xdmf import write_xdmf
+from engine.xdmf import write_xdmf, xdmf_text
 
 UNITS = {
     "position": "m", "velocity": "m s-1", "orientation": "", "angular_velocity": "s-1",
@@ -383,11 +383,13 @@ class H5MDWriter:
         par = self.f["parameters"]
         for key, value in run_info.items():
             par.attrs[key] = _attr(value)
-        frames = "position" in self.f["particles/all"]
+        # ParaView/VisIt sidecar <stem>.xmf (engine/xdmf.py; a result without frames has none), read from the
+        # open file (no second open of it) and written once the result has its final name
+        sidecar = xdmf_text(self.path, f=self.f) if "position" in self.f["particles/all"] else None
         self.f.close()
         replace_file(self.tmp, self.path)
-        if frames:  # ParaView/VisIt sidecar <stem>.xmf (engine/xdmf.py; a result without frames has none)
-            write_xdmf(self.path)
+        if sidecar is not None:
+            write_xdmf(self.path, text=sidecar)
         return self.path
 
     def abort(self) -> None:

@@ -241,10 +241,8 @@ def initial_spheres(spec, p: Derived) -> SphereSystem:
     n = spec.n_particles
     w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
     if start_generator(spec) == PARALLEL_GENERATOR:
-        pos = _parallel_place(n, spec.box_length, p.radius, spec.seed)
-        vel = _parallel_maxwellian(n, spec.velocity_rms, spec.seed, STREAM_VELOCITY, 3)
-        omega = _parallel_maxwellian(n, w_rms, spec.seed, STREAM_SPIN, 3)
-        quat = _parallel_quaternions(n, spec.seed)
+        streams, radius = parallel_start_streams(spec, p)
+        pos, (vel, omega, quat) = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, radius))
         return SphereSystem(
             box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
             radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]))
@@ -269,25 +267,23 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
     a = p.semi_axes[0]
     parallel = start_generator(spec) == PARALLEL_GENERATOR
     rng = None if parallel else np.random.default_rng(spec.seed)
+    w_rms = _ellipsoid_spin_rms(spec, p)
     try:
-        pos = _parallel_place(n, spec.box_length, a, spec.seed) if parallel else \
-            place_spheres(n, spec.box_length, a, rng)
+        if parallel:
+            streams, _ = parallel_start_streams(spec, p)
+            pos, drawn = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, a))
+            vel, quat, w_b = drawn[:3]
+        else:
+            pos = place_spheres(n, spec.box_length, a, rng)
     except SpecError as exc:
         raise SpecError(f"{exc} (ellipsoids are placed by their bounding spheres of radius a = {a:.4g} m, "
                         f"elongation = {spec.elongation:g})") from None
-    i_perp = p.inertia[1]
-    # T per dof = m <v^2>/3 = I_perp <w_k^2> for each perpendicular body axis k
-    w_rms = spec.velocity_rms * math.sqrt(p.mass / (3.0 * i_perp))
-    if parallel:
-        vel = _parallel_maxwellian(n, spec.velocity_rms, spec.seed, STREAM_VELOCITY, 3)
-        quat = _parallel_quaternions(n, spec.seed)
-        w_b = _parallel_maxwellian(n, w_rms * math.sqrt(2.0), spec.seed, STREAM_SPIN, 2)
-    else:
+    if not parallel:
         vel = maxwellian(n, spec.velocity_rms, rng)
         quat = random_quaternions(n, rng)
         w_b = rng.normal(size=(n, 2))
         w_b -= w_b.mean(axis=0) if n > 1 else 0.0
-        w_b *= w_rms / math.sqrt(np.mean(w_b * w_b))
+        w_b *= w_rms[0] / math.sqrt(np.mean(w_b * w_b))
     w, x, y, z = quat.T
     e2 = np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], 1)
     e3 = np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], 1)
@@ -295,19 +291,39 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
     if not spec.smooth:
         # rough contacts exchange spin about the symmetry axis too: that dof starts thermal as well
         # (drawn after the others, from its own stream, so a smooth start is unchanged)
-        w1_rms = spec.velocity_rms * math.sqrt(p.mass / (3.0 * p.inertia[0]))
         if parallel:
-            w_a = _parallel_maxwellian(n, w1_rms, spec.seed, STREAM_SPIN_AXIS, 1)
+            w_a = drawn[3]
         else:
             w_a = rng.normal(size=(n, 1))
             w_a -= w_a.mean(axis=0) if n > 1 else 0.0
-            w_a *= w1_rms / math.sqrt(np.mean(w_a * w_a))
+            w_a *= w_rms[1] / math.sqrt(np.mean(w_a * w_a))
         e1 = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], 1)
         omega = omega + w_a * e1
     return EllipsoidSystem(
         box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
         semi_axes=np.tile(np.asarray(p.semi_axes, float), (n, 1)), mass=np.full(n, p.mass),
         inertia=np.tile(np.asarray(p.inertia, float), (n, 1)))
+
+
+def _ellipsoid_spin_rms(spec, p: Derived) -> tuple:
+    """rms spin of an ellipsoid about each perpendicular body axis, and about the symmetry axis: the
+    translational temperature per degree of freedom, m <v^2>/3 = I_k <w_k^2>."""
+    return (spec.velocity_rms * math.sqrt(p.mass / (3.0 * p.inertia[1])),
+            spec.velocity_rms * math.sqrt(p.mass / (3.0 * p.inertia[0])))
+
+
+def parallel_start_streams(spec, p: Derived) -> tuple:
+    """The streams (stream, dim, rms or None for unit rows) of a spec's parallel start, in the order its shape
+    takes them, and the radius its particles are placed by (a sphere's, an ellipsoid's bounding sphere's)."""
+    if spec.shape == "ellipsoid":
+        w_rms, w1_rms = _ellipsoid_spin_rms(spec, p)
+        # every stream is its own sequence of draws: the axial spin's (rough contacts) leaves the others as they are
+        return [(STREAM_VELOCITY, 3, spec.velocity_rms), (STREAM_QUATERNION, 4, None),
+                (STREAM_SPIN, 2, w_rms * math.sqrt(2.0))] + \
+            ([] if spec.smooth else [(STREAM_SPIN_AXIS, 1, w1_rms)]), p.semi_axes[0]
+    # equal rotational and translational temperature: I <w^2> = m <v^2>
+    w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
+    return [(STREAM_VELOCITY, 3, spec.velocity_rms), (STREAM_SPIN, 3, w_rms), (STREAM_QUATERNION, 4, None)], p.radius
 
 
 # ---- large starts in parallel (issue 14) --------------------------------------------------------------
@@ -361,124 +377,245 @@ def _normal_pair(key, i, k):
     return r * math.cos(t), r * math.sin(t)
 
 
-@numba.njit(cache=True)
-def _key(seed, stream):
-    return _mix64(seed * _GOLDEN + _U(stream + 1))
+_MASK64 = (1 << 64) - 1
 
 
 def _stream_key(seed: int, stream: int) -> np.uint64:
-    """The 64-bit key of one random stream of a seed (a compiled call: the inlined mixer is not cached)."""
-    return _U(_key(_U(seed % (1 << 64)), stream))
+    """The 64-bit key of one random stream of a seed: _mix64(seed * golden + stream + 1) mod 2^64, in Python
+    integers (no compiled call before the start's own)."""
+    x = ((seed % (1 << 64)) * int(_GOLDEN) + stream + 1) & _MASK64
+    x = ((x ^ (x >> 30)) * int(_M1)) & _MASK64
+    x = ((x ^ (x >> 27)) * int(_M2)) & _MASK64
+    return _U(x ^ (x >> 31))
+
+
+#: chunks of the site selection (a fixed number: the selection never depends on the thread count)
+_SELECT_CHUNKS = 64
+#: leading key bits of the selection's histogram
+_SELECT_BITS = 12
+
+
+@numba.njit(cache=True)
+def _bucket_of(hist, n):
+    """The histogram bucket (column of ``hist``, chunks x buckets) that holds the n-th smallest key, the count of
+    keys below it, the count in it, and each chunk's first place among the bucket's keys. (Its own function:
+    numba's parfors miscompiled this loop with a break inside a parallel function.)"""
+    c_n, n_buckets = hist.shape
+    below = 0
+    for b in range(n_buckets):
+        in_bucket = 0
+        for c in range(c_n):
+            in_bucket += hist[c, b]
+        if below + in_bucket >= n:
+            starts = np.zeros(c_n, np.int64)
+            for c in range(1, c_n):
+                starts[c] = starts[c - 1] + hist[c - 1, b]
+            return b, below, in_bucket, starts
+        below += in_bucket
+    raise ValueError("fewer keys than sites to choose")
+
+
+@numba.njit(cache=True)
+def _offsets(less, equal, n):
+    """Each chunk's first place among the n chosen sites and how many of its keys equal to the cut it takes (in
+    site order)."""
+    c_n = less.shape[0]
+    left = n
+    for c in range(c_n):      # a loop, not less.sum(): NumPy's sum would make a fresh process's cache load import
+        left -= less[c]       # numba.np.arraymath and, through its BLAS check, scipy.linalg (0.15 s)
+    quota = np.zeros(c_n, np.int64)
+    offset = np.zeros(c_n, np.int64)
+    for c in range(c_n):
+        quota[c] = min(equal[c], left)
+        left -= quota[c]
+        if c > 0:
+            offset[c] = offset[c - 1] + less[c - 1] + quota[c - 1]
+    return offset, quota
+
+
+@numba.njit(cache=True, inline="always")
+def _smallest_sites(key, n_sites, n):
+    """The numbers of the n sites of smallest key ``_bits(key, j, 0)``, ascending: a radix select (a histogram of
+    the keys' leading bits finds the bucket that holds the n-th smallest key, a sort of that bucket alone the key
+    itself), then the sites at or below it in site order. Keys equal to that one (2^-64 odds for a pair) are
+    taken in site order."""
+    c_n = _SELECT_CHUNKS
+    n_buckets = 1 << _SELECT_BITS
+    shift = _U(64 - _SELECT_BITS)
+    size = (n_sites + c_n - 1) // c_n
+    keys = np.empty(n_sites, np.uint64)
+    hist = np.zeros((c_n, n_buckets), np.int64)
+    for c1 in numba.prange(c_n):
+        for j1 in range(c1 * size, min(n_sites, (c1 + 1) * size)):
+            k1 = _bits(key, j1, 0)
+            keys[j1] = k1
+            hist[c1, np.int64(k1 >> shift)] += 1
+    bucket, below, in_bucket, starts = _bucket_of(hist, n)
+    cand = np.empty(in_bucket, np.uint64)
+    for c4 in numba.prange(c_n):
+        at = starts[c4]
+        for j4 in range(c4 * size, min(n_sites, (c4 + 1) * size)):
+            if np.int64(keys[j4] >> shift) == bucket:
+                cand[at] = keys[j4]
+                at += 1
+    cand.sort()
+    cut = cand[n - below - 1]
+    less = np.zeros(c_n, np.int64)
+    equal = np.zeros(c_n, np.int64)
+    for c5 in numba.prange(c_n):
+        for j5 in range(c5 * size, min(n_sites, (c5 + 1) * size)):
+            if keys[j5] < cut:
+                less[c5] += 1
+            elif keys[j5] == cut:
+                equal[c5] += 1
+    offset, quota = _offsets(less, equal, n)
+    chosen = np.empty(n, np.int64)
+    for c8 in numba.prange(c_n):
+        out = offset[c8]
+        ties = quota[c8]
+        for j8 in range(c8 * size, min(n_sites, (c8 + 1) * size)):
+            kj = keys[j8]
+            if kj < cut or (kj == cut and ties > 0):
+                if kj == cut:
+                    ties -= 1
+                chosen[out] = j8
+                out += 1
+    return chosen
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
-def _site_keys(key, n_sites):
-    out = np.empty(n_sites, np.uint64)
-    for j in numba.prange(n_sites):
-        out[j] = _bits(key, j, 0)
-    return out
+def _draw_start(n, n_sites, m, a, half_gap, box, site_key, place_key, keys, outs, unit):
+    """The draws of a large one-size start in one compiled call (one disk-cache load in a fresh process).
 
-
-@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
-def _place_on_sites(chosen, m, a, key, half_gap, box):
-    """Centres at the chosen fcc sites (as fcc_sites numbers them), each displaced uniformly in a ball of
-    radius half_gap (direction from three normals, radius from a uniform), wrapped into [0, box)."""
+    Positions (none when ``n_sites`` is 0): the n sites of smallest key (:func:`_smallest_sites`; all sites when n = n_sites) of the fcc lattice
+    of m^3 cells of edge ``a`` (m), numbered as :func:`fcc_sites` numbers them, each displaced uniformly in a ball
+    of radius ``half_gap`` (direction from three normals, radius from a uniform), wrapped into [0, box).
+    Then for each stream s, ``outs[s]`` (n x dim) gets standard normals from ``keys[s]``; rows of a ``unit``
+    stream are normalised (uniform quaternions). Returns the positions and, per stream, the column sums of each
+    block of _BLOCK rows (S x blocks x 4; the start's mean, taken in fixed blocks for any thread count).
+    """
+    n_placed = n if n_sites > 0 else 0       # n_sites = 0: no positions
+    chosen = _smallest_sites(site_key, n_sites, n) if 0 < n_sites and n < n_sites else np.arange(n_placed)
     base = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0], [0.5, 0.0, 0.5], [0.0, 0.5, 0.5]]) * a
-    n = chosen.shape[0]
-    pos = np.empty((n, 3))
-    for i in numba.prange(n):
+    pos = np.empty((n_placed, 3))
+    for i in numba.prange(n_placed):
         j = chosen[i]
         c = j // 4
         b = j - 4 * c
         ix = c // (m * m)
         iy = (c // m) % m
         iz = c % m
-        g0, g1 = _normal_pair(key, i, 0)
-        g2, _ = _normal_pair(key, i, 2)
+        g0, g1 = _normal_pair(place_key, i, 0)
+        g2, _ = _normal_pair(place_key, i, 2)
         norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-        r = half_gap * _uniform(key, i, 4) ** (1.0 / 3.0) * (1.0 - 1e-9) / norm
+        r = half_gap * _uniform(place_key, i, 4) ** (1.0 / 3.0) * (1.0 - 1e-9) / norm
         x = (ix * a + base[b, 0]) + 0.25 * a + g0 * r
         y = (iy * a + base[b, 1]) + 0.25 * a + g1 * r
         z = (iz * a + base[b, 2]) + 0.25 * a + g2 * r
         pos[i, 0] = x - box * math.floor(x / box)
         pos[i, 1] = y - box * math.floor(y / box)
         pos[i, 2] = z - box * math.floor(z / box)
-    return pos
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    sums = np.zeros((len(outs), n_blocks, 4))
+    for s in range(len(outs)):
+        v = outs[s]
+        dim = v.shape[1]
+        key = keys[s]
+        for i in numba.prange(n):
+            for k in range(0, dim, 2):
+                g0, g1 = _normal_pair(key, i, k)
+                v[i, k] = g0
+                if k + 1 < dim:
+                    v[i, k + 1] = g1
+            if unit[s]:
+                q = 0.0
+                for d in range(dim):
+                    q += v[i, d] * v[i, d]
+                q = math.sqrt(q)
+                for d in range(dim):
+                    v[i, d] /= q
+        if not unit[s]:
+            for bl in numba.prange(n_blocks):
+                for i in range(bl * _BLOCK, min(n, (bl + 1) * _BLOCK)):
+                    for d in range(dim):
+                        sums[s, bl, d] += v[i, d]
+    return pos, sums
 
 
-def _parallel_place(n: int, box: float, radius: float, seed: int) -> np.ndarray:
-    """place_spheres' protocol (fcc sites, n of them at random, a random displacement in the free room)
-    with the counter-based generator: the n sites of smallest 64-bit key are chosen."""
-    m = max(1, math.ceil((n / 4.0) ** (1.0 / 3.0) - 1e-9))
-    a = box / m
-    n_sites = 4 * m ** 3
-    gap = lattice_gap(n, box, radius, n_sites, a / math.sqrt(2.0))
-    if n == n_sites:
-        chosen = np.arange(n, dtype=np.int64)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
+def _centre_and_square(outs, means, unit):
+    """Subtract each (not unit) stream's mean and return the per-block column sums of squares (as _draw_start)."""
+    n = outs[0].shape[0]
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    sums = np.zeros((len(outs), n_blocks, 4))
+    for s in range(len(outs)):
+        if unit[s]:
+            continue
+        v = outs[s]
+        dim = v.shape[1]
+        for bl in numba.prange(n_blocks):
+            for i in range(bl * _BLOCK, min(n, (bl + 1) * _BLOCK)):
+                for d in range(dim):
+                    x = v[i, d] - means[s, d]
+                    v[i, d] = x
+                    sums[s, bl, d] += x * x
+    return sums
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
+def _scale_streams(outs, scales, unit):
+    for s in range(len(outs)):
+        if unit[s]:
+            continue
+        v = outs[s]
+        for i in numba.prange(v.shape[0]):
+            for d in range(v.shape[1]):
+                v[i, d] *= scales[s]
+
+
+def _stream_sums(sums, s: int, dim: int) -> np.ndarray:
+    """Stream s's per-block sums as the contiguous (blocks x dim) array NumPy then sums (in its own fixed order)."""
+    return np.ascontiguousarray(sums[s, :, :dim])
+
+
+def _parallel_draws(n: int, seed: int, streams: list, place=None) -> tuple:
+    """A large start's draws with the counter-based generator, in three compiled calls.
+
+    ``place``: None, or (box, radius): place_spheres' protocol (fcc sites, n of them at random, a random
+    displacement in the free room; SpecError when the spheres do not fit). ``streams``: (stream, dim, rms) per
+    array drawn; rms None gives unit rows (uniform quaternions for dim 4), a number Maxwellian components of zero
+    mean and sqrt(<|v|^2>) = rms exactly (maxwellian()). Every stream is its own sequence of draws, so what one
+    array holds does not depend on the others. Returns (positions or None, [arrays])."""
+    if place is not None:
+        box, radius = place
+        m = max(1, math.ceil((n / 4.0) ** (1.0 / 3.0) - 1e-9))
+        a = box / m
+        n_sites = 4 * m ** 3
+        half_gap = 0.5 * lattice_gap(n, box, radius, n_sites, a / math.sqrt(2.0))
     else:
-        keys = _site_keys(_stream_key(seed, STREAM_SITES), n_sites)
-        chosen = np.sort(np.argpartition(keys, n - 1)[:n]).astype(np.int64)
-    return _place_on_sites(chosen, m, a, _stream_key(seed, STREAM_DISPLACEMENT), 0.5 * gap, float(box))
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
-def _normals(key, n, dim):
-    out = np.empty((n, dim))
-    for i in numba.prange(n):
-        for k in range(0, dim, 2):
-            g0, g1 = _normal_pair(key, i, k)
-            out[i, k] = g0
-            if k + 1 < dim:
-                out[i, k + 1] = g1
-    return out
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
-def _block_sums(v, power):
-    """Per block of _BLOCK rows, the column sums of v**power (a fixed summation order for any thread count)."""
-    n, dim = v.shape
-    nb = (n + _BLOCK - 1) // _BLOCK
-    out = np.zeros((nb, dim))
-    for b in numba.prange(nb):
-        for i in range(b * _BLOCK, min(n, (b + 1) * _BLOCK)):
-            for d in range(dim):
-                out[b, d] += v[i, d] ** power
-    return out
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
-def _shift_scale(v, shift, scale):
-    for i in numba.prange(v.shape[0]):
-        for d in range(v.shape[1]):
-            v[i, d] = (v[i, d] - shift[d]) * scale
+        box, m, a, n_sites, half_gap = 1.0, 1, 1.0, 0, 0.0
+    outs = tuple(np.empty((n, dim)) for _, dim, _ in streams)
+    keys = np.array([_stream_key(seed, stream) for stream, _, _ in streams], np.uint64)
+    unit = np.array([rms is None for _, _, rms in streams])
+    pos, sums = _draw_start(n, n_sites, m, a, half_gap, float(box), _stream_key(seed, STREAM_SITES),
+                            _stream_key(seed, STREAM_DISPLACEMENT), keys, outs, unit)
+    means = np.zeros((len(streams), 4))
+    for s, (_, dim, rms) in enumerate(streams):
+        if rms is not None and n > 1:
+            means[s, :dim] = _stream_sums(sums, s, dim).sum(axis=0) / n
+    sums = _centre_and_square(outs, means, unit)
+    scales = np.ones(len(streams))
+    for s, (_, dim, rms) in enumerate(streams):
+        if rms is not None:
+            norm = math.sqrt(_stream_sums(sums, s, dim).sum() / n)
+            scales[s] = rms / norm if norm > 0 else 1.0
+    _scale_streams(outs, scales, unit)
+    return (pos if place is not None else None), list(outs)
 
 
 def _parallel_maxwellian(n: int, rms: float, seed: int, stream: int, dim: int) -> np.ndarray:
-    """maxwellian() with the counter-based generator: zero mean and sqrt(<|v|^2>) = rms exactly."""
-    v = _normals(_stream_key(seed, stream), n, dim)
-    mean = _block_sums(v, 1).sum(axis=0) / n if n > 1 else np.zeros(dim)
-    _shift_scale(v, mean, 1.0)
-    norm = math.sqrt(_block_sums(v, 2).sum() / n)
-    _shift_scale(v, np.zeros(dim), rms / norm if norm > 0 else 1.0)
-    return v
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
-def _normalise_rows(q):
-    for i in numba.prange(q.shape[0]):
-        s = 0.0
-        for d in range(q.shape[1]):
-            s += q[i, d] * q[i, d]
-        s = math.sqrt(s)
-        for d in range(q.shape[1]):
-            q[i, d] /= s
-
-
-def _parallel_quaternions(n: int, seed: int) -> np.ndarray:
-    """Uniformly random unit quaternions (w, x, y, z) with the counter-based generator."""
-    q = _normals(_stream_key(seed, STREAM_QUATERNION), n, 4)
-    _normalise_rows(q)
-    return q
+    """maxwellian() with the counter-based generator (one stream of :func:`_parallel_draws`)."""
+    return _parallel_draws(n, seed, [(stream, dim, rms)])[1][0]
 
 
 fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

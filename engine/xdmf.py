@@ -64,58 +64,62 @@ def _slab(ds: h5py.Dataset, h5_ref: str, k: int) -> str:
             f'{_item(ds, h5_ref, ds.shape)}</DataItem>')
 
 
-def xdmf_text(h5_path, h5_ref: Optional[str] = None) -> Optional[str]:
+def xdmf_text(h5_path, h5_ref: Optional[str] = None, *, f: Optional[h5py.File] = None) -> Optional[str]:
     """The XDMF document for a finished result file, or None when it holds no snapshot.
 
     ``h5_ref`` is the file name written into the document (default: the result's own base name, so the
-    sidecar works next to it); the service passes its download name instead.
+    sidecar works next to it); the service passes its download name instead. ``f``: the result, already open
+    (the writer's own handle before it closes the file; it is left open), else ``h5_path`` is opened.
     """
     h5_path = Path(h5_path)
+    if f is None:
+        with h5py.File(h5_path, "r") as opened:
+            return xdmf_text(h5_path, h5_ref, f=opened)
     ref = quoteattr(h5_ref or h5_path.name)[1:-1]
-    with h5py.File(h5_path, "r") as f:
-        part = f.get(PART)
-        if part is None or "position" not in part or part["position/value"].shape[0] == 0:
-            return None
-        pos = part["position/value"]
-        n_frames, n = pos.shape[0], pos.shape[1]
-        times = part["position/time"][()]
-        steps = part["position/step"][()]
-        edges = part["box/edges"][()].astype(float)
-        fixed = [(name, kind, part[name]) for name, kind in FIXED if name in part]
-        frames = [(name, kind, part[f"{name}/value"]) for name, kind in FRAME_ELEMENTS
-                  if name in part and part[f"{name}/value"].shape[0] == n_frames]
-        lines = ['<?xml version="1.0" ?>', '<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>',
-                 '<Xdmf Version="3.0" xmlns:xi="http://www.w3.org/2001/XInclude">', "<Domain>",
-                 '<Grid Name="particles" GridType="Collection" CollectionType="Temporal">']
-        for k in range(n_frames):
-            lines.append(f'<Grid Name="frame {k} step {int(steps[k])}" GridType="Uniform">')
-            lines.append(f'<Time Value="{float(times[k])!r}"/>')
-            lines.append(f'<Topology TopologyType="Polyvertex" NumberOfElements="{n}" NodesPerElement="1"/>')
-            lines.append(f'<Geometry GeometryType="XYZ">{_slab(pos, ref, k)}</Geometry>')
-            for name, kind, ds in frames:
-                lines.append(f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">'
-                             f'{_slab(ds, ref, k)}</Attribute>')
-            for name, kind, ds in fixed:
-                lines.append(f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">'
-                             f'{_item(ds, ref, ds.shape)}</Attribute>')
-            lines.append("</Grid>")
+    part = f.get(PART)
+    if part is None or "position" not in part or part["position/value"].shape[0] == 0:
+        return None
+    pos = part["position/value"]
+    n_frames, n = pos.shape[0], pos.shape[1]
+    times = part["position/time"][()]
+    steps = part["position/step"][()]
+    edges = part["box/edges"][()].astype(float)
+    fixed = [(name, kind, part[name]) for name, kind in FIXED if name in part]
+    frames = [(name, kind, part[f"{name}/value"]) for name, kind in FRAME_ELEMENTS
+              if name in part and part[f"{name}/value"].shape[0] == n_frames]
+    lines = ['<?xml version="1.0" ?>', '<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>',
+             '<Xdmf Version="3.0" xmlns:xi="http://www.w3.org/2001/XInclude">', "<Domain>",
+             '<Grid Name="particles" GridType="Collection" CollectionType="Temporal">']
+    for k in range(n_frames):
+        lines.append(f'<Grid Name="frame {k} step {int(steps[k])}" GridType="Uniform">')
+        lines.append(f'<Time Value="{float(times[k])!r}"/>')
+        lines.append(f'<Topology TopologyType="Polyvertex" NumberOfElements="{n}" NodesPerElement="1"/>')
+        lines.append(f'<Geometry GeometryType="XYZ">{_slab(pos, ref, k)}</Geometry>')
+        for name, kind, ds in frames:
+            lines.append(f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">'
+                         f'{_slab(ds, ref, k)}</Attribute>')
+        for name, kind, ds in fixed:
+            lines.append(f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">'
+                         f'{_item(ds, ref, ds.shape)}</Attribute>')
         lines.append("</Grid>")
-        corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=float) * edges
-        corners = corners[[0, 1, 3, 2, 4, 5, 7, 6]]      # VTK hexahedron order
-        lines += ['<Grid Name="box" GridType="Uniform">',
-                  f'<Information Name="edges" Value="{" ".join(repr(float(e)) for e in edges)}"/>',
-                  '<Information Name="boundary" Value="periodic periodic periodic"/>',
-                  '<Topology TopologyType="Hexahedron" NumberOfElements="1">'
-                  '<DataItem Dimensions="1 8" NumberType="Int" Format="XML">0 1 2 3 4 5 6 7</DataItem></Topology>',
-                  '<Geometry GeometryType="XYZ"><DataItem Dimensions="8 3" NumberType="Float" Precision="8" '
-                  'Format="XML">' + " ".join(repr(float(c)) for c in corners.ravel()) + "</DataItem></Geometry>",
-                  "</Grid>", "</Domain>", "</Xdmf>", ""]
+    lines.append("</Grid>")
+    corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=float) * edges
+    corners = corners[[0, 1, 3, 2, 4, 5, 7, 6]]      # VTK hexahedron order
+    lines += ['<Grid Name="box" GridType="Uniform">',
+              f'<Information Name="edges" Value="{" ".join(repr(float(e)) for e in edges)}"/>',
+              '<Information Name="boundary" Value="periodic periodic periodic"/>',
+              '<Topology TopologyType="Hexahedron" NumberOfElements="1">'
+              '<DataItem Dimensions="1 8" NumberType="Int" Format="XML">0 1 2 3 4 5 6 7</DataItem></Topology>',
+              '<Geometry GeometryType="XYZ"><DataItem Dimensions="8 3" NumberType="Float" Precision="8" '
+              'Format="XML">' + " ".join(repr(float(c)) for c in corners.ravel()) + "</DataItem></Geometry>",
+              "</Grid>", "</Domain>", "</Xdmf>", ""]
     return "\n".join(lines)
 
 
-def write_xdmf(h5_path) -> Optional[Path]:
-    """Write ``<stem>.xmf`` next to the finished result ``h5_path`` (atomically); None without snapshots."""
-    text = xdmf_text(h5_path)
+def write_xdmf(h5_path, text: Optional[str] = None) -> Optional[Path]:
+    """Write ``<stem>.xmf`` next to the finished result ``h5_path`` (atomically); None without snapshots.
+    ``text``: its :func:`xdmf_text`, when the caller has it (else it is read from the file)."""
+    text = xdmf_text(h5_path) if text is None else text
     if text is None:
         return None
     out = sidecar_path(h5_path)

@@ -191,6 +191,13 @@ class CudaEnsemble:
             K.scatter_rows[self._grid(self.n)](cuda.to_device(a, stream=self.stream), 0, dst)
         return dst
 
+    def _copy(self, a):
+        """A device copy of device array ``a`` (on the stream; no host round trip)."""
+        b = cuda.device_array(a.shape, a.dtype, stream=self.stream)
+        if a.size:
+            b.copy_to_device(a, stream=self.stream)
+        return b
+
     def _zeros(self, shape, dtype):
         """A device array of zeros: a memset on the stream, no host array to copy."""
         a = cuda.device_array(shape, dtype, stream=self.stream)

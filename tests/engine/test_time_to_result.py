@@ -15,8 +15,9 @@ import pytest
 from engine.errors import InstabilityError
 from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
-from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_VELOCITY,
-                          _parallel_maxwellian, initial_ellipsoids, initial_spheres, start_generator)
+from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
+                          STREAM_SITES, STREAM_SPIN, STREAM_VELOCITY, _bits, _parallel_draws, _parallel_maxwellian,
+                          _smallest_sites, _stream_key, initial_ellipsoids, initial_spheres, start_generator)
 from engine.spec import SimulationSpec
 
 
@@ -66,15 +67,58 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
 
 
 def test_parallel_start_does_not_depend_on_the_thread_count():
+    # 50 000 of the 55 296 sites of a 24^3-cell lattice: the site selection runs too
+    streams = [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 5.0), (STREAM_QUATERNION, 4, None)]
     threads = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
-        one = _parallel_maxwellian(50_000, 2.0, 7, STREAM_VELOCITY, 3)
+        one = _parallel_draws(50_000, 7, streams, place=(4.6, 0.05))
+        vel_one = _parallel_maxwellian(50_000, 2.0, 7, STREAM_VELOCITY, 3)
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-        many = _parallel_maxwellian(50_000, 2.0, 7, STREAM_VELOCITY, 3)
+        many = _parallel_draws(50_000, 7, streams, place=(4.6, 0.05))
     finally:
         numba.set_num_threads(threads)
-    assert np.array_equal(one, many)
+    assert np.array_equal(one[0], many[0])
+    assert all(np.array_equal(a, b) for a, b in zip(one[1], many[1]))
+    # a stream's draws do not depend on the other streams drawn with it
+    assert np.array_equal(vel_one, many[1][0])
+
+
+@numba.njit(parallel=True)
+def _select_in_parallel(key, n_sites, n):
+    return _smallest_sites(key, n_sites, n)     # inlined, as in engine.scene._draw_start: its pranges run
+
+
+@numba.njit
+def _site_keys(key, n_sites):
+    out = np.empty(n_sites, np.uint64)
+    for j in range(n_sites):
+        out[j] = _bits(key, j, 0)
+    return out
+
+
+@pytest.mark.parametrize("n, n_sites", [(1, 4), (3, 32), (255, 256), (5000, 6912), (27_000, 32_000)])
+def test_site_selection_takes_the_sites_of_smallest_key(n, n_sites):
+    """The radix select of the large starts picks what a sort of all keys picks (the choice before it replaced
+    np.argpartition + np.sort; 64-bit keys never tie here, so the set is unique)."""
+    key = _stream_key(11, STREAM_SITES)
+    keys = _site_keys(key, n_sites)
+    assert len(np.unique(keys)) == n_sites
+    chosen = _select_in_parallel(key, n_sites, n)
+    assert np.array_equal(chosen, np.sort(np.argpartition(keys, n - 1)[:n]))
+
+
+def test_stream_keys_are_splitmix64_of_seed_and_stream():
+    """The Python-integer stream key against SplitMix64 written out in NumPy's wrapping uint64 arithmetic."""
+    def mix(x):
+        with np.errstate(over="ignore"):
+            x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            return x ^ (x >> np.uint64(31))
+    for seed, stream in [(0, 0), (7, 3), (2**63 + 5, 1), (-1, 5)]:
+        with np.errstate(over="ignore"):
+            x = np.uint64(seed % 2**64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(stream + 1)
+        assert _stream_key(seed, stream) == mix(np.array([x]))[0]
 
 
 def test_parallel_ellipsoid_start_spins_only_about_the_perpendicular_axes():

@@ -12,7 +12,7 @@ import pytest
 
 from engine.export_gsd import body_inertia, export_gsd, rotate
 from engine.simulate import run
-from engine.xdmf import sidecar_path
+from engine.xdmf import sidecar_path, xdmf_text
 
 # 64 rough spheres (e_t = 0.5, so they spin) and 64 smooth spheroids xi = 2, three snapshots each
 SPHERES = dict(n_particles=64, volume_fraction=0.05, box_length=0.5, t_end=0.1, thermalization=0.5, snapshots=3,
@@ -45,6 +45,8 @@ def test_every_result_gets_a_sidecar_naming_the_h5_relatively(result):
     text = xmf.read_text()
     assert "result.h5:/particles/all/position/value" in text
     assert str(result["path"].parent) not in text          # relative: the pair can be moved together
+    # the writer takes the sidecar from its own open handle: the same document as one read from the closed file
+    assert text == xdmf_text(result["path"])
 
 
 def _read_xdmf(path):

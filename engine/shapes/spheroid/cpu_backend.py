@@ -48,9 +48,11 @@ PW_TOL = {"float64": 1e-15, "float32": 1e-7}
 PW_SCREEN = {"float64": 1e-9, "float32": 1e-3}
 
 
-@numba.njit(cache=True)
+# per particle and independent of the others: parallel loops (2M ellipsoids: the GPU ensemble's set-up and every
+# snapshot's host copy take them too)
+@numba.njit(cache=True, parallel=True)
 def omega_from_angm(quat, angm, inv_i, half, out):
-    for i in range(quat.shape[0]):
+    for i in numba.prange(quat.shape[0]):
         w = space_omega(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], angm[i, 0], angm[i, 1], angm[i, 2],
                         inv_i[i, 0], inv_i[i, 1], inv_i[i, 2], half)
         out[i, 0] = w[0]
@@ -58,9 +60,9 @@ def omega_from_angm(quat, angm, inv_i, half, out):
         out[i, 2] = w[2]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def angm_from_omega(quat, omega, inertia, half, out):
-    for i in range(quat.shape[0]):
+    for i in numba.prange(quat.shape[0]):
         L = angular_momentum(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], omega[i, 0], omega[i, 1],
                              omega[i, 2], inertia[i, 0], inertia[i, 1], inertia[i, 2], half)
         out[i, 0] = L[0]

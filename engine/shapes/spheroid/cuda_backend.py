@@ -78,14 +78,15 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
                                          and np.all(sy.inertia == sy.inertia[0])) for sy in systems)
         self._rmax = [float(np.max(sy.semi_axes)) if sy.n else 0.0 for sy in systems]
         # host arrays in the working precision, exactly as CpuEllipsoidBackend builds them
-        quat = np.ascontiguousarray((orient / np.linalg.norm(orient, axis=1)[:, None]).astype(dt_))
-        axes_c = axes.astype(dt_)
-        inertia_c = inertia.astype(dt_)
-        inv_i = (1.0 / inertia_c).astype(dt_)
+        quat = np.ascontiguousarray((orient / np.linalg.norm(orient, axis=1)[:, None]).astype(dt_, copy=False))
+        axes_c = axes.astype(dt_, copy=False)
+        inertia_c = np.ascontiguousarray(inertia.astype(dt_, copy=False))
+        inv_i = (1.0 / inertia_c).astype(dt_, copy=False)
         inv_m = (1.0 / mass.astype(dt_)).astype(dt_)
-        angm = np.zeros((n, 3), dt_)
-        angm_from_omega(quat, np.ascontiguousarray(cat("angular_velocity").astype(dt_)), inertia_c, half, angm)
-        omega_p = np.zeros((n, 3), dt_)
+        angm = np.empty((n, 3), dt_)        # every row written by the loops below
+        angm_from_omega(quat, np.ascontiguousarray(cat("angular_velocity").astype(dt_, copy=False)), inertia_c, half,
+                        angm)
+        omega_p = np.empty((n, 3), dt_)
         omega_from_angm(quat, angm, inv_i, half, omega_p)
         self._inv_i_h = inv_i
         self._bmin = [float(np.min(axes_c[a:a + m])) if m else 1.0 for a, m in zip(self.starts, self.sizes)]
@@ -94,13 +95,13 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         up = self._up
         self.pos = up(cat("position"), 3)
         self.vel = up(cat("velocity"), 3)
-        self.vel_p = up(cat("velocity"), 3)
+        self.vel_p = self._copy(self.vel)
         self.angm = up(angm, 3)
         self.omega_p = up(omega_p, 3)
         self.quat = up(quat, 4)
         # state before the current step (a contact starting after a screened step needs that step's gap)
-        self.pos_prev = up(cat("position"), 3)
-        self.quat_prev = up(quat, 4)
+        self.pos_prev = self._copy(self.pos)
+        self.quat_prev = self._copy(self.quat)
         self.force = self._zeros((3, n), dt_)
         self.torque = self._zeros((3, n), dt_)
         # one force buffer (the force phase reads vel_p/omega_p, not other particles' forces): the sphere
