@@ -284,10 +284,7 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
         w_b = rng.normal(size=(n, 2))
         w_b -= w_b.mean(axis=0) if n > 1 else 0.0
         w_b *= w_rms[0] / math.sqrt(np.mean(w_b * w_b))
-    w, x, y, z = quat.T
-    e2 = np.stack([2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)], 1)
-    e3 = np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], 1)
-    omega = w_b[:, :1] * e2 + w_b[:, 1:] * e3
+    w_a = np.zeros((n, 1))
     if not spec.smooth:
         # rough contacts exchange spin about the symmetry axis too: that dof starts thermal as well
         # (drawn after the others, from its own stream, so a smooth start is unchanged)
@@ -297,12 +294,41 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
             w_a = rng.normal(size=(n, 1))
             w_a -= w_a.mean(axis=0) if n > 1 else 0.0
             w_a *= w_rms[1] / math.sqrt(np.mean(w_a * w_a))
-        e1 = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)], 1)
-        omega = omega + w_a * e1
+    omega = np.empty((n, 3))
+    (_space_spins_parallel if parallel else _space_spins)(quat, w_b, w_a, not spec.smooth, omega)
     return EllipsoidSystem(
         box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
         semi_axes=np.tile(np.asarray(p.semi_axes, float), (n, 1)), mass=np.full(n, p.mass),
         inertia=np.tile(np.asarray(p.inertia, float), (n, 1)))
+
+
+@numba.njit(cache=True, inline="always")
+def _space_spin(w, x, y, z, wb0, wb1, wa, rough):
+    """The space-frame spin of an ellipsoid of orientation (w, x, y, z) spinning at wb0, wb1 about its body axes
+    e2, e3 (the columns of its rotation matrix) and, when ``rough``, at wa about its symmetry axis e1."""
+    e2x, e2y, e2z = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z), 2 * (y * z + w * x)
+    e3x, e3y, e3z = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+    ox, oy, oz = wb0 * e2x + wb1 * e3x, wb0 * e2y + wb1 * e3y, wb0 * e2z + wb1 * e3z
+    if rough:
+        e1x, e1y, e1z = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z), 2 * (x * z - w * y)
+        ox, oy, oz = ox + wa * e1x, oy + wa * e1y, oz + wa * e1z
+    return ox, oy, oz
+
+
+@numba.njit(cache=True)
+def _space_spins(quat, w_b, w_a, rough, out):
+    """:func:`_space_spin` of every row (a small start: one thread, so several scenes may be set up at once)."""
+    for i in range(quat.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = _space_spin(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], w_b[i, 0],
+                                                      w_b[i, 1], w_a[i, 0], rough)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _space_spins_parallel(quat, w_b, w_a, rough, out):
+    """:func:`_space_spins` over threads (a large start, drawn by the parallel generator)."""
+    for i in numba.prange(quat.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = _space_spin(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], w_b[i, 0],
+                                                      w_b[i, 1], w_a[i, 0], rough)
 
 
 def _ellipsoid_spin_rms(spec, p: Derived) -> tuple:

@@ -84,6 +84,18 @@ def test_parallel_start_does_not_depend_on_the_thread_count():
     assert np.array_equal(vel_one, many[1][0])
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_unit_quaternions_are_numpys_normalisation(dtype):
+    """Both ellipsoid backends normalise the start's quaternions with one compiled loop; it must give NumPy's
+    ``orient / np.linalg.norm(orient, axis=1)[:, None]`` (what they used before) bit for bit."""
+    from engine.shapes.spheroid.cpu_backend import unit_quaternions
+
+    orient = np.random.default_rng(5).normal(size=(200_000, 4)) * 3.0
+    out = np.empty_like(orient, dtype=dtype)
+    unit_quaternions(orient, out)
+    assert np.array_equal(out, (orient / np.linalg.norm(orient, axis=1)[:, None]).astype(dtype))
+
+
 @numba.njit(parallel=True)
 def _select_in_parallel(key, n_sites, n):
     return _smallest_sites(key, n_sites, n)     # inlined, as in engine.scene._draw_start: its pranges run

@@ -12,6 +12,8 @@ broad phase, exact screens, lower id as "A", Fincham's leap-frog on L).
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -61,6 +63,19 @@ def omega_from_angm(quat, angm, inv_i, half, out):
 
 
 @numba.njit(cache=True, parallel=True)
+def unit_quaternions(orient, out):
+    """``out`` (in its own precision) = each row of the float64 ``orient`` over its norm, the sum of squares taken
+    in row order as NumPy's ``np.linalg.norm(orient, axis=1)`` takes it (tests/engine/test_time_to_result.py)."""
+    for i in numba.prange(orient.shape[0]):
+        s = 0.0
+        for k in range(4):
+            s += orient[i, k] * orient[i, k]
+        s = math.sqrt(s)
+        for k in range(4):
+            out[i, k] = orient[i, k] / s
+
+
+@numba.njit(cache=True, parallel=True)
 def angm_from_omega(quat, omega, inertia, half, out):
     for i in numba.prange(quat.shape[0]):
         L = angular_momentum(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], omega[i, 0], omega[i, 1],
@@ -91,7 +106,8 @@ class CpuEllipsoidBackend(CpuLoop):
 
         self.pos = arr(system.position)
         self.vel = arr(system.velocity)
-        self.quat = arr(np.asarray(system.orientation) / np.linalg.norm(system.orientation, axis=1)[:, None])
+        self.quat = np.empty((n, 4), dt_)
+        unit_quaternions(np.ascontiguousarray(system.orientation, np.float64), self.quat)
         self.axes = arr(system.semi_axes)
         self.bound = arr(np.max(system.semi_axes, axis=1))
         self.mass = arr(system.mass)

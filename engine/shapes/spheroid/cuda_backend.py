@@ -32,7 +32,7 @@ from engine.backends import cuda_kernels as K
 from engine.backends import cuda_loop
 from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.shapes.spheroid.cpu_backend import (PW_SCREEN, PW_TOL, SLOT_ROUGH, angm_from_omega, omega_from_angm,
-                                                rotational_dof, tangential_factor_of)
+                                                rotational_dof, tangential_factor_of, unit_quaternions)
 from engine.backends.cuda import CudaBackend, CudaEnsemble
 from engine.physics.sonine import sonine_sums
 from engine.shapes.spheroid import device as CE
@@ -78,7 +78,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
                                          and np.all(sy.inertia == sy.inertia[0])) for sy in systems)
         self._rmax = [float(np.max(sy.semi_axes)) if sy.n else 0.0 for sy in systems]
         # host arrays in the working precision, exactly as CpuEllipsoidBackend builds them
-        quat = np.ascontiguousarray((orient / np.linalg.norm(orient, axis=1)[:, None]).astype(dt_, copy=False))
+        quat = np.empty((n, 4), dt_)
+        unit_quaternions(np.ascontiguousarray(orient), quat)
         axes_c = axes.astype(dt_, copy=False)
         inertia_c = np.ascontiguousarray(inertia.astype(dt_, copy=False))
         inv_i = (1.0 / inertia_c).astype(dt_, copy=False)
