@@ -15,6 +15,7 @@ from jobs.batch_results import BatchNotFound, BatchNotReady, batch_result
 from jobs.specs import admit, expand_sweep, sweep_size
 from jobs.store import NewJob
 from service.deps import SettingsDep, StoreDep, wake_worker
+from service.downloads import Download
 from service.errors import InvalidRequest, rejected
 from service.results import batch_plot_png
 from service.schemas import BatchIn, BatchOut
@@ -71,7 +72,7 @@ def get_batch_result(batch_id: BatchId, store: StoreDep, settings: SettingsDep, 
     the seeds and the job ids (layout: engine/ensemble_stats.py). Failed or cancelled jobs are left out
     and listed in the file's ``excluded`` attribute."""
     path = _batch_file(store, settings, batch_id, partial)
-    return FileResponse(path, media_type="application/x-hdf5", filename=f"demq-batch-{batch_id}.h5")
+    return Download(path, media_type="application/x-hdf5", filename=f"demq-batch-{batch_id}.h5")
 
 
 @router.get("/{batch_id}/plot.png", response_class=Response, responses={

@@ -15,6 +15,7 @@ from starlette.background import BackgroundTask
 from jobs.schema import DONE
 from jobs.store import Job
 from service.deps import JobDep
+from service.downloads import Download
 from service.errors import InvalidRequest
 from service.results import cooling_plot_png, energy_csv, read_energy
 
@@ -37,7 +38,7 @@ def _result_file(job: Job) -> Path:
                        200: {"content": {"application/x-hdf5": {}}, "description": "the HDF5 (H5MD) result"}})
 def get_result(job: JobDep) -> FileResponse:
     """Download the HDF5 result file."""
-    return FileResponse(_result_file(job), media_type="application/x-hdf5", filename=f"demq-{job.id}.h5")
+    return Download(_result_file(job), media_type="application/x-hdf5", filename=f"demq-{job.id}.h5")
 
 
 @router.get("/{job_id}/energy", responses={**RESPONSES, 200: {
@@ -100,8 +101,8 @@ def get_gsd(job: JobDep) -> FileResponse:
     except BaseException:
         os.unlink(tmp)
         raise
-    return FileResponse(tmp, media_type="application/octet-stream", filename=f"demq-{job.id}.gsd",
-                        background=BackgroundTask(os.unlink, tmp))
+    return Download(tmp, media_type="application/octet-stream", filename=f"demq-{job.id}.gsd",
+                    background=BackgroundTask(os.unlink, tmp))
 
 
 @router.get("/{job_id}/snapshot.png", response_class=Response, responses={
@@ -114,7 +115,12 @@ def get_snapshot(job: JobDep,
                  renderer: Annotated[Literal["auto", "ovito", "matplotlib"], Query(
                      description="auto: OVITO's Tachyon when installed, else matplotlib")] = "auto") -> Response:
     """A picture of one snapshot frame: spheres or oriented spheroids, coloured with a colour bar, box outline."""
-    from service.render import FrameOutOfRange, NoSnapshot, ovito_available, snapshot_png
+    from service.render import (
+        FrameOutOfRange,
+        NoSnapshot,
+        ovito_available,
+        snapshot_png,
+    )
 
     path = _result_file(job)
     if renderer == "ovito" and not ovito_available():
