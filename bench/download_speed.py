@@ -95,8 +95,9 @@ def main() -> None:
                 f.write(os.urandom(1 << 20))
         for response in ("FileResponse", "Download", "FileResponse", "Download"):
             for client, t in time_downloads(path, response, a.reps).items():
+                med = statistics.median(t)
                 print(f"{response:13s} {client:5s} {a.mb} MiB: " + ", ".join(f"{x:.3f}" for x in t)
-                      + f" s (median {statistics.median(t):.3f} s, {a.mb / statistics.median(t):.0f} MiB/s)", flush=True)
+                      + f" s (median {med:.3f} s, {a.mb / med:.0f} MiB/s)", flush=True)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ variance T0/m_i per component, zero total momentum; spins with variance T0/I_i, 
 Large starts (N >= PARALLEL_START_MIN, one size; issue 14): the same protocol, drawn in parallel (Numba
 prange) from a counter-based generator (SplitMix64 of seed, stream, particle and draw index; normals by
 Box-Muller), so the start is the same whatever the thread count, and sums (mean momentum, energy) are taken
-in fixed blocks. These starts differ from the sequential NumPy draws of smaller N (``start_generator``
+in fixed blocks; the N sites are those of smallest 64-bit key (a parallel radix select). These starts differ from the sequential NumPy draws of smaller N (``start_generator``
 says which one a spec gets; the result's /parameters@start_generator records it).
 """
 
@@ -513,9 +513,10 @@ def _smallest_sites(key, n_sites, n):
 def _draw_start(n, n_sites, m, a, half_gap, box, site_key, place_key, keys, outs, unit):
     """The draws of a large one-size start in one compiled call (one disk-cache load in a fresh process).
 
-    Positions (none when ``n_sites`` is 0): the n sites of smallest key (:func:`_smallest_sites`; all sites when n = n_sites) of the fcc lattice
-    of m^3 cells of edge ``a`` (m), numbered as :func:`fcc_sites` numbers them, each displaced uniformly in a ball
-    of radius ``half_gap`` (direction from three normals, radius from a uniform), wrapped into [0, box).
+    Positions (none when ``n_sites`` is 0): the n sites of smallest key (:func:`_smallest_sites`; all of them when
+    n = n_sites) of the fcc lattice of m^3 cells of edge ``a`` (m), numbered as :func:`fcc_sites` numbers them, each
+    displaced uniformly in a ball of radius ``half_gap`` (direction from three normals, radius from a uniform),
+    wrapped into [0, box).
     Then for each stream s, ``outs[s]`` (n x dim) gets standard normals from ``keys[s]``; rows of a ``unit``
     stream are normalised (uniform quaternions). Returns the positions and, per stream, the column sums of each
     block of _BLOCK rows (S x blocks x 4; the start's mean, taken in fixed blocks for any thread count).
@@ -590,6 +591,7 @@ def _centre_and_square(outs, means, unit):
 
 @numba.njit(cache=True, parallel=True, nogil=True)  # nogil: engine/startup.py's thread works meanwhile
 def _scale_streams(outs, scales, unit):
+    """Multiply each (not unit) stream by its scale (sqrt(<|v|^2>) = rms exactly)."""
     for s in range(len(outs)):
         if unit[s]:
             continue
