@@ -35,6 +35,7 @@ from engine.backends.base import EllipsoidSystem, SphereSystem
 from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.errors import SpecError
 from engine.params import Derived, species_table
+from engine.physics.rotation import quat_unit
 
 
 def fcc_sites(n: int, box: float) -> tuple[np.ndarray, float]:
@@ -518,7 +519,7 @@ def _draw_start(n, n_sites, m, a, half_gap, box, site_key, place_key, keys, outs
     displaced uniformly in a ball of radius ``half_gap`` (direction from three normals, radius from a uniform),
     wrapped into [0, box).
     Then for each stream s, ``outs[s]`` (n x dim) gets standard normals from ``keys[s]``; rows of a ``unit``
-    stream are normalised (uniform quaternions). Returns the positions and, per stream, the column sums of each
+    stream (dim 4) are normalised (uniform quaternions, quat_unit). Returns the positions and, per stream, the column sums of each
     block of _BLOCK rows (S x blocks x 4; the start's mean, taken in fixed blocks for any thread count).
     """
     n_placed = n if n_sites > 0 else 0       # n_sites = 0: no positions
@@ -554,13 +555,8 @@ def _draw_start(n, n_sites, m, a, half_gap, box, site_key, place_key, keys, outs
                 v[i, k] = g0
                 if k + 1 < dim:
                     v[i, k + 1] = g1
-            if unit[s]:
-                q = 0.0
-                for d in range(dim):
-                    q += v[i, d] * v[i, d]
-                q = math.sqrt(q)
-                for d in range(dim):
-                    v[i, d] /= q
+            if unit[s]:      # a quaternion stream (dim 4, _parallel_draws)
+                v[i, 0], v[i, 1], v[i, 2], v[i, 3] = quat_unit(v[i, 0], v[i, 1], v[i, 2], v[i, 3])
         if not unit[s]:
             for bl in numba.prange(n_blocks):
                 for i in range(bl * _BLOCK, min(n, (bl + 1) * _BLOCK)):
@@ -611,7 +607,7 @@ def _parallel_draws(n: int, seed: int, streams: list, place=None) -> tuple:
 
     ``place``: None, or (box, radius): place_spheres' protocol (fcc sites, n of them at random, a random
     displacement in the free room; SpecError when the spheres do not fit). ``streams``: (stream, dim, rms) per
-    array drawn; rms None gives unit rows (uniform quaternions for dim 4), a number Maxwellian components of zero
+    array drawn; rms None gives uniform unit quaternions (dim 4), a number Maxwellian components of zero
     mean and sqrt(<|v|^2>) = rms exactly (maxwellian()). Every stream is its own sequence of draws, so what one
     array holds does not depend on the others. Returns (positions or None, [arrays])."""
     if place is not None:
@@ -622,6 +618,8 @@ def _parallel_draws(n: int, seed: int, streams: list, place=None) -> tuple:
         half_gap = 0.5 * lattice_gap(n, box, radius, n_sites, a / math.sqrt(2.0))
     else:
         box, m, a, n_sites, half_gap = 1.0, 1, 1.0, 0, 0.0
+    if any(rms is None and dim != 4 for _, dim, rms in streams):
+        raise ValueError("unit rows are drawn for quaternions only (dim 4)")
     outs = tuple(np.empty((n, dim)) for _, dim, _ in streams)
     keys = np.array([_stream_key(seed, stream) for stream, _, _ in streams], np.uint64)
     unit = np.array([rms is None for _, _, rms in streams])
@@ -639,11 +637,6 @@ def _parallel_draws(n: int, seed: int, streams: list, place=None) -> tuple:
             scales[s] = rms / norm if norm > 0 else 1.0
     _scale_streams(outs, scales, unit)
     return (pos if place is not None else None), list(outs)
-
-
-def _parallel_maxwellian(n: int, rms: float, seed: int, stream: int, dim: int) -> np.ndarray:
-    """maxwellian() with the counter-based generator (one stream of :func:`_parallel_draws`)."""
-    return _parallel_draws(n, seed, [(stream, dim, rms)])[1][0]
 
 
 fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

@@ -12,8 +12,6 @@ broad phase, exact screens, lower id as "A", Fincham's leap-frog on L).
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
@@ -23,7 +21,7 @@ from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.backends.cpu import CpuLoop
 from engine.backends.cpu_shared import SLOT, collect_springs, restore_springs
 from engine.params import Q_SPHERE
-from engine.physics.rotation import angular_momentum, space_omega
+from engine.physics.rotation import angular_momentum, quat_unit, space_omega
 from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
 from engine.precision import check_shape, state_dtype
 from engine.shapes.spheroid import kernels as spheroid
@@ -64,15 +62,10 @@ def omega_from_angm(quat, angm, inv_i, half, out):
 
 @numba.njit(cache=True, parallel=True)
 def unit_quaternions(orient, out):
-    """``out`` (in its own precision) = each row of the float64 ``orient`` over its norm, the sum of squares taken
-    in row order as NumPy's ``np.linalg.norm(orient, axis=1)`` takes it (tests/engine/test_time_to_result.py)."""
+    """``out`` (in its own precision) = each row of the float64 ``orient`` over its norm (quat_unit: NumPy's
+    ``orient / np.linalg.norm(orient, axis=1)[:, None]`` bit for bit, tests/engine/test_time_to_result.py)."""
     for i in numba.prange(orient.shape[0]):
-        s = 0.0
-        for k in range(4):
-            s += orient[i, k] * orient[i, k]
-        s = math.sqrt(s)
-        for k in range(4):
-            out[i, k] = orient[i, k] / s
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = quat_unit(orient[i, 0], orient[i, 1], orient[i, 2], orient[i, 3])
 
 
 @numba.njit(cache=True, parallel=True)
