@@ -17,7 +17,7 @@ import numba
 _ENGINE = Path(__file__).resolve().parent
 
 
-def source_digest() -> str:
+def _hash_sources() -> str:
     h = hashlib.sha1()
     for sub in ("physics", "backends", "shapes"):
         for f in sorted((_ENGINE / sub).rglob("*.py")):          # shape packages are sub-folders
@@ -28,6 +28,19 @@ def source_digest() -> str:
         h.update(name.encode())
         h.update((_ENGINE / name).read_bytes())
     return h.hexdigest()[:16]
+
+
+#: the digest of the engine sources as this module's import found them (source_digest)
+_DIGEST = _hash_sources()
+
+
+def source_digest() -> str:
+    """A hash of every engine source the compiled code is built from, taken once, when this module is imported
+    (with the engine's own imports). It names the code this process runs: a hash taken later, after the files
+    changed on disk, would file this process's machine code under sources it was not compiled from, where a new
+    process would load it. (Hashing again also cost about 1 ms of Python, and up to 16 ms of waiting for the GIL
+    measured on the GPU start-up thread, for every kernel set a GPU job makes: issue 14.)"""
+    return _DIGEST
 
 
 def configure() -> None:

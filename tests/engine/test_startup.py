@@ -208,3 +208,22 @@ def test_an_early_driver_start_is_released_when_no_startup_took_it(monkeypatch):
     startup.release_early()
     startup.release_early()
     assert released == [1] and startup._early is None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the driver's files are Linux's")
+def test_without_an_nvidia_driver_the_gpu_probe_does_not_import_numba_cuda(monkeypatch):
+    """A CPU machine's jobs ('auto' backend) do not pay numba-cuda's import (0.2 s) to learn there is no GPU."""
+    import engine.backends.base as base
+
+    monkeypatch.setattr(base, "NVIDIA_DRIVER_PATHS", ("/nonexistent/nvidiactl",))
+    assert base.no_nvidia_driver()
+    monkeypatch.setattr(base, "NVIDIA_DRIVER_PATHS", ("/proc/self",))   # a path that exists: a driver is loaded
+    assert not base.no_nvidia_driver()
+    monkeypatch.undo()
+    if not base.no_nvidia_driver():
+        pytest.skip("this machine has an NVIDIA driver")
+    code = ("import sys; from engine.backends.base import cuda_available; "
+            "print(cuda_available(), 'numba.cuda' in sys.modules)")
+    env = {k: v for k, v in child_env().items() if k != "NUMBA_ENABLE_CUDASIM"}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]

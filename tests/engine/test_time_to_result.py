@@ -534,6 +534,16 @@ def test_every_cached_engine_kernel_loads_without_the_target_refresh():
     assert found == set(_ENGINE_JIT_MODULES)
 
 
+def test_the_source_digest_is_the_sources_at_import_and_is_not_taken_again(monkeypatch):
+    """Kernel cache keys name the code this process imported (a hash taken after an edit on disk would file old
+    machine code under the new sources), and a kernel set's key costs no re-hash."""
+    import engine.jitcache as jc
+
+    assert jc.source_digest() == jc._hash_sources()     # the sources have not changed since the import
+    monkeypatch.setattr(jc, "_hash_sources", lambda: pytest.fail("the sources were hashed again"))
+    assert jc.source_digest() == jc._DIGEST
+
+
 _FRESH_JOB = """
 import sys
 from engine.simulate import run
