@@ -332,6 +332,24 @@ def _space_spins_parallel(quat, w_b, w_a, rough, out):
                                                       w_b[i, 1], w_a[i, 0], rough)
 
 
+def load_parallel_start(spec, p: Derived) -> bool:
+    """Load every compiled function a large start of ``spec``'s kind calls (spec's shape and contact law; its
+    n_particles is not read), for the argument types it calls them with, from numba's disk cache (or compile them):
+    a start of a few particles is drawn through the same functions and discarded. False, and nothing loaded, for a
+    species spec (its starts are drawn by NumPy). For the worker's standby process (engine.simulate.warm_process):
+    a later large start of this kind then loads nothing."""
+    if species_table(spec) is not None:
+        return False
+    n = 64
+    streams, _ = parallel_start_streams(spec, p)
+    # unplaced: the same compiled calls with the same argument types (a site count of 0 selects no site)
+    _, drawn = _parallel_draws(n, spec.seed, streams)
+    if spec.shape == "ellipsoid":
+        w_a = drawn[3] if not spec.smooth else np.zeros((n, 1))
+        _space_spins_parallel(drawn[1], drawn[2], w_a, not spec.smooth, np.empty((n, 3)))
+    return True
+
+
 def _ellipsoid_spin_rms(spec, p: Derived) -> tuple:
     """rms spin of an ellipsoid about each perpendicular body axis, and about the symmetry axis: the
     translational temperature per degree of freedom, m <v^2>/3 = I_k <w_k^2>."""

@@ -861,19 +861,21 @@ def _build(scenes, live, results, build, build_one):
 
 def warm_process(spec=None) -> None:
     """Pay this process's one-off start-up ahead of its first job (the worker's standby process, jobs/runner.py):
-    numba's CPU target with the parallel start's functions (a start of engine.scene.PARALLEL_START_MIN spheres:
-    0.05 s on 16 cores, 0.5 s on 2), and on a GPU the driver, the context and the kernels of ``spec``'s specialisation (default: the
-    default spec; engine/startup.py). Later jobs' results are unchanged: nothing of this is kept but loaded code."""
-    from engine.scene import PARALLEL_START_MIN
+    numba's CPU target with the functions of a large start of ``spec``'s shape and contact law and of a large
+    sphere start (each drawn for a few particles: engine.scene.load_parallel_start), and on a GPU the driver, the
+    context and the kernels of ``spec``'s specialisation (default: the default spec; engine/startup.py). Later
+    jobs' results are unchanged: nothing of this is kept but loaded code."""
     from engine.shapes import host
 
     spec = spec if spec is not None else SimulationSpec()
     p = derive(spec)
     started = begin_gpu_startup(spec, spec.backend, run_contacts(spec, p), p)
-    n = PARALLEL_START_MIN
-    big = SimulationSpec(n_particles=n, volume_fraction=0.058, box_length=2.0 * (n / 4096) ** (1.0 / 3.0),
-                         thermalization=0)
-    host("sphere").initial_system(big, derive(big))
+    load = getattr(host(spec.shape), "load_start", None)        # optional plug-in hook (engine/shapes/README.md)
+    if load is not None:
+        load(spec, p)
+    if spec.shape != "sphere" or getattr(spec, "species", None):
+        sphere = SimulationSpec()
+        host("sphere").load_start(sphere, derive(sphere))
     if started is not None:
         started.wait()
 

@@ -66,6 +66,50 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
     assert not np.array_equal(other.velocity, v)
 
 
+@pytest.mark.parametrize("kw", [{}, {"shape": "ellipsoid", "elongation": 2.0, "e_t": -1.0},
+                                {"shape": "ellipsoid", "elongation": 2.0}])
+def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(monkeypatch, kw):
+    """engine.scene.load_parallel_start (the worker's standby, warm_process) calls every compiled function of a
+    large start of the spec's kind (spheres; smooth and rough ellipsoids, 3 and 4 streams) with the argument types
+    the start calls it with, so the start loads nothing more."""
+    import engine.scene as sc
+    from engine.shapes import host
+
+    calls: dict = {}
+    for name in ("_draw_start", "_centre_and_square", "_scale_streams", "_space_spins_parallel"):
+        f = getattr(sc, name)
+
+        def spy(*args, _f=f, _name=name):
+            calls.setdefault(_name, []).append(tuple(numba.typeof(a) for a in args))
+            return _f(*args)
+
+        monkeypatch.setattr(sc, name, spy)
+    spec = _big(**kw)
+    p = derive(spec)
+    assert host(spec.shape).load_start(spec.model_copy(update={"n_particles": 1000}), p)   # N is not read
+    loaded = {k: set(v) for k, v in calls.items()}
+    calls.clear()
+    host(spec.shape).initial_system(spec, p)
+    assert set(calls) == set(loaded) and all(set(v) <= loaded[k] for k, v in calls.items())
+    species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
+    assert not sc.load_parallel_start(_big(species=species), p)      # species starts are NumPy's
+
+
+def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypatch):
+    from engine import simulate
+    from engine.shapes import host
+
+    monkeypatch.setattr(simulate, "begin_gpu_startup", lambda *a: None)     # the GPU part: engine/startup.py
+    loaded = []
+    for shape in ("sphere", "ellipsoid"):
+        monkeypatch.setattr(host(shape), "load_start", lambda spec, p: loaded.append((spec.shape, spec.smooth)))
+    simulate.warm_process(SimulationSpec(shape="ellipsoid", elongation=2.0))
+    assert loaded == [("ellipsoid", False), ("sphere", False)]
+    loaded.clear()
+    simulate.warm_process()
+    assert loaded == [("sphere", False)]
+
+
 def test_parallel_start_does_not_depend_on_the_thread_count():
     # 50 000 of the 55 296 sites of a 24^3-cell lattice: the site selection runs too
     streams = [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 5.0), (STREAM_QUATERNION, 4, None)]
