@@ -865,17 +865,14 @@ def warm_process(spec=None) -> None:
     sphere start (each drawn for a few particles: engine.scene.load_parallel_start), and on a GPU the driver, the
     context and the kernels of ``spec``'s specialisation (default: the default spec; engine/startup.py). Later
     jobs' results are unchanged: nothing of this is kept but loaded code."""
-    from engine.shapes import host
+    from engine.scene import load_parallel_start
 
     spec = spec if spec is not None else SimulationSpec()
     p = derive(spec)
     started = begin_gpu_startup(spec, spec.backend, run_contacts(spec, p), p)
-    load = getattr(host(spec.shape), "load_start", None)        # optional plug-in hook (engine/shapes/README.md)
-    if load is not None:
-        load(spec, p)
-    if spec.shape != "sphere" or getattr(spec, "species", None):
+    if not load_parallel_start(spec, p) or spec.shape != "sphere":
         sphere = SimulationSpec()
-        host("sphere").load_start(sphere, derive(sphere))
+        load_parallel_start(sphere, derive(sphere))
     if started is not None:
         started.wait()
 

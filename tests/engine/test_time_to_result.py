@@ -75,7 +75,7 @@ def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(mon
     import engine.scene as sc
     from engine.shapes import host
 
-    calls: dict = {}
+    calls = {}
     for name in ("_draw_start", "_centre_and_square", "_scale_streams", "_space_spins_parallel"):
         f = getattr(sc, name)
 
@@ -86,7 +86,7 @@ def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(mon
         monkeypatch.setattr(sc, name, spy)
     spec = _big(**kw)
     p = derive(spec)
-    assert host(spec.shape).load_start(spec.model_copy(update={"n_particles": 1000}), p)   # N is not read
+    assert sc.load_parallel_start(spec.model_copy(update={"n_particles": 1000}), p)   # N is not read
     loaded = {k: set(v) for k, v in calls.items()}
     calls.clear()
     host(spec.shape).initial_system(spec, p)
@@ -96,18 +96,23 @@ def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(mon
 
 
 def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypatch):
+    import engine.scene as sc
     from engine import simulate
-    from engine.shapes import host
 
     monkeypatch.setattr(simulate, "begin_gpu_startup", lambda *a: None)     # the GPU part: engine/startup.py
     loaded = []
-    for shape in ("sphere", "ellipsoid"):
-        monkeypatch.setattr(host(shape), "load_start", lambda spec, p: loaded.append((spec.shape, spec.smooth)))
+    load = sc.load_parallel_start
+    monkeypatch.setattr(sc, "load_parallel_start",
+                        lambda spec, p: loaded.append((spec.shape, spec.smooth)) or load(spec, p))
     simulate.warm_process(SimulationSpec(shape="ellipsoid", elongation=2.0))
     assert loaded == [("ellipsoid", False), ("sphere", False)]
     loaded.clear()
     simulate.warm_process()
     assert loaded == [("sphere", False)]
+    loaded.clear()
+    species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
+    simulate.warm_process(SimulationSpec(species=species, volume_fraction=0.1))
+    assert [s for s, _ in loaded] == ["sphere", "sphere"]     # a species start is NumPy's: one-size spheres then
 
 
 def test_parallel_start_does_not_depend_on_the_thread_count():

@@ -20,14 +20,6 @@ def initial_system(spec, p) -> EllipsoidSystem:
     return initial_ellipsoids(spec, p)
 
 
-
-def load_start(spec, p) -> bool:
-    """Load the compiled functions of a large start of ``spec``'s kind (engine.scene.load_parallel_start): the
-    worker's standby process, engine.simulate.warm_process."""
-    from engine.scene import load_parallel_start
-
-    return load_parallel_start(spec, p)
-
 def standin_system(p, n_edge: int) -> EllipsoidSystem:
     """n_edge^3 resting spheroids of the spec's size and one orientation on a simple cubic lattice of spacing
     2.5 a (bounding spheres apart): the small scene of the GPU start-up (engine/startup.py), NumPy only."""
