@@ -58,9 +58,10 @@ from engine.precision import check_shape, position_dtype, state_dtype
 from engine.shapes.sphere import device as SC
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
-#: a snapshot buffer slot (all state arrays of the largest scene) larger than this starts in pageable memory
+#: a snapshot buffer slot (all state arrays of the largest scene) larger than this is pageable memory, page-locked in
+#: place (CudaEnsemble._host_slot)
 PINNED_SLOT_BYTES = 32 << 20
-#: ... and is pinned (on a thread) once the ensemble has taken this many large frames
+#: ... or, where it cannot be, replaced by pinned buffers (allocated on a thread) after this many large frames
 PIN_AFTER_FRAMES = 3
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
 #: measured on an H200 (bench/gpu_ensemble.py): 10x faster at 4096, equal at 2^20, 25 % slower at 2^22
@@ -909,12 +910,15 @@ class CudaEnsemble:
     def _host_slot(self, slot: int, nmax: int) -> dict:
         """The host buffers {key: (nmax, rows)} of a state buffer slot (:meth:`_scene_rows`).
 
-        Pinned at once when small (an ensemble of small scenes); larger ones start as plain (pageable) memory,
-        since allocating and pinning them costs more than a pageable copy of a few frames (218 MB, one 2M-sphere
-        frame, on an H200 host: 0.07-0.28 s to pin, 0.03-0.06 s to copy, 0.004 s to copy pinned). Once the
-        ensemble has taken PIN_AFTER_FRAMES large frames, a thread pins new buffers for the slots used so far while
-        the run goes on, and each changes over when it is next used (the caller's earlier frame from it is in the
-        file by then)."""
+        Pinned at once when small (an ensemble of small scenes). Larger ones are plain memory, faulted in by
+        threads (:func:`_touched_empty`) and then page-locked in place (:func:`_page_locked`): allocating pinned
+        memory of that size costs more than a pageable copy of a few frames (218 MB, one 2M-sphere frame, on an
+        H200 host: 0.07-0.28 s to allocate pinned, 0.03-0.06 s to copy into fresh pageable memory), registering
+        touched pages does not (6-11 ms on an H100 host, bench/host_memory.py; a copy then takes 4 ms against
+        16-23 ms pageable). Where they cannot be registered (the simulator; a driver that refuses) they stay
+        pageable, and once the ensemble has taken PIN_AFTER_FRAMES large frames a thread allocates pinned buffers
+        for the slots used so far while the run goes on; each changes over when it is next used (the caller's
+        earlier frame from it is in the file by then)."""
         shapes = {key: ((nmax, getattr(self, name).shape[0]), getattr(self, name).dtype) for key, name in self._STATE}
         big = sum(int(np.prod(sh)) * np.dtype(t).itemsize for sh, t in shapes.values()) > PINNED_SLOT_BYTES
         pinned = getattr(self, "_pinned_slots", None)
@@ -922,9 +926,15 @@ class CudaEnsemble:
             self._stage_h[slot] = pinned.pop(slot)
         elif slot not in self._stage_h:
             alloc = _touched_empty if big else cuda.pinned_array
-            self._stage_h[slot] = {key: alloc(sh, t) for key, (sh, t) in shapes.items()}
+            self._stage_h[slot] = bufs = {key: alloc(sh, t) for key, (sh, t) in shapes.items()}
+            if big:
+                pins = _page_locked(bufs.values())
+                if pins is None:
+                    self._pageable_slots = True
+                else:
+                    self._registered = {**getattr(self, "_registered", {}), slot: pins}
         self._frames_taken = getattr(self, "_frames_taken", 0) + 1
-        if big and pinned is None and self._frames_taken >= PIN_AFTER_FRAMES:
+        if big and pinned is None and self._frames_taken >= PIN_AFTER_FRAMES and getattr(self, "_pageable_slots", False):
             self._pinned_slots = pinned = {}
             slots = sorted(self._stage_h)
 
@@ -967,6 +977,20 @@ class CudaEnsemble:
         views = set(self._view_names)
         return sum(v.nbytes for name, v in vars(self).items() if name not in views and _is_dev(v)
                    and not (name == "f_nxt" and v is self.f_cur))
+
+
+def _page_locked(arrays) -> Optional[list]:
+    """Page-lock host arrays in place (cuMemHostRegister, through numba-cuda's Context.mempin): copies to and from
+    them run at pinned speed and asynchronously. The returned handles keep the registration until they are
+    collected, and keep their arrays alive. None under the simulator or when the driver refuses (the arrays stay
+    pageable)."""
+    if SIM:
+        return None
+    try:
+        ctx = cuda.current_context()
+        return [ctx.mempin(a, a.ctypes.data, a.nbytes, mapped=False) for a in arrays]
+    except Exception:  # noqa: BLE001  (no page-locked memory to be had: pageable copies, as before)
+        return None
 
 
 def _touched_empty(shape, dtype) -> np.ndarray:

@@ -1,8 +1,8 @@
 """Real-GPU check of the records done while the GPU runs the next steps (engine/simulate.py, _Deferred; the CUDA
 ensemble's ``idle`` hook): a packed ensemble (spheres and ellipsoids) and one scene write the same files with it as
 without it (DEMQ_OVERLAP_RECORDS=0) — the trajectories bit for bit, the observables to rounding as any two GPU
-runs — and the record work did run inside the waits; one scene's frames also through late-pinned buffers. Skipped
-without a GPU."""
+runs — and the record work did run inside the waits; one scene's frames also through host buffers page-locked in
+place and through late-pinned ones. Skipped without a GPU."""
 
 from __future__ import annotations
 
@@ -86,9 +86,10 @@ def test_a_packed_ensemble_writes_the_same_files_with_records_overlapped(tmp_pat
 
 def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path, monkeypatch):
     """engine.run of one scene on the GPU: its records are done in the next steps' waits too (SerialEnsemble
-    passes the hook to its CUDA backend), and frames of a large scene go through plain host buffers first and
-    through buffers pinned by a thread later (PINNED_SLOT_BYTES = 0 makes this scene's frames large). The three
-    runs write the same file: the trajectories bit for bit, the observables to rounding."""
+    passes the hook to its CUDA backend), and frames of a large scene (PINNED_SLOT_BYTES = 0 makes this scene's
+    frames large) go through host buffers page-locked in place or, where they cannot be (here: refused on
+    purpose), through plain host buffers first and through buffers pinned by a thread later. The four runs write
+    the same file: the trajectories bit for bit, the observables to rounding."""
     from engine.backends import cuda as cuda_mod
     from engine.simulate import run
     from tests.engine.test_ensemble import spy_deferred_stops
@@ -97,8 +98,8 @@ def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path,
                 seed=2, backend="cuda")
     deferred = spy_deferred_stops(monkeypatch)
     ran_in_waits = spy_units_in_waits(monkeypatch)
-    pinned_frames = []
-    orig_slot = cuda_mod.CudaEnsemble._host_slot
+    pinned_frames, locked = [], []
+    orig_slot, orig_lock = cuda_mod.CudaEnsemble._host_slot, cuda_mod._page_locked
 
     def host_slot(self, slot, nmax):
         ready = dict(getattr(self, "_pinned_slots", None) or {})
@@ -108,17 +109,22 @@ def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path,
 
     monkeypatch.setattr(cuda_mod.CudaEnsemble, "_host_slot", host_slot)
     files = {}
-    for label, overlap, slot_bytes in (("plain", "0", cuda_mod.PINNED_SLOT_BYTES), ("overlap", "1", 32 << 20),
-                                       ("late-pinned", "1", 0)):
+    for label, overlap, slot_bytes, lock in (("plain", "0", cuda_mod.PINNED_SLOT_BYTES, True),
+                                             ("overlap", "1", 32 << 20, True), ("locked", "1", 0, True),
+                                             ("late-pinned", "1", 0, False)):
         monkeypatch.setenv("DEMQ_OVERLAP_RECORDS", overlap)
         monkeypatch.setattr(cuda_mod, "PINNED_SLOT_BYTES", slot_bytes)
-        del deferred[:], pinned_frames[:]
+        monkeypatch.setattr(cuda_mod, "_page_locked",
+                            (lambda a: locked.append(orig_lock(a)) or locked[-1]) if lock else (lambda a: None))
+        del deferred[:], pinned_frames[:], locked[:]
         run(spec, tmp_path / f"{label}.h5")
         files[label] = _datasets(tmp_path / f"{label}.h5")
         assert any(deferred) == (overlap == "1"), (label, deferred)
+        if label == "locked":           # every large slot page-locked at once, none replaced later
+            assert locked and all(p is not None for p in locked) and not any(pinned_frames), (locked, pinned_frames)
     assert len(pinned_frames) == 7 and not any(pinned_frames[:3]) and any(pinned_frames[3:]), pinned_frames
     assert sum(ran_in_waits) > 0
-    for label in ("overlap", "late-pinned"):
+    for label in ("overlap", "locked", "late-pinned"):
         a, b = files["plain"], files[label]
         assert a.keys() == b.keys()
         for name in a:
