@@ -19,8 +19,9 @@ variance T0/m_i per component, zero total momentum; spins with variance T0/I_i, 
 Large starts (N >= PARALLEL_START_MIN, one size; issue 14): the same protocol, drawn in parallel (Numba
 prange) from a counter-based generator (SplitMix64 of seed, stream, particle and draw index; normals by
 Box-Muller), so the start is the same whatever the thread count, and sums (mean momentum, energy) are taken
-in fixed blocks; the N sites are those of smallest 64-bit key (a parallel radix select). These starts differ from the sequential NumPy draws of smaller N (``start_generator``
-says which one a spec gets; the result's /parameters@start_generator records it).
+in fixed blocks; the N sites are those of smallest 64-bit key (a parallel radix select). These starts differ
+from the sequential NumPy draws of smaller N (``start_generator`` says which one a spec gets; the result's
+/parameters@start_generator records it).
 """
 
 from __future__ import annotations
@@ -537,8 +538,9 @@ def _draw_start(n, n_sites, m, a, half_gap, box, site_key, place_key, keys, outs
     displaced uniformly in a ball of radius ``half_gap`` (direction from three normals, radius from a uniform),
     wrapped into [0, box).
     Then for each stream s, ``outs[s]`` (n x dim) gets standard normals from ``keys[s]``; rows of a ``unit``
-    stream (dim 4) are normalised (uniform quaternions, quat_unit). Returns the positions and, per stream, the column sums of each
-    block of _BLOCK rows (S x blocks x 4; the start's mean, taken in fixed blocks for any thread count).
+    stream (dim 4) are normalised (uniform quaternions, quat_unit). Returns the positions and, per stream, the
+    column sums of each block of _BLOCK rows (S x blocks x 4; the start's mean, taken in fixed blocks for any
+    thread count).
     """
     n_placed = n if n_sites > 0 else 0       # n_sites = 0: no positions
     chosen = _smallest_sites(site_key, n_sites, n) if 0 < n_sites and n < n_sites else np.arange(n_placed)

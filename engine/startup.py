@@ -201,9 +201,9 @@ class DriverStart:
 def nvidia_driver() -> bool:
     """An NVIDIA driver is loaded here (Linux, or WSL's GPU device): without one there is nothing to overlap,
     and the backend probe (engine.backends.base.cuda_available) answers at once."""
-    from engine.backends.base import NVIDIA_DRIVER_PATHS
+    from engine.backends import base
 
-    return any(os.path.exists(x) for x in NVIDIA_DRIVER_PATHS)
+    return base.nvidia_driver()
 
 
 def _standin(spec, p):

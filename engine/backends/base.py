@@ -125,10 +125,15 @@ _cuda_lock = threading.Lock()
 NVIDIA_DRIVER_PATHS = ("/proc/driver/nvidia", "/dev/nvidiactl", "/dev/dxg")
 
 
+def nvidia_driver() -> bool:
+    """An NVIDIA driver is loaded here (Linux, or WSL's GPU device)."""
+    return any(os.path.exists(p) for p in NVIDIA_DRIVER_PATHS)
+
+
 def no_nvidia_driver() -> bool:
     """Linux without a loaded NVIDIA driver: no CUDA GPU can be used, which :func:`cuda_available` then answers
     without importing numba-cuda (0.2 s of a CPU job's set-up, issue 14). Other systems: False (ask numba-cuda)."""
-    return sys.platform.startswith("linux") and not any(os.path.exists(p) for p in NVIDIA_DRIVER_PATHS)
+    return sys.platform.startswith("linux") and not nvidia_driver()
 
 
 def cuda_available() -> bool:

@@ -917,7 +917,7 @@ class CudaEnsemble:
         touched pages does not (6-11 ms on an H100 host, bench/host_memory.py; a copy then takes 4 ms against
         16-23 ms pageable). Where they cannot be registered (the simulator; a driver that refuses) they stay
         pageable, and once the ensemble has taken PIN_AFTER_FRAMES large frames a thread allocates pinned buffers
-        for the slots used so far while the run goes on; each changes over when it is next used (the caller's
+        for those of them used so far while the run goes on; each changes over when it is next used (the caller's
         earlier frame from it is in the file by then)."""
         shapes = {key: ((nmax, getattr(self, name).shape[0]), getattr(self, name).dtype) for key, name in self._STATE}
         big = sum(int(np.prod(sh)) * np.dtype(t).itemsize for sh, t in shapes.values()) > PINNED_SLOT_BYTES
@@ -930,13 +930,14 @@ class CudaEnsemble:
             if big:
                 pins = _page_locked(bufs.values())
                 if pins is None:
-                    self._pageable_slots = True
+                    self._pageable_slots = getattr(self, "_pageable_slots", set()) | {slot}
                 else:
-                    self._registered = {**getattr(self, "_registered", {}), slot: pins}
+                    self._page_locks = getattr(self, "_page_locks", []) + [pins]   # the registrations' lifetime
         self._frames_taken = getattr(self, "_frames_taken", 0) + 1
-        if big and pinned is None and self._frames_taken >= PIN_AFTER_FRAMES and getattr(self, "_pageable_slots", False):
+        pageable = getattr(self, "_pageable_slots", set())
+        if big and pinned is None and self._frames_taken >= PIN_AFTER_FRAMES and pageable:
             self._pinned_slots = pinned = {}
-            slots = sorted(self._stage_h)
+            slots = sorted(pageable)
 
             def pin() -> None:
                 try:

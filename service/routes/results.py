@@ -115,12 +115,7 @@ def get_snapshot(job: JobDep,
                  renderer: Annotated[Literal["auto", "ovito", "matplotlib"], Query(
                      description="auto: OVITO's Tachyon when installed, else matplotlib")] = "auto") -> Response:
     """A picture of one snapshot frame: spheres or oriented spheroids, coloured with a colour bar, box outline."""
-    from service.render import (
-        FrameOutOfRange,
-        NoSnapshot,
-        ovito_available,
-        snapshot_png,
-    )
+    from service.render import FrameOutOfRange, NoSnapshot, ovito_available, snapshot_png
 
     path = _result_file(job)
     if renderer == "ovito" and not ovito_available():
