@@ -12,7 +12,10 @@ import hashlib
 import os
 from pathlib import Path
 
-import numba
+from engine.numba_import import coverage_hidden
+
+with coverage_hidden():
+    import numba
 
 _ENGINE = Path(__file__).resolve().parent
 

@@ -21,14 +21,20 @@ prange) from a counter-based generator (SplitMix64 of seed, stream, particle and
 Box-Muller), so the start is the same whatever the thread count, and sums (mean momentum, energy) are taken
 in fixed blocks; the N sites are those of smallest 64-bit key (a parallel radix select). These starts differ
 from the sequential NumPy draws of smaller N (``start_generator`` says which one a spec gets; the result's
-/parameters@start_generator records it).
+/parameters@start_generator records it). A GPU job draws its large sphere start on the device instead
+(:class:`StartDraw`, engine/backends/cuda_start.py): the same draws from the same per-particle functions
+(:func:`_site_position`, :func:`_stream_values`) and the same block sums, equal to the host's to rounding.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
-import numba
+from engine.numba_import import coverage_hidden
+
+with coverage_hidden():
+    import numba
 import numpy as np
 
 from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
@@ -37,6 +43,8 @@ from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_c
 from engine.errors import SpecError
 from engine.params import Derived, species_table
 from engine.physics.rotation import quat_unit
+from engine.start_kind import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR,  # noqa: F401
+                               device_start, start_generator)
 
 
 def fcc_sites(n: int, box: float) -> tuple[np.ndarray, float]:
@@ -236,14 +244,21 @@ def species_index(radius: np.ndarray, p: Derived) -> np.ndarray:
     return order[pick].astype(np.int32)
 
 
-def initial_spheres(spec, p: Derived) -> SphereSystem:
-    """The starting state of a sphere spec: placed, Maxwellian, spins at equal temperature."""
+def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
+    """The starting state of a sphere spec: placed, Maxwellian, spins at equal temperature. ``on_device`` (a job
+    that runs on the GPU): a large start (:func:`device_start`) comes as its :class:`StartDraw` (``system.draw``,
+    no host arrays), drawn by the GPU backend when it is built."""
     if species_table(spec) is not None:
         return initial_species(spec, p)
     n = spec.n_particles
     w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
     if start_generator(spec) == PARALLEL_GENERATOR:
         streams, radius = parallel_start_streams(spec, p)
+        if on_device and device_start(spec):    # drawn by the GPU job's backend (engine/backends/cuda_start.py)
+            return SphereSystem(
+                box_length=spec.box_length, position=None, velocity=None, angular_velocity=None, orientation=None,
+                radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]),
+                draw=StartDraw.of(n, spec.seed, streams, spec.box_length, radius))
         pos, (vel, omega, quat) = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, radius))
         return SphereSystem(
             box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
@@ -374,10 +389,6 @@ def parallel_start_streams(spec, p: Derived) -> tuple:
 
 # ---- large starts in parallel (issue 14) --------------------------------------------------------------
 
-#: one-size starts of at least this many particles are drawn in parallel (module docstring)
-PARALLEL_START_MIN = 1 << 20
-SEQUENTIAL_GENERATOR = "numpy-pcg64"
-PARALLEL_GENERATOR = "splitmix64-counter"
 STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION, STREAM_SPIN_AXIS = range(6)
 _DRAWS = 8           # counter values reserved per particle and stream
 _BLOCK = 1 << 14     # particles per block of the deterministic sums
@@ -386,14 +397,6 @@ _U = np.uint64
 _GOLDEN = _U(0x9E3779B97F4A7C15)
 _M1 = _U(0xBF58476D1CE4E5B9)
 _M2 = _U(0x94D049BB133111EB)
-
-
-def start_generator(spec) -> str:
-    """Which generator draws a spec's start: the sequential NumPy one, or the parallel counter-based one
-    for one-size starts of N >= PARALLEL_START_MIN (species starts are always sequential: RSA)."""
-    if species_table(spec) is None and spec.n_particles >= PARALLEL_START_MIN:
-        return PARALLEL_GENERATOR
-    return SEQUENTIAL_GENERATOR
 
 
 @numba.njit(cache=True, inline="always")
@@ -421,6 +424,45 @@ def _normal_pair(key, i, k):
     r = math.sqrt(-2.0 * math.log(_uniform(key, i, k)))
     t = 2.0 * math.pi * _uniform(key, i, k + 1)
     return r * math.cos(t), r * math.sin(t)
+
+
+@numba.njit(cache=True, inline="always")
+def _site_position(j, i, m, a, half_gap, box, place_key):
+    """Particle i's position (m) at site j of the fcc lattice of m^3 cells of edge ``a`` (numbered as
+    :func:`fcc_sites` numbers them): the site displaced uniformly in a ball of radius ``half_gap`` (direction from
+    three normals, radius from a uniform: draws 0-4 of particle i in the stream ``place_key``), wrapped into
+    [0, box). One source for the host's draws (:func:`_draw_start`) and the GPU's (engine/backends/cuda_start.py)."""
+    c = j // 4
+    b = j - 4 * c
+    ix = c // (m * m)
+    iy = (c // m) % m
+    iz = c % m
+    bx = 0.5 * a if b == 1 or b == 2 else 0.0      # the cell's four sites: (0,0,0), (.5,.5,0), (.5,0,.5), (0,.5,.5)
+    by = 0.5 * a if b == 1 or b == 3 else 0.0
+    bz = 0.5 * a if b == 2 or b == 3 else 0.0
+    g0, g1 = _normal_pair(place_key, i, 0)
+    g2, _ = _normal_pair(place_key, i, 2)
+    norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+    r = half_gap * _uniform(place_key, i, 4) ** (1.0 / 3.0) * (1.0 - 1e-9) / norm
+    x = (ix * a + bx) + 0.25 * a + g0 * r
+    y = (iy * a + by) + 0.25 * a + g1 * r
+    z = (iz * a + bz) + 0.25 * a + g2 * r
+    return x - box * math.floor(x / box), y - box * math.floor(y / box), z - box * math.floor(z / box)
+
+
+@numba.njit(cache=True, inline="always")
+def _stream_values(key, i, dim, unit):
+    """Particle i's row of a stream (dim 1-4 values; the unused ones 0): standard normals from draws 0..dim-1 of
+    the stream ``key``, normalised to a unit quaternion when ``unit`` (dim 4: uniform orientations). One source for
+    the host's draws (:func:`_draw_start`) and the GPU's (engine/backends/cuda_start.py)."""
+    g0, g1 = _normal_pair(key, i, 0)
+    g2 = 0.0
+    g3 = 0.0
+    if dim > 2:
+        g2, g3 = _normal_pair(key, i, 2)
+    if unit:
+        g0, g1, g2, g3 = quat_unit(g0, g1, g2, g3)
+    return g0, g1, g2, g3
 
 
 _MASK64 = (1 << 64) - 1
@@ -544,25 +586,9 @@ def _draw_start(n, n_sites, m, a, half_gap, box, site_key, place_key, keys, outs
     """
     n_placed = n if n_sites > 0 else 0       # n_sites = 0: no positions
     chosen = _smallest_sites(site_key, n_sites, n) if 0 < n_sites and n < n_sites else np.arange(n_placed)
-    base = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0], [0.5, 0.0, 0.5], [0.0, 0.5, 0.5]]) * a
     pos = np.empty((n_placed, 3))
     for i in numba.prange(n_placed):
-        j = chosen[i]
-        c = j // 4
-        b = j - 4 * c
-        ix = c // (m * m)
-        iy = (c // m) % m
-        iz = c % m
-        g0, g1 = _normal_pair(place_key, i, 0)
-        g2, _ = _normal_pair(place_key, i, 2)
-        norm = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-        r = half_gap * _uniform(place_key, i, 4) ** (1.0 / 3.0) * (1.0 - 1e-9) / norm
-        x = (ix * a + base[b, 0]) + 0.25 * a + g0 * r
-        y = (iy * a + base[b, 1]) + 0.25 * a + g1 * r
-        z = (iz * a + base[b, 2]) + 0.25 * a + g2 * r
-        pos[i, 0] = x - box * math.floor(x / box)
-        pos[i, 1] = y - box * math.floor(y / box)
-        pos[i, 2] = z - box * math.floor(z / box)
+        pos[i, 0], pos[i, 1], pos[i, 2] = _site_position(chosen[i], i, m, a, half_gap, box, place_key)
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     sums = np.zeros((len(outs), n_blocks, 4))
     for s in range(len(outs)):
@@ -570,13 +596,14 @@ def _draw_start(n, n_sites, m, a, half_gap, box, site_key, place_key, keys, outs
         dim = v.shape[1]
         key = keys[s]
         for i in numba.prange(n):
-            for k in range(0, dim, 2):
-                g0, g1 = _normal_pair(key, i, k)
-                v[i, k] = g0
-                if k + 1 < dim:
-                    v[i, k + 1] = g1
-            if unit[s]:      # a quaternion stream (dim 4, _parallel_draws)
-                v[i, 0], v[i, 1], v[i, 2], v[i, 3] = quat_unit(v[i, 0], v[i, 1], v[i, 2], v[i, 3])
+            v0, v1, v2, v3 = _stream_values(key, i, dim, unit[s])
+            v[i, 0] = v0
+            if dim > 1:
+                v[i, 1] = v1
+            if dim > 2:
+                v[i, 2] = v2
+            if dim > 3:
+                v[i, 3] = v3
         if not unit[s]:
             for bl in numba.prange(n_blocks):
                 for i in range(bl * _BLOCK, min(n, (bl + 1) * _BLOCK)):
@@ -622,6 +649,32 @@ def _stream_sums(sums, s: int, dim: int) -> np.ndarray:
     return np.ascontiguousarray(sums[s, :, :dim])
 
 
+def stream_mean(block_sums: np.ndarray, n: int, rms) -> np.ndarray:
+    """A stream's mean (dim), from its (blocks x dim) block sums; 0 for unit rows (rms None) and n <= 1. The host's
+    and the GPU's draws (engine/backends/cuda_start.py) both take it here, from the same block sums."""
+    if rms is None or n <= 1:
+        return np.zeros(block_sums.shape[1])
+    return block_sums.sum(axis=0) / n
+
+
+def stream_scale(block_squares: np.ndarray, n: int, rms) -> float:
+    """The factor that makes a centred stream's sqrt(<|v|^2>) = rms, from its (blocks x dim) block sums of squares
+    (1 for unit rows); as :func:`stream_mean`, one source for both draws."""
+    if rms is None:
+        return 1.0
+    norm = math.sqrt(block_squares.sum() / n)
+    return rms / norm if norm > 0 else 1.0
+
+
+def lattice_of(n: int, box: float, radius: float) -> tuple:
+    """place_spheres' lattice for n spheres of ``radius`` in a box of edge ``box``: (m, a, n_sites, half_gap), m^3
+    fcc cells of edge a, and half the free gap around a site (SpecError when the spheres do not fit)."""
+    m = max(1, math.ceil((n / 4.0) ** (1.0 / 3.0) - 1e-9))
+    a = box / m
+    n_sites = 4 * m ** 3
+    return m, a, n_sites, 0.5 * lattice_gap(n, box, radius, n_sites, a / math.sqrt(2.0))
+
+
 def _parallel_draws(n: int, seed: int, streams: list, place=None) -> tuple:
     """A large start's draws with the counter-based generator, in three compiled calls.
 
@@ -632,14 +685,10 @@ def _parallel_draws(n: int, seed: int, streams: list, place=None) -> tuple:
     array holds does not depend on the others. Returns (positions or None, [arrays])."""
     if place is not None:
         box, radius = place
-        m = max(1, math.ceil((n / 4.0) ** (1.0 / 3.0) - 1e-9))
-        a = box / m
-        n_sites = 4 * m ** 3
-        half_gap = 0.5 * lattice_gap(n, box, radius, n_sites, a / math.sqrt(2.0))
+        m, a, n_sites, half_gap = lattice_of(n, box, radius)
     else:
         box, m, a, n_sites, half_gap = 1.0, 1, 1.0, 0, 0.0
-    if any(rms is None and dim != 4 for _, dim, rms in streams):
-        raise ValueError("unit rows are drawn for quaternions only (dim 4)")
+    _check_streams(streams)
     outs = tuple(np.empty((n, dim)) for _, dim, _ in streams)
     keys = np.array([_stream_key(seed, stream) for stream, _, _ in streams], np.uint64)
     unit = np.array([rms is None for _, _, rms in streams])
@@ -647,16 +696,61 @@ def _parallel_draws(n: int, seed: int, streams: list, place=None) -> tuple:
                             _stream_key(seed, STREAM_DISPLACEMENT), keys, outs, unit)
     means = np.zeros((len(streams), 4))
     for s, (_, dim, rms) in enumerate(streams):
-        if rms is not None and n > 1:
-            means[s, :dim] = _stream_sums(sums, s, dim).sum(axis=0) / n
+        means[s, :dim] = stream_mean(_stream_sums(sums, s, dim), n, rms)
     sums = _centre_and_square(outs, means, unit)
-    scales = np.ones(len(streams))
-    for s, (_, dim, rms) in enumerate(streams):
-        if rms is not None:
-            norm = math.sqrt(_stream_sums(sums, s, dim).sum() / n)
-            scales[s] = rms / norm if norm > 0 else 1.0
+    scales = np.array([stream_scale(_stream_sums(sums, s, dim), n, rms) for s, (_, dim, rms) in enumerate(streams)])
     _scale_streams(outs, scales, unit)
     return (pos if place is not None else None), list(outs)
+
+
+def _check_streams(streams) -> None:
+    if any(rms is None and dim != 4 for _, dim, rms in streams):
+        raise ValueError("unit rows are drawn for quaternions only (dim 4)")
+
+
+# ---- large starts drawn on the GPU (engine/backends/cuda_start.py) --------------------------------------
+
+@dataclass(frozen=True)
+class StartDraw:
+    """A large one-size start of spheres, to be drawn on the GPU that runs it (engine/backends/cuda_start.py) in
+    place of the host's :func:`_parallel_draws`: the same counter-based draws, lattice and site selection, the same
+    block sums and the same host arithmetic for means and scales. Sites are the same; values are equal to rounding
+    (the device's log, cos, sin, pow are libdevice's, the host's libm's; the device may contract a * b + c into
+    one fused multiply-add). ``streams``: as _parallel_draws'; positions on the lattice of ``lattice_of``."""
+
+    n: int
+    seed: int
+    streams: tuple
+    box: float
+    radius: float
+    m: int
+    a: float
+    n_sites: int
+    half_gap: float
+
+    @classmethod
+    def of(cls, n: int, seed: int, streams, box: float, radius: float) -> "StartDraw":
+        """Checked on the host at once (SpecError when the spheres do not fit), drawn later on the device."""
+        _check_streams(streams)
+        return cls(n, seed, tuple(tuple(s) for s in streams), float(box), float(radius), *lattice_of(n, box, radius))
+
+    def keys(self) -> tuple:
+        """(sites' key, displacements' key, [each stream's key]) as numpy uint64."""
+        return (_stream_key(self.seed, STREAM_SITES), _stream_key(self.seed, STREAM_DISPLACEMENT),
+                [_stream_key(self.seed, stream) for stream, _, _ in self.streams])
+
+    def on_host(self) -> tuple:
+        """The same start drawn on the host (positions, [arrays]): _parallel_draws."""
+        return _parallel_draws(self.n, self.seed, list(self.streams), place=(self.box, self.radius))
+
+
+def drawn_on_host(system):
+    """``system`` with its arrays drawn on the host, if it holds a device draw (a job that ended up on the CPU)."""
+    d = getattr(system, "draw", None)
+    if d is None:
+        return system
+    pos, (vel, omega, quat) = d.on_host()
+    return replace(system, position=pos, velocity=vel, angular_velocity=omega, orientation=quat, draw=None)
 
 
 fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

@@ -47,6 +47,7 @@ from engine.params import Q_SPHERE, Derived, derive
 from engine.physics.sonine import sonine_observables
 from engine.precision import output_dtype
 from engine.spec import SimulationSpec, default_verlet_skin, load_spec
+from engine.start_kind import device_start
 from engine.startup import begin as begin_gpu_startup
 
 #: In a dissipative run the total mechanical energy may not rise between records by more than this
@@ -231,9 +232,17 @@ class SceneRun:
         check_backend_name(backend or spec.backend)
         p0 = derive(spec)
         self.startup = begin_gpu_startup(spec, backend or spec.backend, run_contacts(spec, p0), p0)
-        system = self.shape.initial_system(spec, p0)
+        # a GPU job's large sphere start is drawn by its backend on the device (engine/backends/cuda_start.py)
+        if self.startup is not None and resume is None and device_start(spec):
+            system = self.shape.initial_system(spec, p0, on_device=True)
+        else:
+            system = self.shape.initial_system(spec, p0)
         # the backend ('cpu' or 'cuda') this scene runs on: `backend` overrides the spec's, 'auto' resolved here
         self.backend = resolve_backend(backend or spec.backend, spec.shape)
+        if self.backend != "cuda":
+            from engine.scene import drawn_on_host
+
+            system = drawn_on_host(system)
         # a null verlet_skin is the resolved backend's default at this volume fraction (species: the total
         # phi; the stored spec keeps null; /parameters say verlet_skin and skin); an explicit value always wins
         self.verlet_skin = spec.verlet_skin if spec.verlet_skin is not None else \

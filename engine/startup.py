@@ -51,10 +51,12 @@ _started: dict = {}
 class GpuStartup:
     """The start-up thread of one specialisation (see the module docstring)."""
 
-    def __init__(self, shape: str, system, contacts: tuple, driver: Optional["DriverStart"] = None):
+    def __init__(self, shape: str, system, contacts: tuple, driver: Optional["DriverStart"] = None,
+                 start_dtypes: Optional[tuple] = None):
         self.error: Optional[str] = None
         self.seconds: Optional[float] = None   # the thread's own wall time
         self._driver = driver
+        self._start_dtypes = start_dtypes      # (position, state) dtypes of a start drawn on the device, or None
         self._thread = threading.Thread(target=self._work, args=(shape, system, contacts),
                                         name="demq-gpu-startup")
         self._thread.start()
@@ -81,6 +83,10 @@ class GpuStartup:
                 backend.set_contact(c)
                 backend.warmup()
             backend.observe()
+            if self._start_dtypes is not None:  # the job's large start is drawn on the device (cuda_start.py)
+                from engine.backends.cuda_start import load
+
+                load(*self._start_dtypes)
         except Exception as exc:  # noqa: BLE001  (the job loads its kernels itself)
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
@@ -100,7 +106,8 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
     global _early
     if not _wanted(backend):
         return None
-    key = (spec.shape, spec.precision, bool(getattr(spec, "species", None))) + tuple(
+    start_dtypes = _device_start_dtypes(spec)
+    key = (spec.shape, spec.precision, bool(getattr(spec, "species", None)), start_dtypes is not None) + tuple(
         (c.k_t is None, c.friction is None, c.orientation, c.list_mode) for c in contacts)
     with _lock:
         started = _started.get(key)
@@ -111,17 +118,22 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
         system = _standin(spec, p)
         # the thread's imports, here (see the module docstring)
         try:
-            import numba.cuda  # noqa: F401
+            from engine.numba_import import coverage_hidden
 
+            with coverage_hidden():
+                import numba.cuda  # noqa: F401
             import engine.backends.registry  # noqa: F401
             from engine.shapes import host
             if system is not None:
                 host(spec.shape).cuda_backend()
+            if start_dtypes is not None:
+                import engine.backends.cuda_start  # noqa: F401
         except Exception:  # noqa: BLE001  (numba-cuda unusable: cuda_available() says so to the driver)
             if driver is not None:
                 driver.release()
             return None
-        started = _started[key] = GpuStartup(spec.shape, system, contacts, driver)
+        started = _started[key] = GpuStartup(spec.shape, system, contacts, driver,
+                                             start_dtypes if system is not None else None)
     return started
 
 
@@ -204,6 +216,18 @@ def nvidia_driver() -> bool:
     from engine.backends import base
 
     return base.nvidia_driver()
+
+
+def _device_start_dtypes(spec) -> Optional[tuple]:
+    """(position dtype, state dtype) when a GPU job of ``spec`` draws its start on the device (the thread then loads
+    those kernels too: engine.backends.cuda_start.load), else None."""
+    from engine.start_kind import device_start
+
+    if not device_start(spec):
+        return None
+    from engine.precision import position_dtype, state_dtype
+
+    return position_dtype(spec.precision), state_dtype(spec.precision)
 
 
 def _standin(spec, p):

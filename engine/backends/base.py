@@ -26,6 +26,9 @@ class SphereSystem:
     orientation (N,4) unit quaternions (w,x,y,z), body -> space; radius, mass, inertia (N,) m, kg, kg m^2.
     contact_pairs (M,2) int64 ids (i, j) and contact_springs (M,3) m: tangential springs of contacts
     carried over from a checkpoint (both orderings present); empty for a fresh start.
+    draw: a large start still to be drawn on the GPU (engine.scene.StartDraw; the GPU backend draws it when it is
+    built, engine/backends/cuda_start.py); position, velocity, angular_velocity and orientation are then None.
+    Only the CUDA backend takes such a system (engine.scene.drawn_on_host gives the arrays).
     """
 
     #: the shape (engine/shapes/ registry key) whose plug-in runs this system
@@ -40,10 +43,11 @@ class SphereSystem:
     inertia: np.ndarray
     contact_pairs: Optional[np.ndarray] = None
     contact_springs: Optional[np.ndarray] = None
+    draw: Optional[object] = None
 
     @property
     def n(self) -> int:
-        return self.position.shape[0]
+        return self.draw.n if self.position is None else self.position.shape[0]
 
 
 @dataclass
@@ -149,8 +153,10 @@ def cuda_available() -> bool:
     with _cuda_lock:
         if _cuda_answer is None:
             try:
-                from numba import cuda
+                from engine.numba_import import coverage_hidden
 
+                with coverage_hidden():
+                    from numba import cuda
                 _cuda_answer = bool(cuda.is_available())
             except Exception:  # numba-cuda missing or no driver
                 _cuda_answer = False

@@ -134,6 +134,8 @@ class CudaEnsemble:
         self.ids = cuda.to_device(np.arange(n, dtype=np.int32), stream=self.stream)
         self.sc = cuda.to_device(np.repeat(np.arange(nk, dtype=np.int32), self.sizes), stream=self.stream)
         self._upload_particles(systems)
+        if getattr(self, "_slot_prep", None) is None:
+            self._prepare_frame_slot()
         self._views()
         # scratch for permutations (4 rows covers the quaternion)
         self.scratch = cuda.device_array((4, n), dt_, stream=self.stream)
@@ -217,19 +219,24 @@ class CudaEnsemble:
     def _upload_particles(self, systems) -> None:
         """Sphere state and constants on the device (uniform scenes keep their constants in spd)."""
         dt_, n = self.dtype, self.n
-        rad = np.concatenate([np.asarray(s.radius, np.float64) for s in systems])
-        mass = np.concatenate([np.asarray(s.mass, np.float64) for s in systems])
-        inertia = np.concatenate([np.asarray(s.inertia, np.float64) for s in systems])
-        self.uniform = all(s.n == 0 or (np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0])
-                                        and np.all(s.inertia == s.inertia[0])) for s in systems)
+        rad, mass, inertia = (np.concatenate([np.asarray(getattr(s, attr), np.float64) for s in systems])
+                              if len(systems) > 1 else np.asarray(getattr(systems[0], attr), np.float64)
+                              for attr in ("radius", "mass", "inertia"))
+        # a start drawn on the device is one size (engine.scene.device_start)
+        self.uniform = all(s.n == 0 or s.draw is not None or (
+            np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0]) and np.all(s.inertia == s.inertia[0]))
+            for s in systems)
         self._rmax = [float(np.max(s.radius)) if s.n else 0.0 for s in systems]
         self._scene0 = [(rad[i], mass[i], inertia[i]) if s_n else (0, 0, 0)
                         for i, s_n in zip(self.starts, self.sizes)]
         up, cat = self._up, lambda attr: self._cat(systems, attr)
-        self.pos = up(cat("position"), 3, self.pos_dtype)
-        self.vel = up(cat("velocity"), 3)
-        self.omega = up(cat("angular_velocity"), 3)
-        self.quat = up(cat("orientation"), 4)
+        if any(s.draw is not None for s in systems):
+            self._draw_starts(systems)
+        else:
+            self.pos = up(cat("position"), 3, self.pos_dtype)
+            self.vel = up(cat("velocity"), 3)
+            self.omega = up(cat("angular_velocity"), 3)
+            self.quat = up(cat("orientation"), 4)
         self.f_cur = self._zeros((3, n), dt_)
         self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
         self.torque = self._zeros((3, n), dt_)
@@ -248,6 +255,28 @@ class CudaEnsemble:
             self.inv_m = up((1.0 / mass.astype(dt_)).astype(dt_), 1)
             self.inv_i = up((1.0 / inertia.astype(dt_)).astype(dt_), 1)
             self._per_particle = ["radius", "mass", "inertia", "inv_m", "inv_i"]
+
+    def _draw_starts(self, systems) -> None:
+        """pos, vel, omega, quat of scenes of which some hold a start to draw on the device (engine.scene.StartDraw:
+        engine/backends/cuda_start.py); the others' host arrays go up into their columns."""
+        from engine.backends.cuda_start import SPHERE_TARGETS, draw_start
+
+        n, st = self.n, self.stream
+        self.pos = cuda.device_array((3, n), self.pos_dtype, stream=st)
+        self.vel = cuda.device_array((3, n), self.dtype, stream=st)
+        self.omega = cuda.device_array((3, n), self.dtype, stream=st)
+        self.quat = cuda.device_array((4, n), self.dtype, stream=st)
+        self._prepare_frame_slot()     # beside the draws
+        for sy, col0 in zip(systems, self.starts):
+            if sy.draw is not None:
+                draw_start(sy.draw, int(col0), self.pos, {k: getattr(self, a) for k, a in SPHERE_TARGETS.items()}, st,
+                           self.max_blocks)
+            elif sy.n:
+                for attr, dst in (("position", self.pos), ("velocity", self.vel), ("angular_velocity", self.omega),
+                                  ("orientation", self.quat)):
+                    a = np.asarray(getattr(sy, attr))
+                    a = np.ascontiguousarray(a if a.dtype in (np.float32, np.float64) else a.astype(np.float64))
+                    K.scatter_rows[self._grid(sy.n)](cuda.to_device(a.reshape(sy.n, -1), stream=st), int(col0), dst)
 
     def _scene_constants(self, s: int) -> None:
         """Scene s's particle constants in spd (used when its particles are uniform)."""
@@ -919,16 +948,21 @@ class CudaEnsemble:
         pageable, and once the ensemble has taken PIN_AFTER_FRAMES large frames a thread allocates pinned buffers
         for those of them used so far while the run goes on; each changes over when it is next used (the caller's
         earlier frame from it is in the file by then)."""
-        shapes = {key: ((nmax, getattr(self, name).shape[0]), getattr(self, name).dtype) for key, name in self._STATE}
-        big = sum(int(np.prod(sh)) * np.dtype(t).itemsize for sh, t in shapes.values()) > PINNED_SLOT_BYTES
+        shapes = self._slot_shapes(nmax)
+        big = _big_slot(shapes)
         pinned = getattr(self, "_pinned_slots", None)
         if big and pinned is not None and pinned.get(slot) is not None:
             self._stage_h[slot] = pinned.pop(slot)
         elif slot not in self._stage_h:
+            prep, self._slot_prep = getattr(self, "_slot_prep", None), None
+            made = {}
+            if prep is not None and big and prep[2] == shapes:     # made on a thread during the build
+                prep[0].join()
+                made = prep[1]
             alloc = _touched_empty if big else cuda.pinned_array
-            self._stage_h[slot] = bufs = {key: alloc(sh, t) for key, (sh, t) in shapes.items()}
+            self._stage_h[slot] = bufs = made.get("bufs") or {key: alloc(sh, t) for key, (sh, t) in shapes.items()}
             if big:
-                pins = _page_locked(bufs.values())
+                pins = made.get("pins") if "bufs" in made else _page_locked(bufs.values())
                 if pins is None:
                     self._pageable_slots = getattr(self, "_pageable_slots", set()) | {slot}
                 else:
@@ -948,6 +982,28 @@ class CudaEnsemble:
 
             threading.Thread(target=pin, name="demq-pin-frames", daemon=True).start()
         return self._stage_h[slot]
+
+    def _slot_shapes(self, nmax: int) -> dict:
+        """{key: ((nmax, rows), dtype)} of a frame slot's host buffers (:meth:`_host_slot`)."""
+        return {key: ((nmax, getattr(self, name).shape[0]), getattr(self, name).dtype) for key, name in self._STATE}
+
+    def _prepare_frame_slot(self) -> None:
+        """A large scene's first frame slot, made on a thread while the build goes on (its state arrays exist): the
+        buffers faulted in and page-locked as :meth:`_host_slot` makes them (about 30 ms for 2M spheres, which the
+        first snapshot waited for), taken by the first :meth:`_host_slot` call (which waits for the thread)."""
+        shapes = self._slot_shapes(int(self.sizes.max()))
+        if SIM or not _big_slot(shapes):
+            return
+        made: dict = {}
+
+        def work() -> None:
+            bufs = {key: _touched_empty(sh, t) for key, (sh, t) in shapes.items()}
+            made["pins"] = _page_locked(bufs.values())
+            made["bufs"] = bufs
+
+        t = threading.Thread(target=work, name="demq-frame-slot", daemon=True)
+        t.start()
+        self._slot_prep = (t, made, shapes)
 
     def state(self, k: int, reuse=False) -> dict:
         """Host copies of scene k's state arrays in particle-id order (``reuse``: see :meth:`_scene_rows`)."""
@@ -978,6 +1034,11 @@ class CudaEnsemble:
         views = set(self._view_names)
         return sum(v.nbytes for name, v in vars(self).items() if name not in views and _is_dev(v)
                    and not (name == "f_nxt" and v is self.f_cur))
+
+
+def _big_slot(shapes: dict) -> bool:
+    """Whether a frame slot of these host buffers is large (over PINNED_SLOT_BYTES: not pinned-allocated)."""
+    return sum(int(np.prod(sh)) * np.dtype(t).itemsize for sh, t in shapes.values()) > PINNED_SLOT_BYTES
 
 
 def _page_locked(arrays) -> Optional[list]:

@@ -9,6 +9,7 @@ backend and the skin).
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -71,8 +72,8 @@ def test_one_startup_per_specialisation(monkeypatch):
     made = []
 
     class Recorder:
-        def __init__(self, shape, system, contacts, driver=None):
-            made.append((shape, system.n if system is not None else None, contacts))
+        def __init__(self, shape, system, contacts, driver=None, start_dtypes=None):
+            made.append((shape, system.n if system is not None else None, contacts, start_dtypes))
 
         def wait(self):
             pass
@@ -97,6 +98,15 @@ def test_one_startup_per_specialisation(monkeypatch):
     ps = derive(species)
     startup.begin(species, "auto", _contacts(species, ps), ps)
     assert made[-1][1] is None      # a mixture: the driver and the context only, no stand-in scene
+    assert all(m[3] is None for m in made)      # no start drawn on the device: no such kernels to load
+    # a large one-size sphere start is drawn on the device: its own start-up, which loads those kernels too
+    big = SimulationSpec(n_particles=1 << 20, precision="mixed")
+    pg = derive(big)
+    s_big = startup.begin(big, "auto", _contacts(big, pg), pg)
+    assert s_big is not s1 and made[-1][3] == (np.float64, np.float32)
+    monkeypatch.setenv("DEMQ_DEVICE_START", "0")
+    s_off = startup.begin(big, "auto", _contacts(big, pg), pg)
+    assert s_off is not s_big and len(made) == 5 and made[-1][3] is None     # drawn on the host: no such load
 
 
 class _FakeDriver:
@@ -227,3 +237,22 @@ def test_without_an_nvidia_driver_the_gpu_probe_does_not_import_numba_cuda(monke
     env = {k: v for k, v in child_env().items() if k != "NUMBA_ENABLE_CUDASIM"}
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+@pytest.mark.parametrize("jit_coverage", ["", "1"])
+def test_numba_is_imported_without_coverage_unless_it_measures_coverage(tmp_path, jit_coverage):
+    """engine.numba_import.coverage_hidden: numba's first import does not import ``coverage`` (70 ms of a GPU job's
+    start-up) unless NUMBA_JIT_COVERAGE=1, and ``coverage`` stays importable afterwards. A stand-in ``coverage``
+    package on the path records its import."""
+    fake = tmp_path / "coverage"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("from . import types\n")
+    (fake / "types.py").write_text("def __getattr__(name):\n    return object\n")
+    code = ("import sys, engine.scene; during = 'coverage' in sys.modules; import coverage; "
+            "print('RESULT', during, 'coverage' in sys.modules)")
+    path = [str(tmp_path), str(ROOT)] + [x for x in [os.environ.get("PYTHONPATH")] if x]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(path), "NUMBA_JIT_COVERAGE": jit_coverage}
+    p = subprocess.run([sys.executable, "-c", code], env=env, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT")][-1]
+    assert line == f"RESULT {jit_coverage == '1'} True", line

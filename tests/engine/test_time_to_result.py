@@ -34,6 +34,34 @@ def test_which_starts_are_drawn_in_parallel():
     assert start_generator(_big(species=species)) == SEQUENTIAL_GENERATOR  # RSA placement stays sequential
 
 
+def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_host_if_the_job_runs_on_the_cpu(
+        monkeypatch, tmp_path):
+    """engine.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
+    host arrays: engine/backends/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
+    host, the same start as always; DEMQ_DEVICE_START=0 and other shapes keep the host's draw."""
+    import engine.simulate as sim
+
+    spec = _big(seed=9)
+    p = derive(spec)
+    host = initial_spheres(spec, p)
+    left = initial_spheres(spec, p, on_device=True)
+    assert left.draw is not None and left.position is None and left.velocity is None and left.n == spec.n_particles
+    assert left.draw.n_sites >= spec.n_particles and np.array_equal(left.radius, host.radius)
+    assert initial_spheres(_big(PARALLEL_START_MIN - 1), p, on_device=True).draw is None     # a small start
+
+    class Started:                 # stands for a GPU start-up (engine/startup.py), as on a machine with a GPU
+        def wait(self):
+            pass
+
+    monkeypatch.setattr(sim, "begin_gpu_startup", lambda *a: Started())
+    scene = sim.SceneRun(spec.model_copy(update={"backend": "cpu"}), tmp_path / "x.h5")
+    assert scene.backend == "cpu" and scene.system.draw is None
+    for attr in ("position", "velocity", "angular_velocity", "orientation"):
+        assert np.array_equal(getattr(scene.system, attr), getattr(host, attr)), attr
+    monkeypatch.setenv("DEMQ_DEVICE_START", "0")
+    assert initial_spheres(spec, p, on_device=True).draw is None
+
+
 def test_parallel_start_is_a_valid_homogeneous_gas():
     from scipy.spatial import cKDTree
 

@@ -12,11 +12,12 @@ from engine.backends.base import SphereSystem
 SYSTEM = SphereSystem
 
 
-def initial_system(spec, p) -> SphereSystem:
-    """The start of a sphere spec (engine.scene.initial_spheres: placement, Maxwellian velocities and spins)."""
+def initial_system(spec, p, on_device: bool = False) -> SphereSystem:
+    """The start of a sphere spec (engine.scene.initial_spheres: placement, Maxwellian velocities and spins);
+    ``on_device``: a GPU job's large start is left to its backend to draw (``system.draw``)."""
     from engine.scene import initial_spheres
 
-    return initial_spheres(spec, p)
+    return initial_spheres(spec, p, on_device)
 
 
 def standin_system(p, n_edge: int) -> SphereSystem:

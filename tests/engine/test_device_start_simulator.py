@@ -1,0 +1,100 @@
+"""Large starts drawn on the GPU (engine/backends/cuda_start.py) under the Numba CUDA simulator: the same start as the
+host's draws (engine.scene._parallel_draws).
+
+Under the simulator the kernels call the same compiled engine.scene functions as the host and add in Python's
+float64, in the same order, so the device start must equal the host's bit for bit here; on a GPU it is equal to
+rounding (tests/gpu/test_device_start_gpu.py). Runs in a simulator child (tests/cudasim.py).
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from tests.cudasim import run_children
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _streams():
+    from engine.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY
+
+    return [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 40.0), (STREAM_QUATERNION, 4, None)]
+
+
+def _device_arrays(d, pos_dtype, dtype, extra_cols=0, col0=0):
+    from numba import cuda
+
+    from engine.backends.cuda_start import draw_start
+
+    n = d.n + extra_cols
+    stream = cuda.stream()
+    pos = cuda.to_device(np.full((3, n), -1.0, pos_dtype), stream=stream)
+    dsts = {k: cuda.to_device(np.full((dim, n), -1.0, dtype), stream=stream) for k, dim, _ in d.streams}
+    draw_start(d, col0, pos, dsts, stream)
+    stream.synchronize()
+    return pos.copy_to_host(), [dsts[k].copy_to_host() for k, _, _ in d.streams]
+
+
+def _draws() -> None:
+    """draw_start against the host's draws: with a site selection (n < n_sites) and without (n = n_sites), into
+    columns from col0 of wider arrays (the others untouched), in float64, float32 and mixed precision."""
+    from engine.scene import StartDraw
+
+    for n, box, radius in ((100, 3.0, 0.05), (256, 3.0, 0.05), (40, 1.0, 0.1)):
+        d = StartDraw.of(n, 17, _streams(), box, radius)
+        assert (n < d.n_sites) == (n != 256), (n, d.n_sites)
+        pos_h, arrays_h = d.on_host()
+        for pos_dtype, dtype in ((np.float64, np.float64), (np.float32, np.float32), (np.float64, np.float32)):
+            pos, arrays = _device_arrays(d, pos_dtype, dtype, extra_cols=5, col0=3)
+            assert np.array_equal(pos[:, 3:3 + n], pos_h.T.astype(pos_dtype)), (n, pos_dtype)
+            assert np.all(pos[:, :3] == -1.0) and np.all(pos[:, 3 + n:] == -1.0)
+            for a, h in zip(arrays, arrays_h):
+                assert np.array_equal(a[:, 3:3 + n], h.T.astype(dtype)), (n, dtype)
+                assert np.all(a[:, :3] == -1.0) and np.all(a[:, 3 + n:] == -1.0)
+    print("draws ok")
+
+
+def _ensemble() -> None:
+    """A CUDA ensemble of a scene whose start is drawn on the device beside a scene with host arrays holds the
+    same state as one built from host draws (their columns, the first list build and forces at t = 0)."""
+    import dataclasses
+
+    from engine.backends.base import SphereSystem
+    from engine.backends.cuda import CudaEnsemble
+    from engine.scene import StartDraw, drawn_on_host
+    from tests.engine.test_cuda_simulator import contact, tiny_system
+
+    n, box, r = 60, 2.0, 0.05
+    m, inertia = 1.0, 0.4 * r * r
+    drawn = SphereSystem(box_length=box, position=None, velocity=None, angular_velocity=None, orientation=None,
+                         radius=np.full(n, r), mass=np.full(n, m), inertia=np.full(n, inertia),
+                         draw=StartDraw.of(n, 5, _streams(), box, r))
+    assert drawn.n == n
+    host = drawn_on_host(drawn)
+    assert host.draw is None and host.position.shape == (n, 3)
+    other = tiny_system()
+    c = contact(skin=0.01)
+    a = CudaEnsemble([other, drawn], [c, c])
+    b = CudaEnsemble([other, dataclasses.replace(host)], [c, c])
+    for k in (0, 1):
+        sa, sb = a.state(k), b.state(k)
+        for key in ("position", "velocity", "angular_velocity", "orientation"):
+            assert np.array_equal(sa[key], sb[key]), (k, key)
+    assert np.array_equal(a.f_cur.copy_to_host(), b.f_cur.copy_to_host())
+    print("ensemble ok")
+
+
+def test_device_start_is_the_host_start_under_the_simulator():
+    here = Path(__file__).resolve()
+    res = run_children({part: [here, part] for part in ("draws", "ensemble")}, timeout=600)
+    for part, (rc, out, err) in res.items():
+        assert rc == 0 and f"{part} ok" in out, f"{part}:\n{out}\n{err[-3000:]}"
+
+
+if __name__ == "__main__":
+    from tests.cudasim import fast_block_polling
+
+    sys.path.insert(0, str(ROOT))
+    fast_block_polling()
+    _draws() if sys.argv[1] == "draws" else _ensemble()
