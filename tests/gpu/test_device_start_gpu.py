@@ -4,20 +4,14 @@ host (DEMQ_DEVICE_START=0), to rounding. Skipped without a GPU."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-
-import h5py
 import numpy as np
 import pytest
 
 from engine.backends.base import cuda_available
+from tests.gpu.fresh import datasets, run_job
 
 pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 BIG = dict(n_particles=1_100_000, volume_fraction=0.058, e_n=0.9, e_t=0.5, seed=3)
 
 # the device's log, cos, sin and pow (libdevice) differ from the host's libm by an ulp or two, and it may fuse a
@@ -72,25 +66,13 @@ print("RUN " + json.dumps({"startup": s.extra.get("gpu_startup"), "steps": s.ste
 """
 
 
-def _datasets(path):
-    out = {}
-    with h5py.File(path, "r") as f:
-        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-    return out
-
-
 def test_a_job_with_its_start_drawn_on_the_device_writes_the_host_starts_file_to_rounding(tmp_path):
     kw = dict(BIG, t_end=0.005, snapshots=2, thermalization=0)
     files, info = {}, {}
     for on in ("0", "1"):
         out = tmp_path / f"device{on}.h5"
-        env = {**os.environ, "DEMQ_DEVICE_START": on,
-               "PYTHONPATH": os.pathsep.join([ROOT] + [x for x in [os.environ.get("PYTHONPATH")] if x])}
-        p = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(kw), str(out)], env=env, cwd=ROOT,
-                           capture_output=True, text=True, timeout=900)
-        assert p.returncode == 0, p.stderr[-3000:]
-        info[on] = json.loads([x for x in p.stdout.splitlines() if x.startswith("RUN ")][-1][4:])
-        files[on] = _datasets(out)
+        info[on] = run_job(_CHILD, kw, out, {"DEMQ_DEVICE_START": on}, "RUN")
+        files[on] = datasets(out)
     assert info["1"]["backend"] == "cuda" and info["1"]["startup"]["error"] is None, info
     assert info["1"]["steps"] == info["0"]["steps"] > 10
     from engine.params import derive

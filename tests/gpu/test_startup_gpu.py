@@ -5,20 +5,14 @@ GPU."""
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-
-import h5py
 import numpy as np
 import pytest
 
 from engine.backends.base import cuda_available
+from tests.gpu.fresh import datasets, run_job
 
 pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 _CHILD = """
 import json, sys
@@ -30,16 +24,6 @@ print("STARTUP " + json.dumps(s.extra.get("gpu_startup")))
 """
 
 
-def _datasets(path):
-    out = {}
-    with h5py.File(path, "r") as f:
-        def visit(name, obj):
-            if isinstance(obj, h5py.Dataset):
-                out[name] = obj[()]
-        f.visititems(visit)
-    return out
-
-
 @pytest.mark.parametrize("kw", [
     dict(n_particles=40000, volume_fraction=0.1, e_n=0.8, e_t=0.5, t_end=0.02, snapshots=1, seed=5,
          thermalization=2),
@@ -49,14 +33,8 @@ def test_a_fresh_process_writes_the_same_file_with_and_without_the_startup_threa
     files, info = {}, {}
     for on in ("0", "1"):
         out = tmp_path / f"on{on}.h5"
-        env = {**os.environ, "DEMQ_GPU_STARTUP": on,
-               "PYTHONPATH": os.pathsep.join([ROOT] + [x for x in [os.environ.get("PYTHONPATH")] if x])}
-        p = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(kw), str(out)], env=env, cwd=ROOT,
-                           capture_output=True, text=True, timeout=900)
-        assert p.returncode == 0, p.stderr[-3000:]
-        line = [x for x in p.stdout.splitlines() if x.startswith("STARTUP ")][-1]
-        info[on] = json.loads(line[8:])
-        files[on] = _datasets(out)
+        info[on] = run_job(_CHILD, kw, out, {"DEMQ_GPU_STARTUP": on}, "STARTUP")
+        files[on] = datasets(out)
     assert info["0"] is None
     assert info["1"] is not None and info["1"]["error"] is None, info["1"]
     assert files["0"].keys() == files["1"].keys()
