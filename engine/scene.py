@@ -245,16 +245,16 @@ def species_index(radius: np.ndarray, p: Derived) -> np.ndarray:
 
 
 def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
-    """The starting state of a sphere spec: placed, Maxwellian, spins at equal temperature. ``on_device`` (a job
-    that runs on the GPU): a large start (:func:`device_start`) comes as its :class:`StartDraw` (``system.draw``,
-    no host arrays), drawn by the GPU backend when it is built."""
+    """The starting state of a sphere spec: placed, Maxwellian, spins at equal temperature. ``on_device`` (a GPU job
+    for which :func:`device_start` holds, engine/simulate.py): a large start comes as its :class:`StartDraw`
+    (``system.draw``, no host arrays), drawn by the GPU backend when it is built."""
     if species_table(spec) is not None:
         return initial_species(spec, p)
     n = spec.n_particles
     w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
     if start_generator(spec) == PARALLEL_GENERATOR:
         streams, radius = parallel_start_streams(spec, p)
-        if on_device and device_start(spec):    # drawn by the GPU job's backend (engine/backends/cuda_start.py)
+        if on_device:    # drawn by the GPU job's backend (engine/backends/cuda_start.py)
             return SphereSystem(
                 box_length=spec.box_length, position=None, velocity=None, angular_velocity=None, orientation=None,
                 radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]),

@@ -132,8 +132,7 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
             if driver is not None:
                 driver.release()
             return None
-        started = _started[key] = GpuStartup(spec.shape, system, contacts, driver,
-                                             start_dtypes if system is not None else None)
+        started = _started[key] = GpuStartup(spec.shape, system, contacts, driver, start_dtypes)
     return started
 
 

@@ -181,18 +181,22 @@ class CudaEnsemble:
     # ---- set-up -----------------------------------------------------------------------------------
 
     def _up(self, a, rows, dtype=None):
-        """Host (N, rows) -> device (rows, N) in the working precision (or ``dtype``). The host array goes up as it
-        is (float32 and float64; anything else as float64) and the device transposes and casts it
-        (K.scatter_rows, the same round-to-nearest cast as NumPy's): a host transposition of a large start cost
-        more than the upload itself (issue 14, set-up)."""
+        """Host (N, rows) -> device (rows, N) in the working precision (or ``dtype``): :meth:`_up_into` a new array."""
+        dst = cuda.device_array((rows, self.n), dtype or self.dtype, stream=self.stream)
+        self._up_into(a, dst, 0)
+        return dst
+
+    def _up_into(self, a, dst, col0: int) -> None:
+        """Host (n_a, rows) -> columns [col0, col0 + n_a) of the device (rows, N) array ``dst``, in its precision. The
+        host array goes up as it is (float32 and float64; anything else as float64) and the device transposes and
+        casts it (K.scatter_rows, the same round-to-nearest cast as NumPy's): a host transposition of a large start
+        cost more than the upload itself (issue 14, set-up)."""
         a = np.asarray(a)
         if a.dtype not in (np.float32, np.float64):
             a = a.astype(np.float64)
-        a = np.ascontiguousarray(a.reshape(self.n, rows))
-        dst = cuda.device_array((rows, self.n), dtype or self.dtype, stream=self.stream)
-        if self.n:
-            K.scatter_rows[self._grid(self.n)](cuda.to_device(a, stream=self.stream), 0, dst)
-        return dst
+        a = np.ascontiguousarray(a.reshape(-1, dst.shape[0]))
+        if a.shape[0]:
+            K.scatter_rows[self._grid(a.shape[0])](cuda.to_device(a, stream=self.stream), col0, dst)
 
     def _copy(self, a):
         """A device copy of device array ``a`` (on the stream; no host round trip)."""
@@ -222,10 +226,8 @@ class CudaEnsemble:
         rad, mass, inertia = (np.concatenate([np.asarray(getattr(s, attr), np.float64) for s in systems])
                               if len(systems) > 1 else np.asarray(getattr(systems[0], attr), np.float64)
                               for attr in ("radius", "mass", "inertia"))
-        # a start drawn on the device is one size (engine.scene.device_start)
-        self.uniform = all(s.n == 0 or s.draw is not None or (
-            np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0]) and np.all(s.inertia == s.inertia[0]))
-            for s in systems)
+        self.uniform = all(s.n == 0 or (np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0])
+                                        and np.all(s.inertia == s.inertia[0])) for s in systems)
         self._rmax = [float(np.max(s.radius)) if s.n else 0.0 for s in systems]
         self._scene0 = [(rad[i], mass[i], inertia[i]) if s_n else (0, 0, 0)
                         for i, s_n in zip(self.starts, self.sizes)]
@@ -271,12 +273,10 @@ class CudaEnsemble:
             if sy.draw is not None:
                 draw_start(sy.draw, int(col0), self.pos, {k: getattr(self, a) for k, a in SPHERE_TARGETS.items()}, st,
                            self.max_blocks)
-            elif sy.n:
+            else:
                 for attr, dst in (("position", self.pos), ("velocity", self.vel), ("angular_velocity", self.omega),
                                   ("orientation", self.quat)):
-                    a = np.asarray(getattr(sy, attr))
-                    a = np.ascontiguousarray(a if a.dtype in (np.float32, np.float64) else a.astype(np.float64))
-                    K.scatter_rows[self._grid(sy.n)](cuda.to_device(a.reshape(sy.n, -1), stream=st), int(col0), dst)
+                    self._up_into(getattr(sy, attr), dst, int(col0))
 
     def _scene_constants(self, s: int) -> None:
         """Scene s's particle constants in spd (used when its particles are uniform)."""

@@ -247,8 +247,12 @@ def load(pos_dtype, dtype) -> None:
     """Load (or compile) every kernel of a device start into device arrays of these precisions, for the argument
     types a job's start calls them with: a start of 64 spheres on a lattice of 108 sites, discarded (the GPU
     start-up thread, engine/startup.py)."""
-    d = StartDraw.of(64, 0, [(STREAM_VELOCITY, 3, 1.0), (STREAM_SPIN, 3, 1.0), (STREAM_QUATERNION, 4, None)],
-                     20.0, 1.0)
+    from engine.params import derive
+    from engine.scene import parallel_start_streams
+    from engine.spec import SimulationSpec
+
+    sphere = SimulationSpec()
+    d = StartDraw.of(64, 0, parallel_start_streams(sphere, derive(sphere))[0], 20.0, 1.0)
     stream = cuda.stream()
     pos = cuda.device_array((3, d.n), pos_dtype, stream=stream)
     dsts = {k: cuda.device_array((dim, d.n), dtype, stream=stream) for k, dim, _ in d.streams}

@@ -17,7 +17,8 @@ from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
 from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
                           STREAM_SITES, STREAM_SPIN, STREAM_VELOCITY, _bits, _parallel_draws,
-                          _smallest_sites, _stream_key, initial_ellipsoids, initial_spheres, start_generator)
+                          _smallest_sites, _stream_key, device_start, initial_ellipsoids, initial_spheres,
+                          start_generator)
 from engine.spec import SimulationSpec
 
 
@@ -38,7 +39,7 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
         monkeypatch, tmp_path):
     """engine.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
     host arrays: engine/backends/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
-    host, the same start as always; DEMQ_DEVICE_START=0 and other shapes keep the host's draw."""
+    host, the same start as always; with DEMQ_DEVICE_START=0 and for other shapes the host draws."""
     import engine.simulate as sim
 
     spec = _big(seed=9)
@@ -58,8 +59,15 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
     assert scene.backend == "cpu" and scene.system.draw is None
     for attr in ("position", "velocity", "angular_velocity", "orientation"):
         assert np.array_equal(getattr(scene.system, attr), getattr(host, attr)), attr
+    assert device_start(spec) and not device_start(_big(shape="ellipsoid", elongation=2.0))
+    # a job that runs on the GPU leaves its start to the device, unless DEMQ_DEVICE_START=0
+    monkeypatch.setattr(sim, "resolve_backend", lambda name, shape: "cuda")
+    gpu = sim.SceneRun(spec, tmp_path / "y.h5")
+    assert gpu.backend == "cuda" and gpu.system.draw == left.draw and gpu.system.position is None
     monkeypatch.setenv("DEMQ_DEVICE_START", "0")
-    assert initial_spheres(spec, p, on_device=True).draw is None
+    assert not device_start(spec)
+    gpu = sim.SceneRun(spec, tmp_path / "z.h5")
+    assert gpu.system.draw is None and np.array_equal(gpu.system.position, host.position)
 
 
 def test_parallel_start_is_a_valid_homogeneous_gas():
