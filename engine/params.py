@@ -4,16 +4,16 @@ Owns :func:`derive` (every derived number of a validated spec) and the cost esti
 and the contact time that the spec's own checks also need come from engine/scales.py (which imports
 neither this module nor engine/spec.py); this module imports the spec only for the default Verlet skin.
 
-Paper 001 (Hidalgo et al. 2013) and PHYSICS-NOTES §1:
+Paper 001 (Hidalgo et al. 2013) and docs/physics.md §1:
 - normal spring-dashpot m12 d''+ gamma_n d' + k_n d = 0, contact ending when the overlap returns to
-  zero (rule (a)); t_c = pi sqrt(m12/k_n) (elastic contact time, DESIGN §2);
+  zero (rule (a)); t_c = pi sqrt(m12/k_n) (elastic contact time, docs/physics.md §3.4);
 - gamma_n = sqrt(4 k_n m12 / ((pi/ln(1/e_n))^2 + 1))            (paper 001, text after Eq. 3);
 - k_t = k_n q/(1+q) (arccos(-e_t)/pi)^2, q = 2/5                  (paper 001 Eq. 4).
 Eq. 4 is exact only for gamma_n = 0: with damping the contact lasts pi/omega instead of pi/omega_0 and
-the spring model yields e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n / pi)^2)) (PHYSICS-NOTES §1.2),
+the spring model yields e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n / pi)^2)) (docs/physics.md §1.3),
 which is what the theory is compared with.
 
-Polydisperse spheres (spec ``species``, issue 7): species k has radius R_k = radius_ratio_k R_max and
+Polydisperse spheres (spec ``species``): species k has radius R_k = radius_ratio_k R_max and
 count N_k = round(N f_k) (the remainder goes to the species with the largest fraction, the first of
 equal ones); R_max follows from the total solid volume sum_k N_k (4/3) pi R_k^3 = phi L^3. Mass
 m_k = density (4/3) pi R_k^3, inertia 0.4 m_k R_k^2. Per pair, m12 = m_i m_j/(m_i + m_j) and
@@ -38,6 +38,7 @@ from engine.precision import position_dtype, state_dtype
 from engine.scales import (Q_SPHERE, SpeciesTable, radius_from_volume_fraction, scales, species_counts,  # noqa: F401
                            species_table)
 from engine.spec import default_verlet_skin
+from engine.start_kind import start_protocol, thermalization_collisions
 
 
 def gamma_n_from_restitution(e_n: float, k_n: float, m12: float) -> float:
@@ -57,7 +58,7 @@ def e_t_effective(e_n: float, e_t: float) -> float:
 
     Eq. 4 assumes the contact lasts pi/omega_0; with damping it lasts pi/omega with
     omega = omega_0 / sqrt(1 + (ln e_n/pi)^2), so the tangential oscillator turns through a larger
-    angle: e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n/pi)^2))  (PHYSICS-NOTES §1.2).
+    angle: e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n/pi)^2))  (docs/physics.md §1.3).
     """
     if e_t <= -1.0:
         return -1.0
@@ -91,7 +92,7 @@ def enskog_rate_mixture(radius, count, mass, volume: float, temperature: float) 
 
     nu_a = sum_b n_b g_ab pi sigma_ab^2 sqrt(8 T / (pi m_ab)), sigma_ab = R_a + R_b, m_ab the reduced
     mass, g_ab the BMCSL contact value (:func:`bmcsl_g`) at the total volume fraction; the mean over
-    particles is sum_a x_a nu_a. One species: 4 (2a)^2 n g sqrt(pi T/m) (PHYSICS-NOTES §2.1).
+    particles is sum_a x_a nu_a. One species: 4 (2a)^2 n g sqrt(pi T/m) (docs/physics.md §6.1).
     """
     nd = [c / volume for c in count]
     ntot = sum(count)
@@ -154,6 +155,7 @@ class Derived:
     number_density: float  # N/V, 1/m^3
     temperature0: float    # m v_rms^2 / 3 (J), translational temperature at the start
     collision_rate0: float # Enskog collision frequency per particle at the start, 1/s
+    thermalization: float  # collisions per particle of elastic dynamics before t = 0 (null resolved)
     t_thermalization: float
     n_thermalization_steps: int
     skin: float            # Verlet skin L_v in m
@@ -163,6 +165,7 @@ class Derived:
     species_count: tuple = ()     # per species number of particles
     species_mass: tuple = ()      # per species mass (kg)
     species_inertia: tuple = ()   # per species moment of inertia (kg m^2; spheres: 0.4 m R^2)
+    start: str = ""               # placement protocol, "random" or "lattice" (engine/start_kind.py)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -184,13 +187,14 @@ def derive(spec) -> Derived:
     nd = n / L**3
     t0 = sc.temperature0              # species: equipartition, T0 = <m> v_rms^2 / 3
     g = carnahan_starling_g(phi)
-    # Enskog collision frequency per particle, omega_E = 4 (2a)^2 n g sqrt(pi T/m) (PHYSICS-NOTES §2.1);
+    # Enskog collision frequency per particle, omega_E = 4 (2a)^2 n g sqrt(pi T/m) (docs/physics.md §6.1);
     # for spheroids the orientation-averaged excluded surface replaces (2a)^2 at leading order.
     sigma2 = (2.0 * r_eq) ** 2
     rate0 = 4.0 * sigma2 * nd * g * math.sqrt(math.pi * t0 / mass)
     if sp is not None:   # mixture: sum over species pairs with sigma_ab = R_a + R_b, BMCSL g_ab
         rate0 = enskog_rate_mixture(sp.radius, sp.count, sp.mass, L**3, t0)
-    t_th = spec.thermalization / rate0 if spec.thermalization > 0 else 0.0
+    collisions = thermalization_collisions(spec)
+    t_th = collisions / rate0 if collisions > 0 else 0.0
     n_th = int(math.ceil(t_th / dt)) if t_th > 0 else 0
     # null skin: the default of spec.backend (resolved by the driver)
     skin = (spec.verlet_skin if spec.verlet_skin is not None else default_verlet_skin(spec.backend, spec.shape, spec.volume_fraction)) \
@@ -205,10 +209,11 @@ def derive(spec) -> Derived:
         gamma_n_coef=gamma_n / math.sqrt(m12), k_n=k_n, k_t=k_t,
         e_t_effective=-1.0 if smooth else e_t_effective(spec.e_n, spec.e_t), dt=dt,
         n_steps=n_steps, output_every=output_every, number_density=nd, temperature0=t0,
-        collision_rate0=rate0, t_thermalization=t_th, n_thermalization_steps=n_th, skin=skin,
+        collision_rate0=rate0, thermalization=collisions, t_thermalization=t_th, n_thermalization_steps=n_th, skin=skin,
         cutoff=2.0 * max(semi) + skin, mass_mean=mass_mean,
         species_radius=(r_eq,) if one else sp.radius, species_count=(n,) if one else sp.count,
-        species_mass=(mass,) if one else sp.mass, species_inertia=(inertia[0],) if one else sp.inertia)
+        species_mass=(mass,) if one else sp.mass, species_inertia=(inertia[0],) if one else sp.inertia,
+        start=start_protocol(spec))
 
 
 #: Rough upper bound of device/host memory per particle in bytes (state, lists, history), used to

@@ -1,12 +1,15 @@
-"""Initial states: homogeneous non-overlapping placement and Maxwellian velocities (paper 001 protocol).
+"""Initial states: homogeneous non-overlapping placement and Maxwellian velocities (docs/physics.md §5).
 
-Placement (one size): the sites of an fcc lattice with at least N sites fill the box; N of them are chosen at
+Which placement a spec gets is engine/start_kind.py's ``start_protocol``: "random" (random sequential addition,
+below) for species and for one-size spheres where it is cheap, "lattice" (paper 001's protocol) otherwise.
+
+Placement (one size, "lattice"): the sites of an fcc lattice with at least N sites fill the box; N of them are chosen at
 random and each particle is displaced at random inside the free room around its site (at most half
 the gap to its nearest neighbour), so no two particles overlap at any volume fraction the lattice can
 hold (up to ~0.5 for awkward N, 0.74 at best) and the start is homogeneous. Dilute starts lose the
 lattice memory within a few collisions of the thermalisation phase.
 
-Placement (species, issue 7): random sequential addition (RSA), the largest species first: uniform
+Placement ("random", one size or species): random sequential addition (RSA), the largest species first: uniform
 random candidate centres (numpy Generator from the seed, in batches) are accepted when they overlap no
 sphere placed so far (centre distance >= (R_i + R_j)(1 + 1e-9)), checked on one linked-cell grid per
 species (cells >= 2 R_s, so the 27 neighbour cells hold every possible overlap of a candidate no larger
@@ -16,7 +19,7 @@ and slows long before, so species specs are limited to volume_fraction <= SPECIE
 species at the same temperature T0 = <m> v_rms^2 / 3 (equipartition), Gaussian per particle with
 variance T0/m_i per component, zero total momentum; spins with variance T0/I_i, zero total spin.
 
-Large starts (N >= PARALLEL_START_MIN, one size; issue 14): the same protocol, drawn in parallel (Numba
+Large lattice starts (N >= PARALLEL_START_MIN, one size): the same protocol, drawn in parallel (Numba
 prange) from a counter-based generator (SplitMix64 of seed, stream, particle and draw index; normals by
 Box-Muller), so the start is the same whatever the thread count, and sums (mean momentum, energy) are taken
 in fixed blocks; the N sites are those of smallest 64-bit key (a parallel radix select). These starts differ
@@ -43,8 +46,8 @@ from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_c
 from engine.errors import SpecError
 from engine.params import Derived, species_table
 from engine.physics.rotation import quat_unit
-from engine.start_kind import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR,  # noqa: F401
-                               device_start, start_generator)
+from engine.start_kind import (PARALLEL_GENERATOR, PARALLEL_START_MIN, RANDOM, SEQUENTIAL_GENERATOR,  # noqa: F401
+                               device_start, start_generator, start_protocol)
 
 
 def fcc_sites(n: int, box: float) -> tuple[np.ndarray, float]:
@@ -104,7 +107,7 @@ def random_quaternions(n: int, rng: np.random.Generator) -> np.ndarray:
 RSA_GAP = 1.0e-9
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)   # nogil: an ensemble places its scenes on several threads
 def _rsa_batch(cand, r_new, s_new, target, pos, n_placed, sp_radius, sp_nc, sp_off, head, nxt, box):
     """Try the candidate centres in order for a sphere of radius r_new (species slot s_new) until
     ``target`` spheres are placed; returns (candidates used, spheres placed). Slots 0..s_new hold the
@@ -264,7 +267,10 @@ def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
             box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
             radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]))
     rng = np.random.default_rng(spec.seed)
-    pos = place_spheres(n, spec.box_length, p.radius, rng)
+    if start_protocol(spec) == RANDOM:
+        pos, _ = place_species([n], [p.radius], spec.box_length, rng)
+    else:
+        pos = place_spheres(n, spec.box_length, p.radius, rng)
     vel = maxwellian(n, spec.velocity_rms, rng)
     # equal rotational and translational temperature: I <w^2> = m <v^2>
     omega = maxwellian(n, w_rms, rng)
@@ -279,7 +285,7 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
     uniformly random orientations, Maxwellian velocities, and spins about the two axes perpendicular to
     the symmetry axis at the translational temperature per degree of freedom; no spin about the axis when
     the contacts are frictionless (they can neither create nor use it: paper 003 sets omega_y(0) = 0), a
-    thermal one when they are rough (issue 17: all three rotational dof exchange energy)."""
+    thermal one when they are rough (all three rotational dof exchange energy)."""
     n = spec.n_particles
     a = p.semi_axes[0]
     parallel = start_generator(spec) == PARALLEL_GENERATOR
@@ -290,6 +296,8 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
             streams, _ = parallel_start_streams(spec, p)
             pos, drawn = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, a))
             vel, quat, w_b = drawn[:3]
+        elif start_protocol(spec) == RANDOM:
+            pos, _ = place_species([n], [a], spec.box_length, rng)
         else:
             pos = place_spheres(n, spec.box_length, a, rng)
     except SpecError as exc:
@@ -387,7 +395,7 @@ def parallel_start_streams(spec, p: Derived) -> tuple:
     return [(STREAM_VELOCITY, 3, spec.velocity_rms), (STREAM_SPIN, 3, w_rms), (STREAM_QUATERNION, 4, None)], p.radius
 
 
-# ---- large starts in parallel (issue 14) --------------------------------------------------------------
+# ---- large lattice starts in parallel ------------------------------------------------------------------
 
 STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION, STREAM_SPIN_AXIS = range(6)
 _DRAWS = 8           # counter values reserved per particle and stream

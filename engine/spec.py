@@ -81,7 +81,7 @@ DEFAULT_SKIN_FLOOR = 0.2
 
 def mean_free_path(volume_fraction: float) -> float:
     """Enskog mean free path of equal spheres in radii: 1 / (3 sqrt(2) phi g(phi)), with the
-    Carnahan-Starling contact value g(phi) = (1 - phi/2)/(1 - phi)^3 (PHYSICS-NOTES §2.1)."""
+    Carnahan-Starling contact value g(phi) = (1 - phi/2)/(1 - phi)^3 (docs/physics.md §6.1)."""
     phi = volume_fraction
     return 1.0 / (3.0 * math.sqrt(2.0) * phi * (1.0 - 0.5 * phi) / (1.0 - phi) ** 3)
 
@@ -166,8 +166,16 @@ class SimulationSpec(BaseModel):
     velocity_rms: float = Field(
         2.0, description="Root-mean-square translational speed sqrt(<|v|^2>) at the start, in m/s; "
                          "the rotational temperature starts equal to the translational one.")
-    thermalization: float = Field(
-        1.0, description="Collisions per particle run without dissipation before t = 0 (>= 0).")
+    start: Optional[Literal["random", "lattice"]] = Field(
+        None, description="Initial placement: 'random' = uniform random non-overlapping positions (random "
+                          "sequential addition, an equilibrium gas at low density; volume_fraction <= 0.30); "
+                          "'lattice' = fcc lattice sites with a random displacement (the rough-sphere papers' "
+                          "protocol; one-size spheres and ellipsoids); null = 'random' where it is cheap "
+                          "(species; one-size spheres below 2^20 particles), else 'lattice'.")
+    thermalization: Optional[float] = Field(
+        None, description="Collisions per particle run without dissipation before t = 0 (0 ... 10000); "
+                          "null = what the start needs: a random start 0 up to volume_fraction 0.02, 0.25 up to "
+                          "0.1, 1 above; a lattice start 1.")
     t_end: float = Field(0.1, description="Length of the cooling run in s (> 0).")
     dt: Optional[float] = Field(
         None, description="Time step in s; null = contact_time / 50.")
@@ -270,9 +278,10 @@ class SimulationSpec(BaseModel):
 
     @field_validator("thermalization")
     @classmethod
-    def _therm(cls, v: float) -> float:
-        if not (0.0 <= v <= 1.0e4):
-            raise ValueError(f"thermalization = {v} is outside the allowed range [0, 10000] collisions per particle")
+    def _therm(cls, v: Optional[float]) -> Optional[float]:
+        if v is not None and not (0.0 <= v <= 1.0e4):
+            raise ValueError(f"thermalization = {v} is outside the allowed range [0, 10000] collisions per particle "
+                             f"(or null)")
         return v
 
     @field_validator("dt", "output_interval")
@@ -351,6 +360,15 @@ class SimulationSpec(BaseModel):
                 f"volume_fraction = {self.volume_fraction:g} is above {SPECIES_MAX_VOLUME_FRACTION:g}, the largest "
                 f"for a species spec: the random sequential placement of several sizes cannot start denser "
                 f"reliably (it jams near 0.38)")
+        if self.start == "lattice" and poly:
+            raise ValueError("start = 'lattice' but species is given: size distributions are placed by random "
+                             "sequential addition only; set start to 'random' or null")
+        bounding = self.volume_fraction * self.elongation**2     # ellipsoids: RSA places the bounding spheres
+        if self.start == "random" and bounding > SPECIES_MAX_VOLUME_FRACTION:
+            raise ValueError(
+                f"start = 'random' needs volume_fraction x elongation^2 <= {SPECIES_MAX_VOLUME_FRACTION:g} "
+                f"(random sequential addition jams near 0.38), but it is {bounding:g}; use start = 'lattice' or "
+                f"null")
         p = scales(self)
         if not p.temperature0 >= sys.float_info.min:
             # T0 = <m> v_rms^2 / 3 underflows: the collision rate, hence the thermalisation time, would be 0 or nan
