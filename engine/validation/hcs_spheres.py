@@ -216,7 +216,7 @@ def main(out_dir="reports/hcs-spheres", seeds: int = 4, quick: bool = False, bac
     lines += ["", "![cooling](hcs_spheres.png)", "",
               "Deviation = max over the window of |DEM ensemble mean / ODE - 1|; the ODE starts from the "
               "measured R(0)/T(0) and uses e_t,eff, the tangential restitution the Eq.-4 spring produces "
-              "with damping (PHYSICS-NOTES §1.2)."]
+              "with damping (docs/physics.md §1.3)."]
     (out / "REPORT.md").write_text("\n".join(lines) + "\n")
     summary = {f"{e_n}/{e_t}": {k: c[k] for k in ("max_dev_T", "max_dev_R", "tau_end", "e_n_measured",
                                                   "e_t_measured", "e_t_effective", "max_overlap", "R0")}
