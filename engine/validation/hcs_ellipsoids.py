@@ -42,7 +42,7 @@ ES = (0.90, 0.95, 0.98)
 CELLS = tuple((xi, e) for xi in XIS for e in ES)
 #: DSMC cells that the validation must match within 3 % (docs/physics.md §7.5).
 DSMC_CELLS = ((1.5, 0.9), (1.5, 0.95), (2.0, 0.9), (2.0, 0.95), (2.5, 0.9), (2.5, 0.95))
-#: one-impulse DSMC (docs/physics.md §6.4) with the nominal constant e, N = 5e4; none was run at xi = 2.5.
+#: one-impulse DSMC (docs/physics.md §6.4) with the nominal constant e, N = 5e4; no value at xi = 2.5.
 DSMC_NOTES = {(1.15, 0.95): 0.669, (1.15, 0.9): 0.454, (1.5, 0.95): 0.957, (1.5, 0.9): 0.909,
               (2.0, 0.95): 0.996, (2.0, 0.9): 0.984, (2.0, 0.8): 0.961}
 #: Maxwellian two-temperature HCS theory (nominal e, fixed-geometry energy balance), for reference.
