@@ -8,7 +8,7 @@ changes nothing but rounding); in each group the runs share their record steps, 
 for x = T_tr, T_rot (J, per degree of freedom, as in the run files), E_tr/E_tr(0) (each run
 normalised by its own first record) and the velocity-distribution cumulants sonine_a2_translational,
 sonine_a2_rotational, sonine_a11 (dimensionless, engine/physics/sonine.py; a run file written before
-issue 18 has none: its values are NaN). K = 1 has no spread estimate: its standard error is NaN.
+the engine recorded them has none: its values are NaN). K = 1 has no spread estimate: its standard error is NaN.
 The per-seed cumulant is a ratio of sums over N particles (bias O(1/N), far below the seed scatter).
 
 Batch file layout (``write_batch_result``)::
@@ -48,7 +48,7 @@ QUANTITIES = {
     "sonine_a2_rotational": ("sonine_a2_rotational", "", False),
     "sonine_a11": ("sonine_a11", "", False),
 }
-#: quantities a run file may lack (written since issue 18): NaN there instead of an error
+#: quantities a run file may lack (older files): NaN there instead of an error
 OPTIONAL = ("sonine_a2_translational", "sonine_a2_rotational", "sonine_a11")
 #: Spec keys that do not define a group: runs differing only in these are seeds of one spec.
 NOT_GROUPING = ("seed", "backend")
@@ -198,7 +198,7 @@ def read_batch_result(path) -> dict:
                  "job_ids": [x.decode() if isinstance(x, bytes) else str(x) for x in h["job_ids"][()]],
                  "seeds": h["seeds"][()], "step": h["step"][()], "time": h["time"][()]}
             for q in QUANTITIES:
-                if q in h:  # batch files written before issue 18 lack the Sonine cumulants
+                if q in h:  # older batch files lack the Sonine cumulants
                     g[q] = {part: h[q][part][()] for part in ("mean", "standard_error", "values")}
             groups.append(g)
         out["groups"] = groups

@@ -1,6 +1,6 @@
 """HDF5 result files in the H5MD 1.1 layout (nongnu.org/h5md), with a declared `dem` module.
 
-Layout (DESIGN §4)::
+Layout (docs/design.md §5)::
 
     /h5md                      version=[1,1]; author/@name; creator/@name,@version; modules/dem/@version
     /particles/all/box         @dimension=3, @boundary=[periodic]*3, edges=[L,L,L]
@@ -11,7 +11,7 @@ Layout (DESIGN §4)::
                                kinetic_energy_rotational, temperature_translational, temperature_rotational
                                (J), contacts, elastic_energy (J), max_overlap (/radius), and the
                                dimensionless velocity-distribution cumulants sonine_a2_translational,
-                               sonine_a2_rotational, sonine_a11 (engine/physics/sonine.py, issue 18), and for
+                               sonine_a2_rotational, sonine_a11 (engine/physics/sonine.py), and for
                                spheres collisions (contacts begun since the scene started, cumulative)
     /parameters                @spec (JSON), derived parameters, engine version, backend, device,
                                wall time, Cundall number
@@ -23,7 +23,7 @@ with a along the body x axis.
 The writer works on ``<path>.part`` and renames it to ``<path>`` only in :meth:`H5MDWriter.finish`:
 a reader never sees a half-written result. Non-finite values are refused before they are written.
 
-Cost (issue 14): observables are kept in memory and written in blocks of :data:`OBSERVABLE_BLOCK` records
+Cost (docs/design.md §5): observables are kept in memory and written in blocks of :data:`OBSERVABLE_BLOCK` records
 (one resize and one write per dataset per block, also at :meth:`H5MDWriter.flush`, at checkpoints and at
 :meth:`H5MDWriter.finish`), so a record costs O(1) host work; a snapshot frame is one resize and one write
 per element. With ``background=True`` the file work (creation, blocks of records, snapshot frames) runs on
@@ -207,7 +207,7 @@ class H5MDWriter:
     def _append(g: h5py.Group, step: int, time: float, value) -> None:
         """Append one frame. A frame is one chunk: when the array is that chunk's bytes already (C order, the
         dataset's type, no filter) it is written as the chunk (H5Dwrite_chunk), which skips HDF5's copy of a chunk
-        larger than its chunk cache: 218 MB took 0.07 s instead of 0.22-0.27 s on the H200 host (issue 14)."""
+        larger than its chunk cache: 218 MB took 0.07 s instead of 0.22-0.27 s on the H200 host."""
         k = g["step"].shape[0]
         for key in ("step", "time", "value"):
             g[key].resize(k + 1, axis=0)

@@ -1,4 +1,4 @@
-"""Writing many small result files at once, in helper processes (issue 14).
+"""Writing many small result files at once, in helper processes (docs/design.md §5).
 
 h5py serialises every call of a process behind one lock, so the result files of a packed GPU ensemble,
 which all finish in the same round, are written one after another: about 10 ms each (creating the

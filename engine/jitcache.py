@@ -42,7 +42,7 @@ def source_digest() -> str:
     (with the engine's own imports). It names the code this process runs: a hash taken later, after the files
     changed on disk, would file this process's machine code under sources it was not compiled from, where a new
     process would load it. (Hashing again also cost about 1 ms of Python, and up to 16 ms of waiting for the GIL
-    measured on the GPU start-up thread, for every kernel set a GPU job makes: issue 14.)"""
+    measured on the GPU start-up thread, for every kernel set a GPU job makes.)"""
     return _DIGEST
 
 
@@ -77,7 +77,7 @@ def fast_loads(namespace: dict) -> None:
 
     numba refreshes the target context before every cache load "to ensure it is initialized". On the CPU target
     that installs every lowering registry and imports scipy.linalg for numba's BLAS check: 0.25-0.4 s of Python,
-    once per process, under the GIL (issue 14: a fresh process's time to result). A load needs only the symbols
+    once per process, under the GIL (part of a fresh process's time to result). A load needs only the symbols
     its linked machine code calls: numba's C helpers and libm (registered when the context is created), the NRT
     (the one part of the refresh kept here: ``rtsys.initialize``), the hash secret (``numba.cpython.hashing``,
     imported here) and a parallel function's thread pool (started by the load's own ``reload_init``). Any

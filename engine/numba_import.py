@@ -1,4 +1,4 @@
-"""numba's first import in a process without the ``coverage`` package's (issue 14: a job's start-up).
+"""numba's first import in a process without the ``coverage`` package's (part of a job's start-up).
 
 numba (numba.misc.coverage_support) imports ``coverage`` whenever it is installed, to report compiled lines to a
 running coverage measurement, which it does only when NUMBA_JIT_COVERAGE=1 (numba.core.config.JIT_COVERAGE).

@@ -1,4 +1,4 @@
-"""Work on a large array in pieces on a few threads (issue 14: the output path of large scenes).
+"""Work on a large array in pieces on a few threads (the output path of large scenes).
 
 NumPy releases the GIL in its array loops, so a per-piece function made of NumPy calls (a finite check, a strided
 write that faults pages in) runs on up to 8 cores at once. One pool per process, started on first use.

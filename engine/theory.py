@@ -8,7 +8,7 @@ Luding, Huthmann, McNamara & Zippelius, PRE 58, 3416 (1998), as quoted by paper 
     tau = (2/3) G T(0)^(1/2) t,  G = 8 (2a)^2 (N/V) sqrt(pi/m) g(2a)  (Carnahan-Starling g).
 
 with T and R normalised by T(0). The equations were checked against an independent derivation and
-the LSODA values of PHYSICS-NOTES §2.2 (tests/engine/test_theory.py).
+the LSODA values of docs/physics.md §6.3 (tests/engine/test_theory.py).
 """
 
 from __future__ import annotations
@@ -118,13 +118,13 @@ DOF_SMOOTH_SPHERE, DOF_SMOOTH_SPHEROID = 3, 5
 
 def haff_rate(e_n: float, collision_rate0: float, dof: int) -> float:
     """Haff's 1/t0 = (1 - e_n^2) Gamma_0 / (2 D_f) for smooth particles whose D_f degrees of freedom
-    share the energy equally (each collision loses (1 - e^2) T; PHYSICS-NOTES §3.2): D_f = 3 for smooth
+    share the energy equally (each collision loses (1 - e^2) T; docs/physics.md §6.2): D_f = 3 for smooth
     spheres, 5 for prolate spheroids (paper 003); Gamma_0 the collision frequency per particle at T(0)."""
     return (1.0 - e_n**2) * collision_rate0 / (2.0 * dof)
 
 
 def haff_rate_smooth_spheres(e_n: float, radius: float, number_density: float, mass: float,
                              volume_fraction: float, temperature0: float) -> float:
-    """1/t0 = (2/3)(1 - e^2)(2a)^2 n g sqrt(pi T0/m) for smooth spheres (PHYSICS-NOTES §2.3)."""
+    """1/t0 = (2/3)(1 - e^2)(2a)^2 n g sqrt(pi T0/m) for smooth spheres (docs/physics.md §6.2)."""
     return 2.0 / 3.0 * (1.0 - e_n**2) * (2.0 * radius) ** 2 * number_density * \
         carnahan_starling_g(volume_fraction) * math.sqrt(math.pi * temperature0 / mass)

@@ -1,4 +1,4 @@
-"""Velocity correlations of near neighbours in a snapshot frame (issue 18: what molecular chaos leaves out).
+"""Velocity correlations of near neighbours in a snapshot frame (docs/physics.md §6.6: what molecular chaos leaves out).
 
 The Boltzmann equation, the DSMC and the collision rules they use (one impulse or a whole two-body encounter)
 all assume molecular chaos: two particles about to collide have independent velocities. In a cooling granular

@@ -4,16 +4,16 @@ Conventions (forces on particle i from its partner j):
 - r = r_i - r_j (minimum image), d = |r|, n = r/d points from j to i, overlap delta = a_i + a_j - d.
 - Normal force F_n = k_n delta - gamma_n v_n along n (paper 001, "F^N = -k^N delta - gamma^N v^N_rel"
   with the sign chosen so that positive is repulsive); v_n = (v_i - v_j).n < 0 while approaching.
-  The contact ends when delta returns to 0 (PHYSICS-NOTES §1.1 rule (a)), so the late dashpot force can
+  The contact ends when delta returns to 0 (docs/physics.md §1.2), so the late dashpot force can
   be attractive; gamma_n from e_n by paper 001 is then exact.
 - Contact point at the middle of the overlap: lever arms l_i = (d + a_i - a_j)/2 and l_j = (d + a_j - a_i)/2
   (l_i + l_j = d), so the torques balance the orbital term and angular momentum is conserved (to rounding).
 - Tangential spring xi (m), d xi/dt = v_t (relative tangential velocity of the contact point, rotation
   included); each step the old spring is rotated into the current tangent plane keeping its length
-  (PHYSICS-NOTES §1.2 condition 4), then integrated. F_t = -k_t xi (gamma_t = 0, paper 001).
+  (docs/physics.md §1.3), then integrated. F_t = -k_t xi (gamma_t = 0, paper 001).
 - Coulomb limit |F_t| <= mu |F_n| with the spring shortened to the cap on sliding. The cap uses |F_n|,
   not max(F_n, 0): the latter zeroes the spring in the attractive tail of the dashpot and silently
-  lowers e_t (PHYSICS-NOTES §1.2 condition 1). mu = None means no sliding limit (Luding's model).
+  lowers e_t (docs/physics.md §1.4). mu = None means no sliding limit (Luding's model).
 
 Every expression is written so that swapping i and j negates the inputs exactly, which negates the
 outputs exactly in IEEE arithmetic: F_ji = -F_ij and xi_ji = -xi_ij to the last bit.
@@ -56,7 +56,7 @@ def sphere_separation(rx, ry, rz, rs, half):
 @numba.njit
 def contact_begins(delta, delta_prev):
     """Whether a contact begins in this step: overlap delta > 0 now, none (delta_prev <= 0, m) the step before
-    (one collision; the collision counter of issue 18 counts these)."""
+    (one collision; the ``collisions`` observable counts these)."""
     return delta > 0 and not delta_prev > 0
 
 
@@ -212,7 +212,7 @@ def sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wj
 # order in dt by an amount that depends on where in the step the jump fell: single head-on collisions
 # scatter by ~2 |ln e_n| dt/t_c around e_n (4 % at e_n = 0.3, dt = t_c/50). Locating the event by
 # linear interpolation of the overlap and correcting the impulse of the step next to it makes the
-# error second order (PHYSICS-NOTES §1.1: e_n is then e_n to ~1e-4 at dt = t_c/50).
+# error second order (docs/physics.md §1.5: e_n is then e_n to ~1e-4 at dt = t_c/50).
 
 
 @numba.njit

@@ -1,4 +1,4 @@
-"""Ellipsoid contact geometry (paper 003 §2.1, §3.2; PHYSICS-NOTES §4), single source for every backend.
+"""Ellipsoid contact geometry (paper 003 §2.1, §3.2; docs/physics.md §2.2-2.3), single source for every backend.
 
 Plain ``@numba.njit`` functions on scalars and tuples: no allocation, no Python objects, and no numeric
 literal in any arithmetic (an int or float literal promotes float32 to float64 in Numba); constants are
@@ -22,13 +22,13 @@ What is computed, and how
 - :func:`characteristic_quartic`: the coefficients of f(lambda) = det(lambda A + B) (paper 003 Eqs. 9-10),
   in closed form by a Schur complement (A centred at the origin, which leaves the roots unchanged).
 - :func:`paper_disjoint`: the paper's test "Delta > 0 and P = 8ac - 3b^2 < 0 => disjoint" (Eq. 11).
-  It is implemented as the paper states it and is NOT used by the engine: PHYSICS-NOTES §4.2 and
+  It is implemented as the paper states it and is NOT used by the engine: docs/physics.md §2.2 and
   tests/engine/test_ellipsoid_geometry.py show where it fails (Delta == 0 exactly for identical
   parallel ellipsoids, sign noise in float32 for near-parallel pairs, deep overlaps called disjoint).
 - :func:`pw_contact`: the robust test, Perram & Wertheim (J. Comput. Phys. 58, 409 (1985)):
   F(lambda) = lambda (1 - lambda) r^T C(lambda)^-1 r with C = (1 - lambda) M_A^-1 + lambda M_B^-1, concave
   on [0, 1]; F_max < 1 overlap, = 1 touch, > 1 separated. sqrt(F_max) is the paper's shrink factor W_0
-  (both ellipsoids scaled by W_0 about their centres just touch; PHYSICS-NOTES §4.3), and the positive
+  (both ellipsoids scaled by W_0 about their centres just touch; docs/physics.md §2.2), and the positive
   double root of the scaled quartic is lambda_0 = lambda*/(1 - lambda*). Maximised by safeguarded Newton.
 - :func:`ellipsoid_contact`: at W_0 the shrunk ellipsoids A_s, B_s touch at one point. There the two
   positive roots of det(lambda A_s + B_s) merge, so the eigenvectors V_2, V_3 of -A_s^-1 B_s coincide with
@@ -145,7 +145,7 @@ def characteristic_quartic(ma00, ma01, ma02, ma11, ma12, ma22, mb00, mb01, mb02,
     A: shape matrix M_A centred at the origin, B: M_B centred at r; both scaled by W (w2 = W^2; 1 for
     the particles themselves). With K = lambda M_A + M_B, g = M_B r and s = r^T M_B r the Schur
     complement gives f = (s - W^2 - W^2 lambda) det K - g^T adj(K) g. Then f(0) = -W^2 det M_B < 0 and
-    c4 = -W^2 det M_A < 0 (PHYSICS-NOTES §4.1). Pass dimensionless lengths for float32 (the roots do
+    c4 = -W^2 det M_A < 0 (docs/physics.md §2.2). Pass dimensionless lengths for float32 (the roots do
     not depend on the length unit).
     """
     k3 = sym_det(ma00, ma01, ma02, ma11, ma12, ma22)

@@ -81,7 +81,7 @@ def sphere_quat_turn(q0, q1, q2, q3, wx, wy, wz, dt, k, half):
 
     Between two changes of its spin a sphere turns about a fixed axis at a fixed rate, so
     q(t0 + k dt) = exp(k dt/2 (0, w)) q(t0) = cos(a) q + sin(a) (0, w/|w|) q with a = k dt |w| / 2
-    (dq/dt = 1/2 (0, w) q), renormalised against rounding. This is the sphere's orientation step (issue 15):
+    (dq/dt = 1/2 (0, w) q), renormalised against rounding. This is the sphere's orientation step:
     the time loops call it with the spin each step had (the mid-step w of the leap-frog, as paper 001's Fincham
     update uses), for all the steps since the orientation was last brought up to date, when a torque is about
     to change the spin and when the loop returns. A free sphere is thus exact to rounding over any number of

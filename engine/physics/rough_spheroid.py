@@ -1,15 +1,15 @@
-"""The tangential contact law of rough spheres applied to spheroids (issue 17): pure njit functions.
+"""The tangential contact law of rough spheres applied to spheroids: pure njit functions.
 
 :func:`rough_spheroid_pair` is the whole pair law that both backends call (engine/shapes/spheroid/kernels.py and
 device.py); the functions above it are its parts, tested on their own (tests/engine/test_rough_spheroid_physics.py).
-Derivation: docs/rough-spheroids.md.
+Derivation: docs/physics.md §2.5.
 
 Conventions (those of engine.physics.ellipsoid.ellipsoid_pair_screened): body A at c_A, body B at c_B,
 r = c_B - c_A, the contact point C, lever arms r_A = C - c_A and r_B = C - c_B, the unit normal n from A to B.
 The spring xi (m) is the tangential displacement of B's material point at C relative to A's, carried in the
 tangent plane (rotated with the normal, as the sphere code does: engine.physics.contact.
 rotate_spring_into_plane); the tangential force on B is F_t = -k_t xi (gamma_t = 0, paper 001), on A -F_t,
-capped at mu |F_n| when mu is given (the cap of the sphere code, on |F_n|: PHYSICS-NOTES §1.2 condition 1).
+capped at mu |F_n| when mu is given (the cap of the sphere code, on |F_n|: docs/physics.md §1.4).
 Torques r_B x F_t on B and r_A x (-F_t) on A: with the common point C, angular momentum about any fixed point
 is conserved to rounding.
 
@@ -20,7 +20,7 @@ B (-J on A) is dg = K J with the symmetric positive-definite
     K = (1/m_A + 1/m_B) 1 + [r_A]^T S_A [r_A] + [r_B]^T S_B [r_B],
 
 S = R diag(1/I_1, 1/I_2, 1/I_3) R^T the space-frame inverse inertia, [r] the cross-product matrix
-([r] x = r x x). n.K n = (1 + D)/m12 is the normal counterpart (PHYSICS-NOTES §3.2's D-term). The
+([r] x = r x x). n.K n = (1 + D)/m12 is the normal counterpart (the D of docs/physics.md §2.4). The
 effective tangential mass is taken as the inverse of K's mean over the tangent plane:
 
     1/m_t = (tr K - n.K n)/2
@@ -31,7 +31,7 @@ identical spheres: the same formula in the sphere limit). Exact (the sticking sl
 oscillator and e_t is e_t) only when K's tangential block is isotropic and uncoupled from the normal: spheres,
 and the ξ -> 1 limit. For a spheroid the tangential block has two eigenvalues (two slip frequencies) and an
 off-diagonal n-t part: e_t is then the value of the equivalent isotropic contact, not the exact restitution
-of every collision (docs/rough-spheroids.md). k_t is evaluated at the first step of a contact and kept for
+of every collision (docs/physics.md §2.5). k_t is evaluated at the first step of a contact and kept for
 the contact's lifetime (a spring whose stiffness changed with the geometry would create energy).
 
 Units: SI (m, kg, s, N). Every function takes ``half`` = 0.5 in the working precision.
@@ -73,7 +73,7 @@ def tangential_inverse_mass(inv_m12, sa, ra_x, ra_y, ra_z, sb, rb_x, rb_y, rb_z,
 
 @numba.njit
 def normal_inverse_mass(inv_m12, sa, ra_x, ra_y, ra_z, sb, rb_x, rb_y, rb_z, nx, ny, nz):
-    """n.K n = (1 + D)/m12 (1/kg): PHYSICS-NOTES §3.2's D-term, the normal counterpart of 1/m_t."""
+    """n.K n = (1 + D)/m12 (1/kg): the D of docs/physics.md §2.4, the normal counterpart of 1/m_t."""
     ax = ra_y * nz - ra_z * ny
     ay = ra_z * nx - ra_x * nz
     az = ra_x * ny - ra_y * nx
@@ -152,7 +152,7 @@ def rough_spheroid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb
                         ia1, ia2, ia3, ib1, ib2, ib3,
                         delta_prev, fd_prev, xix, xiy, xiz, kt_prev,
                         m12, k_n, gamma_n, f_t, mu, dt, tol, margin, screened_gap, half):
-    """The rough spheroid pair law (issue 17): paper 003's normal contact plus paper 001's tangential spring at
+    """The rough spheroid pair law: paper 003's normal contact plus paper 001's tangential spring at
     the contact point C. The one source both backends call (engine/shapes/spheroid/kernels.py, device.py).
 
     Geometry and normal force are :func:`engine.physics.ellipsoid.ellipsoid_pair_geometry_screened` (same

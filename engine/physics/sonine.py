@@ -1,11 +1,11 @@
-"""Velocity-distribution shape: Sonine coefficients from per-scene energy moments (issue 18 part 1).
+"""Velocity-distribution shape: Sonine coefficients from per-scene energy moments (docs/physics.md §6.5).
 
 The observe kernels of every backend add, next to E = sum_i e_i, the second moments
 
     S2 = sum_i e_i^2                 (J^2)    for e_i = m_i |v_i|^2 / 2 (translation) and the rotational
     X  = sum_i e_tr,i e_rot,i        (J^2)    energy e_rot,i of the dof that exchange energy
 
-in float64, one term per particle, so a record stays O(1) host work (issue 14). This module turns them into
+in float64, one term per particle, so a record stays O(1) host work (docs/design.md §2). This module turns them into
 the dimensionless cumulants; it is the only place that formula lives.
 
 **Energy form.** For d quadratic degrees of freedom of temperature T, the Maxwellian energy of one particle
@@ -26,7 +26,7 @@ unequal masses the two forms differ already for an equilibrium mixture (the velo
 mixture is not 3), which is why the energy form is used everywhere here.
 
 Translation uses d = 3; rotation of spheres d = 3 (e_rot = I |omega|^2 / 2); spheroids use the two active
-rotational dof about the axes perpendicular to the symmetry axis, d = 2 (PHYSICS-NOTES §3.3; the spin about
+rotational dof about the axes perpendicular to the symmetry axis, d = 2 (docs/physics.md §2.4, §2.7; the spin about
 the symmetry axis of a frictionless spheroid never changes). The cross cumulant of rough particles,
 
     a11 = <e_tr e_rot> / (<e_tr> <e_rot>) - 1                                                  (2)

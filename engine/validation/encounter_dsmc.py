@@ -1,11 +1,11 @@
-"""DSMC of smooth prolate spheroids whose collision rule is the whole DEM encounter (issue 18, part 3).
+"""DSMC of smooth prolate spheroids whose collision rule is the whole DEM encounter (docs/physics.md §6.4).
 
-The instantaneous DSMC (engine.validation.hcs_ellipsoids.dsmc_ratio, physics-scripts/f_dsmc.py) draws every
+The instantaneous DSMC (engine.validation.hcs_ellipsoids.dsmc_ratio, docs/physics.md §6.4) draws every
 contact from uncorrelated pre-collision states (molecular chaos, isotropic orientations) and applies one
 impulse. Here the SAME sampling feeds three collision rules, chosen by ``rule``:
 
 - ``RULE_IMPULSE`` (0): one instantaneous impulse at the sampled contact with the restitution the DEM
-  dashpot gives at that geometry, e_eff(D) (PHYSICS-NOTES §3.2; hcs_ellipsoids.e_effective). This is
+  dashpot gives at that geometry, e_eff(D) (docs/physics.md §2.4; hcs_ellipsoids.e_effective). This is
   dsmc_ratio(dem=True) in Numba.
 - ``RULE_SOFT`` (1): the real DEM pair, integrated through the whole encounter with the engine's own njit
   functions, in the order of engine/shapes/spheroid/cpu_backend.py (kick_drift_ell, compute_forces_ell):
@@ -146,7 +146,7 @@ def zeta_of(e_n):
 
 @numba.njit(cache=True)
 def e_eff(zeta, D):
-    """Restitution of the linear dashpot (gamma from m12) at coupling D, frozen geometry (PHYSICS-NOTES §3.2;
+    """Restitution of the linear dashpot (gamma from m12) at coupling D, frozen geometry (docs/physics.md §2.4;
     the same formula as engine.validation.hcs_ellipsoids.e_effective)."""
     if zeta <= 0.0:
         return 1.0

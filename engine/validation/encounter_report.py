@@ -1,4 +1,4 @@
-"""The ellipsoid excess (issue 18, part 3): DSMC runs with the whole DEM encounter as the collision rule, their
+"""The ellipsoid excess (docs/physics.md §7.5): DSMC runs with the whole DEM encounter as the collision rule, their
 summary, table and plot, and `demq validate encounter-dsmc`.
 
 The physics is engine/validation/encounter_dsmc.py; bench/ellipsoid_encounter_dsmc.py is the command line of
@@ -27,9 +27,9 @@ from pathlib import Path
 #: seed, block SE) and bench/reports/ellipsoid-cooling-seeds-cuda (xi 2.5: SE over seeds)
 DEM = {1.5: [(0.9148, 0.0050, "N=4096, 1 seed")], 2.0: [(0.9901, 0.0048, "N=4096, 1 seed")],
        2.5: [(1.0233, 0.0036, "N=4096, 8 seeds"), (1.0333, 0.0014, "N=16384, 2 seeds")]}
-#: earlier DSMC references at e = 0.9: PHYSICS-NOTES §3.2 (nominal e; xi 1.5, 2) and
+#: earlier DSMC references at e = 0.9: hcs_ellipsoids.DSMC_NOTES (nominal e; xi 1.5, 2) and
 #: bench/reports/ellipsoid-cooling-seeds-cuda/dsmc.json (e_eff(D), xi 2.5, 4 seeds)
-DSMC_OLD = {1.5: (0.909, None, "nominal e, notes"), 2.0: (0.984, None, "nominal e, notes"),
+DSMC_OLD = {1.5: (0.909, None, "nominal e, N=5e4"), 2.0: (0.984, None, "nominal e, N=5e4"),
             2.5: (1.0093, 0.0007, "e_eff(D), 4 seeds")}
 RULE_ORDER = ("impulse", "first", "hard", "soft")
 
@@ -225,7 +225,7 @@ def main(out_dir, seeds: int = 4, quick: bool = False, jobs: int = 1) -> int:
                f"{soft['mean']:.4f} vs one-impulse DSMC {imp['mean']:.4f}: {100 * d:+.2f} % ± {100 * se:.2f} "
                f"({'resolved' if ok else 'NOT resolved'} at 3 SE; full study: +1.45 % ± 0.17)")
     (out / "README.md").write_text(
-        "# Encounter DSMC against one-impulse DSMC (issue 18, part 3)\n\n"
+        "# Encounter DSMC against one-impulse DSMC (docs/physics.md §7.5)\n\n"
         f"`demq validate encounter-dsmc{' --quick' if quick else ''} --seeds {seeds}`\n\n{verdict}\n\n"
         + table(summ) + "\n\nThe full study: bench/reports/ellipsoid-encounter-dsmc/REPORT.md.\n")
     print(verdict)

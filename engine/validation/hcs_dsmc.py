@@ -1,4 +1,4 @@
-"""The Boltzmann reference of the long-time HCS (issue 18 part 2): what of the DEM's deviation from Luding's
+"""The Boltzmann reference of the long-time HCS (docs/physics.md §7.3): what of the DEM's deviation from Luding's
 ODE is the velocity distribution, and what is not.
 
 Luding's ODE (paper 001 Eqs. 1-2; engine/theory.py) is the Maxwellian (mean-field) closure of the Boltzmann

@@ -1,23 +1,23 @@
-"""Homogeneous cooling of smooth prolate spheroids (paper 003 §4; issue 4, must-show 3).
+"""Homogeneous cooling of smooth prolate spheroids (paper 003 §4; docs/physics.md §7.5).
 
 For each cell (elongation xi = a/b, normal restitution e_n) a frictionless ellipsoid gas is thermalised
 without dissipation (T_rot = T_tr) and then cooled. Measured, per cell:
 
 - **Haff fit.** (T_tr/T_tr(0))^(-1/2) = 1 + r t is fitted by least squares (intercept fixed at 1), r = 1/t0.
   With equipartition every smooth convex pair loses (1 - e^2) T per collision, so
-  r = (1 - e^2) Gamma / 10 (D_f = 5; PHYSICS-NOTES §3.2). The fitted collision rate Gamma_fit = 10 r/(1 - e^2)
+  r = (1 - e^2) Gamma / 10 (D_f = 5; docs/physics.md §6.2). The fitted collision rate Gamma_fit = 10 r/(1 - e^2)
   is given twice: with the nominal e_n and with the collision average <1 - e_eff(D)^2> of the restitution
-  the linear dashpot actually produces at each contact geometry (PHYSICS-NOTES §3.2, "Effective
+  the linear dashpot actually produces at each contact geometry (docs/physics.md §2.4, "Effective
   restitution": the dashpot acts on m12/(1 + D) while gamma_n is set from m12).
 - **Gamma_0.** Paper 003 Eq. 28 with Eq. 29's S and R-bar: Gamma_0 = 4 sqrt(pi T(0)/m) n g_c S_c <D>_c.
   V&T's <D>_c values (supplied privately to the paper's authors) could not be obtained; the exact
-  Maxwellian replacement <sqrt(1 + D)>_S (PHYSICS-NOTES §3.2) is used, computed here by Monte Carlo over
+  Maxwellian replacement <sqrt(1 + D)>_S (docs/physics.md §6.2) is used, computed here by Monte Carlo over
   isotropic orientations and the excluded-surface weight; n is the number density, g_c the Song-Mason
   contact value, S_c = S/(2 pi) + 2 R-bar^2.
 - **T_tr/T_rot late.** T_rot counts the 2 active rotational dof. The mean over the last part of the run
-  (from `LATE_FRACTION` of the collisions per particle on) is compared with the DSMC of PHYSICS-NOTES §3.2
-  (nominal e, the issue's reference) and with the same DSMC using the DEM contact's e_eff(D) (run here by
-  :func:`dsmc_ratio`, a vectorised copy of physics-scripts/f_dsmc.py).
+  (from `LATE_FRACTION` of the collisions per particle on) is compared with the DSMC of docs/physics.md §6.4
+  (nominal e, the tabulated reference) and with the same DSMC using the DEM contact's e_eff(D) (run here by
+  :func:`dsmc_ratio`, Bird's scheme vectorised in numpy).
 
 Outputs: REPORT.md, summary.json, series.json (all time series, for re-analysis) and hcs_ellipsoids.png.
 """
@@ -40,12 +40,12 @@ from engine.validation import run_tasks
 XIS = (1.15, 1.5, 2.0, 2.5, 3.0)
 ES = (0.90, 0.95, 0.98)
 CELLS = tuple((xi, e) for xi in XIS for e in ES)
-#: DSMC cells of PHYSICS-NOTES §3.2 that the issue asks to match within 3 %.
+#: DSMC cells that the validation must match within 3 % (docs/physics.md §7.5).
 DSMC_CELLS = ((1.5, 0.9), (1.5, 0.95), (2.0, 0.9), (2.0, 0.95), (2.5, 0.9), (2.5, 0.95))
-#: PHYSICS-NOTES §3.2 DSMC column (nominal constant e; N = 5e4). xi = 2.5 was not tabulated there.
+#: one-impulse DSMC (docs/physics.md §6.4) with the nominal constant e, N = 5e4; no value at xi = 2.5.
 DSMC_NOTES = {(1.15, 0.95): 0.669, (1.15, 0.9): 0.454, (1.5, 0.95): 0.957, (1.5, 0.9): 0.909,
               (2.0, 0.95): 0.996, (2.0, 0.9): 0.984, (2.0, 0.8): 0.961}
-#: PHYSICS-NOTES §3.2 Maxwellian HCS theory (nominal e), for reference.
+#: Maxwellian two-temperature HCS theory (nominal e, fixed-geometry energy balance), for reference.
 THEORY_NOTES = {(1.15, 0.95): 0.6685, (1.15, 0.9): 0.4520, (1.5, 0.95): 0.9551, (1.5, 0.9): 0.9099,
                 (2.0, 0.95): 0.9909, (2.0, 0.9): 0.9814, (2.5, 0.95): 1.0022, (2.5, 0.9): 1.0044,
                 (3.0, 0.95): 1.0082, (3.0, 0.9): 1.0170}
@@ -55,7 +55,7 @@ SONG_MASON_B4 = 18.3647
 TOLERANCE = 0.03
 
 
-# ---- geometry and kinetic theory (PHYSICS-NOTES §3.1-3.2) -------------------------------------------
+# ---- geometry and kinetic theory (docs/physics.md §2.1, §6.2) ----------------------------------------
 
 def spheroid_surface_mean_radius(a: float, b: float) -> tuple[float, float]:
     """(S, R-bar) of a prolate spheroid (a >= b; paper 003 Eq. 29)."""
@@ -158,7 +158,7 @@ def gamma0(xi: float, e_n: float, r_eq: float, number_density: float, mass: floa
             "D_S": av["D"], "loss_eff": av["loss_eff"], "table_value": sc * av["sqrt1pD"] / r_eq**2}
 
 
-# ---- DSMC of the smooth-spheroid Boltzmann equation (physics-scripts/f_dsmc.py, e_eff(D) option) --
+# ---- DSMC of the smooth-spheroid Boltzmann equation (docs/physics.md §6.4, e_eff(D) option) -------
 
 def dsmc_ratio(xi: float, e_n: float, dem: bool, n: int = 20000, coll_per_particle: float = 60,
                seed: int = 1) -> dict:
@@ -451,7 +451,7 @@ def main(out_dir="reports/hcs-ellipsoids", seeds: int = 1, quick: bool = False, 
     pct = lambda x: "–" if x is None else f"{100 * x:+.2f} %"  # noqa: E731
     num = lambda x, f="{:.4f}": "–" if x is None else f.format(x)  # noqa: E731
     lines = [
-        "# Homogeneous cooling of smooth spheroids (paper 003 §4, issue 4)", "",
+        "# Homogeneous cooling of smooth spheroids (paper 003 §4)", "",
         f"Backend {any_c['backend'] if any_c else backend} ({any_c['device'] if any_c else '-'}), "
         f"{seeds} seed(s) per cell, {'reduced CI scene' if quick else 'paper 003 scene'}: "
         f"N = {spec0.n_particles}, phi = {spec0.volume_fraction}, velocity_rms = {spec0.velocity_rms} m/s, "
@@ -487,11 +487,11 @@ def main(out_dir="reports/hcs-ellipsoids", seeds: int = 1, quick: bool = False, 
     lines += ["", "## Late-time T_tr/T_rot", "",
               f"Mean of T_tr/T_rot (T_rot per active rotational dof, 2 dof) over the records with at least "
               f"{LATE_FRACTION:.0%} of the run's collisions per particle; error = block standard error "
-              "(blocks of ~2 collisions per particle; across seeds where > 1). DSMC references: PHYSICS-NOTES "
-              "§3.2 (constant nominal e, N = 5e4); 'e_eff(D)' = the same DSMC here with the restitution "
+              "(blocks of ~2 collisions per particle; across seeds where > 1). DSMC references: the one-"
+              "impulse DSMC (constant nominal e, N = 5e4); 'e_eff(D)' = the same DSMC here with the restitution "
               "the DEM dashpot gives at each contact geometry (N = 2e4, 60 collisions per particle).", "",
               "| xi | e_n | collisions/particle (late from) | DEM T_tr/T_rot | DSMC nominal e | dev | "
-              "DSMC e_eff(D) | dev | Maxwell theory (notes) |", "|---|---|---|---|---|---|---|---|---|"]
+              "DSMC e_eff(D) | dev | Maxwell theory (nominal e) |", "|---|---|---|---|---|---|---|---|---|"]
     for (xi, e), c in sorted(results.items()):
         ref_nom = c["dsmc_notes"] if c["dsmc_notes"] is not None else c.get("dsmc_nominal_here")
         tag = "" if c["dsmc_notes"] is not None else (" (here)" if ref_nom is not None else "")

@@ -1,6 +1,6 @@
 """Long-time homogeneous cooling of rough spheres: Luding's ODE to tau ~ 100, shear modes and S(k_min).
 
-Issue 18 part 2. Scenes (rough spheres, e_n = e_t = e, e = 0.8 and 0.6, k_n = 1e8 N/m, rho = 2000 kg/m^3):
+docs/physics.md §7.3. Scenes (rough spheres, e_n = e_t = e, e = 0.8 and 0.6, k_n = 1e8 N/m, rho = 2000 kg/m^3):
 
 - ``paper001``: the paper-001 scene (N = 4096, L = 2 m, phi = 0.008), linearly STABLE against the shear
   mode (L/L_c = 0.23 at e = 0.8, 0.29 at e = 0.6; engine/shear_instability.py). Its T/T0 must follow
@@ -125,7 +125,7 @@ def _read_run(path) -> dict:
     r = {**measure_run(path), "modes": file_mode_series(path)}
     r["contacts"] = np.asarray(read_series(path, "contacts")["value"], dtype=float)
     r["t_contact"] = contact_duration(derive(SimulationSpec(**r["spec"])))
-    try:   # the collision counter (spheres, from issue 18 on; older files lack it)
+    try:   # the collision counter (spheres; older files lack it)
         c = read_series(path, "collisions")
         r["collisions"] = (np.asarray(c["time"], dtype=float), np.asarray(c["value"], dtype=float))
     except KeyError:
@@ -336,7 +336,7 @@ def onsets(c: dict) -> dict:
 
 
 def criterion(c: dict) -> bool:
-    """Issue 18's goal: within 1 % (at 2 SE) of the ODE for as long as the shear mode has not grown, i.e.
+    """The goal: within 1 % (at 2 SE) of the ODE for as long as the shear mode has not grown, i.e.
     no significant deviation before the measured shear onset."""
     return c["tau_dev_significant"] >= c["tau_shear_measured"]
 
@@ -410,7 +410,7 @@ def sonine_shift(e: float, tau: float, loss: float) -> float:
     """Order of magnitude of the non-Gaussian correction to T/T_ODE at tau for smooth spheres of restitution
     e: van Noije & Ernst's a2 = 16(1-e)(1-2e^2)/(81 - 17e + 30e^2(1-e)) raises the cooling rate by
     eps = 3 a2/16 (Brilliantov & Pöschel), so T ~ (1 + c(1+eps) tau)^-2 with c = loss/2 (loss = A - B r_inf)
-    gives T/T_ODE - 1 ~ -2 eps c tau/(1 + c tau). Rough spheres have other a2 values (issue 18 part 1)."""
+    gives T/T_ODE - 1 ~ -2 eps c tau/(1 + c tau). Rough spheres have other a2 values (docs/physics.md §7.4)."""
     a2 = 16.0 * (1 - e) * (1 - 2 * e * e) / (81 - 17 * e + 30 * e * e * (1 - e))
     eps = 3.0 * a2 / 16.0
     ct = 0.5 * loss * tau
@@ -444,7 +444,7 @@ def _verdict(c: dict) -> str:
 def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
     """README.md (command, references, theory, tables), deviation.png, modes.png, summary.json, series.npz."""
     _plots(results, out)
-    lines = ["# Long-time homogeneous cooling: Luding's ODE, shear modes and S(k_min) (issue 18 part 2)", "",
+    lines = ["# Long-time homogeneous cooling: Luding's ODE, shear modes and S(k_min)", "",
              f"Command: `{command}`", "",
              f"Backend {meta.get('backend')} ({meta.get('device')}); wall time {meta.get('wall_s', 0):.0f} s for "
              f"{meta.get('runs')} runs, {meta.get('particle_steps', 0):.3g} particle-steps.", "",
@@ -474,7 +474,7 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
                      f"{_fmt_tau(c['tau_dev_predicted'])} | {_fmt_tau(c['tau_S_above_eq'])} | "
                      f"{'yes' if criterion(c) else 'NO'} | "
                      f"{c['max_overlap']:.4f} |")
-    lines += ["", "Goal (issue 18): |T/T_ODE - 1| <= 1 % for as long as the shear mode has not grown; "
+    lines += ["", "Goal: |T/T_ODE - 1| <= 1 % for as long as the shear mode has not grown; "
               "\"goal met\" = no deviation beyond 1 % at 2 SE before the measured shear onset.", "",
               "Onset scale: an unstable mode starts at the noise level (energy T, a fraction 2/(3N) of E_tr) and "
               "holds a fraction f of E_tr after s* = ln(3 N f / 2) / (2 lambda) collisions per particle; s grows "
@@ -577,7 +577,7 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
     scratch: folder for the result files (default out_dir/runs); they are deleted after the analysis
     unless ``keep``; their reduced series stay in out_dir/runs.npz (:func:`save_runs`), so that runs with other
     seeds (``seed_offset``: seeds seed_offset, seed_offset + 1, ...) made in another call can be analysed
-    with them (``merge``). Returns 0 when the issue's goal holds for every case (quick: the CI checks, see
+    with them (``merge``). Returns 0 when the goal (:func:`criterion`) holds for every case (quick: the CI checks, see
     :func:`quick_checks`), else 1.
     """
     from engine.ensemble import run_ensemble

@@ -1,4 +1,4 @@
-"""Homogeneous cooling of rough prolate spheroids (issue 17): the sphere limit, and T_tr/T_rot against xi and e_t.
+"""Homogeneous cooling of rough prolate spheroids: the sphere limit, and T_tr/T_rot against xi and e_t.
 
 Two parts, run as ensembles (`demq validate hcs-rough-spheroids`; on the GPU all spheroid runs are one CUDA
 ensemble):
@@ -173,7 +173,7 @@ def main(out_dir="reports/hcs-rough-spheroids", seeds: int = 8, quick: bool = Fa
     ok = limit["spheroid_max_dev"] <= 0.03 and limit["pair_within_scatter"]
     spec0 = map_spec(xis[0], e_ts[0], 0, backend, quick)
     p0 = derive(spec0)
-    lines = ["# Rough spheroids in the homogeneous cooling state (issue 17)", "",
+    lines = ["# Rough spheroids in the homogeneous cooling state", "",
              f"Command: `{command or 'demq validate hcs-rough-spheroids'}`", "",
              f"Backend {probe['backend']} ({probe['device']}); wall time {wall:.0f} s for "
              f"{len(sp_paths) + len(el_paths)} runs.", "",
@@ -198,7 +198,7 @@ def main(out_dir="reports/hcs-rough-spheroids", seeds: int = 8, quick: bool = Fa
     lines += ["", "![rough spheroids](rough_spheroids.png)", "",
               "T_rot counts the three rotational dof (rough contacts exchange energy with the spin about the "
               "symmetry axis too). e_t sets k_t through paper 001's Eq. 4 with the pair's tangential mass at the "
-              "contact point (docs/rough-spheroids.md); for a spheroid it is the tangential restitution of the "
+              "contact point (docs/physics.md §2.5); for a spheroid it is the tangential restitution of the "
               "equivalent isotropic contact, exact only in the sphere limit. No kinetic theory of rough spheroids "
               "was found (module docstring); the sphere column is Luding's mean-field value for rough spheres "
               f"with the same e_n and e_t,eff. Time step dt = {p0.dt:.3g} s (t_c/50).",

@@ -1,4 +1,4 @@
-"""Sonine coefficient a2 of the homogeneous cooling state (HCS) against kinetic theory (issue 18 part 1).
+"""Sonine coefficient a2 of the homogeneous cooling state (HCS) against kinetic theory (docs/physics.md §6.5).
 
 ``demq validate sonine`` runs smooth inelastic spheres (e_t = -1) at e_n = 0.9, 0.8, 0.6, 0.4 and, as a
 "report the values" part, rough spheres at e_n = 0.8 with e_t = 0.8 and 0.4, from the elastic Maxwellian
@@ -448,7 +448,7 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
     cmd = (f"demq validate sonine{' --quick' if quick else ''}{' --ensemble' if ensemble else ''} --backend "
            f"{backend} --seeds {seeds} -o {out_dir}")
     lines = [
-        "# Sonine coefficient a2 of the homogeneous cooling state (issue 18 part 1)", "",
+        "# Sonine coefficient a2 of the homogeneous cooling state", "",
         f"Command: `{cmd}`  ", f"Backend {meta['backend']} ({meta['device']}); DEM {t_dem:.0f} s, DSMC {t_dsmc:.0f} s.",
         "",
         f"Scene: N = {spec0.n_particles} spheres per run, phi = {spec0.volume_fraction}, L = {spec0.box_length} m, "

@@ -1,4 +1,4 @@
-"""Issue 18: the collision counter (observable ``collisions``: contacts begun since the scene started, spheres).
+"""The collision counter (observable ``collisions``: contacts begun since the scene started, spheres).
 
 Each contact that begins (overlap > 0 after a step without one) counts once; the CPU backend here, the CUDA code
 against it in tests/engine/test_cuda_simulator.py and tests/gpu/test_cuda_gpu.py, checkpoint/resume in

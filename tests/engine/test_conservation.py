@@ -56,7 +56,7 @@ def test_smooth_elastic_energy_has_no_drift():
         be.advance(10_000)
         worst = max(worst, abs(total_energy(be) - e0) / e0)
     assert be.builds > 10
-    assert worst < 1e-4, worst      # issue 2: no drift above 1e-4 over 1e5 steps
+    assert worst < 1e-4, worst      # no drift above 1e-4 over 1e5 steps (docs/physics.md §1.6)
 
 
 def test_rough_elastic_energy_has_no_drift():
@@ -65,7 +65,7 @@ def test_rough_elastic_energy_has_no_drift():
     Spheres on a line along x with spins collide head-on, so the tangential spring is loaded by the
     spin slip and, with k_t = 2 k_n/7 (Eq. 4 at e_t = 1), unloads exactly at the end of each contact.
     In a 3D gas the perfectly rough spring model itself is not conservative: when the normal turns
-    during a grazing contact the spring is cut with energy left in it (PHYSICS-NOTES §1.2, condition 3;
+    during a grazing contact the spring is cut with energy left in it (docs/physics.md §1.6;
     measured here: one grazing collision in a 32-sphere gas removed 0.37 % of the total energy, the
     same at dt = t_c/50, /100, /200), so that is not a test of the integrator.
     """

@@ -16,7 +16,7 @@ SPEEDS = (0.05, 0.0713, 0.0931, 0.12)
 
 @pytest.mark.parametrize("e_n", [0.3, 0.6, 0.8, 0.95, 1.0])
 def test_head_on_normal_restitution(e_n):
-    # Tolerance 1e-3 (issue 2): the remaining error is O(dt^2) at dt = t_c/50 (5e-5 at t_c/200).
+    # Tolerance 1e-3 (docs/physics.md §3.4): the remaining error is O(dt^2) at dt = t_c/50 (5e-5 at t_c/200).
     for v in SPEEDS:
         r = collide([v, 0.0, 0.0], e_n=e_n, dt_fraction=50)
         e = (r["velocity"][1, 0] - r["velocity"][0, 0]) / v
@@ -29,7 +29,7 @@ def test_oblique_sticking_tangential_restitution(e_t):
 
     Analytic value of the spring model with k_t from paper 001 Eq. 4: the tangential oscillator
     turns through arccos(-e_t) sqrt(1 + (ln e_n/pi)^2) during the damped contact, so
-    e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n/pi)^2)) (PHYSICS-NOTES §1.2). Eq. 4 is exact
+    e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n/pi)^2)) (docs/physics.md §1.3). Eq. 4 is exact
     (e_t,eff = e_t) only for e_n = 1, i.e. gamma_n = 0.
     """
     e_n = 0.8
@@ -42,8 +42,8 @@ def test_oblique_sticking_tangential_restitution(e_t):
         gt0 = g0 - g0.dot(N_HAT) * N_HAT
         gt1 = g1 - g1.dot(N_HAT) * N_HAT
         measured = -gt1.dot(gt0) / gt0.dot(gt0)
-        # 1e-2 (issue 2): O(dt) phase effects are corrected; what remains is O(dt^2) and the
-        # O(delta/a) lever-arm and normal-rotation effects (PHYSICS-NOTES §1.2 conditions 3-4).
+        # 1e-2: O(dt) phase effects are corrected; what remains is O(dt^2) and the
+        # O(delta/a) lever-arm and normal-rotation effects (docs/physics.md §1.7).
         assert abs(measured - e_t_effective(e_n, e_t)) < 1e-2, (v, measured)
 
 
@@ -62,7 +62,7 @@ def test_eq4_exact_without_damping():
 
 
 def test_coulomb_cap_has_no_attractive_tail_trap():
-    """A huge mu must not change e_t: the cap uses |F_n|, not max(F_n, 0) (PHYSICS-NOTES §1.2)."""
+    """A huge mu must not change e_t: the cap uses |F_n|, not max(F_n, 0) (docs/physics.md §1.4)."""
     ang = math.radians(10.0)
     v_rel = 0.05 * np.array([math.cos(ang), math.sin(ang), 0.0])
     free = collide(v_rel, e_n=0.6, e_t=0.6)

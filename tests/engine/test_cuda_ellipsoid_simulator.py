@@ -132,7 +132,7 @@ def _scenes(worst: dict) -> None:
             ("xi=2.5 multistep", tiny_ellipsoids(2.5, seed=2), contact(), True),
             ("xi=2.5 per-phase", tiny_ellipsoids(2.5, seed=2), contact(), False),
             ("mixed xi 1.5/2.5 multistep", tiny_ellipsoids(2.5, seed=3, mixed=True), contact(), True),
-            # rough contacts (issue 17): the spring and the contact's k_t in the list slots
+            # rough contacts: the spring and the contact's k_t in the list slots
             ("rough xi=2.0 multistep", tiny_ellipsoids(2.0, seed=8), _rough(), True),
             ("rough Coulomb mixed xi per-phase", tiny_ellipsoids(2.5, seed=7, mixed=True), _rough(0.8, friction=0.1),
              False)):

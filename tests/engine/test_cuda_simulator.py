@@ -97,7 +97,7 @@ def _scenes(worst: dict) -> None:
             worst[(label, "springs")] = float(np.max(np.abs(sa[oa] - sb[ob])) / np.max(np.abs(sa)))
         ca, cb = cpu.observe(), gpu.observe()
         assert ca["contacts"] == cb["contacts"] and ca["contacts"] > 0, (label, ca, cb)
-        # the collision counter (issue 18): every contact begun so far, the same on both backends
+        # the collision counter: every contact begun so far, the same on both backends
         assert ca["collisions"] == cb["collisions"] >= ca["contacts"], (label, ca["collisions"], cb["collisions"])
         for key in ("kinetic_energy_translational", "kinetic_energy_rotational", "elastic_energy"):
             assert abs(ca[key] - cb[key]) <= 1e-9 * abs(ca[key]) + 1e-300, (label, key, ca[key], cb[key])
@@ -167,7 +167,7 @@ def _ensemble(worst: dict) -> None:
         pa, _ = cpu.contacts()
         pb, _ = ens.contacts(k)
         assert np.array_equal(pa[np.lexsort(pa.T[::-1])], pb[np.lexsort(pb.T[::-1])]), k
-    # observe_later (issue 14): the sums are queued now and read when asked for; a third call reuses the first
+    # observe_later: the sums are queued now and read when asked for; a third call reuses the first
     # one's result slot and reads it out first, so each function still gives the observables of its own step
     now = ens.observe()
     f1 = ens.observe_later()

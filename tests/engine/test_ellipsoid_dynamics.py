@@ -1,4 +1,4 @@
-"""Ellipsoid dynamics on the CPU (issue 4): xi = 1 reproduces smooth spheres, conservation laws,
+"""Ellipsoid dynamics on the CPU (docs/physics.md §2.4, §3.3): xi = 1 reproduces smooth spheres, conservation laws,
 Euler's equations (torque-free symmetric top), restitution of a central collision."""
 
 from __future__ import annotations

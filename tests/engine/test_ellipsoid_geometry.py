@@ -1,10 +1,10 @@
-"""Ellipsoid contact geometry (issue 4, must-show 1): engine/physics/ellipsoid.py against an oracle.
+"""Ellipsoid contact geometry (docs/physics.md §7.7): engine/physics/ellipsoid.py against an oracle.
 
 The oracle (tests/engine/test_ellipsoid_oracle.py) is a different method in higher precision:
 bisection on the primal tangency curve in 80-bit longdouble. The full 10^4-sample error table is
 written by bench/ellipsoid_geometry_accuracy.py; here a CI-sized sample of 2000 asserts the bounds.
-Also: hand-made cases with closed forms (PHYSICS-NOTES §4.4), the quadric and quartic of paper 003,
-its tetrahedron construction, and the cases where its Delta/P overlap test fails (PHYSICS-NOTES §4.2).
+Also: hand-made cases with closed forms (docs/physics.md §2.6), the quadric and quartic of paper 003,
+its tetrahedron construction, and the cases where its Delta/P overlap test fails (docs/physics.md §2.2).
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ def test_hand_made(name, r_hat, qb, sigma, n_exp, c_exp):
 
 
 def test_t_configuration_quartic_roots():
-    """PHYSICS-NOTES §4.4: at touch (d = a + b = 3) the roots are -1, -1/4 and the double root 2."""
+    """docs/physics.md §2.6: at touch (d = a + b = 3) the roots are -1, -1/4 and the double root 2."""
     c = paper_quartic(3.0, 0, 0, *Q0, 2.0, 1, 1, *QZ90, 2.0, 1, 1, 1.0, H)
     roots = np.sort(np.roots(c).real)
     assert np.allclose(roots, [-1.0, -0.25, 2.0, 2.0], atol=1e-6)
@@ -239,7 +239,7 @@ def test_paper_tetrahedron_converges_to_engine_contact(sample):
         assert errs[1][0] < errs[0][0] and errs[1][1] < errs[0][1]
 
 
-# ---- where the paper's Delta/P test fails (PHYSICS-NOTES §4.2) --------------------------------------
+# ---- where the paper's Delta/P test fails (docs/physics.md §2.2) ------------------------------------
 
 def test_paper_test_degenerate_for_identical_parallel_pairs():
     """Delta == 0 identically (roots -1, -1, lambda+-): its sign, hence the verdict, is rounding noise."""

@@ -12,7 +12,7 @@ instead, in numpy longdouble (80-bit x87 on x86: 64-bit mantissa, eps = 1.1e-19)
 - normal n = M_A (p* - c_A)/|...|; delta = chord of the line p* + s n between the original surfaces
   (each end by the stable quadratic formula).
 
-The tests below check the oracle itself against closed forms (PHYSICS-NOTES §4.4) and against a
+The tests below check the oracle itself against closed forms (docs/physics.md §2.6) and against a
 direct constrained minimisation of max(rho_A^2, rho_B^2) with scipy (a third method).
 """
 

@@ -1,4 +1,4 @@
-"""Symmetry and invariance of the ellipsoid pair force (issue 4, must-show 2), hypothesis property tests.
+"""Symmetry and invariance of the ellipsoid pair force (docs/physics.md §2.4), hypothesis property tests.
 
 F on A from B is minus F on B from A (swapping the roles), and the force and torques are invariant
 under a common translation (with periodic wrapping and the minimum image), covariant under a common

@@ -1,4 +1,4 @@
-"""Exact screens before the Perram-Wertheim solve (issue 4, speed): they change no result.
+"""Exact screens before the Perram-Wertheim solve (docs/physics.md §2.3): they change no result.
 
 engine/physics/ellipsoid.py screens a pair that was not in contact at the previous step with (i) the plane
 normal to the centre line (support functions h_A + h_B < |r|) and (ii) an early stop of the PW iteration at the

@@ -1,4 +1,4 @@
-"""Sphere orientations (issue 15 item 1): a sphere's quaternion is turned by the exact rotation of the spin it had
+"""Sphere orientations (docs/physics.md §3.2): a sphere's quaternion is turned by the exact rotation of the spin it had
 (engine.physics.rotation.sphere_quat_turn), lazily: only when a torque is about to change that spin, and when the
 time loop returns (engine/shapes/sphere/kernels.py ``rotate``, ``settle``; the GPU's twin is checked against the
 CPU in test_cuda_simulator.py). Free spheres are exact to rounding over any number of steps; in a colliding gas the

@@ -1,4 +1,4 @@
-"""Issue 15 item 3: precision 'mixed' (engine/precision.py): positions in float64, every other array in float32.
+"""Precision 'mixed' (engine/precision.py): positions in float64, every other array in float32.
 
 The scene that separates the precisions: a head-on collision of two 1 cm spheres at 1 m/s in the middle of the
 spec's default 2 m box (100 diameters). float32 positions there are spaced 6e-8 m apart, 1 % of the peak overlap
@@ -69,11 +69,11 @@ def test_mixed_restores_the_restitution_that_float32_loses_in_a_large_box(e_n):
     e64 = _restitution("float64", e_n, box)
     e32 = _restitution("float32", e_n, box)
     emx = _restitution("mixed", e_n, box)
-    # float64 at dt = t_c/50: the predictor dashpot's O(dt^2) error (bench/RESULTS.md, issue 6: < 1e-3)
+    # float64 at dt = t_c/50: the predictor dashpot's O(dt^2) error (docs/physics.md §3.4: < 1e-3)
     assert abs(e64 - e_n) < 1e-3, e64
     # the scene separates the precisions: float32 is off by several times the dt error budget (1e-3)
     assert abs(e32 - e64) > 5e-3, (e32, e64)
-    # mixed meets the issue's 1e-3 and adds less than a quarter of float64's own O(dt^2) error: its float32
+    # mixed meets the 1e-3 budget and adds less than a quarter of float64's own O(dt^2) error: its float32
     # radii (0.01 -> 0.00999999978) and force law move the contact's start on the step grid (measured: 1.5e-5 and
     # 6.6e-6 against float64's 1.4e-4 and 4.2e-5)
     assert abs(emx - e_n) < 1e-3, emx

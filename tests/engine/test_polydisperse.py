@@ -1,4 +1,4 @@
-"""Polydisperse spheres (issue 7): the `species` spec, derived parameters, placement, a collision of
+"""Polydisperse spheres (size distributions): the `species` spec, derived parameters, placement, a collision of
 unequal spheres, and a run through the driver that writes species and radii to the H5MD file."""
 
 import json
@@ -182,7 +182,7 @@ def test_head_on_collision_of_unequal_spheres(e_n):
         p0 = (be.mass[:, None] * be.vel).sum(0)
         be.advance(int((gap / v + 3 * tc) / dt) + 1)
         e = (be.vel[1, 0] - be.vel[0, 0]) / v
-        # 1e-3 (issue 2): the event-corrected contact leaves O(dt^2) (here dt = t_c,pair / 69)
+        # 1e-3 (docs/physics.md §3.4): the event-corrected contact leaves O(dt^2) (here dt = t_c,pair / 69)
         assert abs(e - e_n) < 1e-3, (v, e)
         p1 = (be.mass[:, None] * be.vel).sum(0)
         # pairwise equal and opposite forces: momentum to rounding of m v ~ 1e-4 kg m/s

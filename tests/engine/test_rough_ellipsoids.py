@@ -1,4 +1,4 @@
-"""Rough (frictionless -> frictional) spheroids on the CPU (issue 17): paper 001's tangential spring at the
+"""Rough (frictionless -> frictional) spheroids on the CPU (docs/physics.md §2.5): paper 001's tangential spring at the
 spheroid contact point (engine.physics.rough_spheroid.rough_spheroid_pair, wired by engine/shapes/spheroid/).
 
 - xi = 1: the rough spheroid gas is the rough sphere gas (same law, same arithmetic up to rounding);

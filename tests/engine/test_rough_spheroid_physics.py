@@ -1,4 +1,4 @@
-"""The tangential contact law for spheroids (issue 17, engine/physics/rough_spheroid.py): effective tangential
+"""The tangential contact law for spheroids (engine/physics/rough_spheroid.py): effective tangential
 mass, its sphere limit, the spring step's conservation and Coulomb properties, against the sphere law."""
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def test_the_impulse_response_matrix_is_k_and_its_means_are_the_masses():
         ref = inv_m12 * np.eye(3) + sum(_cross_matrix(r).T @ _sym(s) @ _cross_matrix(r) for r, s in ((ra, sa), (rb, sb)))
         assert np.allclose(K, ref, rtol=1e-12, atol=0) and np.allclose(K, K.T, rtol=1e-12)
         assert np.all(np.linalg.eigvalsh(K) > 0)
-        # normal: n.K n (the D-term of PHYSICS-NOTES 3.2); tangential: the mean of t.K t over the tangent plane
+        # normal: n.K n (the D of docs/physics.md §2.4); tangential: the mean of t.K t over the tangent plane
         assert R.normal_inverse_mass(inv_m12, sa, *ra, sb, *rb, *n) == pytest.approx(n @ K @ n, rel=1e-12)
         t1 = np.cross(n, rng.normal(size=3))
         t1 /= np.linalg.norm(t1)

@@ -1,4 +1,4 @@
-"""Sonine coefficients (issue 18 part 1): the formula of engine/physics/sonine.py on known distributions, the
+"""Sonine coefficients (docs/physics.md §6.5): the formula of engine/physics/sonine.py on known distributions, the
 backends' energy moments against numpy, and the observables in the result and batch files.
 
 Tolerances: sampled distributions are checked within 4 standard deviations of the estimator (Eq. 3/4 of
@@ -121,7 +121,7 @@ def test_degenerate_and_bad_input():
 
 
 def test_van_noije_ernst_values():
-    """16(1-e)(1-2e^2)/(81 - 17e + 30e^2(1-e)); PHYSICS-NOTES lists -0.01456, -0.01258, +0.02386."""
+    """16(1-e)(1-2e^2)/(81 - 17e + 30e^2(1-e)) at e = 0.9, 0.8, 0.6, 0.4 (docs/physics.md §7.4, rounded)."""
     assert a2_van_noije_ernst(1.0) == 0.0
     for e, ref in ((0.9, -0.01456), (0.8, -0.01258), (0.6, 0.02386), (0.4, 0.08470)):
         assert a2_van_noije_ernst(e) == pytest.approx(ref, abs=1e-5)

@@ -13,7 +13,7 @@ def test_defaults_are_paper_001():
     s = SimulationSpec()
     assert (s.n_particles, s.box_length, s.volume_fraction, s.stiffness, s.density) == (4096, 2.0, 0.008, 1e8, 2000.0)
     p = derive(s)
-    # PHYSICS-NOTES §2.2: a = 0.015509 m, m = 1/32 kg, n = 512 m^-3, undamped t_c = 3.93e-5 s
+    # paper-001 scene (docs/physics.md §3.4): a = 0.015509 m, m = 1/32 kg, n = 512 m^-3, undamped t_c = 3.93e-5 s
     assert p.radius == pytest.approx(0.015509, rel=1e-4)
     assert p.mass == pytest.approx(1 / 32, rel=1e-12)
     assert p.number_density == pytest.approx(512.0)
@@ -60,7 +60,7 @@ def test_gamma_n_restores_e_n_exactly_under_rule_a():
         beta = g / (2 * m12)
         omega = math.sqrt(k / m12 - beta**2)
         assert math.exp(-math.pi * beta / omega) == pytest.approx(e, rel=1e-12)
-        # PHYSICS-NOTES table: gamma/sqrt(k m12) under rule (a)
+        # gamma/sqrt(k m12), contact ending at delta = 0 (docs/physics.md §1.2)
     assert gamma_n_from_restitution(0.8, 1.0, 1.0) == pytest.approx(0.141701, abs=1e-6)
     assert gamma_n_from_restitution(1.0, 1.0, 1.0) == 0.0
 
@@ -68,7 +68,7 @@ def test_gamma_n_restores_e_n_exactly_under_rule_a():
 def test_k_t_eq4_and_effective_e_t():
     assert k_t_paper(1.0, 7.0) == pytest.approx(2.0)          # k_t/k_n = 2/7 at e_t = 1
     assert k_t_paper(-1.0, 7.0) == 0.0
-    # PHYSICS-NOTES §1.2: e_n = e_t = 0.6 -> 0.6230; 0.8/0.8 -> 0.8038; 0.9/0.9 -> 0.9007
+    # docs/physics.md §1.3: e_n = e_t = 0.6 -> 0.6230; 0.8/0.8 -> 0.8038; 0.9/0.9 -> 0.9007
     assert e_t_effective(0.6, 0.6) == pytest.approx(0.6230, abs=1e-4)
     assert e_t_effective(0.8, 0.8) == pytest.approx(0.8038, abs=1e-4)
     assert e_t_effective(0.9, 0.9) == pytest.approx(0.9007, abs=1e-4)

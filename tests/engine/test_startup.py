@@ -1,4 +1,4 @@
-"""Issue 14: the GPU start-up thread (engine/startup.py) and the reordered set-up it overlaps with.
+"""The GPU start-up thread (engine/startup.py) and the reordered set-up it overlaps with.
 
 The time it saves is measured by bench/e2e.py on a GPU (``DEMQ_GPU_STARTUP=0|1``); that a run with it writes
 the same file as one without is tests/gpu/test_startup_gpu.py. Here: when it starts, that its stand-in scenes

@@ -1,4 +1,4 @@
-"""Luding's mean-field ODE and the collision frequency against PHYSICS-NOTES §2 (LSODA oracle)."""
+"""Luding's mean-field ODE and the collision frequency against docs/physics.md §6.1, §6.3 (LSODA oracle)."""
 
 import math
 
@@ -30,7 +30,7 @@ def test_ode_oracle(e, tvals, rvals):
 
 
 def test_collision_frequency_paper_001():
-    # PHYSICS-NOTES §2.2: G = 40.313 s^-1 J^-1/2 for a = 0.015509 m, n = 512, m = 1/32, phi = 0.008
+    # docs/physics.md §6.3, paper-001 scene: G = 40.313 s^-1 J^-1/2 for a = 0.015509 m, n = 512, m = 1/32, phi = 0.008
     from engine.params import derive
     from engine.spec import SimulationSpec
 

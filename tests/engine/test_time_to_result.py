@@ -1,4 +1,4 @@
-"""Issue 14 (time to result): parallel starts, the buffered / background result writer, the auto list mode's
+"""Time to result (docs/design.md §9): parallel starts, the buffered / background result writer, the auto list mode's
 probe rule. The speed itself is measured by bench/e2e.py, not here."""
 
 from __future__ import annotations

@@ -52,5 +52,5 @@ def collide(v_rel, *, e_n=0.8, e_t=None, friction=None, omega1=(0.0, 0.0, 0.0), 
 
 
 def contact_point_velocity(vel, omega, n):
-    """g = v1 - v2 - a (w1 + w2) x n with n from 2 to 1 (PHYSICS-NOTES §1.3)."""
+    """g = v1 - v2 - a (w1 + w2) x n with n from 2 to 1 (docs/physics.md §1.7)."""
     return vel[0] - vel[1] - RADIUS * np.cross(omega[0] + omega[1], n)

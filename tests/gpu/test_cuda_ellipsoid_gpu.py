@@ -1,6 +1,6 @@
 """Real-GPU checks of the CUDA ellipsoid backend (skipped without a GPU): compiled kernels agree with the CPU.
 
-Issue 4, must-show 4: CPU <-> GPU agreement as in the GPU sphere issue, for ellipsoids. The compiled GPU
+CPU <-> GPU agreement for ellipsoids as for spheres (tests/gpu/test_cuda_gpu.py). The compiled GPU
 kernels may contract a*b + c into fused multiply-adds, so the trajectories differ from the CPU's from the
 last bit on and the difference grows through the contacts; the bound is that of the sphere test, 1e-9 of
 the box edge in positions after 200 steps with contacts and rebuilds.
@@ -127,7 +127,7 @@ def _lockstep(system, c, multistep):
 
 @pytest.mark.parametrize("xi,multistep", [(2.0, True), (2.0, False), (1.5, True)])
 def test_cpu_and_gpu_agree_float64_200_steps(xi, multistep):
-    """Issue 4 must-show 4: 4096 ellipsoids with contacts, 200 steps, positions within 1e-9 of L."""
+    """4096 ellipsoids with contacts, 200 steps, positions within 1e-9 of L."""
     system, c = _dense(xi=xi)
     cpu, gpu, contacts = _lockstep(system, c, multistep)
     a, b = cpu.state(), gpu.state()
@@ -218,7 +218,7 @@ def test_ensemble_scene_failure_stays_local():
 
 @pytest.mark.parametrize("friction,multistep", [(None, True), (0.2, False)])
 def test_rough_cpu_and_gpu_agree_float64_200_steps(friction, multistep):
-    """Issue 17: rough spheroids (e_t = 0.5; with and without a Coulomb limit), 4096 with contacts, 200 steps:
+    """Rough spheroids (e_t = 0.5; with and without a Coulomb limit), 4096 with contacts, 200 steps:
     positions within 1e-9 of L, the list slots' springs and k_t alike."""
     from engine.params import k_t_paper
 

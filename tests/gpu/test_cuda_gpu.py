@@ -97,7 +97,7 @@ def test_cpu_and_gpu_agree_float64_200_steps(friction):
 
 
 def test_lazy_orientations_agree_with_the_cpu_in_a_dilute_gas():
-    """Issue 15: the GPU's lazy sphere orientations (turned only when a torque is about to change the spin, and at
+    """The GPU's lazy sphere orientations (turned only when a torque is about to change the spin, and at
     the end of a call) against the CPU's, in a gas at phi = 0.25 (rough with a Coulomb limit) over 3000 steps in 3
     calls, in both loops: a few hundred spheres collide, once or twice each, so the FMA differences do not grow
     chaotically."""
@@ -127,7 +127,7 @@ def test_lazy_orientations_agree_with_the_cpu_in_a_dilute_gas():
               f"rel dw {rel_w:.2e}, rel dx {dx.max() / box:.2e}, max |q - q0| {turned:.2f}")
         assert turned > 0.1 and hit > 100 and gpu.builds > 1
         assert d_q <= 1e-9 and rel_w <= 1e-9, (d_q, rel_w)
-        # the collision counter (issue 18): the same contacts begun on both backends
+        # the collision counter: the same contacts begun on both backends
         cc, gc = cpu.observe()["collisions"], gpu.observe()["collisions"]
         print(f"collisions: CPU {cc}, GPU {gc}")
         assert cc == gc and cc > 100, (cc, gc)
@@ -157,7 +157,7 @@ def test_float32_accuracy_against_float64():
 
 
 def test_mixed_precision_agrees_with_the_cpu_and_tracks_float64():
-    """Issue 15 item 3: 'mixed' (float64 positions, float32 state) compiles on the GPU, agrees with the CPU's
+    """Precision 'mixed' (float64 positions, float32 state) compiles on the GPU, agrees with the CPU's
     'mixed' to the float32 rounding of the state, and follows float64 far more closely than float32 does
     (dense lattice, 200 steps)."""
     from engine.shapes.sphere.cpu_backend import CpuBackend

@@ -1,4 +1,4 @@
-"""Encounter DSMC of smooth spheroids (issue 18, part 3): the two-body DEM integrator used as a collision rule
+"""Encounter DSMC of smooth spheroids (docs/physics.md §6.4): the two-body DEM integrator used as a collision rule
 (engine/validation/encounter_dsmc.py) against conservation laws, the sphere restitution, the hard-impulse rule
 in the stiff limit, and the energy of the elastic gas. The DEM constants are those of the paper-003 scene."""
 
@@ -118,7 +118,7 @@ def test_dsmc_elastic_keeps_total_energy():
 
 
 def test_near_sphere_dsmc_gives_the_sphere_loss_for_both_rules():
-    """xi = 1.0001, e = 0.9: every smooth sphere collision loses (1 - e^2) T_tr on average (PHYSICS-NOTES §3.2,
+    """xi = 1.0001, e = 0.9: every smooth sphere collision loses (1 - e^2) T_tr on average (docs/physics.md §6.2,
     Maxwellian), no contact repeats, the rotation is untouched (D ~ 1e-8)."""
     for rule in ("impulse", "soft"):
         r = E.run_dsmc(1.0001, 0.9, rule, n=2000, coll_per_particle=2, seed=2)

@@ -1,4 +1,4 @@
-"""`demq validate encounter-dsmc --quick` (issue 18, part 3): the encounter DSMC resolves its excess over the
+"""`demq validate encounter-dsmc --quick` (docs/physics.md §7.5): the encounter DSMC resolves its excess over the
 one-impulse DSMC at xi = 2.5, e = 0.9 in the reduced CI version (engine/validation/encounter_report.py)."""
 
 from __future__ import annotations

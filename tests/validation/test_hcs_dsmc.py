@@ -64,7 +64,7 @@ def test_hard_rule_conserves_momenta_and_energy_when_elastic_and_rough():
 def test_soft_contact_loss_vanishes_at_low_speed_and_grows_with_it():
     # the DEM contact equals the constant-restitution rule in the limit of small speeds (the normal does not
     # turn during the contact; e_t,eff is the spring's exact sticking restitution): at v = 0.1 m/s the excess
-    # is below 0.3 % (e_t,eff itself matches a binary collision to 2e-4, PHYSICS-NOTES 1.2; 300 paired
+    # is below 0.3 % (e_t,eff itself matches a binary collision to 2e-4, docs/physics.md §1.3; 300 paired
     # samples), and at v_rms = 10 m/s it is positive by many standard errors (measured +2 %).
     spec = scene_spec("paper001", 0.8, 0, "cpu")
     slow = soft_contact_loss(spec, 1e-4, 1.0, 300, seed=2)

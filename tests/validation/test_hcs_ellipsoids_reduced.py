@@ -1,4 +1,4 @@
-"""Reduced ellipsoid homogeneous-cooling check (issue 4, must-show 3); the full matrix is
+"""Reduced ellipsoid homogeneous-cooling check (docs/physics.md §7.5); the full matrix is
 `demq validate hcs-ellipsoids` (bench/device_validate_ellipsoids.sh, bench/reports/hcs-ellipsoids/).
 
 Scene: N = 256 prolate spheroids, xi = 1.5, e_n = 0.8, phi = 0.058, Gamma_0 t_end = 9 (~8 collisions per
@@ -17,7 +17,7 @@ def test_smooth_spheroid_cooling_haff_and_rotation(tmp_path):
     # Haff law: (T/T0)^(-1/2) linear in t. The rms residual is dominated by the sqrt(2/(3N)) ~ 5 %
     # per-record fluctuation of T at N = 256 (measured 2.5 %); 5 % catches a wrong functional form.
     assert s["haff"]["rms_residual"] < 0.05, s["haff"]
-    # fitted collision rate (with the dashpot's <1 - e_eff^2>) vs Gamma_0 of PHYSICS-NOTES §3.2:
+    # fitted collision rate (with the dashpot's <1 - e_eff^2>) vs Gamma_0 of docs/physics.md §6.2:
     # measured 0.99 on this scene, 1.08 at N = 1024 / e = 0.9 (the T_rot transient biases the fit); 15 %.
     assert abs(s["gamma_fit_eff"] / s["gamma0"] - 1) < 0.15, s
     # T_tr/T_rot starts at 1 and must head toward the HCS value (DSMC with e_eff(D): 0.816):

@@ -1,5 +1,5 @@
 """Reduced homogeneous-cooling validation against Luding's ODE (runs in CI; the full paper-001 scene
-is `demq validate hcs-spheres`, see bench/RESULTS.md and the issue note)."""
+is `demq validate hcs-spheres`, see bench/RESULTS.md and docs/physics.md §7.2)."""
 
 import json
 
@@ -8,7 +8,7 @@ from engine.validation import hcs_spheres
 
 def test_rough_sphere_cooling_follows_luding_ode(tmp_path):
     # N = 4000, phi = 0.05, tau <= 3, 4 seeds: run-to-run scatter of T/T0 ~0.6 % per run, so the
-    # 3 % tolerance of issue 2 is > 5 standard errors of the 4-seed mean.
+    # 3 % tolerance (docs/physics.md §7.2) is > 5 standard errors of the 4-seed mean.
     rc = hcs_spheres.main(out_dir=tmp_path, seeds=4, quick=True, backend="cpu")
     summary = json.loads((tmp_path / "summary.json").read_text())
     for case, s in summary.items():

@@ -1,4 +1,4 @@
-"""Reduced Sonine check (issue 18 part 1); the full comparison is `demq validate sonine --ensemble` on a GPU
+"""Reduced Sonine check (docs/physics.md §7.4); the full comparison is `demq validate sonine --ensemble` on a GPU
 (bench/reports/sonine/). The DSMC reference is checked against two exact limits first."""
 
 import json

@@ -31,9 +31,9 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``kernels``: the shape's own kernels (a dict, may be empty).
 
 Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,
-begun): int64 (N), the step from which each sphere's orientation turns are pending (issue 15's lazy
+begun): int64 (N), the step from which each sphere's orientation turns are pending (lazy
 orientations), and the contacts each sphere has begun (cumulative; each pair counts in both partners' lists, so
-the collisions are sum / 2; issue 18's collision counter, as on the CPU); the
+the collisions are sum / 2; the ``collisions`` observable, as on the CPU); the
 force phase reads the previous step's forces ``f_old`` of both partners for the predicted end-of-step velocities
 (the double buffer of engine/backends/cuda.py). Flags: rough (tangential spring and torque), Coulomb limit,
 orientation tracked. The physics is engine/physics/contact.py (sphere_contact,

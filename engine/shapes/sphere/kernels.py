@@ -27,7 +27,7 @@ extra arrays. For spheres: ``law = (k_t, mu)`` (None = smooth / no Coulomb limit
 as are ``torque = None`` and ``quat = None``), ``ext = (marks, begun)``: ``marks`` the step of the loop's call from
 which each sphere's orientation turns are pending (int64, N; zero whenever the loop has returned), ``begun`` the
 contacts each sphere has begun (int64, N, cumulative; each pair counts once in each partner's list: the pair
-collisions are sum(begun) / 2; issue 18). The physics is in
+collisions are sum(begun) / 2, the ``collisions`` observable). The physics is in
 engine/physics/contact.py (sphere_contact, sphere_contact_end), engine/physics/integrate.py and
 engine/physics/rotation.py.
 Array layout: (N, 3) / (N, 4) rows per particle, the CPU backend's.

@@ -1,4 +1,4 @@
-"""The spheroid shape's CUDA parts (prolate ellipsoids, paper 003; frictionless or rough, issue 17): what an ellipsoid adds to the
+"""The spheroid shape's CUDA parts (prolate ellipsoids, paper 003; frictionless or rough): what an ellipsoid adds to the
 one CUDA time loop (engine/backends/cuda_loop.py; the interface is in engine/shapes/sphere/device.py).
 
 The device functions call the same ``@numba.njit`` physics as the CPU plug-in (engine/shapes/spheroid/kernels.py):
@@ -279,7 +279,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
     def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
         """Particle i's share of the sums of engine.shapes.spheroid.kernels.observe (``inertia`` is 1/I here): E_tr = m v^2/2;
         E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
-        perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in PHYSICS-NOTES §3.3);
+        perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in docs/physics.md §2.7);
         contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
         slot); momentum; largest delta; the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp."""
         angm = spin
