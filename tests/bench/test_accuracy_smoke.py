@@ -1,7 +1,7 @@
-"""Smoke tests of `demq bench accuracy` and `demq bench specialisation` on their tiny variants.
+"""Smoke tests of `python -m bench accuracy` and `python -m bench specialisation` on their tiny variants.
 
 They run every report builder on the smallest scenes, check the report files, and check the errors that
-physics says must shrink with dt (the full reports are in bench/reports/accuracy and specialisation).
+physics says must shrink with dt (the full reports' figures are in docs/performance.md).
 """
 
 from __future__ import annotations
