@@ -69,7 +69,7 @@ def test_mixed_restores_the_restitution_that_float32_loses_in_a_large_box(e_n):
     e64 = _restitution("float64", e_n, box)
     e32 = _restitution("float32", e_n, box)
     emx = _restitution("mixed", e_n, box)
-    # float64 at dt = t_c/50: the predictor dashpot's O(dt^2) error (bench/RESULTS.md, issue 6: < 1e-3)
+    # float64 at dt = t_c/50: the predictor dashpot's O(dt^2) error (docs/performance.md: < 1e-3)
     assert abs(e64 - e_n) < 1e-3, e64
     # the scene separates the precisions: float32 is off by several times the dt error budget (1e-3)
     assert abs(e32 - e64) > 5e-3, (e32, e64)

@@ -1,5 +1,5 @@
-"""Reduced ellipsoid homogeneous-cooling check (issue 4, must-show 3); the full matrix is
-`demq validate hcs-ellipsoids` (bench/device_validate_ellipsoids.sh, bench/reports/hcs-ellipsoids/).
+"""Reduced ellipsoid homogeneous-cooling check; the full matrix is
+`demq validate hcs-ellipsoids`.
 
 Scene: N = 256 prolate spheroids, xi = 1.5, e_n = 0.8, phi = 0.058, Gamma_0 t_end = 9 (~8 collisions per
 particle), one core. e_n = 0.8 gives the largest HCS signal (DSMC T_tr/T_rot ~ 0.82, start 1) and the fastest

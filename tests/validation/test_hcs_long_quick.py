@@ -1,7 +1,7 @@
 """Reduced long-time HCS validation (`demq validate hcs-long --quick`): runs in CI (~20 s on one core).
 
 The full run (paper-001 scene to tau = 100 and the shear-unstable box, on the GPU) is
-bench/device_hcs_long.sh; its report goes to bench/reports/hcs-long/."""
+`demq validate hcs-long` on a GPU."""
 
 import json
 import math

@@ -1,5 +1,5 @@
 """Reduced homogeneous-cooling validation against Luding's ODE (runs in CI; the full paper-001 scene
-is `demq validate hcs-spheres`, see bench/RESULTS.md and the issue note)."""
+is `demq validate hcs-spheres`; docs/physics.md)."""
 
 import json
 

@@ -1,5 +1,5 @@
-"""Reduced Sonine check (issue 18 part 1); the full comparison is `demq validate sonine --ensemble` on a GPU
-(bench/reports/sonine/). The DSMC reference is checked against two exact limits first."""
+"""Reduced Sonine check; the full comparison is `demq validate sonine --ensemble` on a GPU
+(docs/physics.md). The DSMC reference is checked against two exact limits first."""
 
 import json
 from engine.validation import sonine as v
