@@ -1,9 +1,13 @@
-"""`demq validate encounter-dsmc --quick` (issue 18, part 3): the encounter DSMC resolves its excess over the
+"""`demq validate encounter-dsmc --quick`: the encounter DSMC resolves its excess over the
 one-impulse DSMC at xi = 2.5, e = 0.9 in the reduced CI version (engine/validation/encounter_report.py)."""
 
 from __future__ import annotations
 
 import json
+
+import pytest
+
+pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_validate_encounter_dsmc_quick(tmp_path):

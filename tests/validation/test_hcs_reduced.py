@@ -3,7 +3,11 @@ is `demq validate hcs-spheres`; docs/physics.md)."""
 
 import json
 
+import pytest
+
 from engine.validation import hcs_spheres
+
+pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_rough_sphere_cooling_follows_luding_ode(tmp_path):
