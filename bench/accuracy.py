@@ -1,4 +1,4 @@
-"""`demq bench accuracy`: run time against error for every numerical knob of the engine (issue 6).
+"""Run time against error for every numerical knob of the engine.
 
 Knobs (all through the public spec / backend parameters; nothing here changes an engine default):
 
@@ -21,7 +21,7 @@ Scenes and errors (references in brackets):
   giving peak overlaps log-uniform in 0.2 % ... 2 % of the radius and contact starts at every phase of a
   step. Errors: max |e_n - e_n,nominal| over the head-on pairs [exact: the dashpot is built for it] and
   max |e_t - e_t,ref| over the oblique pairs [the same pair at float64, dt = t_c/200; the analytic
-  e_t,eff of paper 001 Eq. 4 misses O(delta/a) lever-arm terms, PHYSICS-NOTES §1.2, so its offset is
+  e_t,eff of paper 001 Eq. 4 misses O(delta/a) lever-arm terms, docs/physics.md, so its offset is
   listed separately].
 - ``elastic_smooth`` / ``elastic_rough``: elastic gas (e_n = 1; smooth e_t = -1, rough e_t = 1). The error
   of a knob is the energy error it adds per collision, measured without seed noise on a sample of binary
@@ -54,10 +54,10 @@ apart but within SIGMAS combined standard errors of their seed means are unresol
 other through them; the verdict names them). Errors below a scene's floor (the cooling gas's trajectory-
 chaos floor) count as the floor. The front: every row that no other row demonstrably beats.
 
-Output: REPORT.md, accuracy.png, summary.json in bench/reports/accuracy (CPU) or accuracy-cuda.
+Output: REPORT.md, accuracy.png, summary.json in --out DIR (default ./bench-out/accuracy/).
 
-    PYTHONPATH=. NUMBA_NUM_THREADS=1 python -m bench.accuracy [--quick] [--backend cuda] [--threads 1]
-    demq bench accuracy [--quick] [--backend cpu|cuda] [-o DIR]
+    PYTHONPATH=. NUMBA_NUM_THREADS=1 python -m bench accuracy [--quick] [--backend cuda] [--threads 1]
+    python -m bench accuracy [--quick] [--backend cpu|cuda] [-o DIR]
 """
 
 from __future__ import annotations
@@ -75,7 +75,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from bench import out_dir as bench_out
+
 
 DT_FRACTIONS = (10, 20, 35, 50, 100, 200)
 PRECISIONS = ("float64", "float32", "mixed")
@@ -92,7 +93,7 @@ DEFAULT_PW_TOL = {"float64": 1e-15, "float32": 1e-7}
 #: Cooling chaos floor: the float64 reference repeated at these dt (converged to ~1e-5 in e_n).
 FLOOR_FRACTIONS = (180, 190)
 #: Two costs closer than this are a tie: repeated runs on the shared 2-core VM scatter by about +-15 %
-#: (bench/RESULTS.md, CPU spheres).
+#: (docs/performance.md, CPU spheres).
 TIME_NOISE = 0.15
 #: Two errors within this relative distance are a tie (the same physics to rounding).
 ERROR_TIE = 0.05
@@ -992,7 +993,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
     sc = res["scenes"]
     dev = m.get("device") or m["cpu"]
     size = res["size"]
-    L = ["# Accuracy against cost (issue 6)", "",
+    L = ["# Accuracy against cost", "",
          f"Command: `{cmd}` ({res['variant']} variant), {wall / 60:.1f} min wall in all.",
          f"Machine: backend **{m['backend']}** on **{dev}**; host CPU {m['cpu']} ({m['cores']} cores), "
          f"{m['numba_threads']} Numba thread(s), load average {m['load_average']:.2f} at the start; "
@@ -1031,7 +1032,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
           f"this dashpot; the head-on pairs are run again with e_n = {E_N_LOW}, where the dashpot's dt error is "
           "larger); de_t "
           "against the same pairs at float64, t_c/200, because the analytic e_t,eff = "
-          f"{col['e_t_effective']:.5f} (paper 001 Eq. 4, PHYSICS-NOTES §1.2) neglects O(delta/a) lever-arm and "
+          f"{col['e_t_effective']:.5f} (paper 001 Eq. 4, docs/physics.md) neglects O(delta/a) lever-arm and "
           f"normal-rotation terms: the reference differs from it by {_e(col['ref_e_t_offset'])} (e_n: "
           f"{_e(col['ref_e_n_error'])}). Cost: the pair scene itself (all pairs in contact a third of the run; "
           f"median of {COLLISION_REPS if res['reps'] >= 3 else res['reps']} runs of a few ms each).",
@@ -1062,9 +1063,9 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
           f"(mean +- spread of one run); every pair had separated at the end of its run: {apart}.", "",
           "**Smooth** (e_n = 1, e_t = -1): eps against exact conservation (integrator and contact-event "
           "corrections alone).", "", *_elastic_table(sc["elastic_smooth"], rough=False), "",
-          "**Rough** (e_n = e_t = 1, as asked by issue 6): the Eq.-4 spring loses energy at any dt (it is back "
+          "**Rough** (e_n = e_t = 1, as the accuracy study asks): the Eq.-4 spring loses energy at any dt (it is back "
           "at zero at the end of a contact only for delta << a, a normal that does not turn and an isolated "
-          "pair, PHYSICS-NOTES §1.2): the model's own loss, not a knob's error. The error of a row is therefore "
+          "pair, docs/physics.md): the model's own loss, not a knob's error. The error of a row is therefore "
           "the part of eps that dt and precision add: eps minus eps of the same collision at float64, "
           "t_c/200. "
           + _model_loss_text(er, c)
@@ -1254,9 +1255,7 @@ def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int
     if sweep_n:
         size = replace(size, sweep_n=sweep_n)
     reps = reps or size.reps
-    out = Path(out_dir) if out_dir else ROOT / "bench" / "reports" / ("accuracy" if backend == "cpu"
-                                                                      else f"accuracy-{backend}")
-    out.mkdir(parents=True, exist_ok=True)
+    out = bench_out(out_dir, "accuracy")
     t0 = time.time()
     res = {"variant": variant, "reps": reps, "size": dict(size.__dict__), "machine": machine(backend),
            "default_skin": DEFAULT["skin"]}
@@ -1276,7 +1275,7 @@ def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int
         res["machine"]["device"] = sc["collisions"]["device"]
     res["wall_s"] = time.time() - t0
     flags = {"quick": " --quick", "tiny": " --tiny"}.get(variant, "")
-    res["command"] = cmd or f"demq bench accuracy{flags} --backend {backend}"
+    res["command"] = cmd or f"python -m bench accuracy{flags} --backend {backend}"
     analyse(res, out, log)
     return 0
 
@@ -1327,8 +1326,9 @@ def reanalyse(out_dir) -> int:
 
 
 def cli(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="accuracy against cost for every numerical knob (issue 6)")
-    ap.add_argument("-o", "--out-dir", default=None)
+    ap = argparse.ArgumentParser(description="accuracy against cost for every numerical knob")
+    ap.add_argument("-o", "--out", dest="out_dir", metavar="DIR", default=None,
+                    help="report folder (default ./bench-out/accuracy/)")
     ap.add_argument("--quick", action="store_true", help="about one minute on 2 cores (kernel cache warm)")
     ap.add_argument("--tiny", action="store_true", help="smallest scenes (smoke test)")
     ap.add_argument("--backend", choices=["cpu", "cuda"], default="cpu")
@@ -1338,17 +1338,16 @@ def cli(argv=None) -> int:
     ap.add_argument("--sweep-n", type=int, default=None, help="spheres per run of the skin sweep (default 4096)")
     ap.add_argument("--no-ellipsoids", action="store_true")
     ap.add_argument("--reanalyse", action="store_true",
-                    help="only redo fronts, plot and report from OUT_DIR/summary.json (no runs)")
+                    help="only redo fronts, plot and report from OUT/summary.json (no runs)")
     a = ap.parse_args(argv)
     if a.reanalyse:
-        return reanalyse(a.out_dir or ROOT / "bench" / "reports" / ("accuracy" if a.backend == "cpu"
-                                                                    else f"accuracy-{a.backend}"))
+        return reanalyse(bench_out(a.out_dir, "accuracy"))
     variant = "tiny" if a.tiny else "quick" if a.quick else "full"
     flags = {"quick": " --quick", "tiny": " --tiny"}.get(variant, "")
     extra = "".join(f" --{k} {v}" for k, v in (("threads", a.threads), ("n", a.n), ("reps", a.reps),
                                                   ("sweep-n", a.sweep_n))
                     if v is not None and not (k == "threads" and v == 1))
-    cmd = f"python -m bench.accuracy{flags} --backend {a.backend}{extra}" + \
+    cmd = f"python -m bench accuracy{flags} --backend {a.backend}{extra}" + \
         (" --no-ellipsoids" if a.no_ellipsoids else "")
     return main(a.out_dir, variant, a.backend, a.threads, a.n, a.reps, not a.no_ellipsoids, cmd=cmd,
                 sweep_n=a.sweep_n)

@@ -1,11 +1,11 @@
-"""Does the auto list mode pay for its trial? (issue 14, item 5; NVIDIA GPU required)
+"""Does the auto list mode pay for its trial? (NVIDIA GPU required)
 
 The scene of the issue: 1 000 000 spheres, 10 % of radius 1 and 90 % of radius 0.2 (number fractions), phi = 0.25,
 float64, 3000 steps of one ``advance`` (list_mode "gpu", "cpu-sequential", "cpu-pipelined", "auto"; the same
 start, kernels compiled before timing, median of ``--reps``). Prints each mode's particle-steps per second,
 auto against the best mode, and auto's decisions (a skipped probe says how many steps and stages were left).
 
-    python3 bench/auto_trial.py --reps 3 --out DIR
+    python -m bench auto_trial --reps 3 --out DIR
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""Where a packed batch's wall time goes on the main thread, by the driver's phases (issue 14; a diagnostic).
+"""Where a packed batch's wall time goes on the main thread, by the driver's phases (a diagnostic).
 
 bench/e2e.py's batch-256x4096-20k through engine.run_ensemble, in this process, with timers around the driver's
 methods on the main thread (advance, at_stop, the deferred records' drain, the ensemble's observe, the files'
 open and finish, the build). numba.cuda is imported before the timer starts (so the set-up excludes it). On the
 GPU machine, after a run that filled the kernel cache:
 
-    python3 bench/batch_where.py
+    python -m bench batch_where
 """
 
 from __future__ import annotations

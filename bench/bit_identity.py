@@ -1,12 +1,12 @@
 """Trajectory fingerprints: SHA-1 of a result file's trajectory and observables for a fixed set of specs.
 
-For refactors that must not change a bit (issue 19): run this in two checkouts and compare the printed
+For refactors that must not change a bit: run this in two checkouts and compare the printed
 digests (the whole file's, and its trajectory and observables apart). Only the public path (``engine.run``) and
 the result file (H5MD contract) are used, so it runs on any commit that has them. Cases: spheres smooth, rough,
 Coulomb, two species; frictionless ellipsoids (xi = 2).
 
-    python -m bench.bit_identity --backend cpu
-    NUMBA_ENABLE_CUDASIM=1 python -m bench.bit_identity --backend cuda      # the CUDA simulator (slow: tiny N)
+    python -m bench bit_identity --backend cpu
+    NUMBA_ENABLE_CUDASIM=1 python -m bench bit_identity --backend cuda      # the CUDA simulator (slow: tiny N)
 """
 
 from __future__ import annotations

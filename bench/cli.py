@@ -1,56 +1,136 @@
-"""`demq bench`: the benchmark and stress-test command (registered by service/cli.py, the console script).
+"""``python -m bench <name> [--out DIR] [args]``: runs one benchmark of bench/ from a checkout.
 
-Lives in bench/ because it imports the bench scripts; the engine never imports bench/.
+``python -m bench`` lists them; ``python -m bench <name> --help`` shows a benchmark's own options. The benchmark
+runs as ``python -m bench.<name>`` would, with its own arguments. Its outputs go under ``--out DIR`` (default
+./bench-out/<name>/ under the current working directory); a copy of everything it prints goes to
+DIR/stdout.log, which for the diagnostics that only print is their whole output.
 """
 
 from __future__ import annotations
 
-import argparse
+import ast
+import runpy
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+from bench import out_dir
+
+#: Every benchmark, by module name, and whether it takes ``--out DIR`` itself (it writes reports or JSON there);
+#: the others only print, and their output is the DIR/stdout.log the runner keeps.
+BENCHMARKS: dict[str, bool] = {
+    # speed (Cundall numbers) and time to result
+    "gpu_scaling": True, "gpu_ensemble": True, "gpu_ellipsoid_scaling": True, "cpu_scaling": True,
+    "ellipsoid_cpu_speed": True, "vs_lammps": True, "e2e": True, "e2e_profile": True, "list_modes": True,
+    "multigrid_cost": True, "specialisation": True, "auto_trial": True,
+    "step_phases": False, "batch_where": False, "driver_overhead": False, "host_memory": False,
+    "setup_timeline": False, "start_draw": False, "writer_processes": False, "download_speed": False,
+    # accuracy against cost, stability, physics studies
+    "accuracy": True, "stability": True, "ellipsoid_geometry_accuracy": True, "ellipsoid_recollisions": True,
+    "ellipsoid_screen_stats": True, "ellipsoid_dsmc_refs": True, "ellipsoid_encounter_dsmc": True,
+    "ellipsoid_cooling_seeds": True, "ellipsoid_velocity_correlations": True, "hcs_ellipsoids_cuda": True,
+    "orientation": False, "bit_identity": False,
+    # the service under load
+    "load_service": False,
+}
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    b = sub.add_parser("bench", help="benchmarks and stress tests that write a report")
-    b.add_argument("action", choices=["stability", "accuracy", "specialisation", "e2e"],
-                   help="stability: the CPU stress matrix; accuracy: error against cost for dt, precision, "
-                        "skin and the ellipsoid PW tolerance; specialisation: speed-up of each compile-time "
-                        "specialisation (issue 6); e2e: time to result of whole jobs through engine.run, "
-                        "run_ensemble and the worker, with the breakdown (issue 14; bench/e2e.py --help)")
-    b.add_argument("-o", "--out-dir", default=None, help="report folder (default bench/reports/<action>)")
-    b.add_argument("--only", default=None, help="stability: run only the cells whose name contains this")
-    b.add_argument("--timeout", type=float, default=None,
-                   help="stability: seconds per cell before it counts as a hang")
-    b.add_argument("--quick", action="store_true", help="accuracy/specialisation: reduced scenes (~1 min)")
-    b.add_argument("--tiny", action="store_true", help="accuracy/specialisation: smallest scenes (smoke test)")
-    b.add_argument("--backend", choices=["cpu", "cuda"], default="cpu",
-                   help="accuracy/specialisation: backend of the sphere rows (ellipsoids always run on the CPU)")
-    b.add_argument("--threads", type=int, default=1, help="accuracy/specialisation: Numba threads (default 1)")
-    b.add_argument("--n", type=int, default=None, help="accuracy/specialisation: spheres per gas scene")
-    b.add_argument("--reps", type=int, default=None, help="accuracy/specialisation: timed runs per row (median)")
-    b.add_argument("--no-ellipsoids", action="store_true", help="accuracy/specialisation: skip ellipsoid rows")
-    b.add_argument("--cases", nargs="*", default=None, help="e2e: cases to time (bench/e2e.py lists them)")
-    b.set_defaults(func=cmd_bench)
+def _summary(name: str) -> str:
+    """The first line of a benchmark's docstring, read without importing it (imports compile kernels)."""
+    doc = ast.get_docstring(ast.parse((Path(__file__).parent / f"{name}.py").read_text())) or ""
+    return doc.splitlines()[0] if doc else ""
 
 
-def cmd_bench(args) -> int:
-    if args.action == "e2e":
-        from bench import e2e
+def usage() -> str:
+    lines = ["usage: python -m bench <name> [--out DIR] [args]   (python -m bench <name> --help for its options)",
+             "", "Benchmarks (outputs under --out DIR, default ./bench-out/<name>/):"]
+    lines += [f"  {name:32s} {_summary(name)}" for name in sorted(BENCHMARKS)]
+    return "\n".join(lines)
 
-        argv = ["--reps", str(args.reps or 1)] + (["--quick"] if args.quick or args.tiny else []) + \
-            (["--out", args.out_dir] if args.out_dir else []) + (["--cases", *args.cases] if args.cases else [])
-        return e2e.main(argv)
-    if args.action in ("accuracy", "specialisation"):
-        import importlib
 
-        mod = importlib.import_module(f"bench.{args.action}")
-        variant = "tiny" if args.tiny else "quick" if args.quick else "full"
-        flags = {"quick": " --quick", "tiny": " --tiny"}.get(variant, "")
-        extra = "".join(f" --{k} {v}" for k, v in (("threads", args.threads), ("n", args.n), ("reps", args.reps))
-                        if v is not None and not (k == "threads" and v == 1))
-        cmd = f"demq bench {args.action}{flags} --backend {args.backend}{extra}" + \
-            (" --no-ellipsoids" if args.no_ellipsoids else "")
-        return mod.main(out_dir=args.out_dir, variant=variant, backend=args.backend, threads=args.threads,
-                        n=args.n, reps=args.reps, ellipsoids=not args.no_ellipsoids, cmd=cmd)
-    from bench import stability
+def _split_out(args: list[str]) -> tuple[str | None, list[str]]:
+    """(the value of --out, the arguments without it)."""
+    rest, value, i = [], None, 0
+    while i < len(args):
+        if args[i] == "--out":
+            if i + 1 >= len(args):
+                raise SystemExit("python -m bench: --out needs a folder")
+            value, i = args[i + 1], i + 2
+            continue
+        if args[i].startswith("--out="):
+            value = args[i].split("=", 1)[1]
+        else:
+            rest.append(args[i])
+        i += 1
+    return value, rest
 
-    kw = {} if args.timeout is None else {"timeout": args.timeout}
-    return stability.main(out_dir=args.out_dir, only=args.only, **kw)
+
+class _Tee:
+    """A text stream writing to two others (the terminal and the log file)."""
+
+    def __init__(self, *streams):
+        self.streams = streams
+
+    def write(self, text: str) -> int:
+        for s in self.streams:
+            s.write(text)
+        return len(text)
+
+    def flush(self) -> None:
+        for s in self.streams:
+            s.flush()
+
+    def isatty(self) -> bool:
+        return False
+
+
+@contextmanager
+def _tee_stdout(path: Path):
+    with open(path, "a") as log:
+        saved = sys.stdout
+        sys.stdout = _Tee(saved, log)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stdout = saved
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "list"):
+        print(usage())
+        return 0
+    name = argv[0].replace("-", "_")
+    if name not in BENCHMARKS:
+        print(f"python -m bench: no benchmark named {argv[0]!r}\n\n{usage()}", file=sys.stderr)
+        return 2
+    given, rest = _split_out(argv[1:])
+    wants_help = "-h" in rest or "--help" in rest
+    out = None if wants_help else out_dir(given, name)
+    module_argv = (["--out", str(out)] if BENCHMARKS[name] and out is not None else []) + rest
+    saved_argv = sys.argv
+    sys.argv = [f"python -m bench {name}", *module_argv]
+    try:
+        if out is None:
+            runpy.run_module(f"bench.{name}", run_name="__main__", alter_sys=True)
+        else:
+            with _tee_stdout(out / "stdout.log"):
+                runpy.run_module(f"bench.{name}", run_name="__main__", alter_sys=True)
+    except SystemExit as stop:
+        if isinstance(stop.code, str):
+            print(stop.code, file=sys.stderr)
+        return stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+    finally:
+        sys.argv = saved_argv
+    return 0
+
+
+def register(sub) -> None:
+    """``demq bench <name> [args]``: the same runner, for the console script while it still registers the
+    subcommand (service/cli.py)."""
+    import argparse
+
+    b = sub.add_parser("bench", help="benchmarks from a checkout (python -m bench <name> ...)", add_help=False)
+    b.add_argument("args", nargs=argparse.REMAINDER, help="a benchmark's name and its arguments")
+    b.set_defaults(func=lambda a: main(a.args))

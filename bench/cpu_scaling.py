@@ -1,8 +1,8 @@
 """Cundall number (particle-steps per second) of the CPU backend against N, phi and thread count.
 
-    python bench/cpu_scaling.py --n 4096 32768 262144 --phi 0.058 0.008 --threads 1 2 --out bench/cpu_scaling.json
+    python -m bench cpu_scaling --n 4096 32768 262144 --phi 0.058 0.008 --threads 1 2
 
-What is timed (DESIGN §7): the full rough-sphere step of engine/backends/cpu.py — velocity Verlet, periodic
+What is timed (docs/design.md): the full rough-sphere step of engine/backends/cpu.py — velocity Verlet, periodic
 wrap, Fincham quaternion update, tangential springs with history and contact-event corrections, torques,
 Verlet lists rebuilt by the L_v/2 rule with spring carry-over, stability guards — plus the observables
 reduction at the default output cadence (t_end/200 of a run as long as the timed one). Not timed: JIT
@@ -21,6 +21,7 @@ import time
 
 import numba
 
+from bench import out_dir
 from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.params import derive
 from engine.scene import initial_spheres
@@ -76,7 +77,7 @@ def main():
     ap.add_argument("--precision", nargs="+", default=["float64"])
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--reps", type=int, default=3)
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None, help="folder for cpu_scaling.json (default ./bench-out/cpu_scaling/)")
     a = ap.parse_args()
     cpu = "unknown"
     try:
@@ -96,9 +97,8 @@ def main():
                     print(f"| {prec} | {phi} | {n} | {t} | {r['cundall_median']:.3g} | "
                           f"{', '.join(f'{x:.3g}' for x in r['cundall_runs'])} | {r['builds_per_step']:.3f} | "
                           f"{r['contacts_per_particle']:.2e} |", flush=True)
-    if a.out:
-        with open(a.out, "w") as fh:
-            json.dump({"cpu": cpu, "numba": numba.__version__, "rows": rows}, fh, indent=1)
+    with open(out_dir(a.out, "cpu_scaling") / "cpu_scaling.json", "w") as fh:
+        json.dump({"cpu": cpu, "numba": numba.__version__, "rows": rows}, fh, indent=1)
 
 
 if __name__ == "__main__":

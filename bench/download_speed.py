@@ -1,10 +1,10 @@
-"""How fast the service sends a large file (issue 14: a result is downloadable when it is done, and a 2M-sphere
+"""How fast the service sends a large file (a result is downloadable when it is done, and a 2M-sphere
 job's result is 436 MB): a file of --mb MiB served by uvicorn through starlette's FileResponse and through
 service.downloads.Download, each downloaded --reps times over localhost by a streaming httpx client that
 discards the bytes, and by curl (-o /dev/null) when there is one; prints the seconds of each download and the
 median per response class and client.
 
-    python3 -m bench.download_speed [--mb 436] [--reps 3]
+    python -m bench download_speed [--mb 436] [--reps 3]
 """
 
 from __future__ import annotations

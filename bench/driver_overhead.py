@@ -1,11 +1,11 @@
-"""The driver's host time per scene and round of a packed batch (issue 14), without a GPU.
+"""The driver's host time per scene and round of a packed batch, without a GPU.
 
 engine.simulate.drive runs K small scenes (64 spheres, no snapshots, default records) on a fake ensemble that
 does nothing but run the driver's deferred record work in its ``advance`` (as the CUDA ensemble does in its waits
 for the GPU). Printed: the host time between two advances (on a real ensemble the GPU is idle then), per scene
 and round, and the time of the deferred units (inside the advances, overlapped on a real ensemble).
 
-    python3 bench/driver_overhead.py [K]          (default K = 256)
+    python -m bench driver_overhead [K]          (default K = 256)
 """
 
 from __future__ import annotations

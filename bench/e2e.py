@@ -1,6 +1,6 @@
-"""Time to result (issue 14): whole jobs, from spec to closed HDF5 file, through the public path.
+"""Time to result: whole jobs, from spec to closed HDF5 file, through the public path.
 
-``demq bench e2e`` (or ``python -m bench.e2e``) times each case in a fresh Python process (so kernel
+``python -m bench e2e`` (or ``python -m bench e2e``) times each case in a fresh Python process (so kernel
 compilation or its disk-cache load is part of the figure, as for a user who starts a job) and prints:
 
 * the end-to-end Cundall number: N x steps / wall seconds of the whole call (``engine.run``,
@@ -16,8 +16,8 @@ compilation or its disk-cache load is part of the figure, as for a user who star
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
 that the step count is exact):
 
-  spheres-2M-f64 / -f32     2 097 152 spheres x 5000 steps, 2 snapshots        (issue 14 (a))
-  spheres-8M-f64 / -f32     8 388 608 spheres x 2000 steps, 2 snapshots        (issue 14 (a))
+  spheres-2M-f64 / -f32     2 097 152 spheres x 5000 steps, 2 snapshots       
+  spheres-8M-f64 / -f32     8 388 608 spheres x 2000 steps, 2 snapshots       
   batch-256x4096-2k / -20k  256 scenes x 4096 spheres x 2000 / 20 000 steps, one run_ensemble (b)
   worker-256x4096-20k       the same batch submitted over HTTP to `demq serve` (embedded worker)  (b)
   worker-2M-f64             spheres-2M-f64 as one job submitted over HTTP to `demq serve`
@@ -25,7 +25,7 @@ that the step count is exact):
                             DEMQ_WORKER_STANDBY=off|on: its standby simulation process, jobs/worker.py)
   quickstart                the README quick-start default spec, through engine.run       (c)
   ellipsoids-2M             2 097 152 ellipsoids, xi = 2 x 2000 steps, 2 snapshots    (d)
-  ellipsoids-rough-2M       the same with rough contacts (e_t = 0.8, the spec default; issue 17)
+  ellipsoids-rough-2M       the same with rough contacts (e_t = 0.8, the spec default)
   cpu-16x512                CPU: 16 x 512 spheres x 3000 steps with default records through run_ensemble,
                             against one such scene with 4 records, in the same process (the issue's
                             must-show ratio)
@@ -289,7 +289,8 @@ def main(argv=None, out_dir=None) -> int:
                     "is present, and the CPU cases)")
     ap.add_argument("--reps", type=int, default=1, help="runs per case (median of the end-to-end wall time)")
     ap.add_argument("--quick", action="store_true", help="small scenes (smoke test)")
-    ap.add_argument("--out", type=Path, default=out_dir or Path("bench/reports/e2e"))
+    ap.add_argument("--out", type=Path, default=out_dir or Path("bench-out") / "e2e",
+                    help="report folder (default ./bench-out/e2e/)")
     ap.add_argument("--same-process", action="store_true", help="run the cases in this process (warm caches)")
     ap.add_argument("--prime", action="store_true", help="run each case once first, untimed (fills the kernel "
                     "disk cache; its wall time is reported as the first run)")

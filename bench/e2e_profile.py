@@ -1,17 +1,15 @@
-"""Where a fresh process's 2M-sphere job spends its time outside the loop (issue 14): cProfile of engine.run.
+"""Where a fresh process's 2M-sphere job spends its time outside the loop: cProfile of engine.run.
 
 Runs, each in a fresh Python process: two plain jobs (the first fills the kernel caches), two probes of the
 one-off start-up stage by stage (numba import, numba.cuda import, driver check, context creation, the first
 cached CPU kernel's load (numba's CPU target; engine/jitcache.py's fast loads skip its registries and scipy.linalg,
 which the probe reports as imported or not), the GPU start-up thread's stand-in scene: CUDA registries and kernel
 cache loads),
-one job under cProfile (written to $OUT/profile.txt and $OUT/run.prof, cumulative and internal time) and a
-last plain job (their JSON lines also go to $OUT/runs.jsonl). The job is bench/e2e.py's case PCASE (default
+one job under cProfile (written to OUT/profile.txt and OUT/run.prof, cumulative and internal time) and a
+last plain job (their JSON lines also go to OUT/runs.jsonl). The job is bench/e2e.py's case PCASE (default
 spheres-2M-f64; a batch case runs through run_ensemble) with PSTEPS steps (default 200). On the GPU machine:
 
-    OUT=/tmp/prof python3 bench/e2e_profile.py          (MODES="probe probe" for the probes alone)
-
-The 2026-11-25 H100 profile is in bench/reports/e2e-cuda/fresh-process-profile/profile.txt.
+    python -m bench e2e_profile [--out DIR]          (MODES="probe probe" for the probes alone)
 """
 
 from __future__ import annotations
@@ -24,6 +22,7 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+#: the folder of profile.txt and run.prof, set by main() for the child processes
 OUT = os.environ.get("OUT", "/tmp")
 STEPS = int(os.environ.get("PSTEPS", "200"))
 #: the bench/e2e.py case (a one-scene case through engine.run, or a batch case through engine.run_ensemble)
@@ -104,17 +103,26 @@ def child(mode: str) -> None:
 
 
 def main() -> None:
-    with open(os.path.join(OUT, "runs.jsonl"), "a") as log:
+    import argparse
+
+    from bench import out_dir
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=None, help="folder for profile.txt, run.prof, runs.jsonl "
+                    "(default ./bench-out/e2e_profile/)")
+    out = str(out_dir(ap.parse_args().out, "e2e_profile"))
+    with open(os.path.join(out, "runs.jsonl"), "a") as log:
         for mode in os.environ.get("MODES", "plain probe probe plain profile plain").split():
             t = time.perf_counter()
-            p = subprocess.run([sys.executable, __file__, mode], capture_output=True, text=True)
+            p = subprocess.run([sys.executable, __file__, mode], capture_output=True, text=True,
+                               env={**os.environ, "OUT": out})
             line = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else ""
             print(mode, f"{time.perf_counter() - t:.2f} s", line, p.stderr[-1500:] if p.returncode else "", flush=True)
             log.write(line + "\n")
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1:
+    if len(sys.argv) > 1 and not sys.argv[1].startswith("-"):
         child(sys.argv[1])
     else:
         main()

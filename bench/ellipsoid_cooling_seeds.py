@@ -1,6 +1,6 @@
-"""Seeds, system size and flow diagnostics for the open xi = 2.5, e_n = 0.9 cooling cell (issue 4, must-show 3).
+"""Seeds, system size and flow diagnostics for the open xi = 2.5, e_n = 0.9 cooling cell.
 
-Last session's 13-cell matrix (bench/reports/hcs-ellipsoids-cuda, one seed per cell) gave a late T_tr/T_rot of
+A 13-cell matrix (bench/hcs_ellipsoids_cuda.py, one seed per cell) gave a late T_tr/T_rot of
 1.0493 +- 0.0068 at xi = 2.5, e_n = 0.9, +4.0 % from the e_eff(D) DSMC value 1.0093. This script runs, as ONE
 CUDA ensemble (engine.ensemble.run_ensemble), the paper-003 scene of engine/validation/hcs_ellipsoids.py
 (phi = 0.058, v_rms = 3.5 m/s, 3 elastic sphere-rate collisions of thermalisation, Gamma_0 t_end = 40; box edge
@@ -21,8 +21,8 @@ state would put translational energy into collective flow and raise the measured
 
 Two steps (separate processes, so a run that overruns its budget still leaves an analysis of what finished):
 
-    python bench/ellipsoid_cooling_seeds.py simulate --work /tmp/ellc --out $OUT/r --budget-s 330
-    python bench/ellipsoid_cooling_seeds.py analyse  --work /tmp/ellc --out $OUT/r --dsmc /tmp/ellc/dsmc.json
+    python -m bench ellipsoid_cooling_seeds simulate --work /tmp/ellc --out $OUT/r --budget-s 330
+    python -m bench ellipsoid_cooling_seeds analyse  --work /tmp/ellc --out $OUT/r --dsmc /tmp/ellc/dsmc.json
 
 The .h5 files stay in --work (not under --out). Late T_tr/T_rot per run: mean over the records with at least
 half of the run's collisions per particle (engine.validation.hcs_ellipsoids.LATE_FRACTION, as the matrix);
@@ -46,7 +46,7 @@ from engine.validation import hcs_ellipsoids as H  # noqa: E402
 
 MAIN = ["2.5:0.9:4096:8", "2.5:0.9:16384:2", "1.15:0.98:4096:1", "3.0:0.98:4096:1"]
 EXTRA = ["2.5:0.95:4096:4", "3.0:0.9:4096:4"]
-#: last session (bench/reports/hcs-ellipsoids-cuda, NVIDIA H200): late T_tr/T_rot of xi = 2.5, e = 0.9, seed 0
+#: the 13-cell matrix (bench/hcs_ellipsoids_cuda.py, NVIDIA H200): late T_tr/T_rot of xi = 2.5, e = 0.9, seed 0
 LAST_SESSION = {"ratio_late": 1.0492988, "ratio_err": 0.0068, "dsmc_dem": 1.0093, "theory": 1.0044}
 SNAPSHOTS = 11
 
@@ -221,7 +221,7 @@ def analyse(args) -> int:
             c["n"] = n
             cells[(xi, e, n)] = c
     summary = {"plan": plan, "missing": missing, "cells": {}}
-    lines = ["# xi = 2.5, e_n = 0.9 cooling: seeds, system size, flow (issue 4, must-show 3)", "",
+    lines = ["# xi = 2.5, e_n = 0.9 cooling: seeds, system size, flow", "",
              f"Backend {next(iter(cells.values()))['device'] if cells else '?'}; scene of "
              "engine/validation/hcs_ellipsoids.py (phi = 0.058, v_rms = 3.5 m/s, 3 elastic collisions of "
              "thermalisation, Gamma_0 t_end = 40), all runs as one ensemble "

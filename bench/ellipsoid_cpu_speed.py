@@ -1,11 +1,11 @@
-"""CPU speed of the ellipsoid backend on the paper-003 gas (issue 4, task "speed"): Cundall number of
+"""CPU speed of the ellipsoid backend on the paper-003 gas: Cundall number of
 ``CpuEllipsoidBackend.advance`` after compilation, placement and the first list build, median of --reps runs,
 and a fingerprint of the final state (so that two code versions can be checked for identical trajectories).
 
 Scene: bench/gpu_ellipsoid_scaling.py's random gas (xi = 2, phi = 0.058, e_n = 0.9, engine contact constants,
 v_rms = 3.5 m/s, placement without overlaps), float64 by default.
 
-    NUMBA_NUM_THREADS=1 PYTHONPATH=. python bench/ellipsoid_cpu_speed.py --n 32768 --steps 200 --reps 3
+    NUMBA_NUM_THREADS=1 python -m bench ellipsoid_cpu_speed --n 32768 --steps 200 --reps 3
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import out_dir  # noqa: E402
 from bench.gpu_ellipsoid_scaling import ellipsoid_gas  # noqa: E402
 
 
@@ -42,7 +43,8 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--no-screen", action="store_true", help="disable the exact screens (PW_SCREEN < 0)")
     ap.add_argument("--pw-tol", type=float, default=None, help="Perram-Wertheim tolerance (default: PW_TOL)")
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None,
+                    help="folder for ellipsoid_cpu_speed.json (default ./bench-out/ellipsoid_cpu_speed/)")
     args = ap.parse_args(argv)
     from engine.shapes.spheroid import cpu_backend as cpu_ellipsoid
     from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
@@ -68,8 +70,7 @@ def main(argv=None):
                fingerprint=fingerprint(be), pw_tol=float(be.tol),
                screen_margin=float(getattr(be, "margin", float("nan"))))
     print(json.dumps(row))
-    if args.out:
-        Path(args.out).write_text(json.dumps(row, indent=1))
+    (out_dir(args.out, "ellipsoid_cpu_speed") / "ellipsoid_cpu_speed.json").write_text(json.dumps(row, indent=1))
     return row
 
 

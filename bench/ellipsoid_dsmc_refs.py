@@ -1,12 +1,12 @@
-"""DSMC references of the late-time T_tr/T_rot of smooth spheroids, with seed-to-seed standard errors (issue 4).
+"""DSMC references of the late-time T_tr/T_rot of smooth spheroids, with seed-to-seed standard errors.
 
-Runs engine.validation.hcs_ellipsoids.dsmc_ratio (the vectorised copy of physics-scripts/f_dsmc.py; N = 2e4,
-60 collisions per particle, mean over the second half) for several seeds per (xi, e_n, restitution model) in
+Runs engine.validation.hcs_ellipsoids.dsmc_ratio (N = 2e4, 60 collisions per particle, mean over the second
+half) for several seeds per (xi, e_n, restitution model) in
 parallel processes (one numpy thread each), and writes mean, standard error across seeds (ddof = 1) and the
-per-seed values (the JSON is rewritten after every finished run). 'dem' = the restitution the DEM dashpot gives at each contact geometry, e_eff(D); 'nominal' =
-the constant e_n of PHYSICS-NOTES §3.2.
+per-seed values to OUT/dsmc.json (rewritten after every finished run). 'dem' = the restitution the DEM
+dashpot gives at each contact geometry, e_eff(D); 'nominal' = the constant e_n (docs/physics.md).
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python bench/ellipsoid_dsmc_refs.py --out /tmp/dsmc.json \\
+    OMP_NUM_THREADS=1 python -m bench ellipsoid_dsmc_refs --out DIR \\
         --jobs 2.5:0.9:dem:4 2.5:0.9:nominal:2 --procs 6
 """
 
@@ -22,6 +22,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench import out_dir  # noqa: E402
 
 
 def _one(task):
@@ -44,12 +46,13 @@ def parse(items):
 
 def main(argv=None):
     ap = argparse.ArgumentParser()
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out", default=None, help="folder for dsmc.json (default ./bench-out/ellipsoid_dsmc_refs/)")
     ap.add_argument("--jobs", nargs="+", required=True, help="xi:e:dem|nominal:seeds")
     ap.add_argument("--procs", type=int, default=max(1, (os.cpu_count() or 2) - 4))
     ap.add_argument("--n", type=int, default=20000)
     ap.add_argument("--coll", type=float, default=60.0)
     args = ap.parse_args(argv)
+    out_path = out_dir(args.out, "ellipsoid_dsmc_refs") / "dsmc.json"
     tasks = [(xi, e, model, 1 + s, args.n, args.coll) for xi, e, model, k in parse(args.jobs) for s in range(k)]
     t0 = time.time()
     res: dict = {}
@@ -63,9 +66,9 @@ def main(argv=None):
         out = {"total_wall_s": time.time() - t0, "procs": args.procs, "done": sum(len(r["values"]) for r in
                                                                                    res.values()),
                "tasks": len(tasks), "results": res}
-        tmp = Path(args.out).with_suffix(".tmp")
+        tmp = out_path.with_suffix(".tmp")
         tmp.write_text(json.dumps(out, indent=1))
-        os.replace(tmp, args.out)        # rewritten after every run: a stopped job leaves what it finished
+        os.replace(tmp, out_path)        # rewritten after every run: a stopped job leaves what it finished
 
     with ProcessPoolExecutor(max_workers=args.procs) as pool:
         for fut in as_completed([pool.submit(_one, t) for t in tasks]):

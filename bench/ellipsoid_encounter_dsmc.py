@@ -1,4 +1,4 @@
-"""The ellipsoid excess (issue 18, part 3): DSMC with the whole DEM encounter as the collision rule.
+"""The ellipsoid excess: DSMC with the whole DEM encounter as the collision rule.
 
 Runs engine.validation.encounter_dsmc.run_dsmc for every (xi, rule, seed) in parallel processes (one Numba
 thread each) and writes runs.json (rewritten after every finished run), summary.md (the table: late T_tr/T_rot,
@@ -10,11 +10,11 @@ the encounter (the stiff limit of 'soft'); 'first' = first contacts only, one im
 (a diagnostic).
 
 Full version (16 cores, ~5 min: one round of 12 'soft' runs of 6e5 encounters, ~200-300 s each on one core of
-the 2-core dev VM, the 12 'impulse' runs alongside; bench/reports/ellipsoid-encounter-dsmc/REPORT.md):
+the 2-core dev VM, the 12 'impulse' runs alongside):
 
-    NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 PYTHONPATH=. python bench/ellipsoid_encounter_dsmc.py --procs 16 \\
+    NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 python -m bench ellipsoid_encounter_dsmc --procs 16 \\
         --rules impulse soft --xi 1.5 2 2.5 --seeds 4 --n 20000 --coll 60 \\
-        --out bench/reports/ellipsoid-encounter-dsmc/full
+        --out DIR
 
 Only re-analyse what exists: add --analyse-only.
 """
@@ -30,6 +30,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import out_dir  # noqa: E402
 from engine.validation.encounter_report import RULE_ORDER, run_cells, write  # noqa: E402
 
 
@@ -46,14 +47,13 @@ def main(argv=None) -> int:
     ap.add_argument("--kn-factor", type=float, default=1.0,
                     help="k_n of the DEM scene times this (softness test; dt = t_c/50 follows)")
     ap.add_argument("--procs", type=int, default=os.cpu_count() or 1)
-    ap.add_argument("--out", default="bench/reports/ellipsoid-encounter-dsmc/run")
+    ap.add_argument("--out", default=None, help="report folder (default ./bench-out/ellipsoid_encounter_dsmc/)")
     ap.add_argument("--analyse-only", action="store_true")
     args = ap.parse_args(argv)
     from engine.validation.encounter_dsmc import LATE_TEMPERATURE_FRACTION
 
     tf = LATE_TEMPERATURE_FRACTION if args.temp_fraction is None else args.temp_fraction
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = out_dir(args.out, "ellipsoid_encounter_dsmc")
     runs = {}
     if (out / "runs.json").exists():
         runs = json.loads((out / "runs.json").read_text())["runs"]

@@ -1,14 +1,13 @@
-"""Ellipsoid contact geometry accuracy (issue 4, must-show 1): engine vs an independent oracle.
+"""Ellipsoid contact geometry accuracy: engine vs an independent oracle.
 
 Samples N random overlapping pairs (b = 1, xi in [1, 4]; 10 % spheres, 30 % identical spheroids,
 the rest independent; overlap depth h = contact distance - centre distance log-uniform in
 [1e-6, 1e-2] b), computes the contact with engine/physics/ellipsoid.py in float64 and float32 and
 compares with the longdouble oracle of tests/engine/test_ellipsoid_oracle.py (bisection on the
 primal tangency curve, a different method). Also counts how often paper 003's Delta/P test calls
-these overlapping pairs "disjoint". Writes the table into the section
-"## Ellipsoid contact geometry (issue 4)" at the end of bench/RESULTS.md (replacing an older one).
+these overlapping pairs "disjoint". Prints the table and writes it to OUT/ellipsoid_geometry_accuracy.md.
 
-    PYTHONPATH=. python bench/ellipsoid_geometry_accuracy.py [--n 10000] [--seed 2024] [--no-write]
+    python -m bench ellipsoid_geometry_accuracy [--n 10000] [--seed 2024] [--out DIR]
 """
 
 from __future__ import annotations
@@ -21,11 +20,12 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from bench import out_dir
 from engine.physics.ellipsoid import paper_disjoint
 from tests.engine.test_ellipsoid_geometry import TOL, engine_on, errors
 from tests.engine.test_ellipsoid_oracle import random_overlapping
 
-SECTION = "## Ellipsoid contact geometry (issue 4)"
+SECTION = "## Ellipsoid contact geometry"
 
 
 @numba.njit
@@ -44,7 +44,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=10000)
     ap.add_argument("--seed", type=int, default=2024)
-    ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--out", default=None,
+                    help="folder for the table (default ./bench-out/ellipsoid_geometry_accuracy/)")
     args = ap.parse_args()
     t0 = time.time()
     data = random_overlapping(args.n, seed=args.seed)
@@ -76,7 +77,7 @@ def main():
     lo, hi = delta_ref.min(), delta_ref.max()
     text = "\n".join([
         SECTION, "",
-        f"`PYTHONPATH=. python bench/ellipsoid_geometry_accuracy.py --n {args.n} --seed {args.seed}` "
+        f"`python -m bench ellipsoid_geometry_accuracy --n {args.n} --seed {args.seed}` "
         f"({platform.processor() or platform.machine()}, {wall:.0f} s). Engine: engine/physics/ellipsoid.py "
         f"(Perram-Wertheim maximum by safeguarded Newton, lambda tolerance {TOL[np.float64]:g} / "
         f"{TOL[np.float32]:g}; W_0, contact point C, normal n, overlap delta along n between the "
@@ -98,12 +99,7 @@ def main():
         "pairs (every aligned lattice start), float32 sign noise for near-parallel pairs, deep overlaps "
         "called disjoint (tests/engine/test_ellipsoid_geometry.py). The engine never uses it.", ""])
     print(text)
-    if not args.no_write:
-        path = Path(__file__).resolve().parent / "RESULTS.md"
-        old = path.read_text()
-        if SECTION in old:
-            old = old[:old.index(SECTION)].rstrip() + "\n"
-        path.write_text(old.rstrip() + "\n\n" + text)
+    (out_dir(args.out, "ellipsoid_geometry_accuracy") / "ellipsoid_geometry_accuracy.md").write_text(text)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""How often do two spheroids touch more than once in one encounter? (issue 4, the xi = 2.5 cooling excess)
+"""How often do two spheroids touch more than once in one encounter? (the xi = 2.5 cooling excess)
 
 The DSMC reference of the late T_tr/T_rot (engine/validation/hcs_ellipsoids.py: dsmc_ratio) draws every collision
 from uncorrelated pre-collision states (molecular chaos) and applies one instantaneous impulse. Two elongated
@@ -10,7 +10,7 @@ interval in which the bounding spheres (radius a) of a pair overlap; a contact s
 becomes positive. Reported per xi: encounters with at least one contact, the share with two or more, and the
 share of all contacts that are second or later contacts of their encounter.
 
-    NUMBA_NUM_THREADS=1 PYTHONPATH=. python bench/ellipsoid_recollisions.py --xi 1.5 2 2.5 3 --n 1024 --steps 40000
+    NUMBA_NUM_THREADS=1 python -m bench ellipsoid_recollisions --xi 1.5 2 2.5 3 --n 1024 --steps 40000
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import out_dir  # noqa: E402
 from bench.gpu_ellipsoid_scaling import ellipsoid_gas  # noqa: E402
 
 
@@ -79,15 +80,15 @@ def main(argv=None):
     ap.add_argument("--n", type=int, default=1024)
     ap.add_argument("--steps", type=int, default=40000)
     ap.add_argument("--e-n", type=float, default=0.9)
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None,
+                    help="folder for ellipsoid_recollisions.json (default ./bench-out/ellipsoid_recollisions/)")
     args = ap.parse_args(argv)
     rows = []
     for xi in args.xi:
         r = count(xi, args.n, args.steps, args.e_n)
         rows.append(r)
         print(json.dumps(r), flush=True)
-    if args.out:
-        Path(args.out).write_text(json.dumps(rows, indent=1))
+    (out_dir(args.out, "ellipsoid_recollisions") / "ellipsoid_recollisions.json").write_text(json.dumps(rows, indent=1))
     return 0
 
 

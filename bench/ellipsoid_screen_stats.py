@@ -1,4 +1,4 @@
-"""How many pairs each exact screen removes before the Perram-Wertheim solve (issue 4, speed).
+"""How many pairs each exact screen removes before the Perram-Wertheim solve (speed).
 
 Takes a snapshot of the paper-003 gas (bench/gpu_ellipsoid_scaling.py's random gas, xi = 2, phi = 0.058 by
 default) after --steps steps of the CPU backend, and classifies every list pair (i < j) whose bounding spheres
@@ -15,7 +15,7 @@ functions (engine/physics/ellipsoid.py):
 Only pairs not in contact at the previous step are screened in the engine; the snapshot counts all pairs
 (the in-contact ones are a few per mille of them).
 
-    NUMBA_NUM_THREADS=1 PYTHONPATH=. python bench/ellipsoid_screen_stats.py --n 32768 --steps 300
+    NUMBA_NUM_THREADS=1 python -m bench ellipsoid_screen_stats --n 32768 --steps 300
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import out_dir  # noqa: E402
 from bench.gpu_ellipsoid_scaling import ellipsoid_gas  # noqa: E402
 from engine.physics.contact import min_image  # noqa: E402
 from engine.physics.ellipsoid import (ellipsoid_contact, plane_separated, pw_contact,  # noqa: E402
@@ -92,7 +93,8 @@ def main(argv=None):
     ap.add_argument("--xi", type=float, default=2.0)
     ap.add_argument("--phi", type=float, default=0.058)
     ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None,
+                    help="folder for ellipsoid_screen_stats.json (default ./bench-out/ellipsoid_screen_stats/)")
     args = ap.parse_args(argv)
     from engine.shapes.spheroid.cpu_backend import PW_SCREEN, PW_TOL, CpuEllipsoidBackend
 
@@ -110,8 +112,7 @@ def main(argv=None):
                fractions={k: float(v) / max(tot, 1) for k, v in zip(names, out[:5])},
                list_pairs=int(be.nn.sum()) // 2, contacts=be.observe()["contacts"])
     print(json.dumps(row, indent=1))
-    if args.out:
-        Path(args.out).write_text(json.dumps(row, indent=1))
+    (out_dir(args.out, "ellipsoid_screen_stats") / "ellipsoid_screen_stats.json").write_text(json.dumps(row, indent=1))
     return row
 
 

@@ -1,7 +1,7 @@
-"""Neighbour velocity correlations in the ellipsoid cooling gas (issue 18 part 3: the many-body rest).
+"""Neighbour velocity correlations in the ellipsoid cooling gas (the many-body rest).
 
 The DSMC with the whole DEM encounter as its collision rule leaves the DEM's late T_tr/T_rot +0.8-0.9 % above it,
-at N = 4096 and 16 384 alike (bench/reports/ellipsoid-cooling-seeds-cuda/h100-8x8). A two-body rule assumes
+at N = 4096 and 16 384 alike (bench/ellipsoid_cooling_seeds.py, 8 x 8 seeds on an H100). A two-body rule assumes
 molecular chaos. This measures how far the DEM gas is from it, in the snapshot frames of
 bench/ellipsoid_cooling_seeds.py's result files (engine/velocity_correlations.py): c_v = <v_i . v_j> / <|v|^2>
 and the approaching pairs' normal relative speed, g_n_ratio = <(g . r_hat)^2> / (2 <|v|^2> / 3) - 1, for centre
@@ -10,7 +10,7 @@ distances below r_cut = f x 2a (a: the long semi-axis, the bounding radius; f = 
 Frame 0 is the gas after its elastic thermalisation: no correlations in equilibrium, so it is the baseline.
 "Late" = the frames at or after half of the run. Seed mean ± SE (std / sqrt(seeds)) per N.
 
-    python3 bench/ellipsoid_velocity_correlations.py --work /tmp/ellc --out DIR
+    python -m bench ellipsoid_velocity_correlations --work /tmp/ellc --out DIR
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
         runs.setdefault(f"xi = {m[1]}, e = {m[2]}, N = {m[3]}", []).append({"seed": int(m[4]), "factors": per})
         print(path.name, {f: round(v["c_v_late"], 4) for f, v in per.items()}, flush=True)
     lines = ["# Neighbour velocity correlations in the ellipsoid cooling gas", "",
-             "Command: `python3 bench/ellipsoid_velocity_correlations.py " + " ".join(sys.argv[1:]) + "`", "",
+             "Command: `python -m bench ellipsoid_velocity_correlations " + " ".join(sys.argv[1:]) + "`", "",
              __doc__.split("\n\n")[1].replace("\n", " "), "",
              "| case | seeds | r_cut / 2a | pairs per frame (late) | c_v frame 0 | c_v late | g_n_ratio frame 0 | "
              "g_n_ratio late |", "|---|---|---|---|---|---|---|---|"]

@@ -1,7 +1,7 @@
-"""Cundall number of the CUDA ellipsoid backend against N and precision, and its ratio to spheres (issue 4,
-must-show 5), plus the ensemble rows K x 4096 ellipsoids (issue 8).
+"""Cundall number of the CUDA ellipsoid backend against N and precision, and its ratio to spheres (the
+must-show 5), plus the ensemble rows K x 4096 ellipsoids.
 
-Scene: the paper-003 gas of issue 4 -- frictionless prolate spheroids, elongation xi = 2, phi = 0.058, e_n = 0.9,
+Scene: the paper-003 gas -- frictionless prolate spheroids, elongation xi = 2, phi = 0.058, e_n = 0.9,
 the engine's contact constants for that spec (engine.params.derive: k_n, gamma_n, dt = t_c/50, skin), box edge
 2 m x (N/4096)^(1/3) (paper-001 particle size, as engine/validation/hcs_ellipsoids.py), v_rms = 3.5 m/s and
 spins about the two axes perpendicular to the symmetry axis at the same temperature. Placement: uniformly random
@@ -12,13 +12,13 @@ function). Cundall number = N x steps / wall s of ``advance`` after compilation,
 build, median of ``--reps`` runs (bench/gpu_scaling.py's ``measure``, which also profiles the phases).
 
 Spheres at the same N are measured in the same process with bench/gpu_scaling.py's scene and ``measure``
-(rough spheres, Coulomb friction, rotation: the RESULTS.md sphere rows), and the ratio ellipsoid/sphere is
+(rough spheres, Coulomb friction, rotation: the sphere rows of docs/performance.md), and the ratio ellipsoid/sphere is
 reported per N and precision.
 
-    python bench/gpu_ellipsoid_scaling.py --out bench/gpu_ellipsoid_scaling.json
-    python bench/gpu_ellipsoid_scaling.py --n 2097152 --precision float64 --no-ensemble   # the target row
-    python bench/gpu_ellipsoid_scaling.py --budget-s 200   # start no new row after 200 s (rows by priority)
-    python bench/gpu_ellipsoid_scaling.py --n 2097152 16777216 --no-ensemble --spheres-last --controls
+    python -m bench gpu_ellipsoid_scaling
+    python -m bench gpu_ellipsoid_scaling --n 2097152 --precision float64 --no-ensemble   # the target row
+    python -m bench gpu_ellipsoid_scaling --budget-s 200   # start no new row after 200 s (rows by priority)
+    python -m bench gpu_ellipsoid_scaling --n 2097152 16777216 --no-ensemble --spheres-last --controls
 
 ``--controls`` adds float64 rows at N = 2 097 152 with the exact screens before the Perram-Wertheim solve
 switched off (engine.shapes.spheroid.cpu_backend.PW_SCREEN < 0: the code path before the screens) and with the PW
@@ -41,6 +41,7 @@ from numba import prange
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench import out_dir  # noqa: E402
 from bench import gpu_scaling  # noqa: E402
 from engine.physics.ellipsoid import ellipsoid_overlap_pw, plane_separated, shape_matrix_inverse  # noqa: E402
 
@@ -324,8 +325,10 @@ def main():
     ap.add_argument("--budget-s", type=float, default=None, help="start no new row after this many seconds")
     ap.add_argument("--spheres-last", action="store_true", help="sphere rows after all ellipsoid rows")
     ap.add_argument("--controls", action="store_true", help="float64 2^21 rows without the screens / with tol 1e-10")
-    ap.add_argument("--out", default=None, help="JSON (rewritten after every row)")
+    ap.add_argument("--out", default=None, help="folder for gpu_ellipsoid_scaling.json (rewritten after every "
+                    "row) and .md (default ./bench-out/gpu_ellipsoid_scaling/)")
     args = ap.parse_args()
+    out_path = out_dir(args.out, "gpu_ellipsoid_scaling") / "gpu_ellipsoid_scaling.json"
     from numba import cuda
 
     t_start = time.perf_counter()
@@ -355,16 +358,13 @@ def main():
         r["elapsed_s"] = time.perf_counter() - t_start
         rows.append(r)
         print(json.dumps(r), flush=True)
-        if args.out:
-            Path(args.out).write_text(json.dumps(dict(info=info, rows=rows, skipped=skipped), indent=1))
-    if args.out:
-        Path(args.out).write_text(json.dumps(dict(info=info, rows=rows, skipped=skipped), indent=1))
+        out_path.write_text(json.dumps(dict(info=info, rows=rows, skipped=skipped), indent=1))
+    out_path.write_text(json.dumps(dict(info=info, rows=rows, skipped=skipped), indent=1))
     md = table(rows, info)
     if skipped:
         md += "\n\nNot measured (time budget): " + ", ".join(skipped)
     print("\n" + md)
-    if args.out:
-        Path(args.out).with_suffix(".md").write_text(md + "\n")
+    out_path.with_suffix(".md").write_text(md + "\n")
 
 
 if __name__ == "__main__":

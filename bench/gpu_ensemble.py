@@ -1,4 +1,4 @@
-"""Aggregate Cundall number of K small scenes advanced together on the GPU (issue 8).
+"""Aggregate Cundall number of K small scenes advanced together on the GPU.
 
 K independent scenes of N = 4096 rough spheres (paper size; phi = 0.058, e_n = 0.9, e_t = 0.5, Coulomb
 mu = 0.5, rotation and quaternions, own seed and e_n per scene) in one :class:`CudaEnsemble`.
@@ -6,7 +6,7 @@ Aggregate Cundall number = K x N x steps / wall seconds of ``advance`` (after co
 the first list build), median of ``--reps`` runs, for the many-steps-per-launch loop and, for
 comparison, one launch per phase.
 
-    python bench/gpu_ensemble.py --k 1 16 64 256 1024 --out bench/gpu_ensemble.json
+    python -m bench gpu_ensemble --k 1 16 64 256 1024
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from bench import out_dir
 
 _made: dict = {}
 
@@ -96,7 +97,7 @@ def main():
     ap.add_argument("--loop", choices=["multistep", "per-phase", "both"], default="both")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--target-s", type=float, default=0.5)
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None, help="folder for gpu_ensemble.json (default ./bench-out/gpu_ensemble/)")
     args = ap.parse_args()
     from numba import cuda
 
@@ -119,9 +120,8 @@ def main():
                              error=repr(e)[:300])
                 rows.append(r)
                 print(json.dumps(r), flush=True)
-    if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(dict(info=info, rows=rows), fh, indent=1)
+    with open(out_dir(args.out, "gpu_ensemble") / "gpu_ensemble.json", "w") as fh:
+        json.dump(dict(info=info, rows=rows), fh, indent=1)
     print(f"\n{info['gpu']}: K x {args.n} rough spheres, phi = {args.phi}")
     print("| precision | K | loop | aggregate Cundall | us/step | builds/step | B/particle |")
     for r in rows:

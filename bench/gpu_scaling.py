@@ -1,12 +1,12 @@
-"""Cundall number of the CUDA backend against N, volume fraction and precision (issue 3).
+"""Cundall number of the CUDA backend against N, volume fraction and precision.
 
 Full rough-sphere physics: tangential springs with history, Coulomb limit, rotation and quaternions,
 neighbour rebuilds by the L_v/2 rule. Cundall number = N x steps / wall seconds of ``advance`` (after
 compilation, placement and the first list build), median of ``--reps`` runs. Per-kernel fractions
 come from CUDA events around the phases of a step (a separate, profiled run).
 
-    python bench/gpu_scaling.py --out bench/gpu_scaling.json           # the full table
-    python bench/gpu_scaling.py --largest                              # largest N in float32
+    python -m bench gpu_scaling  # the full table
+    python -m bench gpu_scaling --largest                              # largest N in float32
 """
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ import sys
 import time
 
 import numpy as np
+
+from bench import out_dir
 
 
 def scene(n, phi, precision, seed=1):
@@ -136,7 +138,7 @@ def main():
                     help="after the table, probe the largest float32 N that fits (from the measured B/particle)")
     ap.add_argument("--loop", choices=["auto", "multistep", "per-phase", "both"], default="auto",
                     help="time loop: many steps per launch, one launch per phase, the automatic choice, or both")
-    ap.add_argument("--out", default=None)
+    ap.add_argument("--out", default=None, help="folder for gpu_scaling.json (default ./bench-out/gpu_scaling/)")
     args = ap.parse_args()
     from numba import cuda
 
@@ -185,9 +187,8 @@ def main():
             r = dict(n=n, phi=0.058, precision="float32", error=repr(e)[:300], largest_probe=True)
         rows.append(r)
         print(json.dumps(r), flush=True)
-    if args.out:
-        with open(args.out, "w") as fh:
-            json.dump(dict(info=info, rows=rows), fh, indent=1)
+    with open(out_dir(args.out, "gpu_scaling") / "gpu_scaling.json", "w") as fh:
+        json.dump(dict(info=info, rows=rows), fh, indent=1)
     print("\n| precision | phi | N | loop | Cundall (median) | KD | rebuild | forces | B/particle | max_nb |")
     for r in rows:
         if "error" in r:

@@ -7,14 +7,14 @@ the run: a probe ensemble of all requested cells (random gas starts, bounding sp
 thermalised gas) is timed for ``--probe-steps`` steps, and the projected wall time
     1.3 x (largest step count of the chosen cells) x (time per ensemble step, scaled by the chosen share
     of the scenes, at least 30 % of it) + 2 ms per output stop
-must fit the budget; cells are dropped in reverse priority order (the DSMC cells of PHYSICS-NOTES §3.2
+must fit the budget; cells are dropped in reverse priority order (the DSMC cells of docs/physics.md
 first, then xi = 3 and 1.15 at e = 0.9, 0.95, then e = 0.98) until it does. The plan and the measured
 cost go to <out>/plan.json. The analysis runs on the device without the e_eff(D) DSMC (``dsmc=False``);
 run it again where there is time with
     python -c "from engine.validation import hcs_ellipsoids as h; h.main('<out>', simulate=False)"
 (add ``cells=...`` for a subset) to add the DSMC columns.
 
-    python bench/hcs_ellipsoids_cuda.py --out /tmp/hcs --budget-s 240 --cells 1.5:0.9 2.0:0.9
+    python -m bench hcs_ellipsoids_cuda --out /tmp/hcs --budget-s 240 --cells 1.5:0.9 2.0:0.9
 """
 
 from __future__ import annotations

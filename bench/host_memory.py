@@ -1,6 +1,6 @@
-"""Host memory for a large scene's copies: pageable against page-locked in place (issue 14: time to result).
+"""Host memory for a large scene's copies: pageable against page-locked in place (time to result).
 
-    python3 -m bench.host_memory [--particles 2097152] [--reps 3]
+    python -m bench host_memory [--particles 2097152] [--reps 3]
 
 The arrays of one 2M-sphere state (positions, velocities, spins: N x 3 float64 each; orientations N x 4: 218 MB),
 already written to (as a start or engine.backends.cuda._touched_empty leaves them). Per repetition, on the GPU's

@@ -1,6 +1,6 @@
-"""Paper 004 on the GPU machine: the three Verlet-list modes and the multigrid cost (issue 7).
+"""Paper 004 on the GPU machine: the three Verlet-list modes and the multigrid cost.
 
-``python3 bench/list_modes.py --out DIR`` (NVIDIA GPU required):
+``python -m bench list_modes --out DIR`` (NVIDIA GPU required):
 
 1. Modes: for each scene (dilute and dense, N from 1e5 to 1e7, mono- and polydisperse) the same start is
    run for the same number of steps with the list built on the GPU, on the CPU sequentially (paper 004
@@ -168,7 +168,7 @@ def multigrid_cost(n=1_000_000, phi=0.2, ratios=(1, 2, 5, 10), reps=5) -> list:
 
 def report(out: Path, rows: list, cost: list, device: str) -> None:
     lines = [f"# Paper 004 list modes and multigrid cost — {device}", "",
-             "Command: `python3 bench/list_modes.py --out DIR`. Each mode runs the same start for the same "
+             "Command: `python -m bench list_modes --out DIR`. Each mode runs the same start for the same "
              "steps (the GPU-list run's count to reach 10 rebuilds); wall time excludes compilation and the "
              "first build. q = tau_CPU/tau_GPU of the sequential mode (Eq. 5), G_max by Eq. 9, "
              "G = t_seq/t_par - 1 measured (Eq. 7).", "",

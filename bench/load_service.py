@@ -1,6 +1,6 @@
 """Load test of the service: N jobs submitted by C concurrent clients while one worker drains them.
 
-    python bench/load_service.py [--jobs 1000] [--clients 20] [--database-url URL]
+    python -m bench load_service [--jobs 1000] [--clients 20] [--database-url URL]
 
 Starts `demq serve --no-worker` (uvicorn, loopback) and one `demq worker` as separate processes
 on a fresh data directory. The worker runs every job in its own spawned simulation process as in

@@ -1,7 +1,7 @@
 """Cost of a CPU Verlet-list build against the size ratio: one linked-cell grid vs multigrid cells.
 
-    python bench/multigrid_cost.py [--n 100000] [--phi 0.2] [--ratios 1 2 5 10] [--reps 5]
-                                   [--out bench/multigrid_cost.json]
+    python -m bench multigrid_cost [--n 100000] [--phi 0.2] [--ratios 1 2 5 10] [--reps 5]
+                                   [--out DIR]
 
 Scenes: two sphere species of radius ratio R_L/R_s (ratio 1: one size), number fractions chosen so both
 species hold the same solid volume (N_L R_L^3 = N_s R_s^3), N spheres at volume fraction phi in a unit
@@ -34,6 +34,7 @@ import time
 import numba
 import numpy as np
 
+from bench import out_dir
 from engine.backends.base import cell_grid
 from engine.backends.cpu import bin_particles, build_list
 from engine.backends.cpu_shared import SLOT
@@ -150,7 +151,7 @@ def measure(n, phi, ratio, reps, thread_counts):
 
 
 def markdown(rows, thread_counts) -> str:
-    """The RESULTS.md table: per size ratio, levels, list entries, candidates and build times."""
+    """The table of docs/performance.md: per size ratio, levels, list entries, candidates and build times."""
     head = ["R_L/R_s", "N_L + N_s", "levels: nc per edge (single grid)", "list entries / particle",
             "candidates / particle: single grid", "multigrid", "small spheres: single", "multi"]
     for t in thread_counts:
@@ -190,11 +191,12 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--threads", type=int, nargs="+", default=None,
                     help="Numba thread counts (default: 1 and all)")
-    ap.add_argument("--out", default="bench/multigrid_cost.json")
+    ap.add_argument("--out", default=None, help="folder for multigrid_cost.json (default ./bench-out/multigrid_cost/)")
     ap.add_argument("--table-only", action="store_true", help="print the table of an existing --out file")
     args = ap.parse_args(argv)
+    out_path = out_dir(args.out, "multigrid_cost") / "multigrid_cost.json"
     if args.table_only:
-        with open(args.out) as fh:
+        with open(out_path) as fh:
             data = json.load(fh)
         print(markdown(data["rows"], data["meta"]["threads"]))
         return
@@ -207,7 +209,7 @@ def main(argv=None):
     meta = {"date": datetime.date.today().isoformat(), "machine": _cpu_model(),
             "python": platform.python_version(), "numba": numba.__version__, "numpy": np.__version__,
             "threads": threads, "args": vars(args)}
-    with open(args.out, "w") as fh:
+    with open(out_path, "w") as fh:
         json.dump({"meta": meta, "rows": rows}, fh, indent=1)
     print(markdown(rows, threads))
 

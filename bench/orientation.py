@@ -1,7 +1,7 @@
-"""Sphere orientations (issue 15): accuracy against a t_c/1000 rerun, and what tracking them costs on the CPU.
+"""Sphere orientations: accuracy against a t_c/1000 rerun, and what tracking them costs on the CPU.
 
-    python -m bench.orientation reference     # the rough lattice gas, 8 t_c at t_c/50 against a rerun at t_c/1000
-    python -m bench.orientation cost          # default spec: advance() with snapshots 2 (orientations) and 0
+    python -m bench orientation reference     # the rough lattice gas, 8 t_c at t_c/50 against a rerun at t_c/1000
+    python -m bench orientation cost          # default spec: advance() with snapshots 2 (orientations) and 0
 
 ``reference``: the lattice gas of tests/engine/test_cuda_simulator.py (27 rough spheres, contacts
 from the first steps), spins of 10, 100, 300 rad/s per component. The same start is run at dt = t_c/50 and at

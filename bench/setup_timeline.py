@@ -1,6 +1,6 @@
-"""A fresh job's timeline by thread: where the time outside the loop goes (issue 14: time to result).
+"""A fresh job's timeline by thread: where the time outside the loop goes (time to result).
 
-    python3 -m bench.setup_timeline [--case spheres-2M-f64] [--runs 3] [--all]
+    python -m bench setup_timeline [--case spheres-2M-f64] [--runs 3] [--all]
 
 Each run is one bench.e2e case (``run_case``, the public ``engine.run`` path) in a fresh Python process, after one
 untimed run that fills the kernel caches. Wrappers around the engine's set-up, build, frame and file functions,

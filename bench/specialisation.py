@@ -1,4 +1,4 @@
-"""`demq bench specialisation`: the measured effect of each compile-time specialisation (DESIGN §1, issue 6).
+"""The measured effect of each compile-time specialisation (docs/design.md).
 
 The engine builds its time loop for the argument types it is given, so a scene that does not need a
 piece of physics does not pay for it (engine/backends/cpu.py module doc):
@@ -22,8 +22,8 @@ One switch differs from the baseline per row (two in 'maximal'; baseline: rough 
 limit, orientation off, float64, no output). Scenes: the paper-001 default spec (N = 4096, phi = 0.008: ~1e-4 contacts per
 particle) and a contact-rich gas (phi = 0.3).
 
-    PYTHONPATH=. NUMBA_NUM_THREADS=1 python -m bench.specialisation [--quick] [--backend cuda] [--n N]
-    demq bench specialisation [--quick] [--backend cpu|cuda]
+    PYTHONPATH=. NUMBA_NUM_THREADS=1 python -m bench specialisation [--quick] [--backend cuda] [--n N]
+    python -m bench specialisation [--quick] [--backend cpu|cuda]
 """
 
 from __future__ import annotations
@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.accuracy import ROOT, _json_default, gas_spec, machine, SIZES as ACC_SIZES
+from bench import out_dir as bench_out
+from bench.accuracy import _json_default, gas_spec, machine, SIZES as ACC_SIZES
 
 SIZES = {
     "full": dict(n=4096, steps=20000, reps=3, ell_n=256, ell_steps=1500, therm_steps=1500, ell_therm_collisions=2.0),
@@ -232,7 +233,7 @@ def build_ellipsoids(cfg: dict, log) -> dict:
 def write_report(out: Path, res: dict, cmd: str) -> str:
     m = res["machine"]
     dev = m.get("device") or m["cpu"]
-    L = ["# Compile-time specialisations: measured speed-ups (issue 6)", "",
+    L = ["# Compile-time specialisations: measured speed-ups", "",
          f"Command: `{cmd}` ({res['variant']} variant), {res['wall_s'] / 60:.1f} min wall.",
          f"Machine: backend **{m['backend']}** on **{dev}**; host CPU {m['cpu']} ({m['cores']} cores), "
          f"{m['numba_threads']} Numba thread(s), load average {m['load_average']:.2f} at the start; numba "
@@ -299,9 +300,7 @@ def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int
         cfg["n"] = n
     if reps:
         cfg["reps"] = reps
-    out = Path(out_dir) if out_dir else ROOT / "bench" / "reports" / ("specialisation" if backend == "cpu"
-                                                                      else f"specialisation-{backend}")
-    out.mkdir(parents=True, exist_ok=True)
+    out = bench_out(out_dir, "specialisation")
     t0 = time.time()
     res = {"variant": variant, "reps": cfg["reps"], "config": cfg, "machine": machine(backend)}
     res["spheres"] = build_spheres(cfg, backend, log)
@@ -312,7 +311,7 @@ def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int
         res["machine"]["device"] = res["spheres"][0]["device"]
     res["wall_s"] = time.time() - t0
     flags = {"quick": " --quick", "tiny": " --tiny"}.get(variant, "")
-    cmd = cmd or f"demq bench specialisation{flags} --backend {backend}"
+    cmd = cmd or f"python -m bench specialisation{flags} --backend {backend}"
     res["command"] = cmd
     text = write_report(out, res, cmd)
     (out / "summary.json").write_text(json.dumps(res, indent=1, default=_json_default))
@@ -321,8 +320,9 @@ def main(out_dir=None, variant: str = "full", backend: str = "cpu", threads: int
 
 
 def cli(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="measured speed-up of each compile-time specialisation (issue 6)")
-    ap.add_argument("-o", "--out-dir", default=None)
+    ap = argparse.ArgumentParser(description="measured speed-up of each compile-time specialisation")
+    ap.add_argument("-o", "--out", dest="out_dir", metavar="DIR", default=None,
+                    help="report folder (default ./bench-out/specialisation/)")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--tiny", action="store_true", help="smallest scenes (smoke test)")
     ap.add_argument("--backend", choices=["cpu", "cuda"], default="cpu")
@@ -330,11 +330,10 @@ def cli(argv=None) -> int:
     ap.add_argument("--n", type=int, default=None, help="spheres per scene (default 4096)")
     ap.add_argument("--reps", type=int, default=None)
     ap.add_argument("--no-ellipsoids", action="store_true")
-    ap.add_argument("--reanalyse", action="store_true", help="only rewrite REPORT.md from OUT_DIR/summary.json")
+    ap.add_argument("--reanalyse", action="store_true", help="only rewrite REPORT.md from OUT/summary.json")
     a = ap.parse_args(argv)
     if a.reanalyse:
-        out = Path(a.out_dir or ROOT / "bench" / "reports" / ("specialisation" if a.backend == "cpu"
-                                                             else f"specialisation-{a.backend}"))
+        out = bench_out(a.out_dir, "specialisation")
         res = json.loads((out / "summary.json").read_text())
         print(write_report(out, res, res["command"]))
         return 0

@@ -1,4 +1,4 @@
-"""`demq bench stability`: the CPU stress matrix of issue 6.
+"""The CPU stress matrix: every kind of bad or extreme scene, each in its own process.
 
 Every cell either runs and passes its checks (``ok``), stops with the engine's own error
 (``stopped: <InstabilityError message>``), is refused before it runs (``refused: <validation message>``),
@@ -15,8 +15,8 @@ Checks of a finished run (``ok``):
 - total momentum conserved: |P_end - P_0| / (sum m |v|)_0 below MOMENTUM_TOL[precision] (pair forces
   are antisymmetric bit for bit, so only the rounding of the velocity updates is left).
 
-Reproduce: ``PYTHONPATH=. python bench/stability.py`` (or ``demq bench stability``); it writes
-bench/reports/stability/REPORT.md and results.json.
+Reproduce: ``python -m bench stability [--out DIR]``; it writes
+REPORT.md and results.json into DIR (default ./bench-out/stability/).
 """
 
 from __future__ import annotations
@@ -32,7 +32,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = ROOT / "bench" / "reports" / "stability"
 
 ENERGY_TOL = 1e-2
 MOMENTUM_TOL = {"float64": 1e-9, "float32": 1e-4}   # float32: eps 6e-8 per update, random walk over 1e4 steps
@@ -336,7 +335,7 @@ def write_report(results: list[dict], out_dir: Path, total_s: float) -> Path:
     lines = [
         "# Stability stress matrix (CPU backend)",
         "",
-        "Reproduce: `PYTHONPATH=. python bench/stability.py` (or `demq bench stability`). Each cell runs "
+        "Reproduce: `python -m bench stability` (or `python -m bench stability`). Each cell runs "
         f"in a child process; no progress for {CELL_TIMEOUT_S:g} s after the first report, or no result in "
         f"{COMPILE_TIMEOUT_S:g} s (Numba compilation included), is a hang. Outcomes: `ok` (ran and passed the checks "
         "in bench/stability.py's docstring), `stopped` (the engine's InstabilityError), `refused` (the "
@@ -361,7 +360,9 @@ def write_report(results: list[dict], out_dir: Path, total_s: float) -> Path:
 
 def main(out_dir=None, only: str | None = None, timeout: float = CELL_TIMEOUT_S) -> int:
     """Run the matrix, write REPORT.md; exit status 1 when any cell is a BUG."""
-    out_dir = Path(out_dir) if out_dir else DEFAULT_OUT
+    from bench import out_dir as bench_out
+
+    out_dir = bench_out(out_dir, "stability")
     results = []
     t0 = time.perf_counter()
     for cell in cells():
@@ -380,7 +381,8 @@ def main(out_dir=None, only: str | None = None, timeout: float = CELL_TIMEOUT_S)
 if __name__ == "__main__":
     sys.path.insert(0, str(ROOT))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("-o", "--out-dir", default=None)
+    ap.add_argument("-o", "--out", dest="out_dir", metavar="DIR", default=None,
+                    help="report folder (default ./bench-out/stability/)")
     ap.add_argument("--only", default=None, help="run only cells whose name contains this")
     ap.add_argument("--timeout", type=float, default=CELL_TIMEOUT_S)
     a = ap.parse_args()

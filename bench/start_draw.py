@@ -1,9 +1,9 @@
-"""How long a large start takes to draw (issue 14, set-up): engine.scene's initial_spheres / initial_ellipsoids in
+"""How long a large start takes to draw (set-up): engine.scene's initial_spheres / initial_ellipsoids in
 fresh Python processes, the first call (the compiled draws' disk-cache loads and numba's thread pool included) and
 two more in the same process. numba and numba.cuda are imported before the clock, as in a GPU job, where they are
 imported before the start is drawn (engine/startup.py).
 
-    python3 -m bench.start_draw [--n 2097152] [--shape sphere|ellipsoid] [--procs 3]
+    python -m bench start_draw [--n 2097152] [--shape sphere|ellipsoid] [--procs 3]
 
 Prints one line per process: the first, second and third draw in seconds. A first process, marked ``prime``,
 fills the disk cache (it compiles the draws when the cache is empty).

@@ -1,4 +1,4 @@
-"""GPU time per step phase, kernel by kernel (issue 15: what the lazy sphere orientations save in kick_drift).
+"""GPU time per step phase, kernel by kernel (what the lazy sphere orientations save in kick_drift).
 
 A diagnostic of the one-launch-per-phase loop, less noisy than the phase shares of bench/gpu_scaling.py (CUDA
 events around the phases of whole steps, host waits included): on the paper-001 rough scene (lattice start,
@@ -11,7 +11,7 @@ end-to-end one). One JSON line per (precision, N).
 The state the lone-phase launches change (positions moved without forces, springs advanced at fixed positions) is
 put back before the loop is timed.
 
-    python3 bench/step_phases.py --n 2097152 16777216 --precision float64 float32 mixed
+    python -m bench step_phases --n 2097152 16777216 --precision float64 float32 mixed
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
-"""demq (CPU) against LAMMPS ``gran/hooke/history`` on the same scene, side by side in one run (issue 15).
+"""demq (CPU) against LAMMPS ``gran/hooke/history`` on the same scene, side by side in one run.
 
-    python bench/vs_lammps.py --n 4096 32768 262144 --steps 10000 10000 3000 --threads 1 --out bench/reports/vs-lammps
+    python -m bench vs_lammps --n 4096 32768 262144 --steps 10000 10000 3000 --threads 1 --out DIR
 
-The scene (issue 15): the paper-001 radius of the default spec (a = 1.55 cm, engine/params.py ``derive``),
+The scene: the paper-001 radius of the default spec (a = 1.55 cm, engine/params.py ``derive``),
 velocity_rms = 3 m/s, e_n = e_t = 0.8, k_n = 1e8 N/m, density 2000 kg/m^3, no Coulomb limit
 (friction = null); phi = 0.008 at N = 4096 and 0.058 above (``--phi`` overrides); the box grows with N so that
 the radius stays the default one. No thermalisation (``thermalization = 0``), so both codes start from the
@@ -116,7 +116,7 @@ def write_data(path: Path, system) -> None:
 def lammps_input(prm: dict, steps: int, data_file: str = "data.lmp", thermo_every: int = 5000) -> str:
     """The LAMMPS input script of the scene (module doc)."""
     return "\n".join([
-        "# demq bench/vs_lammps.py: same scene as demq (issue 15)",
+        "# bench/vs_lammps.py: same scene as demq",
         "units si",
         "atom_style sphere",
         "boundary p p p",

@@ -1,8 +1,8 @@
-"""A packed batch's last round of files (issue 14; a diagnostic): 256 small result files (4096 spheres, 201
+"""A packed batch's last round of files (a diagnostic): 256 small result files (4096 spheres, 201
 records of the 11 observables, no frames) written through the writer processes of engine/h5md_pool.py, and one
 written in this process.
 
-    python3 bench/writer_processes.py
+    python -m bench writer_processes
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 - ``float64``: every array and every operation in double precision (the reference).
 - ``float32``: every array in single precision. Positions are then quantised at L 2^-24 (L: the box edge), so a
   contact overlap delta ~ 1e-3 radius is resolved to only a few digits in a large box: restitution errors of order
-  1e-2 (bench/RESULTS.md; docs/physics.md §3.6).
+  1e-2 (docs/performance.md, accuracy against cost; docs/physics.md §3.6).
 - ``mixed``: positions and the list's reference positions x_ref in float64, every other array
   (velocities, spins, orientations, forces, torques, contact histories, constants) in float32. A pair's separation,
   distance and overlap are then formed from float64 positions and rounded once to float32

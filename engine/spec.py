@@ -70,7 +70,7 @@ class Species(BaseModel):
 
 
 #: Largest Verlet skin L_v (radii) a null ``verlet_skin`` resolves to, per resolved backend: the fastest
-#: skin of dilute gases in `demq bench accuracy` (bench/reports/accuracy, accuracy-cuda). Ellipsoids keep the
+#: skin of dilute gases in `python -m bench accuracy` (docs/performance.md, the skin tables). Ellipsoids keep the
 #: CPU value on both backends (their skin is not measured on a GPU).
 DEFAULT_VERLET_SKIN = {"cpu": 0.4, "cuda": 0.8}
 #: Mean free path (radii) below which the default skin falls in proportion to it (phi above 0.1099) ...

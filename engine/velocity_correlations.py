@@ -4,7 +4,7 @@ The Boltzmann equation, the DSMC and the collision rules they use (one impulse o
 all assume molecular chaos: two particles about to collide have independent velocities. In a cooling granular
 gas that assumption fails: each collision leaves the two partners moving more alike, and at finite density
 the correlation is carried to the next collisions (van Noije, Ernst, Brito & Orza, PRL 79, 411 (1997); the
-sphere HCS of bench/reports/hcs-long/h100-32seeds measures its effect per collision). This module measures
+sphere HCS of `demq validate hcs-long` measures its effect per collision). This module measures
 it directly in a frame, for the pairs whose centres are closer than ``r_cut``:
 
 - ``c_v = <v_i . v_j> / <|v|^2>`` over those pairs (velocities relative to the frame's mean velocity): 0 for

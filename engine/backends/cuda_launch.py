@@ -3,7 +3,7 @@
 At N = 2M the per-step loop waits on the host: numba-cuda types every argument of every launch in Python
 (the type dispatch ``_cuda_call``) and then flattens each array into its pointer, shape and strides. For the
 loop's kick_drift and forces, with about 20 arguments (one a tuple of arrays), that costs more host time per
-step than the two kernels take on an H100 (bench/reports/lazy-orientation-gpu: the 2M loop is launch-bound).
+step than the two kernels take on an H100 (docs/performance.md: the 2M loop is launch-bound).
 
 :class:`LaunchCache` keeps, per kernel and set of argument arrays, the flattened argument list that numba-cuda
 built for the first launch with those arrays. A later launch with the same arrays (the same Python objects, so

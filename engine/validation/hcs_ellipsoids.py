@@ -247,7 +247,7 @@ def full_spec(xi: float, e_n: float, seed: int, backend: str = "cpu") -> Simulat
 
     velocity_rms = 3.5 m/s keeps the typical overlap near 0.5 % of r_eq (largest < 3 % of b); the
     thermalisation (3 sphere-rate collisions per particle, elastic) randomises the lattice start.
-    Sized for one 16-core device call (bench/device_validate_ellipsoids.sh): ~2-4e9 particle-steps a run.
+    Sized for one 16-core machine: ~2-4e9 particle-steps a run.
     """
     return _spec(xi, e_n, seed, backend, 4096, 40.0, 3.5, 3.0)
 

@@ -81,7 +81,7 @@ def case_spec(e_n: float, e_t: float, seed: int, backend: str, quick: bool, n_pa
     phi = 0.08 (g = 1.24) in L = 1 m, radius 0.0288 m in both. Both boxes are below the shear-mode threshold
     for every case (engine/shear_instability.py: L/L_c <= 0.74 full, <= 0.98 quick): in a larger box (N = 4000,
     L = 2 m: L/L_c = 1.07 and 1.17 at e_n = 0.6 and 0.4) the growing modes make the gas inhomogeneous and raise
-    the lab-frame a2 above the homogeneous Boltzmann value (+11 sigma at e_n = 0.4; bench/RESULTS.md).
+    the lab-frame a2 above the homogeneous Boltzmann value (+11 sigma at e_n = 0.4; docs/physics.md).
     ``n_particles``, ``box_length`` (both or neither) replace N and L at the same phi (a box-size check)."""
     n, box, phi = (800, 1.0, 0.08) if quick else (1000, 1.26, 0.05)
     if n_particles or box_length:

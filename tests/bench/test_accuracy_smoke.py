@@ -1,7 +1,7 @@
-"""Smoke tests of `demq bench accuracy` and `demq bench specialisation` on their tiny variants.
+"""Smoke tests of `python -m bench accuracy` and `python -m bench specialisation` on their tiny variants.
 
 They run every report builder on the smallest scenes, check the report files, and check the errors that
-physics says must shrink with dt (the full reports are in bench/reports/accuracy and specialisation).
+physics says must shrink with dt (the full reports' figures are in docs/performance.md).
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ def _row(rows, frac, prec="float64", skin=0.4):
     return r
 
 
+@pytest.mark.heavy   # the tiny accuracy report (fixture acc): about two minutes of one core
 def test_accuracy_report_files(acc):
     out, s = acc
     text = (out / "REPORT.md").read_text()
@@ -49,6 +50,7 @@ def test_accuracy_report_files(acc):
         assert s["defaults_on_front"][name] in (True, False)
 
 
+@pytest.mark.heavy   # the tiny accuracy report (fixture acc): about two minutes of one core
 def test_restitution_error_shrinks_with_dt(acc):
     rows = acc[1]["scenes"]["collisions"]["rows"]
     coarse, default, fine = (_row(rows, f) for f in (10, 50, 200))
@@ -61,6 +63,7 @@ def test_restitution_error_shrinks_with_dt(acc):
     assert default["err_e_t"] < coarse["err_e_t"]
 
 
+@pytest.mark.heavy   # the tiny accuracy report (fixture acc): about two minutes of one core
 def test_elastic_energy_error_per_collision_shrinks_with_dt(acc):
     smooth = acc[1]["scenes"]["elastic_smooth"]["rows"]
     # velocity Verlet with event corrections: energy error O(dt^2) or better per contact (smooth: nothing else)
@@ -75,6 +78,7 @@ def test_elastic_energy_error_per_collision_shrinks_with_dt(acc):
     assert all(r["pairs_apart"] for r in smooth + rough["rows"])
 
 
+@pytest.mark.heavy   # the tiny accuracy report (fixture acc): about two minutes of one core
 def test_ellipsoid_geometry_precision(acc):
     rows = acc[1]["scenes"]["ellipsoid"]["rows"]
     f64 = [r for r in rows if r["precision"] == "float64"][0]

@@ -1,4 +1,4 @@
-"""Smoke test of bench/e2e.py (issue 14): the time-to-result bench runs whole jobs through the public path and
+"""Smoke test of bench/e2e.py: the time-to-result bench runs whole jobs through the public path and
 its breakdown accounts for the wall time."""
 
 from __future__ import annotations

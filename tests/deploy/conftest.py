@@ -8,12 +8,12 @@ import os
 import signal
 import socket
 import subprocess
-import time
 import uuid
 from pathlib import Path
 
 import pytest
 
+from tests import waiting
 from tests.deploy.deployfiles import ROOT, clean_env, shim_bin
 from tests.jobs.conftest import postgres_url
 
@@ -29,19 +29,10 @@ FAST_ENV = {"DEMQ_LEASE_SECONDS": "5", "DEMQ_HEARTBEAT_SECONDS": "0.5", "DEMQ_PO
             "DEMQ_CANCEL_GRACE_SECONDS": "20", "NUMBA_NUM_THREADS": "1"}
 
 
-def wait_for(cond, timeout: float, what: str, procs=None):
-    """Poll ``cond`` until it returns something truthy (returned); fail after ``timeout`` seconds,
-    or as soon as one of ``procs`` (name -> Popen) has exited."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        value = cond()
-        if value:
-            return value
-        for name, p in (procs or {}).items():
-            if p.poll() is not None:
-                raise AssertionError(f"{name} exited with {p.returncode} while waiting for {what}")
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+def wait_for(cond, what: str, procs=None):
+    """Poll ``cond`` until it returns something truthy (returned); fail as soon as one of ``procs``
+    (name -> Popen) has exited, or on a hang (tests/waiting.py: the limits never catch mere slowness)."""
+    return waiting.wait_for(cond, what, procs=procs)
 
 
 def free_port() -> int:

@@ -16,6 +16,7 @@ from jobs.stores import open_store
 from jobs.worker import Worker
 from tests.deploy.deployfiles import ROOT, clean_env
 from tests.jobs.conftest import TINY, make_settings, postgres_url
+from tests.waiting import CEILING_S
 
 
 def _run_in_thread(worker: Worker) -> threading.Thread:
@@ -28,7 +29,7 @@ def test_drain_worker_exits_on_an_empty_queue(tmp_path):
     settings = make_settings(tmp_path)
     worker = Worker(open_store(settings.database_url), settings)
     t = _run_in_thread(worker)
-    t.join(10)
+    t.join(CEILING_S)
     assert not t.is_alive()
 
 
@@ -43,7 +44,7 @@ def test_drain_worker_waits_for_a_running_job_whose_worker_dies_then_runs_it(tmp
     t = _run_in_thread(worker)
     time.sleep(0.5)
     assert t.is_alive(), "a drain worker must not exit while a job is running"
-    t.join(60)
+    t.join(CEILING_S)
     assert not t.is_alive()
     got = store.get(job.id)
     assert got.state == DONE and got.attempts == 2

@@ -21,6 +21,9 @@ from jobs.stores import open_store
 from tests.deploy.conftest import SPEC, free_port, process_env, wait_for
 from tests.deploy.deployfiles import (SBATCH, WORKSTATION_UNIT, env_file, sbatch_exec, seconds, unit,
                                       unit_exec)
+from tests.waiting import CEILING_S
+
+pytestmark = pytest.mark.heavy   # real processes: an API, workers and real-engine jobs, minutes on 2 cores
 
 #: Several seconds of one CPU core: long enough for a few checkpoints at DEMQ_CHECKPOINT_INTERVAL=0.3 s.
 LONG = {**SPEC, "t_end": 1.5}
@@ -65,7 +68,7 @@ def test_slurm_task_sigterm_releases_the_job_and_the_next_task_resumes_it(tmp_pa
     ckpt = data / "checkpoints" / job.id
 
     first = procs.start("task-0", ["bash", str(SBATCH)], {**env, "SLURM_ARRAY_TASK_ID": "0"})
-    step = wait_for(lambda: _mid_run_with_checkpoint(store, job.id, ckpt), 180, "a checkpoint past step 0",
+    step = wait_for(lambda: _mid_run_with_checkpoint(store, job.id, ckpt), "a checkpoint past step 0",
                     {"task-0": first})
     t0 = time.monotonic()
     assert procs.stop("task-0", 60) == 0, procs.log("task-0")
@@ -80,7 +83,7 @@ def test_slurm_task_sigterm_releases_the_job_and_the_next_task_resumes_it(tmp_pa
     assert not (data / "results" / f"{job.id}.h5").exists()
 
     second = procs.start("task-1", ["bash", str(SBATCH)], {**env, "SLURM_ARRAY_TASK_ID": "1"})
-    assert second.wait(180) == 0, procs.log("task-1")  # drains the queue and exits by itself
+    assert second.wait(CEILING_S) == 0, procs.log("task-1")  # drains the queue and exits by itself
     done = store.get(job.id)
     assert done.state == DONE and done.error is None, done.error
     assert done.attempts == 1, "the released attempt must not count"
@@ -105,11 +108,11 @@ def test_workstation_serve_sigterm_releases_the_job_and_restart_resumes_it(tmp_p
     SimulationSpec.model_validate(LONG)
 
     serve = procs.start("serve-1", argv, env)
-    wait_for(lambda: _healthz(base), 60, "demq serve", {"serve-1": serve})
+    wait_for(lambda: _healthz(base), "demq serve", {"serve-1": serve})
     job_id = httpx.post(f"{base}/jobs", json=LONG, timeout=30).json()["id"]
     store = open_store(f"sqlite:///{tmp_path / 'data' / 'demq.sqlite3'}")
     ckpt = tmp_path / "data" / "checkpoints" / job_id
-    step = wait_for(lambda: _mid_run_with_checkpoint(store, job_id, ckpt), 180, "a checkpoint past step 0",
+    step = wait_for(lambda: _mid_run_with_checkpoint(store, job_id, ckpt), "a checkpoint past step 0",
                     {"serve-1": serve})
     t0 = time.monotonic()
     assert procs.stop("serve-1", timeout_stop) in (0, -signal.SIGTERM)  # uvicorn re-raises SIGTERM after a clean shutdown
@@ -121,7 +124,7 @@ def test_workstation_serve_sigterm_releases_the_job_and_restart_resumes_it(tmp_p
 
     serve = procs.start("serve-2", argv, env)
     wait_for(lambda: _healthz(base) and httpx.get(f"{base}/jobs/{job_id}", timeout=5).json()["state"] == DONE,
-             180, "the resumed job", {"serve-2": serve})
+             "the resumed job", {"serve-2": serve})
     job = httpx.get(f"{base}/jobs/{job_id}", timeout=5).json()
     assert job["attempts"] == 1 and job["resumed_from_step"] >= step > 0
     _check_complete_result(tmp_path / "data" / "results" / f"{job_id}.h5", LONG["t_end"])

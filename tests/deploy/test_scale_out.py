@@ -22,6 +22,8 @@ from jobs.schema import DONE, QUEUED, RUNNING
 from tests.deploy.conftest import SPEC, free_port, process_env, wait_for
 from tests.deploy.deployfiles import SBATCH, compose, compose_workers, sbatch_exec
 
+pytestmark = pytest.mark.heavy   # real processes: an API, workers and real-engine jobs, minutes on 2 cores
+
 N_JOBS = 30
 #: The documented log line: "<date> <time>,<ms> <logger> <LEVEL> <message>".
 LOG_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} demq\.[\w.]+ (DEBUG|INFO|WARNING|ERROR|CRITICAL) \S")
@@ -53,7 +55,7 @@ def test_api_and_three_workers_on_postgres_sigterm_sigkill_every_job_done_once(
     api_cmd = doc["services"]["api"]["command"]
     assert api_cmd == ["demq", "serve", "--no-worker"]
     api = procs.start("api", api_cmd, env)
-    wait_for(lambda: _healthz(base) == 200, 60, "the API's /healthz", {"api": api})
+    wait_for(lambda: _healthz(base) == 200, "the API's /healthz", {"api": api})
     healthcheck = doc["services"]["api"]["healthcheck"]["test"]
     assert healthcheck[0] == "CMD"
     assert subprocess.run(healthcheck[1:], env=env, timeout=60).returncode == 0, "compose API healthcheck"
@@ -76,8 +78,8 @@ def test_api_and_three_workers_on_postgres_sigterm_sigkill_every_job_done_once(
 
     # ---- SIGTERM one worker while it computes a job: the job is released, the worker exits 0 ------
     # (after a third of the jobs, so that three workers share the work for a while)
-    wait_for(lambda: store.counts().get(DONE, 0) >= N_JOBS // 3, 200, f"{N_JOBS // 3} jobs done", alive)
-    held = wait_for(lambda: _mid_run(store, "w-term"), 150, "w-term computing a job", alive)
+    wait_for(lambda: store.counts().get(DONE, 0) >= N_JOBS // 3, f"{N_JOBS // 3} jobs done", alive)
+    held = wait_for(lambda: _mid_run(store, "w-term"), "w-term computing a job", alive)
     del alive["w-term"]
     assert procs.stop("w-term", 40) == 0, procs.log("w-term")
     after = store.get(held.id)
@@ -85,8 +87,8 @@ def test_api_and_three_workers_on_postgres_sigterm_sigkill_every_job_done_once(
     assert f"job {held.id}: released to the queue" in procs.log("w-term")
 
     # ---- SIGKILL another while it computes a job: its lease expires, the reaper requeues it -------
-    wait_for(lambda: store.counts().get(DONE, 0) >= N_JOBS // 2, 200, f"{N_JOBS // 2} jobs done", alive)
-    killed = wait_for(lambda: _mid_run(store, "w-kill"), 150, "w-kill computing a job", alive)
+    wait_for(lambda: store.counts().get(DONE, 0) >= N_JOBS // 2, f"{N_JOBS // 2} jobs done", alive)
+    killed = wait_for(lambda: _mid_run(store, "w-kill"), "w-kill computing a job", alive)
     os.kill(w_kill.pid, signal.SIGKILL)
     assert w_kill.wait(10) == -signal.SIGKILL
     del alive["w-kill"]

@@ -69,6 +69,7 @@ def _read_xdmf(path):
     return out
 
 
+@pytest.mark.heavy   # a real reader: the `viz` extra
 def test_vtk_xdmf_reader_gives_every_frame(result, tmp_path):
     pytest.importorskip("vtkmodules.vtkIOXdmf2", reason="the vtk wheel (pip install '.[viz]')")
     from vtkmodules.util.numpy_support import vtk_to_numpy
@@ -171,6 +172,7 @@ def _ovito():
     return ovito_io
 
 
+@pytest.mark.heavy   # a real reader: the `viz` extra
 def test_ovito_reads_the_gsd_export(result, tmp_path):
     ovito_io = _ovito()
     out = export_gsd(result["path"], tmp_path / "ovito.gsd")
@@ -191,6 +193,7 @@ def test_ovito_reads_the_gsd_export(result, tmp_path):
             assert np.allclose(data.particles["Radius"], result["axes"][:, 0], rtol=1e-6)
 
 
+@pytest.mark.heavy   # a real reader: the `viz` extra
 def test_ovito_tachyon_render_of_a_frame(result, tmp_path):
     ovito_io = _ovito()
     if ctypes.util.find_library("vulkan") is None:

@@ -10,7 +10,6 @@ import dataclasses
 import json
 import logging
 import threading
-import time
 from pathlib import Path
 
 import h5py
@@ -25,6 +24,7 @@ from jobs.stores import open_store
 from jobs.worker import Worker
 from tests.jobs.conftest import TINY, make_settings
 from tests.jobs.fake_engine import ENSEMBLE_TARGET, FAIL_SEED
+from tests.waiting import wait_for
 
 REAL, REAL_ENSEMBLE = "engine.simulate:run", "engine.ensemble:run_ensemble"
 
@@ -33,13 +33,13 @@ def _enqueue(store, *specs):
     return store.submit([NewJob(parse_spec({**TINY, **s}).to_json()) for s in specs])
 
 
-def _wait(cond, timeout=30.0, what="condition"):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"{what} not reached in time")
+def _wait(cond, what="condition", activity=None):
+    wait_for(cond, what, activity=activity)
+
+
+def _jobs_activity(store, jobs):
+    """What changes while the jobs run: their states, phases, steps and attempts (a wait's hang detector)."""
+    return lambda: [(got.state, got.phase, got.step, got.attempts) for got in (store.get(j.id) for j in jobs)]
 
 
 @pytest.fixture
@@ -188,7 +188,7 @@ def test_cancel_one_job_the_rest_of_the_pack_finishes(packing):
     with _Running(worker):
         _wait(lambda: store.get(b.id).progress > 0.1, what="the pack running")
         store.request_cancel(b.id)
-        _wait(lambda: store.get(b.id).state == CANCELLED, timeout=10, what="b cancelled")
+        _wait(lambda: store.get(b.id).state == CANCELLED, what="b cancelled")
         assert store.get(a.id).state == RUNNING and store.get(c.id).state == RUNNING  # undisturbed
         _wait(lambda: store.get(a.id).state == DONE and store.get(c.id).state == DONE, what="a, c done")
     assert store.get(b.id).result_path is None and not settings.result_path(b.id).exists()
@@ -253,7 +253,7 @@ def test_two_packing_workers_run_every_job_once(tmp_path, caplog):
     jobs = _enqueue(store, *[{"t_end": 0.2, "seed": 100 + i} for i in range(24)])
     workers = [Worker(open_store(settings.database_url), settings) for _ in range(2)]
     with caplog.at_level(logging.INFO, logger="demq.worker"), _Running(workers[0]), _Running(workers[1]):
-        _wait(lambda: store.counts().get(DONE, 0) == len(jobs), timeout=120, what="every job done")
+        _wait(lambda: store.counts().get(DONE, 0) == len(jobs), what="every job done")
     assert all(store.get(j.id).attempts == 1 for j in jobs)
     packs = [ln for ln in caplog.text.splitlines() if "into one ensemble run" in ln]
     assert packs and all("packing 4 jobs" in ln or "packing 3 jobs" in ln or "packing 2 jobs" in ln
@@ -273,7 +273,7 @@ def test_scene_deaf_to_cancel_ends_its_job_without_killing_the_pack(tmp_path):
     with _Running(worker):
         _wait(lambda: store.get(b.id).progress > 0.1, what="the pack running")
         store.request_cancel(b.id)
-        _wait(lambda: store.get(b.id).state == CANCELLED, timeout=5, what="b cancelled after the grace")
+        _wait(lambda: store.get(b.id).state == CANCELLED, what="b cancelled after the grace")
         assert store.get(a.id).state == RUNNING
         _wait(lambda: store.get(a.id).state == DONE, what="a done")
     # b's scene ran to its end regardless: its late result and checkpoints are removed, b stays cancelled
@@ -305,10 +305,11 @@ def test_real_engine_pack_done_cancelled_and_failed_jobs(tmp_path):
                                         {**UNSTABLE, "seed": 3},
                                         {"t_end": 0.03, "seed": 2, "volume_fraction": 0.03, "e_t": -1.0})
     with _Running(worker):
-        _wait(lambda: store.get(cancel.id).progress > 0.05, timeout=240, what="the pack running")
+        _wait(lambda: store.get(cancel.id).progress > 0.05, what="the pack running",
+              activity=_jobs_activity(store, (done, cancel, bad, done2)))
         store.request_cancel(cancel.id)
         _wait(lambda: all(store.get(j.id).state not in (QUEUED, RUNNING) for j in (done, cancel, bad, done2)),
-              timeout=240, what="every job ended")
+              what="every job ended", activity=_jobs_activity(store, (done, cancel, bad, done2)))
     assert store.get(cancel.id).state == CANCELLED and not settings.result_path(cancel.id).exists()
     assert store.get(bad.id).state == FAILED
     assert store.get(bad.id).error.startswith("InstabilityError: overlap of")
@@ -336,15 +337,16 @@ def test_sigkilled_packing_worker_every_job_resumes_from_its_checkpoint(tmp_path
     env = {"DEMQ_ENGINE_RUN_ENSEMBLE": REAL_ENSEMBLE}
     first = start_worker(settings, REAL, **env)
     try:
-        _wait(lambda: all(_checkpointed_past_start(settings.checkpoint_dir(j.id)) for j in jobs), timeout=400,
-              what="checkpoints of both jobs")
+        _wait(lambda: all(_checkpointed_past_start(settings.checkpoint_dir(j.id)) for j in jobs),
+              what="checkpoints of both jobs", activity=_jobs_activity(store, jobs))
     finally:
         os.kill(first.pid, signal.SIGKILL)
         first.wait(10)
     assert all(store.get(j.id).state == RUNNING for j in jobs)
     second = start_worker(settings, REAL, **env)
     try:
-        _wait(lambda: all(store.get(j.id).state in (DONE, FAILED) for j in jobs), timeout=400, what="both done")
+        _wait(lambda: all(store.get(j.id).state in (DONE, FAILED) for j in jobs), what="both done",
+              activity=_jobs_activity(store, jobs))
     finally:
         assert stop(second) == 0
     for j in jobs:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import json
-import time
 from pathlib import Path
 
 import h5py
@@ -20,6 +19,7 @@ from engine.theory import DOF_SMOOTH_SPHERE, haff_rate, haff_rate_smooth_spheres
 from service.app import create_app
 from tests.jobs.conftest import TINY, make_settings
 from tests.service.conftest import finish_with_fake_result
+from tests.waiting import wait_for
 
 REAL = "engine.simulate:run"
 
@@ -161,12 +161,9 @@ def test_sweep_over_http_runs_as_one_ensemble_with_batch_statistics(tmp_path):
         r = c.post("/batches", json={"base": SWEEP_BASE, "sweep": {"e_n": [0.7, 0.9], "seed": [0, 1, 2, 3]}})
         assert r.status_code == 201
         bid, ids = r.json()["batch_id"], r.json()["job_ids"]
-        end = time.monotonic() + 300
-        while time.monotonic() < end:
-            states = [c.get(f"/jobs/{i}").json()["state"] for i in ids]
-            if all(s in ("done", "failed", "cancelled") for s in states):
-                break
-            time.sleep(0.2)
+        wait_for(lambda: all(c.get(f"/jobs/{i}").json()["state"] in ("done", "failed", "cancelled") for i in ids),
+                 "every job of the batch ended",
+                 activity=lambda: [c.get(f"/jobs/{i}").json()["progress"] for i in ids])
         jobs = [c.get(f"/jobs/{i}").json() for i in ids]
         assert all(j["state"] == "done" for j in jobs), [(j["state"], j["error"]) for j in jobs]
 

@@ -23,6 +23,7 @@ from jobs.store import NewJob
 from jobs.stores import open_store
 from jobs.worker import Worker
 from service.app import create_app
+from tests import waiting
 from tests.jobs.conftest import ROOT, TINY, make_settings
 from tests.jobs.fake_engine import TARGET
 
@@ -43,13 +44,9 @@ def start_worker(settings, engine_run=TARGET, **env) -> subprocess.Popen:
                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
-def wait_for(cond, timeout, what):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+def wait_for(cond, what):
+    """Wait for an event; the limits only catch hangs (tests/waiting.py)."""
+    return waiting.wait_for(cond, what)
 
 
 def stop(proc) -> int:
@@ -90,7 +87,7 @@ def test_sigkilled_worker_job_is_resumed_from_checkpoint(tmp_path, engine_run, s
     first = start_worker(settings, engine_run)
     ckpt = settings.checkpoint_dir(job.id)
     try:
-        wait_for(lambda: _checkpointed_past_start(ckpt) and store.get(job.id).progress > 0.05, 400,
+        wait_for(lambda: _checkpointed_past_start(ckpt) and store.get(job.id).progress > 0.05,
                  "a checkpoint after the start")
     finally:
         os.kill(first.pid, signal.SIGKILL)
@@ -98,7 +95,7 @@ def test_sigkilled_worker_job_is_resumed_from_checkpoint(tmp_path, engine_run, s
     assert store.get(job.id).state == RUNNING  # the row still says running: only the lease can tell
     second = start_worker(settings, engine_run)
     try:
-        wait_for(lambda: store.get(job.id).state in (DONE, FAILED), 400, "the resumed job")
+        wait_for(lambda: store.get(job.id).state in (DONE, FAILED), "the resumed job")
     finally:
         assert stop(second) == 0
     got = store.get(job.id)
@@ -115,7 +112,7 @@ def test_sigterm_releases_the_job_and_exits_zero(tmp_path):
     store = open_store(settings.database_url)
     job = _enqueue(store, {**TINY, "t_end": 30.0})
     proc = start_worker(settings)
-    wait_for(lambda: store.get(job.id).progress > 0, 60, "the job to start")
+    wait_for(lambda: store.get(job.id).progress > 0, "the job to start")
     t0 = time.monotonic()
     assert stop(proc) == 0
     assert time.monotonic() - t0 < 10
@@ -129,7 +126,7 @@ def test_job_that_keeps_killing_its_worker_ends_failed(tmp_path):
     (job,) = store.submit([NewJob(parse_spec({**TINY, "t_end": 30.0}).to_json())], max_attempts=2)
     for attempt in (1, 2):
         proc = start_worker(settings)
-        wait_for(lambda: store.get(job.id).attempts == attempt and store.get(job.id).state == RUNNING, 60, "claim")
+        wait_for(lambda: store.get(job.id).attempts == attempt and store.get(job.id).state == RUNNING, "claim")
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
         time.sleep(1.2)  # the lease expires
@@ -166,7 +163,7 @@ def test_api_restart_loses_nothing(tmp_path):
     with TestClient(second) as c:
         listed = {j["id"]: j["state"] for j in c.get("/jobs").json()["items"]}
         assert set(listed) == set(ids) and listed[ids[0]] in ("running", "queued")
-        wait_for(lambda: all(c.get(f"/jobs/{i}").json()["state"] == "done" for i in ids), 60, "all jobs done")
+        wait_for(lambda: all(c.get(f"/jobs/{i}").json()["state"] == "done" for i in ids), "all jobs done")
         assert c.get(f"/jobs/{ids[0]}").json()["attempts"] == 2
         assert c.get("/healthz").json()["jobs"] == {"done": 4}
 
@@ -176,7 +173,7 @@ def test_end_to_end_real_engine_submit_done_download(tmp_path):
     settings = make_settings(tmp_path, engine_run=REAL)
     with TestClient(create_app(settings, embedded_worker=True)) as c:
         job_id = c.post("/jobs", json=TINY).json()["id"]
-        wait_for(lambda: c.get(f"/jobs/{job_id}").json()["state"] in ("done", "failed"), 180, "the real run")
+        wait_for(lambda: c.get(f"/jobs/{job_id}").json()["state"] in ("done", "failed"), "the real run")
         status = c.get(f"/jobs/{job_id}").json()
         assert status["state"] == "done", status["error"]
         assert status["cundall"] > 0 and status["backend"] in ("cpu", "cuda") and status["progress"] == 1.0
@@ -216,7 +213,7 @@ def test_a_submit_wakes_the_embedded_worker(tmp_path):
         time.sleep(0.5)                        # the worker has found the queue empty and waits
         t0 = time.monotonic()
         job_id = c.post("/jobs", json=TINY).json()["id"]
-        wait_for(lambda: c.get(f"/jobs/{job_id}").json()["state"] == "done", 30, "the job")
+        wait_for(lambda: c.get(f"/jobs/{job_id}").json()["state"] == "done", "the job")
         ids = c.post("/batches", json={"base": TINY, "sweep": {"seed": [1, 2]}}).json()["job_ids"]
-        wait_for(lambda: all(c.get(f"/jobs/{i}").json()["state"] == "done" for i in ids), 30, "the batch")
+        wait_for(lambda: all(c.get(f"/jobs/{i}").json()["state"] == "done" for i in ids), "the batch")
         assert time.monotonic() - t0 < 30

@@ -1,5 +1,5 @@
 """Reduced ellipsoid homogeneous-cooling check (docs/physics.md §7.5); the full matrix is
-`demq validate hcs-ellipsoids` (bench/device_validate_ellipsoids.sh, bench/reports/hcs-ellipsoids/).
+`demq validate hcs-ellipsoids`.
 
 Scene: N = 256 prolate spheroids, xi = 1.5, e_n = 0.8, phi = 0.058, Gamma_0 t_end = 9 (~8 collisions per
 particle), one core. e_n = 0.8 gives the largest HCS signal (DSMC T_tr/T_rot ~ 0.82, start 1) and the fastest
@@ -8,7 +8,11 @@ cooling at xi = 1.5, whose rotation couples well (<D>_S = 0.2).
 
 import json
 
+import pytest
+
 from engine.validation import hcs_ellipsoids as h
+
+pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_smooth_spheroid_cooling_haff_and_rotation(tmp_path):

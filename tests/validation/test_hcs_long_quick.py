@@ -1,7 +1,7 @@
 """Reduced long-time HCS validation (`demq validate hcs-long --quick`): runs in CI (~20 s on one core).
 
 The full run (paper-001 scene to tau = 100 and the shear-unstable box, on the GPU) is
-bench/device_hcs_long.sh; its report goes to bench/reports/hcs-long/."""
+`demq validate hcs-long` on a GPU."""
 
 import json
 import math
@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from engine.validation import hcs_long
+
+pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):

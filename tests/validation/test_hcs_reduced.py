@@ -1,9 +1,13 @@
 """Reduced homogeneous-cooling validation against Luding's ODE (runs in CI; the full paper-001 scene
-is `demq validate hcs-spheres`, see bench/RESULTS.md and docs/physics.md §7.2)."""
+is `demq validate hcs-spheres`; docs/physics.md §7.2)."""
 
 import json
 
+import pytest
+
 from engine.validation import hcs_spheres
+
+pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_rough_sphere_cooling_follows_luding_ode(tmp_path):

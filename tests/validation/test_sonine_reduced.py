@@ -1,8 +1,13 @@
-"""Reduced Sonine check (docs/physics.md §7.4); the full comparison is `demq validate sonine --ensemble` on a GPU
-(bench/reports/sonine/). The DSMC reference is checked against two exact limits first."""
+"""Reduced Sonine check (docs/physics.md §7.4); the full comparison is `demq validate sonine --ensemble` on a GPU.
+The DSMC reference is checked against two exact limits first."""
 
 import json
+
+import pytest
+
 from engine.validation import sonine as v
+
+pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_dsmc_elastic_limit_is_maxwellian():

@@ -40,7 +40,7 @@ def tangential_factor_of(k_t: float, k_n: float) -> float:
     return k_t * (1.0 + Q_SPHERE) / (Q_SPHERE * k_n)
 
 
-#: Newton tolerance on the Perram-Wertheim lambda per precision (bench/RESULTS.md, issue 4 section).
+#: Newton tolerance on the Perram-Wertheim lambda per precision (docs/performance.md).
 PW_TOL = {"float64": 1e-15, "float32": 1e-7}
 #: relative margin of the exact disjointness screens before/inside the Perram-Wertheim solve
 #: (engine.physics.ellipsoid.ellipsoid_contact_screened; far above the rounding of F in each precision, so the
