@@ -24,18 +24,20 @@ router = APIRouter(prefix="/batches", tags=["batches"])
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=BatchOut,
-             responses={413: {"description": "request body too large"},
+             responses={400: {"description": "the body cannot be decoded (not UTF-8 JSON)"},
+                        413: {"description": "request body too large"},
                         422: {"description": "an invalid spec (all errors listed), or too many jobs"}})
 def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep, request: Request) -> BatchOut:
     """Queue a list of specs or a parameter sweep. All jobs are queued, or none (any error -> 422)."""
     if batch.specs is not None:
         items, loc = [s.model_dump() for s in batch.specs], ["body", "specs"]
     else:
-        n = sweep_size(batch.sweep)
+        base, sweep = batch.sweep_items()
+        n = sweep_size(sweep)
         if n > settings.max_batch_jobs:
             raise InvalidRequest([{"loc": ["body", "sweep"], "type": "limit_batch_jobs", "msg": (
                 f"the sweep makes {n} jobs, above the limit DEMQ_MAX_BATCH_JOBS = {settings.max_batch_jobs}")}])
-        items, loc = expand_sweep(batch.base, batch.sweep), ["body", "sweep", "combination"]
+        items, loc = expand_sweep(base, sweep), ["body", "sweep", "combination"]
     if len(items) > settings.max_batch_jobs:
         raise InvalidRequest([{"loc": loc, "type": "limit_batch_jobs", "msg": (
             f"{len(items)} jobs, above the limit DEMQ_MAX_BATCH_JOBS = {settings.max_batch_jobs}")}])
