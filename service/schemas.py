@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime, timezone
 from typing import Any, List, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, create_model, model_validator
 
 from engine.spec import FIELD_RANGES, SimulationSpec, Species, field_schema_keywords, write_field_keywords
 
@@ -116,6 +116,26 @@ def _api_annotation(annotation: Any) -> Any:
     return Optional[List[SpeciesIn]] if annotation == Optional[List[Species]] else annotation
 
 
+class KeyOrder(WholeNumbers):
+    """Remembers the order of the keys as given: a sweep's combinations follow it (the first key varies
+    slowest), not the order of the spec's fields."""
+
+    _order: list[str] = PrivateAttr(default_factory=list)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _remember_order(cls, data: Any, handler):
+        obj = handler(data)
+        if isinstance(data, dict):
+            obj._order = [k for k in data if k in cls.model_fields]
+        return obj
+
+    def given(self) -> dict[str, Any]:
+        """The keys given, in their order, as JSON values."""
+        values = self.model_dump(mode="json", exclude_unset=True)
+        return {k: values[k] for k in self._order if k in values}
+
+
 def _spec_keys_model(name: str, sweep: bool) -> type[BaseModel]:
     """A model with every spec key, all optional, typed as in the spec (``sweep``: a non-empty list of such
     values), whose JSON schema carries the spec's one-field ranges: the schema of a sweep's ``base`` and
@@ -136,7 +156,7 @@ def _spec_keys_model(name: str, sweep: bool) -> type[BaseModel]:
         if sweep:
             schema["minProperties"] = 1
 
-    return create_model(name, __base__=WholeNumbers, __config__=ConfigDict(extra="forbid", strict=True, json_schema_extra=schema_extra),
+    return create_model(name, __base__=KeyOrder, __config__=ConfigDict(extra="forbid", strict=True, json_schema_extra=schema_extra),
                         **fields)
 
 
@@ -180,8 +200,7 @@ class BatchIn(WholeNumbers):
 
     def sweep_items(self) -> tuple[dict[str, Any], dict[str, list[Any]]]:
         """The sweep's (base, sweep) as plain dicts of the keys given."""
-        base = self.base.model_dump(mode="json", exclude_unset=True) if self.base is not None else {}
-        return base, self.sweep.model_dump(mode="json", exclude_unset=True)
+        return (self.base.given() if self.base is not None else {}), self.sweep.given()
 
 
 class BatchOut(BaseModel):

@@ -14,6 +14,7 @@ from fastapi.responses import FileResponse, Response
 from jobs.batch_results import BatchNotFound, BatchNotReady, batch_result
 from jobs.specs import admit, expand_sweep, sweep_size
 from jobs.store import NewJob
+from service.backends import check_backends
 from service.deps import SettingsDep, StoreDep, wake_worker
 from service.downloads import Download
 from service.errors import InvalidRequest, rejected
@@ -26,7 +27,8 @@ router = APIRouter(prefix="/batches", tags=["batches"])
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=BatchOut,
              responses={400: {"description": "the body cannot be decoded (not UTF-8 JSON)"},
                         413: {"description": "request body too large"},
-                        422: {"description": "an invalid spec (all errors listed), or too many jobs"}})
+                        422: {"description": "an invalid spec (all errors listed), too many jobs, or no live "
+                                              "worker runs a spec's backend ('cuda')"}})
 def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep, request: Request) -> BatchOut:
     """Queue a list of specs or a parameter sweep. All jobs are queued, or none (any error -> 422)."""
     if batch.specs is not None:
@@ -43,6 +45,7 @@ def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep, request
             f"{len(items)} jobs, above the limit DEMQ_MAX_BATCH_JOBS = {settings.max_batch_jobs}")}])
     with rejected():
         specs = admit(items, settings.max_particle_steps, settings.max_memory_bytes, loc)
+        check_backends(store, settings, specs, [[*loc, i] for i in range(len(specs))])
     batch_id = uuid.uuid4().hex
     jobs = store.submit([NewJob(s.to_json(), batch.priority) for s in specs], batch_id=batch_id,
                         max_attempts=settings.max_attempts)

@@ -229,3 +229,48 @@ def test_openapi_docs(client):
     paths = client.get("/openapi.json").json()["paths"]
     assert {"/jobs", "/batches", "/jobs/{job_id}", "/jobs/{job_id}/cancel", "/jobs/{job_id}/result",
             "/jobs/{job_id}/energy", "/jobs/{job_id}/plot.png", "/healthz"} <= set(paths)
+
+
+def _age_workers(store, seconds: float) -> None:
+    """Move every worker's last sign of life ``seconds`` into the past (a worker that died silently)."""
+    from sqlalchemy import update
+
+    with store.engine.begin() as conn:
+        conn.execute(update(store.workers).values(seen_at=store.workers.c.seen_at - seconds))
+
+
+def test_cuda_refused_without_a_live_cuda_worker(client, settings):
+    r = client.post("/jobs", json={**TINY, "backend": "cuda"})
+    assert r.status_code == 422
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["body", "backend"] and err["type"] == "backend_unavailable"
+    assert "backend = 'cuda'" in err["msg"] and "no live worker can run CUDA" in err["msg"]
+    client.store.register_worker("cpu-only", "host-a", 11, ["cpu"])      # a CPU worker does not help
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 422
+    for backend in ("auto", "cpu"):                                       # these run on any worker
+        assert client.post("/jobs", json={**TINY, "backend": backend}).status_code == 201
+    assert client.get("/jobs").json()["total"] == 2
+
+
+def test_cuda_accepted_while_a_cuda_worker_is_alive(client, settings):
+    client.store.register_worker("gpu-0", "host-b", 12, ["cpu", "cuda"])
+    r = client.post("/jobs", json={**TINY, "backend": "cuda"})
+    assert r.status_code == 201 and r.json()["spec"]["backend"] == "cuda"
+    _age_workers(client.store, 2 * settings.lease_s)                     # not seen for two leases: lost
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 422
+    client.store.worker_seen("gpu-0")
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 201
+    client.store.unregister_worker("gpu-0")
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 422
+
+
+def test_batch_with_cuda_refused_whole_naming_each_combination(client):
+    r = client.post("/batches", json={"base": TINY, "sweep": {"backend": ["cpu", "cuda"], "seed": [1, 2]}})
+    assert r.status_code == 422
+    locs = [e["loc"] for e in r.json()["detail"]]
+    assert locs == [["body", "sweep", "combination", 2, "backend"], ["body", "sweep", "combination", 3, "backend"]]
+    r = client.post("/batches", json={"specs": [TINY, {**TINY, "backend": "cuda"}]})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "specs", 1, "backend"]
+    assert client.get("/jobs").json()["total"] == 0
+    client.store.register_worker("gpu-0", "host-b", 12, ["cuda"])
+    assert client.post("/batches", json={"specs": [TINY, {**TINY, "backend": "cuda"}]}).status_code == 201

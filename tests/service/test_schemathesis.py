@@ -5,7 +5,7 @@ requests accepted, missing or ignored auth, ...) on schema-valid and schema-viol
 that the built-in "schema-valid request rejected" is replaced by :func:`schema_predicts_every_422`: a
 spec may be refused for a rule that no JSON schema can state (the box must hold the neighbour cutoff,
 dt must resolve a contact, species fractions must sum to 1, the run's cost must be within the server's
-limits), so a 422 on a schema-valid request is allowed only with errors of those kinds, never with a
+limits, a 'cuda' spec needs a live worker that runs CUDA: none runs here), so a 422 on a schema-valid request is allowed only with errors of those kinds, never with a
 one-field error the schema should have predicted.
 
 Bounded for CI: a few examples per operation and mode, no worker, no engine. Set
@@ -50,11 +50,12 @@ def _report():
 
 
 def _beyond_the_schema(path: str, error: dict) -> bool:
-    """Whether a 422 error is of a kind no JSON schema states: a cost limit, a spec's cross-field rule
+    """Whether a 422 error is of a kind no JSON schema states: a cost limit, no live worker for the spec's
+    backend (a state of the server, not of the request), a spec's cross-field rule
     (reported at the spec's root: the body of POST /jobs, one spec or sweep combination of a batch), or a
     rule across the species entries (fractions sum to 1, the largest radius_ratio is 1, no repeats)."""
     loc, kind = error["loc"], error["type"]
-    if kind.startswith("limit_"):
+    if kind.startswith("limit_") or kind == "backend_unavailable":
         return True
     if loc and loc[-1] == "species" and kind == "value_error":
         return True
