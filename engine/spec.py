@@ -148,6 +148,9 @@ def write_field_keywords(properties: dict, keywords: dict[str, dict], items: boo
 class Species(BaseModel):
     """One sphere size of a polydisperse spec."""
 
+    model_config = ConfigDict(extra="forbid", json_schema_extra=lambda schema, _model: write_field_keywords(
+        schema["properties"], field_schema_keywords(SPECIES_RANGES)))
+
     radius_ratio: float = Field(
         ..., description="Radius relative to the largest species, in [0.01, 1]; the largest species has "
                          "exactly 1. Absolute radii follow from n_particles, volume_fraction and box_length.")
@@ -160,9 +163,6 @@ class Species(BaseModel):
     def _in_range(cls, v: float, info) -> float:
         SPECIES_RANGES[info.field_name].check(info.field_name, v)
         return v
-
-    model_config = ConfigDict(extra="forbid", json_schema_extra=lambda schema, _model: write_field_keywords(
-        schema["properties"], field_schema_keywords(SPECIES_RANGES)))
 
 
 #: Largest Verlet skin L_v (radii) a null ``verlet_skin`` resolves to, per resolved backend: the fastest
