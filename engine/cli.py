@@ -134,7 +134,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--allow-large", action="store_true",
                    help="run a spec beyond the cost limits (particle-steps, memory) that the service refuses")
     p.add_argument("--quiet", action="store_true",
-                   help="no progress (a bar on a terminal, else a line per 10 %% or 30 s on stderr)")
+                   help="no progress (a bar on a terminal, else a line per 10 %% or 10 s on stderr)")
     p.set_defaults(func=cmd_run)
 
     v = sub.add_parser("validate", help="physics validation runs that write a report")

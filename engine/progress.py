@@ -2,7 +2,7 @@
 
 On a terminal a tqdm bar (:class:`ProgressBar`); elsewhere (a log file, a pipe, a batch job's output)
 plain lines without carriage returns (:class:`ProgressLines`): one per 10 % of the run, and at least one
-every 30 s while it runs. :func:`progress_for` picks one by the stream. ``update`` takes what the engine
+every 10 s while it runs. :func:`progress_for` picks one by the stream. ``update`` takes what the engine
 reports (engine.simulate.Progress) or a job's progress fields.
 """
 
@@ -86,7 +86,7 @@ class ProgressLines:
     Same interface as :class:`ProgressBar`."""
 
     def __init__(self, n_particles: Optional[int] = None, desc: str = "", stream=None, step: float = 0.1,
-                 every_s: float = 30.0):
+                 every_s: float = 10.0):
         self.n, self.desc, self.stream = n_particles, desc.strip(), stream or sys.stderr
         self.step, self.every_s = step, every_s
         self.tier = 0                     # the number of whole steps of the fraction already reported
