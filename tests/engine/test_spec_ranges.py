@@ -49,3 +49,17 @@ def test_schema_carries_the_table():
         branch = next(b for b in props[field].get("anyOf", [props[field]]) if b.get("type") != "null")
         assert {k: branch[k] for k in r.json_schema()} == r.json_schema(), field
     assert props["species"]["anyOf"][0]["maxItems"] == 16
+
+
+def test_every_field_states_its_values_in_the_schema():
+    """A number carries a range, a string an enum, the species list its length; a new field without
+    one fails here."""
+    props = SimulationSpec.model_json_schema()["properties"]
+    for field, prop in props.items():
+        branch = next(b for b in prop.get("anyOf", [prop]) if b.get("type") != "null")
+        if branch.get("type") in ("number", "integer"):
+            assert field in FIELD_RANGES and ("minimum" in branch or "exclusiveMinimum" in branch), field
+        elif branch.get("type") == "string":
+            assert branch.get("enum"), field
+        else:
+            assert field == "species" and branch["type"] == "array" and branch["minItems"] == 1, field
