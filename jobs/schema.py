@@ -1,4 +1,4 @@
-"""The job table: one SQL schema (SQLAlchemy Core) shared by the SQLite and PostgreSQL stores.
+"""The job and worker tables: one SQL schema (SQLAlchemy Core) shared by the SQLite and PostgreSQL stores.
 
 Times are UNIX seconds (float) taken from the clock of the process that writes them; workers on
 several hosts therefore need synchronised clocks (NTP) for leases to mean the same everywhere.
@@ -51,4 +51,22 @@ def job_table(metadata: MetaData, prefix: str = "") -> Table:
         Column("cancel_requested", Boolean, nullable=False, default=False),
         Index(f"ix_{name}_claim", "state", "priority", "seq"),
         Index(f"ix_{name}_batch", "batch_id"),
+    )
+
+
+def worker_table(metadata: MetaData, prefix: str = "") -> Table:
+    """Define ``<prefix>workers`` on ``metadata``: one row per running worker process.
+
+    A worker registers when it starts, refreshes ``seen_at`` while it runs and removes its row when
+    it stops; a worker that died without unregistering is recognised by an old ``seen_at``.
+    ``backends`` is a comma-separated list of the backends it can run ("cpu" or "cpu,cuda").
+    """
+    return Table(
+        f"{prefix}workers", metadata,
+        Column("worker_id", String(200), primary_key=True),
+        Column("host", String(200), nullable=False),
+        Column("pid", Integer, nullable=False),
+        Column("backends", String(200), nullable=False),
+        Column("started_at", Float, nullable=False),
+        Column("seen_at", Float, nullable=False),
     )

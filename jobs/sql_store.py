@@ -11,11 +11,11 @@ import uuid
 from contextlib import contextmanager
 from typing import Any, Iterator, Optional, Sequence
 
-from sqlalchemy import (Connection, Engine, MetaData, String, Select, case, cast, func, literal, null, select, text,
-                        update)
+from sqlalchemy import (Connection, Engine, MetaData, String, Select, case, cast, delete, func, literal, null, select,
+                        text, update)
 
-from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING, job_table
-from jobs.store import Job, JobStore, LeaseLost, NewJob
+from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING, job_table, worker_table
+from jobs.store import Job, JobStore, LeaseLost, NewJob, WorkerInfo
 
 #: Columns a heartbeat may write as progress.
 PROGRESS_COLUMNS = ("progress", "phase", "step", "sim_time", "eta_s", "cundall")
@@ -31,6 +31,7 @@ class SqlJobStore(JobStore):
         self.engine = engine
         self.metadata = MetaData()
         self.table = job_table(self.metadata, table_prefix)
+        self.workers = worker_table(self.metadata, table_prefix)
 
     # ---- transactions (SQLite overrides _write to take the write lock up front) ---------------------
     @contextmanager
@@ -223,3 +224,28 @@ class SqlJobStore(JobStore):
                         + literal(": the simulation may be killing its worker (out of memory?)"), **cleared)
                 .returning(t.c.id)).scalars().all()
         return list(requeued), list(failed)
+
+    # ---- the worker registry ----------------------------------------------------------------------
+    def register_worker(self, worker_id: str, host: str, pid: int, backends: Sequence[str]) -> None:
+        w, now = self.workers, time.time()
+        row = dict(host=host, pid=int(pid), backends=",".join(backends), started_at=now, seen_at=now)
+        with self._write() as conn:  # portable upsert: the write transaction serialises it
+            if conn.execute(update(w).where(w.c.worker_id == worker_id).values(**row)).rowcount == 0:
+                conn.execute(w.insert().values(worker_id=worker_id, **row))
+
+    def worker_seen(self, worker_id: str) -> None:
+        w = self.workers
+        with self._write() as conn:
+            conn.execute(update(w).where(w.c.worker_id == worker_id).values(seen_at=time.time()))
+
+    def unregister_worker(self, worker_id: str) -> None:
+        w = self.workers
+        with self._write() as conn:
+            conn.execute(delete(w).where(w.c.worker_id == worker_id))
+
+    def live_workers(self, max_age_s: float) -> list[WorkerInfo]:
+        w = self.workers
+        with self._read() as conn:
+            rows = conn.execute(select(w).where(w.c.seen_at >= time.time() - max_age_s)
+                                .order_by(w.c.started_at, w.c.worker_id)).all()
+        return [WorkerInfo.from_row(r) for r in rows]

@@ -65,6 +65,27 @@ class Job:
 
 
 @dataclass(frozen=True)
+class WorkerInfo:
+    """One row of the worker table: a worker process and the backends it can run.
+
+    Times are UNIX seconds: ``started_at`` when it registered, ``seen_at`` its last sign of life.
+    """
+
+    worker_id: str
+    host: str
+    pid: int
+    backends: tuple[str, ...]
+    started_at: float
+    seen_at: float
+
+    @classmethod
+    def from_row(cls, row) -> "WorkerInfo":
+        data = dict(row._mapping)
+        data["backends"] = tuple(b for b in data["backends"].split(",") if b)
+        return cls(**data)
+
+
+@dataclass(frozen=True)
 class NewJob:
     """A job to enqueue: the canonical spec JSON (already validated) and its priority."""
 
@@ -168,3 +189,20 @@ class JobStore(ABC):
 
         Returns (requeued ids, failed ids). A job whose cancel was requested ends cancelled instead.
         """
+
+    # ---- the worker registry ----------------------------------------------------------------------
+    @abstractmethod
+    def register_worker(self, worker_id: str, host: str, pid: int, backends: Sequence[str]) -> None:
+        """Insert or replace the worker's row; ``started_at`` and ``seen_at`` become now."""
+
+    @abstractmethod
+    def worker_seen(self, worker_id: str) -> None:
+        """Set the worker's ``seen_at`` to now (no-op for an unknown worker)."""
+
+    @abstractmethod
+    def unregister_worker(self, worker_id: str) -> None:
+        """Remove the worker's row (no-op for an unknown worker)."""
+
+    @abstractmethod
+    def live_workers(self, max_age_s: float) -> list[WorkerInfo]:
+        """The workers seen within the last ``max_age_s`` seconds, oldest registration first."""

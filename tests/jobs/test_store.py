@@ -134,3 +134,39 @@ def test_two_claimers_take_each_of_50_jobs_exactly_once(store, store_url):
     assert len(set(claimed)) == 50
     assert store.counts() == {DONE: 50}
     assert all(store.get(j.id).attempts == 1 for j in jobs)
+
+
+def test_worker_registry_register_seen_unregister(store):
+    before = time.time()
+    store.register_worker("w-cpu", "host-a", 101, ["cpu"])
+    store.register_worker("w-gpu", "host-b", 202, ("cpu", "cuda"))
+    live = store.live_workers(max_age_s=60)
+    assert [(w.worker_id, w.host, w.pid, w.backends) for w in live] == [
+        ("w-cpu", "host-a", 101, ("cpu",)), ("w-gpu", "host-b", 202, ("cpu", "cuda"))]
+    assert all(before <= w.started_at <= w.seen_at <= time.time() for w in live)
+
+    first_seen = live[0].seen_at
+    time.sleep(0.01)  # the clock must move for seen_at to change
+    store.worker_seen("w-cpu")
+    (cpu,) = [w for w in store.live_workers(60) if w.worker_id == "w-cpu"]
+    assert cpu.seen_at > first_seen and cpu.started_at == live[0].started_at
+
+    store.unregister_worker("w-cpu")
+    assert [w.worker_id for w in store.live_workers(60)] == ["w-gpu"]
+    store.worker_seen("nobody")      # unknown ids are no-ops, not errors
+    store.unregister_worker("nobody")
+
+
+def test_worker_registry_reregister_replaces_row(store):
+    store.register_worker("w", "host-a", 1, ["cpu"])
+    store.register_worker("w", "host-b", 2, ["cpu", "cuda"])
+    (w,) = store.live_workers(60)
+    assert (w.host, w.pid, w.backends) == ("host-b", 2, ("cpu", "cuda"))
+
+
+def test_worker_registry_old_seen_at_is_not_live(store):
+    store.register_worker("w", "h", 1, ["cpu"])
+    time.sleep(0.05)
+    assert store.live_workers(max_age_s=0.01) == []  # last seen longer ago than 0.01 s
+    store.worker_seen("w")
+    assert [w.worker_id for w in store.live_workers(max_age_s=30)] == ["w"]
