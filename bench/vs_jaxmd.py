@@ -1,44 +1,59 @@
 """demq (CUDA) against JAX-MD on the same sphere gas, side by side on one GPU.
 
-    python -m bench.vs_jaxmd                                   # every case, on a GPU host
+    python -m bench.vs_jaxmd                                   # every case, on a GPU host, from a repo checkout
     python -m bench.vs_jaxmd --cases elastic-2M-f64 --steps-scale 0.1
-    python -m bench.vs_jaxmd --quick --backend cpu             # smoke run: N = 4096, 100 steps, on the CPU
+    python -m bench.vs_jaxmd --quick --backend cpu             # smoke run: N = 4096, 3000 steps, on the CPU
 
 The scene: phi = 0.058 in a periodic 2 m cube, k_n = 1e8 N/m, density 2000 kg/m^3, velocity_rms = 2 m/s,
 dt = t_c/50; the radius a, the mass m = rho (4/3) pi a^3 and dt come from demq's own ``engine.params.derive``.
 dt is rounded to the nearest float32 (relative change < 6e-8) and given to both codes as the spec's ``dt``:
-``jax_md.simulate.velocity_verlet`` casts its dt to float32 even with x64 enabled, so this is the only way both
-integrate with the same step.
-Both codes start from demq's start of the spec (``engine.scene.initial_spheres``; JAX-MD gets its positions,
-wrapped into [0, L), and its momenta m v).
+``jax_md.simulate.velocity_verlet`` casts its dt to float32 even with x64 enabled, so only such a dt is the same
+step on both sides. Both start from demq's start of the spec (``engine.scene.initial_spheres``, drawn on the host
+for JAX-MD; a GPU job of demq draws the same start on the device, equal to rounding): JAX-MD gets its positions,
+wrapped into [0, L), and the momenta m v. That start is an fcc lattice with random displacements, so the first
+contacts come late (after ~1800 steps at N = 4096); demq's ``collisions`` in the JSON counts those of each run.
 
 JAX-MD: ``energy.soft_sphere_neighbor_list`` with alpha = 2, sigma = 2a, epsilon = k_n sigma^2. Its pair energy
 U = epsilon/alpha (1 - r/sigma)^alpha (r < sigma) gives the force -dU/dr = epsilon/sigma (1 - r/sigma)
 = k_n (sigma - r) = k_n delta, demq's elastic normal spring with overlap delta = 2a - r (and U = k_n delta^2/2,
-demq's ``elastic_energy``). ``space.periodic(L)``, ``simulate.nve`` (velocity Verlet, as demq) with mass m and
-demq's dt; the list (cutoff sigma, ``dr_threshold`` = skin, ``capacity_multiplier`` 1.25) is updated every step
-inside one jit-compiled ``lax.fori_loop``; a list that overflowed (``did_buffer_overflow`` after the warm-up or
-the timed run) is reallocated with 1.5 x the capacity multiplier and the whole run repeated: demq's lattice start
-has few neighbours, so a list sized from it can overflow once contacts come. Only the last attempt is timed. Each list format (Dense, OrderedSparse) and skin (0.8 a, 1.6 a) runs in its own process; the table
-shows the best of them. float64 cases enable ``jax_enable_x64``.
+demq's ``elastic_energy``). The constants go in as arrays of the working dtype (``jax_md.util.maybe_downcast``
+makes Python floats float32 even with x64). ``space.periodic(L)``, ``simulate.nve`` (velocity Verlet, as demq)
+with mass m; the list (cutoff sigma, ``dr_threshold`` = skin, ``capacity_multiplier`` 1.25) is updated every step
+inside one jit-compiled ``lax.fori_loop``. A list that overflowed (``did_buffer_overflow`` after the warm-up or
+the timed run) is reallocated with 1.5 x the capacity multiplier and the whole run repeated (the lattice start
+has few neighbours, so a list sized from it can overflow once contacts come); only the last attempt is timed.
+Each list format (Dense, OrderedSparse) and skin (0.8 a, 1.6 a) runs in its own process; the table shows the
+best. float64 cases enable ``jax_enable_x64``; JAX may take 95 % of the GPU memory (XLA_PYTHON_CLIENT_MEM_FRACTION).
 
 demq: ``engine.run`` with e_n = 1, e_t = -1 (elastic, frictionless: no dashpot, no tangential spring, so its
 contact-event corrections vanish and both sides integrate the same equations), thermalization 0, snapshots 0,
 its default skin and records; t_end = steps x dt. The rough cases (e_n = e_t = 0.8) run demq alone and are
-compared with JAX-MD's frictionless rate at the same N and precision.
+compared with JAX-MD's frictionless rate at the same N and precision. --quick also compares the final states
+particle by particle (demq then writes one snapshot): they agree to rounding (7e-15 radii, 1e-12 v_rms).
 
 Timed: "loop" = demq's RunSummary.wall_s (the time loop) / JAX-MD's timed ``fori_loop`` call (after a compile
 and a 10-step warm-up, ended by ``block_until_ready``); "end-to-end" = the whole ``engine.run`` call / JAX-MD
-from the host start to the result on the host (upload, list allocation, compile, warm-up, timed run; demq's
-start function, which made the state, is not counted). A tiny demq run in its own process first fills the
-Numba cache (``--no-warmup`` skips it). Cundall number = N x steps / seconds. Every run is a fresh process.
-Results: a table on stdout, results.json and results.md in --out.
+from the host start to the result on the host (upload, list allocation, compile, warm-up, timed run; the start
+function, demq's, is not counted; JAX's persistent compilation cache stays off, so it includes the XLA compile:
+``first_call_s`` in the JSON). Before each demq case, a 10-step run of the same scene in its own process fills
+the Numba cache (``--no-warmup`` skips it), so demq's end-to-end time loads its kernels (``timings``).
+Cundall number = N x steps / seconds. Every run is a fresh process. Results: a table on stdout, results.json,
+results.md and each run's log in --out.
+
+JAX-MD on an offline host with jax (jaxlib, numpy, scipy, ml_dtypes, opt_einsum): ``import jax_md`` also imports
+flax, optax, treescope, rich, pygments, msgpack, PyYAML, cloudpickle, etils, absl-py, jraph, e3nn-jax, sympy,
+mpmath, attrs and ml_collections (not pymatgen, which its metadata asks for). Fetch them where PyPI is reachable
+with ``pip download --no-deps -d .whl jax-md==0.2.29 flax optax treescope rich pygments markdown-it-py mdurl
+cloudpickle etils absl-py jraph e3nn-jax sympy mpmath attrs ml-collections typing-extensions`` plus PyYAML and
+msgpack for the host's Python (``--only-binary=:all: --platform manylinux2014_x86_64 --python-version 3.X``),
+and install them with ``pip install --no-index --no-deps .whl/*.whl``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -64,13 +79,13 @@ CASES = {
     "rough-2M-f64": (2_097_152, "float64", 2000, True),
     "rough-8M-f32": (8_388_608, "float32", 1000, True),
 }
-QUICK_N, QUICK_STEPS = 4096, 3000     # the lattice start's first contacts come after ~2000 steps
+QUICK_N, QUICK_STEPS = 4096, 3000     # the lattice start's first contacts come after ~1800 steps
 FORMATS = ("Dense", "OrderedSparse")
 SKINS = (0.8, 1.6)          # JAX-MD dr_threshold in radii
 WARMUP_STEPS = 10
 CAPACITY_MULTIPLIER = 1.25
-JAXMD_MISSING = ("jax_md is not importable here ({error}); JAX-MD runs are skipped and demq runs alone. On an offline "
-                 "GPU host: pip install --no-index --find-links .whl jax-md (README of bench/vs_jaxmd: the wheels)")
+JAXMD_MISSING = ("jax_md is not importable here ({error}): JAX-MD runs are skipped and demq runs alone. "
+                 "To install it offline, see the end of this script's docstring (python -m pydoc bench.vs_jaxmd)")
 
 
 def case_spec(n: int, precision: str, steps: int, rough: bool, backend: str, seed: int = 1,
@@ -105,7 +120,8 @@ def run_demq(job: dict) -> dict:
         s = run(spec, out, backend=spec.backend)
         wall = time.perf_counter() - t0
         with h5py.File(out, "r") as f:
-            ke, el = (float(f[f"observables/{k}/value"][-1]) for k in ("kinetic_energy_translational", "elastic_energy"))
+            ke, el = (float(f[f"observables/{k}/value"][-1])
+                      for k in ("kinetic_energy_translational", "elastic_energy"))
             collisions = int(f["observables/collisions/value"][-1])
             if job.get("state_out"):      # the final snapshot (the spec then asks for one)
                 np.savez(job["state_out"], position=f["particles/all/position/value"][-1],
@@ -119,6 +135,7 @@ def run_demq(job: dict) -> dict:
 
 def run_jaxmd(job: dict) -> dict:
     """One JAX-MD configuration (list format, skin) of a case: Cundall numbers, final energies."""
+    os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.95")   # the GPU is JAX's alone (default 0.75)
     import jax
 
     if job["spec"]["precision"] == "float64":
@@ -176,10 +193,10 @@ def run_jaxmd(job: dict) -> dict:
         np.savez(job["state_out"], position=np.asarray(end_state.position),
                  velocity=np.asarray(end_state.momentum) / c["mass"])
     n = spec.n_particles
-    idx = end_nbrs.idx
     return {"format": job["format"], "skin_radii": job["skin_radii"], "steps": steps, "loop_s": t2 - t1,
-            "wall_s": t3 - t0, "cundall_loop": n * steps / (t2 - t1), "cundall_end_to_end": n * steps / (t3 - t0),
-            "capacity_multiplier": multiplier, "reallocations": reallocations, "list_shape": list(idx.shape),
+            "wall_s": t3 - t0, "first_call_s": t1 - t0, "cundall_loop": n * steps / (t2 - t1),
+            "cundall_end_to_end": n * steps / (t3 - t0), "capacity_multiplier": multiplier,
+            "reallocations": reallocations, "list_shape": list(end_nbrs.idx.shape),
             "ke_translational_end": ke, "elastic_energy_end": float(energy_fn(end_state.position, neighbor=end_nbrs)),
             "jax": jax.__version__, "device": str(jax.devices()[0]), "constants": c}
 
@@ -200,8 +217,10 @@ def in_fresh_process(job: dict, log_dir: Path) -> dict:
 
 def jaxmd_available() -> tuple[bool, str]:
     """Whether this Python imports the JAX-MD modules the bench needs; the versions, or the import error."""
-    code = ("import jax; from importlib.metadata import version; from jax_md import energy, partition, simulate, space; "
-            "print(f'jax {jax.__version__}, jax-md {version(\"jax-md\")}, {jax.devices()[0]}')")
+    code = ("import jax; from importlib.metadata import version; "
+            "from jax_md import energy, partition, simulate, space; "
+            "print(f'jax {jax.__version__}, jax-md {version(\"jax-md\")}, "
+            "{jax.default_backend()}: {jax.devices()[0]}')")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     if proc.returncode == 0:
         return True, proc.stdout.strip()
@@ -228,7 +247,7 @@ def best(runs: list, key: str):
 
 
 def compare(names, backend: str, scale: float, quick: bool, formats, skins, seed: int, log_dir: Path,
-            with_jaxmd: bool) -> list:
+            with_jaxmd: bool, warmup: bool = True) -> list:
     """Run the cases (demq once each, JAX-MD once per N, precision and steps, every format x skin); the rows."""
     jax_runs, rows = {}, []
     states = Path(tempfile.mkdtemp(prefix="vs_jaxmd_states_"))
@@ -239,12 +258,16 @@ def compare(names, backend: str, scale: float, quick: bool, formats, skins, seed
         check = quick and not rough             # compare the final states particle by particle
         spec = case_spec(n, precision, steps, rough, backend, seed, snapshots=1 if check else 0)
         job = {"side": "demq", "name": name, "spec": json.loads(spec.model_dump_json())}
+        if warmup:      # the same scene for a few steps: fills the Numba cache with this case's kernels
+            warm = case_spec(n, precision, WARMUP_STEPS, rough, backend, seed)
+            in_fresh_process({**job, "name": f"{name}-warmup", "spec": json.loads(warm.model_dump_json())}, log_dir)
         demq = in_fresh_process({**job, "state_out": str(states / f"demq_{name}.npz")} if check else job, log_dir)
         key = (n, precision, steps)
         if with_jaxmd and key not in jax_runs:
             elastic = json.loads(case_spec(n, precision, steps, False, backend, seed).model_dump_json())
             jobs = [{"side": "jaxmd", "name": f"{n}_{precision}", "spec": elastic, "steps": steps, "format": f,
-                     "skin_radii": s, "state_out": str(states / f"jaxmd_{n}_{precision}_{f}_{s}.npz") if quick else None}
+                     "skin_radii": s,
+                     "state_out": str(states / f"jaxmd_{n}_{precision}_{f}_{s}.npz") if quick else None}
                     for f in formats for s in skins]
             jax_runs[key] = [(in_fresh_process(j, log_dir), j["state_out"]) for j in jobs]
         runs = [r for r, _ in jax_runs.get(key, [])]
@@ -308,7 +331,7 @@ def main(argv=None) -> list:
     ap.add_argument("--quick", action="store_true", help=f"N = {QUICK_N}, {QUICK_STEPS} steps (smoke run)")
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda", help="demq's backend (cpu: smoke runs only)")
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--no-warmup", action="store_true", help="skip the tiny demq run that fills the Numba cache")
+    ap.add_argument("--no-warmup", action="store_true", help="skip demq's short runs that fill the Numba cache")
     ap.add_argument("--out", default="bench-out/vs_jaxmd", help="folder for results.json, results.md, logs")
     ap.add_argument("--one-case", help=argparse.SUPPRESS)      # child process: one JSON job ...
     ap.add_argument("--result", help=argparse.SUPPRESS)        # ... and where its result goes
@@ -324,13 +347,14 @@ def main(argv=None) -> list:
     (out / "logs").mkdir(parents=True, exist_ok=True)
     with_jaxmd, jax_info = jaxmd_available()
     print(f"JAX-MD: {jax_info}" if with_jaxmd else JAXMD_MISSING.format(error=jax_info), flush=True)
-    if not a.no_warmup:
-        warm = case_spec(256, "float64", 5, False, a.backend, a.seed)
-        in_fresh_process({"side": "demq", "name": "warmup", "spec": json.loads(warm.model_dump_json())}, out / "logs")
-    rows = compare(a.cases, a.backend, a.steps_scale, a.quick, a.formats, a.skins, a.seed, out / "logs", with_jaxmd)
+    if with_jaxmd and a.backend == "cuda" and "gpu" not in jax_info:
+        print("WARNING: JAX runs on the CPU here (no CUDA jaxlib?): the JAX-MD numbers are not GPU numbers", flush=True)
+    rows = compare(a.cases, a.backend, a.steps_scale, a.quick, a.formats, a.skins, a.seed, out / "logs", with_jaxmd,
+                   warmup=not a.no_warmup)
     md = table(rows)
     print(md)
-    info = {"command": " ".join([sys.executable, "-m", "bench.vs_jaxmd", *(argv if argv is not None else sys.argv[1:])]),
+    args = argv if argv is not None else sys.argv[1:]
+    info = {"command": " ".join([sys.executable, "-m", "bench.vs_jaxmd", *args]),
             "jaxmd": jax_info if with_jaxmd else None, "rows": rows}
     (out / "results.json").write_text(json.dumps(info, indent=1))
     (out / "results.md").write_text(md + "\n")
