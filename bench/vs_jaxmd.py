@@ -259,7 +259,7 @@ def compare(names, backend: str, scale: float, quick: bool, formats, skins, seed
         spec = case_spec(n, precision, steps, rough, backend, seed, snapshots=1 if check else 0)
         job = {"side": "demq", "name": name, "spec": json.loads(spec.model_dump_json())}
         if warmup:      # the same scene for a few steps: fills the Numba cache with this case's kernels
-            warm = case_spec(n, precision, WARMUP_STEPS, rough, backend, seed)
+            warm = case_spec(n, precision, WARMUP_STEPS, rough, backend, seed, snapshots=spec.snapshots)
             in_fresh_process({**job, "name": f"{name}-warmup", "spec": json.loads(warm.model_dump_json())}, log_dir)
         demq = in_fresh_process({**job, "state_out": str(states / f"demq_{name}.npz")} if check else job, log_dir)
         key = (n, precision, steps)
