@@ -22,16 +22,17 @@ BENCHMARKS: dict[str, bool] = {
     # speed (Cundall numbers) and time to result
     "gpu_scaling": True, "gpu_ensemble": True, "gpu_ellipsoid_scaling": True, "cpu_scaling": True,
     "ellipsoid_cpu_speed": True, "vs_lammps": True, "e2e": True, "e2e_profile": True, "list_modes": True,
-    "multigrid_cost": True, "specialisation": True, "auto_trial": True,
+    "multigrid_cost": True, "specialisation": True, "auto_trial": True, "vs_jaxmd": True,
     "step_phases": False, "batch_where": False, "driver_overhead": False, "host_memory": False,
     "setup_timeline": False, "start_draw": False, "writer_processes": False, "download_speed": False,
     # accuracy against cost, stability, physics studies
     "accuracy": True, "stability": True, "ellipsoid_geometry_accuracy": True, "ellipsoid_recollisions": True,
     "ellipsoid_screen_stats": True, "ellipsoid_dsmc_refs": True, "ellipsoid_encounter_dsmc": True,
     "ellipsoid_cooling_seeds": True, "ellipsoid_velocity_correlations": True, "hcs_ellipsoids_cuda": True,
+    "hcs_start": True,
     "orientation": False, "bit_identity": False,
     # the service under load
-    "load_service": False,
+    "load_service": False, "small_jobs": True,
 }
 
 

@@ -1,0 +1,159 @@
+"""Small jobs come back fast: latency of real jobs through `demq serve` (the workstation default: SQLite, one
+embedded worker) on this machine's CPU.
+
+Two scenes, each on a fresh server and data directory:
+
+1. ``--jobs`` jobs of 64 spheres (the default spec otherwise) submitted from ``--clients`` threads at once;
+   printed: each job's time from its submission to done (median, 90th percentile) against the time from the
+   first submission until the last job is done.
+2. ten default jobs (4096 spheres) and one of 512 spheres, submitted together as one batch of specs, the small
+   one last; printed: when the small one was done against the first of the ten.
+
+Times are the server's own (the job rows' created_at and finished_at). Nothing is asserted here: the figures go
+into docs/performance.md.
+
+    python -m bench small_jobs [--jobs 100] [--clients 10] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from datetime import datetime
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    """`demq serve` with its embedded worker on a fresh data directory, on loopback."""
+
+    def __init__(self, log: Path):
+        self.data = Path(tempfile.mkdtemp(prefix="demq-small-"))
+        self.port = _free_port()
+        env = {**os.environ, "PYTHONPATH": str(ROOT), "DEMQ_DATA_DIR": str(self.data)}
+        self.log = open(log, "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
+                                     cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+        self.url = f"http://127.0.0.1:{self.port}"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            try:
+                if httpx.get(f"{self.url}/healthz").status_code == 200:
+                    return
+            except httpx.TransportError:
+                time.sleep(0.1)
+        raise RuntimeError(f"the server did not answer within 120 s (log: {log})")
+
+    def wait_all_done(self, ids, ceiling_s: float = 3600.0) -> list[dict]:
+        """The job rows once every job has ended (polled every 0.2 s; the ceiling only catches a hang)."""
+        deadline = time.monotonic() + ceiling_s
+        with httpx.Client(base_url=self.url, timeout=60) as c:
+            while time.monotonic() < deadline:
+                jobs = [c.get(f"/jobs/{i}").json() for i in ids]
+                if all(j["state"] in ("done", "failed", "cancelled") for j in jobs):
+                    return jobs
+                time.sleep(0.2)
+        raise RuntimeError("jobs not ended before the ceiling")
+
+    def close(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(60)
+        self.log.close()
+
+
+def _t(stamp: str) -> float:
+    return datetime.fromisoformat(stamp).timestamp()
+
+
+def many_small(out: Path, n_jobs: int, clients: int) -> dict:
+    server = Server(out / "many_small.log")
+    try:
+        ids, lock = [], threading.Lock()
+        per_client = [n_jobs // clients + (i < n_jobs % clients) for i in range(clients)]
+
+        def client(n: int, offset: int) -> None:
+            with httpx.Client(base_url=server.url, timeout=60) as c:
+                for k in range(n):
+                    r = c.post("/jobs", json={"n_particles": 64, "seed": offset + k})
+                    r.raise_for_status()
+                    with lock:
+                        ids.append(r.json()["id"])
+
+        threads = [threading.Thread(target=client, args=(n, 1000 * i)) for i, n in enumerate(per_client)]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+        jobs = server.wait_all_done(ids)
+    finally:
+        server.close()
+    latency = sorted(_t(j["finished_at"]) - _t(j["created_at"]) for j in jobs)
+    first = min(_t(j["created_at"]) for j in jobs)
+    last = max(_t(j["finished_at"]) for j in jobs)
+    return {"jobs": n_jobs, "clients": clients, "states": sorted({j["state"] for j in jobs}),
+            "median_latency_s": statistics.median(latency), "p90_latency_s": latency[int(0.9 * (len(latency) - 1))],
+            "first_submit_to_last_done_s": last - first,
+            "median_over_last": statistics.median(latency) / (last - first)}
+
+
+def small_among_large(out: Path) -> dict:
+    server = Server(out / "small_among_large.log")
+    try:
+        specs = [{"seed": k} for k in range(10)] + [{"n_particles": 512}]
+        r = httpx.post(f"{server.url}/batches", json={"specs": specs}, timeout=60)
+        r.raise_for_status()
+        batch = r.json()
+        ids = batch["job_ids"]
+        jobs = server.wait_all_done(ids)
+    finally:
+        server.close()
+    by_id = {j["id"]: j for j in jobs}
+    small = by_id[ids[-1]]
+    large_done = sorted(_t(by_id[i]["finished_at"]) for i in ids[:-1])
+    t0 = min(_t(j["created_at"]) for j in jobs)
+    return {"small_done_s": _t(small["finished_at"]) - t0, "first_large_done_s": large_done[0] - t0,
+            "last_large_done_s": large_done[-1] - t0, "small_before_all_large": _t(small["finished_at"]) < large_done[0],
+            "states": sorted({j["state"] for j in jobs})}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--jobs", type=int, default=100)
+    ap.add_argument("--clients", type=int, default=10)
+    ap.add_argument("--skip-large", action="store_true", help="only the many small jobs")
+    ap.add_argument("--out", type=Path, default=Path("bench-out/small_jobs"))
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    report = {"cpus": os.cpu_count(), "many_small": many_small(args.out, args.jobs, args.clients)}
+    m = report["many_small"]
+    print(f"{args.jobs} jobs of 64 spheres from {args.clients} threads: median submit-to-done {m['median_latency_s']:.2f} s, "
+          f"90th percentile {m['p90_latency_s']:.2f} s; first submit to last done {m['first_submit_to_last_done_s']:.2f} s "
+          f"(median / last = {m['median_over_last']:.2f}); states {m['states']}")
+    if not args.skip_large:
+        report["small_among_large"] = s = small_among_large(args.out)
+        print(f"ten default jobs and one of 512 spheres in one batch: the small one done after {s['small_done_s']:.1f} s, "
+              f"the first default after {s['first_large_done_s']:.1f} s, the last after {s['last_large_done_s']:.1f} s; "
+              f"states {s['states']}")
+    (args.out / "small_jobs.json").write_text(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
