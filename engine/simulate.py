@@ -6,9 +6,10 @@ Public API (used by the CLI and the job worker)::
         checkpoint_interval=60.0, backend=None) -> RunSummary
 
 The per-scene protocol below lives in one object, :class:`SceneRun`, and one loop, :func:`drive`,
-advances any number of them on an ensemble (engine/backends/ensemble.py): :func:`run` is a scene of
-one on a :class:`~engine.backends.ensemble.SerialEnsemble`, ``engine.ensemble.run_ensemble`` packs
-many scenes into one ensemble.
+advances any number of them on an ensemble (engine/backends/ensemble.py, the interface
+engine/backends/protocol.py): :func:`run` is an ensemble of one scene (``make_ensemble``: on the CPU a
+:class:`~engine.backends.ensemble.SerialEnsemble`, on the GPU the shape's CUDA ensemble itself),
+``engine.ensemble.run_ensemble`` packs many scenes into one ensemble.
 
 Protocol (paper 001): a homogeneous non-overlapping start with Gaussian translational and angular
 velocities at equal temperatures, ``thermalization`` collisions per particle with dissipation off
@@ -40,7 +41,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from engine.backends.base import ContactParams
-from engine.backends.ensemble import SerialEnsemble, check_backend_name, ensemble_scene_builds, resolve_backend
+from engine.backends.ensemble import check_backend_name, make_ensemble, resolve_backend
 from engine.errors import Cancelled, InstabilityError, SpecError
 from engine.h5md import H5MDWriter, partial_path, replace_file, writer_process_ready
 from engine.params import Q_SPHERE, Derived, derive
@@ -70,15 +71,27 @@ class Progress:
 
 @dataclass
 class RunSummary:
+    """What a finished run reports. Two wall times: :attr:`loop_s`, the time loop's (thermalisation + cooling
+    steps, after compilation and placement; stored as ``wall_s``, the name the job queue reads), and
+    ``job_wall_s``, the whole job's, from the spec to the closed result file. Cundall numbers (particle-steps
+    per wall second): ``cundall`` of the loop, ``cundall_e2e`` of the whole job."""
+
     output: Path
     backend: str
     device: str
     n_particles: int
     steps: int                    # cooling + thermalisation steps advanced
-    wall_s: float                 # wall seconds of the time loop (after compilation and placement)
-    cundall: float                # N * steps / wall_s
+    wall_s: float                 # wall seconds of the time loop (= loop_s)
+    cundall: float                # N * steps / loop_s
     resumed_from_step: Optional[int] = None
     extra: dict = field(default_factory=dict)   # run attributes; "timings": wall s per phase (TIMINGS)
+    job_wall_s: Optional[float] = None          # wall seconds from the spec to the closed result file
+    cundall_e2e: Optional[float] = None         # N * steps / job_wall_s
+
+    @property
+    def loop_s(self) -> float:
+        """Wall seconds of the time loop (the same number as ``wall_s``)."""
+        return self.wall_s
 
 
 #: Where a job's wall time goes (RunSummary.extra["timings"], /parameters@timings), seconds:
@@ -214,6 +227,8 @@ class SceneRun:
         from engine.shapes import host, traits
 
         t_setup = time.perf_counter()
+        #: when this job began (its spec given); run_ensemble sets the ensemble's start: the job wall time's origin
+        self.t_begin = t_setup
         spec = load_spec(spec)
         self.spec = spec
         self.shape = host(spec.shape)
@@ -232,7 +247,7 @@ class SceneRun:
         check_backend_name(backend or spec.backend)
         p0 = derive(spec)
         self.startup = begin_gpu_startup(spec, backend or spec.backend, run_contacts(spec, p0), p0)
-        # a GPU job's large sphere start is drawn by its backend on the device (engine/backends/cuda_start.py)
+        # a GPU job's large sphere start is drawn by its backend on the device (engine/loops/cuda_start.py)
         if self.startup is not None and resume is None and device_start(spec):
             system = self.shape.initial_system(spec, p0, on_device=True)
         else:
@@ -460,9 +475,12 @@ class SceneRun:
         t0 = time.perf_counter()
         path = fut.result()
         self.ck.clear()
-        tm["close"] += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        tm["close"] += t1 - t0
+        job_wall = t1 - self.t_begin
         return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
                           wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
+                          job_wall_s=job_wall, cundall_e2e=self.n * self.steps_run / job_wall if job_wall > 0 else 0.0,
                           extra={**(info or {}), "timings": dict(tm), **self._startup_info(),
                                  **self.summary_extra})
 
@@ -528,46 +546,36 @@ class _FrameSlots:
 class _SceneView:
     """Scene ``i`` of an ensemble, seen as a single backend by :meth:`SceneRun.at_stop`.
 
-    ``observe()`` reads the ensemble's observables once per driver round (shared by every scene that
-    stops in that round), or only this scene's where the ensemble offers ``observe_scene``.
+    ``observe()`` reads the ensemble's observables once per driver round, shared by every scene that stops in
+    that round, where the ensemble ``shares_observation`` (packed CUDA); else only this scene's.
     """
 
     def __init__(self, ens, i: int, cache: dict, slots: "_FrameSlots"):
         self.ens, self.i, self.cache, self.slots = ens, i, cache, slots
-        # what the ensemble offers, looked up once (a view serves every stop of its scene)
-        self._one = getattr(ens, "observe_scene", None)
-        self._one_later = getattr(ens, "observe_scene_later", None)
-        self._later = getattr(ens, "observe_later", None)
+        self._shared = ens.shares_observation
 
     def observe(self) -> dict:
-        one = self._one
-        if one is not None:
-            return one(self.i)
+        if not self._shared:
+            return self.ens.observe_scene(self.i)
         if "all" not in self.cache:
             self.cache["all"] = self.ens.observe()
         return self.cache["all"][self.i]
 
     def observe_later(self) -> Callable[[], dict]:
-        """A function giving :meth:`observe`'s dict: the values are queued now (one observation per round, shared
-        by the round's scenes) and read and built when it is called, where the ensemble offers
-        ``observe_scene_later`` or ``observe_later`` (CUDA); else read now."""
-        if self._one_later is not None:
-            return self._one_later(self.i)
-        later = self._later
-        if later is None or self._one is not None:
-            obs = self.observe()
-            return lambda: obs
+        """A function giving :meth:`observe`'s dict: the values are queued now and read and built when it is
+        called where the ensemble's device allows (CUDA; one observation per round, shared by the round's scenes),
+        else read now."""
+        if not self._shared:
+            return self.ens.observe_scene_later(self.i)
         if "later" not in self.cache:
-            self.cache["later"] = later()
+            self.cache["later"] = self.ens.observe_later()
         f, i = self.cache["later"], self.i
         return lambda: f(i)
 
     def state(self, reuse=False) -> dict:
         """Scene i's state in id order; ``reuse`` (True or a buffer slot): the arrays may be buffers that the
         next call with the same slot overwrites."""
-        if reuse is not False and getattr(self.ens, "reuses_state_buffers", False):
-            return self.ens.state(self.i, reuse=reuse)
-        return self.ens.state(self.i)
+        return self.ens.state(self.i, reuse=reuse)
 
     def contacts(self):
         return self.ens.contacts(self.i)
@@ -578,16 +586,6 @@ class _SceneView:
         self.cache.pop("later", None)
 
 
-def _set_contacts(ens, contacts: dict) -> None:
-    """Set the contacts {scene: contact} of the ensemble, at once where it offers ``set_contacts``."""
-    many = getattr(ens, "set_contacts", None)
-    if many is not None:
-        many(contacts)
-    else:
-        for i, c in contacts.items():
-            ens.set_contact(i, c)
-
-
 #: environment switch: "0" = a stop's record work is done at once, not while the GPU does the next steps
 OVERLAP_RECORDS_ENV = "DEMQ_OVERLAP_RECORDS"
 
@@ -595,15 +593,15 @@ OVERLAP_RECORDS_ENV = "DEMQ_OVERLAP_RECORDS"
 class _Deferred:
     """The record work of the last round's stops (issue 14 item 4: the GPU stays busy across records).
 
-    An ensemble with an ``idle`` hook (the packed CUDA ensemble) calls :meth:`run_one` while it waits for the
+    An ensemble that ``waits_for_device`` (CUDA) calls its ``idle`` hook, :meth:`run_one`, :meth:`run_one` while it waits for the
     GPU in its next advance; what is left runs in :meth:`drain`, before the next round's stops. A scene's units
     run in order, and all of them before its next stop, snapshot, checkpoint or end. A unit's error (e.g. the
     energy check's InstabilityError) is kept for the driver, which ends that scene; its later units are dropped.
-    Off (``on`` False) for ensembles without the hook and with DEMQ_OVERLAP_RECORDS=0.
+    Off (``on`` False) for ensembles that do not wait for a device and with DEMQ_OVERLAP_RECORDS=0.
     """
 
     def __init__(self, ens):
-        self.on = hasattr(ens, "idle") and os.environ.get(OVERLAP_RECORDS_ENV) != "0"
+        self.on = ens.waits_for_device and os.environ.get(OVERLAP_RECORDS_ENV) != "0"
         self.units: deque = deque()
         self.errors: list = []
         if self.on:
@@ -648,9 +646,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
 
     Each round: every scene that stands at the start of a segment checks its cancel request (a cancelled
     scene drops out with Cancelled, its partial file removed); the active scenes are advanced — by their
-    own distances to their next stops when the ensemble offers ``advance_each`` (and ``lockstep`` is not
+    own distances to their next stops when the ensemble has ``independent_steps`` (and ``lockstep`` is not
     True), else all by the distance to the nearest stop of any scene (``advance``); then every scene at a
-    stop handles it (a stop that only records, on an ensemble with an ``idle`` hook, hands its record work to
+    stop handles it (a stop that only records, on an ensemble that ``waits_for_device``, hands its record work to
     the next advance's waits for the GPU: :class:`_Deferred`). A scene that blows up (InstabilityError from the
     ensemble or its own checks) drops out with that error and only its file is aborted; a finished scene writes
     its file and drops out.
@@ -686,9 +684,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     try:
         rounds = max(len(r.warm_contacts) for r in runs)
         for r_ in range(rounds):
-            _set_contacts(ens, {i: r.warm_contacts[min(r_, len(r.warm_contacts) - 1)] for i, r in enumerate(runs)})
+            ens.set_contacts({i: r.warm_contacts[min(r_, len(r.warm_contacts) - 1)] for i, r in enumerate(runs)})
             ens.warmup()
-        _set_contacts(ens, {i: r.initial_contact for i, r in enumerate(runs)})
+        ens.set_contacts({i: r.initial_contact for i, r in enumerate(runs)})
         shared["compile"] = time.perf_counter() - t0
     except Exception as exc:  # the ensemble cannot compile: every scene fails with the reason
         for k in live:
@@ -722,35 +720,30 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     def finish(done: list) -> None:
         """Finish the scenes that ended this round: all files handed over first (deferred ones are then
         written in parallel by the writer processes), then each waited for and settled."""
-        info = getattr(ens, "scene_info", None)
         begun = []
         for i in done:
-            builds = ensemble_scene_builds(ens, i)
             try:
                 begun.append((i, runs[i].finish_begin(
-                    ens.name, ens.device, ens.builds if builds is None else builds,
-                    {"ensemble_size": size, "ensemble_index": i, **(info(i) if info else {})},
+                    ens.name, ens.device, ens.scene_builds(i),
+                    {"ensemble_size": size, "ensemble_index": i, **ens.scene_info(i)},
                     shared_timings=shared)))
             except Exception as exc:
                 end(i, exc)
         if not begun:
             return
-        many = getattr(ens, "deactivate_many", None)
-        if many is not None:
-            many([i for i, _ in begun])
+        ens.deactivate_many([i for i, _ in begun])
         for i, b in begun:
             try:
                 summary = runs[i].finish_end(b)
             except Exception as exc:
                 runs[i].abort()
-                settle(i, exc, deactivated=many is not None)
+                settle(i, exc, deactivated=True)
                 continue
-            settle(i, summary, deactivated=many is not None)
+            settle(i, summary, deactivated=True)
 
-    per_scene = hasattr(ens, "advance_each") and not lockstep
-    plan = getattr(ens, "plan", None)
-    if plan is not None:  # how long the run goes on (the auto list mode weighs a probe against it)
-        plan(max((r.p.n_steps if r.phase == "cooling" else r.total_steps) - r.step_done for r in runs))
+    per_scene = ens.independent_steps and not lockstep
+    # how long the run goes on (the auto list mode weighs a probe against it)
+    ens.plan(max((r.p.n_steps if r.phase == "cooling" else r.total_steps) - r.step_done for r in runs))
     if _defer_files(ens, runs):  # many small GPU scenes: files written at the end, in parallel processes
         from engine import h5md_pool
 
@@ -900,7 +893,7 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     """
     scene = SceneRun(spec, output, progress=progress, should_cancel=should_cancel, checkpoint_dir=checkpoint_dir,
                      checkpoint_interval=checkpoint_interval, backend=backend)
-    (result,) = drive([scene], lambda systems, contacts: SerialEnsemble(scene.backend, systems, contacts))
+    (result,) = drive([scene], lambda systems, contacts: make_ensemble(scene.backend, systems, contacts))
     if isinstance(result, BaseException):
         raise result
     return result
