@@ -232,10 +232,14 @@ def _device_start_dtypes(spec) -> Optional[tuple]:
 
 
 def _standin(spec, p):
-    """The stand-in scene of ``spec``'s shape (its plug-in's ``standin_system``), or None for a species mixture
-    (its multigrid lists are not those of one size)."""
+    """The stand-in scene of ``spec``'s shape (its plug-in's ``standin_system``), or None: a species mixture (its
+    multigrid lists are not those of one size), or a plug-in without that optional hook (engine/shapes/README.md)."""
     from engine.shapes import host
 
     if spec.species:
         return None
-    return host(spec.shape).standin_system(p, STANDIN_EDGE)
+    try:
+        make = host(spec.shape).standin_system
+    except AttributeError:   # the hook is optional: the start-up then starts the driver and the context only
+        return None
+    return make(p, STANDIN_EDGE)
