@@ -91,3 +91,37 @@ def test_capabilities_are_declared_not_probed():
     assert SerialEnsemble.independent_steps and not CudaEnsemble.independent_steps
     assert CudaEnsemble.shares_observation and not SerialEnsemble.shares_observation
     assert CudaEnsemble.waits_for_device and CudaBackend.waits_for_device and not CpuBackend.waits_for_device
+
+
+_ONE_GPU_JOB = r"""
+from tests.cudasim import fast_block_polling
+fast_block_polling()
+import numpy as np
+from engine.backends.ensemble import SerialEnsemble, make_ensemble
+from engine.errors import InstabilityError
+from engine.shapes import host
+from tests.engine.test_cuda_simulator import contact, tiny_system
+
+ens = make_ensemble("cuda", [tiny_system()], [contact()])
+assert type(ens) is host("sphere").cuda_ensemble() and not isinstance(ens, SerialEnsemble)
+assert ens.n_scenes == 1 and ens.scene_info(0) == {}            # GPU-built lists: nothing to add to the file
+lone = make_ensemble("cuda", [tiny_system()], [contact(list_mode="cpu-sequential")])
+assert lone.lists is not None and lone.scene_info(0)["list_mode"] == "cpu-sequential"
+bad = tiny_system()
+bad.position[1] = bad.position[0] + np.array([0.05, 0.0, 0.0])   # radius 0.1: an overlap of half a diameter
+try:
+    make_ensemble("cuda", [bad], [contact()])
+except InstabilityError as exc:
+    print("RAISED", exc)
+print("ONE-PATH-OK")
+"""
+
+
+def test_a_lone_gpu_job_is_its_ensemble_itself():
+    """One scene on the GPU (engine.run's path) is the shape's CUDA ensemble itself, not wrapped: it takes the
+    scene's list mode and raises a start that fails at t = 0 at once, as a CPU backend's constructor does."""
+    from tests.cudasim import run_children
+
+    (rc, out, err), = run_children({"one": ["-c", _ONE_GPU_JOB]}, timeout=600).values()
+    assert rc == 0, err[-3000:]
+    assert "ONE-PATH-OK" in out and "RAISED" in out and "overlap" in out.split("RAISED", 1)[1].lower(), out
