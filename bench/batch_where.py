@@ -52,7 +52,7 @@ def main() -> None:
     for owner, name, label in ((sim.SceneRun, "at_stop", "at_stop"), (sim._Deferred, "drain", "drain"),
                                (sim, "_build", "build"), (sim.SceneRun, "open", "open"),
                                (sim.SceneRun, "finish_begin", "finish_begin"),
-                               (sim.SceneRun, "finish_end", "finish_end"), (sim, "_set_contacts", "set_contacts"),
+                               (sim.SceneRun, "finish_end", "finish_end"), (cb.CudaEnsemble, "set_contacts", "set_contacts"),
                                (cb.CudaEnsemble, "advance", "advance"),
                                (cb.CudaEnsemble, "observe_later", "ensemble observe_later"),
                                (cb.CudaEnsemble, "deactivate_many", "deactivate_many"), (sim, "drive", "drive")):

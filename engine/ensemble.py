@@ -41,7 +41,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from engine.backends.registry import make_backend
 from engine.backends.ensemble import make_ensemble, resolve_backend
 from engine.startup import release_early, start_driver
 from engine.errors import EngineError, SpecError
@@ -56,11 +55,12 @@ def check_compatible(specs: Sequence, backend: Optional[str] = None) -> str:
     """The backend ('cpu' or 'cuda') an ensemble of these specs runs on; SpecError if they cannot share one."""
     if not specs:
         raise SpecError("an ensemble needs at least one spec")
+    shared = [s.model_dump(include=set(SHARED_FIELDS)) for s in specs]
     for name in SHARED_FIELDS:
-        first = getattr(specs[0], name)
-        for k, s in enumerate(specs):
-            if getattr(s, name) != first:
-                raise SpecError(f"{name} = {getattr(s, name)!r} of scene {k} differs from {name} = {first!r} of "
+        first = shared[0][name]
+        for k, fields in enumerate(shared):
+            if fields[name] != first:
+                raise SpecError(f"{name} = {fields[name]!r} of scene {k} differs from {name} = {first!r} of "
                                 f"scene 0: the scenes of an ensemble share {' and '.join(SHARED_FIELDS)}")
     resolved = {}
     for k, s in enumerate(specs):
@@ -117,8 +117,9 @@ def run_ensemble(specs, outputs, *, progress: Optional[Callable[[int, Progress],
     for s in scenes:
         if isinstance(s, SceneRun):
             s.summary_extra["ensemble_setup_s"] = setup_s
+            s.t_begin = t_setup          # a scene's job wall time counts the ensemble's set-up
     return drive(scenes, lambda systems, contacts: make_ensemble(name, systems, contacts),
-                 build_one=lambda system, contact: make_backend(name, system, contact), on_result=on_result)
+                 build_one=lambda system, contact: make_ensemble(name, [system], [contact]), on_result=on_result)
 
 
 #: scenes of an ensemble at least this many are set up (their particles placed) on several threads
@@ -134,5 +135,12 @@ def _setup_threads(specs) -> int:
 
     if len(specs) < SETUP_THREADS_MIN_SCENES or any(start_generator(s) != SEQUENTIAL_GENERATOR for s in specs):
         return 1
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(1, min(8, cores, len(specs) - 1))
+    return max(1, min(8, _cores(), len(specs) - 1))
+
+
+def _cores() -> int:
+    """CPU cores this process may use (its affinity where the platform has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no sched_getaffinity on this platform
+        return os.cpu_count() or 1

@@ -6,15 +6,20 @@ Public API (used by the CLI and the job worker)::
         checkpoint_interval=60.0, backend=None) -> RunSummary
 
 The per-scene protocol below lives in one object, :class:`SceneRun`, and one loop, :func:`drive`,
-advances any number of them on an ensemble (engine/backends/ensemble.py): :func:`run` is a scene of
-one on a :class:`~engine.backends.ensemble.SerialEnsemble`, ``engine.ensemble.run_ensemble`` packs
-many scenes into one ensemble.
+advances any number of them on an ensemble (engine/backends/ensemble.py, the interface
+engine/backends/protocol.py): :func:`run` is an ensemble of one scene (``make_ensemble``: on the CPU a
+:class:`~engine.backends.ensemble.SerialEnsemble`, on the GPU the shape's CUDA ensemble itself),
+``engine.ensemble.run_ensemble`` packs many scenes into one ensemble.
 
 Protocol (paper 001): a homogeneous non-overlapping start with Gaussian translational and angular
 velocities at equal temperatures, ``thermalization`` collisions per particle with dissipation off
 (e_n = 1; rough spheres keep a perfectly rough elastic spring, e_t = 1, smooth ones stay smooth), then
 the cooling run from t = 0 to t_end with the spec's contact law. Observables are recorded every
 ``output_interval``; ``snapshots`` full frames are spread evenly over [0, t_end].
+
+Outputs are writers with triggers (engine/writers/): the records writer (observables and the energy check) at the
+record steps, the snapshot writer at the snapshot steps, the progress writer at every stop, the checkpoint writer
+every ``checkpoint_interval`` wall seconds; :func:`drive` only advances the scenes stop to stop (:class:`_Runner`).
 
 Checkpoints (for the job queue): every ``checkpoint_interval`` wall seconds the driver writes
 ``checkpoint_dir/state.npz`` (state, contact springs, clock) and a copy of the partial HDF5 file,
@@ -27,12 +32,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import shutil
 import time
 from collections import deque
-from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -40,45 +43,47 @@ from typing import Callable, Optional
 import numpy as np
 
 from engine.backends.base import ContactParams
-from engine.backends.ensemble import SerialEnsemble, check_backend_name, ensemble_scene_builds, resolve_backend
-from engine.errors import Cancelled, InstabilityError, SpecError
-from engine.h5md import H5MDWriter, partial_path, replace_file, writer_process_ready
+from engine.backends.ensemble import check_backend_name, make_ensemble, resolve_backend
+from engine.errors import Cancelled, SpecError
+from engine.h5md import H5MDWriter, partial_path, writer_process_ready
 from engine.params import Q_SPHERE, Derived, derive
-from engine.physics.sonine import sonine_observables
 from engine.precision import output_dtype
 from engine.spec import SimulationSpec, default_verlet_skin, load_spec
 from engine.start_kind import device_start
 from engine.startup import begin as begin_gpu_startup
+from engine.writers.checkpoints import Checkpointer
+from engine.writers.progress import Progress, ProgressWriter
+from engine.writers.records import ENERGY_RISE_TOLERANCE, RecordWriter, record
+from engine.writers.snapshots import FrameSlots, SnapshotWriter
 
-#: In a dissipative run the total mechanical energy may not rise between records by more than this
-#: fraction (integration error is O(dt^2) ~ 1e-4 at dt = t_c/50; a real rise means instability).
-ENERGY_RISE_TOLERANCE = 1e-2
-
-
-@dataclass
-class Progress:
-    """What the driver reports every output interval."""
-
-    phase: str            # "thermalization" | "cooling"
-    fraction: float       # 0..1 of the whole run (thermalisation + cooling), by steps
-    step: int             # cooling-run step (negative during thermalisation)
-    time: float           # simulated time in s (t = 0 at the start of the cooling run)
-    eta_s: float          # estimated wall seconds left
-    cundall: float        # particle-steps per wall second so far (time loop only)
-    wall_s: float         # wall seconds since the time loop started
-
+#: the names this module has always offered (the writers moved to engine/writers/)
+__all__ = ["ENERGY_RISE_TOLERANCE", "Progress", "RunSummary", "SceneRun", "TIMINGS", "SHARED_TIMINGS", "contact_params",
+           "drive", "record", "run", "run_contacts", "schedule", "warm_process"]
+_FrameSlots = FrameSlots
 
 @dataclass
 class RunSummary:
+    """What a finished run reports. Two wall times: :attr:`loop_s`, the time loop's (thermalisation + cooling
+    steps, after compilation and placement; stored as ``wall_s``, the name the job queue reads), and
+    ``job_wall_s``, the whole job's, from the spec to the closed result file. Cundall numbers (particle-steps
+    per wall second): ``cundall`` of the loop, ``cundall_e2e`` of the whole job."""
+
     output: Path
     backend: str
     device: str
     n_particles: int
     steps: int                    # cooling + thermalisation steps advanced
-    wall_s: float                 # wall seconds of the time loop (after compilation and placement)
-    cundall: float                # N * steps / wall_s
+    wall_s: float                 # wall seconds of the time loop (= loop_s)
+    cundall: float                # N * steps / loop_s
     resumed_from_step: Optional[int] = None
     extra: dict = field(default_factory=dict)   # run attributes; "timings": wall s per phase (TIMINGS)
+    job_wall_s: Optional[float] = None          # wall seconds from the spec to the closed result file
+    cundall_e2e: Optional[float] = None         # N * steps / job_wall_s
+
+    @property
+    def loop_s(self) -> float:
+        """Wall seconds of the time loop (the same number as ``wall_s``)."""
+        return self.wall_s
 
 
 #: Where a job's wall time goes (RunSummary.extra["timings"], /parameters@timings), seconds:
@@ -112,85 +117,10 @@ def run_contacts(spec: SimulationSpec, p: Derived) -> tuple:
 
 
 def schedule(p: Derived, snapshots: int) -> tuple[np.ndarray, set]:
-    """Event steps of the cooling run (records and snapshots) and the set of snapshot steps."""
-    records = set(range(0, p.n_steps + 1, p.output_every)) | {p.n_steps}
-    if snapshots <= 0:
-        snaps = set()
-    elif snapshots == 1:
-        snaps = {p.n_steps}
-    else:
-        snaps = set(np.round(np.linspace(0, p.n_steps, snapshots)).astype(int).tolist())
+    """Event steps of the cooling run (the record and snapshot writers' trigger steps) and the snapshot steps."""
+    records = RecordWriter(p, 0, False).trigger.steps()
+    snaps = SnapshotWriter(p.n_steps, snapshots).trigger.steps()
     return np.array(sorted(records | snaps)), snaps
-
-
-def record(obs: dict, n: int) -> dict:
-    """Observables written every record (temperatures per degree of freedom, J).
-
-    Ellipsoids: T_rot counts the two rotational degrees of freedom that exchange energy (about the
-    axes perpendicular to the symmetry axis), T_rot = E_rot,perp / N (paper 003 Eq. 25b as corrected in
-    PHYSICS-NOTES §3.3); kinetic_energy_rotational stays the total.
-
-    Velocity-distribution shape (issue 18), dimensionless, where the backend reports the energy moments:
-    ``sonine_a2_translational`` (a2 of the translational energies, d = 3), ``sonine_a2_rotational`` (of the
-    rotational energies: spheres d = 3, spheroids the 2 active dof) and ``sonine_a11`` (the cross cumulant
-    <e_tr e_rot>/(<e_tr><e_rot>) - 1), all from engine/physics/sonine.py (energy form, lab frame = centre-of-mass
-    frame; 0 where the energy of those dof is zero). O(1) host work per record: the moments are per-scene sums
-    of the observe kernel.
-    """
-    if "kinetic_energy_rotational_active" in obs:
-        t_rot = 2.0 * obs["kinetic_energy_rotational_active"] / (obs.get("rotational_dof", 2) * n)
-    else:
-        t_rot = 2.0 * obs["kinetic_energy_rotational"] / (3.0 * n)
-    return {
-        "kinetic_energy_translational": obs["kinetic_energy_translational"],
-        "kinetic_energy_rotational": obs["kinetic_energy_rotational"],
-        "temperature_translational": 2.0 * obs["kinetic_energy_translational"] / (3.0 * n),
-        "temperature_rotational": t_rot,
-        "contacts": np.int64(obs["contacts"]),
-        "elastic_energy": obs["elastic_energy"],
-        "max_overlap": obs["max_overlap"],
-        **sonine_observables(obs, n),
-        # contacts begun since the scene started, thermalisation included (spheres; issue 18's collision counter)
-        **({"collisions": np.int64(obs["collisions"])} if "collisions" in obs else {}),
-    }
-
-
-class _Checkpointer:
-    """Writes and reads ``state.npz`` + ``partial.h5`` in a checkpoint directory (atomically)."""
-
-    def __init__(self, directory, interval: float):
-        self.dir = Path(directory) if directory is not None else None
-        self.interval = interval
-        self.last = time.monotonic()
-
-    def load(self, spec_json: str):
-        if self.dir is None or not (self.dir / "state.npz").exists():
-            return None
-        data = dict(np.load(self.dir / "state.npz", allow_pickle=False))
-        if str(data["spec"]) != spec_json or not (self.dir / "partial.h5").exists():
-            return None
-        return data
-
-    def due(self) -> bool:
-        return self.dir is not None and time.monotonic() - self.last >= self.interval
-
-    def save(self, writer: H5MDWriter, backend, *, phase: str, step_done: int, extra: dict) -> None:
-        self.dir.mkdir(parents=True, exist_ok=True)
-        writer.flush()
-        tmp_h5 = self.dir / "partial.h5.tmp"
-        shutil.copyfile(writer.tmp, tmp_h5)
-        st = backend.state(reuse=True)  # consumed by np.savez below
-        pairs, springs = backend.contacts()
-        tmp = self.dir / "state.tmp.npz"
-        np.savez(tmp, phase=phase, step_done=step_done, counts=json.dumps(writer.frame_counts()),
-                 pairs=pairs, springs=springs, **st, **extra)
-        replace_file(tmp_h5, self.dir / "partial.h5")
-        replace_file(tmp, self.dir / "state.npz")
-        self.last = time.monotonic()
-
-    def clear(self) -> None:
-        if self.dir is not None and self.dir.exists():
-            shutil.rmtree(self.dir, ignore_errors=True)
 
 
 class SceneRun:
@@ -214,6 +144,8 @@ class SceneRun:
         from engine.shapes import host, traits
 
         t_setup = time.perf_counter()
+        #: when this job began (its spec given); run_ensemble sets the ensemble's start: the job wall time's origin
+        self.t_begin = t_setup
         spec = load_spec(spec)
         self.spec = spec
         self.shape = host(spec.shape)
@@ -225,14 +157,14 @@ class SceneRun:
         self.spec_json = spec.to_json()
         #: added to the RunSummary's extra only (not to the file): engine.ensemble's set-up wall time
         self.summary_extra: dict = {}
-        self.ck = _Checkpointer(checkpoint_dir, checkpoint_interval)
+        self.ck = Checkpointer(checkpoint_dir, checkpoint_interval)
         self.resume = resume = self.ck.load(self.spec_json)
         # the start does not depend on the Verlet skin, so the particles are placed before the backend is
         # resolved: meanwhile the GPU starts up on its own thread (engine/startup.py)
         check_backend_name(backend or spec.backend)
         p0 = derive(spec)
         self.startup = begin_gpu_startup(spec, backend or spec.backend, run_contacts(spec, p0), p0)
-        # a GPU job's large sphere start is drawn by its backend on the device (engine/backends/cuda_start.py)
+        # a GPU job's large sphere start is drawn by its backend on the device (engine/loops/cuda_start.py)
         if self.startup is not None and resume is None and device_start(spec):
             system = self.shape.initial_system(spec, p0, on_device=True)
         else:
@@ -274,10 +206,14 @@ class SceneRun:
         self._event_steps = self.events.tolist()   # the same as Python ints: read at every stop
         self.wall = 0.0       # wall seconds of this attempt's time loop (advances this scene took part in)
         self.steps_run = 0
-        self.prev_energy = float(resume["prev_energy"]) if resume is not None else math.inf
+        dissipative = spec.e_n < 1.0 or (not spec.smooth and spec.e_t < 1.0) or spec.friction is not None
+        # the output writers (engine/writers/): records with the energy check, snapshots, progress; checkpoints: ck
+        self.records = RecordWriter(p, self.n, dissipative,
+                                    float(resume["prev_energy"]) if resume is not None else None)
+        self.snapshots = SnapshotWriter(p.n_steps, spec.snapshots)
+        self.progress_writer = ProgressWriter(progress, self.n, self.total_steps)
         # collisions counted before a resume (the new backend's counter starts at 0)
         self.coll_base = int(resume["collisions"]) if resume is not None and "collisions" in resume else 0
-        self.dissipative = spec.e_n < 1.0 or (not spec.smooth and spec.e_t < 1.0) or spec.friction is not None
         self.writer: Optional[H5MDWriter] = None
         self.done = False
         self._chunk = max(1, p.output_every)
@@ -342,78 +278,74 @@ class SceneRun:
         self.timings["open"] += time.perf_counter() - t0
 
     def at_stop(self, view, defer: Optional[Callable[[Callable[[], None]], None]] = None) -> None:
-        """Handle the stop the scene has reached (records, energy check, snapshot, progress, checkpoint).
+        """Handle the stop the scene has reached: each writer whose trigger fires here acts (engine/writers/:
+        records with the energy check, snapshot, progress, checkpoint).
 
         ``defer(fn)``, when given, takes the work of a stop that only records (no snapshot, checkpoint or end):
         the driver runs ``fn`` while the GPU does the next steps, and in any case before this scene's next stop
         (engine.simulate.drive, _Deferred). The observables are read now; the record, energy check and progress
         report are the same, only later."""
-        p, writer = self.p, self.writer
         if self.phase == "thermalization":
-            # dissipation off, nothing recorded
-            self._report("thermalization", self.step_done, (self.step_done - p.n_thermalization_steps) * p.dt,
-                         self.step_done - p.n_thermalization_steps)
-            if self.ck.due():
-                t0 = time.perf_counter()
-                self.ck.save(writer, view, phase="thermalization", step_done=self.step_done,
-                             extra=self._ck_extra(self._counted(view.observe())))
-                self.timings["checkpoints"] += time.perf_counter() - t0
-            if self.step_done >= p.n_thermalization_steps:
-                self.phase, self.step_done = "cooling", 0
-                view.set_contact(self.cool)
-                self._enter_cooling(skip_current=False)
-            else:
-                self._target = min(self.step_done + self._chunk, p.n_thermalization_steps)
+            self._thermalization_stop(view)
             return
-
+        p = self.p
         step_done = self.step_done
         t_sim = step_done * p.dt
-        tm = self.timings
         ck_due = self.ck.due() and step_done < p.n_steps
-        if defer is not None and step_done not in self.snaps and step_done < p.n_steps and not ck_due:
-            obs_later = view.observe_later()
-
-            def later() -> None:
-                t0 = time.perf_counter()
-                self._record(step_done, t_sim, self._counted(obs_later()))
-                tm["records"] += time.perf_counter() - t0
-                self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
-
-            defer(later)
+        if defer is not None and not self.snapshots.trigger(step_done) and step_done < p.n_steps and not ck_due:
+            defer(self._record_later(view.observe_later(), step_done, t_sim))
             self._next_event()
             return
+        tm = self.timings
         t0 = time.perf_counter()
         obs = self._counted(view.observe())
         self._record(step_done, t_sim, obs)
         t1 = time.perf_counter()
         tm["records"] += t1 - t0
-        if step_done in self.snaps:
-            # two buffer slots (host memory reused on CUDA), shared by all scenes of the ensemble (view.slots):
-            # the I/O thread writes one frame while the run goes on; a slot is reused, by any scene, only after
-            # its previous frame is in the file (waited for, not raised: a failed write is its writer's error)
-            slot = view.slots.take()
-            view.slots.busy[slot] = writer.snapshot(step_done, t_sim, view.state(reuse=2 + slot))
+        if self.snapshots.trigger(step_done):
+            self.snapshots.write(self.writer, step_done, t_sim, view)
             tm["snapshots"] += time.perf_counter() - t1
         self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
         if ck_due:
             t0 = time.perf_counter()
-            self.ck.save(writer, view, phase="cooling", step_done=step_done, extra=self._ck_extra(obs))
+            self.ck.save(self.writer, view, phase="cooling", step_done=step_done, extra=self._ck_extra(obs))
             tm["checkpoints"] += time.perf_counter() - t0
         self._next_event()
 
-    def _record(self, step_done: int, t_sim: float, obs: dict) -> None:
-        """Write the record of a record step and check that a dissipative run's energy did not rise."""
+    def _thermalization_stop(self, view) -> None:
+        """A stop of the thermalisation (dissipation off, nothing recorded): progress, checkpoint when due, and at
+        its end the switch to the cooling contact."""
         p = self.p
-        if step_done % p.output_every == 0 or step_done == p.n_steps:
-            self.writer.observables(step_done, t_sim, record(obs, self.n))
-            energy = obs["kinetic_energy_translational"] + obs["kinetic_energy_rotational"] + obs["elastic_energy"]
-            if self.dissipative and energy > self.prev_energy * (1.0 + ENERGY_RISE_TOLERANCE):
-                raise InstabilityError(
-                    f"total energy rose by {100 * (energy / self.prev_energy - 1):.3g} % by step {step_done} "
-                    f"(t = {t_sim:.4g} s) in a dissipative run: likely cause: a time step too large "
-                    f"(dt = {p.dt:.3g} s, contact time {p.contact_time:.3g} s) or overlaps too deep",
-                    step=step_done)
-            self.prev_energy = min(self.prev_energy, energy)
+        self._report("thermalization", self.step_done, (self.step_done - p.n_thermalization_steps) * p.dt,
+                     self.step_done - p.n_thermalization_steps)
+        if self.ck.due():
+            t0 = time.perf_counter()
+            self.ck.save(self.writer, view, phase="thermalization", step_done=self.step_done,
+                         extra=self._ck_extra(self._counted(view.observe())))
+            self.timings["checkpoints"] += time.perf_counter() - t0
+        if self.step_done >= p.n_thermalization_steps:
+            self.phase, self.step_done = "cooling", 0
+            view.set_contact(self.cool)
+            self._enter_cooling(skip_current=False)
+        else:
+            self._target = min(self.step_done + self._chunk, p.n_thermalization_steps)
+
+    def _record_later(self, obs_later: Callable[[], dict], step_done: int, t_sim: float) -> Callable[[], None]:
+        """The record work of a stop, done when the returned function is called (the driver's deferred work)."""
+        tm, p = self.timings, self.p
+
+        def later() -> None:
+            t0 = time.perf_counter()
+            self._record(step_done, t_sim, self._counted(obs_later()))
+            tm["records"] += time.perf_counter() - t0
+            self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
+
+        return later
+
+    def _record(self, step_done: int, t_sim: float, obs: dict) -> None:
+        """The records writer at a stop (engine/writers/records.py: the record when its trigger fires there, and the
+        energy check)."""
+        self.records.write(self.writer, step_done, t_sim, obs)
 
     def _counted(self, obs: dict) -> dict:
         """The observables with the collisions counted before a resume added (a copy: ``obs`` may be shared)."""
@@ -424,7 +356,7 @@ class SceneRun:
     def _ck_extra(self, obs: dict) -> dict:
         """What a checkpoint keeps beside the state: the spec, the energy check's reference and the collision
         count of :meth:`_counted` observables (the resumed run's series continues from it)."""
-        extra = {"spec": self.spec_json, "prev_energy": self.prev_energy}
+        extra = {"spec": self.spec_json, "prev_energy": self.records.prev_energy}
         if "collisions" in obs:
             extra["collisions"] = obs["collisions"]
         return extra
@@ -460,9 +392,12 @@ class SceneRun:
         t0 = time.perf_counter()
         path = fut.result()
         self.ck.clear()
-        tm["close"] += time.perf_counter() - t0
+        t1 = time.perf_counter()
+        tm["close"] += t1 - t0
+        job_wall = t1 - self.t_begin
         return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
                           wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
+                          job_wall_s=job_wall, cundall_e2e=self.n * self.steps_run / job_wall if job_wall > 0 else 0.0,
                           extra={**(info or {}), "timings": dict(tm), **self._startup_info(),
                                  **self.summary_extra})
 
@@ -496,78 +431,43 @@ class SceneRun:
             self._target = self._event_steps[self._idx]
 
     def _report(self, phase: str, done_total: int, t_sim: float, step: int) -> None:
-        if self.progress is None:
-            return
-        total = self.total_steps
-        frac = done_total / total if total else 1.0
-        cund = self.n * self.steps_run / self.wall if self.wall > 0 else 0.0
-        eta = (total - done_total) * self.n / cund if cund > 0 else math.inf
-        self.progress(Progress(phase=phase, fraction=min(1.0, frac), step=step, time=t_sim, eta_s=eta,
-                               cundall=cund, wall_s=self.wall))
-
-
-class _FrameSlots:
-    """The two snapshot buffer slots of an ensemble (its reused host buffers are shared by every scene) and the
-    write still using each (a future, or None)."""
-
-    def __init__(self):
-        self.busy = [None, None]
-        self.last = 1
-
-    def take(self) -> int:
-        """A slot for the next frame, once its earlier frame is written: the first free one (frames far apart
-        all use one slot, so one set of buffers is allocated), else the one used less recently, waited for."""
-        free = [k for k in (0, 1) if self.busy[k] is None or self.busy[k].done()]
-        slot = free[0] if free else 1 - self.last
-        if self.busy[slot] is not None:
-            futures_wait([self.busy[slot]])
-        self.last = slot
-        return slot
+        """The progress writer at a stop (the time loop's steps and wall seconds so far)."""
+        self.progress_writer.write(phase, done_total, t_sim, step, self.steps_run, self.wall)
 
 
 class _SceneView:
     """Scene ``i`` of an ensemble, seen as a single backend by :meth:`SceneRun.at_stop`.
 
-    ``observe()`` reads the ensemble's observables once per driver round (shared by every scene that
-    stops in that round), or only this scene's where the ensemble offers ``observe_scene``.
+    ``observe()`` reads the ensemble's observables once per driver round, shared by every scene that stops in
+    that round, where the ensemble ``shares_observation`` (packed CUDA); else only this scene's.
     """
 
     def __init__(self, ens, i: int, cache: dict, slots: "_FrameSlots"):
         self.ens, self.i, self.cache, self.slots = ens, i, cache, slots
-        # what the ensemble offers, looked up once (a view serves every stop of its scene)
-        self._one = getattr(ens, "observe_scene", None)
-        self._one_later = getattr(ens, "observe_scene_later", None)
-        self._later = getattr(ens, "observe_later", None)
+        self._shared = ens.shares_observation
 
     def observe(self) -> dict:
-        one = self._one
-        if one is not None:
-            return one(self.i)
+        if not self._shared:
+            return self.ens.observe_scene(self.i)
         if "all" not in self.cache:
             self.cache["all"] = self.ens.observe()
         return self.cache["all"][self.i]
 
     def observe_later(self) -> Callable[[], dict]:
-        """A function giving :meth:`observe`'s dict: the values are queued now (one observation per round, shared
-        by the round's scenes) and read and built when it is called, where the ensemble offers
-        ``observe_scene_later`` or ``observe_later`` (CUDA); else read now."""
-        if self._one_later is not None:
-            return self._one_later(self.i)
-        later = self._later
-        if later is None or self._one is not None:
-            obs = self.observe()
-            return lambda: obs
+        """A function giving :meth:`observe`'s dict: the values are queued now and read and built when it is
+        called where the ensemble's device allows (CUDA; one observation per round, shared by the round's scenes),
+        else read now."""
+        if not self._shared:
+            return self.ens.observe_scene_later(self.i)
         if "later" not in self.cache:
-            self.cache["later"] = later()
+            self.cache["later"] = self.ens.observe_later()
         f, i = self.cache["later"], self.i
         return lambda: f(i)
 
     def state(self, reuse=False) -> dict:
         """Scene i's state in id order; ``reuse`` (True or a buffer slot): the arrays may be buffers that the
         next call with the same slot overwrites."""
-        if reuse is not False and getattr(self.ens, "reuses_state_buffers", False):
-            return self.ens.state(self.i, reuse=reuse)
-        return self.ens.state(self.i)
+        return self.ens.state(self.i, reuse=reuse)
 
     def contacts(self):
         return self.ens.contacts(self.i)
@@ -578,16 +478,6 @@ class _SceneView:
         self.cache.pop("later", None)
 
 
-def _set_contacts(ens, contacts: dict) -> None:
-    """Set the contacts {scene: contact} of the ensemble, at once where it offers ``set_contacts``."""
-    many = getattr(ens, "set_contacts", None)
-    if many is not None:
-        many(contacts)
-    else:
-        for i, c in contacts.items():
-            ens.set_contact(i, c)
-
-
 #: environment switch: "0" = a stop's record work is done at once, not while the GPU does the next steps
 OVERLAP_RECORDS_ENV = "DEMQ_OVERLAP_RECORDS"
 
@@ -595,15 +485,15 @@ OVERLAP_RECORDS_ENV = "DEMQ_OVERLAP_RECORDS"
 class _Deferred:
     """The record work of the last round's stops (issue 14 item 4: the GPU stays busy across records).
 
-    An ensemble with an ``idle`` hook (the packed CUDA ensemble) calls :meth:`run_one` while it waits for the
+    An ensemble that ``waits_for_device`` (CUDA) calls its ``idle`` hook, :meth:`run_one`, :meth:`run_one` while it waits for the
     GPU in its next advance; what is left runs in :meth:`drain`, before the next round's stops. A scene's units
     run in order, and all of them before its next stop, snapshot, checkpoint or end. A unit's error (e.g. the
     energy check's InstabilityError) is kept for the driver, which ends that scene; its later units are dropped.
-    Off (``on`` False) for ensembles without the hook and with DEMQ_OVERLAP_RECORDS=0.
+    Off (``on`` False) for ensembles that do not wait for a device and with DEMQ_OVERLAP_RECORDS=0.
     """
 
     def __init__(self, ens):
-        self.on = hasattr(ens, "idle") and os.environ.get(OVERLAP_RECORDS_ENV) != "0"
+        self.on = ens.waits_for_device and os.environ.get(OVERLAP_RECORDS_ENV) != "0"
         self.units: deque = deque()
         self.errors: list = []
         if self.on:
@@ -648,9 +538,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
 
     Each round: every scene that stands at the start of a segment checks its cancel request (a cancelled
     scene drops out with Cancelled, its partial file removed); the active scenes are advanced — by their
-    own distances to their next stops when the ensemble offers ``advance_each`` (and ``lockstep`` is not
+    own distances to their next stops when the ensemble has ``independent_steps`` (and ``lockstep`` is not
     True), else all by the distance to the nearest stop of any scene (``advance``); then every scene at a
-    stop handles it (a stop that only records, on an ensemble with an ``idle`` hook, hands its record work to
+    stop handles it (a stop that only records, on an ensemble that ``waits_for_device``, hands its record work to
     the next advance's waits for the GPU: :class:`_Deferred`). A scene that blows up (InstabilityError from the
     ensemble or its own checks) drops out with that error and only its file is aborted; a finished scene writes
     its file and drops out.
@@ -681,14 +571,9 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     if ens is None:
         return results
     runs = [scenes[k] for k in live]          # ensemble index i -> SceneRun
-    size = len(runs)
     t0 = time.perf_counter()
     try:
-        rounds = max(len(r.warm_contacts) for r in runs)
-        for r_ in range(rounds):
-            _set_contacts(ens, {i: r.warm_contacts[min(r_, len(r.warm_contacts) - 1)] for i, r in enumerate(runs)})
-            ens.warmup()
-        _set_contacts(ens, {i: r.initial_contact for i, r in enumerate(runs)})
+        _compile(ens, runs)
         shared["compile"] = time.perf_counter() - t0
     except Exception as exc:  # the ensemble cannot compile: every scene fails with the reason
         for k in live:
@@ -696,131 +581,170 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
             if on_result is not None:
                 on_result(k, exc)
         return results
+    _Runner(ens, runs, live, results, on_result, shared, lockstep).run()
+    return results
 
-    active: set = set()
-    frame_slots = _FrameSlots()
-    deferred = _Deferred(ens)
-    # per scene, made once (a stop costs host time while the GPU waits for the next round): its view of the
-    # ensemble, whose round cache is one dict cleared every round, and its deferral hook
-    cache: dict = {}
-    views = [_SceneView(ens, i, cache, frame_slots) for i in range(size)]
-    defers = [deferred.for_scene(i) for i in range(size)]
 
-    def settle(i: int, result, deactivated: bool = False) -> None:
-        results[live[i]] = result
-        active.discard(i)
+def _compile(ens, runs: list) -> None:
+    """Compile (or load) the kernels of every contact the scenes will use, in their order, and set the first."""
+    rounds = max(len(r.warm_contacts) for r in runs)
+    for r_ in range(rounds):
+        ens.set_contacts({i: r.warm_contacts[min(r_, len(r.warm_contacts) - 1)] for i, r in enumerate(runs)})
+        ens.warmup()
+    ens.set_contacts({i: r.initial_contact for i, r in enumerate(runs)})
+
+
+class _Runner:
+    """The scenes of one built and compiled ensemble, advanced stop to stop until each has its result (see
+    :func:`drive`): ``runs[i]`` is the SceneRun of ensemble index i, ``live[i]`` its slot in ``results``."""
+
+    def __init__(self, ens, runs: list, live: list, results: list, on_result, shared: dict, lockstep):
+        self.ens, self.runs, self.live, self.results = ens, runs, live, results
+        self.on_result, self.shared = on_result, shared
+        self.size = len(runs)
+        self.active: set = set()
+        self.deferred = _Deferred(ens)
+        # per scene, made once (a stop costs host time while the GPU waits for the next round): its view of the
+        # ensemble, whose round cache is one dict cleared every round, and its deferral hook
+        self.cache: dict = {}
+        frame_slots = FrameSlots()
+        self.views = [_SceneView(ens, i, self.cache, frame_slots) for i in range(self.size)]
+        self.defers = [self.deferred.for_scene(i) for i in range(self.size)]
+        self.per_scene = ens.independent_steps and not lockstep
+
+    def run(self) -> None:
+        ens, runs = self.ens, self.runs
+        # how long the run goes on (the auto list mode weighs a probe against it)
+        ens.plan(max((r.p.n_steps if r.phase == "cooling" else r.total_steps) - r.step_done for r in runs))
+        if _defer_files(ens, runs):  # many small GPU scenes: files written at the end, in parallel processes
+            from engine import h5md_pool
+
+            h5md_pool.prewarm(min(len(runs), h5md_pool.MAX_PROCESSES), ready=writer_process_ready)
+            for r in runs:
+                r.defer_file = True
+        try:
+            self.open_all()
+            at_start = set(self.active)
+            while self.active:
+                self.check_cancels(at_start)
+                if not self.active:
+                    break
+                failed = self.advance()
+                if failed is None:
+                    break
+                # the last round's records first (what the GPU's steps left of them): an error there is earlier
+                for i, exc in list(self.deferred.drain()) + list(failed.items()):
+                    if i in self.active:
+                        self.end(i, exc)
+                self.cache.clear()
+                at_start = self.stops()
+        except BaseException:
+            for i in list(self.active):
+                runs[i].abort()
+            raise
+
+    def open_all(self) -> None:
+        """Open every scene's result file; the scenes that are done at once (nothing to run) finish."""
+        for i, r in enumerate(self.runs):
+            try:
+                r.open()
+            except Exception as exc:
+                self.end(i, exc)
+                continue
+            self.active.add(i)
+        self.finish([i for i in sorted(self.active) if self.runs[i].done])
+
+    def check_cancels(self, at_start: set) -> None:
+        """Every scene at the start of a segment checks its cancel request (Cancelled ends it)."""
+        for i in sorted(at_start & self.active):
+            try:
+                self.runs[i].check_cancel()
+            except Exception as exc:  # Cancelled, or a cancel check that failed
+                self.end(i, exc)
+
+    def advance(self) -> Optional[dict]:
+        """Advance the active scenes to their next stops (per scene, or all by the nearest stop); {i: error} of the
+        scenes that failed, or None when the ensemble itself failed (every active scene then ended with it)."""
+        runs, ens = self.runs, self.ens
+        dist = {i: runs[i].steps_to_next() for i in self.active}
+        failed: dict = {}
+        try:
+            if self.per_scene:
+                todo = {i: d for i, d in dist.items() if d > 0}
+                if todo:
+                    t0 = time.perf_counter()
+                    failed = ens.advance_each(todo)
+                    wall = time.perf_counter() - t0
+                    for i, d in todo.items():
+                        runs[i].advanced(d, wall)
+            else:
+                m = min(dist.values())
+                if m > 0:
+                    t0 = time.perf_counter()
+                    failed = ens.advance(m)
+                    wall = time.perf_counter() - t0
+                    for i in self.active:
+                        runs[i].advanced(m, wall)
+        except Exception as exc:  # the ensemble itself failed: every active scene ends with it
+            for i in sorted(self.active):
+                self.end(i, exc)
+            return None
+        return failed
+
+    def stops(self) -> set:
+        """Every scene at a stop handles it; the finished ones finish. Returns the scenes that start a segment."""
+        runs = self.runs
+        done, at_start = [], set()
+        for i in sorted(i for i in self.active if runs[i].steps_to_next() == 0):
+            try:
+                runs[i].at_stop(self.views[i], self.defers[i])
+            except Exception as exc:
+                self.end(i, exc)
+                continue
+            if runs[i].done:
+                done.append(i)
+            else:
+                at_start.add(i)
+        self.finish(done)
+        return at_start
+
+    def settle(self, i: int, result, deactivated: bool = False) -> None:
+        self.results[self.live[i]] = result
+        self.active.discard(i)
         if not deactivated:
-            ens.deactivate(i)
-        if on_result is not None:
-            on_result(live[i], result)
+            self.ens.deactivate(i)
+        if self.on_result is not None:
+            self.on_result(self.live[i], result)
 
-    def end(i: int, exc: BaseException) -> None:
-        deferred.drop(i)
-        runs[i].abort()
-        settle(i, exc)
+    def end(self, i: int, exc: BaseException) -> None:
+        self.deferred.drop(i)
+        self.runs[i].abort()
+        self.settle(i, exc)
 
-    def finish(done: list) -> None:
+    def finish(self, done: list) -> None:
         """Finish the scenes that ended this round: all files handed over first (deferred ones are then
         written in parallel by the writer processes), then each waited for and settled."""
-        info = getattr(ens, "scene_info", None)
+        ens, runs = self.ens, self.runs
         begun = []
         for i in done:
-            builds = ensemble_scene_builds(ens, i)
             try:
                 begun.append((i, runs[i].finish_begin(
-                    ens.name, ens.device, ens.builds if builds is None else builds,
-                    {"ensemble_size": size, "ensemble_index": i, **(info(i) if info else {})},
-                    shared_timings=shared)))
+                    ens.name, ens.device, ens.scene_builds(i),
+                    {"ensemble_size": self.size, "ensemble_index": i, **ens.scene_info(i)},
+                    shared_timings=self.shared)))
             except Exception as exc:
-                end(i, exc)
+                self.end(i, exc)
         if not begun:
             return
-        many = getattr(ens, "deactivate_many", None)
-        if many is not None:
-            many([i for i, _ in begun])
+        ens.deactivate_many([i for i, _ in begun])
         for i, b in begun:
             try:
                 summary = runs[i].finish_end(b)
             except Exception as exc:
                 runs[i].abort()
-                settle(i, exc, deactivated=many is not None)
+                self.settle(i, exc, deactivated=True)
                 continue
-            settle(i, summary, deactivated=many is not None)
-
-    per_scene = hasattr(ens, "advance_each") and not lockstep
-    plan = getattr(ens, "plan", None)
-    if plan is not None:  # how long the run goes on (the auto list mode weighs a probe against it)
-        plan(max((r.p.n_steps if r.phase == "cooling" else r.total_steps) - r.step_done for r in runs))
-    if _defer_files(ens, runs):  # many small GPU scenes: files written at the end, in parallel processes
-        from engine import h5md_pool
-
-        h5md_pool.prewarm(min(len(runs), h5md_pool.MAX_PROCESSES), ready=writer_process_ready)
-        for r in runs:
-            r.defer_file = True
-    try:
-        for i, r in enumerate(runs):
-            try:
-                r.open()
-            except Exception as exc:
-                end(i, exc)
-                continue
-            active.add(i)
-        finish([i for i in sorted(active) if runs[i].done])
-        at_start = set(active)
-        while active:
-            for i in sorted(at_start & active):
-                try:
-                    runs[i].check_cancel()
-                except Exception as exc:  # Cancelled, or a cancel check that failed
-                    end(i, exc)
-            at_start = set()
-            if not active:
-                break
-            dist = {i: runs[i].steps_to_next() for i in active}
-            failed: dict = {}
-            try:
-                if per_scene:
-                    todo = {i: d for i, d in dist.items() if d > 0}
-                    if todo:
-                        t0 = time.perf_counter()
-                        failed = ens.advance_each(todo)
-                        wall = time.perf_counter() - t0
-                        for i, d in todo.items():
-                            runs[i].advanced(d, wall)
-                else:
-                    m = min(dist.values())
-                    if m > 0:
-                        t0 = time.perf_counter()
-                        failed = ens.advance(m)
-                        wall = time.perf_counter() - t0
-                        for i in active:
-                            runs[i].advanced(m, wall)
-            except Exception as exc:  # the ensemble itself failed: every active scene ends with it
-                for i in sorted(active):
-                    end(i, exc)
-                break
-            # the last round's records first (what the GPU's steps left of them): an error there is earlier
-            for i, exc in list(deferred.drain()) + list(failed.items()):
-                if i in active:
-                    end(i, exc)
-            cache.clear()
-            done = []
-            for i in sorted(i for i in active if runs[i].steps_to_next() == 0):
-                try:
-                    runs[i].at_stop(views[i], defers[i])
-                except Exception as exc:
-                    end(i, exc)
-                    continue
-                if runs[i].done:
-                    done.append(i)
-                else:
-                    at_start.add(i)
-            finish(done)
-    except BaseException:
-        for i in list(active):
-            runs[i].abort()
-        raise
-    return results
+            self.settle(i, summary, deactivated=True)
 
 
 #: an ensemble of at least this many scenes on the GPU writes its files at the end in writer processes
@@ -900,7 +824,7 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     """
     scene = SceneRun(spec, output, progress=progress, should_cancel=should_cancel, checkpoint_dir=checkpoint_dir,
                      checkpoint_interval=checkpoint_interval, backend=backend)
-    (result,) = drive([scene], lambda systems, contacts: SerialEnsemble(scene.backend, systems, contacts))
+    (result,) = drive([scene], lambda systems, contacts: make_ensemble(scene.backend, systems, contacts))
     if isinstance(result, BaseException):
         raise result
     return result

@@ -4,7 +4,7 @@ A process's first CUDA job pays one-off costs before its first step: the CUDA dr
 context (driver calls, which release the GIL), and the load of its kernels from numba-cuda's disk cache (their
 modules go to the driver, which also releases the GIL). :func:`begin` starts them on a background thread on a
 small stand-in scene of the job's specialisation (shape, precision, contact law, orientation: the compile-time
-choices of engine/backends/cuda_loop.py), while the calling thread places the job's particles; the job's backend
+choices of engine/loops/cuda_loop.py), while the calling thread places the job's particles; the job's backend
 then finds a live context and loaded kernels. What cannot overlap is Python work under the GIL (imports, numba's
 typing registries), which either thread pays once.
 
@@ -67,7 +67,7 @@ class GpuStartup:
 
     def _work(self, shape, system, contacts) -> None:
         from engine.backends.base import cuda_available
-        from engine.backends.registry import make_backend
+        from engine.backends.ensemble import make_ensemble
 
         t0 = time.perf_counter()
         try:
@@ -78,13 +78,13 @@ class GpuStartup:
 
                 cuda.current_context()
                 return
-            backend = make_backend("cuda", system, contacts[0])
+            ensemble = make_ensemble("cuda", [system], [contacts[0]])   # what a lone job's driver builds
             for c in contacts:          # what engine.simulate.drive compiles for, in its order
-                backend.set_contact(c)
-                backend.warmup()
-            backend.observe()
+                ensemble.set_contact(0, c)
+                ensemble.warmup()
+            ensemble.observe()
             if self._start_dtypes is not None:  # the job's large start is drawn on the device (cuda_start.py)
-                from engine.backends.cuda_start import load
+                from engine.loops.cuda_start import load
 
                 load(*self._start_dtypes)
         except Exception as exc:  # noqa: BLE001  (the job loads its kernels itself)
@@ -107,7 +107,7 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
     if not _wanted(backend):
         return None
     start_dtypes = _device_start_dtypes(spec)
-    key = (spec.shape, spec.precision, bool(getattr(spec, "species", None)), start_dtypes is not None) + tuple(
+    key = (spec.shape, spec.precision, bool(spec.species), start_dtypes is not None) + tuple(
         (c.k_t is None, c.friction is None, c.orientation, c.list_mode) for c in contacts)
     with _lock:
         started = _started.get(key)
@@ -122,12 +122,12 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
 
             with coverage_hidden():
                 import numba.cuda  # noqa: F401
-            import engine.backends.registry  # noqa: F401
+            import engine.backends.ensemble  # noqa: F401
             from engine.shapes import host
             if system is not None:
-                host(spec.shape).cuda_backend()
+                host(spec.shape).cuda_ensemble()
             if start_dtypes is not None:
-                import engine.backends.cuda_start  # noqa: F401
+                import engine.loops.cuda_start  # noqa: F401
         except Exception:  # noqa: BLE001  (numba-cuda unusable: cuda_available() says so to the driver)
             if driver is not None:
                 driver.release()
@@ -204,8 +204,10 @@ class DriverStart:
         with self._done:
             if self._held:
                 self._held = False
-                release = getattr(self._lib, "cuDevicePrimaryCtxRelease_v2", None) \
-                    or self._lib.cuDevicePrimaryCtxRelease         # the _v2 name since CUDA 11
+                try:
+                    release = self._lib.cuDevicePrimaryCtxRelease_v2    # the _v2 name since CUDA 11
+                except AttributeError:
+                    release = self._lib.cuDevicePrimaryCtxRelease
                 release(self._dev)
 
 
@@ -219,7 +221,7 @@ def nvidia_driver() -> bool:
 
 def _device_start_dtypes(spec) -> Optional[tuple]:
     """(position dtype, state dtype) when a GPU job of ``spec`` draws its start on the device (the thread then loads
-    those kernels too: engine.backends.cuda_start.load), else None."""
+    those kernels too: engine.loops.cuda_start.load), else None."""
     from engine.start_kind import device_start
 
     if not device_start(spec):
@@ -230,11 +232,14 @@ def _device_start_dtypes(spec) -> Optional[tuple]:
 
 
 def _standin(spec, p):
-    """The stand-in scene of ``spec``'s shape, or None (a species mixture: its multigrid lists are not those of
-    one size; a shape without the hook)."""
+    """The stand-in scene of ``spec``'s shape (its plug-in's ``standin_system``), or None: a species mixture (its
+    multigrid lists are not those of one size), or a plug-in without that optional hook (engine/shapes/README.md)."""
     from engine.shapes import host
 
-    make = getattr(host(spec.shape), "standin_system", None)
-    if make is None or getattr(spec, "species", None):
+    if spec.species:
+        return None
+    try:
+        make = host(spec.shape).standin_system
+    except AttributeError:   # the hook is optional: the start-up then starts the driver and the context only
         return None
     return make(p, STANDIN_EDGE)

@@ -123,7 +123,7 @@ def test_walker_sees_function_level_relative_and_dynamic_imports():
     # function-level: service/cli.py imports the app inside cmd_serve
     assert "service.app" in g["service.cli"]
     # 'from engine.physics import x' style resolves to the submodule when x is one
-    assert "engine.physics.contact" in g["engine.backends.cpu"]
+    assert "engine.physics.contact" in g["engine.loops.cpu"]
     src = ("import importlib\n"
            "def f():\n"
            "    from . import base\n"
@@ -148,3 +148,57 @@ def test_dependencies_flow_service_jobs_engine():
     bad = sorted(f"{m} -> {t}" for m, ts in g.items() for t in ts
                  if t.split(".")[0] in FORBIDDEN.get(m.split(".")[0], ()))
     assert not bad, "imports against the flow service -> jobs -> engine: " + ", ".join(bad)
+
+
+# ---- engine layers: shapes and backends meet only through the shape registry --------------------------------
+#
+# engine/shapes/<pkg>/   a shape plug-in: imports the shared machinery of engine/loops/ and neutral engine modules,
+#                        never an engine.backends module
+# engine/loops/          the shared machinery a shape's host classes subclass and call (CPU loop, CUDA ensemble
+#                        base, kernels, list builds): imports no shape package (the registry engine.shapes only) and,
+#                        of engine.backends, only the interfaces (engine.backends.protocol) and the types module
+#                        (engine.backends.base)
+# engine/backends/       the interfaces, the factories and the ensembles: imports no shape package (the registry
+#                        engine.shapes only)
+
+#: the engine.backends modules engine/loops/ may import: the interfaces and the types
+LOOPS_MAY_IMPORT = ("engine.backends.base", "engine.backends.protocol")
+
+
+def _shape_package(module: str) -> bool:
+    """engine.shapes.<pkg> or below (not the registry engine.shapes itself)."""
+    return module.startswith("engine.shapes.")
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    """The imports against the layer rules above, as 'importer -> imported'."""
+    bad = []
+    for mod, targets in graph.items():
+        for t in targets:
+            if mod.startswith("engine.backends") and _shape_package(t):
+                bad.append(f"{mod} -> {t} (a backend names a shape package: use the registry engine.shapes)")
+            elif _shape_package(mod) and (t == "engine.backends" or t.startswith("engine.backends.")):
+                bad.append(f"{mod} -> {t} (a shape package imports a backend: use engine.loops)")
+            elif mod.startswith("engine.loops") and (
+                    _shape_package(t) or (t.startswith("engine.backends") and t not in LOOPS_MAY_IMPORT)):
+                bad.append(f"{mod} -> {t} (engine.loops imports a shape package or a backend beyond "
+                           f"{', '.join(LOOPS_MAY_IMPORT)})")
+    return sorted(bad)
+
+
+def test_layer_rule_sees_each_kind_of_violation():
+    g = {"engine.backends.cuda": {"engine.shapes.sphere.device", "engine.shapes", "engine.loops.cuda_kernels"},
+         "engine.shapes.sphere.cpu_backend": {"engine.backends.cpu", "engine.loops.cpu"},
+         "engine.shapes.spheroid.host": {"engine.backends"},
+         "engine.loops.cpu": {"engine.backends.protocol", "engine.backends.registry", "engine.shapes"},
+         "engine.loops.cuda_loop": {"engine.shapes.sphere"}}
+    bad = layer_violations(g)
+    assert [b.split(" (")[0] for b in bad] == [
+        "engine.backends.cuda -> engine.shapes.sphere.device", "engine.loops.cpu -> engine.backends.registry",
+        "engine.loops.cuda_loop -> engine.shapes.sphere", "engine.shapes.sphere.cpu_backend -> engine.backends.cpu",
+        "engine.shapes.spheroid.host -> engine.backends"]
+
+
+def test_shapes_and_backends_meet_only_through_the_registry():
+    bad = layer_violations(import_graph())
+    assert not bad, "imports across the engine layers: " + "; ".join(bad)

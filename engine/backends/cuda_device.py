@@ -1,12 +1,8 @@
-"""Host-side helpers the CUDA backends share and none owns (engine/backends/cuda.py, cuda_listmodes.py).
+"""The former place of engine/loops/cuda_device.py (the shared machinery moved to engine/loops/: the layer rule of
+tests/test_imports.py). Importing this name gives that very module, so older imports and patches of it still work."""
 
-Kept apart so that cuda_listmodes.py (the CPU-built list modes, which cuda.py loads) does not import
-cuda.py back.
-"""
+import sys
 
-from __future__ import annotations
+from engine.loops import cuda_device as _module
 
-
-def copy_device(dst, src, stream) -> None:
-    """Device-to-device copy of equal-shape arrays on ``stream`` (no host round trip)."""
-    dst.copy_to_device(src, stream=stream)
+sys.modules[__name__] = _module

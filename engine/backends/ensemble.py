@@ -1,6 +1,7 @@
 """Ensembles: K independent scenes advanced together by one backend (issue 8).
 
-The protocol every ensemble implementation offers (:class:`Ensemble`)::
+The interface every ensemble implements in full (:class:`engine.backends.protocol.Ensemble`, an abstract base
+class; what an ensemble cannot do is the base class's explicit default)::
 
     name: str; device: str; builds: int; n_scenes: int
     set_contact(k, contact)     contact constants of scene k (thermalisation -> cooling switch)
@@ -10,7 +11,9 @@ The protocol every ensemble implementation offers (:class:`Ensemble`)::
                                 the others complete the nsteps
     deactivate(k)               a finished / cancelled / failed scene drops out; never advanced again
     observe() -> [dict | None]  per scene, the keys of a single backend's observe(); None when inactive
-    state(k), contacts(k)       host copies of scene k (snapshots, checkpoints)
+    state(k, reuse), contacts(k) host copies of scene k (snapshots, checkpoints)
+    set_contacts, advance_each, deactivate_many, observe_scene, observe_later, observe_scene_later, plan,
+    scene_builds, scene_info; independent_steps, shares_observation, waits_for_device, idle
 
 Scene indices are the positions of the systems given to the constructor and never change.
 
@@ -20,11 +23,10 @@ Implementations:
   advances the active scenes one after another. On the CPU there is no launch overhead to amortise —
   a CPU time loop is already compiled whole and uses every core for one scene — so serial advancing is
   the right CPU implementation; it also makes every scene bit-identical to the same scene run alone.
-  It offers one extension of the protocol, :meth:`SerialEnsemble.advance_each` (a different number of
-  steps per scene in one call), which the driver uses when present so that every scene is advanced in
-  exactly the chunks a lone run would use (the velocity-Verlet half kicks at chunk ends make the last
-  bits depend on the chunking).
-- ``engine.backends.cuda.CudaEnsemble`` (spheres) and ``engine.shapes.spheroid.cuda_backend.CudaEllipsoidEnsemble``
+  Its :meth:`SerialEnsemble.advance_each` takes a different number of steps per scene in one call
+  (``independent_steps``), so the driver advances every scene in exactly the chunks a lone run would use
+  (the velocity-Verlet half kicks at chunk ends make the last bits depend on the chunking).
+- ``engine.shapes.sphere.cuda_backend.CudaEnsemble`` (spheres) and ``engine.shapes.spheroid.cuda_backend.CudaEllipsoidEnsemble``
   (ellipsoids) store the scenes back to back on the GPU and advance them with the same kernel launches
   (packed ensemble).
 
@@ -34,40 +36,15 @@ a single scene; :func:`resolve_backend` says which backend a name resolves to wi
 
 from __future__ import annotations
 
-from typing import Callable, Mapping, Optional, Protocol, Sequence, runtime_checkable
+from typing import Callable, Mapping, Sequence
 
 from engine.backends.base import ContactParams, cuda_available
+from engine.backends.protocol import Ensemble
 from engine.backends.registry import make_backend
 from engine.errors import BackendUnavailable
 from engine.shapes import host, shape_of
 
 BACKEND_NAMES = ("auto", "cpu", "cuda")
-
-
-@runtime_checkable
-class Ensemble(Protocol):
-    """K independent scenes advanced together; see the module docstring."""
-
-    name: str
-    device: str
-    builds: int
-    n_scenes: int
-
-    def set_contact(self, k: int, contact: ContactParams) -> None: ...
-
-    def warmup(self) -> None: ...
-
-    def advance(self, nsteps: int) -> dict: ...
-
-    def deactivate(self, k: int) -> None: ...
-
-    # optional: def deactivate_many(self, ks) -> None  (several scenes at once; engine/simulate.py uses it)
-
-    def observe(self) -> list: ...
-
-    def state(self, k: int) -> dict: ...
-
-    def contacts(self, k: int): ...
 
 
 def check_backend_name(name: str) -> None:
@@ -88,7 +65,7 @@ def resolve_backend(name: str, shape: str = "sphere") -> str:
     return name
 
 
-class SerialEnsemble:
+class SerialEnsemble(Ensemble):
     """K single backends advanced one after another (the CPU ensemble; see the module docstring).
 
     On the CPU there is no kernel-launch overhead to amortise: each scene's time loop is one compiled
@@ -96,6 +73,9 @@ class SerialEnsemble:
     advancing the active scenes in turn is the right implementation. Each scene keeps its own
     backend object, so its trajectory is bit-identical to the same scene run alone.
     """
+
+    #: each scene is advanced by its own number of steps (the chunks a lone run uses)
+    independent_steps = True
 
     def __init__(self, name: str, systems: Sequence, contacts: Sequence[ContactParams]):
         if len(systems) != len(contacts) or not systems:
@@ -109,8 +89,9 @@ class SerialEnsemble:
         self.n_scenes = len(self._backends)
         self._active = [True] * self.n_scenes
         self._builds_of_dropped = 0
+        self._idle = None
 
-    # ---- protocol ---------------------------------------------------------------------------------
+    # ---- the Ensemble interface -------------------------------------------------------------------
 
     @property
     def builds(self) -> int:
@@ -122,22 +103,15 @@ class SerialEnsemble:
         return self._backend(k).builds
 
     def scene_info(self, k: int) -> dict:
-        """Extra run attributes of scene k for its result file: where a CUDA run built its Verlet lists
-        (paper 004 §3: final mode, stages, restarts, mean tau_CPU / tau_GPU / tau_exch per mode, q, G_max)."""
-        lists = getattr(getattr(self._backend(k), "e", None), "lists", None)
-        if lists is None:
-            return {}
-        summary = lists.summary()
-        return {"list_mode": summary["final_mode"], "list_modes": summary}
+        """Extra run attributes of scene k for its result file (its backend's :meth:`list_info`)."""
+        return self._backend(k).list_info()
 
     def set_contact(self, k: int, contact: ContactParams) -> None:
         self._backend(k).set_contact(contact)
 
     def plan(self, steps: int) -> None:
-        """The run goes on for about ``steps`` more steps (passed to backends that use it: CUDA's auto list
-        mode)."""
         for b in self._backends:
-            if b is not None and hasattr(b, "plan"):
+            if b is not None:
                 b.plan(steps)
 
     def warmup(self) -> None:
@@ -180,20 +154,17 @@ class SerialEnsemble:
 
     def observe_scene_later(self, k: int) -> Callable[[], dict]:
         """A function giving scene k's observables: read later where its backend can (CUDA), else now."""
-        b = self._backend(k)
-        later = getattr(b, "observe_later", None)
-        if later is not None:
-            return later()
-        obs = b.observe()
-        return lambda: obs
+        return self._backend(k).observe_later()
+
+    @property
+    def waits_for_device(self) -> bool:
+        """True when every backend waits for a device (CUDA) and can run the driver's :attr:`idle` work."""
+        return all(b.waits_for_device for b in self._backends if b is not None)
 
     @property
     def idle(self):
-        """The driver's hook for work while a backend waits for its GPU (engine/simulate.py ``_Deferred``); only
-        where every backend has such waits (CUDA), so ``hasattr(ensemble, "idle")`` says whether it can."""
-        if not all(hasattr(b, "idle") for b in self._backends if b is not None):
-            raise AttributeError("idle: these backends do not wait for a device")
-        return getattr(self, "_idle", None)
+        """The driver's hook for work while a backend waits for its device (engine/simulate.py ``_Deferred``)."""
+        return self._idle
 
     @idle.setter
     def idle(self, fn) -> None:
@@ -202,16 +173,8 @@ class SerialEnsemble:
             if b is not None:
                 b.idle = fn
 
-    @property
-    def reuses_state_buffers(self) -> bool:
-        """True when every backend can hand out reused (pinned) state buffers (CUDA)."""
-        return all(getattr(b, "reuses_state_buffers", False) for b in self._backends if b is not None)
-
     def state(self, k: int, reuse=False) -> dict:
-        b = self._backend(k)
-        if reuse is not False and getattr(b, "reuses_state_buffers", False):
-            return b.state(reuse=reuse)
-        return b.state()
+        return self._backend(k).state(reuse=reuse)
 
     def contacts(self, k: int):
         return self._backend(k).contacts()
@@ -231,10 +194,11 @@ class SerialEnsemble:
 def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams]) -> Ensemble:
     """An ensemble of the scenes for backend 'cpu', 'cuda' or 'auto'.
 
-    'cpu' -> :class:`SerialEnsemble` of CPU backends; 'cuda' -> the packed
-    ``engine.backends.cuda.CudaEnsemble`` (a :class:`SerialEnsemble` of single CUDA backends where that
-    class is not available); 'auto' -> 'cuda' when a CUDA GPU is present, else 'cpu'. All scenes must
-    have the same shape; the packed CUDA class is the shape's (engine.shapes.host(shape).cuda_ensemble).
+    'cpu' -> :class:`SerialEnsemble` of CPU backends; 'cuda' -> the shape's packed CUDA ensemble
+    (engine.shapes.host(shape).cuda_ensemble), also for a single scene (a lone GPU job: one object, whose
+    :meth:`start_alone` takes the scene's list mode and raises a start that fails at t = 0, as a CPU backend's
+    constructor does); 'auto' -> 'cuda' when a CUDA GPU is present, else 'cpu'. All scenes must have the same
+    shape.
     """
     shapes = {shape_of(s) for s in systems}
     if len(shapes) > 1:
@@ -242,16 +206,8 @@ def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams
     shape = shapes.pop() if shapes else "sphere"
     resolved = resolve_backend(name, shape)
     if resolved == "cuda":
-        try:
-            CudaEnsemble = host(shape).cuda_ensemble()  # noqa: N806
-        except ImportError:
-            CudaEnsemble = None  # noqa: N806
-        if CudaEnsemble is not None:
-            return CudaEnsemble(list(systems), list(contacts))
+        ensemble = host(shape).cuda_ensemble()(list(systems), list(contacts))
+        if len(systems) == 1:
+            ensemble.start_alone(contacts[0])
+        return ensemble
     return SerialEnsemble(resolved, systems, contacts)
-
-
-def ensemble_scene_builds(ens, k: int) -> Optional[int]:
-    """Neighbour-list builds of scene k when the ensemble counts them per scene, else None."""
-    fn = getattr(ens, "scene_builds", None)
-    return fn(k) if fn is not None else None

@@ -1,8 +1,9 @@
 """The backend factory: which concrete backend class runs a system ('cpu', 'cuda' or 'auto').
 
 The backend classes are the shape's (engine.shapes.host(shape): ``cpu_backend``, ``cuda_backend``); this module
-names no shape (the ensembles' counterpart is engine/backends/ensemble.py). The backends themselves import only
-engine/backends/base.py and the neutral helpers (status.py, cpu_shared.py), never this module.
+names no shape (the ensembles' counterpart is engine/backends/ensemble.py). The backend classes build on the shared
+machinery of engine/loops/ and never import this module. A job's driver builds ensembles (make_ensemble), not single
+backends; this factory serves SerialEnsemble and code that drives one backend by hand.
 """
 
 from __future__ import annotations

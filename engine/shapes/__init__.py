@@ -6,13 +6,13 @@ A shape is one package under engine/shapes/ (engine/shapes/README.md lists the s
   spec and the scales can ask them (``NAME``, ``ELONGATED``, ``SPECIES``, ``SKIN_BY_VOLUME_FRACTION``,
   ``body`` for the semi-axes and principal moments, ``spec_error`` for combinations the shape refuses);
 - ``kernels.py``: njit functions of one particle or one list slot (``pre_step``, ``rotate``, ``pair``,
-  ``observe``) that specialise the one CPU time loop (engine/backends/cpu.py);
+  ``observe``) that specialise the one CPU time loop (engine/loops/cpu.py);
 - ``device.py``: ``make_cuda``, the factory of numba.cuda device functions that specialise the one CUDA time
-  loop (engine/backends/cuda_loop.py);
+  loop (engine/loops/cuda_loop.py);
 - ``host.py``: the run-time hooks (the host-side system type, the start of a spec, the result file's particle
   fields, the contact models it runs, and its backend classes);
 - its backend classes where the shared ones need the shape's own state (``cpu_backend.py``,
-  ``cuda_backend.py``; the sphere's CUDA host side is the base class engine.backends.cuda.CudaEnsemble).
+  ``cuda_backend.py``: subclasses of the shared machinery of engine/loops/, never an engine.backends module).
 
 Nothing outside engine/shapes/ names a shape package: engine/backends/registry.py, engine/backends/ensemble.py,
 engine/simulate.py, engine/spec.py and engine/scales.py reach a shape through these functions.

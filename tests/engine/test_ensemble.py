@@ -119,10 +119,11 @@ def test_unstable_scene_fails_alone(tmp_path, alone):
 
 
 class _IdleSerial(SerialEnsemble):
-    """A CPU ensemble with the packed CUDA ensemble's ``idle`` hook: the driver then defers the record work of
-    its stops (engine.simulate._Deferred), and this ensemble runs some of it inside its advance, as the CUDA one
-    does while it waits for the GPU."""
+    """A CPU ensemble that says it waits for a device, as the packed CUDA ensemble does: the driver then defers the
+    record work of its stops (engine.simulate._Deferred) to the ``idle`` hook, and this ensemble runs some of it
+    inside its advance, as the CUDA one does while it waits for the GPU."""
 
+    waits_for_device = True
     idle = None
     idle_units = 0
 

@@ -138,3 +138,13 @@ def test_resume_from_first_record_writes_it_once(tmp_path):
     with h5py.File(out) as f:
         t = f["observables/kinetic_energy_translational/time"][()]
     assert t[0] == 0.0 and (t[1:] > t[:-1]).all()
+
+
+def test_summary_names_the_loop_time_and_the_job_time(tmp_path):
+    """RunSummary: loop_s is the time loop's wall time (wall_s, the job queue's name for it), job_wall_s the whole
+    job's from the spec to the closed file, which holds the loop; each Cundall number is N * steps over its time."""
+    s = run(SimulationSpec(**TINY), tmp_path / "t.h5")
+    assert s.loop_s == s.wall_s > 0
+    assert s.job_wall_s > s.loop_s
+    assert s.cundall == pytest.approx(s.n_particles * s.steps / s.loop_s, rel=1e-12)
+    assert s.cundall_e2e == pytest.approx(s.n_particles * s.steps / s.job_wall_s, rel=1e-12)

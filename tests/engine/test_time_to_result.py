@@ -411,12 +411,14 @@ def test_frame_slots_reuse_a_free_slot_and_else_wait_for_the_older_one():
     assert slots.take() == 1
 
 
-def test_a_cpu_ensemble_offers_no_idle_hook_and_reads_its_observables_at_once():
+def test_a_cpu_ensemble_does_not_wait_for_a_device_and_reads_its_observables_at_once():
     from engine.backends.ensemble import SerialEnsemble
+    from engine.simulate import _Deferred
     from tests.engine.test_cuda_simulator import contact, tiny_system
 
     ens = SerialEnsemble("cpu", [tiny_system()], [contact()])
-    assert not hasattr(ens, "idle")          # engine.simulate._Deferred stays off: CPU runs are unchanged
+    assert not ens.waits_for_device          # engine.simulate._Deferred stays off: CPU runs are unchanged
+    assert not _Deferred(ens).on
     later = ens.observe_scene_later(0)
     ens.advance(40)                          # contacts begin within ~20 steps (tiny_system)
     assert later()["collisions"] == 0 < ens.observe_scene(0)["collisions"]
@@ -471,10 +473,11 @@ for s in (4, 5):
 """
 
 _SIM_CUDA = _SIM_HEAD + r"""
-run({**spec, "backend": "cuda"}, f"{out}/gpu.h5")                 # one scene: SerialEnsemble(CudaBackend)
+run({**spec, "backend": "cuda"}, f"{out}/gpu.h5")                 # one scene: its own CudaEnsemble
 # frames of a large scene: plain host buffers for the first frames, then buffers a thread pinned meanwhile
 import engine.backends.cuda as cb
-cb.PINNED_SLOT_BYTES, _slot, _pinned_used = 0, cb.CudaEnsemble._host_slot, []
+import engine.loops.cuda_frames as cf
+cf.PINNED_SLOT_BYTES, _slot, _pinned_used = 0, cb.CudaEnsemble._host_slot, []
 def _spy(self, slot, nmax):
     ready = dict(getattr(self, "_pinned_slots", None) or {})
     bufs = _slot(self, slot, nmax)
@@ -483,7 +486,7 @@ def _spy(self, slot, nmax):
 cb.CudaEnsemble._host_slot = _spy
 run({**spec, "snapshots": 7, "backend": "cuda"}, f"{out}/p7.h5")
 print("PINNED-FRAMES", _pinned_used)
-cb.PINNED_SLOT_BYTES, cb.CudaEnsemble._host_slot = 32 << 20, _slot
+cf.PINNED_SLOT_BYTES, cb.CudaEnsemble._host_slot = 32 << 20, _slot
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/e0.h5", f"{out}/e1.h5"],
              backend="cuda")                                       # packed CudaEnsemble
 import engine.simulate
@@ -591,7 +594,7 @@ def test_cuda_kernel_cache_loads_without_refreshing_the_target():
 
 # ---- the CPU kernels' disk-cache loads ---------------------------------------------------------------------
 
-_ENGINE_JIT_MODULES = ("engine.scene", "engine.multigrid", "engine.backends.cpu", "engine.backends.cpu_shared",
+_ENGINE_JIT_MODULES = ("engine.scene", "engine.multigrid", "engine.loops.cpu", "engine.loops.cpu_shared",
                        "engine.shapes.sphere.kernels",
                        "engine.shapes.spheroid.kernels", "engine.shapes.spheroid.cpu_backend",
                        "engine.validation.encounter_dsmc", "engine.validation.sonine")

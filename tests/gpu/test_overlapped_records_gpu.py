@@ -90,6 +90,7 @@ def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path,
     frames large) go through host buffers page-locked in place or, where they cannot be (here: refused on
     purpose), through plain host buffers first and through buffers pinned by a thread later. The four runs write
     the same file: the trajectories bit for bit, the observables to rounding."""
+    from engine.loops import cuda_frames
     from engine.backends import cuda as cuda_mod
     from engine.simulate import run
     from tests.engine.test_ensemble import spy_deferred_stops
@@ -99,7 +100,7 @@ def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path,
     deferred = spy_deferred_stops(monkeypatch)
     ran_in_waits = spy_units_in_waits(monkeypatch)
     pinned_frames, locked = [], []
-    orig_slot, orig_lock = cuda_mod.CudaEnsemble._host_slot, cuda_mod._page_locked
+    orig_slot, orig_lock = cuda_mod.CudaEnsemble._host_slot, cuda_frames._page_locked
 
     def host_slot(self, slot, nmax):
         ready = dict(getattr(self, "_pinned_slots", None) or {})
@@ -109,12 +110,12 @@ def test_one_scene_overlaps_its_records_and_pins_its_large_frames_late(tmp_path,
 
     monkeypatch.setattr(cuda_mod.CudaEnsemble, "_host_slot", host_slot)
     files = {}
-    for label, overlap, slot_bytes, lock in (("plain", "0", cuda_mod.PINNED_SLOT_BYTES, True),
+    for label, overlap, slot_bytes, lock in (("plain", "0", cuda_frames.PINNED_SLOT_BYTES, True),
                                              ("overlap", "1", 32 << 20, True), ("locked", "1", 0, True),
                                              ("late-pinned", "1", 0, False)):
         monkeypatch.setenv("DEMQ_OVERLAP_RECORDS", overlap)
-        monkeypatch.setattr(cuda_mod, "PINNED_SLOT_BYTES", slot_bytes)
-        monkeypatch.setattr(cuda_mod, "_page_locked",
+        monkeypatch.setattr(cuda_frames, "PINNED_SLOT_BYTES", slot_bytes)
+        monkeypatch.setattr(cuda_frames, "_page_locked",
                             (lambda a: locked.append(orig_lock(a)) or locked[-1]) if lock else (lambda a: None))
         del deferred[:], pinned_frames[:], locked[:]
         run(spec, tmp_path / f"{label}.h5")

@@ -1,5 +1,5 @@
 """The sphere's CPU host class: :class:`CpuBackend`, the sphere plug-in (engine/shapes/sphere/kernels.py) in the
-shared CPU machinery (engine/backends/cpu.py: CpuLoop, make_run_steps).
+shared CPU machinery (engine/loops/cpu.py: CpuLoop, make_run_steps).
 
 Owns only what is the sphere's own on the host: its state arrays in the working precision (positions in the
 position precision, engine/precision.py; space-frame angular
@@ -17,9 +17,9 @@ import numpy as np
 
 import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
-from engine.backends.base import ContactParams, SphereSystem
-from engine.backends.cpu import CpuLoop
-from engine.backends.cpu_shared import collect_springs, restore_springs, worst_overlap
+from engine.loops.system import ContactParams, SphereSystem
+from engine.loops.cpu import CpuLoop
+from engine.loops.cpu_shared import collect_springs, restore_springs, worst_overlap
 from engine.errors import InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
 from engine.precision import position_dtype, state_dtype
@@ -27,7 +27,7 @@ from engine.shapes.sphere import kernels as sphere
 
 
 class CpuBackend(CpuLoop):
-    """The CPU time loop for spheres (engine/shapes/sphere/kernels.py); see engine/backends/cpu.py for layout and
+    """The CPU time loop for spheres (engine/shapes/sphere/kernels.py); see engine/loops/cpu.py for layout and
     specialisation."""
 
     shape = sphere
@@ -97,8 +97,8 @@ class CpuBackend(CpuLoop):
                 "momentum": (float(px), float(py), float(pz)), "collisions": int(self.begun.sum()) // 2,
                 **sonine_sums(s_tr2, s_rot2, s_x, DOF_ROTATION_SPHERE)}
 
-    def state(self) -> dict:
-        """Copies of the state arrays in id order."""
+    def state(self, reuse=False) -> dict:
+        """Copies of the state arrays in id order (``reuse`` is ignored: every call returns new arrays)."""
         return {"position": self.pos.copy(), "velocity": self.vel.copy(),
                 "angular_velocity": self.omega.copy(), "orientation": self.quat.copy()}
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.backends.base import SphereSystem
+from engine.loops.system import SphereSystem
 
 #: the host-side state a backend is built from
 SYSTEM = SphereSystem
@@ -53,14 +53,14 @@ def cpu_backend():
 
 
 def cuda_ensemble():
-    """The packed CUDA ensemble: the base class engine.backends.cuda.CudaEnsemble is the sphere's host side."""
-    from engine.backends.cuda import CudaEnsemble
+    """The packed CUDA ensemble (engine/shapes/sphere/cuda_backend.py)."""
+    from engine.shapes.sphere.cuda_backend import CudaEnsemble
 
     return CudaEnsemble
 
 
 def cuda_backend():
-    """One scene on the GPU (engine.backends.cuda.CudaBackend over :func:`cuda_ensemble`)."""
-    from engine.backends.cuda import CudaBackend
+    """One scene on the GPU behind the Backend interface (engine/shapes/sphere/cuda_backend.py)."""
+    from engine.shapes.sphere.cuda_backend import CudaBackend
 
     return CudaBackend

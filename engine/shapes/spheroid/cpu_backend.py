@@ -1,5 +1,5 @@
 """CPU backend for ellipsoids (paper 003; frictionless, or rough with the tangential law of issue 17): the spheroid plug-in (engine/shapes/spheroid/kernels.py) in
-the shared CPU machinery (engine/backends/cpu.py: CpuLoop, make_run_steps), with the same interface as
+the shared CPU machinery (engine/loops/cpu.py: CpuLoop, make_run_steps), with the same interface as
 CpuBackend.
 
 This module holds only what is the ellipsoid's own on the host side: the state it keeps (angular momentum L
@@ -17,9 +17,9 @@ import numpy as np
 
 from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
-from engine.backends.base import ContactParams, EllipsoidSystem
-from engine.backends.cpu import CpuLoop
-from engine.backends.cpu_shared import SLOT, collect_springs, restore_springs
+from engine.loops.system import ContactParams, EllipsoidSystem
+from engine.loops.cpu import CpuLoop
+from engine.loops.cpu_shared import SLOT, collect_springs, restore_springs
 from engine.params import Q_SPHERE
 from engine.physics.rotation import angular_momentum, quat_unit, space_omega
 from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
@@ -174,8 +174,8 @@ class CpuEllipsoidBackend(CpuLoop):
         omega_from_angm(self.quat, self.angm, self.inv_i, self.half, out)
         return out
 
-    def state(self) -> dict:
-        """Copies of the state arrays in id order (angular velocity in the space frame)."""
+    def state(self, reuse=False) -> dict:
+        """Copies of the state arrays in id order (angular velocity in the space frame; ``reuse`` is ignored)."""
         return {"position": self.pos.copy(), "velocity": self.vel.copy(),
                 "angular_velocity": self.omega(), "orientation": self.quat.copy()}
 

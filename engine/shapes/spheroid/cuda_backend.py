@@ -1,10 +1,10 @@
 """CUDA backend for ellipsoids (paper 003; frictionless or rough, issue 17): the CPU ellipsoid backend's step on the GPU.
 
 :class:`CudaEllipsoidEnsemble` advances K independent ellipsoid scenes stored back to back on the device,
-built exactly as the sphere :class:`engine.backends.cuda.CudaEnsemble` (it is a subclass: per-scene
+built exactly as the sphere's (both are subclasses of :class:`engine.loops.cuda_ensemble.CudaEnsembleBase`: per-scene
 constant tables, scene index per particle, cell grids per scene, compact contact-history store, the
 cooperative many-steps-per-launch loop for small scenes and the per-phase loop for large ones, a scene that
-blows up stops alone) and runs the same kernels: the one CUDA time loop (:mod:`engine.backends.cuda_loop`)
+blows up stops alone) and runs the same kernels: the one CUDA time loop (:mod:`engine.loops.cuda_loop`)
 specialised by the spheroid's device functions (engine/shapes/spheroid/device.py, which call the njit physics
 of the CPU plug-in engine/shapes/spheroid/kernels.py: Perram-Wertheim contact, Fincham's leap-frog on the
 body-frame angular velocity, paper 003 Eqs. 13-24). This module owns only the spheroid's host side: its state
@@ -16,7 +16,7 @@ The step is the CPU backend's:
   1. kick + drift: v += F/m hk, L += tau hk, x += v dt (wrapped), q by Fincham with L(t) and L(t + dt/2);
      predicted end-of-step v and w = R I^-1 R^T (L + tau dt/2) stored for the dashpot;
   2. rebuild when some particle has moved more than L_v/2 since the last build (bounding spheres of
-     radius a: the shared list kernels of engine/backends/cuda_kernels.py with radius = a);
+     radius a: the shared list kernels of engine/loops/cuda_kernels.py with radius = a);
   3. forces: for each list slot whose bounding spheres overlap (or that was in contact at the previous
      step) the Perram-Wertheim contact with the lower id as "A", summed in list order.
 State on the device is the space-frame angular momentum L; ``state()`` returns the space-frame angular
@@ -28,12 +28,12 @@ from __future__ import annotations
 import numpy as np
 from numba import cuda
 
-from engine.backends import cuda_kernels as K
-from engine.backends import cuda_loop
-from engine.backends.base import ContactParams, EllipsoidSystem
+from engine.loops import cuda_kernels as K
+from engine.loops import cuda_loop
+from engine.loops.system import ContactParams, EllipsoidSystem
 from engine.shapes.spheroid.cpu_backend import (PW_SCREEN, PW_TOL, SLOT_ROUGH, angm_from_omega, omega_from_angm,
                                                 rotational_dof, tangential_factor_of, unit_quaternions)
-from engine.backends.cuda import CudaBackend, CudaEnsemble
+from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
 from engine.physics.sonine import sonine_sums
 from engine.shapes.spheroid import device as CE
 
@@ -41,7 +41,7 @@ from engine.shapes.spheroid import device as CE
 E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR, E_FT = (K.ND + c for c in range(CE.NCOL))
 
 
-class CudaEllipsoidEnsemble(CudaEnsemble):
+class CudaEllipsoidEnsemble(CudaEnsembleBase):
     """K scenes of ellipsoids advanced together on the GPU (see the module docstring).
 
     All scenes share the precision; N, box, semi-axes, masses, contact constants, dt, skin are per scene.
@@ -51,8 +51,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
 
     shape = "ellipsoid"
     _ND = K.ND + CE.NCOL
-    _permuted = ("pos", "vel", "angm", "quat", "vel_p", "omega_p", "pos_prev", "quat_prev")
-    _permuted_i64 = ()
+    #: the Verlet list is built on the GPU (no host-built list modes for ellipsoids)
+    host_lists = False
     _view_names = ("radius1", "inv_m1")
 
     def __init__(self, systems: list, contacts: list):
@@ -63,17 +63,17 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         self.hist_words = SLOT_ROUGH if any(c.rough for c in contacts) else K.HW
         super().__init__(systems, contacts)
 
-    # ---- set-up (hooks of CudaEnsemble) -------------------------------------------------------------
+    # ---- set-up (hooks of CudaEnsembleBase) -------------------------------------------------------------
 
     def _upload_particles(self, systems) -> None:
         """State (L from the angular velocity, as the CPU backend does) and constants on the device."""
         dt_, n, s = self.dtype, self.n, self.stream
         half = dt_(0.5)
-        cat = lambda attr: self._cat(systems, attr)  # noqa: E731
-        axes = cat("semi_axes")
-        mass = cat("mass")[:, 0]
-        inertia = cat("inertia")
-        orient = cat("orientation")
+        cat = self._cat
+        axes = cat([sy.semi_axes for sy in systems])
+        mass = cat([sy.mass for sy in systems])[:, 0]
+        inertia = cat([sy.inertia for sy in systems])
+        orient = cat([sy.orientation for sy in systems])
         self.uniform = all(sy.n == 0 or (np.all(sy.semi_axes == sy.semi_axes[0]) and np.all(sy.mass == sy.mass[0])
                                          and np.all(sy.inertia == sy.inertia[0])) for sy in systems)
         self._rmax = [float(np.max(sy.semi_axes)) if sy.n else 0.0 for sy in systems]
@@ -85,7 +85,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         inv_i = (1.0 / inertia_c).astype(dt_, copy=False)
         inv_m = (1.0 / mass.astype(dt_)).astype(dt_)
         angm = np.empty((n, 3), dt_)        # every row written by the loops below
-        angm_from_omega(quat, np.ascontiguousarray(cat("angular_velocity").astype(dt_, copy=False)), inertia_c, half,
+        angm_from_omega(quat, np.ascontiguousarray(cat([sy.angular_velocity for sy in systems]).astype(dt_, copy=False)), inertia_c, half,
                         angm)
         omega_p = np.empty((n, 3), dt_)
         omega_from_angm(quat, angm, inv_i, half, omega_p)
@@ -94,8 +94,8 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         self._scene0 = [(axes_c[a], mass[a], inertia_c[a]) if m else (np.ones(3, dt_), 1.0, np.ones(3, dt_))
                         for a, m in zip(self.starts, self.sizes)]
         up = self._up
-        self.pos = up(cat("position"), 3)
-        self.vel = up(cat("velocity"), 3)
+        self.pos = up(cat([sy.position for sy in systems]), 3)
+        self.vel = up(cat([sy.velocity for sy in systems]), 3)
         self.vel_p = self._copy(self.vel)
         self.angm = up(angm, 3)
         self.omega_p = up(omega_p, 3)
@@ -111,14 +111,25 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         if self.uniform:
             self.radius = self.inv_m = self.mass = cuda.device_array((1, 1), dt_, stream=s)
             self.axes = self.inv_i = cuda.device_array((3, 1), dt_, stream=s)
-            self._per_particle = []
+            self._per_particle = ()
         else:
             self.radius = up(np.max(axes_c, axis=1), 1)
             self.axes = up(axes_c, 3)
             self.inv_m = up(inv_m, 1)
             self.inv_i = up(inv_i, 3)
             self.mass = up(mass, 1)
-            self._per_particle = ["radius", "axes", "inv_m", "inv_i", "mass"]
+            self._per_particle = (self.radius, self.axes, self.inv_m, self.inv_i, self.mass)
+
+    def _permuted_arrays(self) -> tuple:
+        return self.pos, self.vel, self.angm, self.quat, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev
+
+    def _permuted_i64(self) -> tuple:
+        return ()
+
+    def state_arrays(self) -> dict:
+        """The device state copied out by _scene_rows: the angular momentum L (:meth:`state` turns it into the
+        space-frame angular velocity)."""
+        return {"position": self.pos, "velocity": self.vel, "angm": self.angm, "orientation": self.quat}
 
     def _views(self) -> None:
         self.radius1, self.inv_m1 = self.radius[0], self.inv_m[0]
@@ -163,7 +174,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         self._forces(step=0)
         self._pending = self._collect(self._read_status_now())
 
-    # ---- the time loop's arrays (engine/backends/cuda_loop.py) -------------------------------------
+    # ---- the time loop's arrays (engine/loops/cuda_loop.py) -------------------------------------
 
     def _step_arrays(self) -> tuple:
         """(spin, spin_inv, list radius, ext): the angular momentum L, the principal 1/I, the bounding radius a,
@@ -189,7 +200,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
                 **sonine_sums(r[CE.A_TR2], r[CE.A_ROT2], r[CE.A_X], rotational_dof(self._scene_rough(s)))}
 
     def contacts(self, k: int):
-        """As CudaEnsemble.contacts, with the scene's own history words (a frictionless scene in a rough-compiled
+        """As CudaEnsembleBase.contacts, with the scene's own history words (a frictionless scene in a rough-compiled
         ensemble: the 5 of the CPU backend)."""
         pairs, slots = super().contacts(k)
         return pairs, (slots if self.contact[k].rough else slots[:, :K.HW].copy())
@@ -198,11 +209,9 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         """Scene s runs the rough law (a frictionless scene may share a rough-compiled ensemble: f_t = 0)."""
         return bool(self.rough and self.contact[s].rough)
 
-    _STATE = (("position", "pos"), ("velocity", "vel"), ("angm", "angm"), ("orientation", "quat"))
-
     def state(self, k: int, reuse=False) -> dict:
         """Host copies of scene k's state in particle-id order (angular velocity in the space frame, computed
-        on the host from L; ``reuse``: see CudaEnsemble._scene_rows)."""
+        on the host from L; ``reuse``: see StateFrames._scene_rows)."""
         out = self._scene_rows(k, reuse)
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         w = np.zeros((n_k, 3), self.dtype)
@@ -211,7 +220,7 @@ class CudaEllipsoidEnsemble(CudaEnsemble):
         return {key: out[key] for key in ("position", "velocity", "angular_velocity", "orientation")}
 
 
-class CudaEllipsoidBackend(CudaBackend):
+class CudaEllipsoidBackend(CudaSceneBackend):
     """One ellipsoid scene on the GPU (K = 1 of :class:`CudaEllipsoidEnsemble`), with the interface of
     :class:`engine.shapes.spheroid.cpu_backend.CpuEllipsoidBackend`."""
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.backends.base import EllipsoidSystem
+from engine.loops.system import EllipsoidSystem
 
 #: the host-side state a backend is built from
 SYSTEM = EllipsoidSystem

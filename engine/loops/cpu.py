@@ -1,0 +1,516 @@
+"""CPU backend: Numba ``parallel=True`` loops over particles, the whole time loop compiled; one machinery for
+every particle shape.
+
+What lives here, shared by every shape: the cells and the Verlet list build (engine/cells.py,
+engine/multigrid.py), the list-slot history store (engine/loops/cpu_shared.py), the time loop
+(:func:`make_run_steps`, specialised at compile time by a shape plug-in of engine/shapes/: its kick-drift
+``step`` and its ``forces``), the closing half kick, and the host class :class:`CpuLoop` (list growth,
+overflow recovery, instability errors). Each shape's host class (a :class:`CpuLoop` subclass holding its state
+arrays and observables) lives in its plug-in package: engine/shapes/sphere/cpu_backend.py,
+engine/shapes/spheroid/cpu_backend.py.
+
+Layout: arrays of shape (N, 3) (and (N, 4) for quaternions) in the working precision; a full Verlet
+neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` per particle with one
+slot of contact history per list entry (tangential spring, previous overlap and dashpot force), so every
+thread writes only its own particle (no atomics) and the spring of (j, i) is exactly minus the spring of
+(i, j). The list is built from linked cells of edge >= 2 a_max + L_v (or, when the radii span more than one
+level, from the multigrid cells of paper 004 Algorithm 1, engine/multigrid.py) and rebuilt when any particle
+has moved more than L_v/2 since the last build (paper 004); the history of surviving pairs is carried into
+the new list. No allocation in the time loop: the scratch list is preallocated and grown (rarely) from
+Python when a build overflows it.
+
+Compile-time specialisation: the shape (one loop per shape, closures over its njit functions, cached on
+disk per shape by engine.jitcache.cache_closure); for spheres ``k_t``/``torque`` = None (smooth spheres: no
+spring, no torque, no spin update), ``mu`` = None (no Coulomb limit) and ``quat`` = None (orientation not
+needed) are pruned by Numba when the functions are compiled for those argument types. Everything is cached
+on disk, so a new process (a job's child, a test run) loads the compiled code.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numba import prange
+
+from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.jitcache import cache_closure
+
+from engine.loops.system import ContactParams, cell_grid
+from engine.loops.cpu_shared import SLOT, cpu_name, worst_overlap
+from engine.backends.protocol import Backend
+from engine.loops.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
+from engine.cells import cell_coords_of, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
+from engine.physics.contact import min_image
+from engine.physics.integrate import drift_wrap, kick
+
+
+@numba.njit(parallel=True, cache=True)
+def max_displacement2(pos, x_ref, box, inv_box, half, chunk):
+    """Largest squared displacement (minimum image) since the last list build."""
+    n = pos.shape[0]
+    nch = chunk.shape[0]
+    for c in prange(nch):
+        m = 0.0
+        for i in range(c * n // nch, (c + 1) * n // nch):
+            dx = min_image(pos[i, 0] - x_ref[i, 0], box, inv_box, half)
+            dy = min_image(pos[i, 1] - x_ref[i, 1], box, inv_box, half)
+            dz = min_image(pos[i, 2] - x_ref[i, 2], box, inv_box, half)
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 > m:
+                m = d2
+        chunk[c] = m
+    m = 0.0
+    for c in range(nch):
+        if chunk[c] > m:
+            m = chunk[c]
+    return m
+
+
+@numba.njit(parallel=True, cache=True)
+def half_kick(vel, omega, force, torque, inv_m, inv_i, hk):
+    """Closing half kick that makes velocities synchronous with positions."""
+    for i in prange(vel.shape[0]):
+        for k in range(3):
+            vel[i, k] = kick(vel[i, k], force[i, k], inv_m[i], hk)
+        if torque is not None:
+            for k in range(3):
+                omega[i, k] = kick(omega[i, k], torque[i, k], inv_i[i], hk)
+
+
+@numba.njit(cache=True)
+def bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor):
+    """Counting sort of the particles into nc^3 cells (cell_start has nc^3 + 1 entries)."""
+    n = pos.shape[0]
+    ncell = nc * nc * nc
+    for c in range(ncell + 1):
+        cell_start[c] = 0
+    for i in range(n):
+        c = cell_index_of(pos[i, 0], pos[i, 1], pos[i, 2], inv_cell, nc)
+        cell_of[i] = c
+        cell_start[c + 1] += 1
+    for c in range(ncell):
+        cell_start[c + 1] += cell_start[c]
+    for c in range(ncell):
+        cursor[c] = cell_start[c]
+    for i in range(n):
+        c = cell_of[i]
+        cell_list[cursor[c]] = i
+        cursor[c] += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
+               nbr_old, nn_old, hist_old, nbr, nn, hist, x_ref):
+    """Full Verlet list: j is a neighbour of i when |r_ij| < a_i + a_j + L_v; springs carried over.
+
+    nn[i] receives the true neighbour count even when it exceeds the stride (the caller then grows
+    the list and builds again); slots beyond the stride are not written.
+    """
+    n = pos.shape[0]
+    max_nb = nbr.shape[1]
+    ncells = neighbour_cell_count(nc)
+    for i in prange(n):
+        cx, cy, cz = cell_coords_of(cell_of[i], nc)
+        xi = pos[i, 0]
+        yi = pos[i, 1]
+        zi = pos[i, 2]
+        ri = radius[i]
+        cnt = 0
+        for k in range(ncells):
+            cc = neighbour_cell(cx, cy, cz, k, nc)
+            for s in range(cell_start[cc], cell_start[cc + 1]):
+                j = cell_list[s]
+                if j == i:
+                    continue
+                d2 = distance2(xi, yi, zi, pos[j, 0], pos[j, 1], pos[j, 2], box, inv_box, half)
+                rc = ri + radius[j] + skin
+                if d2 < rc * rc:
+                    if cnt < max_nb:
+                        nbr[i, cnt] = j
+                        if not carry_slot(i, cnt, j, nbr_old, nn_old, hist_old, hist):
+                            hist[i, cnt, 3] = ri + radius[j] - math.sqrt(d2)
+                    cnt += 1
+        nn[i] = cnt
+        x_ref[i, 0] = xi
+        x_ref[i, 1] = yi
+        x_ref[i, 2] = zi
+
+
+@numba.njit(parallel=True, cache=True)
+def copy_list(nbr_src, nn_src, hist_src, nbr_dst, nn_dst, hist_dst):
+    for i in prange(nn_src.shape[0]):
+        m = nn_src[i]
+        nn_dst[i] = m
+        for k in range(m):
+            nbr_dst[i, k] = nbr_src[i, k]
+            for q in range(hist_src.shape[2]):
+                hist_dst[i, k, q] = hist_src[i, k, q]
+
+
+_loops: dict = {}
+_force_loops: dict = {}
+_step_loops: dict = {}
+
+
+def make_step(shape):
+    """The one CPU kick-drift, specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
+
+    ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+    chunk_a, chunk_b, s)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``,
+    then the shared translation v += F/m hk, predicted end-of-step velocity v + F/m dt/2 (the normal
+    dashpot's), x += v dt wrapped into the box, then the shape's ``rotate``, which returns the particle's
+    displacement measure (module docstring of engine/shapes/sphere/kernels.py: |v|^2 or the exact squared
+    displacement) and whether its state is finite. Per chunk: the largest measure into ``chunk_a``, the first
+    non-finite particle into ``chunk_b`` (-1: none).
+    """
+    if shape.NAME in _step_loops:
+        return _step_loops[shape.NAME]
+    pre_step = shape.pre_step
+    rotate = shape.rotate
+
+    def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
+             chunk_a, chunk_b, s):
+        n = pos.shape[0]
+        nch = chunk_a.shape[0]
+        hp = dt * half
+        for c in prange(nch):
+            i0 = c * n // nch
+            i1 = (c + 1) * n // nch
+            m = 0.0
+            bad = -1
+            for i in range(i0, i1):
+                pre_step(i, pos, quat, ext)
+                im = inv_m[i]
+                v2 = 0.0
+                for k in range(3):
+                    v = kick(vel[i, k], force[i, k], im, hk)
+                    vel[i, k] = v
+                    vel_p[i, k] = kick(v, force[i, k], im, hp)
+                    pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+                    v2 += v * v
+                measure, ok = rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box,
+                                     inv_box, half, s)
+                if not ok:
+                    if bad < 0:
+                        bad = i
+                elif measure > m:
+                    m = measure
+            chunk_a[c] = m
+            chunk_b[c] = bad
+
+    loop = cache_closure(numba.njit(parallel=True)(step), ("cpu.step", shape.NAME))
+    _step_loops[shape.NAME] = loop
+    return loop
+
+
+def make_forces(shape):
+    """The one CPU force loop, specialised by a shape's pair evaluator ``shape.pair`` (cached on disk per shape):
+
+    ``compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+    k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx)`` sums the forces and torques of every list slot of
+    every particle (each thread owns its particles: no atomics; the full list holds each pair twice), lets the
+    evaluator advance the slot's history in place, and records per chunk the largest relative overlap and its
+    particle (the stability guard). ``torque = None`` (smooth spheres): torques are neither summed nor written.
+    """
+    if shape.NAME in _force_loops:
+        return _force_loops[shape.NAME]
+    pair = shape.pair
+
+    def compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                       k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx):
+        n = pos.shape[0]
+        nch = chunk_ovl.shape[0]
+        for c in prange(nch):
+            i0 = c * n // nch
+            i1 = (c + 1) * n // nch
+            worst = 0.0
+            worst_i = -1
+            for i in range(i0, i1):
+                fx = 0.0
+                fy = 0.0
+                fz = 0.0
+                tx = 0.0
+                ty = 0.0
+                tz = 0.0
+                for kk in range(nn[i]):
+                    g = pair(i, kk, nbr[i, kk], pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half,
+                             k_n, gn_coef, law, dt, ext)
+                    fx += g[0]
+                    fy += g[1]
+                    fz += g[2]
+                    if torque is not None:
+                        tx += g[3]
+                        ty += g[4]
+                        tz += g[5]
+                    if g[6] > worst:
+                        worst = g[6]
+                        worst_i = i
+                force[i, 0] = fx
+                force[i, 1] = fy
+                force[i, 2] = fz
+                if torque is not None:
+                    torque[i, 0] = tx
+                    torque[i, 1] = ty
+                    torque[i, 2] = tz
+            chunk_ovl[c] = worst
+            chunk_ovl_idx[c] = worst_i
+
+    loop = cache_closure(numba.njit(parallel=True)(compute_forces), ("cpu.compute_forces", shape.NAME))
+    _force_loops[shape.NAME] = loop
+    return loop
+
+
+def make_run_steps(shape):
+    """The compiled time loop of a shape plug-in (engine/shapes/): one loop for every shape, specialised by the
+    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.jitcache).
+
+    ``run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
+    ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
+    inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg)`` advances up to nsteps
+    velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and on exit, and the shape's
+    ``settle`` has left nothing pending in the orientations (spheres turn theirs lazily:
+    engine/shapes/sphere/kernels.py).
+
+    Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
+    current step have been drifted but its forces not computed: the caller grows the list, rebuilds,
+    computes the forces and closes the step. On BAD_VALUE / OVERLAP the state is left as it is.
+
+    The L_v/2 rule (paper 004): with ``shape.EXACT_DISPLACEMENT`` the step measures the exact largest
+    displacement since the build; otherwise disp_bound[0] accumulates max|v| dt, an upper bound of any
+    particle's displacement since the build, and only when it passes L_v/2 is the exact largest displacement
+    computed, and the list rebuilt if that passes too.
+
+    mg = None: the single linked-cell grid; else the multigrid arrays (level, nc, inv_cell, start_off,
+    list_off, cell_start, cell_list) of engine/multigrid.py (scenes with more than one grid level).
+    """
+    if shape.NAME in _loops:
+        return _loops[shape.NAME]
+    step = make_step(shape)
+    forces = make_forces(shape)
+    settle = shape.settle
+    exact = bool(shape.EXACT_DISPLACEMENT)
+
+    def steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
+              ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
+              cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg):
+        # the steps themselves; run_steps settles the orientations and closes the last step, on every exit
+        builds = 0
+        if nsteps <= 0:
+            return OK, 0, -1, 0.0, builds
+        limit2 = (skin * half) * (skin * half)
+        for s in range(nsteps):
+            hk = dt * half if s == 0 else dt
+            step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box,
+                 half, chunk_a, chunk_b, s)
+            for c in range(chunk_b.shape[0]):
+                if chunk_b[c] >= 0:
+                    return BAD_VALUE, s, chunk_b[c], 0.0, builds
+            m2 = 0.0
+            for c in range(chunk_a.shape[0]):
+                if chunk_a[c] > m2:
+                    m2 = chunk_a[c]
+            if exact:
+                rebuild = m2 > limit2
+            else:
+                disp_bound[0] += math.sqrt(m2) * dt
+                rebuild = False
+                if disp_bound[0] * disp_bound[0] > limit2:
+                    exact2 = max_displacement2(pos, x_ref, box, inv_box, half, chunk_a)
+                    rebuild = exact2 > limit2
+                    disp_bound[0] = math.sqrt(exact2)
+            if rebuild:
+                disp_bound[0] = 0.0
+                if mg is None:
+                    bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
+                    build_list(pos, rad, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
+                               nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+                else:
+                    bin_levels(pos, mg[0], mg[1], mg[2], mg[3], mg[4], mg[5], mg[6])
+                    build_levels_carry(pos, rad, mg[0], skin, box, inv_box, half, mg[1], mg[2], mg[3], mg[4],
+                                       mg[5], mg[6], nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
+                builds += 1
+                need = 0
+                for i in range(nn_new.shape[0]):
+                    if nn_new[i] > need:
+                        need = nn_new[i]
+                if need > nbr_new.shape[1]:
+                    return OVERFLOW, s, -1, float(need), builds
+                copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
+            forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
+                   k_n, gn_coef, law, dt, ext, chunk_a, chunk_b)
+            worst, who = worst_overlap(chunk_a, chunk_b)
+            if worst > overlap_limit:
+                return OVERLAP, s, who, worst, builds
+        return OK, nsteps, -1, 0.0, builds
+
+    steps = numba.njit(steps)
+
+    def run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
+                  ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
+                  cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg):
+        status, done, who, value, builds = steps(
+            nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound, ext, nbr,
+            nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box, inv_box,
+            half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg)
+        if nsteps > 0:
+            if quat is not None:
+                # nothing left pending, whatever the exit (a step that stopped early had drifted already)
+                settle(spin, quat, ext, nsteps if status == OK else done + 1, dt, half)
+            if status == OK:
+                half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
+        return status, done, who, value, builds
+
+    loop = cache_closure(numba.njit(run_steps), ("cpu.run_steps", shape.NAME))
+    _loops[shape.NAME] = loop
+    return loop
+
+
+class CpuLoop(Backend):
+    """What every CPU shape backend shares: cells, the Verlet list and its slot store, the list build, the
+    time loop (``make_run_steps`` of the subclass's ``shape``) and its error handling.
+
+    A subclass sets ``shape`` (an engine/shapes/ module) and, before ``_init_loop``, the state arrays ``pos``,
+    ``vel``, ``force``, ``inv_m``, ``x_ref``, ``vel_p`` and ``_rad_list`` (list radius); ``set_contact`` then
+    sets the constants and the loop arguments ``_spin``, ``_spin_inv``, ``_quat_arg``, ``_torque_arg``,
+    ``_ext``, ``_law``. It implements ``_prime`` and ``_forces`` (forces at a list build outside the loop).
+    """
+
+    name = "cpu"
+    shape = None
+    #: history words per list slot (cpu_shared.SLOT; a shape whose pair law keeps more sets its own)
+    slot_words = SLOT
+
+    def _init_loop(self, n: int, rmax: float, rmin: float, skin: float) -> None:
+        self.disp_bound = np.zeros(1)     # upper bound of the displacement since the last build (m)
+        self.device = cpu_name()
+        self.steps_done = 0
+        self.builds = 0
+        threads = numba.get_num_threads()
+        nch = max(1, min(n, 8 * threads))
+        self.chunk_a = np.zeros(nch, np.float64)
+        self.chunk_b = np.zeros(nch, np.int64)
+        self._setup_cells(rmax, skin, rmin)
+        self._alloc_lists(8)
+
+    # ---- set-up -----------------------------------------------------------------------------------
+
+    def _setup_cells(self, rmax: float, skin: float, rmin: float) -> None:
+        """The single linked-cell grid, and the multigrid cells (paper 004 Algorithm 1, engine/multigrid.py)
+        when the size distribution spans more than one grid level (``self.mg``; None otherwise)."""
+        self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
+        self.inv_cell = nc / self.box
+        self.mg = None
+        self.levels = None
+        if self.n and rmin < rmax:
+            levels = grid_levels(self.box, self.n, rmin, rmax, float(skin))
+            if levels.n_levels > 1:
+                self.levels = levels
+                level = main_level(self._rad_list, levels)
+                self.mg = (level,) + level_arrays(self.box, level, levels)
+                nc = 1                      # the single grid is not used
+        self.cell_start = np.zeros(nc**3 + 1, np.int64)
+        self.cursor = np.zeros(nc**3, np.int64)
+        self.cell_list = np.zeros(self.n, np.int64)
+        self.cell_of = np.zeros(self.n, np.int64)
+
+    def _alloc_lists(self, max_nb: int) -> None:
+        n, dt_ = self.n, self.dtype
+        self.max_nb = max_nb
+        self.nbr = np.zeros((n, max_nb), np.int32)
+        self.nn = np.zeros(n, np.int32)
+        self.hist = np.zeros((n, max_nb, self.slot_words), dt_)
+        self.nbr_new = np.zeros_like(self.nbr)
+        self.nn_new = np.zeros_like(self.nn)
+        self.hist_new = np.zeros_like(self.hist)
+
+    def _grow_lists(self, need: int) -> None:
+        old = (self.nbr, self.nn, self.hist)
+        self._alloc_lists(int(math.ceil(max(need, 2 * self.max_nb) / 4.0)) * 4)
+        copy_list(old[0], old[1], old[2], self.nbr, self.nn, self.hist)
+
+    def _set_common(self, contact: ContactParams) -> None:
+        """The contact constants every shape has."""
+        self.contact = contact
+        c = self.dtype
+        self.k_n = c(contact.k_n)
+        self.gn_coef = c(contact.gamma_n_coef)
+        self.dt = c(contact.dt)
+        self.skin = c(contact.skin)
+        self.half = c(0.5)
+        self.box_c = c(self.box)
+        self.inv_box = c(1.0 / self.box)
+        self.overlap_limit = float(contact.overlap_limit)
+
+    def _build(self) -> None:
+        mg = self.mg
+        while True:
+            if mg is None:
+                bin_particles(self.pos, self.nc, self.inv_cell, self.cell_start, self.cell_list, self.cell_of,
+                              self.cursor)
+                build_list(self.pos, self._rad_list, self.skin, self.box_c, self.inv_box, self.half, self.nc,
+                           self.cell_start, self.cell_list, self.cell_of, self.nbr, self.nn, self.hist,
+                           self.nbr_new, self.nn_new, self.hist_new, self.x_ref)
+            else:
+                bin_levels(self.pos, *mg)
+                build_levels_carry(self.pos, self._rad_list, mg[0], self.skin, self.box_c, self.inv_box,
+                                   self.half, *mg[1:], self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new,
+                                   self.hist_new, self.x_ref)
+            need = int(self.nn_new.max()) if self.n else 0
+            if need <= self.max_nb:
+                break
+            self._grow_lists(need)
+        copy_list(self.nbr_new, self.nn_new, self.hist_new, self.nbr, self.nn, self.hist)
+        self.disp_bound[0] = 0.0
+        self.builds += 1
+
+    def _forces(self) -> None:
+        """Forces and torques at the current positions (after a build outside the loop)."""
+        make_forces(self.shape)(self.pos, self.vel, self.vel_p, self._spin, self._quat_arg, self._rad_list,
+                                self.inv_m, self.nbr, self.nn, self.hist, self.force, self._torque_arg, self.box_c,
+                                self.inv_box, self.half, self.k_n, self.gn_coef, self._law, self.dt, self._ext,
+                                self.chunk_a, self.chunk_b)
+        if self._torque_arg is None:
+            self.torque[:] = 0
+
+    # ---- time loop ---------------------------------------------------------------------------------
+
+    def warmup(self) -> None:
+        """Compile (or load from the disk cache) the time loop for the current contact parameters."""
+        self.advance(0, _compile_only=True)
+
+    def advance(self, nsteps: int, _compile_only: bool = False) -> None:
+        """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
+        run_steps = make_run_steps(self.shape)
+        left = int(nsteps)
+        while left > 0 or _compile_only:
+            _compile_only = False
+            status, done, who, value, builds = run_steps(
+                left, self.pos, self.vel, self._spin, self._quat_arg, self.force, self._torque_arg,
+                self.inv_m, self._spin_inv, self._rad_list, self.x_ref, self.vel_p, self.disp_bound, self._ext,
+                self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell,
+                self.cell_start, self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half,
+                self.dt, self.skin, self.k_n, self.gn_coef, self._law, self.overlap_limit,
+                self.chunk_a, self.chunk_b, self.mg)
+            self.builds += builds
+            if status == OK:
+                self.steps_done += done
+                return
+            step = self.steps_done + done
+            if status == OVERFLOW:
+                # finish the interrupted step with a larger list, then continue
+                self._grow_lists(int(value))
+                self._build()
+                self._forces()
+                half_kick(self.vel, self._spin, self.force, self._torque_arg, self.inv_m, self._spin_inv,
+                          self.dt * self.half)
+                self.steps_done += done + 1
+                left -= done + 1
+                continue
+            self.steps_done = step
+            raise instability_error(status, step, int(who), value, self)
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

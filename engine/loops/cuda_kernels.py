@@ -1,0 +1,426 @@
+"""CUDA layout and neighbour-list kernels of the GPU backend: K independent scenes advanced together (K = 1 for
+one run), for every particle shape.
+
+This module owns the device layout (below), the per-scene tables and status words, the block reductions and
+the blow-up record shared by every kernel (:func:`device_helpers`, :func:`observe_reducer`), and the
+single-grid neighbour-list kernels (:func:`grid_kernels`: cells, scan, scatter, per-cell id sort, permutation,
+compact history store, full Verlet list build; the cell arithmetic is engine/cells.py's). The time loop is
+engine/loops/cuda_loop.py's, specialised by a shape's device functions (engine/shapes/<shape>/device.py);
+the multigrid and CPU-built lists are engine/loops/cuda_lists.py's. Kernels are built by factories keyed on
+what the scenes need (DESIGN §1) and call the same ``@numba.njit`` functions as the CPU backend.
+
+Layout (device, structure of arrays, particle index fastest). The scenes lie back to back: scene s owns
+the slots [start_s, start_s + n_s) and keeps them (its cells come before the next scene's, so the cell
+sort never moves a particle into another scene's range); ``sc[i]`` is the scene of slot i.
+    pos, vel, spin (3, N) (spin: the rotational state the torque kicks, the shape's); quat (4, N); f0/f1
+    (3, N) (double buffer: the sphere force phase reads the previous step's forces for the predicted
+    velocities of *other* particles while writing its own); torque (3, N); x_ref (3, N); ids (N) int32 =
+    ensemble-wide particle id (start_s + id within the scene); a shape's own arrays (``ext``).
+    Neighbour list (of the list radius: a sphere's radius, a spheroid's bounding radius): nbr (M, N) int32,
+    nn (N) int32, hist (H, M, N) per-slot contact history (H = 5: tangential spring x, y, z, previous
+    overlap, previous dashpot force).
+    Compact history store (rebuilds only): the slots whose history matters across a rebuild (in contact
+    at the previous step or overlapping now) are copied to cj/chist before the list is rebuilt in place;
+    every other slot restarts from zero history with the current gap as its previous overlap, which gives
+    the same forces bit for bit (a pair apart at the previous step has zero spring, and its previous
+    dashpot force is never read). This keeps one list buffer instead of two (issue 3's memory target).
+Per-scene constants: spd (K, ND + the shape's columns) in the working precision, spf (K, NF) float64,
+spi (K, NI) int32; a scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or
+failed: a blow-up clears it on the device so a failing scene cannot disturb the others).
+
+Status (float64): global slots S_* (rebuild decision, list stride, compaction count, multi-step exit)
+then NSS words per scene at SS0 + NSS s (first bad value, worst overlap beyond the limit).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import cuda
+from numba.cuda import types as ct
+
+from engine.loops.cuda_cache import cache_kernels
+from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.physics.contact import min_image
+
+# per-scene constants: spd (working precision)
+D_BOX, D_INVBOX, D_DT, D_HP, D_KN, D_GN, D_KT, D_MU, D_R0, D_M0, D_I0, D_IM0, D_II0, D_SKIN = range(14)
+ND = 14
+# spf (float64)
+F_OVL, F_INVCELL, F_LIM2INV, F_V2F, F_KN, F_KT = range(6)
+NF = 6
+# spi (int32)
+I_NC, I_COFF, I_ACTIVE, I_START, I_N, I_ORIENT = range(6)
+NI = 6
+
+# global status slots; S_D2 (+1): max over particles of (displacement since the build / (L_v/2))^2 (two
+# slots: the multi-step kernel alternates them by step parity); S_V2: max (2 |v| dt / (L_v/2))^2
+# S_CHECK: max (displacement from a list's snapshot / (L_v/2))^2, the a-posteriori check of a CPU-built list
+S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK = range(8)
+SS0 = 8
+# per-scene status words
+SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
+NSS = 5
+HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force (a shape's
+#        pair law may keep more: the host allocates hist/chist with its own count, the kernels read shape[0])
+
+_cache: dict = {}
+
+
+def status_len(k: int) -> int:
+    return SS0 + NSS * k
+
+
+def grid_kernels(dtype, uniform: bool, tpb: int) -> dict:
+    """The neighbour-list kernels (cells, scan, scatter, sort, permute, compact history store, build) for one
+    precision, uniformity and block size (cached): every shape's broad phase is this list of its list radius
+    (a sphere's radius, a spheroid's bounding radius)."""
+    key = (np.dtype(dtype).str, uniform, tpb)
+    if key not in _cache:
+        _cache[key] = cache_kernels(_make(np.dtype(dtype).type, uniform, tpb), ("grid",) + key)
+    return _cache[key]
+
+
+def device_helpers(tpb: int):
+    """(block_max2, fail): the block reduction and the per-scene blow-up record shared by the sphere and
+    ellipsoid kernel sets (cached per block size)."""
+    key = ("helpers", tpb)
+    if key not in _cache:
+        _cache[key] = _make_helpers(tpb)
+    return _cache[key]
+
+
+def observe_reducer(tpb: int, nv: int, max_slot: int):
+    """Device function ``block_accumulate(sh, vals, acc, s)``: the block-wide reduction of the nv float64
+    values ``vals`` of every thread (sums, except slot ``max_slot``: a maximum) into ``acc[s, :]`` with one
+    atomic per value per block (cached). ``sh`` is a shared float64 array of nv * tpb; every thread of the
+    block must call it, and all of them must add to the same scene s (observe grids are one block row per
+    scene)."""
+    key = ("reducer", tpb, nv, max_slot)
+    if key not in _cache:
+        _cache[key] = _make_reducer(tpb, nv, max_slot)
+    return _cache[key]
+
+
+def _make_reducer(TPB, NV, MAXSLOT):
+    @cuda.jit(device=True)
+    def block_accumulate(sh, vals, acc, s):
+        t = cuda.threadIdx.x
+        for q in range(NV):
+            sh[q * TPB + t] = vals[q]
+        cuda.syncthreads()
+        st = TPB // 2
+        while st > 0:
+            if t < st:
+                for q in range(NV):
+                    a = sh[q * TPB + t]
+                    b = sh[q * TPB + t + st]
+                    if q == MAXSLOT:
+                        if b > a:
+                            sh[q * TPB + t] = b
+                    else:
+                        sh[q * TPB + t] = a + b
+            cuda.syncthreads()
+            st //= 2
+        if t < NV:
+            v = sh[t * TPB]
+            if t == MAXSLOT:
+                cuda.atomic.max(acc, (s, t), v)
+            elif v != 0.0:
+                cuda.atomic.add(acc, (s, t), v)
+
+    return block_accumulate
+
+
+def _make_helpers(TPB):
+    f64 = np.float64
+
+    @cuda.jit(device=True)
+    def block_max2(sh, a, b):
+        """Block-wide max of (a, b) into sh[0], sh[TPB] (all threads must call)."""
+        t = cuda.threadIdx.x
+        sh[t] = a
+        sh[t + TPB] = b
+        cuda.syncthreads()
+        s = TPB // 2
+        while s > 0:
+            if t < s:
+                if sh[t + s] > sh[t]:
+                    sh[t] = sh[t + s]
+                if sh[t + TPB + s] > sh[t + TPB]:
+                    sh[t + TPB] = sh[t + TPB + s]
+            cuda.syncthreads()
+            s //= 2
+
+    @cuda.jit(device=True)
+    def fail(status, spi, s, word, value, step):
+        """Record a blow-up of scene s (first offender, first step) and stop the scene on the device."""
+        b = SS0 + NSS * s
+        cuda.atomic.min(status, b + word, f64(value))
+        cuda.atomic.min(status, b + word + 1, f64(step))
+        spi[s, I_ACTIVE] = 0
+
+    return block_max2, fail
+
+
+def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
+    ZERO = DT(0)
+    HALF = DT(0.5)
+    f64 = np.float64
+    SH2 = 2 * TPB
+
+    block_max2, fail = device_helpers(TPB)
+
+    # ---- neighbour list: cells, sort, permute, compact history, build -----------------------------------
+
+    @cuda.jit(device=True)
+    def cell_of(i, pos, sc, spf, spi):
+        s = sc[i]
+        return spi[s, I_COFF] + cell_index_of(pos[0, i], pos[1, i], pos[2, i], spf[s, F_INVCELL], spi[s, I_NC])
+
+    @cuda.jit
+    def fill_i32(a, value):
+        for i in range(cuda.grid(1), a.shape[0], cuda.gridsize(1)):
+            a[i] = value
+
+    @cuda.jit
+    def count_cells(n, pos, sc, spf, spi, count):
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            cuda.atomic.add(count, cell_of(i, pos, sc, spf, spi), 1)
+
+    @cuda.jit
+    def tile_scan(src, dst, n, bsum, items):
+        """Exclusive scan of src[0:n] per tile of TPB*items elements; tile totals into bsum."""
+        sh = cuda.shared.array(TPB, ct.int64)
+        t = cuda.threadIdx.x
+        base = cuda.blockIdx.x * TPB * items + t * items
+        s = 0
+        for k in range(items):
+            if base + k < n:
+                s += src[base + k]
+        sh[t] = s
+        cuda.syncthreads()
+        off = 1
+        while off < TPB:
+            v = 0
+            if t >= off:
+                v = sh[t - off]
+            cuda.syncthreads()
+            sh[t] += v
+            cuda.syncthreads()
+            off *= 2
+        run = sh[t] - s
+        for k in range(items):
+            if base + k < n:
+                x = src[base + k]
+                dst[base + k] = run
+                run += x
+        if t == TPB - 1:
+            bsum[cuda.blockIdx.x] = sh[t]
+
+    @cuda.jit
+    def add_offsets(dst, n, offs, tile):
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            dst[i] += offs[i // tile]
+
+    @cuda.jit
+    def scatter(n, pos, sc, spf, spi, cell_start, cursor, order):
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            c = cell_of(i, pos, sc, spf, spi)
+            order[cell_start[c] + cuda.atomic.add(cursor, c, 1)] = i
+
+    @cuda.jit
+    def sort_cells(ncell, cell_start, order, ids):
+        """Insertion sort of each cell's particles by id: a deterministic order (cell, id)."""
+        for c in range(cuda.grid(1), ncell, cuda.gridsize(1)):
+            a = cell_start[c]
+            b = cell_start[c + 1]
+            for p in range(a + 1, b):
+                v = order[p]
+                key = ids[v]
+                q = p - 1
+                while q >= a and ids[order[q]] > key:
+                    order[q + 1] = order[q]
+                    q -= 1
+                order[q + 1] = v
+
+    @cuda.jit
+    def gather_rows(n, src, dst, order):
+        """dst[:, k] = src[:, order[k]] (also for 1-row arrays given as (1, N))."""
+        for k in range(cuda.grid(1), n, cuda.gridsize(1)):
+            o = order[k]
+            for r in range(src.shape[0]):
+                dst[r, k] = src[r, o]
+
+    @cuda.jit
+    def gather_i32(n, src, dst, order):
+        for k in range(cuda.grid(1), n, cuda.gridsize(1)):
+            dst[k] = src[order[k]]
+
+    @cuda.jit
+    def inverse_perm(n, order, inv):
+        for k in range(cuda.grid(1), n, cuda.gridsize(1)):
+            inv[order[k]] = k
+
+    @cuda.jit(device=True)
+    def keeps_history(i, kk, j, pos, radius, hist, s, spd):
+        """A slot whose history must survive a rebuild: in contact at the previous step or now."""
+        if hist[3, kk, i] > ZERO:
+            return True
+        box = spd[s, D_BOX]
+        inv_box = spd[s, D_INVBOX]
+        r0 = spd[s, D_R0]
+        rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
+        ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
+        rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
+        rs = (r0 + r0) if UNIFORM else (radius[i] + radius[j])
+        return rx * rx + ry * ry + rz * rz < rs * rs
+
+    @cuda.jit
+    def compact(n, pos, radius, nbr, nn, hist, sc, spd, spi, c_off, c_cnt, cj, chist, status):
+        """Copy the slots that keep history into the compact store (old slot order); the total goes to
+        status[S_NCOMP]; nothing is written past the store's capacity (the host grows it and reruns)."""
+        cap = cj.shape[0]
+        m = nbr.shape[0]
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            cnt = 0
+            no = min(nn[i], m)
+            if spi[s, I_ACTIVE] != 0:
+                for kk in range(no):
+                    if keeps_history(i, kk, nbr[kk, i], pos, radius, hist, s, spd):
+                        cnt += 1
+            off = 0
+            if cnt > 0:
+                off = int(cuda.atomic.add(status, S_NCOMP, f64(cnt)))
+            c_off[i] = off
+            c_cnt[i] = cnt
+            if cnt > 0 and off + cnt <= cap:
+                q = off
+                for kk in range(no):
+                    j = nbr[kk, i]
+                    if keeps_history(i, kk, j, pos, radius, hist, s, spd):
+                        cj[q] = j
+                        for w in range(chist.shape[0]):
+                            chist[w, q] = hist[w, kk, i]
+                        q += 1
+
+    @cuda.jit
+    def build(n, pos, radius, cell_start, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, x_ref, sc,
+              spd, spf, spi, status):
+        """Full Verlet list in the sorted order; kept history found in the compact store.
+
+        The compact store is indexed by the previous order: the old slot of new i is order[i]; an old
+        neighbour index o maps to the new index inv_old[o]. nn[i] gets the true count even beyond the
+        stride (the host grows the list and reruns when it does not fit).
+        """
+        sh = cuda.shared.array(SH2, ct.float64)
+        max_nb = nbr.shape[0]
+        need = 0.0
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
+            if s < 0:
+                continue
+            nc = spi[s, I_NC]
+            coff = spi[s, I_COFF]
+            r0 = spd[s, D_R0]
+            cx, cy, cz = cell_coords(xi, yi, zi, spf[s, F_INVCELL], nc)
+            ri = r0 if UNIFORM else radius[i]
+            oi = order[i]
+            k0 = c_off[oi]
+            k1 = k0 + c_cnt[oi]
+            cnt = 0
+            for k in range(neighbour_cell_count(nc)):
+                cc = coff + neighbour_cell(cx, cy, cz, k, nc)
+                for j in range(cell_start[cc], cell_start[cc + 1]):
+                    rj = r0 if UNIFORM else radius[j]
+                    c2, d2 = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr)
+                    if c2 > cnt and cnt < max_nb:
+                        init_slot(i, cnt, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
+                    cnt = c2
+            nn[i] = cnt
+            if cnt > need:
+                need = f64(cnt)
+        block_max2(sh, need, 0.0)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_NEED_NB, sh[0])
+
+    return dict(fill_i32=fill_i32, count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets,
+                scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32,
+                inverse_perm=inverse_perm, compact=compact, build=build)
+
+
+@cuda.jit
+def gather_scene(src, ids, a0, n_k, dst):
+    """dst[ids[a0 + l] - a0, r] = src[r, a0 + l] for l < n_k: one scene's rows of a (rows, N) state array in
+    particle-id order, particle-major, for the host copy of a snapshot or checkpoint."""
+    for li in range(cuda.grid(1), n_k, cuda.gridsize(1)):
+        i = a0 + li
+        o = ids[i] - a0
+        for r in range(src.shape[0]):
+            dst[o, r] = src[r, i]
+
+
+@cuda.jit
+def scatter_rows(src, a0, dst):
+    """dst[r, a0 + i] = src[i, r], cast to dst's type: a host (n, rows) array, uploaded as it is, into the rows
+    of a (rows, N) state array from column a0 (the transposition and the precision cast of an upload run on the
+    device: issue 14, set-up)."""
+    for i in range(cuda.grid(1), src.shape[0], cuda.gridsize(1)):
+        for r in range(src.shape[1]):
+            dst[r, a0 + i] = src[i, r]
+
+
+cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows}, ("gather",))
+
+
+@cuda.jit(device=True)
+def list_origin(i, pos, x_ref, nn, sc, spd, spi):
+    """Start of particle i's row of a list build: its position, recorded as the list's reference x_ref, its
+    scene s and the scene's box, 1/box and skin; s = -1 (and an empty row) when the scene is inactive."""
+    xi = pos[0, i]
+    yi = pos[1, i]
+    zi = pos[2, i]
+    x_ref[0, i] = xi
+    x_ref[1, i] = yi
+    x_ref[2, i] = zi
+    s = sc[i]
+    box = spd[s, D_BOX]
+    inv_box = spd[s, D_INVBOX]
+    skin = spd[s, D_SKIN]
+    if spi[s, I_ACTIVE] == 0:
+        nn[i] = 0
+        return xi, yi, zi, -1, box, inv_box, skin
+    return xi, yi, zi, s, box, inv_box, skin
+
+
+@cuda.jit(device=True)
+def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, nbr):
+    """The candidate test of every CUDA list build (engine/cells.distance2): j (!= i) joins i's row at slot cnt
+    when |r_ij| < R_i + R_j + L_v (a row longer than the stride is only counted). Returns (the new count, the
+    squared distance; 0 for j = i)."""
+    if j == i:
+        return cnt, half - half
+    d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, half)
+    rc = ri + rj + skin
+    if d2 < rc * rc:
+        if cnt < nbr.shape[0]:
+            nbr[cnt, i] = j
+        return cnt + 1, d2
+    return cnt, d2
+
+
+@cuda.jit(device=True)
+def init_slot(i, kk, j, gap, k0, k1, cj, chist, inv_old, hist):
+    """History of list slot kk of particle i (neighbour j) after a rebuild: the kept history from the
+    compact store entries k0..k1 of i (old indices o map to new ones by inv_old[o]), else a fresh slot
+    (zero spring, zero dashpot force, previous overlap = the current gap, m)."""
+    for q in range(k0, k1):
+        if inv_old[cj[q]] == j:
+            for w in range(hist.shape[0]):
+                hist[w, kk, i] = chist[w, q]
+            return
+    for w in range(hist.shape[0]):
+        hist[w, kk, i] = 0
+    hist[3, kk, i] = gap

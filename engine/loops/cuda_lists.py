@@ -1,0 +1,179 @@
+"""CUDA kernels for neighbour lists beyond the single-grid build of :mod:`engine.loops.cuda_kernels`.
+
+- Multigrid linked cells (paper 004 §2.2, Algorithm 1) for wide size distributions. Each scene has grid
+  levels l = 0 (coarsest, cell >= 2 R_max + L_v) ... (see :mod:`engine.multigrid`); ``lvl[i]`` is the level
+  where particle i is *main*; it is *secondary* at every coarser level. Bins: for scene s and level l,
+  ``mgi[s, l] = (nc, first main bin, first secondary bin)``; the bin of a particle is that offset plus
+  its cell in the level's grid. A particle i finds its neighbours j among the main particles of every
+  level l < lvl[i] and among the main and secondary particles of l = lvl[i] (the 27 cells around it in
+  each grid): every pair once from each side, large-large at their level, large-small at the larger
+  one's, each level's cell covering R_i + R_j + L_v (Eqs. 1, 3, 4). Rows are sorted by neighbour index,
+  which makes the list independent of the atomic order of the binning.
+- ``attach``: history for a list built elsewhere (on the CPU, paper 004 §3): the kept history from the
+  compact store, fresh slots otherwise (the same rule as the GPU build, :func:`cuda_kernels.init_slot`).
+- ``check_snapshot``: the a-posteriori test of a list built from earlier positions (paper 004 §3, B10):
+  max over particles of (|x - x_snapshot| / (L_v/2))^2 into status[S_CHECK].
+
+The row start and the candidate test are the single-grid build's (:func:`cuda_kernels.list_origin`,
+:func:`cuda_kernels.add_candidate`); the cell arithmetic is engine/cells.py's.
+
+Layout and per-scene tables as in :mod:`engine.loops.cuda_kernels`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import cuda
+from numba.cuda import types as ct
+
+from engine.loops import cuda_kernels as K
+from engine.loops.cuda_cache import cache_kernels
+from engine.loops.cuda_kernels import add_candidate, init_slot, list_origin
+from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
+from engine.physics.contact import min_image
+
+_cache: dict = {}
+
+
+def list_kernels(dtype, tpb: int) -> dict:
+    """The list kernels for one precision (cached)."""
+    key = (np.dtype(dtype).str, tpb)
+    if key not in _cache:
+        _cache[key] = cache_kernels(_make(np.dtype(dtype).type, tpb), ("lists",) + key)
+    return _cache[key]
+
+
+def _make(DT, TPB):  # noqa: C901  (one closure per precision)
+    HALF = DT(0.5)
+    SH2 = 2 * TPB
+    block_max2, _fail = K.device_helpers(TPB)
+    D_BOX, D_INVBOX, D_R0 = K.D_BOX, K.D_INVBOX, K.D_R0
+    I_ACTIVE, F_LIM2INV = K.I_ACTIVE, K.F_LIM2INV
+    S_NEED_NB, S_CHECK = K.S_NEED_NB, K.S_CHECK
+
+    @cuda.jit(device=True)
+    def level_bin(i, l, li, pos, s, mgi, mgf):
+        """Bin of particle i at level l: main bin when l is its own level, secondary bin when coarser."""
+        c = cell_index_of(pos[0, i], pos[1, i], pos[2, i], mgf[s, l], mgi[s, l, 0])
+        return (mgi[s, l, 1] if l == li else mgi[s, l, 2]) + c
+
+    @cuda.jit
+    def mg_count(n, pos, sc, lvl, mgi, mgf, count):
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            li = lvl[i]
+            for l in range(li + 1):
+                cuda.atomic.add(count, level_bin(i, l, li, pos, s, mgi, mgf), 1)
+
+    @cuda.jit
+    def mg_scatter(n, pos, sc, lvl, mgi, mgf, start, cursor, items):
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            li = lvl[i]
+            for l in range(li + 1):
+                b = level_bin(i, l, li, pos, s, mgi, mgf)
+                items[start[b] + cuda.atomic.add(cursor, b, 1)] = i
+
+    @cuda.jit(device=True)
+    def gap_of(i, j, ri, rj, pos, box, inv_box):
+        """R_i + R_j - |r_ij| (m, minimum image): the previous overlap of a fresh list slot."""
+        dx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
+        dy = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
+        dz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
+        return ri + rj - math.sqrt(dx * dx + dy * dy + dz * dz)
+
+    @cuda.jit
+    def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, c_off, c_cnt, cj, chist, order, inv_old, nbr,
+                 nn, hist, x_ref, sc, spd, spi, status):
+        """Full Verlet list over the grid levels (module docstring); kept history from the compact store
+        (indexed by the previous order, as in the single-grid build); true counts in nn, the largest in
+        status[S_NEED_NB] (the host grows the list and reruns when it does not fit)."""
+        need = 0.0
+        sh = cuda.shared.array(SH2, ct.float64)
+        max_nb = nbr.shape[0]
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
+            if s < 0:
+                continue
+            ri = radius[i]
+            li = lvl[i]
+            cnt = 0
+            for l in range(li + 1):
+                nc = mgi[s, l, 0]
+                cx, cy, cz = cell_coords(xi, yi, zi, mgf[s, l], nc)
+                kinds = 2 if l == li else 1
+                for k in range(neighbour_cell_count(nc)):
+                    cc = neighbour_cell(cx, cy, cz, k, nc)
+                    for kind in range(kinds):
+                        b = mgi[s, l, 1 + kind] + cc
+                        for p in range(start[b], start[b + 1]):
+                            j = items[p]
+                            cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, radius[j], skin, pos, box, inv_box,
+                                                   HALF, nbr)
+            nn[i] = cnt
+            if cnt > need:
+                need = np.float64(cnt)
+            if cnt <= max_nb:
+                # sort the row by neighbour index (binning order is atomic), then attach history
+                for p in range(1, cnt):
+                    v = nbr[p, i]
+                    q = p - 1
+                    while q >= 0 and nbr[q, i] > v:
+                        nbr[q + 1, i] = nbr[q, i]
+                        q -= 1
+                    nbr[q + 1, i] = v
+                oi = order[i]
+                k0 = c_off[oi]
+                k1 = k0 + c_cnt[oi]
+                for kk in range(cnt):
+                    j = nbr[kk, i]
+                    init_slot(i, kk, j, gap_of(i, j, ri, radius[j], pos, box, inv_box), k0, k1, cj, chist,
+                              inv_old, hist)
+        block_max2(sh, need, 0.0)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_NEED_NB, sh[0])
+
+    @cuda.jit
+    def attach(n, pos, radius, uniform, c_off, c_cnt, cj, chist, inv_old, nbr, nn, hist, sc, spd, spi):
+        """History of every slot of a list uploaded from the host (no particle permutation since the
+        compaction: the store is indexed by the current order, inv_old is the identity)."""
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            if spi[s, I_ACTIVE] == 0:
+                nn[i] = 0
+                continue
+            box = spd[s, D_BOX]
+            inv_box = spd[s, D_INVBOX]
+            k0 = c_off[i]
+            k1 = k0 + c_cnt[i]
+            r0 = spd[s, D_R0]
+            ri = r0 if uniform else radius[i]
+            for kk in range(nn[i]):
+                j = nbr[kk, i]
+                rj = r0 if uniform else radius[j]
+                init_slot(i, kk, j, gap_of(i, j, ri, rj, pos, box, inv_box), k0, k1, cj, chist, inv_old, hist)
+
+    @cuda.jit
+    def check_snapshot(n, pos, snap, sc, spd, spf, spi, status):
+        """status[S_CHECK] = max (|x - x_snap| / (L_v/2))^2 over the active particles (paper 004 Eq. 2)."""
+        sh = cuda.shared.array(SH2, ct.float64)
+        md = 0.0
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            if spi[s, I_ACTIVE] == 0:
+                continue
+            box = spd[s, D_BOX]
+            inv_box = spd[s, D_INVBOX]
+            d2 = 0.0
+            for k in range(3):
+                d = min_image(pos[k, i] - snap[k, i], box, inv_box, HALF)
+                d2 += np.float64(d * d)
+            md = max(md, d2 * spf[s, F_LIM2INV])
+        block_max2(sh, md, 0.0)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_CHECK, sh[0])
+
+    return dict(mg_count=mg_count, mg_scatter=mg_scatter, mg_build=mg_build, attach=attach,
+                check_snapshot=check_snapshot)

@@ -1,0 +1,273 @@
+"""The one CUDA time loop: kick-drift, forces, closing half kick, the many-steps cooperative kernel and the
+observe reduction, built once for every particle shape and specialised at compile time by the shape's device
+functions (engine/shapes/<shape>/device.py, ``make_cuda``; the interface is in engine/shapes/sphere/device.py).
+
+This module owns the step skeleton (which phase runs when, the shared translation v += F/m hk, x += v dt
+wrapped, the displacement and speed maxima that decide a list rebuild, the per-particle force accumulation
+over the full Verlet list, the blow-up and overlap checks, the grid syncs of the cooperative loop, the block
+reduction of the observables); a shape brings its rotation step, its pair evaluator (contact geometry and
+force law) and its observables. Layout, per-scene tables, status words and the neighbour-list kernels are
+engine/loops/cuda_kernels.py's; the physics stays in engine/physics/ (njit functions every backend calls).
+
+Kernel arguments (device arrays, particle index fastest), the same for every shape:
+    kick_drift(n, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi,
+               status, step, ext)
+    forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf, spi,
+           status, step, ext)
+    half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi)
+    settle(n, spin, quat, sc, spd, spi, step, ext)       (only for a shape with ``settle_one``)
+    run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad, x_ref,
+              nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
+    observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc)
+``spin`` is the rotational state the torque kicks (spheres: angular velocity; spheroids: angular momentum),
+``rad`` the list radius, ``ext`` a tuple of the shape's own arrays; f_old/f_new (f0/f1) are the double buffer
+of the forces (a shape that does not read other particles' old forces gets the same array twice).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import cuda
+from numba.cuda import types as ct
+
+from engine.loops import cuda_kernels as L
+from engine.loops.cuda_cache import cache_kernels
+from engine.loops.cuda_kernels import (D_BOX, D_DT, D_HP, D_IM0, D_INVBOX, F_LIM2INV, F_OVL, F_V2F, I_ACTIVE,
+                                          I_N, I_START, NSS, S_D2, S_D2B, S_RUN_DONE, S_RUN_REBUILD, S_V2, SS0,
+                                          SS_BAD_ID, SS_OVL, SS_OVL_ID)
+from engine.physics.contact import min_image
+from engine.physics.integrate import drift_wrap, kick
+from engine.shapes import device as shape_device
+
+_cache: dict = {}
+
+
+def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
+    """The kernel set of one shape and specialisation (cached): the neighbour-list kernels of
+    cuda_kernels.grid_kernels, the time loop of this module and the shape's own kernels. ``flags``: the shape's
+    compile-time switches in the order of its ``FLAGS``."""
+    key = (shape, np.dtype(dtype).str, tuple(bool(f) for f in flags), uniform, tpb)
+    if key not in _cache:
+        dt = np.dtype(dtype).type
+        parts = shape_device(shape).make_cuda(L, dt, uniform, tpb, *key[2])
+        k = dict(L.grid_kernels(dtype, uniform, tpb))
+        k.update(cache_kernels(_make(parts, dt, uniform, tpb), ("loop",) + key[:2] + tuple(map(str, key[2:]))))
+        k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))
+        _cache[key] = k
+    return _cache[key]
+
+
+def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
+    ZERO = DT(0)
+    HALF = DT(0.5)
+    BIG = DT(np.finfo(DT).max)
+    f64 = np.float64
+    SH2 = 2 * TPB
+    PREDICTS, TORQUE = P.PREDICTS, P.TORQUE
+    translated, rotate, spin_kick = P.translated, P.rotate, P.spin_kick
+    particle, pair, observe_one = P.particle, P.pair, P.observe_one
+
+    block_max2, fail = L.device_helpers(TPB)
+
+    # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
+
+    @cuda.jit(device=True)
+    def kick_drift_one(i, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd,
+                       spf, spi, status, step, ext):
+        """v += F/m hk (hk = dt/2 on the first step of a call, else dt), x += v dt wrapped, then the shape's
+        rotation step; returns the normalised squared displacement since the build and speed (0, 0 for a
+        skipped scene)."""
+        s = sc[i]
+        if spi[s, I_ACTIVE] == 0:
+            return 0.0, 0.0
+        dt = spd[s, D_DT]
+        if PREDICTS:
+            hp = spd[s, D_HP]
+            hk = hp if first else dt
+        else:
+            hk = spd[s, D_HP] if first else dt
+            hp = hk
+        box = spd[s, D_BOX]
+        inv_box = spd[s, D_INVBOX]
+        im = spd[s, D_IM0] if UNIFORM else inv_m[i]
+        v2 = ZERO
+        dsp = ZERO
+        for k in range(3):
+            x_old = pos[k, i]
+            f = force[k, i]
+            v = kick(vel[k, i], f, im, hk)
+            vel[k, i] = v
+            translated(k, i, x_old, v, f, im, hp, ext)
+            x = drift_wrap(x_old, v, dt, box, inv_box)
+            pos[k, i] = x
+            d = min_image(x - x_ref[k, i], box, inv_box, HALF)
+            dsp += d * d
+            v2 += v * v
+        ok = rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)
+        if not (dsp < BIG) or not (v2 < BIG) or not ok:
+            fail(status, spi, s, SS_BAD_ID, ids[i], step)
+            return 0.0, 0.0
+        return f64(dsp) * spf[s, F_LIM2INV], f64(v2) * spf[s, F_V2F]
+
+    @cuda.jit(device=True)
+    def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
+                   spf, spi, status, step, ext):
+        """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
+        in list order); per-slot history advanced in place; a scene whose overlap exceeds its limit stops."""
+        s = sc[i]
+        if spi[s, I_ACTIVE] == 0:
+            return
+        p = particle(i, s, pos, rad, inv_m, ids, spd)
+        acc = (ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ZERO)
+        for kk in range(nn[i]):
+            acc = pair(i, kk, nbr[kk, i], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
+        fx, fy, fz, tx, ty, tz, worst = acc
+        f_new[0, i] = fx
+        f_new[1, i] = fy
+        f_new[2, i] = fz
+        if TORQUE:
+            torque[0, i] = tx
+            torque[1, i] = ty
+            torque[2, i] = tz
+        w64 = f64(worst)
+        if w64 > spf[s, F_OVL]:
+            b = SS0 + NSS * s
+            cuda.atomic.max(status, b + SS_OVL, w64)
+            fail(status, spi, s, SS_OVL_ID, ids[i], step)
+
+    # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
+
+    @cuda.jit
+    def kick_drift(n, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf,
+                   spi, status, step, ext):
+        sh = cuda.shared.array(SH2, ct.float64)
+        md = 0.0
+        mv = 0.0
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            d2, v2 = kick_drift_one(i, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids,
+                                    sc, spd, spf, spi, status, step, ext)
+            md = max(md, d2)
+            mv = max(mv, v2)
+        block_max2(sh, md, mv)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_D2, sh[0])
+            cuda.atomic.max(status, S_V2, sh[TPB])
+
+    @cuda.jit
+    def forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
+               spi, status, step, ext):
+        i0 = cuda.grid(1)
+        if i0 == 0:  # reset the per-step maxima for the next kick_drift (stream-ordered after its copy)
+            status[S_D2] = 0.0
+            status[S_V2] = 0.0
+        for i in range(i0, n, cuda.gridsize(1)):
+            forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
+                       spf, spi, status, step, ext)
+
+    @cuda.jit
+    def half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi):
+        """Closing half kick (velocities and the rotational state synchronous with positions)."""
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            if spi[s, I_ACTIVE] == 0:
+                continue
+            hk = spd[s, D_HP]
+            im = spd[s, D_IM0] if UNIFORM else inv_m[i]
+            for k in range(3):
+                vel[k, i] = kick(vel[k, i], force[k, i], im, hk)
+            spin_kick(i, s, spin, torque, spin_inv, spd, hk)
+
+    settle_one = P.settle_one
+
+    @cuda.jit
+    def settle(n, spin, quat, sc, spd, spi, step, ext):
+        """The shape's end-of-call work (``settle_one``: spheres bring their lazy orientations up to date), before
+        the closing half kick; launched only when the shape has some."""
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            settle_one(i, sc[i], spin, quat, ext, spd, spi, step)
+
+    # ---- many steps per launch (small scenes and ensembles: launch overhead paid once per chunk) -------
+
+    @cuda.jit
+    def run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad,
+                  x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext):
+        """Up to nmax whole steps in one cooperative launch, the phases separated by grid syncs.
+
+        Stops early, after the drift of a step and before its forces, when a particle has moved more than
+        sqrt(thr) L_v/2 since the list build (thr = 1: the rebuild rule; thr = 1/4: the L_v/4 signal of the
+        pipelined CPU-list mode): status[S_RUN_REBUILD] = 1 and status[S_RUN_DONE] = the whole steps
+        completed (the host rebuilds or starts a CPU build, computes that step's forces and relaunches). Step
+        st reads forces from f0 when st is even (f1 when odd) and writes the other buffer. skip_kick = 1: the
+        drift of step 0 is already done (the host computes its forces first).
+        """
+        g = cuda.cg.this_grid()
+        sh = cuda.shared.array(SH2, ct.float64)
+        i0 = cuda.grid(1)
+        stride = cuda.gridsize(1)
+        if i0 == 0:
+            status[S_D2] = 0.0
+            status[S_D2B] = 0.0
+            status[S_RUN_DONE] = 0.0
+            status[S_RUN_REBUILD] = 0.0
+        g.sync()
+        done = 0
+        for st in range(nmax):
+            even = (st & 1) == 0
+            slot = S_D2 if even else S_D2B
+            if even:
+                fa = f0
+                fb = f1
+            else:
+                fa = f1
+                fb = f0
+            step = step0 + st
+            if not (st == 0 and skip_kick != 0):
+                if i0 == 0:
+                    status[S_D2B if even else S_D2] = 0.0  # the other parity's slot, free until next step
+                md = 0.0
+                for i in range(i0, n, stride):
+                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, pos, vel, spin, quat, fa, torque, inv_m,
+                                            spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext)
+                    md = max(md, d2)
+                block_max2(sh, md, 0.0)
+                if cuda.threadIdx.x == 0:
+                    cuda.atomic.max(status, slot, sh[0])
+                g.sync()
+                if status[slot] > thr:
+                    break
+            for i in range(i0, n, stride):
+                forces_one(i, pos, vel, spin, quat, rad, inv_m, fa, fb, torque, nbr, nn, hist, ids, sc, spd,
+                           spf, spi, status, step, ext)
+            done += 1
+            g.sync()
+        if i0 == 0:
+            status[S_RUN_DONE] = f64(done)
+            status[S_RUN_REBUILD] = 1.0 if done < nmax else 0.0
+
+    # ---- observables ----------------------------------------------------------------------------------
+
+    NOBS = P.NOBS
+    block_accumulate = L.observe_reducer(TPB, NOBS, P.OBS_MAX)
+    SH_OBS = NOBS * TPB
+
+    @cuda.jit
+    def observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc):
+        """acc[s] += the shape's observe sums (its ``observe_one``), one slot a maximum; per particle in
+        float64, one block row per scene (blockIdx.y = s), reduced per block (observe_reducer): O(blocks)
+        atomics, not O(N) on K x NOBS addresses (issue 14)."""
+        s = cuda.blockIdx.y
+        sh = cuda.shared.array(SH_OBS, ct.float64)
+        vals = cuda.local.array(NOBS, ct.float64)
+        for q in range(NOBS):
+            vals[q] = 0.0
+        if spi[s, I_ACTIVE] != 0:
+            a0 = spi[s, I_START]
+            for li in range(cuda.blockIdx.x * TPB + cuda.threadIdx.x, spi[s, I_N], cuda.gridDim.x * TPB):
+                observe_one(a0 + li, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf,
+                            ext)
+        block_accumulate(sh, vals, acc, s)
+
+    k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
+    if settle_one is not None:
+        k["settle"] = settle
+    return k

@@ -1,0 +1,231 @@
+"""The neighbour lists of a CUDA ensemble: :class:`ListBuilds`, a part of
+:class:`engine.loops.cuda_ensemble.CudaEnsembleBase`.
+
+A rebuild keeps the contact history that must survive in a compact store, counts particles per cell (scene-major
+cell ids), scans, scatters, sorts each cell by id, permutes the particle arrays into that order and builds the full
+Verlet list, taking the kept history back; the stride grows when a particle has more neighbours. Scenes whose size
+spread needs more than one grid level use the multigrid cells (paper 004 Algorithm 1); one scene may have its list
+built on the host instead (engine/loops/cuda_listmodes.py, paper 004 §3).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from types import SimpleNamespace
+
+import numpy as np
+from numba import cuda
+
+from engine.loops import cuda_kernels as K
+from engine.loops.cuda_device import copy_device as _copy
+from engine.loops.cuda_lists import list_kernels
+from engine.loops.system import SphereSystem
+
+
+class ListBuilds:
+    """The list part of a CUDA ensemble. The ensemble provides its device arrays, ``stream``, ``k`` (kernels),
+    ``_grid``, ``_zeros``, :meth:`_permuted_arrays` and :meth:`_permuted_i64`."""
+
+    def _setup_scan(self) -> None:
+        s = self.stream
+        self.count = cuda.device_array(self.ncell + 1, np.int32, stream=s)
+        self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=s)
+        self._scan_cells = self._scan_buffers(self.ncell + 1)
+
+    def _scan_buffers(self, m: int) -> SimpleNamespace:
+        """Block-sum buffers of an exclusive scan of m int32 counts (tiles of tpb * 16)."""
+        tile = self.tpb * 16
+        nb = (m + tile - 1) // tile
+        dev = lambda k: cuda.device_array(max(k, 1), np.int32, stream=self.stream)  # noqa: E731
+        return SimpleNamespace(m=m, tile=tile, nb=nb, bsum=dev(nb), bsum_scan=dev(nb), bsum_tot=dev(1))
+
+    def _exclusive_scan(self, src, dst, b: SimpleNamespace) -> None:
+        k, s = self.k, self.stream
+        k["tile_scan"][b.nb, self.tpb, s](src, dst, b.m, b.bsum, 16)
+        if b.nb > 1:
+            items = (b.nb + self.tpb - 1) // self.tpb
+            k["tile_scan"][1, self.tpb, s](b.bsum, b.bsum_scan, b.nb, b.bsum_tot, items)
+            k["add_offsets"][self._grid(b.m)](dst, b.m, b.bsum_scan, b.tile)
+
+    def _alloc_list(self, max_nb: int) -> None:
+        s = self.stream
+        self.max_nb = max_nb
+        self.nbr = cuda.device_array((max_nb, self.n), np.int32, stream=s)
+        self.nn = self._zeros(self.n, np.int32)
+        self.hist = cuda.device_array((self.hist_words, max_nb, self.n), self.dtype, stream=s)
+
+    def _alloc_store(self, cap: int) -> None:
+        self.store_cap = cap
+        self.cj = cuda.device_array(cap, np.int32, stream=self.stream)
+        self.chist = cuda.device_array((self.hist_words, cap), self.dtype, stream=self.stream)
+
+    def set_list_mode(self, mode: str) -> None:
+        """Where the Verlet list is built: 'gpu', 'cpu-sequential', 'cpu-pipelined' or 'auto' (paper 004
+        §3, :mod:`engine.loops.cuda_listmodes`); the CPU modes need one scene. 'auto' on an ensemble of
+        several scenes is the GPU list."""
+        from engine.loops.cuda_listmodes import MODES, HostLists
+        if mode not in MODES:
+            raise ValueError(f"list_mode = {mode!r} is not one of {', '.join(MODES)}")
+        if self.lists is not None:
+            self.lists.close()
+            self.lists = None
+        if mode == "gpu" or (mode == "auto" and self.n_scenes > 1):
+            return
+        if self.kl is None:
+            self.kl = list_kernels(self.dtype, self.tpb)
+        self.lists = HostLists(self, mode)
+
+    def _sort_and_permute(self) -> None:
+        k, n, s = self.k, self.n, self.stream
+        k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
+        k["count_cells"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.count)
+        # exclusive scan of ncell + 1 counts (the last is 0) -> cell_start, cell_start[ncell] = n
+        self._exclusive_scan(self.count, self.cell_start, self._scan_cells)
+        k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
+        k["scatter"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.cell_start, self.count,
+                                    self.order)
+        k["sort_cells"][self._grid(self.ncell)](self.ncell, self.cell_start, self.order, self.ids)
+        k["inverse_perm"][self._grid(n)](n, self.order, self.inv_old)
+        # permute the particle arrays into cell order (forces too: the next force step reads them)
+        # (torque need not move: the next force step rewrites it before any kick reads it)
+        for a in self._permuted_arrays() + self._per_particle:
+            tmp = (self.scratch if a.dtype == self.scratch.dtype else self.scratch_x)[:a.shape[0]]
+            k["gather_rows"][self._grid(n)](n, a, tmp, self.order)
+            _copy(a, tmp, s)
+        for a in (self.ids, self.lvl) if self.multigrid else (self.ids,):
+            k["gather_i32"][self._grid(n)](n, a, self.scratch_i, self.order)
+            _copy(a, self.scratch_i, s)
+        for a in self._permuted_i64():   # (gather_i32 is typed at launch: the same kernel for int64)
+            k["gather_i32"][self._grid(n)](n, a, self.scratch_l, self.order)
+            _copy(a, self.scratch_l, s)
+
+    def _set_status(self, slot: int, value: float) -> None:
+        self.status[slot:slot + 1].copy_to_device(np.full(1, value), stream=self.stream)
+
+    def _compact(self) -> None:
+        """Copy the history that must survive the rebuild into the compact store (grown when full)."""
+        while True:
+            self._set_status(K.S_NCOMP, 0.0)
+            self.k["compact"][self._grid(self.n)](self.n, self.pos, self.radius1, self.nbr, self.nn, self.hist,
+                                                  self.sc, self.spd, self.spi, self.c_off, self.c_cnt, self.cj,
+                                                  self.chist, self.status)
+            total = np.zeros(1)
+            self.status[K.S_NCOMP:K.S_NCOMP + 1].copy_to_host(total, stream=self.stream)
+            self.stream.synchronize()
+            if int(total[0]) <= self.store_cap:
+                return
+            self._alloc_store(int(total[0] * 1.25) + 1024)
+
+    def _rebuild(self) -> None:
+        """A list rebuild: on the GPU, or by the CPU-built list modes when they are on (paper 004 §3)."""
+        if self.lists is not None:
+            self.lists.rebuild()
+        else:
+            self._gpu_rebuild()
+
+    def _gpu_rebuild(self) -> None:
+        """Keep history, sort, permute and build; grows the stride when a particle has more neighbours."""
+        self._compact()
+        self._sort_and_permute()
+        if self.multigrid:
+            self._bin_levels()
+        while True:
+            self._set_status(K.S_NEED_NB, 0.0)
+            if self.multigrid:
+                self.kl["mg_build"][self._grid(self.n)](
+                    self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
+                    self.c_off, self.c_cnt, self.cj, self.chist, self.order, self.inv_old, self.nbr, self.nn,
+                    self.hist, self.x_ref, self.sc, self.spd, self.spi, self.status)
+            else:
+                self.k["build"][self._grid(self.n)](
+                    self.n, self.pos, self.radius1, self.cell_start, self.c_off, self.c_cnt, self.cj,
+                    self.chist, self.order, self.inv_old, self.nbr, self.nn, self.hist, self.x_ref, self.sc,
+                    self.spd, self.spf, self.spi, self.status)
+            need = np.zeros(1)
+            self.status[K.S_NEED_NB:K.S_NEED_NB + 1].copy_to_host(need, stream=self.stream)
+            self.stream.synchronize()
+            need = int(need[0])
+            if need <= self.max_nb:
+                break
+            # the kept history is in the compact store: the list can be reallocated and rebuilt
+            self._alloc_list(int(math.ceil((need + 2) / 4.0)) * 4)
+        self.builds += 1
+
+    def _setup_multigrid(self, systems, contacts) -> None:
+        """Grid levels per scene (paper 004 Algorithm 1, :mod:`engine.multigrid`) when some scene's size
+        spread needs more than one; monodisperse ensembles keep the single-grid build."""
+        self.multigrid = False
+        if self.uniform or not isinstance(systems[0], SphereSystem) or os.environ.get("DEMQ_CUDA_MULTIGRID") == "0":
+            return  # (DEMQ_CUDA_MULTIGRID=0: one grid of cell >= 2 R_max + L_v, for the cost comparison)
+        from engine.multigrid import grid_levels, main_level
+        levels = [grid_levels(self.box[s], sy.n, float(np.min(sy.radius)), float(np.max(sy.radius)),
+                              contacts[s].skin) if sy.n else None for s, sy in enumerate(systems)]
+        nl = max((lv.n_levels for lv in levels if lv is not None), default=1)
+        if nl <= 1:
+            return
+        self.multigrid = True
+        self.levels = levels
+        self._mg_skin = [c.skin for c in contacts]
+        mgi = np.zeros((self.n_scenes, nl, 3), np.int32)
+        mgf = np.ones((self.n_scenes, nl), np.float64)
+        lvl = np.zeros(self.n, np.int32)
+        off = 0
+        for s, (sy, lv) in enumerate(zip(systems, levels)):
+            if lv is None:
+                continue
+            a0 = int(self.starts[s])
+            lvl[a0:a0 + sy.n] = main_level(np.asarray(sy.radius, np.float64), lv)
+            for l in range(lv.n_levels):
+                nc = int(lv.nc[l])
+                mgi[s, l] = (nc, off, off + nc ** 3)
+                mgf[s, l] = nc / self.box[s]
+                off += 2 * nc ** 3
+        # the particle permutation (locality only) sorts along the finest level's cells: the coarse grid's
+        # cells hold ~ (R_max/R_min)^3 small particles, which the per-cell id sort handles poorly
+        coff = 0
+        for s, lv in enumerate(levels):
+            nc = 1 if lv is None else int(lv.nc[-1])
+            self.spi_h[s, [K.I_NC, K.I_COFF]] = [nc, coff]
+            self.spf_h[s, K.F_INVCELL] = nc / self.box[s]
+            coff += nc ** 3
+        self.ncell = coff
+        self._setup_scan()
+        st = self.stream
+        self.mg_nbins = off
+        self.mg_entries = int((lvl.astype(np.int64) + 1).sum())
+        self.lvl = cuda.to_device(lvl, stream=st)
+        self.mgi = cuda.to_device(mgi, stream=st)
+        self.mgf = cuda.to_device(mgf, stream=st)
+        self.mg_count = cuda.device_array(off + 1, np.int32, stream=st)
+        self.mg_start = cuda.device_array(off + 1, np.int32, stream=st)
+        self.mg_cursor = cuda.device_array(off, np.int32, stream=st)
+        self.mg_items = cuda.device_array(self.mg_entries, np.int32, stream=st)
+        self._scan_mg = self._scan_buffers(off + 1)
+        self.kl = list_kernels(self.dtype, self.tpb)
+
+    def _bin_levels(self) -> None:
+        """Main and secondary bins of every level (counting sort by bin)."""
+        k, n = self.k, self.n
+        k["fill_i32"][self._grid(self.mg_nbins + 1)](self.mg_count, 0)
+        self.kl["mg_count"][self._grid(n)](n, self.pos, self.sc, self.lvl, self.mgi, self.mgf, self.mg_count)
+        self._exclusive_scan(self.mg_count, self.mg_start, self._scan_mg)
+        k["fill_i32"][self._grid(self.mg_nbins)](self.mg_cursor, 0)
+        self.kl["mg_scatter"][self._grid(n)](n, self.pos, self.sc, self.lvl, self.mgi, self.mgf, self.mg_start,
+                                             self.mg_cursor, self.mg_items)
+
+    def _restore_springs(self, pairs, springs) -> None:
+        nbr, nn, hist = (a.copy_to_host(stream=self.stream) for a in (self.nbr, self.nn, self.hist))
+        ids = self.ids.copy_to_host(stream=self.stream)
+        self.stream.synchronize()
+        slot_of = np.empty(self.n, np.int64)
+        slot_of[ids] = np.arange(self.n)
+        for p in range(pairs.shape[0]):
+            i = slot_of[pairs[p, 0]]
+            j = slot_of[pairs[p, 1]]
+            for kk in range(min(nn[i], nbr.shape[0])):
+                if nbr[kk, i] == j:
+                    q = min(self.hist_words, springs.shape[1])
+                    hist[0:q, kk, i] = springs[p, :q]
+                    break
+        self.hist.copy_to_device(hist, stream=self.stream)

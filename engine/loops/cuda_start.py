@@ -1,0 +1,260 @@
+"""Large starts drawn on the GPU (issue 14: time to result).
+
+A GPU job of a large one-size sphere start (engine.scene.device_start) does not draw its start on the host and
+upload it: the sphere's CUDA ensemble (engine/shapes/sphere/cuda_backend.py) draws it into its own state arrays when it is built, from an
+``engine.scene.StartDraw``. The draws are the host's (engine.scene._draw_start), in the same order:
+
+1. the site selection (the n of the n_sites fcc sites whose 64-bit key is smallest): a histogram of the keys'
+   leading bits (:func:`site_hist`), the keys of the bucket that holds the n-th smallest gathered with each
+   block's count below it (:func:`site_gather`); the host sorts that bucket (a few hundred keys), finds the cut
+   and each block's first particle;
+2. :func:`place_draw`: one thread per site; a block scan gives each chosen site its particle i (sites in
+   order, as the host's), whose position (engine.scene._site_position) and stream rows
+   (engine.scene._stream_values) it draws into a float64 scratch (rows, n);
+3. :func:`block_moments`: each stream row's sums over the same fixed blocks of engine.scene._BLOCK particles,
+   summed in the same order; the host turns them into means (engine.scene.stream_mean), the kernel centres the
+   rows and sums their squares, the host takes the scales (engine.scene.stream_scale);
+4. :func:`scale_into`: each stream, scaled, into its state array in the working precision (the cast an upload
+   would make on the device, K.scatter_rows).
+
+The formulas are engine.scene's ``@numba.njit`` functions, called by these kernels and by the host's draws alike.
+Sites, blocks and host arithmetic are identical; the values are equal to rounding (libdevice's log, cos, sin and
+pow against the host's libm, and fused multiply-adds). The host pays no draw, no 0.2 GB upload and no load of the
+draws' compiled code; the GPU start-up thread (engine/startup.py) loads these kernels (:func:`load`) beside
+the job's own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import cuda
+
+from engine.loops.cuda_cache import SIM, cache_kernels
+from engine.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw, _bits,
+                          _site_position, _stream_values, stream_mean, stream_scale)
+
+#: sites per block of the selection and placement kernels (a compile-time size of their shared arrays)
+TPB = 32 if SIM else 128
+#: threads per block of the other launches (the simulator runs each thread as a Python thread)
+_WIDE = 32 if SIM else 256
+_NB = 1 << _SELECT_BITS
+_SHIFT = np.uint64(64 - _SELECT_BITS)
+_ALL = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@cuda.jit
+def site_hist(site_key, n_sites, hist):
+    """hist[b] += the number of sites whose key's leading _SELECT_BITS bits are b (a block histogram in shared
+    memory, then one atomic per bucket and block: integer counts, the same for any launch)."""
+    sh = cuda.shared.array(_NB, np.int32)
+    t = cuda.threadIdx.x
+    for b in range(t, _NB, cuda.blockDim.x):
+        sh[b] = 0
+    cuda.syncthreads()
+    for j in range(cuda.grid(1), n_sites, cuda.gridsize(1)):
+        cuda.atomic.add(sh, np.int64(_bits(site_key, j, 0) >> _SHIFT), 1)
+    cuda.syncthreads()
+    for b in range(t, _NB, cuda.blockDim.x):
+        if sh[b] > 0:
+            cuda.atomic.add(hist, b, sh[b])
+
+
+@cuda.jit
+def site_gather(site_key, n_sites, bucket, cand_key, cand_site, cand_n, below):
+    """One thread per site, TPB sites per block: the keys (and sites) in ``bucket`` go to cand_key/cand_site (in
+    any order: the host sorts them), and below[block] = the block's count of keys in lower buckets."""
+    cnt = cuda.shared.array(1, np.int32)
+    t = cuda.threadIdx.x
+    if t == 0:
+        cnt[0] = 0
+    cuda.syncthreads()
+    j = cuda.blockIdx.x * TPB + t
+    if j < n_sites:
+        k = _bits(site_key, j, 0)
+        b = np.int64(k >> _SHIFT)
+        if b < bucket:
+            cuda.atomic.add(cnt, 0, 1)
+        elif b == bucket:
+            at = cuda.atomic.add(cand_n, 0, 1)
+            cand_key[at] = k
+            cand_site[at] = j
+    cuda.syncthreads()
+    if t == 0:
+        below[cuda.blockIdx.x] = cnt[0]
+
+
+@cuda.jit
+def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, keys, dims, unit, row0, pos, col0,
+               out):
+    """One thread per site, TPB per block: a site whose key is <= ``cut`` is chosen; its particle i is the block's
+    first particle (``first``) plus the chosen sites before it in the block (a shared-memory scan). Particle i's
+    position goes to pos[:, col0 + i] (cast to pos's precision), its rows of every stream s to
+    out[row0[s]:row0[s] + dims[s], i] (float64)."""
+    flags = cuda.shared.array(TPB, np.int32)
+    t = cuda.threadIdx.x
+    j = cuda.blockIdx.x * TPB + t
+    chosen = 0
+    if j < n_sites and _bits(site_key, j, 0) <= cut:
+        chosen = 1
+    flags[t] = chosen
+    cuda.syncthreads()
+    d = 1
+    while d < TPB:                     # inclusive scan (Hillis-Steele)
+        v = flags[t - d] if t >= d else 0
+        cuda.syncthreads()
+        flags[t] += v
+        cuda.syncthreads()
+        d *= 2
+    if chosen:
+        i = first[cuda.blockIdx.x] + flags[t] - 1
+        x, y, z = _site_position(j, i, m, a, half_gap, box, place_key)
+        pos[0, col0 + i] = x
+        pos[1, col0 + i] = y
+        pos[2, col0 + i] = z
+        for s in range(keys.shape[0]):
+            dim = dims[s]
+            r = row0[s]
+            v0, v1, v2, v3 = _stream_values(keys[s], i, dim, unit[s])
+            out[r, i] = v0
+            if dim > 1:
+                out[r + 1, i] = v1
+            if dim > 2:
+                out[r + 2, i] = v2
+            if dim > 3:
+                out[r + 3, i] = v3
+
+
+@cuda.jit
+def block_moments(out, means, skip, square, sums):
+    """One thread per (row r, block of _BLOCK particles), rows with skip[r] left alone. square = 0: sums[r, block]
+    = the sum of out[r, i] over the block, in particle order (as engine.scene._draw_start's); square = 1: the row
+    is centred, out[r, i] -= means[r], and sums[r, block] = the sum of the squares (engine.scene._centre_and_square)."""
+    g = cuda.grid(1)
+    nb = sums.shape[1]
+    n = out.shape[1]
+    if g >= out.shape[0] * nb:
+        return
+    r = g // nb
+    bl = g - r * nb
+    if skip[r]:
+        return
+    acc = 0.0
+    if square:
+        mu = means[r]
+        for i in range(bl * _BLOCK, min(n, (bl + 1) * _BLOCK)):
+            x = out[r, i] - mu
+            out[r, i] = x
+            acc += x * x
+    else:
+        for i in range(bl * _BLOCK, min(n, (bl + 1) * _BLOCK)):
+            acc += out[r, i]
+    sums[r, bl] = acc
+
+
+@cuda.jit
+def scale_into(out, r0, dim, scale, dst, col0):
+    """dst[r, col0 + i] = out[r0 + r, i] * scale, cast to dst's precision (r < dim)."""
+    n = out.shape[1]
+    for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+        for r in range(dim):
+            dst[r, col0 + i] = out[r0 + r, i] * scale
+
+
+cache_kernels({"site_hist": site_hist, "site_gather": site_gather, "place_draw": place_draw,
+               "block_moments": block_moments, "scale_into": scale_into}, ("start",))
+
+
+def _blocks(work: int, tpb: int, cap: int) -> int:
+    return max(1, min(cap, (work + tpb - 1) // tpb))
+
+
+def _cut(d: StartDraw, site_key, stream, cap: int) -> tuple:
+    """(the largest chosen key, each site block's first particle): the selection's device passes and the host's
+    sort of one bucket. Every site is chosen when n = n_sites."""
+    n_blocks = (d.n_sites + TPB - 1) // TPB
+    if d.n >= d.n_sites:
+        counts = np.full(n_blocks, TPB, np.int64)
+        counts[-1] = d.n_sites - TPB * (n_blocks - 1)
+        return _ALL, counts
+    hist = cuda.to_device(np.zeros(_NB, np.int32), stream=stream)
+    site_hist[_blocks(d.n_sites, _WIDE, cap), _WIDE, stream](site_key, d.n_sites, hist)
+    h = hist.copy_to_host(stream=stream)
+    stream.synchronize()
+    cum = np.cumsum(h.astype(np.int64))
+    bucket = int(np.searchsorted(cum, d.n))          # the first bucket whose cumulative count reaches n
+    below = int(cum[bucket - 1]) if bucket else 0
+    in_bucket = int(h[bucket])
+    cand_key = cuda.device_array(in_bucket, np.uint64, stream=stream)
+    cand_site = cuda.device_array(in_bucket, np.int64, stream=stream)
+    cand_n = cuda.to_device(np.zeros(1, np.int32), stream=stream)
+    blk = cuda.device_array(n_blocks, np.int32, stream=stream)
+    site_gather[n_blocks, TPB, stream](site_key, d.n_sites, np.int64(bucket), cand_key, cand_site, cand_n, blk)
+    ck, cs, counts = cand_key.copy_to_host(stream=stream), cand_site.copy_to_host(stream=stream), \
+        blk.copy_to_host(stream=stream)
+    stream.synchronize()
+    cut = np.sort(ck)[d.n - below - 1]
+    counts = counts.astype(np.int64)
+    np.add.at(counts, cs[ck <= cut] // TPB, 1)
+    return cut, counts
+
+
+def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 << 14) -> None:
+    """Draw ``d`` into columns [col0, col0 + n) of the device arrays ``pos`` (3, N) and ``dsts`` (stream number ->
+    (dim, N) array), in their precisions; see the module docstring. ``cap``: most blocks of a grid-stride launch."""
+    n = d.n
+    site_key, place_key, keys = d.keys()
+    dims = np.array([dim for _, dim, _ in d.streams], np.int64)
+    unit = np.array([rms is None for _, _, rms in d.streams], np.bool_)
+    row0 = np.concatenate([[0], np.cumsum(dims)[:-1]]).astype(np.int64)
+    rows = int(dims.sum())
+    cut, counts = _cut(d, site_key, stream, cap)
+    if int(counts.sum()) != n:
+        raise RuntimeError(f"device start: {int(counts.sum())} sites chosen for {n} particles")
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    out = cuda.device_array((rows, n), np.float64, stream=stream)
+    place_draw[len(first), TPB, stream](
+        site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream), d.m, d.a, d.half_gap, d.box,
+        place_key, cuda.to_device(np.array(keys, np.uint64), stream=stream), cuda.to_device(dims, stream=stream),
+        cuda.to_device(unit, stream=stream), cuda.to_device(row0, stream=stream), pos, np.int64(col0), out)
+    # the streams' means and scales, from block sums taken as the host's are (engine.scene.stream_mean, stream_scale)
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    skip = np.repeat(unit, dims)
+    skip_d = cuda.to_device(skip, stream=stream)
+    sums = cuda.device_array((rows, n_blocks), np.float64, stream=stream)
+    grid = _blocks(rows * n_blocks, 64, cap)      # a few thousand threads: small blocks spread them over the SMs
+    means = np.zeros(rows)
+    block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip_d, 0, sums)
+    s_h = sums.copy_to_host(stream=stream)
+    stream.synchronize()
+    for s, (_, dim, rms) in enumerate(d.streams):
+        r = row0[s]
+        means[r:r + dim] = stream_mean(np.ascontiguousarray(s_h[r:r + dim].T), n, rms)
+    block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip_d, 1, sums)
+    s_h = sums.copy_to_host(stream=stream)
+    stream.synchronize()
+    for s, (stream_no, dim, rms) in enumerate(d.streams):
+        r = row0[s]
+        scale = stream_scale(np.ascontiguousarray(s_h[r:r + dim].T), n, rms)
+        scale_into[_blocks(n, _WIDE, cap), _WIDE, stream](out, np.int64(r), np.int64(dim), float(scale),
+                                                          dsts[stream_no], np.int64(col0))
+
+
+#: the sphere state array each stream of a sphere start goes to (engine.scene.parallel_start_streams)
+SPHERE_TARGETS = {STREAM_VELOCITY: "vel", STREAM_SPIN: "omega", STREAM_QUATERNION: "quat"}
+
+
+def load(pos_dtype, dtype) -> None:
+    """Load (or compile) every kernel of a device start into device arrays of these precisions, for the argument
+    types a job's start calls them with: a start of 64 spheres on a lattice of 108 sites, discarded (the GPU
+    start-up thread, engine/startup.py)."""
+    from engine.params import derive
+    from engine.scene import parallel_start_streams
+    from engine.spec import SimulationSpec
+
+    sphere = SimulationSpec()
+    d = StartDraw.of(64, 0, parallel_start_streams(sphere, derive(sphere))[0], 20.0, 1.0)
+    stream = cuda.stream()
+    pos = cuda.device_array((3, d.n), pos_dtype, stream=stream)
+    dsts = {k: cuda.device_array((dim, d.n), dtype, stream=stream) for k, dim, _ in d.streams}
+    draw_start(d, 0, pos, dsts, stream)
+    stream.synchronize()

@@ -1,0 +1,115 @@
+"""The host-side types every backend receives: the system (state arrays in id order) and the contact constants.
+
+:class:`SphereSystem`, :class:`EllipsoidSystem` (host arrays, SI units), :class:`ContactParams` and the cell
+count rule :func:`cell_grid`. A neutral module (engine/loops/): shape packages, the shared machinery and the
+backends all import it; engine.backends.base re-exports these names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import ClassVar, Optional
+
+import numpy as np
+
+
+@dataclass
+class SphereSystem:
+    """Host-side state of N spheres in a periodic cube, SI units, rows in particle-id order.
+
+    position (N,3) m in [0, L); velocity (N,3) m/s; angular_velocity (N,3) rad/s (space frame);
+    orientation (N,4) unit quaternions (w,x,y,z), body -> space; radius, mass, inertia (N,) m, kg, kg m^2.
+    contact_pairs (M,2) int64 ids (i, j) and contact_springs (M,3) m: tangential springs of contacts
+    carried over from a checkpoint (both orderings present); empty for a fresh start.
+    draw: a large start still to be drawn on the GPU (engine.scene.StartDraw; the GPU backend draws it when it is
+    built, engine/loops/cuda_start.py); position, velocity, angular_velocity and orientation are then None.
+    Only the CUDA backend takes such a system (engine.scene.drawn_on_host gives the arrays).
+    """
+
+    #: the shape (engine/shapes/ registry key) whose plug-in runs this system
+    shape: ClassVar[str] = "sphere"
+    box_length: float
+    position: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    orientation: np.ndarray
+    radius: np.ndarray
+    mass: np.ndarray
+    inertia: np.ndarray
+    contact_pairs: Optional[np.ndarray] = None
+    contact_springs: Optional[np.ndarray] = None
+    draw: Optional[object] = None
+
+    @property
+    def n(self) -> int:
+        return self.draw.n if self.position is None else self.position.shape[0]
+
+
+@dataclass
+class EllipsoidSystem:
+    """Host-side state of N ellipsoids (paper 003), SI units, rows in particle-id order.
+
+    As :class:`SphereSystem`, with semi_axes (N,3) m (a, b, c along the body axes x, y, z; prolate
+    spheroids: a >= b = c) and inertia (N,3) kg m^2, the principal moments about the body axes.
+    angular_velocity is in the space frame. contact_pairs/contact_springs: contact slots carried over
+    from a checkpoint (overlap and dashpot force in columns 3, 4), empty for a fresh start.
+    """
+
+    shape: ClassVar[str] = "ellipsoid"
+    box_length: float
+    position: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    orientation: np.ndarray
+    semi_axes: np.ndarray
+    mass: np.ndarray
+    inertia: np.ndarray
+    contact_pairs: Optional[np.ndarray] = None
+    contact_springs: Optional[np.ndarray] = None
+
+    @property
+    def n(self) -> int:
+        return self.position.shape[0]
+
+
+@dataclass(frozen=True)
+class ContactParams:
+    """Contact constants and numerics. k_t = None: smooth (no tangential force, no torque).
+
+    friction = None: no Coulomb limit. gamma_n of a pair is gamma_n_coef * sqrt(m12) (kg/s).
+    orientation: integrate quaternions (only needed for output or non-spherical shapes).
+    """
+
+    k_n: float
+    gamma_n_coef: float
+    k_t: Optional[float]
+    friction: Optional[float]
+    dt: float
+    skin: float
+    precision: str = "float64"
+    orientation: bool = True
+    overlap_limit: float = 0.05
+    #: where a CUDA backend builds the Verlet list: 'gpu', 'cpu-sequential', 'cpu-pipelined', 'auto'
+    #: (paper 004 §3; engine/loops/cuda_listmodes.py); the CPU backend always builds on the CPU
+    list_mode: str = "gpu"
+
+    @property
+    def rough(self) -> bool:
+        return self.k_t is not None
+
+    def with_(self, **kw) -> "ContactParams":
+        return replace(self, **kw)
+
+
+def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
+    """Cells per box edge for the neighbour build: edge >= 2 a_max + L_v (paper 004), at most ~(2N)^(1/3).
+
+    Very dilute scenes would otherwise spend memory and build time on empty cells; cells may be larger
+    than the cutoff, never smaller. Every backend bins with this so they order neighbours alike.
+    """
+    cutoff = 2.0 * rmax + skin
+    nc = max(1, int(box / cutoff))
+    nc = max(1, min(nc, int(round((2.0 * n) ** (1.0 / 3.0))) + 1))
+    while nc > 1 and box / nc < cutoff:
+        nc -= 1
+    return nc

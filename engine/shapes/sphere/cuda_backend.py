@@ -1,0 +1,168 @@
+"""The sphere's CUDA host side: :class:`CudaEnsemble`, K sphere scenes on the GPU, and :class:`CudaBackend`, one
+of them behind the single Backend interface.
+
+The machinery (tables, lists, time loop, records, state copies) is the shared
+:class:`engine.loops.cuda_ensemble.CudaEnsembleBase`; this module owns only what is the sphere's own: its state
+arrays (space-frame angular velocity, scalar radius, mass and inertia; per particle only when a scene's spheres
+differ, else in the scene's constants), a large start drawn on the device (engine/loops/cuda_start.py), the lazy
+orientations' marks and the collision counter (engine/shapes/sphere/device.py), the orientation switch of the
+specialisation, and the observables. Its Verlet list may be built on the host for a lone scene (paper 004 §3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import cuda
+
+from engine.loops import cuda_kernels as K
+from engine.loops import cuda_loop
+from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
+from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
+from engine.shapes.sphere import device as SC
+
+
+class CudaEnsemble(CudaEnsembleBase):
+    """K scenes of spheres advanced together on the GPU (engine/loops/cuda_ensemble.py).
+
+    All scenes share the precision; everything else (N, box, contact constants, dt, skin, rough or
+    smooth, Coulomb, orientation) is per scene.
+    """
+
+    shape = "sphere"
+    host_lists = True
+    _view_names = ("radius1", "inv_m1", "inv_i1", "mass1", "inertia1")
+    _NOBS = SC.NOBS
+
+    def _upload_particles(self, systems) -> None:
+        """Sphere state and constants on the device (uniform scenes keep their constants in spd)."""
+        dt_, n = self.dtype, self.n
+        rad, mass, inertia = (self._cat(arrays)[:, 0] for arrays in (
+            [s.radius for s in systems], [s.mass for s in systems], [s.inertia for s in systems]))
+        self.uniform = all(s.n == 0 or (np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0])
+                                        and np.all(s.inertia == s.inertia[0])) for s in systems)
+        self._rmax = [float(np.max(s.radius)) if s.n else 0.0 for s in systems]
+        self._scene0 = [(rad[i], mass[i], inertia[i]) if s_n else (0, 0, 0)
+                        for i, s_n in zip(self.starts, self.sizes)]
+        up, cat = self._up, self._cat
+        if any(s.draw is not None for s in systems):
+            self._draw_starts(systems)
+        else:
+            self.pos = up(cat([s.position for s in systems]), 3, self.pos_dtype)
+            self.vel = up(cat([s.velocity for s in systems]), 3)
+            self.omega = up(cat([s.angular_velocity for s in systems]), 3)
+            self.quat = up(cat([s.orientation for s in systems]), 4)
+        self.f_cur = self._zeros((3, n), dt_)
+        self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
+        self.torque = self._zeros((3, n), dt_)
+        # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
+        self.q_last = self._zeros(n, np.int64)
+        # the contacts each sphere has begun (collision counter, issue 18; shapes/sphere/device.py pair)
+        self.begun = self._zeros(n, np.int64)
+        if self.uniform:
+            dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
+            self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
+            self._per_particle = ()
+        else:
+            self.radius = up(rad, 1)
+            self.mass = up(mass, 1)
+            self.inertia = up(inertia, 1)
+            self.inv_m = up((1.0 / mass.astype(dt_)).astype(dt_), 1)
+            self.inv_i = up((1.0 / inertia.astype(dt_)).astype(dt_), 1)
+            self._per_particle = (self.radius, self.mass, self.inertia, self.inv_m, self.inv_i)
+
+    def _permuted_arrays(self) -> tuple:
+        """The device arrays permuted into cell order at a rebuild, besides the per-particle constants."""
+        return self.pos, self.vel, self.omega, self.quat, self.f_cur
+
+    def _permuted_i64(self) -> tuple:
+        """The int64 device arrays (N) permuted with them (spheres: the lazy orientations' marks, the contacts
+        begun)."""
+        return self.q_last, self.begun
+
+    def state_arrays(self) -> dict:
+        """{state key: device array (rows, N, particle index fastest)} that :meth:`_scene_rows` copies out
+        (spheres: the space-frame angular velocity itself)."""
+        return {"position": self.pos, "velocity": self.vel, "angular_velocity": self.omega, "orientation": self.quat}
+
+    def _draw_starts(self, systems) -> None:
+        """pos, vel, omega, quat of scenes of which some hold a start to draw on the device (engine.scene.StartDraw:
+        engine/loops/cuda_start.py); the others' host arrays go up into their columns."""
+        from engine.loops.cuda_start import SPHERE_TARGETS, draw_start
+
+        n, st = self.n, self.stream
+        self.pos = cuda.device_array((3, n), self.pos_dtype, stream=st)
+        self.vel = cuda.device_array((3, n), self.dtype, stream=st)
+        self.omega = cuda.device_array((3, n), self.dtype, stream=st)
+        self.quat = cuda.device_array((4, n), self.dtype, stream=st)
+        self._prepare_frame_slot()     # beside the draws
+        for sy, col0 in zip(systems, self.starts):
+            if sy.draw is not None:
+                targets = {"vel": self.vel, "omega": self.omega, "quat": self.quat}
+                draw_start(sy.draw, int(col0), self.pos, {k: targets[a] for k, a in SPHERE_TARGETS.items()}, st,
+                           self.max_blocks)
+            else:
+                for a, dst in ((sy.position, self.pos), (sy.velocity, self.vel), (sy.angular_velocity, self.omega),
+                               (sy.orientation, self.quat)):
+                    self._up_into(a, dst, int(col0))
+
+    def _scene_constants(self, s: int) -> None:
+        """Scene s's particle constants in spd (used when its particles are uniform)."""
+        c = self.dtype
+        r0, m0, i0 = self._scene0[s]
+        self.spd_h[s, [K.D_R0, K.D_M0, K.D_I0]] = [c(r0), c(m0), c(i0)]
+        self.spd_h[s, K.D_IM0] = (1.0 / np.array([m0 or 1.0], c))[0]
+        self.spd_h[s, K.D_II0] = (1.0 / np.array([i0 or 1.0], c))[0]
+
+    def _views(self) -> None:
+        """1-D views of the per-particle constants (kept as (1, N) rows for the permutation)."""
+        self.radius1, self.inv_m1, self.inv_i1 = self.radius[0], self.inv_m[0], self.inv_i[0]
+        self.mass1, self.inertia1 = self.mass[0], self.inertia[0]
+
+    def _specialise(self) -> None:
+        act = [c for c, a in zip(self.contact, self.active) if a] or self.contact
+        rough = any(c.k_t is not None for c in act)
+        coulomb = rough and any(c.friction is not None for c in act)
+        orient = any(c.orientation for c in act)
+        if orient and not self._orient:
+            # orientations tracked from now on: nothing is pending from the steps run without them
+            self.q_last.copy_to_device(np.full(self.n, self.steps_done, np.int64), stream=self.stream)
+        self._orient = orient
+        self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb, orient), self.uniform, self.tpb)
+        self._coop_blocks = None
+
+    def _prime(self, systems) -> None:
+        """First list build (restoring checkpointed springs) and forces at t = 0."""
+        self._rebuild()
+        for s, sy in enumerate(systems):
+            if sy.contact_pairs is not None and len(sy.contact_pairs):
+                self._restore_springs(self.starts[s] + np.asarray(sy.contact_pairs, np.int64),
+                                      np.asarray(sy.contact_springs, np.float64))
+        self._forces(step=0)
+        self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
+        # scenes that already fail at t = 0 (overlapping start): reported by the first advance
+        self._pending = self._collect(self._read_status_now())
+
+    def _step_arrays(self) -> tuple:
+        """(spin, spin_inv, list radius, ext) of the time loop's kernels (engine/loops/cuda_loop.py):
+        spheres: the angular velocity, 1/I, the radius, (the lazy orientations' marks, the contacts begun)."""
+        return self.omega, self.inv_i1, self.radius1, (self.q_last, self.begun)
+
+    def _observe_args(self) -> tuple:
+        """observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext) (cuda_loop)."""
+        return (self.pos, self.vel, self.omega, self.quat, self.radius1, self.mass1, self.inertia1, self.nbr,
+                self.nn, self.hist, self.spd, self.spf, self.spi, self._step_arrays()[3])
+
+    def _observables(self, s: int, r: list) -> dict:
+        """Scene s's observables from its observe sums r (engine/shapes/sphere/device.py: observe_one)."""
+        return {"kinetic_energy_translational": r[0], "kinetic_energy_rotational": r[1],
+                "contacts": int(round(r[2])) // 2, "elastic_energy": r[3],
+                "max_overlap": r[SC.O_MAX], "momentum": (r[4], r[5], r[6]),
+                "collisions": int(round(r[SC.O_COLL])) // 2,
+                **sonine_sums(r[SC.O_TR2], r[SC.O_ROT2], r[SC.O_X], DOF_ROTATION_SPHERE)}
+
+
+class CudaBackend(CudaSceneBackend):
+    """One sphere scene on the GPU (K = 1 of :class:`CudaEnsemble`), with the interface of
+    :class:`engine.shapes.sphere.cpu_backend.CpuBackend`."""
+
+    ensemble_class = CudaEnsemble
