@@ -23,8 +23,6 @@ from tests.deploy.deployfiles import (SBATCH, WORKSTATION_UNIT, env_file, sbatch
                                       unit_exec)
 from tests.waiting import CEILING_S
 
-pytestmark = pytest.mark.heavy   # real processes: an API, workers and real-engine jobs, minutes on 2 cores
-
 #: Several seconds of one CPU core: long enough for a few checkpoints at DEMQ_CHECKPOINT_INTERVAL=0.3 s.
 LONG = {**SPEC, "t_end": 1.5}
 

@@ -22,7 +22,7 @@ from jobs.schema import DONE, QUEUED, RUNNING
 from tests.deploy.conftest import SPEC, free_port, process_env, wait_for
 from tests.deploy.deployfiles import SBATCH, compose, compose_workers, sbatch_exec
 
-pytestmark = pytest.mark.heavy   # real processes: an API, workers and real-engine jobs, minutes on 2 cores
+pytestmark = pytest.mark.heavy   # an API, three workers and real-engine jobs: over a minute of CPU
 
 N_JOBS = 30
 #: The documented log line: "<date> <time>,<ms> <logger> <LEVEL> <message>".

@@ -14,12 +14,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
 import pytest
 
 from tests.cudasim import run_children
 
-pytestmark = pytest.mark.heavy   # the CUDA simulator on whole scenes: minutes on 2 cores
+pytestmark = pytest.mark.heavy   # the CUDA simulator on whole spheroid scenes: about 1.5 min of CPU
 
 ROOT = Path(__file__).resolve().parents[2]
 

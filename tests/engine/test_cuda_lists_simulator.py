@@ -15,6 +15,8 @@ import pytest
 
 from tests.cudasim import run_children
 
+pytestmark = pytest.mark.heavy   # the CUDA simulator's list builds (one shared run): about a minute of CPU
+
 
 def poly_system(n, ratio, phi, seed, speed=1.0):
     """n spheres, radii log-uniform in [a/ratio, a] (a = 0.1), placed without overlap (largest first)."""

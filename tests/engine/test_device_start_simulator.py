@@ -11,11 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-import pytest
-
 from tests.cudasim import run_children
-
-pytestmark = pytest.mark.heavy   # the CUDA simulator on whole scenes: minutes on 2 cores
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -6,11 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from tests.cudasim import child_env
-
-pytestmark = pytest.mark.heavy   # the CUDA simulator on whole scenes: minutes on 2 cores
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -173,7 +173,6 @@ print("ERROR", s.error, "KERNEL SETS", len(loop._cache))
 """
 
 
-@pytest.mark.heavy   # the CUDA simulator in a child process per shape
 @pytest.mark.parametrize("shape", ["sphere", "ellipsoid"])
 def test_kernel_warmup_runs_for_every_shape_in_the_simulator(shape):
     """The thread's work (stand-in backend, warm-up per contact, observe) runs without error on each shape."""

@@ -503,7 +503,6 @@ run_ensemble([{**spec, "seed": s} for s in (3, 4, 5)], [f"{out}/s{s}.h5" for s i
 """
 
 
-@pytest.mark.heavy   # the CUDA simulator on whole scenes: minutes on 2 cores
 def test_snapshot_frames_through_reused_buffers_match_the_cpu_run(tmp_path):
     """Frames taken through the two reused buffer slots (one scene and a packed ensemble) are the
     CPU run's frames: the simulated CUDA backend is bit-identical to the CPU one (orientations: to rounding), so

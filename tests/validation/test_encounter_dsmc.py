@@ -9,8 +9,6 @@ import pytest
 
 from engine.validation import encounter_dsmc as E
 
-pytestmark = pytest.mark.heavy   # a long physics validation
-
 
 def _contact_states(xi, e_n, kn_factor=1.0, seed=4, nper=3000):
     """Contact states drawn by the DSMC sampler from a Maxwellian gas at the scene's T0 (A at the origin)."""

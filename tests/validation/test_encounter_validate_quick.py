@@ -5,10 +5,6 @@ from __future__ import annotations
 
 import json
 
-import pytest
-
-pytestmark = pytest.mark.heavy   # a long physics validation
-
 
 def test_validate_encounter_dsmc_quick(tmp_path):
     import argparse

@@ -12,8 +12,6 @@ from engine.validation.hcs_dsmc import _hard_rule, cooling, soft_contact_loss
 from engine.validation.hcs_long import scene_spec
 from engine.validation.sonine import _dsmc
 
-pytestmark = pytest.mark.heavy   # a long physics validation
-
 
 def test_elastic_gas_keeps_t_and_collides_at_three_quarters_per_tau():
     # elastic smooth spheres: T is conserved by every collision, so the rescaled unit times the measured T

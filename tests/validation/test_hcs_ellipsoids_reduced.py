@@ -8,11 +8,7 @@ cooling at xi = 1.5, whose rotation couples well (<D>_S = 0.2).
 
 import json
 
-import pytest
-
 from engine.validation import hcs_ellipsoids as h
-
-pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_smooth_spheroid_cooling_haff_and_rotation(tmp_path):

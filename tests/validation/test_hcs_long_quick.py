@@ -11,8 +11,6 @@ import pytest
 
 from engine.validation import hcs_long
 
-pytestmark = pytest.mark.heavy   # a long physics validation
-
 
 def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):
     rc = hcs_long.main(out_dir=tmp_path, quick=True, backend="cpu", keep=True)

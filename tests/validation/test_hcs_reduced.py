@@ -7,7 +7,7 @@ import pytest
 
 from engine.validation import hcs_spheres
 
-pytestmark = pytest.mark.heavy   # a long physics validation
+pytestmark = pytest.mark.heavy   # a long physics validation: about 1.5 min of one core
 
 
 def test_rough_sphere_cooling_follows_luding_ode(tmp_path):

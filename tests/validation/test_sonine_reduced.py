@@ -2,12 +2,7 @@
 The DSMC reference is checked against two exact limits first."""
 
 import json
-
-import pytest
-
 from engine.validation import sonine as v
-
-pytestmark = pytest.mark.heavy   # a long physics validation
 
 
 def test_dsmc_elastic_limit_is_maxwellian():
