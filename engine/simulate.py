@@ -66,6 +66,7 @@ class Progress:
     eta_s: float          # estimated wall seconds left
     cundall: float        # particle-steps per wall second so far (time loop only)
     wall_s: float         # wall seconds since the time loop started
+    resumed_from_step: Optional[int] = None   # cooling-run step this attempt resumed from (None: a fresh start)
 
 
 @dataclass
@@ -503,7 +504,7 @@ class SceneRun:
         cund = self.n * self.steps_run / self.wall if self.wall > 0 else 0.0
         eta = (total - done_total) * self.n / cund if cund > 0 else math.inf
         self.progress(Progress(phase=phase, fraction=min(1.0, frac), step=step, time=t_sim, eta_s=eta,
-                               cundall=cund, wall_s=self.wall))
+                               cundall=cund, wall_s=self.wall, resumed_from_step=self.resumed_from))
 
 
 class _FrameSlots:

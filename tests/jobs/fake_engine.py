@@ -76,7 +76,8 @@ def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
         wall = time.monotonic() - t0
         if progress is not None:
             progress(Progress(phase="cooling", fraction=(k + 1) / N_STEPS, step=k + 1, time=spec.t_end * (k + 1) / N_STEPS,
-                              eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, wall_s=wall))
+                              eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, wall_s=wall,
+                              resumed_from_step=start or None))
     write_result(output, spec)
     wall = max(time.monotonic() - t0, 1e-9)
     return RunSummary(output=Path(output), backend="fake", device="test double", n_particles=spec.n_particles,
@@ -136,7 +137,7 @@ def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=N
                 progress(k, Progress(phase="cooling", fraction=step[k] / N_STEPS, step=step[k],
                                      time=specs[k].t_end * step[k] / N_STEPS,
                                      eta_s=wall / (step[k] - start[k]) * (N_STEPS - step[k]), cundall=1.0e6,
-                                     wall_s=wall))
+                                     wall_s=wall, resumed_from_step=start[k] or None))
         if ck_due:
             last_ckpt = time.monotonic()
         for k in sorted(active):
