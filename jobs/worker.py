@@ -77,7 +77,7 @@ DEFAULT_WARM_SPEC = "{}"
 
 #: Progress keys (from engine Progress) -> job-table columns.
 _PROGRESS_COLUMNS = {"fraction": "progress", "phase": "phase", "step": "step", "time": "sim_time",
-                     "eta_s": "eta_s", "cundall": "cundall"}
+                     "eta_s": "eta_s", "cundall": "cundall", "resumed_from_step": "resumed_from_step"}
 
 
 def describe_exit(code: Optional[int]) -> str:
