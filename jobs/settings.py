@@ -44,9 +44,10 @@ DEMQ_ENGINE_RUN_ENSEMBLE       (auto)                              ``module:func
                                                                    signature as engine.ensemble.run_ensemble). Auto:
                                                                    ``engine.ensemble:run_ensemble`` with the default
                                                                    DEMQ_ENGINE_RUN, none (no packing) with another.
-DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued jobs a worker packs into one ensemble
-                                                                   run (same shape, precision and resolved backend);
-                                                                   1 disables packing.
+DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued jobs a worker claims at once (one
+                                                                   ensemble on the GPU, one sequence on the CPU:
+                                                                   jobs/packing.py); also capped at the worker's fair
+                                                                   share of the queue; 1 disables packing.
 DEMQ_ENSEMBLE_MAX_PARTICLES    ``4194304``                         Most particles of all jobs of one pack together (a
                                                                    memory bound: ~1.1 kB per float64 particle); a
                                                                    single larger job still runs, alone.
