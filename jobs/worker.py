@@ -57,6 +57,7 @@ from typing import Callable, Optional
 
 from sqlalchemy.exc import SQLAlchemyError
 
+from engine.h5md import partial_path
 from jobs.packing import ENSEMBLE, ONE, SEQUENCE, SOLO, Packer, fair_share, particle_steps, sequence_order
 from jobs.runner import child_main, standby_main
 from jobs.schema import CANCELLED, DONE, FAILED, FINAL_STATES, QUEUED, RUNNING
@@ -361,8 +362,11 @@ class Worker:
         sequence = mode == SEQUENCE
         pack_error = None
         last_beat = last_write = last_poll = time.monotonic()
+        killed = False
         while True:
-            if receiver.poll(min(0.2, s.cancel_poll_s)):
+            now = time.monotonic()
+            kill_at = min((x.kill_at for x in slots if x.outcome is None and x.kill_at is not None), default=now + 1.0)
+            if receiver.poll(max(0.01, min(0.2, last_poll + s.cancel_poll_s - now, kill_at - now))):
                 try:
                     kind, k, payload = receiver.recv()
                 except EOFError:
@@ -440,11 +444,12 @@ class Worker:
                     x.kill_at = now + x.stop_within
             waiting = [x for x in slots if x.outcome is None and (x.started or not sequence)]
             overdue = [x for x in waiting if x.kill_at is not None and now > x.kill_at]
-            if overdue and proc.is_alive():
+            if overdue and proc.is_alive() and not killed:
                 if len(overdue) == len(waiting):
                     log.warning("job(s) %s: simulation did not stop within %.3g s; killing it",
                                 " ".join(x.job.id for x in overdue), min(x.stop_within for x in overdue))
                     proc.kill()
+                    killed = True
                 else:  # the rest of the pack runs on: stop waiting for these jobs' scenes
                     for x in overdue:
                         log.warning("job %s: its scene did not stop within %.3g s; the pack runs on, the job "
@@ -504,8 +509,6 @@ class Worker:
         queue, not counting the attempt, with the note that it runs alone next time (jobs/packing.py), where
         the culprit fails by itself. A single job ends failed with the reason, as it always has.
         """
-        from engine.h5md import partial_path
-
         for x in slots:
             if x.outcome is None:
                 self._conclude(x)
