@@ -13,7 +13,8 @@ jobs/worker.py). How a claim of several jobs runs depends on the backend its job
 - ``ensemble`` (the GPU; the CPU with DEMQ_CPU_PACKS=ensemble): the jobs run as one ensemble
   (engine.ensemble.run_ensemble), which needs the same ``shape``, ``precision`` and resolved backend, at most
   ``DEMQ_ENSEMBLE_MAX_PARTICLES`` particles together, and — so that a small job does not wait in a pack of large
-  ones — an estimated cost within a factor :data:`COST_RATIO` of the first job's. Any mix of N, φ, e_n, e_t, ξ,
+  ones — an estimated cost within a factor DEMQ_ENSEMBLE_COST_RATIO (default :data:`COST_RATIO`) of the first
+  job's. Any mix of N, φ, e_n, e_t, ξ,
   dt, t_end, seeds and Verlet skins packs together (a null ``verlet_skin`` is the default of the pack's one
   resolved backend, engine.spec.default_verlet_skin, the same as the job run alone there). A scene that ends
   leaves the pack at once; its job ends then.

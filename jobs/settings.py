@@ -51,6 +51,10 @@ DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued j
 DEMQ_ENSEMBLE_MAX_PARTICLES    ``4194304``                         Most particles of all jobs of one pack together (a
                                                                    memory bound: ~1.1 kB per float64 particle); a
                                                                    single larger job still runs, alone.
+DEMQ_ENSEMBLE_COST_RATIO       ``4``                               An ensemble holds jobs whose estimated particle-
+                                                                   steps (N x steps) are within this factor of the
+                                                                   first job's, so a small job does not wait for a
+                                                                   large one's scene (>= 1; a huge value: any mix).
 DEMQ_CPU_PACKS                 ``sequence``                        How a claim of several CPU jobs runs: ``sequence``
                                                                    (one after another in one warm process, cheapest
                                                                    first: each job ends when its own run does) or
@@ -104,6 +108,7 @@ _ENV = {
     "engine_run_ensemble": "DEMQ_ENGINE_RUN_ENSEMBLE",
     "ensemble_max_jobs": "DEMQ_ENSEMBLE_MAX_JOBS",
     "ensemble_max_particles": "DEMQ_ENSEMBLE_MAX_PARTICLES",
+    "ensemble_cost_ratio": "DEMQ_ENSEMBLE_COST_RATIO",
     "cpu_packs": "DEMQ_CPU_PACKS",
     "host": "DEMQ_HOST",
     "port": "DEMQ_PORT",
@@ -150,6 +155,7 @@ class Settings:
     engine_run_ensemble: str = ""
     ensemble_max_jobs: int = 256
     ensemble_max_particles: int = 4 * 2**20
+    ensemble_cost_ratio: float = 4.0
     cpu_packs: str = "sequence"
     host: str = "127.0.0.1"
     port: int = 8000
@@ -190,6 +196,8 @@ class Settings:
             raise ValueError(f"DEMQ_WORKER_STANDBY = {s.standby!r} must be one of {', '.join(STANDBY_VALUES)}")
         if s.warm not in SWITCH_VALUES:
             raise ValueError(f"DEMQ_WORKER_WARM = {s.warm!r} must be one of {', '.join(SWITCH_VALUES)}")
+        if not s.ensemble_cost_ratio >= 1:
+            raise ValueError(f"DEMQ_ENSEMBLE_COST_RATIO = {s.ensemble_cost_ratio} must be >= 1")
         if s.cpu_packs not in CPU_PACK_VALUES:
             raise ValueError(f"DEMQ_CPU_PACKS = {s.cpu_packs!r} must be one of {', '.join(CPU_PACK_VALUES)}")
         if not 0 < s.cancel_poll_s <= s.heartbeat_s:

@@ -101,7 +101,7 @@ class Worker:
         self._wake = threading.Event()
         self._last_reap = 0.0
         self._packer = Packer(settings.ensemble_max_jobs, settings.ensemble_max_particles,
-                              cpu_mode=settings.cpu_packs)
+                              cpu_mode=settings.cpu_packs, cost_ratio=settings.ensemble_cost_ratio)
         self._last_seen = 0.0
         self._standby: Optional[_SimProcess] = None   # the next claim's process, started up (run_forever)
         self._keep_standby = False

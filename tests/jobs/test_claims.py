@@ -286,3 +286,32 @@ def test_two_worker_processes_share_twelve_cpu_jobs_on_postgresql(tmp_path):
     assert store.live_workers(60) == []      # both unregistered on their clean exit
     store.drop_tables()
     store.close()
+
+
+# ---- the store's cancel poll and the new settings ----------------------------------------------------------
+
+def test_cancel_requests_reads_the_requested_ones_of_the_given_jobs(store):
+    jobs = store.submit([NewJob(parse_spec({**TINY, "seed": i}).to_json()) for i in range(4)])
+    store.claim_ids("w", 10, [j.id for j in jobs])
+    store.request_cancel(jobs[1].id)
+    store.request_cancel(jobs[3].id)
+    assert store.cancel_requests([j.id for j in jobs[:3]]) == {jobs[1].id}
+    assert store.cancel_requests([j.id for j in jobs]) == {jobs[1].id, jobs[3].id}
+    assert store.cancel_requests([]) == set() and store.cancel_requests(["nope"]) == set()
+
+
+def test_settings_of_claims_cancels_and_warm_up():
+    from jobs.settings import Settings
+
+    s = Settings.from_env(environ={})
+    assert (s.cpu_packs, s.ensemble_cost_ratio, s.cancel_kill_s, s.cancel_poll_s, s.warm) == \
+        ("sequence", 4.0, 0.3, 0.2, "on")
+    assert s.warm_enabled and not Settings.from_env(environ={"DEMQ_WORKER_WARM": "off"}).warm_enabled
+    assert not Settings.from_env(environ={"DEMQ_ENGINE_RUN": TARGET}).warm_enabled   # another engine: no warm-up
+    for env, message in [({"DEMQ_CPU_PACKS": "mix"}, r"DEMQ_CPU_PACKS = 'mix' must be one of sequence, ensemble"),
+                         ({"DEMQ_WORKER_WARM": "auto"}, r"DEMQ_WORKER_WARM = 'auto' must be one of on, off"),
+                         ({"DEMQ_ENSEMBLE_COST_RATIO": "0.5"}, r"DEMQ_ENSEMBLE_COST_RATIO = 0.5 must be >= 1"),
+                         ({"DEMQ_CANCEL_POLL_SECONDS": "0"}, r"DEMQ_CANCEL_POLL_SECONDS = 0.0 must be positive"),
+                         ({"DEMQ_CANCEL_KILL_SECONDS": "-1"}, r"DEMQ_CANCEL_KILL_SECONDS = -1.0 must be >= 0")]:
+        with pytest.raises(ValueError, match=message):
+            Settings.from_env(environ=env)

@@ -308,7 +308,9 @@ UNSTABLE = {"velocity_rms": 1.2, "stiffness": 1e6, "overlap_limit": 0.02, "therm
 
 
 def test_real_engine_pack_done_cancelled_and_failed_jobs(tmp_path):
-    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble=REAL_ENSEMBLE, cpu_packs="ensemble")
+    # one pack of jobs of very different costs (the job to cancel runs longest): no cost bound
+    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble=REAL_ENSEMBLE, cpu_packs="ensemble",
+                             ensemble_cost_ratio=1e9)
     assert settings.packing
     store = open_store(settings.database_url)
     worker = Worker(store, settings)
