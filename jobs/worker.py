@@ -165,10 +165,10 @@ class Worker:
         except SQLAlchemyError as exc:  # the claims retry the database; the fair share counts this worker later
             log.error("cannot register worker %s, going on: %s", self.owner, exc)
 
-    def _seen(self, force: bool = False) -> None:
+    def _seen(self) -> None:
         """Refresh this worker's row (at most every heartbeat/2: its liveness window is a lease)."""
         now = time.monotonic()
-        if not force and now - self._last_seen < 0.5 * self.settings.heartbeat_s:
+        if now - self._last_seen < 0.5 * self.settings.heartbeat_s:
             return
         try:
             self.store.worker_seen(self.owner)
@@ -507,7 +507,8 @@ class Worker:
         process died in: it fails with the reason. If a pack's process died (or the pack failed as a whole)
         while several jobs were still running, nothing tells which one caused it: each goes back to the
         queue, not counting the attempt, with the note that it runs alone next time (jobs/packing.py), where
-        the culprit fails by itself. A single job ends failed with the reason, as it always has.
+        the culprit fails by itself. A single job ends failed with the reason, as it always has, and so does
+        the first job of a sequence whose process died before any run began (no claim loops forever).
         """
         for x in slots:
             if x.outcome is None:
@@ -517,6 +518,9 @@ class Worker:
                 if x.output.exists():  # its scene finished after all: the job stays cancelled, no result
                     x.output.unlink()
         if mode == SEQUENCE:
+            first = next((x for x in slots if x.outcome is None), None)
+            if first is not None and not any(x.started for x in slots):
+                first.started = True    # it died before its first run began: that job bears the blame
             for x in slots:
                 if x.outcome is None and not x.started:
                     self.store.release(x.job.id, self.owner)

@@ -157,6 +157,22 @@ def test_cancel_of_a_job_waiting_in_a_sequence_ends_it_at_once(sequencing):
     assert not settings.result_path(waiting.id).exists() and not settings.checkpoint_dir(waiting.id).exists()
 
 
+def test_a_crash_in_a_sequence_fails_the_running_job_only(sequencing, monkeypatch):
+    """The process dies (SIGSEGV) in the second job of a sequence: that one is the culprit (it was running), it
+    fails; the job done before keeps its result, the one after goes back to the queue to run as usual."""
+    from jobs.packing import is_solo
+    from jobs.runner import TEST_CRASH_ENV
+
+    store, worker, _ = sequencing
+    monkeypatch.setenv(TEST_CRASH_ENV, "4242")
+    done, crash, after = _enqueue(store, {"t_end": 0.2}, {"t_end": 0.4, "seed": 4242}, {"t_end": 0.8, "seed": 2})
+    assert worker.execute_pack(worker._next(None)) == {done.id: DONE, crash.id: "failed", after.id: "requeued"}
+    assert store.get(crash.id).error == "simulation process killed by signal SIGSEGV"
+    got = store.get(after.id)
+    assert (got.state, got.attempts) == (QUEUED, 0) and not is_solo(got)
+    assert store.get(done.id).state == DONE
+
+
 def test_stop_releases_the_running_and_the_waiting_jobs_of_a_sequence(sequencing):
     store, worker, _ = sequencing
     jobs = _enqueue(store, {"t_end": 30.0}, {"t_end": 40.0, "seed": 1})
