@@ -269,8 +269,9 @@ class Worker:
         return self.execute_pack([job])[job.id]
 
     def execute_pack(self, jobs: list[Job]) -> dict[str, str]:
-        """Run claimed jobs in one simulation process — alone (one job) or as one ensemble (several);
-        return {job id: the state it was left in, 'released', 'requeued' or 'lost'}."""
+        """Run claimed jobs in one simulation process — alone (one job), one after another, cheapest first (a CPU
+        sequence) or as one ensemble (jobs/packing.py); return {job id: the state it was left in, 'released',
+        'requeued' or 'lost'}."""
         s = self.settings
         mode = self._packer.mode(jobs)
         if mode == SEQUENCE:
@@ -285,11 +286,11 @@ class Worker:
         elif mode == SEQUENCE:
             log.info("running %d jobs one after another, cheapest first: %s", len(slots),
                      " ".join(j.id for j in jobs))
-            for slot in slots:
+        for slot in slots:
+            if mode == SEQUENCE:   # each starts in its turn ("started" message); until then it waits
                 slot.cost = particle_steps(slot.job)
                 slot.pending = slot.latest = {"phase": "waiting"}
-        if mode != SEQUENCE:
-            for slot in slots:
+            else:
                 slot.started = True
 
         claim = (s.engine_run_ensemble if mode == ENSEMBLE else s.engine_run, [_spec_json(j) for j in jobs],
