@@ -156,22 +156,24 @@ def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str
     return report
 
 
-def _warm_main(conn, backends) -> None:
+def _warm_main(conn, backends, shapes=None, precisions=None) -> None:
     """Entry point of the worker's warm-up process."""
     try:
-        conn.send(warm(backends))
+        conn.send(warm(backends, shapes, precisions))
     except Exception as exc:  # noqa: BLE001
         conn.send(WarmReport(failed=[("all", f"{type(exc).__name__}: {exc}")]))
     finally:
         conn.close()
 
 
-def warm_in_process(backends: Sequence[str], stop: Optional[threading.Event] = None) -> Optional[WarmReport]:
+def warm_in_process(backends: Sequence[str], stop: Optional[threading.Event] = None,
+                    shapes: Optional[Sequence[str]] = None,
+                    precisions: Optional[Sequence[str]] = None) -> Optional[WarmReport]:
     """:func:`warm` in a spawned process (the caller holds no compiled code and no GPU context); its report, or
     None if ``stop`` was set first (the process is then killed) or it died without one."""
     ctx = multiprocessing.get_context("spawn")
     receiver, sender = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_warm_main, args=(sender, tuple(backends)), name="demq-warm")
+    proc = ctx.Process(target=_warm_main, args=(sender, tuple(backends), shapes, precisions), name="demq-warm")
     proc.start()
     sender.close()
     try:
@@ -182,6 +184,7 @@ def warm_in_process(backends: Sequence[str], stop: Optional[threading.Event] = N
                 except EOFError:
                     return None
             if stop is not None and stop.is_set():
+                proc.kill()   # its work is lost: a later warm-up (or each job) compiles what it had not stored
                 return None
             if not proc.is_alive() and not receiver.poll(0):
                 return None

@@ -75,3 +75,18 @@ def test_warm_fills_the_cache_so_that_a_job_in_a_fresh_process_compiles_nothing(
     again = subprocess.run(warm, cwd=ROOT, env=_env(cache), capture_output=True, text=True, timeout=1800)
     assert again.returncode == 0, again.stderr[-3000:]
     assert "(0 functions compiled" in again.stdout, again.stdout
+
+
+def test_warm_in_a_process_of_its_own_reports_and_a_stop_ends_it():
+    """The worker's form: the warm-up in a spawned process (the worker holds no compiled code, no GPU context);
+    its report comes back; a worker stopping meanwhile ends it (no report)."""
+    import threading
+
+    from jobs.warm import warm_in_process
+
+    report = warm_in_process(["cpu"], shapes=["sphere"], precisions=["float64"])
+    assert report is not None and report.kernels == 6 and not report.failed
+    assert report.line().startswith("warm: 6 kernels in ")
+    stop = threading.Event()
+    stop.set()
+    assert warm_in_process(["cpu"], stop=stop) is None
