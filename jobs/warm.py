@@ -8,7 +8,8 @@ sizes (one size, or species: the multigrid lists). Everything else in a spec (N,
 run-time value of the same compiled code. :func:`specialisations` lists the combinations the engine accepts (a
 shape refuses some: spheroids run neither species nor mixed precision); :func:`warm` runs a tiny scene of each
 through the same entry point a job uses (engine.simulate.run, plus a two-scene engine.ensemble.run_ensemble on the
-GPU for the packed kernels), and draws a large start's kernels (engine.scene.load_parallel_start). Compiled code
+GPU for the packed kernels), and draws a large start's kernels (engine.scene.load_parallel_start; on the GPU also
+the device start's, engine.backends.cuda_start.load). Compiled code
 goes to numba's disk cache (engine/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of later
 jobs load it from. Nothing of a warm-up's scenes is kept.
 
@@ -37,8 +38,8 @@ SIZES = {"uniform": {}, "species": {"species": [{"radius_ratio": 1.0, "number_fr
                                                 {"radius_ratio": 0.6, "number_fraction": 0.5}]}}
 PRECISIONS = ("float64", "float32", "mixed")
 #: a scene of a few milliseconds once compiled, with a thermalisation (both contacts) and one record interval
-TINY_SCENE = {"n_particles": 64, "volume_fraction": 0.05, "box_length": 0.5, "t_end": 0.002,
-              "thermalization": 0.2, "snapshots": 1}
+TINY_SCENE = {"n_particles": 64, "volume_fraction": 0.05, "box_length": 0.5, "t_end": 0.0005,
+              "thermalization": 0.01, "snapshots": 1}
 
 
 @dataclass(frozen=True)
@@ -145,7 +146,9 @@ def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str
                     if sp.backend == "cuda":   # the packed kernels of an ensemble of several scenes
                         run_ensemble([spec, spec.model_copy(update={"seed": 1})],
                                      [Path(tmp) / f"{k}a.h5", Path(tmp) / f"{k}b.h5"])
-                    load_parallel_start(spec, derive(spec))
+                    load_parallel_start(spec, derive(spec))      # a large start's functions (host)
+                    if sp.backend == "cuda" and sp.shape == "sphere" and sp.sizes == "uniform":
+                        _load_device_start(spec.precision)       # a large GPU sphere start, drawn on the device
                     report.kernels += 1
                 except Exception as exc:  # noqa: BLE001  (reported; that specialisation's jobs compile it)
                     report.failed.append((sp.name(), f"{type(exc).__name__}: {exc}"))
@@ -154,6 +157,14 @@ def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str
     report.compiled = compiled[0]
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _load_device_start(precision: str) -> None:
+    """The kernels of a large sphere start drawn on the GPU (engine/backends/cuda_start.py) in ``precision``."""
+    from engine.backends.cuda_start import load
+    from engine.precision import position_dtype, state_dtype
+
+    load(position_dtype(precision), state_dtype(precision))
 
 
 def _warm_main(conn, backends, shapes=None, precisions=None) -> None:
