@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from dataclasses import dataclass
 from typing import List, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -41,10 +42,114 @@ SPECIES_MAX_VOLUME_FRACTION = 0.30
 MAX_SPECIES = 16
 
 
+@dataclass(frozen=True)
+class Range:
+    """The allowed values of one numeric spec field: an interval, each end closed or open.
+
+    One table (:data:`FIELD_RANGES`) feeds both the validator (:meth:`check`) and the JSON schema
+    (:meth:`json_schema`: minimum/maximum or exclusiveMinimum/exclusiveMaximum), so the published
+    schema states exactly the one-field limits the validator enforces. ``high = inf`` (open) means
+    any finite number; NaN is outside every range.
+    """
+
+    low: float
+    high: float
+    low_open: bool = False
+    high_open: bool = False
+    integer: bool = False
+    why: str = ""            # appended to the error message, e.g. ": a start above ... does not exist"
+
+    def contains(self, v: float) -> bool:
+        above = v > self.low if self.low_open else v >= self.low
+        below = v < self.high if self.high_open else v <= self.high
+        return bool(above and below)
+
+    def text(self) -> str:
+        """The range as the error messages write it: '2 ... 2147483647', '(0, 1]', '[0, inf)'."""
+        if self.integer:
+            return f"{self.low} ... {self.high}"
+        return f"{'(' if self.low_open else '['}{self.low:g}, {self.high:g}{')' if self.high_open else ']'}"
+
+    def check(self, name: str, v: float, nullable: bool = False) -> None:
+        """Raise ValueError naming the field, the value and the range when ``v`` is outside."""
+        if self.contains(v):
+            return
+        null = " (or null)" if nullable else ""
+        if self.low == 0.0 and self.low_open and self.high == math.inf:
+            raise ValueError(f"{name} = {v} must be a finite number > 0{null}")
+        raise ValueError(f"{name} = {v} is outside the allowed range {self.text()}{self.why}{null}")
+
+    def json_schema(self) -> dict:
+        """JSON-schema keywords of the range (OpenAPI 3.1: numeric exclusiveMinimum/exclusiveMaximum)."""
+        out: dict = {("exclusiveMinimum" if self.low_open else "minimum"): self.low}
+        if self.high != math.inf:
+            out["exclusiveMaximum" if self.high_open else "maximum"] = self.high
+        return out
+
+
+def _positive() -> Range:
+    """(0, inf): a finite number > 0."""
+    return Range(0.0, math.inf, low_open=True, high_open=True)
+
+
+#: The one-field ranges of the spec (validator and JSON schema). Checks between fields (box size,
+#: contact resolution, overlap, shape-specific keys) are in SimulationSpec._consistent.
+FIELD_RANGES: dict[str, Range] = {
+    "n_particles": Range(2, 2**31 - 1, integer=True),
+    "volume_fraction": Range(0.0, RANDOM_CLOSE_PACKING, low_open=True, high_open=True,
+                             why=": a homogeneous start above random close packing does not exist"),
+    "e_n": Range(0.0, 1.0, low_open=True),
+    "e_t": Range(-1.0, 1.0),
+    "elongation": Range(1.0, 10.0),
+    "friction": Range(0.0, math.inf, high_open=True),
+    "stiffness": _positive(),
+    "density": _positive(),
+    "box_length": _positive(),
+    "velocity_rms": _positive(),
+    "t_end": _positive(),
+    "thermalization": Range(0.0, 1.0e4, why=" collisions per particle"),
+    "dt": _positive(),
+    "output_interval": _positive(),
+    "snapshots": Range(0, 10000, integer=True),
+    "seed": Range(0, 2**63 - 1, integer=True),
+    "verlet_skin": Range(0.0, 4.0, low_open=True, why=" radii"),
+    "overlap_limit": Range(0.0, 0.5, low_open=True, why=" radii"),
+}
+
+#: The ranges of a species entry's fields.
+SPECIES_RANGES: dict[str, Range] = {
+    "radius_ratio": Range(0.01, 1.0, why=" (radius relative to the largest species)"),
+    "number_fraction": Range(0.0, 1.0, low_open=True),
+}
+
+
+def field_schema_keywords(ranges: dict[str, Range]) -> dict[str, dict]:
+    """The JSON-schema keywords of each field's one-field check: its range; for the spec also the species
+    count and the registered shapes."""
+    out = {name: r.json_schema() for name, r in ranges.items()}
+    if ranges is FIELD_RANGES:
+        out["species"] = {"minItems": 1, "maxItems": MAX_SPECIES}
+        out["shape"] = {"enum": list(SHAPES)}
+    return out
+
+
+def write_field_keywords(properties: dict, keywords: dict[str, dict], items: bool = False) -> None:
+    """Add ``keywords[name]`` to each property of a JSON schema (into the non-null branch of a nullable one;
+    ``items``: into the schema of the property's array items, as in a sweep of values)."""
+    for name, extra in keywords.items():
+        if name not in properties:
+            continue
+        prop = properties[name]["items"] if items else properties[name]
+        for branch in prop.get("anyOf", [prop]):
+            if branch.get("type") != "null":
+                branch.update(extra)
+
+
 class Species(BaseModel):
     """One sphere size of a polydisperse spec."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", json_schema_extra=lambda schema, _model: write_field_keywords(
+        schema["properties"], field_schema_keywords(SPECIES_RANGES)))
 
     radius_ratio: float = Field(
         ..., description="Radius relative to the largest species, in [0.01, 1]; the largest species has "
@@ -53,19 +158,10 @@ class Species(BaseModel):
         ..., description="Fraction of the n_particles spheres in this species, in (0, 1]; the fractions sum "
                          "to 1. Counts are round(N f), the remainder going to the largest fraction.")
 
-    @field_validator("radius_ratio")
+    @field_validator("radius_ratio", "number_fraction")
     @classmethod
-    def _ratio(cls, v: float) -> float:
-        if not (0.01 <= v <= 1.0):
-            raise ValueError(f"radius_ratio = {v} is outside the allowed range [0.01, 1] "
-                             f"(radius relative to the largest species)")
-        return v
-
-    @field_validator("number_fraction")
-    @classmethod
-    def _fraction(cls, v: float) -> float:
-        if not (0.0 < v <= 1.0):
-            raise ValueError(f"number_fraction = {v} is outside the allowed range (0, 1]")
+    def _in_range(cls, v: float, info) -> float:
+        SPECIES_RANGES[info.field_name].check(info.field_name, v)
         return v
 
 
@@ -139,7 +235,9 @@ def largest_default_verlet_skin(backend: str, shape: str = "sphere",
 class SimulationSpec(BaseModel):
     """A granular-gas simulation: particles, contact law, protocol, output and numerics."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=False)
+    model_config = ConfigDict(extra="forbid", validate_assignment=False,
+                              json_schema_extra=lambda schema, _model: write_field_keywords(
+                                  schema["properties"], field_schema_keywords(FIELD_RANGES)))
 
     shape: str = Field(
         "sphere", json_schema_extra={"enum": list(SHAPES)},
@@ -217,97 +315,13 @@ class SimulationSpec(BaseModel):
                              + " or ".join(repr(k) for k in SHAPES))
         return v
 
-    @field_validator("n_particles")
+    @field_validator(*FIELD_RANGES)
     @classmethod
-    def _n(cls, v: int) -> int:
-        if not 2 <= v <= 2**31 - 1:
-            raise ValueError(f"n_particles = {v} is outside the allowed range 2 ... 2147483647")
-        return v
-
-    @field_validator("volume_fraction")
-    @classmethod
-    def _phi(cls, v: float) -> float:
-        if not (0.0 < v < RANDOM_CLOSE_PACKING):
-            raise ValueError(
-                f"volume_fraction = {v} is outside (0, {RANDOM_CLOSE_PACKING}): "
-                f"a homogeneous start above random close packing does not exist")
-        return v
-
-    @field_validator("e_n")
-    @classmethod
-    def _en(cls, v: float) -> float:
-        if not (0.0 < v <= 1.0):
-            raise ValueError(f"e_n = {v} is outside the allowed range (0, 1]")
-        return v
-
-    @field_validator("e_t")
-    @classmethod
-    def _et(cls, v: float) -> float:
-        if not (-1.0 <= v <= 1.0):
-            raise ValueError(f"e_t = {v} is outside the allowed range [-1, 1]")
-        return v
-
-    @field_validator("elongation")
-    @classmethod
-    def _xi(cls, v: float) -> float:
-        if not (1.0 <= v <= 10.0):
-            raise ValueError(f"elongation = {v} is outside the allowed range [1, 10]")
-        return v
-
-    @field_validator("friction")
-    @classmethod
-    def _mu(cls, v: Optional[float]) -> Optional[float]:
-        if v is not None and not (0.0 <= v < math.inf):
-            raise ValueError(f"friction = {v} is outside the allowed range [0, inf) (or null)")
-        return v
-
-    @field_validator("stiffness", "density", "box_length", "velocity_rms", "t_end")
-    @classmethod
-    def _positive(cls, v: float, info) -> float:
-        if not (0.0 < v < math.inf):
-            raise ValueError(f"{info.field_name} = {v} must be a finite number > 0")
-        return v
-
-    @field_validator("thermalization")
-    @classmethod
-    def _therm(cls, v: float) -> float:
-        if not (0.0 <= v <= 1.0e4):
-            raise ValueError(f"thermalization = {v} is outside the allowed range [0, 10000] collisions per particle")
-        return v
-
-    @field_validator("dt", "output_interval")
-    @classmethod
-    def _opt_positive(cls, v: Optional[float], info) -> Optional[float]:
-        if v is not None and not (0.0 < v < math.inf):
-            raise ValueError(f"{info.field_name} = {v} must be a finite number > 0 (or null)")
-        return v
-
-    @field_validator("snapshots")
-    @classmethod
-    def _snap(cls, v: int) -> int:
-        if not 0 <= v <= 10000:
-            raise ValueError(f"snapshots = {v} is outside the allowed range 0 ... 10000")
-        return v
-
-    @field_validator("seed")
-    @classmethod
-    def _seed(cls, v: int) -> int:
-        if not 0 <= v <= 2**63 - 1:
-            raise ValueError(f"seed = {v} is outside the allowed range 0 ... 2**63-1")
-        return v
-
-    @field_validator("verlet_skin")
-    @classmethod
-    def _skin(cls, v: Optional[float]) -> Optional[float]:
-        if v is not None and not (0.0 < v <= 4.0):
-            raise ValueError(f"verlet_skin = {v} is outside the allowed range (0, 4] radii (or null)")
-        return v
-
-    @field_validator("overlap_limit")
-    @classmethod
-    def _ovl(cls, v: float) -> float:
-        if not (0.0 < v <= 0.5):
-            raise ValueError(f"overlap_limit = {v} is outside the allowed range (0, 0.5] radii")
+    def _in_range(cls, v, info):
+        """The one-field ranges of :data:`FIELD_RANGES` (also written into the JSON schema)."""
+        if v is None:      # the null of a nullable field (pydantic refuses null for the others first)
+            return v
+        FIELD_RANGES[info.field_name].check(info.field_name, v, nullable=cls.model_fields[info.field_name].default is None)
         return v
 
     @field_validator("species")

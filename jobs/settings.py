@@ -86,6 +86,8 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Optional
 
+from engine.limits import DEFAULT_MAX_MEMORY_BYTES, DEFAULT_MAX_PARTICLE_STEPS
+
 _ENV = {
     "data_dir": "DEMQ_DATA_DIR",
     "database_url": "DEMQ_DATABASE_URL",
@@ -138,8 +140,8 @@ class Settings:
     database_url: Optional[str] = None
     table_prefix: str = ""
     token: Optional[str] = None
-    max_particle_steps: float = 1.0e12
-    max_memory_bytes: int = 64 * 2**30
+    max_particle_steps: float = DEFAULT_MAX_PARTICLE_STEPS
+    max_memory_bytes: int = DEFAULT_MAX_MEMORY_BYTES
     max_body_bytes: int = 2**20
     max_batch_jobs: int = 1000
     max_attempts: int = 3

@@ -13,7 +13,7 @@ from typing import Any, Iterable, Optional
 
 from pydantic import ConfigDict, ValidationError, model_validator
 
-from engine.params import estimate_cost
+from engine.limits import cost_excesses
 from engine.spec import SimulationSpec
 
 
@@ -55,26 +55,10 @@ def parse_spec(data: Any, loc: Iterable = ()) -> QueueSpec:
 def check_limits(spec: SimulationSpec, max_particle_steps: float, max_memory_bytes: float,
                  loc: Iterable = ()) -> None:
     """Refuse a spec whose estimated cost exceeds the configured limits (before it is queued)."""
-    cost = estimate_cost(spec)
-    errors = []
-    if cost["particle_steps"] > max_particle_steps:
-        errors.append({"loc": [*loc], "type": "limit_particle_steps", "msg": (
-            f"the run needs {_sci(cost['particle_steps'])} particle-steps ({spec.n_particles} particles x "
-            f"{_sci(cost['steps'])} steps), above the limit DEMQ_MAX_PARTICLE_STEPS = {max_particle_steps:.3g}")})
-    if cost["memory_bytes"] > max_memory_bytes:
-        errors.append({"loc": [*loc], "type": "limit_memory_bytes", "msg": (
-            f"the run needs about {_sci(cost['memory_bytes'])} bytes of memory, above the limit "
-            f"DEMQ_MAX_MEMORY_BYTES = {max_memory_bytes:.3g}")})
+    errors = [{"loc": [*loc], "type": f"limit_{e.kind}", "msg": e.message}
+              for e in cost_excesses(spec, max_particle_steps, max_memory_bytes)]
     if errors:
         raise SpecRejected(errors)
-
-
-def _sci(n: float) -> str:
-    """Three significant digits, also for integers too large for a float."""
-    try:
-        return f"{float(n):.3g}"
-    except OverflowError:
-        return f"~1e{len(str(int(n))) - 1}"
 
 
 def sweep_size(sweep: dict[str, list]) -> int:

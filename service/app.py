@@ -9,6 +9,9 @@ from typing import Optional
 
 from fastapi import Depends, FastAPI
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
+
+from engine.spec import FIELD_RANGES, SPECIES_RANGES, field_schema_keywords, write_field_keywords
 
 from jobs.settings import Settings
 from jobs.store import JobStore
@@ -25,8 +28,12 @@ log = logging.getLogger("demq.service")
 DESCRIPTION = """Queue granular-gas DEM simulations, follow their progress, download the HDF5 results.
 
 A job's body is a simulation spec (see the SimulationSpec schema; missing keys take the defaults of
-paper 001). Invalid specs get 422 naming the field and the allowed range; specs whose estimated
-memory or particle-steps exceed the server's limits get 422 before they are queued.
+paper 001). The schema states each field's type and allowed range; a spec outside them gets 422
+naming the field and the range. A schema-valid spec may still get 422 for a rule across fields (the
+box must hold the neighbour cutoff, dt must resolve a contact, ...) or when its estimated memory or
+particle-steps exceed the server's limits, always before it is queued.
+
+Routes declare bearer auth only when the server has a token (DEMQ_TOKEN).
 
 A web dashboard (jobs, progress, plots, downloads, a submit form) is served at `/`.
 """
@@ -56,9 +63,28 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
     app.add_exception_handler(RequestValidationError, on_validation_error)
     app.add_exception_handler(InvalidRequest, on_invalid_request)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
-    auth = [Depends(require_token)]
+    # Auth only where a token is configured: the routes (and the OpenAPI document) then declare bearer auth;
+    # without a token they are open and the document says so.
+    auth = [Depends(require_token)] if settings.token is not None else []
+    auth_responses = {401: {"description": "missing or wrong bearer token"}} if auth else {}
     app.include_router(health.router)
     for module in (jobs, batches, results):
-        app.include_router(module.router, dependencies=auth)
+        app.include_router(module.router, dependencies=auth, responses=auth_responses)
     dashboard.install(app)
+    app.openapi = lambda: _openapi(app)
     return app
+
+
+def _openapi(app: FastAPI) -> dict:
+    """FastAPI's document, with the spec fields' range keywords written again from engine/spec.py:
+    FastAPI's OpenAPI models hold minimum/maximum as floats, which rounds 2**63-1 (the largest seed) up
+    to 2**63, a value the validator refuses."""
+    if app.openapi_schema is None:
+        document = get_openapi(title=app.title, version=app.version, description=app.description,
+                               routes=app.routes)
+        components = document["components"]["schemas"]
+        for name, sweep in (("SimulationSpecIn", False), ("SpecKeys", False), ("SweepValues", True)):
+            write_field_keywords(components[name]["properties"], field_schema_keywords(FIELD_RANGES), items=sweep)
+        write_field_keywords(components["SpeciesIn"]["properties"], field_schema_keywords(SPECIES_RANGES))
+        app.openapi_schema = document
+    return app.openapi_schema

@@ -1,20 +1,23 @@
 """The ``demq`` command line: the engine's commands plus the queue's.
 
     demq run | export | validate         engine commands (engine/cli.py)
-    demq bench                           benchmarks and stress tests (bench/cli.py)
     demq serve                           HTTP API + one embedded worker (SQLite in the data directory)
     demq worker [--exit-when-idle]       a worker on the configured job table (drain mode: exit when empty)
     demq submit [SPEC.json] [--local --wait -o OUT.h5]
     demq status [ID]                     one job, or a list of jobs (submission order)
     demq fetch ID -o OUT.h5              download a result
 
-Flags override ``DEMQ_*`` environment variables (jobs/settings.py lists them all).
+Flags override ``DEMQ_*`` environment variables (jobs/settings.py lists them all). Benchmarks run from a
+checkout (``python -m bench ...``), not from the installed command.
+
+A spec is read and validated here before anything is queued or sent (engine/cli.py: one line per problem
+naming the field and the value, exit status 2); ``-o`` results get their ParaView sidecar ``<stem>.xmf``
+beside them, as the server's results do; progress is a bar on a terminal and plain lines elsewhere.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import shutil
 import signal
@@ -101,48 +104,41 @@ def cmd_warm(args) -> int:
 
 
 # ---- client commands ----------------------------------------------------------------------------------
-def _read_spec(args) -> dict:
-    data = {}
-    if args.spec == "-":
-        data = json.load(sys.stdin)
-    elif args.spec:
-        data = json.loads(Path(args.spec).read_text())
-    for item in args.set:
-        key, _, raw = item.partition("=")
-        try:
-            data[key] = json.loads(raw)
-        except json.JSONDecodeError:
-            data[key] = raw
-    return data
+def _job_progress(job_id: str, n_particles):
+    """The job's progress on stderr: a tqdm bar on a terminal, plain lines elsewhere (engine/progress.py)."""
+    from engine.progress import progress_for
+
+    return progress_for(n_particles, desc=f"job {job_id[:8]} ")
 
 
-def _job_bar(job_id: str, n_particles):
-    """The tqdm progress bar of a job (quiet when stderr is not a terminal): N, steps/s, Cundall, ETA."""
-    from engine.progress import ProgressBar
+def _with_sidecar(output) -> None:
+    """Write the ParaView sidecar ``<stem>.xmf`` beside a result copied or downloaded to ``output`` (it names
+    the HDF5 file by its name, so a copy needs its own); a result without snapshot frames has none."""
+    from engine.xdmf import write_xdmf
 
-    return ProgressBar(n_particles, desc=f"job {job_id[:8]} ")
+    sidecar = write_xdmf(output)
+    print(f"wrote {output}" + (f" and {sidecar}" if sidecar else ""))
 
 
-def _submit_local(args, data: dict) -> int:
-    from jobs.specs import SpecRejected, check_limits, parse_spec
+def _submit_local(args, spec) -> int:
+    from jobs.specs import SpecRejected, check_limits
     from jobs.store import NewJob
     from jobs.stores import open_store
     from jobs.worker import Worker
 
     s = _settings(args)
     try:
-        spec = parse_spec(data)
         check_limits(spec, s.max_particle_steps, s.max_memory_bytes)
     except SpecRejected as exc:
         for e in exc.errors:
-            print(f"invalid spec: {'.'.join(map(str, e['loc'])) or 'spec'}: {e['msg']}", file=sys.stderr)
+            print(f"demq submit: refused: {e['msg']}", file=sys.stderr)
         return 2
     store = open_store(s.database_url, s.table_prefix)
     (job,) = store.submit([NewJob(spec.to_json(), args.priority)], max_attempts=s.max_attempts)
-    print(job.id)
+    print(job.id, flush=True)
     if not args.wait:
         return 0
-    bar = _job_bar(job.id, spec.n_particles)
+    bar = _job_progress(job.id, spec.n_particles)
     worker = Worker(store, s, on_progress=lambda _job, p: bar.update(p.get("fraction") or 0.0, p.get("phase") or "",
                                                                      p.get("eta_s"), p.get("cundall")))
     _on_signals(worker.stop)
@@ -157,9 +153,11 @@ def _submit_local(args, data: dict) -> int:
             return 130
         print(f"job {job.id} {state}: {final.error if final else ''}", file=sys.stderr)
         return 1
+    cundall = f" (Cundall number {final.cundall:.3g} particle-steps/s)" if final.cundall else ""
+    print(f"job {job.id} done{cundall}", file=sys.stderr)
     if args.output:
         shutil.copyfile(final.result_path, args.output)
-        print(f"wrote {args.output} (Cundall number {final.cundall:.3g} particle-steps/s)")
+        _with_sidecar(args.output)
     return 0
 
 
@@ -170,10 +168,10 @@ def _submit_remote(args, data: dict) -> int:
     client = Client(s.url, s.token)
     try:
         job = client.submit(data, args.priority)
-        print(job["id"])
+        print(job["id"], flush=True)
         if not args.wait:
             return 0
-        bar = _job_bar(job["id"], (job.get("spec") or {}).get("n_particles"))
+        bar = _job_progress(job["id"], (job.get("spec") or {}).get("n_particles"))
         try:
             while job["state"] in ("queued", "running"):
                 bar.update(job["progress"], job.get("phase") or job["state"], job.get("eta_s"), job.get("cundall"))
@@ -187,7 +185,7 @@ def _submit_remote(args, data: dict) -> int:
             return 1
         if args.output:
             client.fetch(job["id"], args.output)
-            print(f"wrote {args.output}")
+            _with_sidecar(args.output)
         return 0
     except ServiceError as exc:
         print(exc, file=sys.stderr)
@@ -195,15 +193,23 @@ def _submit_remote(args, data: dict) -> int:
 
 
 def cmd_submit(args) -> int:
+    from engine.cli import SpecInputError, missing_output_dir, read_spec_data, validate_spec
+    from jobs.specs import QueueSpec
+
     if args.output and not args.wait:
-        print("-o/--output needs --wait", file=sys.stderr)
+        print("demq submit: -o/--output needs --wait", file=sys.stderr)
         return 2
     try:
-        data = _read_spec(args)
-    except (OSError, json.JSONDecodeError) as exc:
-        print(f"cannot read the spec: {exc}", file=sys.stderr)
+        data = read_spec_data(args.spec, args.set)
+        spec = validate_spec(data, QueueSpec)      # the checks the service makes, before anything is queued
+        no_dir = missing_output_dir(args.output) if args.output else None
+        if no_dir:
+            raise SpecInputError(no_dir)
+    except SpecInputError as exc:
+        for line in exc.lines:
+            print(f"demq submit: {line}", file=sys.stderr)
         return 2
-    return _submit_local(args, data) if args.local else _submit_remote(args, data)
+    return _submit_local(args, spec) if args.local else _submit_remote(args, data)
 
 
 def _print_job(job: dict) -> None:
@@ -258,6 +264,7 @@ def cmd_fetch(args) -> int:
             print(f"job {args.id}: no result ({job.state if job else 'unknown id'})", file=sys.stderr)
             return 1
         shutil.copyfile(job.result_path, args.output)
+        _with_sidecar(args.output)
         return 0
     from service.client import Client, ServiceError
 
@@ -267,20 +274,18 @@ def cmd_fetch(args) -> int:
     except ServiceError as exc:
         print(exc, file=sys.stderr)
         return 1
-    print(f"wrote {args.output}")
+    _with_sidecar(args.output)
     return 0
 
 
 # ---- the parser ---------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    from bench.cli import register as register_bench
     from engine.cli import register
 
     parser = argparse.ArgumentParser(prog="demq", description="GPU DEM simulations of granular gases, "
                                                               "run from a durable job queue.")
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
-    register_bench(sub)
 
     p = sub.add_parser("serve", help="HTTP API with one embedded worker")
     _add_queue_flags(p)
@@ -313,8 +318,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("spec", nargs="?", help="spec JSON file ('-' = stdin); omitted = the default spec")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a spec key")
     p.add_argument("--priority", type=int, default=0)
-    p.add_argument("--wait", action="store_true", help="wait for the job to finish, printing progress")
-    p.add_argument("-o", "--output", help="with --wait: write the HDF5 result here")
+    p.add_argument("--wait", action="store_true",
+                   help="wait for the job to finish, printing progress (a bar on a terminal, else lines)")
+    p.add_argument("-o", "--output", help="with --wait: write the HDF5 result here (and its <stem>.xmf)")
     _add_client_flags(p)
     _add_worker_flags(p)
     p.set_defaults(func=cmd_submit)
@@ -328,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fetch", help="download a job's HDF5 result")
     p.add_argument("id")
-    p.add_argument("-o", "--output", required=True)
+    p.add_argument("-o", "--output", required=True, help="the HDF5 result (and its <stem>.xmf beside it)")
     _add_client_flags(p)
     p.set_defaults(func=cmd_fetch)
     return parser

@@ -11,7 +11,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from jobs.settings import Settings
 from jobs.store import Job, JobStore
 
-_bearer = HTTPBearer(auto_error=False, description="Required only when the server has a token (DEMQ_TOKEN).")
+_bearer = HTTPBearer(auto_error=False, description="The server's token (DEMQ_TOKEN); declared only when one is set.")
 
 
 def get_settings(request: Request) -> Settings:

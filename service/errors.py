@@ -7,6 +7,7 @@ from contextlib import contextmanager
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.routing import Match
 
 from jobs.specs import SpecRejected
 
@@ -25,6 +26,19 @@ def rejected():
         yield
     except SpecRejected as exc:
         raise InvalidRequest(exc.errors) from None
+
+
+#: The methods a 405's ``Allow`` header may list.
+HTTP_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
+
+
+def allowed_methods(request: Request) -> str:
+    """The ``Allow`` header of a 405: every method some route answers on the request's path (Starlette's
+    own header names only the first route it matched, so GET /jobs hid POST /jobs and the reverse)."""
+    allowed = [m for m in HTTP_METHODS
+               if any(route.matches({**request.scope, "method": m})[0] == Match.FULL
+                      for route in request.app.router.routes)]
+    return ", ".join(allowed)
 
 
 def _clean(errors) -> list[dict]:

@@ -16,6 +16,8 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.errors import allowed_methods
+
 TITLES = {400: "Bad request", 401: "Token needed", 403: "Forbidden", 404: "Not found",
           405: "Method not allowed", 409: "Not available", 410: "Gone", 413: "Request too large",
           422: "Invalid request"}
@@ -36,6 +38,8 @@ def wants_html(request: Request) -> bool:
 
 async def on_http_error(request: Request, exc: StarletteHTTPException) -> Response:
     """The HTTP error as a page for a browser, as JSON for anyone else."""
+    if exc.status_code == 405:
+        exc = StarletteHTTPException(405, exc.detail, headers={"Allow": allowed_methods(request)})
     if not wants_html(request):
         return await http_exception_handler(request, exc)
     from service.dashboard.routes import render

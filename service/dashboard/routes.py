@@ -20,6 +20,7 @@ from jobs.batch_results import batch_jobs
 from jobs.schema import FINAL_STATES, STATES
 from jobs.specs import SpecRejected, check_limits, parse_spec
 from jobs.store import Job, NewJob
+from service.backends import check_backends
 from service.dashboard import views
 from service.deps import TOKEN_COOKIE, StoreDep, SettingsDep, require_token, token_matches
 
@@ -176,6 +177,7 @@ async def submit(request: Request, store: StoreDep, settings: SettingsDep) -> Re
         parsed = parse_spec({k: v for k, v in spec.items() if k not in errors})
         if not errors:
             check_limits(parsed, settings.max_particle_steps, settings.max_memory_bytes)
+            check_backends(store, settings, [parsed], [[]])
     except SpecRejected as exc:
         per_field, general = views.errors_by_field(exc.errors)
         errors = {**per_field, **errors}

@@ -14,6 +14,7 @@ from fastapi.responses import FileResponse, Response
 from jobs.batch_results import BatchNotFound, BatchNotReady, batch_result
 from jobs.specs import admit, expand_sweep, sweep_size
 from jobs.store import NewJob
+from service.backends import check_backends
 from service.deps import SettingsDep, StoreDep, wake_worker
 from service.downloads import Download
 from service.errors import InvalidRequest, rejected
@@ -24,23 +25,27 @@ router = APIRouter(prefix="/batches", tags=["batches"])
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=BatchOut,
-             responses={413: {"description": "request body too large"},
-                        422: {"description": "an invalid spec (all errors listed), or too many jobs"}})
+             responses={400: {"description": "the body cannot be decoded (not UTF-8 JSON)"},
+                        413: {"description": "request body too large"},
+                        422: {"description": "an invalid spec (all errors listed), too many jobs, or no live "
+                                              "worker runs a spec's backend ('cuda')"}})
 def submit_batch(batch: BatchIn, store: StoreDep, settings: SettingsDep, request: Request) -> BatchOut:
     """Queue a list of specs or a parameter sweep. All jobs are queued, or none (any error -> 422)."""
     if batch.specs is not None:
         items, loc = [s.model_dump() for s in batch.specs], ["body", "specs"]
     else:
-        n = sweep_size(batch.sweep)
+        base, sweep = batch.sweep_items()
+        n = sweep_size(sweep)
         if n > settings.max_batch_jobs:
             raise InvalidRequest([{"loc": ["body", "sweep"], "type": "limit_batch_jobs", "msg": (
                 f"the sweep makes {n} jobs, above the limit DEMQ_MAX_BATCH_JOBS = {settings.max_batch_jobs}")}])
-        items, loc = expand_sweep(batch.base, batch.sweep), ["body", "sweep", "combination"]
+        items, loc = expand_sweep(base, sweep), ["body", "sweep", "combination"]
     if len(items) > settings.max_batch_jobs:
         raise InvalidRequest([{"loc": loc, "type": "limit_batch_jobs", "msg": (
             f"{len(items)} jobs, above the limit DEMQ_MAX_BATCH_JOBS = {settings.max_batch_jobs}")}])
     with rejected():
         specs = admit(items, settings.max_particle_steps, settings.max_memory_bytes, loc)
+        check_backends(store, settings, specs, [[*loc, i] for i in range(len(specs))])
     batch_id = uuid.uuid4().hex
     jobs = store.submit([NewJob(s.to_json(), batch.priority) for s in specs], batch_id=batch_id,
                         max_attempts=settings.max_attempts)

@@ -7,24 +7,28 @@ from typing import Annotated, Optional
 from fastapi import APIRouter, HTTPException, Query, Request, status
 
 from jobs.schema import CANCELLED, FINAL_STATES
-from jobs.specs import QueueSpec, check_limits
+from jobs.specs import check_limits
 from jobs.store import NewJob
+from service.backends import check_backends
 from service.deps import JobDep, SettingsDep, StoreDep, wake_worker
 from service.errors import rejected
-from service.schemas import JobOut, JobPage, JobState
+from service.schemas import JobOut, JobPage, JobState, SimulationSpecIn
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 NOT_FOUND = {404: {"description": "no job with this id"}}
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
-             responses={413: {"description": "request body too large"},
-                        422: {"description": "invalid spec, or its estimated cost exceeds a limit"}})
-def submit_job(spec: QueueSpec, store: StoreDep, settings: SettingsDep, request: Request,
+             responses={400: {"description": "the body cannot be decoded (not UTF-8 JSON)"},
+                        413: {"description": "request body too large"},
+                        422: {"description": "invalid spec, its estimated cost exceeds a limit, or no live "
+                                              "worker runs its backend ('cuda')"}})
+def submit_job(spec: SimulationSpecIn, store: StoreDep, settings: SettingsDep, request: Request,
                priority: Annotated[int, Query(ge=-1000, le=1000, description="Higher runs first.")] = 0) -> JobOut:
     """Queue one simulation. The body is a spec (the engine's JSON keys; missing keys take defaults)."""
     with rejected():
         check_limits(spec, settings.max_particle_steps, settings.max_memory_bytes, ["body"])
+        check_backends(store, settings, [spec], [["body"]])
     (job,) = store.submit([NewJob(spec.to_json(), priority)], max_attempts=settings.max_attempts)
     wake_worker(request)
     return JobOut.of(job)

@@ -1,4 +1,4 @@
-"""The tqdm progress bar of `demq run` / `demq submit --wait`: its fields on a terminal, silence elsewhere."""
+"""The progress of `demq run` / `demq submit --wait`: a tqdm bar with its fields on a terminal, plain lines elsewhere."""
 
 from __future__ import annotations
 
@@ -39,13 +39,18 @@ def test_bar_is_silent_when_the_stream_is_not_a_terminal():
     assert out.getvalue() == ""
 
 
-def test_demq_run_progress_on_a_terminal_and_quiet_in_a_pipe(tmp_path):
+def test_demq_run_progress_bar_on_a_terminal_and_lines_in_a_pipe(tmp_path):
     env = dict(os.environ, NUMBA_NUM_THREADS="1", COLUMNS="160")
-    # stderr to a pipe: no bar, no carriage returns
+    # stderr to a pipe: no bar, no carriage returns: the estimate, then plain progress lines ending at 100 %
     piped = subprocess.run(RUN + ["-o", str(tmp_path / "a.h5")], cwd=ROOT, env=env, capture_output=True, text=True,
                            timeout=300)
     assert piped.returncode == 0, piped.stderr
-    assert "\r" not in piped.stderr and "steps/s" not in piped.stderr and "wrote" in piped.stdout
+    assert "\r" not in piped.stderr and "wrote" in piped.stdout
+    lines = piped.stderr.splitlines()
+    assert lines[0].startswith("demq run: N = 64, ") and "particle-steps" in lines[0], lines
+    progress = [line for line in lines if line.startswith("demq run: ") and "%" in line]
+    assert progress and "100.0%" in progress[-1] and "N=64" in progress[-1], lines
+    assert (tmp_path / "a.xmf").is_file()                  # the result's ParaView sidecar beside it
     # stderr on a pseudo-terminal: the tqdm bar with its fields
     primary, secondary = pty.openpty()
     fcntl.ioctl(secondary, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 160, 0, 0))   # a 160-column terminal

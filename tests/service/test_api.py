@@ -51,6 +51,32 @@ def test_cross_field_error_and_overflow_are_422(client):
     assert r.status_code == 422
 
 
+def test_json_types_are_taken_as_the_schema_states_them(client):
+    """A number sent as a string or a boolean is refused (the schema says number); a whole number written
+    5.0 is an integer, as in JSON Schema."""
+    for body, field in (({**TINY, "e_n": "0.5"}, "e_n"), ({**TINY, "snapshots": True}, "snapshots"),
+                        ({**TINY, "species": [{"radius_ratio": "1", "number_fraction": 1}]}, "species")):
+        r = client.post("/jobs", json=body)
+        assert r.status_code == 422 and r.json()["detail"][0]["loc"][:2] == ["body", field], body
+    r = client.post("/jobs", json={**TINY, "snapshots": 2.0})
+    assert r.status_code == 201 and r.json()["spec"]["snapshots"] == 2
+
+
+def test_step_count_that_cannot_be_computed_is_a_limit_error_not_a_crash(client):
+    """dt = 5e-324 makes t_end/dt overflow; a huge stiffness makes dt underflow to 0."""
+    for body in ({**TINY, "dt": 5e-324},
+                 {"backend": "cpu", "box_length": 1.0, "density": 1.0, "stiffness": 1.755559702013982e+302}):
+        r = client.post("/jobs", json=body)
+        assert r.status_code == 422, body
+        (err,) = r.json()["detail"]
+        assert err["type"] == "limit_particle_steps" and "too large to count" in err["msg"]
+
+
+def test_405_allow_names_every_method_of_the_path(client):
+    r = client.request("OPTIONS", "/jobs")
+    assert r.status_code == 405 and r.headers["allow"] == "GET, POST"
+
+
 def test_oversize_spec_refused_before_queueing(client):
     r = client.post("/jobs", json={"n_particles": 2**30})
     assert r.status_code == 422
@@ -122,7 +148,8 @@ def test_batch_errors_name_the_combination_and_queue_nothing(client):
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "specs", 1, "e_n"]
     r = client.post("/batches", json={"base": TINY, "sweep": {"seed": list(range(1001))}})
     assert r.status_code == 422 and "DEMQ_MAX_BATCH_JOBS" in r.json()["detail"][0]["msg"]
-    for bad in ({}, {"specs": []}, {"specs": [TINY], "sweep": {"e_n": [0.5]}}, {"sweep": {"e_n": []}}):
+    for bad in ({}, {"specs": []}, {"specs": [TINY], "sweep": {"e_n": [0.5]}}, {"sweep": {"e_n": []}},
+                {"sweep": {}}, {"specs": [TINY], "base": TINY}, {"base": TINY, "sweep": {"colour": ["red"]}}):
         assert client.post("/batches", json=bad).status_code == 422, bad
     assert client.get("/jobs").json()["total"] == 0
 
@@ -202,3 +229,48 @@ def test_openapi_docs(client):
     paths = client.get("/openapi.json").json()["paths"]
     assert {"/jobs", "/batches", "/jobs/{job_id}", "/jobs/{job_id}/cancel", "/jobs/{job_id}/result",
             "/jobs/{job_id}/energy", "/jobs/{job_id}/plot.png", "/healthz"} <= set(paths)
+
+
+def _age_workers(store, seconds: float) -> None:
+    """Move every worker's last sign of life ``seconds`` into the past (a worker that died silently)."""
+    from sqlalchemy import update
+
+    with store.engine.begin() as conn:
+        conn.execute(update(store.workers).values(seen_at=store.workers.c.seen_at - seconds))
+
+
+def test_cuda_refused_without_a_live_cuda_worker(client, settings):
+    r = client.post("/jobs", json={**TINY, "backend": "cuda"})
+    assert r.status_code == 422
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["body", "backend"] and err["type"] == "backend_unavailable"
+    assert "backend = 'cuda'" in err["msg"] and "no live worker can run CUDA" in err["msg"]
+    client.store.register_worker("cpu-only", "host-a", 11, ["cpu"])      # a CPU worker does not help
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 422
+    for backend in ("auto", "cpu"):                                       # these run on any worker
+        assert client.post("/jobs", json={**TINY, "backend": backend}).status_code == 201
+    assert client.get("/jobs").json()["total"] == 2
+
+
+def test_cuda_accepted_while_a_cuda_worker_is_alive(client, settings):
+    client.store.register_worker("gpu-0", "host-b", 12, ["cpu", "cuda"])
+    r = client.post("/jobs", json={**TINY, "backend": "cuda"})
+    assert r.status_code == 201 and r.json()["spec"]["backend"] == "cuda"
+    _age_workers(client.store, 2 * settings.lease_s)                     # not seen for two leases: lost
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 422
+    client.store.worker_seen("gpu-0")
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 201
+    client.store.unregister_worker("gpu-0")
+    assert client.post("/jobs", json={**TINY, "backend": "cuda"}).status_code == 422
+
+
+def test_batch_with_cuda_refused_whole_naming_each_combination(client):
+    r = client.post("/batches", json={"base": TINY, "sweep": {"backend": ["cpu", "cuda"], "seed": [1, 2]}})
+    assert r.status_code == 422
+    locs = [e["loc"] for e in r.json()["detail"]]
+    assert locs == [["body", "sweep", "combination", 2, "backend"], ["body", "sweep", "combination", 3, "backend"]]
+    r = client.post("/batches", json={"specs": [TINY, {**TINY, "backend": "cuda"}]})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "specs", 1, "backend"]
+    assert client.get("/jobs").json()["total"] == 0
+    client.store.register_worker("gpu-0", "host-b", 12, ["cuda"])
+    assert client.post("/batches", json={"specs": [TINY, {**TINY, "backend": "cuda"}]}).status_code == 201

@@ -210,6 +210,12 @@ def test_submit_form_shows_errors_next_to_the_fields(client):
     assert client.get("/jobs").json()["total"] == 0
 
 
+def test_submit_form_refuses_cuda_without_a_live_cuda_worker(client):
+    r = client.post("/ui/submit", data={**FORM, "backend": "cuda"})
+    assert r.status_code == 422 and "no live worker can run CUDA" in _field_error(r.text, "backend")
+    assert client.get("/jobs").json()["total"] == 0
+
+
 def test_submit_form_applies_the_cost_limits(tmp_path):
     with TestClient(create_app(make_settings(tmp_path, max_particle_steps=1000))) as c:
         r = c.post("/ui/submit", data=FORM)

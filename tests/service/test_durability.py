@@ -203,6 +203,13 @@ def test_cli_local_submit_wait_writes_result(tmp_path):
     with h5py.File(tmp_path / "result.h5") as f:
         assert f["observables/temperature_translational/value"].shape[0] > 1
     assert (tmp_path / "demq-data" / "demq.sqlite3").exists()
+    # the ParaView sidecar beside the copy, naming it (not the file in the data directory)
+    assert 'result.h5:/particles/all/position/value' in (tmp_path / "result.xmf").read_text()
+    # stdout: the job id first; stderr is a pipe here: plain progress lines, the last one at 100 %
+    job_id = r.stdout.splitlines()[0]
+    assert len(job_id) == 32 and "wrote result.h5 and result.xmf" in r.stdout
+    progress = [line for line in r.stderr.splitlines() if line.startswith(f"job {job_id[:8]}:")]
+    assert "\r" not in r.stderr and progress and "100.0%" in progress[-1], r.stderr
     r = subprocess.run([sys.executable, "-m", "service.cli", "submit", "--local", "--wait", "--set", "e_n=3"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "e_n = 3" in r.stderr
