@@ -211,7 +211,7 @@ class SceneRun:
         self.records = RecordWriter(p, self.n, dissipative,
                                     float(resume["prev_energy"]) if resume is not None else None)
         self.snapshots = SnapshotWriter(p.n_steps, spec.snapshots)
-        self.progress_writer = ProgressWriter(progress, self.n, self.total_steps)
+        self.progress_writer = ProgressWriter(progress, self.n, self.total_steps, self.resumed_from)
         # collisions counted before a resume (the new backend's counter starts at 0)
         self.coll_base = int(resume["collisions"]) if resume is not None and "collisions" in resume else 0
         self.writer: Optional[H5MDWriter] = None

@@ -1,26 +1,28 @@
-"""The simulation process: one per claim — one job, or a pack of jobs run as one ensemble (issue 8) —
-started by the worker with the ``spawn`` context, either with its claim (:func:`child_main`) or ahead of it as
-a standby (:func:`standby_main`: started up while the worker waits or runs the previous claim, then handed
-its claim over a pipe; issue 14).
+"""The simulation process: one per claim — one job, a sequence of CPU jobs run one after another, or a pack of jobs
+run as one ensemble (jobs/packing.py) — started by the worker with the ``spawn`` context, either with its claim
+(:func:`child_main`) or ahead of it as a standby (:func:`standby_main`: started up while the worker waits or runs
+the previous claim, then handed its claim over a pipe; issue 14).
 
-It validates the specs, calls the engine with a progress callback and a cancel check per job (one job:
-``DEMQ_ENGINE_RUN``, engine.simulate.run; a pack: ``DEMQ_ENGINE_RUN_ENSEMBLE``,
-engine.ensemble.run_ensemble), and reports to the worker over a pipe; every message names the job by
-its index k in the claim::
+It validates the specs, calls the engine with a progress callback and a cancel check per job (one job, and each
+job of a sequence in turn, in this one warm process: ``DEMQ_ENGINE_RUN``, engine.simulate.run; a pack:
+``DEMQ_ENGINE_RUN_ENSEMBLE``, engine.ensemble.run_ensemble), and reports to the worker over a pipe; every
+message names the job by its index k in the claim::
 
-    ("progress", k, {phase, fraction, step, time, eta_s, cundall, wall_s})
+    ("started", k, None)                  a sequence's job k starts (the jobs before it have ended)
+    ("progress", k, {phase, fraction, step, time, eta_s, cundall, wall_s, resumed_from_step})
     ("done", k, {backend, device, wall_s, cundall, steps, resumed_from_step, ensemble_size})
     ("cancelled", k, reason)
     ("error", k, readable message)
     ("error", None, readable message)     the pack as a whole failed (no job is singled out)
 
-A pack's jobs report done / cancelled / error one by one, as their scenes end. Each job has its own
-cancel flag (a shared byte array), so one job stops without disturbing the others.
+A sequence's or a pack's jobs report done / cancelled / error one by one, as their runs end. Each job has its own
+cancel flag (a shared byte array), so one job stops without disturbing the others; a sequence's job whose flag is
+set before its turn is skipped (reported cancelled without starting).
 
-If the process dies instead (signal, out of memory), the worker reads its exit code. The process
-ignores SIGINT/SIGTERM (the worker decides when it stops: cancel event, then SIGKILL after a grace
-period) and dies with the worker: PR_SET_PDEATHSIG on Linux, and the cancel check also stops the run
-when the worker is gone.
+If the process dies instead (signal, out of memory, or the worker killing it after a cancel), the worker reads
+its exit code. The process ignores SIGINT/SIGTERM (the worker decides when it stops: cancel flag, then SIGKILL
+after DEMQ_CANCEL_KILL_SECONDS or DEMQ_CANCEL_GRACE_SECONDS) and dies with the worker: PR_SET_PDEATHSIG on Linux,
+and the cancel check also stops the run when the worker is gone.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ import sys
 import traceback
 from dataclasses import asdict
 from typing import Callable, Optional
+
+from jobs.packing import ENSEMBLE, ONE, SEQUENCE
 
 #: TEST HOOK: a job whose spec seed equals this variable's value kills its simulation process with
 #: SIGSEGV at the first progress report (the crash-isolation tests use it). Unset in production.
@@ -52,17 +56,22 @@ def _die_with_parent() -> None:
 
 
 def child_main(engine_target: str, spec_jsons: list, outputs: list, checkpoint_dirs: list,
-               checkpoint_interval: float, conn, cancel_flags, parent_pid: int, ensemble: bool = False) -> None:
-    """Entry point of the simulation process (a top-level function, so ``spawn`` can import it)."""
+               checkpoint_interval: float, conn, cancel_flags, parent_pid: int, mode: str = ONE) -> None:
+    """Entry point of the simulation process (a top-level function, so ``spawn`` can import it). ``mode``: ONE
+    (``engine_target`` runs spec_jsons[0]), SEQUENCE (it runs each spec in turn, in the given order) or ENSEMBLE
+    (``engine_target`` runs them all as one ensemble)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
     try:
-        if ensemble:
+        if mode == ENSEMBLE:
             _run_pack(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn,
                       cancel_flags, parent_pid)
+        elif mode == SEQUENCE:
+            _run_sequence(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn,
+                          cancel_flags, parent_pid)
         else:
-            conn.send(_run(engine_target, spec_jsons[0], outputs[0], checkpoint_dirs[0], checkpoint_interval,
+            conn.send(_run(engine_target, 0, spec_jsons[0], outputs[0], checkpoint_dirs[0], checkpoint_interval,
                            conn, cancel_flags, parent_pid))
     except BrokenPipeError:
         pass  # the worker is gone; nothing to report to
@@ -98,9 +107,9 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
     if claim is None:
         conn.close()
         return
-    engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, ensemble = claim
+    engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, mode = claim
     child_main(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
-               parent_pid, ensemble)
+               parent_pid, mode)
 
 
 def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):
@@ -149,20 +158,34 @@ def _parse(spec_json: str):
         return ("error", f"invalid spec: {exc}")
 
 
-def _run(engine_run, spec_json, output, checkpoint_dir, checkpoint_interval, conn, cancel_flags,
+def _run(engine_run, k, spec_json, output, checkpoint_dir, checkpoint_interval, conn, cancel_flags,
          parent_pid) -> tuple:
-    """One job through ``engine_run`` (engine.simulate.run's signature)."""
+    """Job k of the claim through ``engine_run`` (engine.simulate.run's signature); its final message."""
     spec = _parse(spec_json)
     if isinstance(spec, tuple):
-        return (spec[0], 0, spec[1])
-    progress, should_cancel = _hooks({0: spec}, conn, cancel_flags, parent_pid)
+        return (spec[0], k, spec[1])
+    progress, should_cancel = _hooks({k: spec}, conn, cancel_flags, parent_pid)
     try:
         run = load_callable(engine_run)
-        s = run(spec, output, progress=lambda p: progress(0, p), should_cancel=lambda: should_cancel(0),
+        s = run(spec, output, progress=lambda p: progress(k, p), should_cancel=lambda: should_cancel(k),
                 checkpoint_dir=checkpoint_dir, checkpoint_interval=checkpoint_interval)
     except Exception as exc:
-        return _final(0, exc)
-    return _final(0, s)
+        return _final(k, exc)
+    return _final(k, s)
+
+
+def _run_sequence(engine_run, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
+                  parent_pid) -> None:
+    """The jobs of a CPU claim one after another through ``engine_run``, in this one process (its imports and
+    compiled code serve every job); each job's final message is sent as soon as its run ends. A job whose cancel
+    flag is set before its turn is reported cancelled without starting."""
+    for k, spec_json in enumerate(spec_jsons):
+        if cancel_flags[k] or os.getppid() != parent_pid:
+            conn.send(("cancelled", k, "stopped before its run started"))
+            continue
+        conn.send(("started", k, None))
+        conn.send(_run(engine_run, k, spec_json, outputs[k], checkpoint_dirs[k], checkpoint_interval, conn,
+                       cancel_flags, parent_pid))
 
 
 def _run_pack(engine_run_ensemble, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,

@@ -26,8 +26,16 @@ DEMQ_POLL_SECONDS              ``1.0``                             Idle worker: 
                                                                    embedded worker of ``demq serve`` is also woken
                                                                    by every submit).
 DEMQ_PROGRESS_SECONDS          ``1.0``                             Least interval between progress writes to the row.
-DEMQ_CANCEL_GRACE_SECONDS      ``10``                              Time a simulation gets to stop on cancel/shutdown
-                                                                   before the worker kills its process.
+DEMQ_CANCEL_GRACE_SECONDS      ``10``                              Time a simulation gets to stop on shutdown (or on
+                                                                   cancel, while its process runs other jobs' scenes
+                                                                   too) before the worker kills its process.
+DEMQ_CANCEL_KILL_SECONDS       ``0.3``                             Time a cancelled job's simulation gets to stop at
+                                                                   its next stop when its process runs no other
+                                                                   job's scene; then the process is killed and the
+                                                                   job's partial result removed (the rest of a CPU
+                                                                   claim goes back to the queue).
+DEMQ_CANCEL_POLL_SECONDS       ``0.2``                             Interval of the worker's reads of cancel requests
+                                                                   of its running jobs.
 DEMQ_CHECKPOINT_INTERVAL       ``60``                              Wall seconds between engine checkpoints.
 DEMQ_ENGINE_RUN                ``engine.simulate:run``             ``module:function`` the simulation process calls
                                                                    (same signature as engine.simulate.run); tests and
@@ -36,12 +44,21 @@ DEMQ_ENGINE_RUN_ENSEMBLE       (auto)                              ``module:func
                                                                    signature as engine.ensemble.run_ensemble). Auto:
                                                                    ``engine.ensemble:run_ensemble`` with the default
                                                                    DEMQ_ENGINE_RUN, none (no packing) with another.
-DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued jobs a worker packs into one ensemble
-                                                                   run (same shape, precision and resolved backend);
-                                                                   1 disables packing.
+DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued jobs a worker claims at once (one
+                                                                   ensemble on the GPU, one sequence on the CPU:
+                                                                   jobs/packing.py); also capped at the worker's fair
+                                                                   share of the queue; 1 disables packing.
 DEMQ_ENSEMBLE_MAX_PARTICLES    ``4194304``                         Most particles of all jobs of one pack together (a
                                                                    memory bound: ~1.1 kB per float64 particle); a
                                                                    single larger job still runs, alone.
+DEMQ_ENSEMBLE_COST_RATIO       ``4``                               An ensemble holds jobs whose estimated particle-
+                                                                   steps (N x steps) are within this factor of the
+                                                                   first job's, so a small job does not wait for a
+                                                                   large one's scene (>= 1; a huge value: any mix).
+DEMQ_CPU_PACKS                 ``sequence``                        How a claim of several CPU jobs runs: ``sequence``
+                                                                   (one after another in one warm process, cheapest
+                                                                   first: each job ends when its own run does) or
+                                                                   ``ensemble`` (all scenes together, as on the GPU).
 DEMQ_HOST / DEMQ_PORT          ``127.0.0.1`` / ``8000``            Where ``demq serve`` listens.
 DEMQ_URL                       ``http://127.0.0.1:8000``           Service that ``demq submit/status/fetch`` talk to.
 DEMQ_WORKER_ID                 ``<hostname>:<pid>:<random>``       Lease owner name of a worker.
@@ -50,6 +67,10 @@ DEMQ_WORKER_STANDBY            ``auto``                            ``on``: a run
                                                                    imports, GPU context and kernels) while it waits
                                                                    or runs a claim; ``off``: each claim spawns its
                                                                    own; ``auto``: on where an NVIDIA driver is.
+DEMQ_WORKER_WARM               ``on``                              ``on``: with the default engine, a worker compiles
+                                                                   (or loads from numba's disk cache) every kernel
+                                                                   specialisation it can run before its first claim
+                                                                   (jobs/warm.py, also ``demq warm``); ``off``: not.
 =============================  ==================================  =================================================
 
 Test hook (not a setting): ``DEMQ_TEST_CRASH=<seed>`` makes the simulation process of a job whose
@@ -82,21 +103,28 @@ _ENV = {
     "poll_s": "DEMQ_POLL_SECONDS",
     "progress_s": "DEMQ_PROGRESS_SECONDS",
     "cancel_grace_s": "DEMQ_CANCEL_GRACE_SECONDS",
+    "cancel_kill_s": "DEMQ_CANCEL_KILL_SECONDS",
+    "cancel_poll_s": "DEMQ_CANCEL_POLL_SECONDS",
     "checkpoint_interval": "DEMQ_CHECKPOINT_INTERVAL",
     "engine_run": "DEMQ_ENGINE_RUN",
     "engine_run_ensemble": "DEMQ_ENGINE_RUN_ENSEMBLE",
     "ensemble_max_jobs": "DEMQ_ENSEMBLE_MAX_JOBS",
     "ensemble_max_particles": "DEMQ_ENSEMBLE_MAX_PARTICLES",
+    "ensemble_cost_ratio": "DEMQ_ENSEMBLE_COST_RATIO",
+    "cpu_packs": "DEMQ_CPU_PACKS",
     "host": "DEMQ_HOST",
     "port": "DEMQ_PORT",
     "url": "DEMQ_URL",
     "worker_id": "DEMQ_WORKER_ID",
     "standby": "DEMQ_WORKER_STANDBY",
+    "warm": "DEMQ_WORKER_WARM",
 }
 
 
 DEFAULT_ENGINE_RUN = "engine.simulate:run"
 STANDBY_VALUES = ("auto", "on", "off", "1", "0")
+SWITCH_VALUES = ("on", "off", "1", "0")
+CPU_PACK_VALUES = ("sequence", "ensemble")
 DEFAULT_ENGINE_RUN_ENSEMBLE = "engine.ensemble:run_ensemble"
 
 
@@ -122,16 +150,21 @@ class Settings:
     poll_s: float = 1.0
     progress_s: float = 1.0
     cancel_grace_s: float = 10.0
+    cancel_kill_s: float = 0.3
+    cancel_poll_s: float = 0.2
     checkpoint_interval: float = 60.0
     engine_run: str = DEFAULT_ENGINE_RUN
     engine_run_ensemble: str = ""
     ensemble_max_jobs: int = 256
     ensemble_max_particles: int = 4 * 2**20
+    ensemble_cost_ratio: float = 4.0
+    cpu_packs: str = "sequence"
     host: str = "127.0.0.1"
     port: int = 8000
     url: str = "http://127.0.0.1:8000"
     worker_id: str = ""
     standby: str = "auto"
+    warm: str = "on"
 
     @classmethod
     def from_env(cls, environ=None, **overrides) -> "Settings":
@@ -163,6 +196,17 @@ class Settings:
             raise ValueError(f"max_attempts = {s.max_attempts} must be >= 1")
         if s.standby not in STANDBY_VALUES:
             raise ValueError(f"DEMQ_WORKER_STANDBY = {s.standby!r} must be one of {', '.join(STANDBY_VALUES)}")
+        if s.warm not in SWITCH_VALUES:
+            raise ValueError(f"DEMQ_WORKER_WARM = {s.warm!r} must be one of {', '.join(SWITCH_VALUES)}")
+        if not s.ensemble_cost_ratio >= 1:
+            raise ValueError(f"DEMQ_ENSEMBLE_COST_RATIO = {s.ensemble_cost_ratio} must be >= 1")
+        if s.cpu_packs not in CPU_PACK_VALUES:
+            raise ValueError(f"DEMQ_CPU_PACKS = {s.cpu_packs!r} must be one of {', '.join(CPU_PACK_VALUES)}")
+        if not 0 < s.cancel_poll_s <= s.heartbeat_s:
+            raise ValueError(f"DEMQ_CANCEL_POLL_SECONDS = {s.cancel_poll_s} must be positive and at most the "
+                             f"heartbeat ({s.heartbeat_s} s)")
+        if s.cancel_kill_s < 0:
+            raise ValueError(f"DEMQ_CANCEL_KILL_SECONDS = {s.cancel_kill_s} must be >= 0")
         if s.ensemble_max_jobs < 1:
             raise ValueError(f"DEMQ_ENSEMBLE_MAX_JOBS = {s.ensemble_max_jobs} must be >= 1 (1 disables packing)")
         if s.ensemble_max_particles < 2:
@@ -178,6 +222,12 @@ class Settings:
 
             return nvidia_driver()
         return self.standby in ("on", "1")
+
+    @property
+    def warm_enabled(self) -> bool:
+        """Whether a worker warms every kernel specialisation before its first claim (jobs/warm.py): only for the
+        default engine (another engine, e.g. the tests' fake one, compiles nothing of the engine's)."""
+        return self.warm in ("on", "1") and self.engine_run == DEFAULT_ENGINE_RUN
 
     @property
     def packing(self) -> bool:

@@ -18,7 +18,7 @@ from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING, job_table, wor
 from jobs.store import Job, JobStore, LeaseLost, NewJob, WorkerInfo
 
 #: Columns a heartbeat may write as progress.
-PROGRESS_COLUMNS = ("progress", "phase", "step", "sim_time", "eta_s", "cundall")
+PROGRESS_COLUMNS = ("progress", "phase", "step", "sim_time", "eta_s", "cundall", "resumed_from_step")
 #: Columns a worker may set when it finishes a job.
 FINISH_COLUMNS = ("error", "result_path", "wall_s", "cundall", "backend", "device", "resumed_from_step",
                   "progress", "phase", "step", "sim_time", "eta_s")
@@ -180,6 +180,14 @@ class SqlJobStore(JobStore):
         values.update({k: v for k, v in (progress or {}).items() if k in PROGRESS_COLUMNS})
         return (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
                 .values(**values).returning(t.c.cancel_requested))
+
+    def cancel_requests(self, job_ids: Sequence[str]) -> set[str]:
+        t, ids, out = self.table, list(job_ids), set()
+        with self._read() as conn:
+            for start in range(0, len(ids), 500):  # bounded IN lists
+                part = ids[start:start + 500]
+                out.update(conn.execute(select(t.c.id).where(t.c.id.in_(part), t.c.cancel_requested)).scalars())
+        return out
 
     def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
         if state not in (DONE, FAILED, CANCELLED):

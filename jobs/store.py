@@ -173,6 +173,11 @@ class JobStore(ABC):
         return out
 
     @abstractmethod
+    def cancel_requests(self, job_ids: Sequence[str]) -> set[str]:
+        """Those of ``job_ids`` whose cancel was requested (one cheap read: the worker asks every
+        DEMQ_CANCEL_POLL_SECONDS for the jobs it runs)."""
+
+    @abstractmethod
     def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
         """End a leased job as done, failed or cancelled with the given columns; False if not leased."""
 

@@ -1,23 +1,37 @@
-"""The worker: claims a job — or a pack of compatible jobs — and runs it in its own simulation process.
+"""The worker: claims a job — or several — and runs the claim in its own simulation process.
+
+At its start a worker registers in the store's worker table (the backends it can run: "cpu", and "cuda" where a
+GPU is), and, with the default engine, warms every kernel specialisation it can be asked for (jobs/warm.py:
+compiled, or loaded from numba's disk cache, before the first claim); it refreshes its row at every poll and
+heartbeat and removes it when it stops.
 
 A claim (:meth:`Worker._next`) takes the next queued job and, with packing on (DEMQ_ENSEMBLE_MAX_JOBS > 1),
-the queued jobs that can share an ensemble with it (same shape, precision and resolved backend; at most
-DEMQ_ENSEMBLE_MAX_JOBS jobs and DEMQ_ENSEMBLE_MAX_PARTICLES particles; jobs/packing.py). One attempt
+queued jobs that can go with it (jobs/packing.py), up to DEMQ_ENSEMBLE_MAX_JOBS jobs and the worker's fair
+share of the queue: ceil(queued / live workers that run that backend), so that one worker does not take the
+whole queue while others are idle. Several CPU jobs run one after another in one warm process, the cheapest
+first (``sequence``); several GPU jobs of similar cost run as one ensemble (``ensemble``). One attempt
 (:meth:`Worker.execute_pack`; :meth:`Worker.execute` for one job)::
 
     spawn the simulation process (jobs/runner.py; a running worker hands the claim to the standby process it
                     started ahead, DEMQ_WORKER_STANDBY, and starts the next one)
-                    --pipe--> per job: progress, then done | error | cancelled
+                    --pipe--> per job: (started,) progress, then done | error | cancelled
     every heartbeat (or progress, rate-limited): renew every job's lease and write its progress (one
-                    transaction), read its cancel_requested
+                    transaction; a sequence's jobs that wait for their turn get phase "waiting" and the
+                    ETA of their own end), read its cancel_requested
+    every DEMQ_CANCEL_POLL_SECONDS: read the cancel requests of the claim's jobs
     cancel requested / worker stopping / lease lost -> set that job's cancel flag; its scene stops alone
+                    (a sequence's job that has not started ends at once: cancelled, or released)
     a job's final message -> that job ends at once: done (result written atomically by the engine) |
                     failed (readable reason) | cancelled | released back to the queue (worker shutdown;
-                    the attempt is not counted); the rest of the pack runs on
-    a stop not honoured within the grace period -> SIGKILL if no other job of the process is still
+                    the attempt is not counted); the rest of the claim runs on
+    a cancel not honoured within DEMQ_CANCEL_KILL_SECONDS while the process runs no other job's scene
+                    (one job, or a sequence) -> SIGKILL; the job ends cancelled, its partial result and
+                    checkpoints removed; the sequence's jobs that had not started go back to the queue
+    another stop not honoured within the grace period -> SIGKILL if no other job of the process is still
                     running, else the job ends without waiting for its scene
-    process exit    -> jobs still without an end: one job fails with the reason; several (a pack that
-                    died or failed as a whole) go back to the queue to run alone next time
+    process exit    -> jobs still without an end: one job fails with the reason (a sequence's running job:
+                    the one that was running; its jobs that had not started go back to the queue); several
+                    (a pack that died or failed as a whole) go back to the queue to run alone next time
 
 A crash of the simulation process fails that job only (a pack's jobs are retried alone, where the
 culprit fails by itself); the worker goes on with the next claim. If the worker itself dies, the leases
@@ -29,10 +43,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import multiprocessing
 import os
 import shutil
 import signal
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -41,7 +57,8 @@ from typing import Callable, Optional
 
 from sqlalchemy.exc import SQLAlchemyError
 
-from jobs.packing import SOLO, Packer
+from engine.h5md import partial_path
+from jobs.packing import ENSEMBLE, ONE, SEQUENCE, SOLO, Packer, fair_share, particle_steps, sequence_order
 from jobs.runner import child_main, standby_main
 from jobs.schema import CANCELLED, DONE, FAILED, FINAL_STATES, QUEUED, RUNNING
 from jobs.settings import DEFAULT_ENGINE_RUN, Settings
@@ -61,7 +78,7 @@ DEFAULT_WARM_SPEC = "{}"
 
 #: Progress keys (from engine Progress) -> job-table columns.
 _PROGRESS_COLUMNS = {"fraction": "progress", "phase": "phase", "step": "step", "time": "sim_time",
-                     "eta_s": "eta_s", "cundall": "cundall"}
+                     "eta_s": "eta_s", "cundall": "cundall", "resumed_from_step": "resumed_from_step"}
 
 
 def describe_exit(code: Optional[int]) -> str:
@@ -83,7 +100,9 @@ class Worker:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._last_reap = 0.0
-        self._packer = Packer(settings.ensemble_max_jobs, settings.ensemble_max_particles)
+        self._packer = Packer(settings.ensemble_max_jobs, settings.ensemble_max_particles,
+                              cpu_mode=settings.cpu_packs, cost_ratio=settings.ensemble_cost_ratio)
+        self._last_seen = 0.0
         self._standby: Optional[_SimProcess] = None   # the next claim's process, started up (run_forever)
         self._keep_standby = False
 
@@ -105,10 +124,13 @@ class Worker:
         """Claim and run jobs until :meth:`stop`; with ``exit_when_idle`` (drain mode, for Slurm job
         arrays), also return once the table holds no queued and no running job."""
         log.info("worker %s started on %s", self.owner, _safe_url(self.settings.database_url))
-        self._keep_standby = self.settings.standby_enabled
-        if self._keep_standby:
-            self._standby = self._spawn_standby(None)
+        backends = self._backends()
+        self._register(backends)
         try:
+            self._warm(backends)
+            self._keep_standby = self.settings.standby_enabled
+            if self._keep_standby and not self._stop.is_set():
+                self._standby = self._spawn_standby(None)
             while not self._stop.is_set():
                 jobs = self._next(None)
                 if not jobs:
@@ -124,7 +146,56 @@ class Worker:
             if self._standby is not None:
                 self._standby.close()
                 self._standby = None
+            self._unregister()
         log.info("worker %s stopped", self.owner)
+
+    # ---- the worker table and the warm-up --------------------------------------------------------
+    def _backends(self) -> tuple[str, ...]:
+        """What this worker can run: 'cpu', and 'cuda' where a CUDA GPU is present."""
+        try:
+            cuda = self._packer.resolve("auto", "sphere") == "cuda"
+        except Exception:  # noqa: BLE001  (numba-cuda unusable here: a CPU worker)
+            cuda = False
+        return ("cpu", "cuda") if cuda else ("cpu",)
+
+    def _register(self, backends: tuple[str, ...]) -> None:
+        try:
+            self.store.register_worker(self.owner, socket.gethostname(), os.getpid(), list(backends))
+            self._last_seen = time.monotonic()
+        except SQLAlchemyError as exc:  # the claims retry the database; the fair share counts this worker later
+            log.error("cannot register worker %s, going on: %s", self.owner, exc)
+
+    def _seen(self) -> None:
+        """Refresh this worker's row (at most every heartbeat/2: its liveness window is a lease)."""
+        now = time.monotonic()
+        if now - self._last_seen < 0.5 * self.settings.heartbeat_s:
+            return
+        try:
+            self.store.worker_seen(self.owner)
+            self._last_seen = now
+        except SQLAlchemyError as exc:
+            log.error("cannot refresh worker %s in the worker table: %s", self.owner, exc)
+
+    def _unregister(self) -> None:
+        try:
+            self.store.unregister_worker(self.owner)
+        except SQLAlchemyError as exc:  # its row ages out of live_workers after a lease
+            log.error("cannot unregister worker %s: %s", self.owner, exc)
+
+    def _warm(self, backends: tuple[str, ...]) -> None:
+        """Compile (or load from the disk cache) every kernel specialisation this worker can run, in a process of
+        its own, before the first claim (jobs/warm.py), so no job waits for the compiler. Default engine only."""
+        if not self.settings.warm_enabled:
+            return
+        from jobs.warm import warm_in_process
+
+        try:
+            report = warm_in_process(backends, stop=self._stop)
+        except Exception as exc:  # noqa: BLE001  (each job then compiles what it needs, as without the warm-up)
+            log.error("warm-up failed, jobs compile their own kernels: %s", exc)
+            return
+        if report is not None:
+            log.info("%s", report.line())
 
     def _drained(self) -> bool:
         """No job queued and none running anywhere (a running job's worker may still die and the
@@ -155,6 +226,7 @@ class Worker:
     def _next(self, job_id: Optional[str]) -> list[Job]:
         """The next claim: one job (``job_id``, or the next queued), plus the compatible queued jobs
         packed with it (jobs/packing.py) when packing is on; [] if none."""
+        self._seen()
         try:
             if time.monotonic() - self._last_reap >= self.settings.heartbeat_s:
                 requeued, failed = self.store.reap_expired()
@@ -170,50 +242,76 @@ class Worker:
         if job_id is not None or not self.settings.packing:
             return [first]
         try:
-            more = self._packer.select(first, self.store.peek_queued(PEEK_FACTOR * self.settings.ensemble_max_jobs))
+            share = min(self._share(first), self.settings.ensemble_max_jobs)
+            if share <= 1:
+                return [first]
+            more = self._packer.select(first, self.store.peek_queued(PEEK_FACTOR * share), max_jobs=share)
             return [first] + (self.store.claim_ids(self.owner, self.settings.lease_s, [j.id for j in more])
                               if more else [])
         except SQLAlchemyError as exc:  # the first job is ours: it runs alone
             log.error("cannot pack more jobs with %s, running it alone: %s", first.id, exc)
             return [first]
 
-    # ---- one attempt (one job, or a pack of jobs run as one ensemble) ------------------------------
+    def _share(self, first: Job) -> int:
+        """The most jobs this claim may hold: its fair share of the queue, ceil(queued / live workers that run
+        ``first``'s backend) with ``first`` counted as queued (jobs/packing.py fair_share), and this worker
+        counted live even if its row is missing."""
+        backend = self._packer.backend(first)
+        if backend is None:
+            return 1
+        queued = self.store.counts().get(QUEUED, 0) + 1
+        live = {w.worker_id for w in self.store.live_workers(self.settings.lease_s) if backend in w.backends}
+        return fair_share(queued, len(live | {self.owner}))
+
+    # ---- one attempt (one job, a sequence of CPU jobs, or a pack of jobs run as one ensemble) ------
     def execute(self, job: Job) -> str:
         """Run one claimed job to its end; return the state it was left in (or 'lost')."""
         return self.execute_pack([job])[job.id]
 
     def execute_pack(self, jobs: list[Job]) -> dict[str, str]:
-        """Run claimed jobs in one simulation process — alone (one job) or as one ensemble (several);
-        return {job id: the state it was left in, 'released', 'requeued' or 'lost'}."""
+        """Run claimed jobs in one simulation process — alone (one job), one after another, cheapest first (a CPU
+        sequence) or as one ensemble (jobs/packing.py); return {job id: the state it was left in, 'released',
+        'requeued' or 'lost'}."""
         s = self.settings
+        mode = self._packer.mode(jobs)
+        if mode == SEQUENCE:
+            jobs = sequence_order(jobs)
         slots = [_Slot(job, s.result_path(job.id), s.checkpoint_dir(job.id)) for job in jobs]
         for slot in slots:
             slot.output.parent.mkdir(parents=True, exist_ok=True)
             slot.checkpoints.mkdir(parents=True, exist_ok=True)
             log.info("job %s: attempt %d of %d", slot.job.id, slot.job.attempts, slot.job.max_attempts)
-        ensemble = len(slots) > 1
-        if ensemble:
+        if mode == ENSEMBLE:
             log.info("packing %d jobs into one ensemble run: %s", len(slots), " ".join(j.id for j in jobs))
+        elif mode == SEQUENCE:
+            log.info("running %d jobs one after another, cheapest first: %s", len(slots),
+                     " ".join(j.id for j in jobs))
+        for slot in slots:
+            if mode == SEQUENCE:   # each starts in its turn ("started" message); until then it waits
+                slot.cost = particle_steps(slot.job)
+                slot.pending = slot.latest = {"phase": "waiting"}
+            else:
+                slot.started = True
 
-        claim = (s.engine_run_ensemble if ensemble else s.engine_run, [_spec_json(j) for j in jobs],
+        claim = (s.engine_run_ensemble if mode == ENSEMBLE else s.engine_run, [_spec_json(j) for j in jobs],
                  [str(x.output) for x in slots], [str(x.checkpoints) for x in slots], s.checkpoint_interval,
-                 ensemble)
+                 mode)
         sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
         if sim is None:
             ctx = multiprocessing.get_context("spawn")
             receiver, sender = ctx.Pipe(duplex=False)
             flags = ctx.RawArray("b", len(slots))  # per-job cancel flags, read by the simulation's cancel checks
             proc = ctx.Process(target=child_main, name=f"demq-job-{jobs[0].id}",
-                               args=claim[:5] + (sender, flags, os.getpid(), ensemble))
+                               args=claim[:5] + (sender, flags, os.getpid(), mode))
             proc.start()
             sender.close()
             sim = _SimProcess(proc, receiver, flags)
         if self._keep_standby:    # the next claim's process starts up while this one runs
             self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
-        pack_error = self._supervise(slots, sim.proc, sim.receiver, sim.flags)
+        pack_error = self._supervise(slots, sim.proc, sim.receiver, sim.flags, mode)
         sim.receiver.close()
         sim.proc.join()
-        self._conclude_rest(slots, sim.proc.exitcode, pack_error)
+        self._conclude_rest(slots, sim.proc.exitcode, pack_error, mode)
         return {slot.job.id: slot.outcome for slot in slots}
 
     # ---- the standby simulation process (issue 14: time to result) ----------------------------------
@@ -258,14 +356,18 @@ class Worker:
         log.info("job %s: handed to the standby simulation process (pid %s)", job_id, sim.proc.pid)
         return sim
 
-    def _supervise(self, slots: list["_Slot"], proc, receiver, flags) -> Optional[str]:
+    def _supervise(self, slots: list["_Slot"], proc, receiver, flags, mode: str = ONE) -> Optional[str]:
         """Relay progress and heartbeats (per job) until the process ends, concluding each job as its
         final message arrives; return the pack-level error message, if any."""
         s = self.settings
+        sequence = mode == SEQUENCE
         pack_error = None
-        last_beat = last_write = time.monotonic()
+        last_beat = last_write = last_poll = time.monotonic()
+        killed = False
         while True:
-            if receiver.poll(0.2):
+            now = time.monotonic()
+            kill_at = min((x.kill_at for x in slots if x.outcome is None and x.kill_at is not None), default=now + 1.0)
+            if receiver.poll(max(0.01, min(0.2, last_poll + s.cancel_poll_s - now, kill_at - now))):
                 try:
                     kind, k, payload = receiver.recv()
                 except EOFError:
@@ -274,9 +376,15 @@ class Worker:
                     pack_error = payload
                     continue
                 slot = slots[k]
-                if kind == "progress":
+                if kind == "started":
+                    slot.started = True
+                    if slot.outcome is None:
+                        slot.latest, slot.pending = {}, {"phase": "starting", "eta_s": None}
+                elif kind == "progress":
                     if slot.outcome is None:
                         slot.pending = slot.latest = payload
+                        if sequence:
+                            _estimate_waiting(slots, k, payload)
                         if self.on_progress is not None:
                             self.on_progress(slot.job, payload)
                 else:
@@ -295,7 +403,7 @@ class Worker:
                 try:
                     answers = self.store.heartbeat_many([x.job.id for x in beating], self.owner, s.lease_s,
                                                         {x.job.id: _columns(x.pending) for x in beating})
-                    last_beat = now
+                    last_beat = last_poll = now
                     if pending:
                         last_write = now
                     for x in beating:
@@ -305,8 +413,18 @@ class Worker:
                             x.stop_reason = "lease lost"
                         elif answers[x.job.id] and x.stop_reason is None:
                             x.stop_reason = "cancel"
+                    self._seen()
                 except SQLAlchemyError as exc:
                     log.error("heartbeat of %s failed, retrying: %s", " ".join(x.job.id for x in beating), exc)
+            elif now - last_poll >= s.cancel_poll_s:   # between heartbeats: only the cancel requests, cheaply
+                asking = [x.job.id for x in beating if x.stop_reason is None]
+                last_poll = now
+                if asking:
+                    try:
+                        for x in (x for x in beating if x.job.id in self.store.cancel_requests(asking)):
+                            x.stop_reason = "cancel"
+                    except SQLAlchemyError as exc:
+                        log.error("reading the cancel requests failed, retrying: %s", exc)
             for k, x in enumerate(slots):
                 if x.outcome is not None:
                     continue
@@ -315,14 +433,24 @@ class Worker:
                 if x.stop_reason is not None and x.kill_at is None:
                     log.info("job %s: stopping the simulation (%s)", x.job.id, x.stop_reason)
                     flags[k] = 1
-                    x.kill_at = now + s.cancel_grace_s
-            waiting = [x for x in slots if x.outcome is None]
+                    if sequence and not x.started:
+                        # not begun: the process skips it (a run that began meanwhile stops at its first check;
+                        # whatever it left is removed when the process ends)
+                        x.abandoned = True
+                        self._conclude(x)
+                        continue
+                    alone = all(y is x or y.outcome is not None or (sequence and not y.started) for y in slots)
+                    quick = x.stop_reason == "cancel" and alone
+                    x.stop_within = s.cancel_kill_s if quick else s.cancel_grace_s
+                    x.kill_at = now + x.stop_within
+            waiting = [x for x in slots if x.outcome is None and (x.started or not sequence)]
             overdue = [x for x in waiting if x.kill_at is not None and now > x.kill_at]
-            if overdue and proc.is_alive():
+            if overdue and proc.is_alive() and not killed:
                 if len(overdue) == len(waiting):
                     log.warning("job(s) %s: simulation did not stop within %.3g s; killing it",
-                                " ".join(x.job.id for x in overdue), s.cancel_grace_s)
+                                " ".join(x.job.id for x in overdue), min(x.stop_within for x in overdue))
                     proc.kill()
+                    killed = True
                 else:  # the rest of the pack runs on: stop waiting for these jobs' scenes
                     for x in overdue:
                         log.warning("job %s: its scene did not stop within %.3g s; the pack runs on, the job "
@@ -371,14 +499,17 @@ class Worker:
         slot.outcome = state
         return state
 
-    def _conclude_rest(self, slots: list["_Slot"], exitcode, pack_error: Optional[str]) -> None:
-        """After the process has ended: conclude the jobs that have no outcome yet.
+    def _conclude_rest(self, slots: list["_Slot"], exitcode, pack_error: Optional[str], mode: str = ONE) -> None:
+        """After the process has ended: conclude the jobs that have no outcome yet, and remove what the
+        process left of jobs that did not end done (a partial result file of a killed run, a late result).
 
-        Jobs explained by their own message or stop reason end as those say. If the process died (or
-        the pack failed as a whole) while several jobs were still running, nothing tells which one
-        caused it: each goes back to the queue, not counting the attempt, with the note that it runs
-        alone next time (jobs/packing.py), where the culprit fails by itself. A single job ends failed
-        with the reason, as it always has.
+        Jobs explained by their own message or stop reason end as those say. A sequence's jobs that had not
+        started go back to the queue (not counting the attempt); the one that was running is the one the
+        process died in: it fails with the reason. If a pack's process died (or the pack failed as a whole)
+        while several jobs were still running, nothing tells which one caused it: each goes back to the
+        queue, not counting the attempt, with the note that it runs alone next time (jobs/packing.py), where
+        the culprit fails by itself. A single job ends failed with the reason, as it always has, and so does
+        the first job of a sequence whose process died before any run began (no claim loops forever).
         """
         for x in slots:
             if x.outcome is None:
@@ -387,12 +518,21 @@ class Worker:
                 shutil.rmtree(x.checkpoints, ignore_errors=True)
                 if x.output.exists():  # its scene finished after all: the job stays cancelled, no result
                     x.output.unlink()
+        if mode == SEQUENCE:
+            first = next((x for x in slots if x.outcome is None), None)
+            if first is not None and not any(x.started for x in slots):
+                first.started = True    # it died before its first run began: that job bears the blame
+            for x in slots:
+                if x.outcome is None and not x.started:
+                    self.store.release(x.job.id, self.owner)
+                    log.info("job %s: back to the queue (its claim's process ended before its turn)", x.job.id)
+                    x.outcome = "requeued"
         left = [x for x in slots if x.outcome is None]
-        if len(left) == 1:
-            x = left[0]
-            if pack_error is not None:
-                x.final = ("error", pack_error)
-            self._conclude(x, exitcode=exitcode)
+        if len(left) == 1 or (left and mode == SEQUENCE):
+            for x in left:
+                if pack_error is not None:
+                    x.final = ("error", pack_error)
+                self._conclude(x, exitcode=exitcode)
         elif left:
             reason = pack_error or describe_exit(exitcode)
             for x in left:
@@ -400,6 +540,9 @@ class Worker:
                                                                f"as a whole ({reason})")
                 log.warning("job %s: its pack failed as a whole (%s); requeued to run alone", x.job.id, reason)
                 x.outcome = "requeued"
+        for x in slots:
+            if x.outcome in (CANCELLED, FAILED, "released", "requeued"):
+                partial_path(x.output).unlink(missing_ok=True)   # a killed run's partial result
 
 
 @dataclass
@@ -441,6 +584,21 @@ class _Slot:
     latest: dict = field(default_factory=dict)
     outcome: Optional[str] = None        # what the job was left in, once concluded
     abandoned: bool = False              # concluded while its scene was still running (deaf to a stop)
+    started: bool = False                # its run has begun (a sequence's jobs start one after another)
+    cost: float = 0.0                    # estimated particle-steps (a sequence's ETAs)
+    stop_within: float = 0.0             # seconds its run was given to stop once asked
+
+
+def _estimate_waiting(slots: list[_Slot], k: int, progress: dict) -> None:
+    """A sequence's jobs after job k that wait for their turn: phase "waiting" and the ETA of their own end, from
+    the running job's ETA and Cundall number (particle-steps per second) and each job's estimated particle-steps."""
+    rate, eta = progress.get("cundall") or 0.0, progress.get("eta_s")
+    if not rate > 0 or eta is None or not math.isfinite(eta):
+        return
+    for x in slots[k + 1:]:
+        if x.outcome is None and not x.started:
+            eta += x.cost / rate
+            x.pending = x.latest = {"phase": "waiting", "fraction": 0.0, "eta_s": eta}
 
 
 def _columns(progress: Optional[dict]) -> dict:

@@ -93,6 +93,16 @@ def cmd_worker(args) -> int:
     return 0
 
 
+def cmd_warm(args) -> int:
+    """Compile (or load from numba's disk cache) every kernel specialisation this host can run (jobs/warm.py)."""
+    from jobs.warm import local_backends, warm
+
+    _logging()
+    report = warm(args.backend or local_backends(), args.shape or None, args.precision or None)
+    print(report.line())
+    return 1 if report.failed else 0
+
+
 # ---- client commands ----------------------------------------------------------------------------------
 def _job_progress(job_id: str, n_particles):
     """The job's progress on stderr: a tqdm bar on a terminal, plain lines elsewhere (engine/progress.py)."""
@@ -295,6 +305,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exit-when-idle", action="store_true",
                    help="drain mode: exit (status 0) once no job is queued or running (Slurm job arrays)")
     p.set_defaults(func=cmd_worker)
+
+    p = sub.add_parser("warm", help="compile every kernel specialisation into the disk cache before the first job")
+    p.add_argument("--backend", action="append", choices=["cpu", "cuda"],
+                   help="only this backend (repeatable; default: this host's: cpu, and cuda where a GPU is)")
+    p.add_argument("--shape", action="append", help="only this shape (repeatable; default: all)")
+    p.add_argument("--precision", action="append", choices=["float64", "float32", "mixed"],
+                   help="only this precision (repeatable; default: all)")
+    p.set_defaults(func=cmd_warm)
 
     p = sub.add_parser("submit", help="queue a spec (default spec if none given)")
     p.add_argument("spec", nargs="?", help="spec JSON file ('-' = stdin); omitted = the default spec")

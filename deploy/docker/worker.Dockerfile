@@ -24,6 +24,7 @@ ENV DEBIAN_FRONTEND=noninteractive \
     PATH=/opt/demq/bin:$PATH \
     NVIDIA_VISIBLE_DEVICES=all \
     NVIDIA_DRIVER_CAPABILITIES=compute,utility \
+    NUMBA_CACHE_DIR=/opt/demq-kernels \
     DEMQ_DATA_DIR=/data
 
 # Ubuntu 24.04: Python 3.12. A virtual environment, because the system Python is externally managed.
@@ -41,10 +42,14 @@ COPY service /src/service
 COPY bench /src/bench
 RUN pip install --constraint /src/deploy/docker/constraints.txt "numba-cuda[${NUMBA_CUDA_EXTRA}]" /src \
  && useradd --system --create-home --home-dir /home/demq demq \
- && mkdir -p /data \
- && chown demq:demq /data
+ && mkdir -p /data /opt/demq-kernels \
+ && chown demq:demq /data /opt/demq-kernels
 
 USER demq
+# Every kernel specialisation compiled into the image's kernel cache (NUMBA_CACHE_DIR), so a fresh container's
+# first job loads instead of compiling. The build has no GPU: the CPU kernels; a worker on a GPU host compiles its
+# CUDA kernels once at start-up, before its first claim (DEMQ_WORKER_WARM), into the same cache.
+RUN demq warm --backend cpu
 WORKDIR /data
 VOLUME ["/data"]
 # SIGTERM: the worker stops claiming, asks its simulation to stop (the last checkpoint is kept),

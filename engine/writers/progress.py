@@ -18,14 +18,17 @@ class Progress:
     eta_s: float          # estimated wall seconds left
     cundall: float        # particle-steps per wall second so far (time loop only)
     wall_s: float         # wall seconds since the time loop started
+    resumed_from_step: Optional[int] = None   # cooling-run step this attempt resumed from (None: a fresh start)
 
 
 class ProgressWriter:
     """Calls ``callback(Progress)`` (None: nothing) with the fraction done, the Cundall number of the time loop so
     far (particle-steps per wall second) and the wall seconds left at that rate."""
 
-    def __init__(self, callback: Optional[Callable[[Progress], None]], n: int, total_steps: int):
+    def __init__(self, callback: Optional[Callable[[Progress], None]], n: int, total_steps: int,
+                 resumed_from_step: Optional[int] = None):
         self.callback, self.n, self.total_steps = callback, n, total_steps
+        self.resumed_from_step = resumed_from_step
 
     def write(self, phase: str, done_total: int, t_sim: float, step: int, steps_run: int, wall_s: float) -> None:
         """Report ``done_total`` of the run's steps done (``steps_run`` of them in ``wall_s`` loop seconds)."""
@@ -36,4 +39,4 @@ class ProgressWriter:
         cund = self.n * steps_run / wall_s if wall_s > 0 else 0.0
         eta = (total - done_total) * self.n / cund if cund > 0 else math.inf
         self.callback(Progress(phase=phase, fraction=min(1.0, frac), step=step, time=t_sim, eta_s=eta,
-                               cundall=cund, wall_s=wall_s))
+                               cundall=cund, wall_s=wall_s, resumed_from_step=self.resumed_from_step))

@@ -23,10 +23,11 @@ from tests.jobs.conftest import postgres_url
 SPEC = {"n_particles": 64, "volume_fraction": 0.05, "box_length": 0.5, "t_end": 0.6,
         "thermalization": 0, "snapshots": 1, "backend": "cpu"}
 #: Queue settings for the process tests: short leases so a SIGKILLed worker's job is reaped in
-#: seconds, frequent checkpoints, one Numba thread per simulation (3 workers on 2 cores).
+#: seconds, frequent checkpoints, one Numba thread per simulation (3 workers on 2 cores), and no warm-up of every
+#: kernel specialisation at a worker's start (warm_jit loads the one these tests' jobs use).
 FAST_ENV = {"DEMQ_LEASE_SECONDS": "5", "DEMQ_HEARTBEAT_SECONDS": "0.5", "DEMQ_POLL_SECONDS": "0.1",
             "DEMQ_PROGRESS_SECONDS": "0.2", "DEMQ_CHECKPOINT_INTERVAL": "0.3",
-            "DEMQ_CANCEL_GRACE_SECONDS": "20", "NUMBA_NUM_THREADS": "1"}
+            "DEMQ_CANCEL_GRACE_SECONDS": "20", "NUMBA_NUM_THREADS": "1", "DEMQ_WORKER_WARM": "off"}
 
 
 def wait_for(cond, what: str, procs=None):

@@ -37,9 +37,10 @@ def postgres_url() -> str:
 
 
 def make_settings(tmp_path: Path, **overrides) -> Settings:
-    """Fast settings for tests: fake engine, short heartbeats and leases."""
+    """Fast settings for tests: fake engine, short heartbeats and leases, no warm-up of every kernel
+    specialisation before the first claim (a test with the real engine compiles only what its jobs need)."""
     values = dict(data_dir=tmp_path / "data", engine_run=TARGET, heartbeat_s=0.3, lease_s=3.0, poll_s=0.05,
-                  progress_s=0.1, cancel_grace_s=5.0, checkpoint_interval=0.2, max_attempts=3)
+                  progress_s=0.1, cancel_grace_s=5.0, checkpoint_interval=0.2, max_attempts=3, warm="off")
     values.update(overrides)
     return Settings.from_env(environ={}, **values)
 

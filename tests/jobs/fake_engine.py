@@ -4,7 +4,8 @@ It takes wall time instead of computing physics, so tests can exercise the queue
 engine is elsewhere (or too slow for a test): ``N_STEPS`` steps, each sleeping ``spec.t_end / N_STEPS``
 wall seconds, a progress report and a cancel check per step, a checkpoint (JSON) whenever
 ``checkpoint_interval`` has passed, resumption from that checkpoint, and an HDF5 result with the
-observables layout written to a temporary name and renamed. ``seed == FAIL_SEED`` raises an
+observables layout written to a temporary name (``<output>.part``, there from the start of the run, as the
+engine's writer does; removed when the run is cancelled or fails) and renamed. ``seed == FAIL_SEED`` raises an
 InstabilityError half-way. Selected with ``DEMQ_ENGINE_RUN=tests.jobs.fake_engine:run``; its ensemble
 counterpart :func:`run_ensemble` with ``DEMQ_ENGINE_RUN_ENSEMBLE=tests.jobs.fake_engine:run_ensemble``.
 """
@@ -64,10 +65,14 @@ def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
         if saved["spec"] == spec.to_json():
             start = saved["step"]
     t0 = last_ckpt = time.monotonic()
+    partial = Path(str(output) + ".part")   # like the engine's result writer: the file grows under this name
+    partial.write_bytes(b"")
     for k in range(start, N_STEPS):
         if should_cancel is not None and should_cancel():
+            partial.unlink(missing_ok=True)
             raise Cancelled(f"cancelled at step {k}")
         if spec.seed == FAIL_SEED and k == N_STEPS // 2:
+            partial.unlink(missing_ok=True)
             raise InstabilityError(f"overlap of particle 7 exceeds the limit at step {k}: dt too large?", k, 7)
         time.sleep(spec.t_end / N_STEPS)
         if ckpt is not None and time.monotonic() - last_ckpt >= checkpoint_interval:
@@ -75,8 +80,9 @@ def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
             last_ckpt = time.monotonic()
         wall = time.monotonic() - t0
         if progress is not None:
-            progress(Progress(phase="cooling", fraction=(k + 1) / N_STEPS, step=k + 1, time=spec.t_end * (k + 1) / N_STEPS,
-                              eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, wall_s=wall))
+            progress(Progress(phase="cooling", fraction=(k + 1) / N_STEPS, step=k + 1,
+                              time=spec.t_end * (k + 1) / N_STEPS, eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, wall_s=wall,
+                              resumed_from_step=start or None))
     write_result(output, spec)
     wall = max(time.monotonic() - t0, 1e-9)
     return RunSummary(output=Path(output), backend="fake", device="test double", n_particles=spec.n_particles,
@@ -136,7 +142,7 @@ def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=N
                 progress(k, Progress(phase="cooling", fraction=step[k] / N_STEPS, step=step[k],
                                      time=specs[k].t_end * step[k] / N_STEPS,
                                      eta_s=wall / (step[k] - start[k]) * (N_STEPS - step[k]), cundall=1.0e6,
-                                     wall_s=wall))
+                                     wall_s=wall, resumed_from_step=start[k] or None))
         if ck_due:
             last_ckpt = time.monotonic()
         for k in sorted(active):

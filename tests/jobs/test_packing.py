@@ -1,7 +1,9 @@
 """The worker packs compatible queued jobs into one ensemble run and keeps every per-job guarantee.
 
 Most cases use the fake ensemble engine (tests/jobs/fake_engine.py: run_ensemble) in a real spawned
-simulation process; the last ones run the real engine on tiny CPU scenes.
+simulation process; the last ones run the real engine on tiny CPU scenes. A claim of several jobs runs as one
+ensemble on the GPU; on the CPU it runs as a sequence by default (tests/jobs/test_claims.py), so these cases,
+which pin the ensemble mode on this CPU-only host, set DEMQ_CPU_PACKS=ensemble.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ def _jobs_activity(store, jobs):
 
 @pytest.fixture
 def packing(tmp_path):
-    settings = make_settings(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET)
+    settings = make_settings(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET, cpu_packs="ensemble")
     store = open_store(settings.database_url)
     yield store, Worker(store, settings), settings
     store.close()
@@ -140,17 +142,26 @@ def test_pack_selection_rules(packing):
                     {"backend": "cuda"}, {"seed": 2, "volume_fraction": 0.02},
                     {"shape": "ellipsoid", "elongation": 1.5, "e_t": -1.0}, {"seed": 3}, {"seed": 4})
     first, rest = jobs[0], jobs[1:]
-    packer = Packer(max_jobs=256, max_particles=10**6, resolve=lambda name, shape: "cuda" if name == "cuda" else "cpu")
+    packer = Packer(max_jobs=256, max_particles=10**6, resolve=lambda name, shape: "cuda" if name == "cuda" else "cpu",
+                    cpu_mode="ensemble")
     picked = [j.id for j in packer.select(first, rest)]
     assert picked == [jobs[1].id, jobs[4].id, jobs[6].id, jobs[7].id]  # any N, e_n, phi, seed; same shape,
     #                                                                    precision, resolved backend
-    assert [j.id for j in Packer(3, 10**6, packer._resolve).select(first, rest)] == [jobs[1].id, jobs[4].id]
+    assert [j.id for j in Packer(3, 10**6, packer._resolve, "ensemble").select(first, rest)] == [jobs[1].id,
+                                                                                                 jobs[4].id]
+    assert [j.id for j in packer.select(first, rest, max_jobs=3)] == [jobs[1].id, jobs[4].id]  # a fair share
     # particles: 64 + 100 > 150, so job 1 is skipped and job 4 taken (128); then 192 > 150
-    assert [j.id for j in Packer(256, 150, packer._resolve).select(first, rest)] == [jobs[4].id]
-    assert Packer(1, 10**6, packer._resolve).select(first, rest) == []
+    assert [j.id for j in Packer(256, 150, packer._resolve, "ensemble").select(first, rest)] == [jobs[4].id]
+    assert Packer(1, 10**6, packer._resolve, "ensemble").select(first, rest) == []
     solo = dataclasses.replace(jobs[6], error=SOLO + "its pack died")
-    assert is_solo(solo) and Packer(256, 10**6, packer._resolve).select(solo, rest) == []
+    assert is_solo(solo) and Packer(256, 10**6, packer._resolve, "ensemble").select(solo, rest) == []
     assert solo.id not in [j.id for j in packer.select(first, [solo])]
+    # an ensemble pack groups jobs within a factor 4 of the first one's particle-steps (N x steps): a small job does
+    # not wait for a large one's scene, nor a large one hold a pack of small ones
+    costly = dataclasses.replace(jobs[6], spec={**jobs[6].spec, "t_end": 5 * jobs[6].spec["t_end"]})
+    cheap = dataclasses.replace(jobs[7], spec={**jobs[7].spec, "t_end": jobs[7].spec["t_end"] / 5})
+    near = dataclasses.replace(jobs[7], id="near", spec={**jobs[7].spec, "t_end": 3 * jobs[7].spec["t_end"]})
+    assert [j.id for j in packer.select(first, [costly, cheap, near])] == [near.id]
     # a job that asks for a CPU-built Verlet list (paper 004 modes serve one scene) is never packed
     cpu_list = dataclasses.replace(jobs[6], spec={**jobs[6].spec, "list_mode": "cpu-pipelined"})
     assert packer.key(cpu_list) is None and cpu_list.id not in [j.id for j in packer.select(first, [cpu_list])]
@@ -159,8 +170,9 @@ def test_pack_selection_rules(packing):
 
 def test_compatible_jobs_run_as_one_pack_each_with_its_own_result(packing, caplog):
     store, worker, settings = packing
-    a, b, c, other = _enqueue(store, {"t_end": 0.4}, {"seed": 1, "e_n": 0.6}, {"seed": 2, "n_particles": 80},
-                              {"precision": "float32"})
+    # costs (particle-steps) within a factor 4 of a's: b has half, c 5/8 of a's (a pack groups similar costs)
+    a, b, c, other = _enqueue(store, {"t_end": 0.4}, {"seed": 1, "e_n": 0.6, "t_end": 0.2},
+                              {"seed": 2, "n_particles": 80, "t_end": 0.2}, {"precision": "float32", "t_end": 0.4})
     seen: dict = {}
     worker.on_progress = lambda job, p: seen.setdefault(job.id, []).append(p["fraction"])
     claim = worker._next(None)
@@ -248,7 +260,7 @@ def test_lost_lease_of_one_job_stops_only_its_scene(packing):
 
 
 def test_two_packing_workers_run_every_job_once(tmp_path, caplog):
-    settings = make_settings(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET, ensemble_max_jobs=4)
+    settings = make_settings(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET, ensemble_max_jobs=4, cpu_packs="ensemble")
     store = open_store(settings.database_url)
     jobs = _enqueue(store, *[{"t_end": 0.2, "seed": 100 + i} for i in range(24)])
     workers = [Worker(open_store(settings.database_url), settings) for _ in range(2)]
@@ -266,7 +278,7 @@ def test_two_packing_workers_run_every_job_once(tmp_path, caplog):
 
 def test_scene_deaf_to_cancel_ends_its_job_without_killing_the_pack(tmp_path):
     settings = make_settings(tmp_path, engine_run_ensemble="tests.jobs.test_packing:deaf_ensemble",
-                             cancel_grace_s=0.5)
+                             cancel_grace_s=0.5, cpu_packs="ensemble")
     store = open_store(settings.database_url)
     worker = Worker(store, settings)
     a, b = _enqueue(store, {"t_end": 4.0}, {"t_end": 4.0, "seed": 1})
@@ -296,7 +308,9 @@ UNSTABLE = {"velocity_rms": 1.2, "stiffness": 1e6, "overlap_limit": 0.02, "therm
 
 
 def test_real_engine_pack_done_cancelled_and_failed_jobs(tmp_path):
-    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble=REAL_ENSEMBLE)
+    # one pack of jobs of very different costs (the job to cancel runs longest): no cost bound
+    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble=REAL_ENSEMBLE, cpu_packs="ensemble",
+                             ensemble_cost_ratio=1e9)
     assert settings.packing
     store = open_store(settings.database_url)
     worker = Worker(store, settings)
@@ -334,7 +348,7 @@ def test_sigkilled_packing_worker_every_job_resumes_from_its_checkpoint(tmp_path
     settings = make_settings(tmp_path, lease_s=2.0, heartbeat_s=0.3)
     store = open_store(settings.database_url)
     jobs = _enqueue(store, {"t_end": 1.0, "seed": 1}, {"t_end": 0.8, "seed": 2, "e_n": 0.6})
-    env = {"DEMQ_ENGINE_RUN_ENSEMBLE": REAL_ENSEMBLE}
+    env = {"DEMQ_ENGINE_RUN_ENSEMBLE": REAL_ENSEMBLE, "DEMQ_CPU_PACKS": "ensemble", "DEMQ_WORKER_WARM": "off"}
     first = start_worker(settings, REAL, **env)
     try:
         _wait(lambda: all(_checkpointed_past_start(settings.checkpoint_dir(j.id)) for j in jobs),

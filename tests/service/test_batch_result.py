@@ -156,7 +156,9 @@ SWEEP_BASE = {**TINY, "volume_fraction": 0.1, "t_end": 0.1, "output_interval": 0
 
 
 def test_sweep_over_http_runs_as_one_ensemble_with_batch_statistics(tmp_path):
-    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble="engine.ensemble:run_ensemble")
+    # the CPU runs a claim as a sequence by default (jobs/packing.py): this case pins the ensemble mode
+    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble="engine.ensemble:run_ensemble",
+                             cpu_packs="ensemble")
     with TestClient(create_app(settings, embedded_worker=True)) as c:
         r = c.post("/batches", json={"base": SWEEP_BASE, "sweep": {"e_n": [0.7, 0.9], "seed": [0, 1, 2, 3]}})
         assert r.status_code == 201

@@ -1,0 +1,207 @@
+"""Warm-up: compile (or load from numba's disk cache) every kernel specialisation a worker can be asked for, before
+its first job, so that no job waits for the compiler ("only what the scene needs": the first GPU job on a fresh
+host spent 16.9 s of its 21 s compiling).
+
+The engine compiles per *specialisation*: backend ('cpu', 'cuda') x shape (engine/shapes/) x precision (float64,
+float32, mixed) x contact law (rough, smooth, rough with Coulomb friction; thermalisation and cooling contacts) x
+sizes (one size, or species: the multigrid lists). Everything else in a spec (N, phi, e_n, dt, seeds, ...) is a
+run-time value of the same compiled code. :func:`specialisations` lists the combinations the engine accepts (a
+shape refuses some: spheroids run neither species nor mixed precision); :func:`warm` runs a tiny scene of each
+through the same entry point a job uses (engine.simulate.run, plus a two-scene engine.ensemble.run_ensemble on the
+GPU for the packed kernels), and draws a large start's kernels (engine.scene.load_parallel_start; on the GPU also
+the device start's, engine.backends.cuda_start.load). Compiled code
+goes to numba's disk cache (engine/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of later
+jobs load it from. Nothing of a warm-up's scenes is kept.
+
+Used by the worker before its first claim (jobs/worker.py, in a process of its own: the worker process itself
+never holds a GPU context) and by ``demq warm`` (service/cli.py; the worker image runs it at build time, so a fresh
+container finds the CPU kernels compiled: deploy/docker/worker.Dockerfile).
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+log = logging.getLogger("demq.warm")
+
+#: the contact laws that compile differently (spec fields)
+CONTACT_LAWS = {"rough": {"e_t": 0.8}, "smooth": {"e_t": -1.0}, "friction": {"e_t": 0.8, "friction": 0.5}}
+#: one size, or a two-size mixture (multigrid neighbour lists)
+SIZES = {"uniform": {}, "species": {"species": [{"radius_ratio": 1.0, "number_fraction": 0.5},
+                                                {"radius_ratio": 0.6, "number_fraction": 0.5}]}}
+PRECISIONS = ("float64", "float32", "mixed")
+#: a scene of a few milliseconds once compiled, with a thermalisation (both contacts) and one record interval
+TINY_SCENE = {"n_particles": 64, "volume_fraction": 0.05, "box_length": 0.5, "t_end": 0.0005,
+              "thermalization": 0.01, "snapshots": 1}
+
+
+@dataclass(frozen=True)
+class Specialisation:
+    """One compiled variant of the engine: what a job's spec selects at compile time."""
+
+    backend: str
+    shape: str
+    precision: str
+    law: str
+    sizes: str
+
+    def name(self) -> str:
+        return f"{self.backend}/{self.shape}/{self.precision}/{self.law}/{self.sizes}"
+
+    def spec_dict(self) -> dict:
+        extra = {"elongation": 1.5} if self.shape == "ellipsoid" else {}
+        return {**TINY_SCENE, **extra, **CONTACT_LAWS[self.law], **SIZES[self.sizes], "shape": self.shape,
+                "precision": self.precision, "backend": self.backend}
+
+
+@dataclass
+class WarmReport:
+    """What a warm-up did: specialisations warmed, numba compilations among them (the rest were disk-cache loads),
+    wall seconds, and the specialisations that failed (with the reason)."""
+
+    kernels: int = 0
+    compiled: int = 0
+    seconds: float = 0.0
+    failed: list = field(default_factory=list)
+
+    def line(self) -> str:
+        text = (f"warm: {self.kernels} kernels in {self.seconds:.1f} s ({self.compiled} functions compiled, the "
+                f"rest loaded from the disk cache)")
+        if self.failed:
+            text += f"; {len(self.failed)} failed: " + "; ".join(f"{n}: {e}" for n, e in self.failed)
+        return text
+
+
+def specialisations(backends: Sequence[str], shapes: Optional[Sequence[str]] = None,
+                    precisions: Optional[Sequence[str]] = None) -> list[Specialisation]:
+    """Every specialisation of ``backends`` (and the given shapes and precisions, default all) that the engine
+    accepts: a spec it validates and the shape does not refuse."""
+    from pydantic import ValidationError
+
+    from engine.shapes import SHAPES, traits
+    from engine.spec import SimulationSpec
+
+    out = []
+    for backend in backends:
+        for shape in shapes or SHAPES:
+            for precision in precisions or PRECISIONS:
+                for law in CONTACT_LAWS:
+                    for sizes in SIZES:
+                        sp = Specialisation(backend, shape, precision, law, sizes)
+                        try:
+                            spec = SimulationSpec.model_validate(sp.spec_dict())
+                        except ValidationError:
+                            continue
+                        if traits(shape).spec_error(spec):
+                            continue
+                        out.append(sp)
+    return out
+
+
+def local_backends() -> tuple[str, ...]:
+    """The backends this host runs: 'cpu', and 'cuda' where a CUDA GPU is present."""
+    from engine.backends.ensemble import resolve_backend
+
+    return ("cpu", "cuda") if resolve_backend("auto") == "cuda" else ("cpu",)
+
+
+def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str]] = None,
+         precisions: Optional[Sequence[str]] = None) -> WarmReport:
+    """Compile or load every specialisation (:func:`specialisations`; default: this host's backends) in this
+    process; a specialisation that fails is reported and skipped (its jobs compile it themselves)."""
+    from numba.core import event
+
+    from engine.ensemble import run_ensemble
+    from engine.params import derive
+    from engine.scene import load_parallel_start
+    from engine.simulate import run
+    from engine.spec import SimulationSpec
+
+    report = WarmReport()
+    compiled = [0]
+
+    class _Count(event.Listener):
+        def on_start(self, ev) -> None:
+            compiled[0] += 1
+
+        def on_end(self, ev) -> None:
+            pass
+
+    listener = _Count()
+    event.register("numba:compile", listener)
+    t0 = time.perf_counter()
+    try:
+        with tempfile.TemporaryDirectory(prefix="demq-warm-") as tmp:
+            for k, sp in enumerate(specialisations(backends or local_backends(), shapes, precisions)):
+                spec = SimulationSpec.model_validate(sp.spec_dict())
+                try:
+                    run(spec, Path(tmp) / f"{k}.h5")
+                    if sp.backend == "cuda":   # the packed kernels of an ensemble of several scenes
+                        run_ensemble([spec, spec.model_copy(update={"seed": 1})],
+                                     [Path(tmp) / f"{k}a.h5", Path(tmp) / f"{k}b.h5"])
+                    load_parallel_start(spec, derive(spec))      # a large start's functions (host)
+                    if sp.backend == "cuda" and sp.shape == "sphere" and sp.sizes == "uniform":
+                        _load_device_start(spec.precision)       # a large GPU sphere start, drawn on the device
+                    report.kernels += 1
+                except Exception as exc:  # noqa: BLE001  (reported; that specialisation's jobs compile it)
+                    report.failed.append((sp.name(), f"{type(exc).__name__}: {exc}"))
+    finally:
+        event.unregister("numba:compile", listener)
+    report.compiled = compiled[0]
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+def _load_device_start(precision: str) -> None:
+    """The kernels of a large sphere start drawn on the GPU (engine/backends/cuda_start.py) in ``precision``."""
+    from engine.backends.cuda_start import load
+    from engine.precision import position_dtype, state_dtype
+
+    load(position_dtype(precision), state_dtype(precision))
+
+
+def _warm_main(conn, backends, shapes=None, precisions=None) -> None:
+    """Entry point of the worker's warm-up process."""
+    try:
+        conn.send(warm(backends, shapes, precisions))
+    except Exception as exc:  # noqa: BLE001
+        conn.send(WarmReport(failed=[("all", f"{type(exc).__name__}: {exc}")]))
+    finally:
+        conn.close()
+
+
+def warm_in_process(backends: Sequence[str], stop: Optional[threading.Event] = None,
+                    shapes: Optional[Sequence[str]] = None,
+                    precisions: Optional[Sequence[str]] = None) -> Optional[WarmReport]:
+    """:func:`warm` in a spawned process (the caller holds no compiled code and no GPU context); its report, or
+    None if ``stop`` was set first (the process is then killed) or it died without one."""
+    ctx = multiprocessing.get_context("spawn")
+    receiver, sender = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_warm_main, args=(sender, tuple(backends), shapes, precisions), name="demq-warm")
+    proc.start()
+    sender.close()
+    try:
+        while True:
+            if receiver.poll(0.2):
+                try:
+                    return receiver.recv()
+                except EOFError:
+                    return None
+            if stop is not None and stop.is_set():
+                proc.kill()   # its work is lost: a later warm-up (or each job) compiles what it had not stored
+                return None
+            if not proc.is_alive() and not receiver.poll(0):
+                return None
+    finally:
+        receiver.close()
+        proc.join(timeout=5)
+        if proc.is_alive():
+            proc.kill()
+            proc.join()
