@@ -32,7 +32,7 @@ BENCHMARKS: dict[str, bool] = {
     "hcs_start": True,
     "orientation": False, "bit_identity": False,
     # the service under load
-    "load_service": False, "small_jobs": True,
+    "load_service": False, "small_jobs": True, "cancel_latency": False,
 }
 
 
@@ -125,13 +125,3 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         sys.argv = saved_argv
     return 0
-
-
-def register(sub) -> None:
-    """``demq bench <name> [args]``: the same runner, for the console script while it still registers the
-    subcommand (service/cli.py)."""
-    import argparse
-
-    b = sub.add_parser("bench", help="benchmarks from a checkout (python -m bench <name> ...)", add_help=False)
-    b.add_argument("args", nargs=argparse.REMAINDER, help="a benchmark's name and its arguments")
-    b.set_defaults(func=lambda a: main(a.args))
