@@ -145,7 +145,7 @@ def run_case(case: str, quick: bool, workdir: Path) -> dict:
         summary = run(specs[0], workdir / "out.h5")
         wall = time.perf_counter() - t0
         tm = dict(summary.extra["timings"])
-        row = _row(case, summary.n_particles, summary.steps, wall, summary.wall_s, tm,
+        row = _row(case, summary.n_particles, summary.steps, wall, summary.loop_s, tm,
                    {"backend": summary.backend, "device": summary.device,
                     "records": int(specs[0].t_end / (specs[0].output_interval or specs[0].t_end / 200)) + 1,
                     "precision": specs[0].precision, "shape": specs[0].shape,

@@ -31,7 +31,7 @@ its default skin and records; t_end = steps x dt. The rough cases (e_n = e_t = 0
 compared with JAX-MD's frictionless rate at the same N and precision. --quick also compares the final states
 particle by particle (demq then writes one snapshot): they agree to rounding (7e-15 radii, 1e-12 v_rms).
 
-Timed: "loop" = demq's RunSummary.wall_s (the time loop) / JAX-MD's timed ``fori_loop`` call (after a compile
+Timed: "loop" = demq's RunSummary.loop_s (the time loop) / JAX-MD's timed ``fori_loop`` call (after a compile
 and a 10-step warm-up, ended by ``block_until_ready``); "end-to-end" = the whole ``engine.run`` call / JAX-MD
 from the host start to the result on the host (upload, list allocation, compile, warm-up, timed run; the start
 function, demq's, is not counted; JAX's persistent compilation cache stays off, so it includes the XLA compile:
@@ -127,7 +127,7 @@ def run_demq(job: dict) -> dict:
                 np.savez(job["state_out"], position=f["particles/all/position/value"][-1],
                          velocity=f["particles/all/velocity/value"][-1])
     n = spec.n_particles
-    return {"backend": s.backend, "device": s.device, "steps": s.steps, "loop_s": s.wall_s, "wall_s": wall,
+    return {"backend": s.backend, "device": s.device, "steps": s.steps, "loop_s": s.loop_s, "wall_s": wall,
             "cundall_loop": s.cundall, "cundall_end_to_end": n * s.steps / wall, "timings": s.extra.get("timings"),
             "skin_m": derive(spec).skin, "ke_translational_end": ke, "elastic_energy_end": el,
             "collisions": collisions}

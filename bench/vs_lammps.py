@@ -21,7 +21,7 @@ F_t = -(k_t Delta s_t + m_eff gamma_t v_t), m_eff = m_i m_j/(m_i + m_j)):
 demq runs its own default skin (``verlet_skin: null``, recorded in the JSON).
 
 What is timed: demq through the public path ``engine.run`` (default snapshots, records every t_end/200,
-t_end = steps x dt), on the CPU backend with ``--threads`` Numba threads. "loop" is RunSummary.wall_s (the
+t_end = steps x dt), on the CPU backend with ``--threads`` Numba threads. "loop" is RunSummary.loop_s (the
 time loop); "end-to-end" is the wall clock around the whole ``engine.run`` call (placement, first list,
 compile or cache load, output file). A tiny warm-up run first fills the Numba cache (``--no-warmup`` skips
 it). LAMMPS runs ``lmp -in`` (``--threads 2``: ``mpirun -np 2``); "loop" is its "Loop time of X", and
@@ -200,7 +200,7 @@ def run_demq(spec: SimulationSpec, threads: int, workdir: Path) -> dict:
         ker = float(f["observables/kinetic_energy_rotational/value"][-1])
     out.unlink()
     n = spec.n_particles
-    return {"threads": numba.get_num_threads(), "steps": s.steps, "loop_s": s.wall_s, "wall_s": wall,
+    return {"threads": numba.get_num_threads(), "steps": s.steps, "loop_s": s.loop_s, "wall_s": wall,
             "cundall_loop": s.cundall, "cundall_end_to_end": n * s.steps / wall,
             "timings": s.extra.get("timings"), "skin_m": derive(spec).skin,
             "ke_translational_end": ket, "ke_rotational_end": ker}

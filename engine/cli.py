@@ -192,7 +192,7 @@ def cmd_run(args) -> int:
         if progress:
             progress.close()
     print(f"wrote {s.output}: N={s.n_particles} steps={s.steps} backend={s.backend} ({s.device}) "
-          f"wall={s.wall_s:.2f}s Cundall={s.cundall:.3g} particle-steps/s")
+          f"loop={s.loop_s:.2f}s job={s.job_wall_s:.2f}s Cundall={s.cundall:.3g} particle-steps/s")
     return 0
 
 

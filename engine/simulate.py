@@ -63,27 +63,22 @@ _FrameSlots = FrameSlots
 
 @dataclass
 class RunSummary:
-    """What a finished run reports. Two wall times: :attr:`loop_s`, the time loop's (thermalisation + cooling
-    steps, after compilation and placement; stored as ``wall_s``, the name the job queue reads), and
-    ``job_wall_s``, the whole job's, from the spec to the closed result file. Cundall numbers (particle-steps
-    per wall second): ``cundall`` of the loop, ``cundall_e2e`` of the whole job."""
+    """What a finished run reports. Two wall times: ``loop_s``, the time loop's (thermalisation + cooling
+    steps, after compilation and placement), and ``job_wall_s``, the whole job's, from the spec to the closed
+    result file. Cundall numbers (particle-steps per wall second): ``cundall`` of the loop, ``cundall_e2e`` of the
+    whole job."""
 
     output: Path
     backend: str
     device: str
     n_particles: int
     steps: int                    # cooling + thermalisation steps advanced
-    wall_s: float                 # wall seconds of the time loop (= loop_s)
+    loop_s: float                 # wall seconds of the time loop
     cundall: float                # N * steps / loop_s
     resumed_from_step: Optional[int] = None
     extra: dict = field(default_factory=dict)   # run attributes; "timings": wall s per phase (TIMINGS)
     job_wall_s: Optional[float] = None          # wall seconds from the spec to the closed result file
     cundall_e2e: Optional[float] = None         # N * steps / job_wall_s
-
-    @property
-    def loop_s(self) -> float:
-        """Wall seconds of the time loop (the same number as ``wall_s``)."""
-        return self.wall_s
 
 
 #: Where a job's wall time goes (RunSummary.extra["timings"], /parameters@timings), seconds:
@@ -396,7 +391,7 @@ class SceneRun:
         tm["close"] += t1 - t0
         job_wall = t1 - self.t_begin
         return RunSummary(output=path, backend=backend, device=device, n_particles=self.n, steps=self.steps_run,
-                          wall_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
+                          loop_s=self.wall, cundall=cundall, resumed_from_step=self.resumed_from,
                           job_wall_s=job_wall, cundall_e2e=self.n * self.steps_run / job_wall if job_wall > 0 else 0.0,
                           extra={**(info or {}), "timings": dict(tm), **self._startup_info(),
                                  **self.summary_extra})

@@ -41,3 +41,4 @@ class PostgresJobStore(SqlJobStore):
         with self._write() as conn:
             conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})
             self.metadata.create_all(conn, checkfirst=True)
+            self._add_new_columns(conn)

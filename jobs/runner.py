@@ -1,7 +1,7 @@
 """The simulation process: one per claim — one job, a sequence of CPU jobs run one after another, or a pack of jobs
 run as one ensemble (jobs/packing.py) — started by the worker with the ``spawn`` context, either with its claim
 (:func:`child_main`) or ahead of it as a standby (:func:`standby_main`: started up while the worker waits or runs
-the previous claim, then handed its claim over a pipe; issue 14).
+the previous claim, then handed its claim over a pipe).
 
 It validates the specs, calls the engine with a progress callback and a cancel check per job (one job, and each
 job of a sequence in turn, in this one warm process: ``DEMQ_ENGINE_RUN``, engine.simulate.run; a pack:
@@ -9,8 +9,8 @@ job of a sequence in turn, in this one warm process: ``DEMQ_ENGINE_RUN``, engine
 message names the job by its index k in the claim::
 
     ("started", k, None)                  a sequence's job k starts (the jobs before it have ended)
-    ("progress", k, {phase, fraction, step, time, eta_s, cundall, wall_s, resumed_from_step})
-    ("done", k, {backend, device, wall_s, cundall, steps, resumed_from_step, ensemble_size})
+    ("progress", k, {phase, fraction, step, time, eta_s, cundall, loop_s, resumed_from_step})
+    ("done", k, {backend, device, loop_s, job_wall_s, cundall, steps, resumed_from_step, ensemble_size})
     ("cancelled", k, reason)
     ("error", k, readable message)
     ("error", None, readable message)     the pack as a whole failed (no job is singled out)
@@ -142,7 +142,8 @@ def _final(k: Optional[int], outcome) -> tuple:
         where = f" ({os.path.basename(tb[-1].filename)}:{tb[-1].lineno})" if tb else ""
         return ("error", k, f"unexpected {type(outcome).__name__} in the simulation: {outcome}{where}")
     s = outcome
-    return ("done", k, {"backend": s.backend, "device": s.device, "wall_s": s.wall_s, "cundall": s.cundall,
+    return ("done", k, {"backend": s.backend, "device": s.device, "loop_s": s.loop_s, "job_wall_s": s.job_wall_s,
+                        "cundall": s.cundall,
                         "steps": s.steps, "resumed_from_step": s.resumed_from_step,
                         "ensemble_size": s.extra.get("ensemble_size", 1)})
 

@@ -35,7 +35,8 @@ def job_table(metadata: MetaData, prefix: str = "") -> Table:
         Column("created_at", Float, nullable=False),
         Column("started_at", Float),                        # first claim
         Column("finished_at", Float),
-        Column("wall_s", Float),                            # engine time loop of the successful attempt
+        Column("loop_s", Float),                            # wall s of the engine's time loop (successful attempt)
+        Column("job_wall_s", Float),                        # wall s of the whole run, spec to closed result file
         Column("cundall", Float),                           # particle-steps per wall second
         Column("backend", String(32)),
         Column("device", String(200)),

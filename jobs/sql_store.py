@@ -11,8 +11,8 @@ import uuid
 from contextlib import contextmanager
 from typing import Any, Iterator, Optional, Sequence
 
-from sqlalchemy import (Connection, Engine, MetaData, String, Select, case, cast, delete, func, literal, null, select,
-                        text, update)
+from sqlalchemy import (Connection, Engine, MetaData, String, Select, case, cast, delete, func, inspect, literal, null,
+                        select, text, update)
 
 from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING, job_table, worker_table
 from jobs.store import Job, JobStore, LeaseLost, NewJob, WorkerInfo
@@ -20,7 +20,7 @@ from jobs.store import Job, JobStore, LeaseLost, NewJob, WorkerInfo
 #: Columns a heartbeat may write as progress.
 PROGRESS_COLUMNS = ("progress", "phase", "step", "sim_time", "eta_s", "cundall", "resumed_from_step")
 #: Columns a worker may set when it finishes a job.
-FINISH_COLUMNS = ("error", "result_path", "wall_s", "cundall", "backend", "device", "resumed_from_step",
+FINISH_COLUMNS = ("error", "result_path", "loop_s", "job_wall_s", "cundall", "backend", "device", "resumed_from_step",
                   "progress", "phase", "step", "sim_time", "eta_s")
 
 
@@ -52,6 +52,18 @@ class SqlJobStore(JobStore):
     def create_tables(self) -> None:
         with self._write() as conn:
             self.metadata.create_all(conn, checkfirst=True)
+            self._add_new_columns(conn)
+
+    def _add_new_columns(self, conn: Connection) -> None:
+        """Add the columns a table created by an older demq lacks (each new column is nullable, so ALTER TABLE ...
+        ADD COLUMN is all it takes; a column that is no longer used stays and is never read)."""
+        inspector = inspect(conn)
+        for table in self.metadata.sorted_tables:
+            present = {c["name"] for c in inspector.get_columns(table.name)}
+            for column in table.columns:
+                if column.name not in present:
+                    conn.execute(text(f"ALTER TABLE {table.name} ADD COLUMN {column.name} "
+                                      f"{column.type.compile(dialect=conn.dialect)}"))
 
     def drop_tables(self) -> None:
         with self._write() as conn:

@@ -41,7 +41,8 @@ class Job:
     created_at: float
     started_at: Optional[float]
     finished_at: Optional[float]
-    wall_s: Optional[float]
+    loop_s: Optional[float]        # wall seconds of the engine's time loop (the successful attempt)
+    job_wall_s: Optional[float]    # wall seconds of the whole run, from the spec to the closed result file
     cundall: Optional[float]
     backend: Optional[str]
     device: Optional[str]

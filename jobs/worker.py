@@ -470,7 +470,7 @@ class Worker:
             return slot.outcome
         if kind == "done":
             state = DONE
-            summary = {k: payload[k] for k in ("wall_s", "cundall", "backend", "device", "resumed_from_step")}
+            summary = {k: payload[k] for k in ("loop_s", "job_wall_s", "cundall", "backend", "device", "resumed_from_step")}
             self.store.finish(job.id, self.owner, DONE, **{**progress, **summary, "progress": 1.0, "eta_s": 0.0},
                               error=None, result_path=str(slot.output))
         elif kind == "error":

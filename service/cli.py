@@ -214,7 +214,7 @@ def cmd_submit(args) -> int:
 
 def _print_job(job: dict) -> None:
     keys = ("id", "state", "progress", "eta_s", "attempts", "created_at", "started_at", "finished_at",
-            "wall_s", "cundall", "backend", "device", "error", "batch_id")
+            "loop_s", "job_wall_s", "cundall", "backend", "device", "error", "batch_id")
     for k in keys:
         if job.get(k) is not None:
             print(f"{k:>12s}: {job[k]}")

@@ -28,7 +28,8 @@ class JobOut(BaseModel):
     batch_id: Optional[str] = None
     priority: int
     progress: float = Field(description="Fraction of the run done, 0 ... 1.")
-    phase: Optional[str] = Field(None, description="'thermalization', 'cooling' or 'done'.")
+    phase: Optional[str] = Field(None, description="'waiting' (behind other jobs of its worker's claim), "
+                                                        "'starting', 'thermalization', 'cooling' or 'done'.")
     step: Optional[int] = None
     sim_time: Optional[float] = Field(None, description="Simulated time reached, s.")
     eta_s: Optional[float] = Field(None, description="Estimated wall seconds left (while running).")
@@ -37,7 +38,10 @@ class JobOut(BaseModel):
     finished_at: Optional[datetime] = None
     queued_s: Optional[float] = Field(None, description="Seconds from submission to the first start.")
     run_s: Optional[float] = Field(None, description="Seconds from the first start to the end.")
-    wall_s: Optional[float] = Field(None, description="Wall seconds of the engine's time loop.")
+    loop_s: Optional[float] = Field(None, description="Wall seconds of the engine's time loop (the run's steps).")
+    job_wall_s: Optional[float] = Field(None, description="Wall seconds of the whole run, from the spec to the closed "
+                                                          "result file (set-up, compilation or its cache load, loop, "
+                                                          "output).")
     cundall: Optional[float] = Field(None, description="Cundall number: particle-steps per wall second.")
     backend: Optional[str] = None
     device: Optional[str] = None
@@ -58,7 +62,7 @@ class JobOut(BaseModel):
             created_at=_iso(job.created_at), started_at=_iso(job.started_at), finished_at=_iso(end),
             queued_s=job.started_at - job.created_at if job.started_at else None,
             run_s=end - job.started_at if end and job.started_at else None,
-            wall_s=job.wall_s, cundall=job.cundall, backend=job.backend, device=job.device,
+            loop_s=job.loop_s, job_wall_s=job.job_wall_s, cundall=job.cundall, backend=job.backend, device=job.device,
             resumed_from_step=job.resumed_from_step, attempts=job.attempts, max_attempts=job.max_attempts,
             cancel_requested=job.cancel_requested, error=job.error,
             result_available=job.state == "done" and job.result_path is not None, spec=job.spec)

@@ -17,7 +17,7 @@ class Progress:
     time: float           # simulated time in s (t = 0 at the start of the cooling run)
     eta_s: float          # estimated wall seconds left
     cundall: float        # particle-steps per wall second so far (time loop only)
-    wall_s: float         # wall seconds since the time loop started
+    loop_s: float         # wall seconds of the time loop so far
     resumed_from_step: Optional[int] = None   # cooling-run step this attempt resumed from (None: a fresh start)
 
 
@@ -39,4 +39,4 @@ class ProgressWriter:
         cund = self.n * steps_run / wall_s if wall_s > 0 else 0.0
         eta = (total - done_total) * self.n / cund if cund > 0 else math.inf
         self.callback(Progress(phase=phase, fraction=min(1.0, frac), step=step, time=t_sim, eta_s=eta,
-                               cundall=cund, wall_s=wall_s, resumed_from_step=self.resumed_from_step))
+                               cundall=cund, loop_s=wall_s, resumed_from_step=self.resumed_from_step))

@@ -81,12 +81,12 @@ def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
         wall = time.monotonic() - t0
         if progress is not None:
             progress(Progress(phase="cooling", fraction=(k + 1) / N_STEPS, step=k + 1,
-                              time=spec.t_end * (k + 1) / N_STEPS, eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, wall_s=wall,
+                              time=spec.t_end * (k + 1) / N_STEPS, eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, loop_s=wall,
                               resumed_from_step=start or None))
     write_result(output, spec)
     wall = max(time.monotonic() - t0, 1e-9)
     return RunSummary(output=Path(output), backend="fake", device="test double", n_particles=spec.n_particles,
-                      steps=N_STEPS - start, wall_s=wall, cundall=spec.n_particles * (N_STEPS - start) / wall,
+                      steps=N_STEPS - start, loop_s=wall, job_wall_s=wall, cundall=spec.n_particles * (N_STEPS - start) / wall,
                       resumed_from_step=start or None)
 
 
@@ -142,7 +142,7 @@ def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=N
                 progress(k, Progress(phase="cooling", fraction=step[k] / N_STEPS, step=step[k],
                                      time=specs[k].t_end * step[k] / N_STEPS,
                                      eta_s=wall / (step[k] - start[k]) * (N_STEPS - step[k]), cundall=1.0e6,
-                                     wall_s=wall, resumed_from_step=start[k] or None))
+                                     loop_s=wall, resumed_from_step=start[k] or None))
         if ck_due:
             last_ckpt = time.monotonic()
         for k in sorted(active):
@@ -150,7 +150,7 @@ def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=N
                 write_result(outputs[k], specs[k])
                 wall = max(time.monotonic() - t0, 1e-9)
                 settle(k, RunSummary(output=Path(outputs[k]), backend="fake", device="test double",
-                                     n_particles=specs[k].n_particles, steps=N_STEPS - start[k], wall_s=wall,
+                                     n_particles=specs[k].n_particles, steps=N_STEPS - start[k], loop_s=wall, job_wall_s=wall,
                                      cundall=specs[k].n_particles * (N_STEPS - start[k]) / wall,
                                      resumed_from_step=start[k] or None, extra={"ensemble_size": len(specs)}))
     return results

@@ -80,9 +80,11 @@ def test_release_returns_job_without_counting_the_attempt(store):
 def test_finish_done_records_result(store):
     (job,) = _submit(store)
     store.claim("w", 10)
-    assert store.finish(job.id, "w", DONE, result_path="/r.h5", wall_s=2.0, cundall=1e6, error=None, progress=1.0)
+    assert store.finish(job.id, "w", DONE, result_path="/r.h5", loop_s=2.0, job_wall_s=2.5, cundall=1e6, error=None,
+                        progress=1.0)
     got = store.get(job.id)
     assert (got.state, got.result_path, got.cundall, got.progress) == (DONE, "/r.h5", 1e6, 1.0)
+    assert (got.loop_s, got.job_wall_s) == (2.0, 2.5)
     assert got.finished_at >= got.started_at >= got.created_at
     with pytest.raises(ValueError):
         store.finish(job.id, "w", RUNNING)
@@ -170,3 +172,27 @@ def test_worker_registry_old_seen_at_is_not_live(store):
     assert store.live_workers(max_age_s=0.01) == []  # last seen longer ago than 0.01 s
     store.worker_seen("w")
     assert [w.worker_id for w in store.live_workers(max_age_s=30)] == ["w"]
+
+
+def test_a_table_of_an_older_demq_gets_the_new_columns(store_url):
+    """A job table created before the loop_s / job_wall_s columns existed (it had wall_s): opening the store adds
+    them, and its old rows read and finish as usual."""
+    from sqlalchemy import text
+
+    url, prefix = store_url
+    old = open_store(url, prefix)          # today's table, then made into the older one
+    with old.engine.begin() as conn:
+        for name in ("loop_s", "job_wall_s"):
+            conn.execute(text(f"ALTER TABLE {prefix}jobs DROP COLUMN {name}"))
+        conn.execute(text(f"ALTER TABLE {prefix}jobs ADD COLUMN wall_s FLOAT"))
+    old.close()
+    store = open_store(url, prefix)
+    try:
+        (job,) = _submit(store)
+        store.claim("w", 10)
+        assert store.finish(job.id, "w", DONE, loop_s=1.0, job_wall_s=1.5, cundall=1.0, error=None)
+        got = store.get(job.id)
+        assert (got.state, got.loop_s, got.job_wall_s) == (DONE, 1.0, 1.5)
+    finally:
+        store.drop_tables()
+        store.close()

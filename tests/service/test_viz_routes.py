@@ -37,7 +37,7 @@ def _done_job(client, settings, spec: dict, result_file) -> str:
     settings.results_dir.mkdir(parents=True, exist_ok=True)
     path = settings.result_path(job_id)
     shutil.copyfile(result_file, path)
-    client.store.finish(job_id, "test-worker", DONE, result_path=str(path), wall_s=0.1, cundall=1e6, error=None,
+    client.store.finish(job_id, "test-worker", DONE, result_path=str(path), loop_s=0.1, job_wall_s=0.2, cundall=1e6, error=None,
                         progress=1.0)
     return job_id
 
