@@ -42,7 +42,7 @@ def _free_port() -> int:
 
 
 class Server:
-    """`demq serve` with its embedded worker on a fresh data directory, on loopback."""
+    """`demq serve` with its embedded worker on a fresh data directory, on loopback, once the worker is warm."""
 
     def __init__(self, log: Path):
         self.data = Path(tempfile.mkdtemp(prefix="demq-small-"))
@@ -52,14 +52,18 @@ class Server:
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
                                      cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         self.url = f"http://127.0.0.1:{self.port}"
-        deadline = time.monotonic() + 120
+        # ready = the API answers and the embedded worker has logged its warm-up ("warm: N kernels in X s"); the
+        # ceiling only catches a hang (a first warm-up on an empty kernel cache compiles for minutes)
+        deadline = time.monotonic() + 1800
         while time.monotonic() < deadline:
-            try:
-                if httpx.get(f"{self.url}/healthz").status_code == 200:
-                    return
-            except httpx.TransportError:
-                time.sleep(0.1)
-        raise RuntimeError(f"the server did not answer within 120 s (log: {log})")
+            if "warm: " in log.read_text() or "warm-up failed" in log.read_text():
+                try:
+                    if httpx.get(f"{self.url}/healthz").status_code == 200:
+                        return
+                except httpx.TransportError:
+                    pass
+            time.sleep(0.2)
+        raise RuntimeError(f"the server was not ready within 1800 s (log: {log})")
 
     def wait_all_done(self, ids, ceiling_s: float = 3600.0) -> list[dict]:
         """The job rows once every job has ended (polled every 0.2 s; the ceiling only catches a hang)."""
