@@ -68,7 +68,7 @@ def default_radius() -> float:
 
 
 def default_phi(n: int) -> float:
-    """Issue 15's densities: 0.008 at N = 4096 (paper 001), 0.058 for the larger gases."""
+    """The densities: 0.008 at N = 4096 (paper 001), 0.058 for the larger gases."""
     return 0.008 if n <= 4096 else 0.058
 
 

@@ -197,7 +197,7 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
     Why: the skin changes the cost only. The neighbours a skin adds to each particle's list, about
     2 sqrt(2) L_v / lambda, make the list cost grow as the skin counted in mean free paths,
     while the rebuilds it saves (one per L_v/2 of flight) do not depend on the density; so the fastest skin
-    falls with lambda. Data (skin sweep of `demq bench accuracy`, rough gas, skins 0.2, 0.4, 0.8, 1.2 a;
+    falls with lambda. Data (skin sweep of `python -m bench accuracy`, rough gas, skins 0.2, 0.4, 0.8, 1.2 a;
     within 15 % of the fastest = on the cost front): CPU, N = 4096 — phi = 0.008: 0.4 a x0.92 of the fastest
     (1.2 a), phi = 0.1: 0.4 a fastest (also in the N = 2048 cooling gas, where 0.2 a and 0.8 a are x0.80 and
     x0.75), phi = 0.3: 0.2 a fastest (0.4 a x0.78); NVIDIA H200, N = 262144 — phi = 0.008: 0.8 a fastest
@@ -291,7 +291,7 @@ class SimulationSpec(BaseModel):
     verlet_skin: Optional[float] = Field(
         None, description="Verlet-list skin L_v in units of the particle radius (0 < L_v <= 4; species: "
                           "of the smallest radius); the list is rebuilt when a particle has moved more than "
-                          "L_v/2 (paper 004). null = the fastest skin of `demq bench accuracy` for the "
+                          "L_v/2 (paper 004). null = the fastest skin of `python -m bench accuracy` for the "
                           "backend and density: L_max = 0.4 on the CPU, 0.8 on CUDA up to phi = 0.11, then "
                           "L_max x (mean free path / 1.6 radii), at least 0.2 (0.2 from phi = 0.18 on the "
                           "CPU, 0.27 on CUDA); ellipsoids 0.4. The value used is in the result's /parameters.")

@@ -1,4 +1,4 @@
-"""Which queued jobs a worker claims together, and how the claim runs (issue 8; "only what the scene needs").
+"""Which queued jobs a worker claims together, and how the claim runs (docs/design.md §7).
 
 A claim is the job the worker claimed first plus queued jobs, in claim order (priority, then submission), that
 can go with it, up to a size the worker gives (DEMQ_ENSEMBLE_MAX_JOBS, and its fair share of the queue:

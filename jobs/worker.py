@@ -314,7 +314,7 @@ class Worker:
         self._conclude_rest(slots, sim.proc.exitcode, pack_error, mode)
         return {slot.job.id: slot.outcome for slot in slots}
 
-    # ---- the standby simulation process (issue 14: time to result) ----------------------------------
+    # ---- the standby simulation process (time to result) --------------------------------------------
     def _spawn_standby(self, warm_spec_json: Optional[str]) -> Optional["_SimProcess"]:
         """Start the next claim's simulation process now (jobs/runner.py standby_main): its start-up
         (interpreter, imports, on a GPU the driver, context and kernels of ``warm_spec_json``'s

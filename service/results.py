@@ -64,7 +64,7 @@ def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
             else (np.ones_like(x), np.full_like(x, r0_over_t0))
         return {"x": x, "xlabel": r"scaled time $\tau$", "T": theory_t, "R": theory_r, "name": "Luding ODE"}
     if not spec.smooth:
-        # rough spheroids: no mean-field cooling theory is known (docs/rough-spheroids.md)
+        # rough spheroids: no mean-field cooling theory is known (docs/physics.md §2.5)
         return {"x": t, "xlabel": "time t / s", "T": None, "R": None, "name": "no theory for rough spheroids"}
     from engine.validation.hcs_ellipsoids import gamma0
 

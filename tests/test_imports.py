@@ -1,4 +1,4 @@
-"""The package import graph is acyclic and flows one way: service -> jobs -> engine (DESIGN.md §1).
+"""The package import graph is acyclic and flows one way: service -> jobs -> engine (docs/design.md §1).
 
 Walks every module of engine/, jobs/, service/ (and bench/, for resolving names) with ``ast``: module-level
 and function-level imports count alike, relative imports are resolved, and ``importlib.import_module`` /

@@ -54,7 +54,7 @@ def test_accuracy_report_files(acc):
 def test_restitution_error_shrinks_with_dt(acc):
     rows = acc[1]["scenes"]["collisions"]["rows"]
     coarse, default, fine = (_row(rows, f) for f in (10, 50, 200))
-    # The event-corrected contact law is second order in dt (PHYSICS-NOTES §1.1): a 20x smaller dt must
+    # The event-corrected contact law is second order in dt (docs/physics.md §1.5): a 20x smaller dt must
     # cut the head-on error by far more than 10x (measured ~100x; dt^2 alone would give 400x).
     assert fine["err_e_n"] < coarse["err_e_n"] / 10
     assert default["err_e_n"] < coarse["err_e_n"]

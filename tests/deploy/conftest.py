@@ -19,7 +19,7 @@ from tests.jobs.conftest import postgres_url
 
 #: A real-engine job of about a second of CPU once compiled (checked valid by the tests).
 #: t_end: long enough (about a second of one core) that a worker can be caught mid-job; records cost almost
-#: nothing since issue 14, so a job's wall time is its time loop
+#: next to nothing (O(1) host work each), so a job's wall time is its time loop
 SPEC = {"n_particles": 64, "volume_fraction": 0.05, "box_length": 0.5, "t_end": 0.6,
         "thermalization": 0, "snapshots": 1, "backend": "cpu"}
 #: Queue settings for the process tests: short leases so a SIGKILLed worker's job is reaped in

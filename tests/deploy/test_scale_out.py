@@ -94,7 +94,7 @@ def test_api_and_three_workers_on_postgres_sigterm_sigkill_every_job_done_once(
     del alive["w-kill"]
     row = store.get(killed.id)
     assert (row.state, row.lease_owner) == (RUNNING, "w-kill"), "the kill must hit the job mid-run"
-    # every job of the killed worker's claim (a pack of compatible jobs, issue 8) loses its lease with it
+    # every job of the killed worker's claim (a pack of compatible jobs, docs/design.md §7) loses its lease with it
     lost = {j.id for j in store.list(state=RUNNING, limit=1000)[0] if j.lease_owner == "w-kill"}
     assert killed.id in lost
 

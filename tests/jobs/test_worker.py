@@ -126,7 +126,7 @@ def test_unresponsive_simulation_is_killed_after_grace(tmp_path, monkeypatch):
         thread.join(30)
 
 
-# ---- the standby simulation process (issue 14) ----------------------------------------------------------------
+# ---- the standby simulation process ------------------------------------------------------------------------
 
 def _standby_worker(tmp_path, **kw):
     from tests.jobs.conftest import make_settings
