@@ -49,12 +49,12 @@ def main() -> None:
     import engine.simulate as sim
     from bench.e2e import case_specs, to_spec
 
-    for owner, name, label in ((sim.SceneRun, "at_stop", "at_stop"), (sim._Deferred, "drain", "drain"),
+    for owner, name, label in ((sim.SceneRun, "at_stop", "at_stop"),
                                (sim, "_build", "build"), (sim.SceneRun, "open", "open"),
                                (sim.SceneRun, "finish_begin", "finish_begin"),
                                (sim.SceneRun, "finish_end", "finish_end"), (cb.CudaEnsemble, "set_contacts", "set_contacts"),
                                (cb.CudaEnsemble, "advance", "advance"),
-                               (cb.CudaEnsemble, "observe_later", "ensemble observe_later"),
+                               (cb.CudaEnsemble, "observe", "ensemble observe"),
                                (cb.CudaEnsemble, "deactivate_many", "deactivate_many"), (sim, "drive", "drive")):
         _timed(owner, name, label)
     ens_mod.drive = sim.drive

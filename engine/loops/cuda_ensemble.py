@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import abc
 import os
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 from numba import cuda
@@ -43,7 +43,6 @@ from engine.errors import BackendUnavailable, InstabilityError
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_frames import StateFrames
-from engine.loops.cuda_launch import LaunchCache
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
@@ -67,12 +66,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     name = "cuda"
     #: the particle shape (engine/shapes/SHAPES key) whose CUDA parts specialise the time loop (set by the subclass)
     shape: str
-    #: the driver's work for the host while it waits for the GPU (engine/simulate.py, _Deferred: the records
-    #: of the last stops): called in the waits, it runs one small unit and returns True, or False when none is left
-    idle: Optional[Callable[[], bool]] = None
-    #: the Ensemble interface's capabilities: waits for the GPU (running ``idle``); one observe launch serves
-    #: every scene; all scenes advance together
-    waits_for_device = True
+    #: the Ensemble interface's capabilities: one observe launch serves every scene; all scenes advance together
     shares_observation = True
     #: the Verlet list of a lone scene may be built on the host (cuda_listmodes.HostLists; spheres)
     host_lists = False
@@ -136,7 +130,6 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._coop_blocks = None                # blocks of the cooperative launch (made at its first use)
         self._pending: dict = {}                # scenes that failed at t = 0, reported by the first advance
         self.stream = cuda.stream()
-        self._lc = LaunchCache()   # the per-step kernels' launches (engine/loops/cuda_launch.py)
         self.steps_done = 0
         self.builds = 0
         self.late_rebuilds = 0
@@ -409,7 +402,6 @@ class CudaSceneBackend(Backend):
     ``e`` is the one-scene ensemble; what else is read of it here is named below."""
 
     name = "cuda"
-    waits_for_device = True
     #: the ensemble class whose one scene this backend is (the shape's subclass sets it)
     ensemble_class: type
 
@@ -458,15 +450,6 @@ class CudaSceneBackend(Backend):
     def profile(self, value: Optional[dict]) -> None:
         self.e.profile = value
 
-    @property
-    def idle(self) -> Optional[Callable[[], bool]]:
-        """The driver's work for the waits for the GPU (the ensemble's :attr:`CudaEnsembleBase.idle`)."""
-        return self.e.idle
-
-    @idle.setter
-    def idle(self, fn: Optional[Callable[[], bool]]) -> None:
-        self.e.idle = fn
-
     # ---- the Backend interface ------------------------------------------------------------------------
 
     def set_contact(self, contact: ContactParams) -> None:
@@ -492,11 +475,6 @@ class CudaSceneBackend(Backend):
 
     def observe(self) -> dict:
         return self.e.observe()[0]
-
-    def observe_later(self) -> Callable[[], dict]:
-        """:meth:`observe`, read when the returned function is called (:meth:`CudaEnsembleBase.observe_later`)."""
-        f = self.e.observe_later()
-        return lambda: f(0)
 
     def state(self, reuse=False) -> dict:
         return self.e.state(0, reuse)

@@ -411,19 +411,6 @@ def test_frame_slots_reuse_a_free_slot_and_else_wait_for_the_older_one():
     assert slots.take() == 1
 
 
-def test_a_cpu_ensemble_does_not_wait_for_a_device_and_reads_its_observables_at_once():
-    from engine.backends.ensemble import SerialEnsemble
-    from engine.simulate import _Deferred
-    from tests.engine.test_cuda_simulator import contact, tiny_system
-
-    ens = SerialEnsemble("cpu", [tiny_system()], [contact()])
-    assert not ens.waits_for_device          # engine.simulate._Deferred stays off: CPU runs are unchanged
-    assert not _Deferred(ens).on
-    later = ens.observe_scene_later(0)
-    ens.advance(40)                          # contacts begin within ~20 steps (tiny_system)
-    assert later()["collisions"] == 0 < ens.observe_scene(0)["collisions"]
-
-
 # ---- the auto list mode's probe rule ---------------------------------------------------------------------
 
 def _lists(steps_left, per_step=1e-3, steps_per_stage=20):
