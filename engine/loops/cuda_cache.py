@@ -1,4 +1,4 @@
-"""On-disk cache of the factory-built CUDA kernels (issue 14: a job's time to result includes compilation).
+"""On-disk cache of the factory-built CUDA kernels (a job's time to result includes compilation).
 
 The kernels are closures over compile-time constants (precision, rough/smooth, Coulomb, orientation, ...), built
 by factories in cuda_kernels.py, cuda_loop.py (with a shape's engine/shapes/<shape>/device.py) and cuda_lists.py.
@@ -15,11 +15,13 @@ from __future__ import annotations
 import os
 
 SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+#: False: no disk cache, every process compiles (bench/e2e.py ``--off kernel_cache`` sets it, for A/B timings)
+ENABLED = True
 
 
 def cache_kernels(kernels: dict, key: tuple) -> dict:
     """Attach the stable-key disk cache to every (non-device) kernel dispatcher of ``kernels``; returns it."""
-    if SIM or os.environ.get("DEMQ_CUDA_CACHE") == "0":
+    if SIM or not ENABLED:
         return kernels
     try:
         import numba_cuda

@@ -31,7 +31,6 @@ interface, for code that drives one backend by hand (tests, bench).
 from __future__ import annotations
 
 import abc
-import os
 from typing import Optional
 
 import numpy as np
@@ -51,8 +50,11 @@ from engine.precision import check_shape, position_dtype, state_dtype
 
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
 #: measured on an H200 (bench/gpu_ensemble.py): 10x faster at 4096, equal at 2^20, 25 % slower at 2^22
-#: (a grid of co-resident blocks loops over many particles per thread); DEMQ_CUDA_MULTISTEP=0/1 forces it
+#: (a grid of co-resident blocks loops over many particles per thread)
 MULTISTEP_MAX_PARTICLES = 1024 * 1024
+#: None: the loop by size (MULTISTEP_MAX_PARTICLES); True / False forces the many-steps or the per-phase loop (tests
+#: and bench set it, for comparisons)
+MULTISTEP = None
 
 
 class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble):
@@ -118,8 +120,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.tpb = 32 if SIM else 256
         self.sm_count = 1 if SIM else cuda.get_current_device().MULTIPROCESSOR_COUNT
         self.max_blocks = 2 if SIM else self.sm_count * 16
-        env = os.environ.get("DEMQ_CUDA_MULTISTEP")
-        self.multistep = (env == "1") if env in ("0", "1") else n <= MULTISTEP_MAX_PARTICLES
+        self.multistep = n <= MULTISTEP_MAX_PARTICLES if MULTISTEP is None else MULTISTEP
         self._exit_thr = 1.0  # run_steps exits when (displacement / (L_v/2))^2 exceeds it
         self._horizon: Optional[int] = None     # the driver's plan: the run ends about here (plan())
         self._call_end: Optional[int] = None    # the current advance call ends here

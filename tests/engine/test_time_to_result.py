@@ -12,6 +12,7 @@ import numba
 import numpy as np
 import pytest
 
+import engine.start_kind as start_kind
 from engine.errors import InstabilityError
 from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
@@ -39,7 +40,7 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
         monkeypatch, tmp_path):
     """engine.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
     host arrays: engine/backends/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
-    host, the same start as always; with DEMQ_DEVICE_START=0 and for other shapes the host draws."""
+    host, the same start as always; with start_kind.DEVICE_START False and for other shapes the host draws."""
     import engine.simulate as sim
 
     spec = _big(seed=9)
@@ -60,11 +61,11 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
     for attr in ("position", "velocity", "angular_velocity", "orientation"):
         assert np.array_equal(getattr(scene.system, attr), getattr(host, attr)), attr
     assert device_start(spec) and not device_start(_big(shape="ellipsoid", elongation=2.0))
-    # a job that runs on the GPU leaves its start to the device, unless DEMQ_DEVICE_START=0
+    # a job that runs on the GPU leaves its start to the device, unless start_kind.DEVICE_START is False
     monkeypatch.setattr(sim, "resolve_backend", lambda name, shape: "cuda")
     gpu = sim.SceneRun(spec, tmp_path / "y.h5")
     assert gpu.backend == "cuda" and gpu.system.draw == left.draw and gpu.system.position is None
-    monkeypatch.setenv("DEMQ_DEVICE_START", "0")
+    monkeypatch.setattr(start_kind, "DEVICE_START", False)
     assert not device_start(spec)
     gpu = sim.SceneRun(spec, tmp_path / "z.h5")
     assert gpu.system.draw is None and np.array_equal(gpu.system.position, host.position)
