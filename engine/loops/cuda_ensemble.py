@@ -35,7 +35,6 @@ from typing import Optional
 
 import numpy as np
 from numba import cuda
-from numba.cuda.cudadrv.driver import device_memset
 
 from engine.backends.protocol import Backend, Ensemble
 from engine.errors import BackendUnavailable, InstabilityError
@@ -46,6 +45,7 @@ from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
 from engine.loops.system import ContactParams, cell_grid
+from engine.numba_internals import device_memset
 from engine.precision import check_shape, position_dtype, state_dtype
 
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
@@ -266,7 +266,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         if SIM:
             a.copy_to_device(np.zeros(shape, dtype), stream=self.stream)
         elif a.size:
-            device_memset(a, 0, a.nbytes, stream=self.stream)
+            device_memset(a, 0, self.stream)
         return a
 
     @staticmethod

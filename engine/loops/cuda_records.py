@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 from numba import cuda
-from numba.cuda.cudadrv.driver import device_memset
 
 from engine.loops.cuda_cache import SIM
+from engine.numba_internals import device_memset
 
 
 class ObserveSums:
@@ -33,7 +33,7 @@ class ObserveSums:
         if SIM:
             sums.acc.copy_to_device(sums.acc_zero, stream=s)
         else:
-            device_memset(sums.acc, 0, sums.acc.nbytes, stream=s)   # all-zero bits: 0.0
+            device_memset(sums.acc, 0, s)   # all-zero bits: 0.0
         per_scene = (int(self.sizes.max()) + self.tpb - 1) // self.tpb
         bx = max(1, min(per_scene, max(1, self.max_blocks // nk)))
         self.k["observe"][(bx, nk), self.tpb, s](*self._observe_args(), sums.acc)

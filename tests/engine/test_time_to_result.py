@@ -595,7 +595,7 @@ def test_every_cached_engine_kernel_loads_without_the_target_refresh():
     import pkgutil
 
     import engine
-    from engine.jitcache import _FastLoadCache
+    from engine.numba_internals import FastLoadCache
     from numba.core.caching import FunctionCache
 
     found = set()
@@ -606,7 +606,7 @@ def test_every_cached_engine_kernel_loads_without_the_target_refresh():
         for name, obj in vars(mod).items():
             cache = getattr(obj, "_cache", None)
             if isinstance(cache, FunctionCache) and getattr(obj, "__module__", None) == info.name:
-                assert isinstance(cache, _FastLoadCache), f"{info.name}.{name}: call fast_loads(globals())"
+                assert isinstance(cache, FastLoadCache), f"{info.name}.{name}: call fast_loads(globals())"
                 found.add(info.name)
     assert found == set(_ENGINE_JIT_MODULES)
 
