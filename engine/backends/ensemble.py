@@ -1,4 +1,4 @@
-"""Ensembles: K independent scenes advanced together by one backend (issue 8).
+"""Ensembles: K independent scenes advanced together by one backend.
 
 The interface every ensemble implements in full (:class:`engine.backends.protocol.Ensemble`, an abstract base
 class; what an ensemble cannot do is the base class's explicit default)::

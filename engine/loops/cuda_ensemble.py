@@ -245,7 +245,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         """Host (n_a, rows) -> columns [col0, col0 + n_a) of the device (rows, N) array ``dst``, in its precision. The
         host array goes up as it is (float32 and float64; anything else as float64) and the device transposes and
         casts it (K.scatter_rows, the same round-to-nearest cast as NumPy's): a host transposition of a large start
-        cost more than the upload itself (issue 14, set-up)."""
+        cost more than the upload itself."""
         a = np.asarray(a)
         if a.dtype not in (np.float32, np.float64):
             a = a.astype(np.float64)

@@ -42,7 +42,7 @@ class StateFrames:
         self._frames_taken = 0
 
     def _scene_rows(self, k: int, reuse=False) -> dict:
-        """Scene k's state arrays (n_k, rows) in particle-id order, keyed as in :meth:`state_arrays` (issue 14): per array
+        """Scene k's state arrays (n_k, rows) in particle-id order, keyed as in :meth:`state_arrays`: per array
         a kernel gathers the scene's slots into id order on the device, into one reused staging buffer, and
         one copy moves exactly those n_k rows into a reused host buffer (:meth:`_host_slot`); one sync for all.
         ``reuse``: False returns copies; True or a buffer slot number returns views of that slot's host
