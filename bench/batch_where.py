@@ -1,7 +1,7 @@
 """Where a packed batch's wall time goes on the main thread, by the driver's phases (a diagnostic).
 
 bench/e2e.py's batch-256x4096-20k through engine.run_ensemble, in this process, with timers around the driver's
-methods on the main thread (advance, at_stop, the deferred records' drain, the ensemble's observe, the files'
+methods on the main thread (advance, at_stop, the ensemble's observe, the files'
 open and finish, the build). numba.cuda is imported before the timer starts (so the set-up excludes it). On the
 GPU machine, after a run that filled the kernel cache:
 
