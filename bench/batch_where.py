@@ -1,7 +1,7 @@
 """Where a packed batch's wall time goes on the main thread, by the driver's phases (a diagnostic).
 
 bench/e2e.py's batch-256x4096-20k through engine.run_ensemble, in this process, with timers around the driver's
-methods on the main thread (advance, at_stop, the deferred records' drain, the ensemble's observe, the files'
+methods on the main thread (advance, at_stop, the ensemble's observe, the files'
 open and finish, the build). numba.cuda is imported before the timer starts (so the set-up excludes it). On the
 GPU machine, after a run that filled the kernel cache:
 
@@ -49,12 +49,12 @@ def main() -> None:
     import engine.simulate as sim
     from bench.e2e import case_specs, to_spec
 
-    for owner, name, label in ((sim.SceneRun, "at_stop", "at_stop"), (sim._Deferred, "drain", "drain"),
+    for owner, name, label in ((sim.SceneRun, "at_stop", "at_stop"),
                                (sim, "_build", "build"), (sim.SceneRun, "open", "open"),
                                (sim.SceneRun, "finish_begin", "finish_begin"),
                                (sim.SceneRun, "finish_end", "finish_end"), (cb.CudaEnsemble, "set_contacts", "set_contacts"),
                                (cb.CudaEnsemble, "advance", "advance"),
-                               (cb.CudaEnsemble, "observe_later", "ensemble observe_later"),
+                               (cb.CudaEnsemble, "observe", "ensemble observe"),
                                (cb.CudaEnsemble, "deactivate_many", "deactivate_many"), (sim, "drive", "drive")):
         _timed(owner, name, label)
     ens_mod.drive = sim.drive

@@ -1,9 +1,8 @@
 """The driver's host time per scene and round of a packed batch, without a GPU.
 
 engine.simulate.drive runs K small scenes (64 spheres, no snapshots, default records) on a fake ensemble that
-does nothing but run the driver's deferred record work in its ``advance`` (as the CUDA ensemble does in its waits
-for the GPU). Printed: the host time between two advances (on a real ensemble the GPU is idle then), per scene
-and round, and the time of the deferred units (inside the advances, overlapped on a real ensemble).
+does nothing in its ``advance``. Printed: the host time between two advances (on a real ensemble the GPU is idle
+then: the stops' records, progress and checkpoint checks), per scene and round.
 
     python -m bench driver_overhead [K]          (default K = 256)
 """
@@ -17,52 +16,45 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from engine.backends.protocol import Ensemble  # noqa: E402
 
-class _Nothing:
-    """An ensemble that advances nothing; its observe sums are constants."""
+_OBS = {"kinetic_energy_translational": 1.0, "kinetic_energy_rotational": 0.5, "contacts": 0,
+        "elastic_energy": 0.0, "max_overlap": 0.0, "momentum": (0.0, 0.0, 0.0), "collisions": 0,
+        "temperature_translational": 1.0}
+
+
+class _Nothing(Ensemble):
+    """A packed-style ensemble that advances nothing; its observe sums are constants."""
 
     name, device, builds = "cuda", "none", 0
-    idle = None
-    inside = 0.0
+    shares_observation = True
     marks: list = []
 
     def __init__(self, systems, contacts):
-        self.n = len(systems)
+        self.n = self.n_scenes = len(systems)
 
     def warmup(self):
         pass
 
-    def set_contacts(self, contacts):
+    def set_contact(self, k, contact):
         pass
 
-    def set_contact(self, i, contact):
-        pass
-
-    def advance(self, m):
-        t = time.perf_counter()
-        _Nothing.marks.append(t)
-        if self.idle is not None:
-            while self.idle():
-                pass
-        _Nothing.inside += time.perf_counter() - t
+    def advance(self, nsteps):
+        _Nothing.marks.append(time.perf_counter())
         _Nothing.marks.append(time.perf_counter())
         return {}
 
-    def deactivate(self, i):
+    def deactivate(self, k):
         pass
-
-    def deactivate_many(self, ks):
-        pass
-
-    def observe_later(self):
-        r = {"kinetic_energy_translational": 1.0, "kinetic_energy_rotational": 0.5, "contacts": 0,
-             "elastic_energy": 0.0, "max_overlap": 0.0, "momentum": (0.0, 0.0, 0.0), "collisions": 0,
-             "temperature_translational": 1.0}
-        return lambda s: dict(r)
 
     def observe(self):
-        f = self.observe_later()
-        return [f(i) for i in range(self.n)]
+        return [dict(_OBS) for _ in range(self.n)]
+
+    def state(self, k, reuse=False):
+        raise NotImplementedError("no snapshots in this benchmark")
+
+    def contacts(self, k):
+        raise NotImplementedError("no checkpoints in this benchmark")
 
 
 def main() -> None:
@@ -79,7 +71,7 @@ def main() -> None:
     m, rounds = _Nothing.marks, len(scenes[0].events)
     between = sum(m[i + 1] - m[i] for i in range(1, len(m) - 1, 2))
     print(f"K = {k}, {rounds} stops per scene: between advances {between:.3f} s = "
-          f"{1e6 * between / rounds / k:.1f} us per scene and round; deferred units {_Nothing.inside:.3f} s")
+          f"{1e6 * between / rounds / k:.1f} us per scene and round")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,12 @@ compilation or its disk-cache load is part of the figure, as for a user who star
 * where the rest went (RunSummary.extra["timings"], engine/simulate.py TIMINGS): setup (spec, placement,
   velocities), build (device upload, first list), compile (or cache load), loop, records, snapshots,
   checkpoints, open and close of the file, and "other" (imports excluded: the clock starts at the call).
-  ``DEMQ_GPU_STARTUP=0`` turns off the GPU start-up thread (engine/startup.py) for an A/B.
+
+``--off NAME ...`` turns latency machinery of the GPU path off in the process that runs each case, before the case
+starts, for side-by-side A/B timings (see SWITCHES): ``startup`` (the start-up thread, engine/startup.py),
+``device_start`` (large starts drawn on the GPU, engine/start_kind.py), ``kernel_cache`` (the kernels' disk cache,
+engine/loops/cuda_cache.py), ``multigrid`` (the multigrid list build), ``multistep`` (the many-steps-per-launch
+loop: the per-phase loop at every size). Not for the worker cases, whose jobs run in processes of the service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
 that the step count is exact):
@@ -54,6 +59,30 @@ GPU_CASES = ("spheres-2M-f64", "spheres-2M-f32", "spheres-2M-mixed", "spheres-8M
              "spheres-8M-mixed", "batch-256x4096-2k",
              "batch-256x4096-20k", "worker-256x4096-20k", "worker-2M-f64", "ellipsoids-2M", "ellipsoids-rough-2M")
 CPU_CASES = ("quickstart", "cpu-16x512")
+
+
+#: --off name -> (module, setting, value when off): module-level settings of the engine, on by default
+SWITCHES = {
+    "startup": ("engine.startup", "ENABLED", False),
+    "device_start": ("engine.start_kind", "DEVICE_START", False),
+    "kernel_cache": ("engine.loops.cuda_cache", "ENABLED", False),
+    "multigrid": ("engine.loops.cuda_rebuild", "MULTIGRID", False),
+    "multistep": ("engine.loops.cuda_ensemble", "MULTISTEP", False),
+}
+
+
+def switch_off(names) -> None:
+    """Set the engine settings of ``names`` (keys of SWITCHES) to their off values in this process."""
+    import importlib
+
+    for name in names:
+        if name not in SWITCHES:
+            raise ValueError(f"--off: unknown switch {name!r}; known: {', '.join(SWITCHES)}")
+        module, setting, value = SWITCHES[name]
+        mod = importlib.import_module(module)
+        if not hasattr(mod, setting):
+            raise AttributeError(f"--off {name}: {module} has no setting {setting}")
+        setattr(mod, setting, value)
 
 
 def case_specs(case: str, quick: bool) -> dict:
@@ -128,10 +157,13 @@ def _sum_timings(summaries) -> dict:
     return out
 
 
-def run_case(case: str, quick: bool, workdir: Path) -> dict:
-    """Time one case in this process (the caller gives it a fresh one)."""
+def run_case(case: str, quick: bool, workdir: Path, off=()) -> dict:
+    """Time one case in this process (the caller gives it a fresh one), with the SWITCHES ``off`` turned off."""
     info = case_specs(case, quick)
     path, raw = info["path"], info["specs"]
+    if off and path == "worker":
+        raise ValueError(f"--off does not reach the jobs of case {case} (they run in the service's processes)")
+    switch_off(off)
     if path == "worker":
         return _run_worker(case, raw, workdir)
     if path == "cpu-ratio":
@@ -150,7 +182,7 @@ def run_case(case: str, quick: bool, workdir: Path) -> dict:
                     "records": int(specs[0].t_end / (specs[0].output_interval or specs[0].t_end / 200)) + 1,
                     "precision": specs[0].precision, "shape": specs[0].shape,
                     "list_mode": summary.extra.get("list_mode"),
-                    # engine/startup.py's thread (None: off, DEMQ_GPU_STARTUP=0, or no GPU)
+                    # engine/startup.py's thread (None: off, --off startup, or no GPU)
                     "gpu_startup": summary.extra.get("gpu_startup")})
         return row
     outs = [workdir / f"s{k}.h5" for k in range(len(specs))]
@@ -259,11 +291,12 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
             server.kill()
 
 
-def fresh_process(case: str, quick: bool) -> dict:
+def fresh_process(case: str, quick: bool, off=()) -> dict:
     """run_case in a new Python process (compilation / cache load counted, as for a user's first call)."""
     with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
         code = ("import json,sys; sys.path.insert(0, %r); from bench.e2e import run_case; from pathlib import Path; "
-                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r))))" % (str(ROOT), case, quick, d))
+                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r)))"
+                % (str(ROOT), case, quick, d, tuple(off)))
         p = subprocess.run([sys.executable, "-c", code], cwd=str(ROOT), capture_output=True, text=True)
         for line in p.stdout.splitlines():
             if line.startswith("E2E-ROW "):
@@ -285,6 +318,9 @@ def table(rows: list) -> str:
 
 def main(argv=None, out_dir=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--off", nargs="+", default=[], choices=sorted(SWITCHES), metavar="NAME",
+                    help="turn latency machinery off in each case's process, for A/B timings: "
+                    + ", ".join(f"{k} ({m}.{s} = {v})" for k, (m, s, v) in SWITCHES.items()))
     ap.add_argument("--cases", nargs="*", default=None, help="cases to run (default: the GPU cases when a GPU "
                     "is present, and the CPU cases)")
     ap.add_argument("--reps", type=int, default=1, help="runs per case (median of the end-to-end wall time)")
@@ -304,14 +340,15 @@ def main(argv=None, out_dir=None) -> int:
     def once(case):
         if args.same_process:
             with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
-                return run_case(case, args.quick, Path(d))
-        return fresh_process(case, args.quick)
+                return run_case(case, args.quick, Path(d), args.off)
+        return fresh_process(case, args.quick, args.off)
 
     for case in args.cases:
         first = once(case) if args.prime else None
         reps = [once(case) for _ in range(max(1, args.reps))]
         row = sorted(reps, key=lambda r: r["wall_s"])[(len(reps) - 1) // 2]   # median (lower for even)
         row["walls"] = [r["wall_s"] for r in reps]
+        row["off"] = list(args.off)
         row["runs"] = [{"wall_s": r["wall_s"], "loop_s": r["loop_s"], "timings": r["timings"],
                         "gpu_startup": r.get("gpu_startup")} for r in reps]
         if first is not None:

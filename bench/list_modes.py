@@ -9,7 +9,7 @@
    per stage, q (Eq. 5), G_max (Eq. 9), the measured gain G = t_seq / t_par - 1 (Eq. 7) and whether
    auto was within 5 % of the best mode. Also a G against G_max plot (paper 004 Fig. 5).
 2. Multigrid cost: GPU list-build time and time per step at size ratios 1, 2, 5, 10 with the multigrid
-   levels and with one grid of cell >= 2 R_max + L_v (DEMQ_CUDA_MULTIGRID=0), same start.
+   levels and with one grid of cell >= 2 R_max + L_v (engine.loops.cuda_rebuild.MULTIGRID = False), same start.
 
 Writes DIR/list_modes.json, DIR/list_modes.md and DIR/g_vs_gmax.png. ``--quick`` runs small scenes.
 """
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -136,13 +135,14 @@ def modes_table(scenes) -> list:
 def multigrid_cost(n=1_000_000, phi=0.2, ratios=(1, 2, 5, 10), reps=5) -> list:
     """GPU build time and step time, multigrid vs one grid, two species of equal solid volume."""
     from engine.backends.cuda import CudaBackend
+    from engine.loops import cuda_rebuild
 
     rows = []
     for ratio in ratios:
         sp = None if ratio == 1 else [(1.0, 1.0 / (1.0 + ratio ** 3)), (1.0 / ratio, ratio ** 3 / (1.0 + ratio ** 3))]
         row = {"ratio": ratio, "n": n, "phi": phi}
-        for label, env in (("multigrid", "1"), ("single grid", "0")):
-            os.environ["DEMQ_CUDA_MULTIGRID"] = env
+        for label, multigrid in (("multigrid", True), ("single grid", False)):
+            cuda_rebuild.MULTIGRID = multigrid
             system, c, _ = make_scene(n, phi, sp)
             be = CudaBackend(system, c)
             e = be.e
@@ -160,7 +160,7 @@ def multigrid_cost(n=1_000_000, phi=0.2, ratios=(1, 2, 5, 10), reps=5) -> list:
             row[label] = {"build_ms": 1e3 * t_build, "step_ms": 1e3 * t_step, "max_nb": e.max_nb,
                           "levels": e.levels[0].n_levels if e.multigrid else 1}
             del be, e
-        os.environ.pop("DEMQ_CUDA_MULTIGRID", None)
+        cuda_rebuild.MULTIGRID = True
         rows.append(row)
         print(json.dumps(row), flush=True)
     return rows

@@ -54,8 +54,8 @@ def _patch_loaded() -> None:
     groups = {
         "numba-cuda": ("numba.cuda.dispatcher", "CUDACache",
                        lambda m: _wrap(m.CUDACache, "_load_overload", "CUDA kernel cache load")),
-        "jitcache": ("engine.jitcache", "_FastLoadCache",
-                     lambda m: _wrap(m._FastLoadCache, "load_overload", "CPU cache load")),
+        "jitcache": ("engine.numba_internals", "FastLoadCache",
+                     lambda m: _wrap(m.FastLoadCache, "load_overload", "CPU cache load")),
         "scene": ("engine.scene", "_parallel_draws", lambda m: [
             _wrap(m, n, n) for n in ("initial_spheres", "initial_ellipsoids", "_draw_start", "_centre_and_square",
                                      "_scale_streams")]),

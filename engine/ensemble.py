@@ -1,4 +1,4 @@
-"""Many scenes in one run: ``run_ensemble`` packs specs into one ensemble backend (issue 8).
+"""Many scenes in one run: ``run_ensemble`` packs specs into one ensemble backend.
 
 ::
 
@@ -127,7 +127,7 @@ SETUP_THREADS_MIN_SCENES = 8
 
 
 def _setup_threads(specs) -> int:
-    """Threads for setting up the scenes of an ensemble (issue 14: 256 small scenes took 0.8 s on one): up to 8,
+    """Threads for setting up the scenes of an ensemble (256 small scenes took 0.8 s on one): up to 8,
     for 8 or more scenes whose starts are all drawn by NumPy (engine.scene, the sequential generator: each scene
     its own Generator, so a start does not depend on the thread; NumPy releases the GIL in its array loops).
     One thread otherwise: the parallel generator's prange code must not be entered by two threads at once."""

@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 
 from engine.numba_import import coverage_hidden
+from engine.numba_internals import make_fast_loading, stable_key_cache
 
 with coverage_hidden():
     import numba
@@ -22,7 +23,7 @@ _ENGINE = Path(__file__).resolve().parent
 
 def _hash_sources() -> str:
     h = hashlib.sha1()
-    for sub in ("physics", "backends", "shapes"):
+    for sub in ("physics", "loops", "backends", "shapes"):
         for f in sorted((_ENGINE / sub).rglob("*.py")):          # shape packages are sub-folders
             h.update(str(f.relative_to(_ENGINE)).encode())
             h.update(f.read_bytes())
@@ -61,13 +62,11 @@ def cache_closure(dispatcher, key: tuple):
 
     Numba keys a cached closure by a pickle of its cell contents; cells holding other dispatchers pickle
     differently in every process, so a fresh process would compile again (the same problem
-    engine/backends/cuda_cache.py solves for the CUDA kernels). The digest covers every source the closure
-    compiles in, so an edit never loads stale machine code. Returns ``dispatcher``.
+    engine/loops/cuda_cache.py solves for the CUDA kernels). The digest covers every source the closure
+    compiles in, so an edit never loads stale machine code. Where the cache cannot be attached (no cache locator
+    for the file, e.g. a read-only install; another numba) the closure compiles as before. Returns ``dispatcher``.
     """
-    try:
-        dispatcher._cache = _StableKeyCache(dispatcher.py_func, (source_digest(),) + tuple(str(k) for k in key))
-    except Exception:  # no cache locator for this file (e.g. read-only install): compile as before
-        pass
+    stable_key_cache(dispatcher, (source_digest(),) + tuple(str(k) for k in key))
     return dispatcher
 
 
@@ -78,39 +77,9 @@ def fast_loads(namespace: dict) -> None:
     numba refreshes the target context before every cache load "to ensure it is initialized". On the CPU target
     that installs every lowering registry and imports scipy.linalg for numba's BLAS check: 0.25-0.4 s of Python,
     once per process, under the GIL (part of a fresh process's time to result). A load needs only the symbols
-    its linked machine code calls: numba's C helpers and libm (registered when the context is created), the NRT
-    (the one part of the refresh kept here: ``rtsys.initialize``), the hash secret (``numba.cpython.hashing``,
-    imported here) and a parallel function's thread pool (started by the load's own ``reload_init``). Any
-    compilation (a cache miss, a new signature) still refreshes the context itself
-    (numba.core.compiler.CompilerBase). A dispatcher whose cache is not numba's plain FunctionCache is left alone.
+    its linked machine code calls (engine/numba_internals.py, FastLoadCache). Any compilation (a cache miss, a new
+    signature) still refreshes the context itself. A dispatcher whose cache is not numba's plain FunctionCache is
+    left alone.
     """
-    if _FastLoadCache is None:
-        return
     for obj in list(namespace.values()):
-        cache = getattr(obj, "_cache", None)
-        if type(cache) is _FunctionCache:
-            cache.__class__ = _FastLoadCache        # same state, one method different
-
-
-try:
-    from numba.core.caching import FunctionCache as _FunctionCache
-    from numba.core.runtime import rtsys as _rtsys
-
-    class _FastLoadCache(_FunctionCache):
-        """numba's FunctionCache, whose loads skip the target refresh (see :func:`fast_loads`)."""
-
-        def load_overload(self, sig, target_context):
-            _rtsys.initialize(target_context)      # the parts of the refresh a load needs (see fast_loads)
-            import numba.cpython.hashing  # noqa: F401
-            with self._guard_against_spurious_io_errors():
-                return self._load_overload(sig, target_context)
-
-    class _StableKeyCache(_FastLoadCache):
-        def __init__(self, py_func, stable):
-            self._stable = stable
-            super().__init__(py_func)
-
-        def _index_key(self, sig, codegen):
-            return (sig, codegen.magic_tuple(), self._stable)
-except ImportError:  # another numba layout: cache_closure leaves the closure uncached, fast_loads does nothing
-    _FunctionCache = _FastLoadCache = _StableKeyCache = None
+        make_fast_loading(obj)

@@ -32,10 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import shutil
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -272,14 +270,9 @@ class SceneRun:
                                      deferred=self.defer_file, **common)
         self.timings["open"] += time.perf_counter() - t0
 
-    def at_stop(self, view, defer: Optional[Callable[[Callable[[], None]], None]] = None) -> None:
+    def at_stop(self, view) -> None:
         """Handle the stop the scene has reached: each writer whose trigger fires here acts (engine/writers/:
-        records with the energy check, snapshot, progress, checkpoint).
-
-        ``defer(fn)``, when given, takes the work of a stop that only records (no snapshot, checkpoint or end):
-        the driver runs ``fn`` while the GPU does the next steps, and in any case before this scene's next stop
-        (engine.simulate.drive, _Deferred). The observables are read now; the record, energy check and progress
-        report are the same, only later."""
+        records with the energy check, snapshot, progress, checkpoint)."""
         if self.phase == "thermalization":
             self._thermalization_stop(view)
             return
@@ -287,10 +280,6 @@ class SceneRun:
         step_done = self.step_done
         t_sim = step_done * p.dt
         ck_due = self.ck.due() and step_done < p.n_steps
-        if defer is not None and not self.snapshots.trigger(step_done) and step_done < p.n_steps and not ck_due:
-            defer(self._record_later(view.observe_later(), step_done, t_sim))
-            self._next_event()
-            return
         tm = self.timings
         t0 = time.perf_counter()
         obs = self._counted(view.observe())
@@ -324,18 +313,6 @@ class SceneRun:
             self._enter_cooling(skip_current=False)
         else:
             self._target = min(self.step_done + self._chunk, p.n_thermalization_steps)
-
-    def _record_later(self, obs_later: Callable[[], dict], step_done: int, t_sim: float) -> Callable[[], None]:
-        """The record work of a stop, done when the returned function is called (the driver's deferred work)."""
-        tm, p = self.timings, self.p
-
-        def later() -> None:
-            t0 = time.perf_counter()
-            self._record(step_done, t_sim, self._counted(obs_later()))
-            tm["records"] += time.perf_counter() - t0
-            self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
-
-        return later
 
     def _record(self, step_done: int, t_sim: float, obs: dict) -> None:
         """The records writer at a stop (engine/writers/records.py: the record when its trigger fires there, and the
@@ -448,17 +425,6 @@ class _SceneView:
             self.cache["all"] = self.ens.observe()
         return self.cache["all"][self.i]
 
-    def observe_later(self) -> Callable[[], dict]:
-        """A function giving :meth:`observe`'s dict: the values are queued now and read and built when it is
-        called where the ensemble's device allows (CUDA; one observation per round, shared by the round's scenes),
-        else read now."""
-        if not self._shared:
-            return self.ens.observe_scene_later(self.i)
-        if "later" not in self.cache:
-            self.cache["later"] = self.ens.observe_later()
-        f, i = self.cache["later"], self.i
-        return lambda: f(i)
-
     def state(self, reuse=False) -> dict:
         """Scene i's state in id order; ``reuse`` (True or a buffer slot): the arrays may be buffers that the
         next call with the same slot overwrites."""
@@ -470,54 +436,6 @@ class _SceneView:
     def set_contact(self, contact: ContactParams) -> None:
         self.ens.set_contact(self.i, contact)
         self.cache.pop("all", None)
-        self.cache.pop("later", None)
-
-
-#: environment switch: "0" = a stop's record work is done at once, not while the GPU does the next steps
-OVERLAP_RECORDS_ENV = "DEMQ_OVERLAP_RECORDS"
-
-
-class _Deferred:
-    """The record work of the last round's stops (issue 14 item 4: the GPU stays busy across records).
-
-    An ensemble that ``waits_for_device`` (CUDA) calls its ``idle`` hook, :meth:`run_one`, :meth:`run_one` while it waits for the
-    GPU in its next advance; what is left runs in :meth:`drain`, before the next round's stops. A scene's units
-    run in order, and all of them before its next stop, snapshot, checkpoint or end. A unit's error (e.g. the
-    energy check's InstabilityError) is kept for the driver, which ends that scene; its later units are dropped.
-    Off (``on`` False) for ensembles that do not wait for a device and with DEMQ_OVERLAP_RECORDS=0.
-    """
-
-    def __init__(self, ens):
-        self.on = ens.waits_for_device and os.environ.get(OVERLAP_RECORDS_ENV) != "0"
-        self.units: deque = deque()
-        self.errors: list = []
-        if self.on:
-            ens.idle = self.run_one
-
-    def for_scene(self, i: int) -> Optional[Callable]:
-        return (lambda fn: self.units.append((i, fn))) if self.on else None
-
-    def run_one(self) -> bool:
-        if not self.units:
-            return False
-        i, fn = self.units.popleft()
-        try:
-            fn()
-        except Exception as exc:  # this scene's error: the driver ends it
-            self.errors.append((i, exc))
-            self.drop(i)
-        return True
-
-    def drain(self) -> list:
-        """Run every unit left; return [(scene, error)] of the units that failed since the last drain."""
-        while self.run_one():
-            pass
-        errors, self.errors = self.errors, []
-        return errors
-
-    def drop(self, i: int) -> None:
-        if any(u[0] == i for u in self.units):
-            self.units = deque(u for u in self.units if u[0] != i)
 
 
 def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
@@ -535,8 +453,7 @@ def drive(scenes: list, build: Callable, build_one: Optional[Callable] = None,
     scene drops out with Cancelled, its partial file removed); the active scenes are advanced — by their
     own distances to their next stops when the ensemble has ``independent_steps`` (and ``lockstep`` is not
     True), else all by the distance to the nearest stop of any scene (``advance``); then every scene at a
-    stop handles it (a stop that only records, on an ensemble that ``waits_for_device``, hands its record work to
-    the next advance's waits for the GPU: :class:`_Deferred`). A scene that blows up (InstabilityError from the
+    stop handles it. A scene that blows up (InstabilityError from the
     ensemble or its own checks) drops out with that error and only its file is aborted; a finished scene writes
     its file and drops out.
     An error of the ensemble itself (not of one scene) ends every active scene with that error;
@@ -598,13 +515,11 @@ class _Runner:
         self.on_result, self.shared = on_result, shared
         self.size = len(runs)
         self.active: set = set()
-        self.deferred = _Deferred(ens)
         # per scene, made once (a stop costs host time while the GPU waits for the next round): its view of the
-        # ensemble, whose round cache is one dict cleared every round, and its deferral hook
+        # ensemble, whose round cache is one dict cleared every round
         self.cache: dict = {}
         frame_slots = FrameSlots()
         self.views = [_SceneView(ens, i, self.cache, frame_slots) for i in range(self.size)]
-        self.defers = [self.deferred.for_scene(i) for i in range(self.size)]
         self.per_scene = ens.independent_steps and not lockstep
 
     def run(self) -> None:
@@ -627,8 +542,7 @@ class _Runner:
                 failed = self.advance()
                 if failed is None:
                     break
-                # the last round's records first (what the GPU's steps left of them): an error there is earlier
-                for i, exc in list(self.deferred.drain()) + list(failed.items()):
+                for i, exc in failed.items():
                     if i in self.active:
                         self.end(i, exc)
                 self.cache.clear()
@@ -692,7 +606,7 @@ class _Runner:
         done, at_start = [], set()
         for i in sorted(i for i in self.active if runs[i].steps_to_next() == 0):
             try:
-                runs[i].at_stop(self.views[i], self.defers[i])
+                runs[i].at_stop(self.views[i])
             except Exception as exc:
                 self.end(i, exc)
                 continue
@@ -712,7 +626,6 @@ class _Runner:
             self.on_result(self.live[i], result)
 
     def end(self, i: int, exc: BaseException) -> None:
-        self.deferred.drop(i)
         self.runs[i].abort()
         self.settle(i, exc)
 

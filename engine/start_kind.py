@@ -18,7 +18,6 @@ sphere starts, denser gases). ``spec.thermalization = null`` is what that start 
 
 from __future__ import annotations
 
-import os
 
 from engine.scales import species_table
 
@@ -26,8 +25,9 @@ from engine.scales import species_table
 PARALLEL_START_MIN = 1 << 20
 SEQUENTIAL_GENERATOR = "numpy-pcg64"
 PARALLEL_GENERATOR = "splitmix64-counter"
-#: environment switch: "0" = large starts are drawn on the host even for a GPU job (A/B timings)
-DEVICE_START_ENV = "DEMQ_DEVICE_START"
+#: False: large starts are drawn on the host even for a GPU job (bench/e2e.py ``--off device_start`` sets it, for
+#: A/B timings)
+DEVICE_START = True
 
 RANDOM = "random"
 LATTICE = "lattice"
@@ -79,6 +79,5 @@ def start_generator(spec) -> str:
 
 def device_start(spec) -> bool:
     """Whether a GPU job of ``spec`` draws its start on the device (engine/backends/cuda_start.py): a large
-    one-size sphere lattice start (the parallel generator), unless DEMQ_DEVICE_START=0."""
-    return spec.shape == "sphere" and start_generator(spec) == PARALLEL_GENERATOR and \
-        os.environ.get(DEVICE_START_ENV) != "0"
+    one-size sphere lattice start (the parallel generator), unless :data:`DEVICE_START` is False."""
+    return DEVICE_START and spec.shape == "sphere" and start_generator(spec) == PARALLEL_GENERATOR

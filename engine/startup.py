@@ -1,4 +1,4 @@
-"""The GPU's start-up, overlapped with the host's set-up of a job (issue 14: time to result).
+"""The GPU's start-up, overlapped with the host's set-up of a job (time to result).
 
 A process's first CUDA job pays one-off costs before its first step: the CUDA driver's start-up and the primary
 context (driver calls, which release the GIL), and the load of its kernels from numba-cuda's disk cache (their
@@ -27,7 +27,8 @@ it to a second small thread that calls the driver library through ctypes first, 
 imports numba.cuda (about 0.2 s); numba-cuda then finds the driver started and retains the same primary context.
 That thread's own reference to the context is released once numba-cuda holds one.
 
-``DEMQ_GPU_STARTUP=0`` turns both off (A/B timings: ``python3 -m bench.e2e``).
+``ENABLED = False`` turns both off (for A/B timings only: ``python -m bench.e2e --off startup`` sets it in the case's
+process).
 """
 
 from __future__ import annotations
@@ -40,8 +41,8 @@ from typing import Optional
 
 #: particles per edge of the stand-in lattice (8^3 = 512: every kernel launches with real data, in microseconds)
 STANDIN_EDGE = 8
-#: environment switch: "0" = no start-up thread
-ENV = "DEMQ_GPU_STARTUP"
+#: False: no start-up thread and no early driver start (bench/e2e.py ``--off startup`` sets it, for A/B timings)
+ENABLED = True
 
 _lock = threading.Lock()
 #: specialisation key -> its GpuStartup (one per process and key: later jobs find the kernels loaded)
@@ -100,7 +101,7 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
     ``contacts`` the contact constants the driver compiles for (in order) and ``p`` its derived parameters.
 
     None when there is nothing to start: backend 'cpu', the CUDA simulator, no NVIDIA driver,
-    ``DEMQ_GPU_STARTUP=0``. A second job of the same specialisation in this process gets the first one's (finished
+    :data:`ENABLED` False. A second job of the same specialisation in this process gets the first one's (finished
     or running) start-up.
     """
     global _early
@@ -161,7 +162,7 @@ def release_early() -> None:
 
 
 def _wanted(backend: str) -> bool:
-    return not (backend == "cpu" or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or os.environ.get(ENV) == "0"
+    return not (backend == "cpu" or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1" or not ENABLED
                 or not nvidia_driver())
 
 

@@ -36,7 +36,7 @@ def nvidia_driver() -> bool:
 
 def no_nvidia_driver() -> bool:
     """Linux without a loaded NVIDIA driver: no CUDA GPU can be used, which :func:`cuda_available` then answers
-    without importing numba-cuda (0.2 s of a CPU job's set-up, issue 14). Other systems: False (ask numba-cuda)."""
+    without importing numba-cuda (0.2 s of a CPU job's set-up). Other systems: False (ask numba-cuda)."""
     return sys.platform.startswith("linux") and not nvidia_driver()
 
 

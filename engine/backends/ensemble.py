@@ -1,4 +1,4 @@
-"""Ensembles: K independent scenes advanced together by one backend (issue 8).
+"""Ensembles: K independent scenes advanced together by one backend.
 
 The interface every ensemble implements in full (:class:`engine.backends.protocol.Ensemble`, an abstract base
 class; what an ensemble cannot do is the base class's explicit default)::
@@ -12,8 +12,8 @@ class; what an ensemble cannot do is the base class's explicit default)::
     deactivate(k)               a finished / cancelled / failed scene drops out; never advanced again
     observe() -> [dict | None]  per scene, the keys of a single backend's observe(); None when inactive
     state(k, reuse), contacts(k) host copies of scene k (snapshots, checkpoints)
-    set_contacts, advance_each, deactivate_many, observe_scene, observe_later, observe_scene_later, plan,
-    scene_builds, scene_info; independent_steps, shares_observation, waits_for_device, idle
+    set_contacts, advance_each, deactivate_many, observe_scene, plan, scene_builds, scene_info;
+    independent_steps, shares_observation
 
 Scene indices are the positions of the systems given to the constructor and never change.
 
@@ -36,7 +36,7 @@ a single scene; :func:`resolve_backend` says which backend a name resolves to wi
 
 from __future__ import annotations
 
-from typing import Callable, Mapping, Sequence
+from typing import Mapping, Sequence
 
 from engine.backends.base import ContactParams, cuda_available
 from engine.backends.protocol import Ensemble
@@ -89,7 +89,6 @@ class SerialEnsemble(Ensemble):
         self.n_scenes = len(self._backends)
         self._active = [True] * self.n_scenes
         self._builds_of_dropped = 0
-        self._idle = None
 
     # ---- the Ensemble interface -------------------------------------------------------------------
 
@@ -151,27 +150,6 @@ class SerialEnsemble(Ensemble):
 
     def observe_scene(self, k: int) -> dict:
         return self._backend(k).observe()
-
-    def observe_scene_later(self, k: int) -> Callable[[], dict]:
-        """A function giving scene k's observables: read later where its backend can (CUDA), else now."""
-        return self._backend(k).observe_later()
-
-    @property
-    def waits_for_device(self) -> bool:
-        """True when every backend waits for a device (CUDA) and can run the driver's :attr:`idle` work."""
-        return all(b.waits_for_device for b in self._backends if b is not None)
-
-    @property
-    def idle(self):
-        """The driver's hook for work while a backend waits for its device (engine/simulate.py ``_Deferred``)."""
-        return self._idle
-
-    @idle.setter
-    def idle(self, fn) -> None:
-        self._idle = fn
-        for b in self._backends:
-            if b is not None:
-                b.idle = fn
 
     def state(self, k: int, reuse=False) -> dict:
         return self._backend(k).state(reuse=reuse)

@@ -1,6 +1,6 @@
 """The two interfaces the driver (engine/simulate.py) talks to: :class:`Backend` (one scene) and :class:`Ensemble`
 (K scenes advanced together). Every concrete class implements its interface in full: what a class cannot do
-(wait for a device, hand out reused state buffers, build lists on the host) it gets as the explicit default of
+(hand out reused state buffers, build lists on the host) it gets as the explicit default of
 the base class below, never by the driver probing for a method. tests/engine/test_protocol.py checks every
 concrete class against these bases (no abstract method left, the same parameters).
 
@@ -12,7 +12,7 @@ CUDA ensembles (subclasses of engine.loops.cuda_ensemble.CudaEnsembleBase) are e
 from __future__ import annotations
 
 import abc
-from typing import Callable, ClassVar, Mapping, Optional
+from typing import ClassVar, Mapping
 
 from engine.loops.system import ContactParams
 
@@ -27,12 +27,6 @@ class Backend(abc.ABC):
     name: ClassVar[str]
     device: str
     builds: int
-    #: True where ``advance`` waits for a device and runs :attr:`idle` meanwhile (the driver then hands it the
-    #: record work of the last stops: engine/simulate.py, _Deferred)
-    waits_for_device: ClassVar[bool] = False
-    #: the driver's work for the host while the backend waits for its device: called, it runs one small unit and
-    #: returns True, or False when none is left; None: no such work. Ignored where ``waits_for_device`` is False.
-    idle: Optional[Callable[[], bool]] = None
 
     @abc.abstractmethod
     def set_contact(self, contact: ContactParams) -> None:
@@ -59,12 +53,6 @@ class Backend(abc.ABC):
     @abc.abstractmethod
     def contacts(self) -> tuple:
         """(pairs (M, 2) int64 ids, history (M, words)) of the list slots in contact."""
-
-    def observe_later(self) -> Callable[[], dict]:
-        """A function giving :meth:`observe`'s dict. Default: read now (a device backend queues the read and
-        builds the dict when the function is called)."""
-        obs = self.observe()
-        return lambda: obs
 
     def plan(self, steps: int) -> None:
         """The run goes on for about ``steps`` more steps (the CUDA auto list mode weighs a probe against it).
@@ -93,9 +81,6 @@ class Ensemble(abc.ABC):
     #: True where one :meth:`observe` of every scene costs about what one scene's does (packed ensembles): the
     #: driver then observes once per round and shares the result between the scenes that stop in it
     shares_observation: ClassVar[bool] = False
-    #: True where ``advance`` waits for a device and runs :attr:`idle` meanwhile (see :class:`Backend`)
-    waits_for_device: ClassVar[bool] = False
-    idle: Optional[Callable[[], bool]] = None
 
     @abc.abstractmethod
     def set_contact(self, k: int, contact: ContactParams) -> None:
@@ -148,17 +133,6 @@ class Ensemble(abc.ABC):
     def observe_scene(self, k: int) -> dict:
         """Scene k's observables (default: from :meth:`observe`)."""
         return self.observe()[k]
-
-    def observe_later(self) -> Callable[[int], dict]:
-        """f(k) giving scene k's observables: queued now, read when called where the device allows; default:
-        read now."""
-        obs = self.observe()
-        return lambda k: obs[k]
-
-    def observe_scene_later(self, k: int) -> Callable[[], dict]:
-        """A function giving scene k's observables (default: read now)."""
-        obs = self.observe_scene(k)
-        return lambda: obs
 
     def plan(self, steps: int) -> None:
         """The run goes on for about ``steps`` more steps (see :meth:`Backend.plan`). Default: not used."""

@@ -31,29 +31,30 @@ interface, for code that drives one backend by hand (tests, bench).
 from __future__ import annotations
 
 import abc
-import os
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 from numba import cuda
-from numba.cuda.cudadrv.driver import device_memset
 
 from engine.backends.protocol import Backend, Ensemble
 from engine.errors import BackendUnavailable, InstabilityError
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_frames import StateFrames
-from engine.loops.cuda_launch import LaunchCache
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
 from engine.loops.system import ContactParams, cell_grid
+from engine.numba_internals import device_memset
 from engine.precision import check_shape, position_dtype, state_dtype
 
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together);
 #: measured on an H200 (bench/gpu_ensemble.py): 10x faster at 4096, equal at 2^20, 25 % slower at 2^22
-#: (a grid of co-resident blocks loops over many particles per thread); DEMQ_CUDA_MULTISTEP=0/1 forces it
+#: (a grid of co-resident blocks loops over many particles per thread)
 MULTISTEP_MAX_PARTICLES = 1024 * 1024
+#: None: the loop by size (MULTISTEP_MAX_PARTICLES); True / False forces the many-steps or the per-phase loop (tests
+#: and bench set it, for comparisons)
+MULTISTEP = None
 
 
 class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble):
@@ -67,12 +68,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     name = "cuda"
     #: the particle shape (engine/shapes/SHAPES key) whose CUDA parts specialise the time loop (set by the subclass)
     shape: str
-    #: the driver's work for the host while it waits for the GPU (engine/simulate.py, _Deferred: the records
-    #: of the last stops): called in the waits, it runs one small unit and returns True, or False when none is left
-    idle: Optional[Callable[[], bool]] = None
-    #: the Ensemble interface's capabilities: waits for the GPU (running ``idle``); one observe launch serves
-    #: every scene; all scenes advance together
-    waits_for_device = True
+    #: the Ensemble interface's capabilities: one observe launch serves every scene; all scenes advance together
     shares_observation = True
     #: the Verlet list of a lone scene may be built on the host (cuda_listmodes.HostLists; spheres)
     host_lists = False
@@ -124,8 +120,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.tpb = 32 if SIM else 256
         self.sm_count = 1 if SIM else cuda.get_current_device().MULTIPROCESSOR_COUNT
         self.max_blocks = 2 if SIM else self.sm_count * 16
-        env = os.environ.get("DEMQ_CUDA_MULTISTEP")
-        self.multistep = (env == "1") if env in ("0", "1") else n <= MULTISTEP_MAX_PARTICLES
+        self.multistep = n <= MULTISTEP_MAX_PARTICLES if MULTISTEP is None else MULTISTEP
         self._exit_thr = 1.0  # run_steps exits when (displacement / (L_v/2))^2 exceeds it
         self._horizon: Optional[int] = None     # the driver's plan: the run ends about here (plan())
         self._call_end: Optional[int] = None    # the current advance call ends here
@@ -136,7 +131,6 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._coop_blocks = None                # blocks of the cooperative launch (made at its first use)
         self._pending: dict = {}                # scenes that failed at t = 0, reported by the first advance
         self.stream = cuda.stream()
-        self._lc = LaunchCache()   # the per-step kernels' launches (engine/loops/cuda_launch.py)
         self.steps_done = 0
         self.builds = 0
         self.late_rebuilds = 0
@@ -251,7 +245,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         """Host (n_a, rows) -> columns [col0, col0 + n_a) of the device (rows, N) array ``dst``, in its precision. The
         host array goes up as it is (float32 and float64; anything else as float64) and the device transposes and
         casts it (K.scatter_rows, the same round-to-nearest cast as NumPy's): a host transposition of a large start
-        cost more than the upload itself (issue 14, set-up)."""
+        cost more than the upload itself."""
         a = np.asarray(a)
         if a.dtype not in (np.float32, np.float64):
             a = a.astype(np.float64)
@@ -272,7 +266,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         if SIM:
             a.copy_to_device(np.zeros(shape, dtype), stream=self.stream)
         elif a.size:
-            device_memset(a, 0, a.nbytes, stream=self.stream)
+            device_memset(a, 0, self.stream)
         return a
 
     @staticmethod
@@ -409,7 +403,6 @@ class CudaSceneBackend(Backend):
     ``e`` is the one-scene ensemble; what else is read of it here is named below."""
 
     name = "cuda"
-    waits_for_device = True
     #: the ensemble class whose one scene this backend is (the shape's subclass sets it)
     ensemble_class: type
 
@@ -458,15 +451,6 @@ class CudaSceneBackend(Backend):
     def profile(self, value: Optional[dict]) -> None:
         self.e.profile = value
 
-    @property
-    def idle(self) -> Optional[Callable[[], bool]]:
-        """The driver's work for the waits for the GPU (the ensemble's :attr:`CudaEnsembleBase.idle`)."""
-        return self.e.idle
-
-    @idle.setter
-    def idle(self, fn: Optional[Callable[[], bool]]) -> None:
-        self.e.idle = fn
-
     # ---- the Backend interface ------------------------------------------------------------------------
 
     def set_contact(self, contact: ContactParams) -> None:
@@ -492,11 +476,6 @@ class CudaSceneBackend(Backend):
 
     def observe(self) -> dict:
         return self.e.observe()[0]
-
-    def observe_later(self) -> Callable[[], dict]:
-        """:meth:`observe`, read when the returned function is called (:meth:`CudaEnsembleBase.observe_later`)."""
-        f = self.e.observe_later()
-        return lambda: f(0)
 
     def state(self, reuse=False) -> dict:
         return self.e.state(0, reuse)

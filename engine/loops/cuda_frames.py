@@ -17,6 +17,7 @@ from numba import cuda
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
+from engine.numba_internals import page_lock
 from engine.pieces import map_pieces
 
 #: a snapshot buffer slot (all state arrays of the largest scene) larger than this is pageable memory, page-locked in
@@ -41,7 +42,7 @@ class StateFrames:
         self._frames_taken = 0
 
     def _scene_rows(self, k: int, reuse=False) -> dict:
-        """Scene k's state arrays (n_k, rows) in particle-id order, keyed as in :meth:`state_arrays` (issue 14): per array
+        """Scene k's state arrays (n_k, rows) in particle-id order, keyed as in :meth:`state_arrays`: per array
         a kernel gathers the scene's slots into id order on the device, into one reused staging buffer, and
         one copy moves exactly those n_k rows into a reused host buffer (:meth:`_host_slot`); one sync for all.
         ``reuse``: False returns copies; True or a buffer slot number returns views of that slot's host
@@ -142,15 +143,14 @@ def _big_slot(shapes: dict) -> bool:
 
 
 def _page_locked(arrays) -> Optional[list]:
-    """Page-lock host arrays in place (cuMemHostRegister, through numba-cuda's Context.mempin): copies to and from
+    """Page-lock host arrays in place (engine.numba_internals.page_lock: cuMemHostRegister): copies to and from
     them run at pinned speed and asynchronously. The returned handles keep the registration until they are
     collected, and keep their arrays alive. None under the simulator or when the driver refuses (the arrays stay
     pageable)."""
     if SIM:
         return None
     try:
-        ctx = cuda.current_context()
-        return [ctx.mempin(a, a.ctypes.data, a.nbytes, mapped=False) for a in arrays]
+        return page_lock(arrays)
     except Exception:  # noqa: BLE001  (no page-locked memory to be had: pageable copies, as before)
         return None
 

@@ -7,7 +7,7 @@ single-grid neighbour-list kernels (:func:`grid_kernels`: cells, scan, scatter, 
 compact history store, full Verlet list build; the cell arithmetic is engine/cells.py's). The time loop is
 engine/loops/cuda_loop.py's, specialised by a shape's device functions (engine/shapes/<shape>/device.py);
 the multigrid and CPU-built lists are engine/loops/cuda_lists.py's. Kernels are built by factories keyed on
-what the scenes need (DESIGN §1) and call the same ``@numba.njit`` functions as the CPU backend.
+what the scenes need (docs/design.md §1) and call the same ``@numba.njit`` functions as the CPU backend.
 
 Layout (device, structure of arrays, particle index fastest). The scenes lie back to back: scene s owns
 the slots [start_s, start_s + n_s) and keeps them (its cells come before the next scene's, so the cell
@@ -23,7 +23,7 @@ sort never moves a particle into another scene's range); ``sc[i]`` is the scene 
     at the previous step or overlapping now) are copied to cj/chist before the list is rebuilt in place;
     every other slot restarts from zero history with the current gap as its previous overlap, which gives
     the same forces bit for bit (a pair apart at the previous step has zero spring, and its previous
-    dashpot force is never read). This keeps one list buffer instead of two (issue 3's memory target).
+    dashpot force is never read). This keeps one list buffer instead of two (a smaller GPU memory footprint per particle).
 Per-scene constants: spd (K, ND + the shape's columns) in the working precision, spf (K, NF) float64,
 spi (K, NI) int32; a scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or
 failed: a blow-up clears it on the device so a failing scene cannot disturb the others).
@@ -366,7 +366,7 @@ def gather_scene(src, ids, a0, n_k, dst):
 def scatter_rows(src, a0, dst):
     """dst[r, a0 + i] = src[i, r], cast to dst's type: a host (n, rows) array, uploaded as it is, into the rows
     of a (rows, N) state array from column a0 (the transposition and the precision cast of an upload run on the
-    device: issue 14, set-up)."""
+    device, which shortens a job's set-up)."""
     for i in range(cuda.grid(1), src.shape[0], cuda.gridsize(1)):
         for r in range(src.shape[1]):
             dst[r, a0 + i] = src[i, r]

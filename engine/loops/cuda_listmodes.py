@@ -25,7 +25,7 @@ Three ways to get the GPU its neighbour list (``list_mode``):
                      prediction is repeated every ``REPROBE`` stages (q changes as a gas cools).
                      The probe and a trial cost time (pinned buffers, the builder's set-up, the CPU
                      build beside the GPU's driver thread, stages in a slower mode), so ``auto`` probes
-                     only when what is left of the run could repay them (issue 14): at least
+                     only when what is left of the run could repay them: at least
                      ``MIN_STAGES_LEFT`` stages (a trial of TRIAL_STAGES stages and the probe repaid by a
                      SWITCH_MARGIN gain) and ``MIN_WALL_LEFT_S`` seconds. The steps left are the
                      ensemble's: the driver's horizon (``CudaEnsemble.plan``) or the current

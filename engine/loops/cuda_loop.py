@@ -254,7 +254,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     def observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc):
         """acc[s] += the shape's observe sums (its ``observe_one``), one slot a maximum; per particle in
         float64, one block row per scene (blockIdx.y = s), reduced per block (observe_reducer): O(blocks)
-        atomics, not O(N) on K x NOBS addresses (issue 14)."""
+        atomics, not O(N) on K x NOBS addresses."""
         s = cuda.blockIdx.y
         sh = cuda.shared.array(SH_OBS, ct.float64)
         vals = cuda.local.array(NOBS, ct.float64)

@@ -11,7 +11,6 @@ built on the host instead (engine/loops/cuda_listmodes.py, paper 004 §3).
 from __future__ import annotations
 
 import math
-import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -21,6 +20,10 @@ from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
 from engine.loops.system import SphereSystem
+
+#: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (bench/list_modes.py sets it, for the cost
+#: comparison with the multigrid build)
+MULTIGRID = True
 
 
 class ListBuilds:
@@ -156,8 +159,8 @@ class ListBuilds:
         """Grid levels per scene (paper 004 Algorithm 1, :mod:`engine.multigrid`) when some scene's size
         spread needs more than one; monodisperse ensembles keep the single-grid build."""
         self.multigrid = False
-        if self.uniform or not isinstance(systems[0], SphereSystem) or os.environ.get("DEMQ_CUDA_MULTIGRID") == "0":
-            return  # (DEMQ_CUDA_MULTIGRID=0: one grid of cell >= 2 R_max + L_v, for the cost comparison)
+        if self.uniform or not isinstance(systems[0], SphereSystem) or not MULTIGRID:
+            return
         from engine.multigrid import grid_levels, main_level
         levels = [grid_levels(self.box[s], sy.n, float(np.min(sy.radius)), float(np.max(sy.radius)),
                               contacts[s].skin) if sy.n else None for s, sy in enumerate(systems)]

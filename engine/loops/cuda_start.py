@@ -1,4 +1,4 @@
-"""Large starts drawn on the GPU (issue 14: time to result).
+"""Large starts drawn on the GPU (a job's time to result).
 
 A GPU job of a large one-size sphere start (engine.scene.device_start) does not draw its start on the host and
 upload it: the sphere's CUDA ensemble (engine/shapes/sphere/cuda_backend.py) draws it into its own state arrays when it is built, from an

@@ -2,8 +2,7 @@
 
 Two loops, chosen by size (``multistep``): many steps per cooperative launch (small scenes and ensembles of them),
 returning to the host only at the end of the call or when a rebuild is due; or one launch per phase (large scenes),
-the rebuild decided from the previous step's status already copied to pinned memory. While it waits for the GPU the
-loop runs the driver's ``idle`` work. A scene that blows up is stopped on the device and reported alone.
+the rebuild decided from the previous step's status already copied to pinned memory. A scene that blows up is stopped on the device and reported alone.
 """
 
 from __future__ import annotations
@@ -22,14 +21,14 @@ from engine.loops.status import BAD_VALUE, OVERLAP, instability_error as _instab
 
 class TimeLoop:
     """The stepping part of a CUDA ensemble. The ensemble provides its device arrays and tables, ``k`` (kernels),
-    ``_lc`` (launch cache), ``stream``, ``lists``, ``idle`` and :meth:`_step_arrays`."""
+    ``stream``, ``lists`` and :meth:`_step_arrays`."""
 
     def _forces(self, step: int, n: int | None = None, grid=None) -> None:
         spin, _, rad, ext = self._step_arrays()
         n = self.n if n is None else n
-        self._lc.launch("forces", self.k["forces"], grid or self._grid(n), (
+        self.k["forces"][grid or self._grid(n)](
             n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
-            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
+            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
 
     def _coop_grid(self) -> tuple:
         """Blocks of the cooperative launch: all co-resident (a grid sync needs it)."""
@@ -47,9 +46,9 @@ class TimeLoop:
     def _kick_drift(self, first: int, step: int, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, ext = self._step_arrays()
         n = self.n if n is None else n
-        self._lc.launch("kick_drift", self.k["kick_drift"], grid or self._grid(n), (
+        self.k["kick_drift"][grid or self._grid(n)](
             n, first, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.inv_m1, spin_inv,
-            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
+            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
 
     def _half_kick(self, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, _ = self._step_arrays()
@@ -171,11 +170,11 @@ class TimeLoop:
             # displacements and speeds are normalised by each scene's L_v/2
             if prev is None:
                 # first step of the call: this step's displacement is known exactly
-                self._wait_event(self.events[slot])
+                self.events[slot].synchronize()
                 h = self.status_h[slot]
                 rebuild = math.sqrt(h[K.S_D2]) > 1.0
             else:
-                self._wait_event(self.events[prev])
+                self.events[prev].synchronize()
                 h = self.status_h[prev]
                 if not rebuilt_prev and math.sqrt(h[K.S_D2]) > 1.0:
                     self.late_rebuilds += 1
@@ -227,18 +226,8 @@ class TimeLoop:
         if self._poll_ev is None:
             self._poll_ev = cuda.event(timing=False)
         self._poll_ev.record(self.stream)
-        idle = self.idle
         while not self._poll_ev.query():
-            if idle is None or not idle():
-                time.sleep(2e-5)
-
-    def _wait_event(self, ev) -> None:
-        """``ev.synchronize()``, running the driver's idle work while the GPU has not reached ``ev``."""
-        idle = self.idle
-        if idle is not None and not SIM:
-            while idle() and not ev.query():    # no driver call when there is no work
-                pass
-        ev.synchronize()
+            time.sleep(2e-5)
 
     def _collect(self, h, failed: dict | None = None) -> dict:
         """Scenes that blew up according to status h (once each): deactivated, error recorded."""

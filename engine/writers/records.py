@@ -22,9 +22,9 @@ def record(obs: dict, n: int) -> dict:
 
     Ellipsoids: T_rot counts the two rotational degrees of freedom that exchange energy (about the
     axes perpendicular to the symmetry axis), T_rot = E_rot,perp / N (paper 003 Eq. 25b as corrected in
-    PHYSICS-NOTES §3.3); kinetic_energy_rotational stays the total.
+    docs/physics.md §2.7); kinetic_energy_rotational stays the total.
 
-    Velocity-distribution shape (issue 18), dimensionless, where the backend reports the energy moments:
+    Velocity-distribution shape (docs/physics.md §6.5), dimensionless, where the backend reports the energy moments:
     ``sonine_a2_translational`` (a2 of the translational energies, d = 3), ``sonine_a2_rotational`` (of the
     rotational energies: spheres d = 3, spheroids the 2 active dof) and ``sonine_a11`` (the cross cumulant
     <e_tr e_rot>/(<e_tr><e_rot>) - 1), all from engine/physics/sonine.py (energy form, lab frame = centre-of-mass
@@ -44,7 +44,7 @@ def record(obs: dict, n: int) -> dict:
         "elastic_energy": obs["elastic_energy"],
         "max_overlap": obs["max_overlap"],
         **sonine_observables(obs, n),
-        # contacts begun since the scene started, thermalisation included (spheres; issue 18's collision counter)
+        # contacts begun since the scene started, thermalisation included (spheres; the collisions observable)
         **({"collisions": np.int64(obs["collisions"])} if "collisions" in obs else {}),
     }
 

@@ -23,3 +23,19 @@ def test_e2e_bench_quick_cases(tmp_path):
         assert sum(t.values()) == pytest.approx(r["wall_s"], rel=1e-9) and min(t.values()) > -0.05
     assert rows["batch-256x4096-2k"]["scenes"] == 4 and rows["cpu-16x512"]["ratio_to_one_scene"] > 0
     assert "| quickstart |" in (tmp_path / "e2e.md").read_text()
+
+
+def test_every_off_switch_names_an_engine_setting_that_is_on_by_default(monkeypatch):
+    """--off NAME sets a module-level engine setting: each one exists and is not already its off value, and
+    switch_off sets it (an engine rename would otherwise make an A/B compare a run with itself)."""
+    import importlib
+
+    for name, (module, setting, off_value) in e2e.SWITCHES.items():
+        mod = importlib.import_module(module)
+        assert hasattr(mod, setting), (name, module, setting)
+        assert getattr(mod, setting) != off_value, (name, getattr(mod, setting))
+        monkeypatch.setattr(mod, setting, getattr(mod, setting))   # restored after the test
+        e2e.switch_off([name])
+        assert getattr(mod, setting) == off_value, name
+    with pytest.raises(ValueError, match="unknown switch"):
+        e2e.switch_off(["no-such-switch"])

@@ -118,64 +118,13 @@ def test_unstable_scene_fails_alone(tmp_path, alone):
         assert_same_file(alone[k], outs[k])
 
 
-class _IdleSerial(SerialEnsemble):
-    """A CPU ensemble that says it waits for a device, as the packed CUDA ensemble does: the driver then defers the
-    record work of its stops (engine.simulate._Deferred) to the ``idle`` hook, and this ensemble runs some of it
-    inside its advance, as the CUDA one does while it waits for the GPU."""
-
-    waits_for_device = True
-    idle = None
-    idle_units = 0
-
-    def advance_each(self, steps):
-        for _ in range(2):
-            if self.idle is not None and self.idle():
-                type(self).idle_units += 1
-        return super().advance_each(steps)
+def _drive_serial(scenes):
+    return drive(scenes, lambda systems, contacts: SerialEnsemble("cpu", systems, contacts))
 
 
-def spy_deferred_stops(monkeypatch) -> list:
-    """Record, per call of SceneRun.at_stop from now on, whether the driver offered to defer its records."""
-    seen = []
-    orig = SceneRun.at_stop
-
-    def spy(self, view, defer=None):
-        seen.append(defer is not None)
-        return orig(self, view, defer)
-
-    monkeypatch.setattr(SceneRun, "at_stop", spy)
-    return seen
-
-
-def _drive_deferred(scenes):
-    return drive(scenes, lambda systems, contacts: _IdleSerial("cpu", systems, contacts))
-
-
-def test_records_done_during_the_next_steps_write_the_same_files(tmp_path, alone, monkeypatch):
-    """Issue 14 item 4: a stop that only records hands its record to the driver's deferred work, which the
-    ensemble runs while its next steps run; every file is bit for bit the scene's file run alone (snapshot,
-    final and record stops mixed, per-scene schedules), and the progress reports are the same."""
-    _IdleSerial.idle_units = 0
-    deferred = spy_deferred_stops(monkeypatch)
-    seen: dict = {}
-
-    def scenes(tag):
-        return [SceneRun(s, tmp_path / f"{tag}{k}.h5",
-                         progress=lambda p, k=k: seen.setdefault((tag, k), []).append((p.phase, p.step, p.time)))
-                for k, s in enumerate(SCENES)]
-
-    results = _drive_deferred(scenes("d"))
-    assert all(isinstance(r, RunSummary) for r in results), results
-    assert any(deferred) and _IdleSerial.idle_units > 10       # records ran inside the advance calls
-    drive(scenes("p"), lambda systems, contacts: SerialEnsemble("cpu", systems, contacts))   # not deferred
-    for k in range(len(SCENES)):
-        assert_same_file(alone[k], tmp_path / f"d{k}.h5")
-        assert seen[("d", k)] == seen[("p", k)]
-
-
-def test_a_deferred_record_that_fails_ends_its_scene_only(tmp_path, alone, monkeypatch):
-    """The energy check of a deferred record raises: that scene ends with the error and no file (its later
-    records are dropped), the others are unchanged."""
+def test_a_record_that_fails_ends_its_scene_only(tmp_path, alone, monkeypatch):
+    """The energy check of a record raises: that scene ends with the error and no file, the others are
+    unchanged."""
     orig = SceneRun._record
 
     def failing(self, step_done, t_sim, obs):
@@ -185,7 +134,7 @@ def test_a_deferred_record_that_fails_ends_its_scene_only(tmp_path, alone, monke
 
     monkeypatch.setattr(SceneRun, "_record", failing)
     outs = [tmp_path / f"f{k}.h5" for k in range(len(SCENES))]
-    results = _drive_deferred([SceneRun(s, o) for s, o in zip(SCENES, outs)])
+    results = _drive_serial([SceneRun(s, o) for s, o in zip(SCENES, outs)])
     assert isinstance(results[1], InstabilityError) and "energy rose" in str(results[1])
     assert not outs[1].exists() and not partial_path(outs[1]).exists()
     for k in (0, 2):
@@ -193,7 +142,7 @@ def test_a_deferred_record_that_fails_ends_its_scene_only(tmp_path, alone, monke
         assert_same_file(alone[k], outs[k])
 
 
-def test_a_scene_cancelled_with_records_pending_leaves_no_file(tmp_path, alone):
+def test_a_cancelled_scene_leaves_no_file(tmp_path, alone):
     outs = [tmp_path / f"k{k}.h5" for k in range(len(SCENES))]
     calls = []
 
@@ -203,7 +152,7 @@ def test_a_scene_cancelled_with_records_pending_leaves_no_file(tmp_path, alone):
 
     scenes = [SceneRun(s, o, should_cancel=cancel if k == 1 else None)
               for k, (s, o) in enumerate(zip(SCENES, outs))]
-    results = _drive_deferred(scenes)
+    results = _drive_serial(scenes)
     assert isinstance(results[1], Cancelled)
     assert not outs[1].exists() and not partial_path(outs[1]).exists()
     for k in (0, 2):

@@ -1,6 +1,6 @@
 """The GPU start-up thread (engine/startup.py) and the reordered set-up it overlaps with.
 
-The time it saves is measured by bench/e2e.py on a GPU (``DEMQ_GPU_STARTUP=0|1``); that a run with it writes
+The time it saves is measured by bench/e2e.py on a GPU (``--off startup`` against the default); that a run with it writes
 the same file as one without is tests/gpu/test_startup_gpu.py. Here: when it starts, that its stand-in scenes
 are valid starts of their shape, that its kernel warm-up runs through the CUDA simulator for every shape, and
 that the start of a spec does not depend on the Verlet skin (the driver places before it resolves the
@@ -16,6 +16,7 @@ import sys
 import numpy as np
 import pytest
 
+import engine.start_kind as start_kind
 import engine.startup as startup
 from engine.params import derive
 from engine.shapes import host
@@ -56,9 +57,9 @@ def test_when_the_startup_thread_starts(monkeypatch):
     monkeypatch.setattr(startup, "_started", {})
     monkeypatch.delenv("NUMBA_ENABLE_CUDASIM", raising=False)
     assert startup.begin(spec, "cpu", c, p) is None
-    monkeypatch.setenv(startup.ENV, "0")
+    monkeypatch.setattr(startup, "ENABLED", False)
     assert startup.begin(spec, "auto", c, p) is None
-    monkeypatch.delenv(startup.ENV)
+    monkeypatch.setattr(startup, "ENABLED", True)
     monkeypatch.setenv("NUMBA_ENABLE_CUDASIM", "1")
     assert startup.begin(spec, "cuda", c, p) is None
     monkeypatch.delenv("NUMBA_ENABLE_CUDASIM")
@@ -83,7 +84,6 @@ def test_one_startup_per_specialisation(monkeypatch):
     monkeypatch.setattr(startup, "GpuStartup", Recorder)
     monkeypatch.setattr(startup.DriverStart, "begin", classmethod(lambda cls: None))
     monkeypatch.delenv("NUMBA_ENABLE_CUDASIM", raising=False)
-    monkeypatch.delenv(startup.ENV, raising=False)
     a, b = SimulationSpec(seed=1), SimulationSpec(seed=2)
     pa, pb = derive(a), derive(b)
     s1 = startup.begin(a, "auto", _contacts(a, pa), pa)
@@ -104,7 +104,7 @@ def test_one_startup_per_specialisation(monkeypatch):
     pg = derive(big)
     s_big = startup.begin(big, "auto", _contacts(big, pg), pg)
     assert s_big is not s1 and made[-1][3] == (np.float64, np.float32)
-    monkeypatch.setenv("DEMQ_DEVICE_START", "0")
+    monkeypatch.setattr(start_kind, "DEVICE_START", False)
     s_off = startup.begin(big, "auto", _contacts(big, pg), pg)
     assert s_off is not s_big and len(made) == 5 and made[-1][3] is None     # drawn on the host: no such load
 

@@ -12,6 +12,7 @@ import numba
 import numpy as np
 import pytest
 
+import engine.start_kind as start_kind
 from engine.errors import InstabilityError
 from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
@@ -39,7 +40,7 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
         monkeypatch, tmp_path):
     """engine.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
     host arrays: engine/backends/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
-    host, the same start as always; with DEMQ_DEVICE_START=0 and for other shapes the host draws."""
+    host, the same start as always; with start_kind.DEVICE_START False and for other shapes the host draws."""
     import engine.simulate as sim
 
     spec = _big(seed=9)
@@ -60,11 +61,11 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
     for attr in ("position", "velocity", "angular_velocity", "orientation"):
         assert np.array_equal(getattr(scene.system, attr), getattr(host, attr)), attr
     assert device_start(spec) and not device_start(_big(shape="ellipsoid", elongation=2.0))
-    # a job that runs on the GPU leaves its start to the device, unless DEMQ_DEVICE_START=0
+    # a job that runs on the GPU leaves its start to the device, unless start_kind.DEVICE_START is False
     monkeypatch.setattr(sim, "resolve_backend", lambda name, shape: "cuda")
     gpu = sim.SceneRun(spec, tmp_path / "y.h5")
     assert gpu.backend == "cuda" and gpu.system.draw == left.draw and gpu.system.position is None
-    monkeypatch.setenv("DEMQ_DEVICE_START", "0")
+    monkeypatch.setattr(start_kind, "DEVICE_START", False)
     assert not device_start(spec)
     gpu = sim.SceneRun(spec, tmp_path / "z.h5")
     assert gpu.system.draw is None and np.array_equal(gpu.system.position, host.position)
@@ -411,19 +412,6 @@ def test_frame_slots_reuse_a_free_slot_and_else_wait_for_the_older_one():
     assert slots.take() == 1
 
 
-def test_a_cpu_ensemble_does_not_wait_for_a_device_and_reads_its_observables_at_once():
-    from engine.backends.ensemble import SerialEnsemble
-    from engine.simulate import _Deferred
-    from tests.engine.test_cuda_simulator import contact, tiny_system
-
-    ens = SerialEnsemble("cpu", [tiny_system()], [contact()])
-    assert not ens.waits_for_device          # engine.simulate._Deferred stays off: CPU runs are unchanged
-    assert not _Deferred(ens).on
-    later = ens.observe_scene_later(0)
-    ens.advance(40)                          # contacts begin within ~20 steps (tiny_system)
-    assert later()["collisions"] == 0 < ens.observe_scene(0)["collisions"]
-
-
 # ---- the auto list mode's probe rule ---------------------------------------------------------------------
 
 def _lists(steps_left, per_step=1e-3, steps_per_stage=20):
@@ -606,7 +594,7 @@ def test_every_cached_engine_kernel_loads_without_the_target_refresh():
     import pkgutil
 
     import engine
-    from engine.jitcache import _FastLoadCache
+    from engine.numba_internals import FastLoadCache
     from numba.core.caching import FunctionCache
 
     found = set()
@@ -617,7 +605,7 @@ def test_every_cached_engine_kernel_loads_without_the_target_refresh():
         for name, obj in vars(mod).items():
             cache = getattr(obj, "_cache", None)
             if isinstance(cache, FunctionCache) and getattr(obj, "__module__", None) == info.name:
-                assert isinstance(cache, _FastLoadCache), f"{info.name}.{name}: call fast_loads(globals())"
+                assert isinstance(cache, FastLoadCache), f"{info.name}.{name}: call fast_loads(globals())"
                 found.add(info.name)
     assert found == set(_ENGINE_JIT_MODULES)
 

@@ -1,5 +1,5 @@
-"""What the GPU tests that compare fresh-process jobs share: a job run in a child process under given environment
-settings, and a result file's datasets."""
+"""What the GPU tests that compare fresh-process jobs share: a job run in a child process (with environment
+variables added), and a result file's datasets."""
 
 from __future__ import annotations
 

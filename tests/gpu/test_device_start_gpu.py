@@ -1,6 +1,6 @@
 """Real-GPU checks of the large starts drawn on the device (engine/backends/cuda_start.py): the same start as the
 host's draws to rounding, and a job that draws its start on the device writes the file of one that draws it on the
-host (DEMQ_DEVICE_START=0), to rounding. Skipped without a GPU."""
+host (engine.start_kind.DEVICE_START = False), to rounding. Skipped without a GPU."""
 
 from __future__ import annotations
 
@@ -59,6 +59,8 @@ def test_a_device_start_is_the_host_start_to_rounding():
 
 _CHILD = """
 import json, sys
+import engine.start_kind
+engine.start_kind.DEVICE_START = {on}
 from engine.simulate import run
 from engine.spec import SimulationSpec
 s = run(SimulationSpec(**json.loads(sys.argv[1])), sys.argv[2])
@@ -71,7 +73,7 @@ def test_a_job_with_its_start_drawn_on_the_device_writes_the_host_starts_file_to
     files, info = {}, {}
     for on in ("0", "1"):
         out = tmp_path / f"device{on}.h5"
-        info[on] = run_job(_CHILD, kw, out, {"DEMQ_DEVICE_START": on}, "RUN")
+        info[on] = run_job(_CHILD.replace("{on}", str(on == "1")), kw, out, {}, "RUN")
         files[on] = datasets(out)
     assert info["1"]["backend"] == "cuda" and info["1"]["startup"]["error"] is None, info
     assert info["1"]["steps"] == info["0"]["steps"] > 10

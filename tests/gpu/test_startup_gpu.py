@@ -1,5 +1,5 @@
 """Real-GPU check of the GPU start-up thread (engine/startup.py): a job in a fresh process writes the same result
-file with the thread as without it (DEMQ_GPU_STARTUP=0), for spheres and ellipsoids — the trajectory bit for
+file with the thread as without it (engine.startup.ENABLED = False), for spheres and ellipsoids — the trajectory bit for
 bit, the observables to rounding as any two GPU runs — and the thread ran without error. Skipped without a
 GPU."""
 
@@ -16,6 +16,8 @@ pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 
 _CHILD = """
 import json, sys
+import engine.startup
+engine.startup.ENABLED = {on}
 from engine.simulate import run
 from engine.spec import SimulationSpec
 kw = json.loads(sys.argv[1])
@@ -33,7 +35,7 @@ def test_a_fresh_process_writes_the_same_file_with_and_without_the_startup_threa
     files, info = {}, {}
     for on in ("0", "1"):
         out = tmp_path / f"on{on}.h5"
-        info[on] = run_job(_CHILD, kw, out, {"DEMQ_GPU_STARTUP": on}, "STARTUP")
+        info[on] = run_job(_CHILD.replace("{on}", str(on == "1")), kw, out, {}, "STARTUP")
         files[on] = datasets(out)
     assert info["0"] is None
     assert info["1"] is not None and info["1"]["error"] is None, info["1"]

@@ -55,7 +55,7 @@ class CpuBackend(CpuLoop):
         # ext: the step of the loop's call from which each sphere's orientation turns are pending
         # (shapes/sphere/kernels.py rotate/settle); zero whenever the time loop has returned
         self._lag = np.zeros(n, np.int64)
-        # ... and the contacts each sphere has begun (collision counter, issue 18)
+        # ... and the contacts each sphere has begun (the collisions observable)
         self.begun = np.zeros(n, np.int64)
         self._spin, self._spin_inv, self._ext = self.omega, self.inv_i, (self._lag, self.begun)
         self._init_loop(n, float(np.max(system.radius)) if n else 0.0,

@@ -56,7 +56,7 @@ class CudaEnsemble(CudaEnsembleBase):
         self.torque = self._zeros((3, n), dt_)
         # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
         self.q_last = self._zeros(n, np.int64)
-        # the contacts each sphere has begun (collision counter, issue 18; shapes/sphere/device.py pair)
+        # the contacts each sphere has begun (the collisions observable; shapes/sphere/device.py pair)
         self.begun = self._zeros(n, np.int64)
         if self.uniform:
             dummy = cuda.device_array((1, 1), dt_, stream=self.stream)

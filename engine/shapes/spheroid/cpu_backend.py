@@ -1,4 +1,4 @@
-"""CPU backend for ellipsoids (paper 003; frictionless, or rough with the tangential law of issue 17): the spheroid plug-in (engine/shapes/spheroid/kernels.py) in
+"""CPU backend for ellipsoids (paper 003; frictionless, or rough with the tangential law of docs/physics.md §2.5): the spheroid plug-in (engine/shapes/spheroid/kernels.py) in
 the shared CPU machinery (engine/loops/cpu.py: CpuLoop, make_run_steps), with the same interface as
 CpuBackend.
 

@@ -1,4 +1,4 @@
-"""CUDA backend for ellipsoids (paper 003; frictionless or rough, issue 17): the CPU ellipsoid backend's step on the GPU.
+"""CUDA backend for ellipsoids (paper 003; frictionless or rough, docs/physics.md §2.5): the CPU ellipsoid backend's step on the GPU.
 
 :class:`CudaEllipsoidEnsemble` advances K independent ellipsoid scenes stored back to back on the device,
 built exactly as the sphere's (both are subclasses of :class:`engine.loops.cuda_ensemble.CudaEnsembleBase`: per-scene

@@ -1,0 +1,168 @@
+"""The one module of the engine that touches private internals of numba and numba-cuda.
+
+Everything here works with numba 0.68 and numba-cuda 0.30; tests/engine/test_numba_internals.py checks each
+internal against the installed versions and names the internal and the version when one has changed. Where a
+cache internal is missing at run time the engine compiles instead of loading a cached kernel, and where page-locking
+fails its frames stay in pageable memory: slower, never different.
+
+numba (the CPU kernels, engine/jitcache.py):
+
+- ``numba.core.caching.FunctionCache``, the on-disk cache of a ``cache=True`` njit function. Its
+  ``load_overload(sig, target_context)`` refreshes the CPU target context before every load (every lowering
+  registry, and scipy.linalg for numba's BLAS check: 0.25-0.4 s of Python under the GIL, once per process).
+  :class:`FastLoadCache` loads without it, through the private ``_guard_against_spurious_io_errors()`` and
+  ``_load_overload(sig, target_context)``, after what a load of linked machine code does need: the NRT
+  (``numba.core.runtime.rtsys.initialize``) and the hash secret (``numba.cpython.hashing``).
+- the private ``_index_key(sig, codegen)`` of a cache: the key of one compiled signature, by default (signature,
+  ``codegen.magic_tuple()``, the source file's time stamp and size). :class:`StableKeyCache` replaces the stamp by
+  a key the caller gives (numba keys a cached closure by a pickle of its cells, which changes in every process).
+- a dispatcher's private ``_cache`` attribute, where it keeps its cache object (:func:`set_cache`).
+
+numba-cuda (the CUDA kernels, engine/loops/):
+
+- ``numba.cuda.dispatcher.CUDACache``: the same private methods as numba's cache, plus ``_launch_config_key``
+  (part of the key of a launch-configuration-sensitive kernel) and ``numba.cuda.utils.numba_target_override``
+  (the context manager its ``load_overload`` enters before the target refresh that :func:`cuda_stable_key_cache`
+  skips: a kernel is rebuilt from its linked code without the context).
+- ``CUDADispatcher.targetoptions["device"]`` (a device function has no cache of its own).
+- ``numba.cuda.cudadrv.driver.device_memset(dst, val, size, stream)``: a memset on a stream (no public API).
+- ``Context.mempin(owner, pointer, size, mapped)`` of ``numba.cuda.current_context()``: page-lock existing host
+  memory in place (cuMemHostRegister); the public API only allocates new pinned arrays.
+
+The CUDA parts import numba.cuda only when called (a CPU job never imports it).
+"""
+
+from __future__ import annotations
+
+from engine.numba_import import coverage_hidden
+
+#: what the engine was written against (the test reports these beside the installed versions)
+NUMBA_VERSION = "0.68"
+NUMBA_CUDA_VERSION = "0.30"
+
+try:
+    with coverage_hidden():
+        from numba.core.caching import FunctionCache
+        from numba.core.runtime import rtsys as _rtsys
+
+    class FastLoadCache(FunctionCache):
+        """numba's FunctionCache, whose loads skip the target refresh (module docstring)."""
+
+        def load_overload(self, sig, target_context):
+            _rtsys.initialize(target_context)      # the parts of the refresh a load needs
+            import numba.cpython.hashing  # noqa: F401
+            with self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
+
+    class StableKeyCache(FastLoadCache):
+        """A :class:`FastLoadCache` keyed by (signature, codegen magic tuple, ``stable``) instead of the source
+        file's stamp."""
+
+        def __init__(self, py_func, stable: tuple):
+            self._stable = stable
+            super().__init__(py_func)
+
+        def _index_key(self, sig, codegen):
+            return (sig, codegen.magic_tuple(), self._stable)
+except ImportError:  # another numba layout: no fast loads, closures compile in every process
+    FunctionCache = FastLoadCache = StableKeyCache = None
+
+
+def get_cache(dispatcher):
+    """The cache object of a numba or numba-cuda dispatcher (None: not cached)."""
+    return getattr(dispatcher, "_cache", None)
+
+
+def set_cache(dispatcher, cache) -> None:
+    """Give a dispatcher ``cache`` as its on-disk cache (used by its next compile or load)."""
+    dispatcher._cache = cache
+
+
+def make_fast_loading(dispatcher) -> bool:
+    """Turn the plain FunctionCache of a ``cache=True`` njit dispatcher into a :class:`FastLoadCache` (same state, one
+    method different); False where it has another cache, none, or this numba lacks the internals."""
+    cache = get_cache(dispatcher)
+    if FastLoadCache is None or type(cache) is not FunctionCache:
+        return False
+    cache.__class__ = FastLoadCache
+    return True
+
+
+def stable_key_cache(dispatcher, stable: tuple) -> bool:
+    """Give an njit dispatcher a :class:`StableKeyCache` keyed by ``stable``; False where it cannot have one (this
+    numba lacks the internals, or no cache locator fits the function's file, e.g. a read-only install)."""
+    if StableKeyCache is None:
+        return False
+    try:
+        set_cache(dispatcher, StableKeyCache(dispatcher.py_func, stable))
+    except Exception:  # noqa: BLE001  (no cache locator: compile as numba does without a cache)
+        return False
+    return True
+
+
+_cuda_cache_class = None
+
+
+def cuda_stable_key_cache_class():
+    """numba-cuda's CUDACache keyed by (signature, codegen magic tuple, numba-cuda version, ``stable``[, launch
+    configuration]) instead of the source file's stamp, whose loads skip the CUDA target refresh; None where this
+    numba-cuda lacks the internals. Made once (it imports numba.cuda)."""
+    global _cuda_cache_class
+    if _cuda_cache_class is not None:
+        return _cuda_cache_class or None
+    try:
+        import numba_cuda
+        from numba.cuda.dispatcher import CUDACache
+        from numba.cuda.utils import numba_target_override
+    except ImportError:
+        _cuda_cache_class = False
+        return None
+
+    class CudaStableKeyCache(CUDACache):
+        def __init__(self, py_func, stable: tuple):
+            self._stable = stable
+            super().__init__(py_func)
+
+        def _index_key(self, sig, codegen):
+            k = (sig, codegen.magic_tuple(), numba_cuda.__version__, self._stable)
+            return k if self._launch_config_key is None else k + (("launch_config", self._launch_config_key),)
+
+        def load_overload(self, sig, target_context):
+            with numba_target_override(), self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
+
+    _cuda_cache_class = CudaStableKeyCache
+    return CudaStableKeyCache
+
+
+def cuda_stable_key_cache(dispatcher, stable: tuple) -> bool:
+    """Give a CUDA kernel dispatcher (not a device function) the cache of :func:`cuda_stable_key_cache_class`;
+    False where it is not one, this numba-cuda lacks the internals, or no cache locator fits its file."""
+    cls = cuda_stable_key_cache_class()
+    if cls is None:
+        return False
+    from numba.cuda.dispatcher import CUDADispatcher
+
+    if not isinstance(dispatcher, CUDADispatcher) or dispatcher.targetoptions.get("device", False):
+        return False
+    try:
+        set_cache(dispatcher, cls(dispatcher.py_func, stable))
+    except Exception:  # noqa: BLE001  (no cache locator for this file: compile as before)
+        return False
+    return True
+
+
+def device_memset(array, value: int, stream) -> None:
+    """Set every byte of a device array to ``value`` (0-255), queued on ``stream``."""
+    from numba.cuda.cudadrv.driver import device_memset as memset
+
+    memset(array, value, array.nbytes, stream=stream)
+
+
+def page_lock(arrays) -> list:
+    """Page-lock host arrays in place in the current CUDA context; the returned handles keep the registration (and
+    their arrays) alive until they are collected. Raises where the driver refuses."""
+    from numba import cuda
+
+    ctx = cuda.current_context()
+    return [ctx.mempin(a, a.ctypes.data, a.nbytes, mapped=False) for a in arrays]

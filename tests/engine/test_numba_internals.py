@@ -1,0 +1,195 @@
+"""engine/numba_internals.py against the installed numba and numba-cuda: every private internal the engine relies on
+is still there, with the same parameters, and does what the engine assumes. A failure names the internal and the
+installed versions: the engine then silently compiles in every process (or worse), so this is where it must show.
+
+The CPU parts run for real (a function compiled into a cache in tmp_path, loaded back by a second dispatcher). The
+CUDA cache's key and load need a device (codegen.magic_tuple() asks the driver), and the CUDA simulator caches
+nothing: without a GPU its parts are checked as far as numba-cuda goes without a driver (classes, parameters, the
+cache attached to a real kernel dispatcher, the key's layout, the load's steps)."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import inspect
+import os
+
+import numba
+import pytest
+
+from engine import numba_internals as ni
+
+SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+
+
+def _versions() -> str:
+    try:
+        import numba_cuda
+
+        cuda_version = numba_cuda.__version__
+    except ImportError:
+        cuda_version = "not installed"
+    return (f"installed numba {numba.__version__}, numba-cuda {cuda_version}; engine/numba_internals.py was written "
+            f"for numba {ni.NUMBA_VERSION}, numba-cuda {ni.NUMBA_CUDA_VERSION}")
+
+
+def _check(ok: bool, internal: str, what: str) -> None:
+    if not ok:
+        pytest.fail(f"numba internal {internal} changed: {what} ({_versions()})", pytrace=False)
+
+
+def _params(fn) -> list:
+    return list(inspect.signature(fn).parameters)
+
+
+def _module(tmp_path, name: str, source: str, file: str | None = None):
+    """A module ``name`` of ``source`` in the file ``file`` (default: its own; a cache locator needs the function's
+    file), imported anew even where that file was imported before under another name."""
+    path = tmp_path / f"{file or name}.py"
+    if not path.exists():
+        path.write_text(source)
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# ---- numba (CPU) -------------------------------------------------------------------------------------------------
+
+def test_numba_cache_internals_have_the_expected_shape():
+    _check(ni.FunctionCache is not None, "numba.core.caching.FunctionCache / numba.core.runtime.rtsys",
+           "no longer importable")
+    fc = ni.FunctionCache
+    for name, params in (("load_overload", ["self", "sig", "target_context"]),
+                         ("_load_overload", ["self", "sig", "target_context"]),
+                         ("_index_key", ["self", "sig", "codegen"]),
+                         ("_guard_against_spurious_io_errors", ["self"]),
+                         ("__init__", ["self", "py_func"])):
+        _check(hasattr(fc, name), f"FunctionCache.{name}", "missing")
+        _check(_params(getattr(fc, name)) == params, f"FunctionCache.{name}",
+               f"parameters {_params(getattr(fc, name))}, expected {params}")
+    from numba.core.runtime import rtsys
+
+    _check(callable(getattr(rtsys, "initialize", None)), "numba.core.runtime.rtsys.initialize", "missing")
+    importlib.import_module("numba.cpython.hashing")
+    # the load that FastLoadCache replaces: a target refresh, then the guarded private load
+    src = inspect.getsource(fc.load_overload)
+    _check("target_context.refresh()" in src and "self._guard_against_spurious_io_errors()" in src
+           and "self._load_overload(sig, target_context)" in src, "FunctionCache.load_overload",
+           "no longer refresh + _guard_against_spurious_io_errors + _load_overload")
+
+
+def test_a_fast_loading_cache_loads_the_compiled_function_without_the_target_refresh(tmp_path, monkeypatch):
+    from numba.core.registry import cpu_target
+
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
+    src = "from numba import njit\n\n@njit(cache=True)\ndef triple(x):\n    return 3 * x + 1\n"
+    first = _module(tmp_path, "ni_cached_a", src)
+    _check(first.triple(4) == 13 and first.triple.stats.cache_misses, "FunctionCache", "first call did not compile")
+    _check(type(ni.get_cache(first.triple)) is ni.FunctionCache, "Dispatcher._cache",
+           f"a cache=True dispatcher's _cache is {type(ni.get_cache(first.triple))!r}, not FunctionCache")
+    # the same file under another module name: a new dispatcher whose cache finds the first one's machine code
+    second = _module(tmp_path, "ni_cached_b", src, file="ni_cached_a")
+    _check(ni.make_fast_loading(second.triple), "Dispatcher._cache", "make_fast_loading found no FunctionCache")
+    _check(type(ni.get_cache(second.triple)) is ni.FastLoadCache, "Dispatcher._cache", "class not replaced")
+    refreshes = []
+    orig_refresh = type(cpu_target.target_context).refresh
+    monkeypatch.setattr(type(cpu_target.target_context), "refresh",
+                        lambda self: refreshes.append(1) or orig_refresh(self))
+    _check(second.triple(5) == 16, "FunctionCache._load_overload", "the loaded function computes something else")
+    _check(dict(second.triple.stats.cache_hits) and not dict(second.triple.stats.cache_misses),
+           "FunctionCache._load_overload", f"no cache hit (hits {dict(second.triple.stats.cache_hits)}, "
+           f"misses {dict(second.triple.stats.cache_misses)})")
+    _check(not refreshes, "FunctionCache.load_overload", "the fast load still refreshed the target")
+
+
+def test_a_stable_key_cache_serves_a_closure_rebuilt_with_new_cells(tmp_path, monkeypatch):
+    """numba keys a closure by a pickle of its cells; a StableKeyCache keys it by the caller's key, so a closure
+    built again (here: over another dispatcher object, as the engine's factories do) loads the first one's code."""
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
+    mod = _module(tmp_path, "ni_factory", (
+        "from numba import njit\n\n"
+        "def make():\n"
+        "    @njit\n"
+        "    def inner(x):\n"
+        "        return x * x\n\n"
+        "    @njit\n"
+        "    def outer(x):\n"
+        "        return inner(x) + 2\n"
+        "    return outer\n"))
+    a, b = mod.make(), mod.make()
+    _check(ni.stable_key_cache(a, ("test", 1)) and ni.stable_key_cache(b, ("test", 1)), "StableKeyCache",
+           "could not be attached")
+    _check(a(3) == 11 and dict(a.stats.cache_misses), "StableKeyCache", "first call did not compile")
+    _check(b(3) == 11, "StableKeyCache._index_key", "the loaded closure computes something else")
+    _check(dict(b.stats.cache_hits) and not dict(b.stats.cache_misses), "FunctionCache._index_key",
+           f"the rebuilt closure did not load (hits {dict(b.stats.cache_hits)}, misses {dict(b.stats.cache_misses)})")
+
+
+# ---- numba-cuda ------------------------------------------------------------------------------------------------
+
+cuda_only = pytest.mark.skipif(SIM, reason="the CUDA simulator replaces numba.cuda; the engine caches nothing there")
+
+
+@cuda_only
+def test_numba_cuda_internals_have_the_expected_shape():
+    _check(ni.cuda_stable_key_cache_class() is not None,
+           "numba.cuda.dispatcher.CUDACache / numba.cuda.utils.numba_target_override / numba_cuda.__version__",
+           "no longer importable")
+    from numba.cuda.cudadrv import driver
+    from numba.cuda.dispatcher import CUDACache
+
+    for name, params in (("load_overload", ["self", "sig", "target_context"]),
+                         ("_load_overload", ["self", "sig", "target_context"]),
+                         ("_index_key", ["self", "sig", "codegen"]),
+                         ("_guard_against_spurious_io_errors", ["self"]),
+                         ("__init__", ["self", "py_func"])):
+        _check(hasattr(CUDACache, name), f"CUDACache.{name}", "missing")
+        _check(_params(getattr(CUDACache, name)) == params, f"CUDACache.{name}",
+               f"parameters {_params(getattr(CUDACache, name))}, expected {params}")
+    _check(_params(driver.device_memset) == ["dst", "val", "size", "stream"], "numba.cuda.cudadrv.driver.device_memset",
+           f"parameters {_params(driver.device_memset)}")
+    _check(_params(driver.Context.mempin) == ["self", "owner", "pointer", "size", "mapped"],
+           "numba.cuda.cudadrv.driver.Context.mempin", f"parameters {_params(driver.Context.mempin)}")
+    # the load that the engine's cache replaces: the target override, then the base load's refresh + guarded load
+    own = inspect.getsource(CUDACache.load_overload)
+    base = inspect.getsource(CUDACache.__mro__[1].load_overload)
+    _check("numba_target_override()" in own and "super().load_overload(sig, target_context)" in own,
+           "CUDACache.load_overload", "no longer numba_target_override + the base load")
+    _check("target_context.refresh()" in base and "self._load_overload(sig, target_context)" in base,
+           f"{CUDACache.__mro__[1].__module__}.Cache.load_overload", "no longer refresh + _load_overload")
+
+
+@cuda_only
+def test_a_kernel_gets_the_stable_key_cache_and_its_key_keeps_numba_cudas_layout(tmp_path, monkeypatch):
+    from numba import cuda
+    from numba.core.registry import cpu_target
+
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
+    mod = _module(tmp_path, "ni_kernels", (
+        "def kernel(a):\n    a[0] = 1\n\n"
+        "def device(x):\n    return x + 1\n"))
+    kern = cuda.jit(mod.kernel)
+    dev = cuda.jit(device=True)(mod.device)
+    cls = ni.cuda_stable_key_cache_class()
+    _check(ni.cuda_stable_key_cache(kern, ("test", "kernel")), "CUDADispatcher._cache", "could not be attached")
+    cache = ni.get_cache(kern)
+    _check(isinstance(cache, cls), "CUDADispatcher._cache", f"holds {type(cache)!r}")
+    _check(not ni.cuda_stable_key_cache(dev, ("test", "device")), "CUDADispatcher.targetoptions['device']",
+           "a device function was given a cache")
+    _check(hasattr(cache, "_launch_config_key") and cache._launch_config_key is None, "CUDACache._launch_config_key",
+           "missing or not None on a new cache")
+    with cache._guard_against_spurious_io_errors():
+        pass
+    # numba-cuda's key: (sig, codegen magic, numba-cuda version, source hashes) [+ launch configuration]; the
+    # engine's replaces only the hashes (a codegen stands in that needs no driver: only its magic_tuple is read)
+    codegen = cpu_target.target_context.codegen()
+    sig = (numba.types.float64[:],)
+    base = super(cls, cache)._index_key(sig, codegen)
+    ours = cache._index_key(sig, codegen)
+    _check(len(base) == 4 and base[:3] == ours[:3] and ours[3] == ("test", "kernel"), "CUDACache._index_key",
+           f"layout {base!r}")
+    cache._launch_config_key = ("lc",)
+    base, ours = super(cls, cache)._index_key(sig, codegen), cache._index_key(sig, codegen)
+    _check(base[-1] == ("launch_config", ("lc",)) and ours[-1] == base[-1], "CUDACache._index_key",
+           f"launch-configuration part {base[-1]!r}")
