@@ -22,7 +22,7 @@ _ENGINE = Path(__file__).resolve().parent
 
 def _hash_sources() -> str:
     h = hashlib.sha1()
-    for sub in ("physics", "backends", "shapes"):
+    for sub in ("physics", "loops", "backends", "shapes"):
         for f in sorted((_ENGINE / sub).rglob("*.py")):          # shape packages are sub-folders
             h.update(str(f.relative_to(_ENGINE)).encode())
             h.update(f.read_bytes())

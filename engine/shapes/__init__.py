@@ -29,6 +29,43 @@ SHAPES = {
 }
 
 
+#: what a shape package must provide: module suffix -> names it defines (engine/shapes/README.md)
+REQUIRED = {
+    "": ("NAME", "SUMMARY", "ELONGATED", "SPECIES", "MIXED", "SKIN_BY_VOLUME_FRACTION", "body", "spec_error"),
+    ".kernels": ("NAME", "EXACT_DISPLACEMENT", "pre_step", "rotate", "settle", "pair", "observe"),
+    ".device": ("FLAGS", "make_cuda"),
+    ".host": ("SYSTEM", "initial_system", "writer_fields", "cpu_backend", "cuda_ensemble", "cuda_backend"),
+}
+
+
+def register(name: str, package: str) -> None:
+    """Register the shape package ``package`` (an importable dotted name, anywhere on the path) under the spec
+    name ``name``: the run-time equivalent of one line in :data:`SHAPES`. From then on the spec accepts
+    ``shape = name`` and every layer reaches the package through the lookups below.
+
+    Raises ValueError when the name is taken, or when the package (or one of its parts) cannot be imported or
+    lacks a required name (:data:`REQUIRED`); nothing is registered then.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"shape name = {name!r}: expected a non-empty string")
+    if name in SHAPES:
+        raise ValueError(f"shape name = {name!r} is taken (by {SHAPES[name]}); registered: {sorted(SHAPES)}")
+    for part, names in REQUIRED.items():
+        try:
+            module = importlib.import_module(package + part)
+        except ImportError as e:
+            raise ValueError(f"shape {name!r}: package {package + part!r} cannot be imported: {e}") from None
+        missing = [n for n in names if not hasattr(module, n)]
+        if missing:
+            raise ValueError(f"shape {name!r}: {package + part} lacks {', '.join(missing)} "
+                             f"(engine/shapes/README.md lists the parts of a shape package)")
+    for part in ("", ".kernels"):
+        if importlib.import_module(package + part).NAME != name:
+            raise ValueError(f"shape {name!r}: {package + part}.NAME is "
+                             f"{importlib.import_module(package + part).NAME!r}, expected {name!r}")
+    SHAPES[name] = package
+
+
 def _part(name: str, part: str):
     try:
         package = SHAPES[name]
