@@ -3,7 +3,7 @@
 A shape is one package under engine/shapes/ (engine/shapes/README.md lists the steps to add one):
 
 - ``<package>/__init__.py``: the shape's traits, plain Python that imports no other engine module, so that the
-  spec and the scales can ask them (``NAME``, ``ELONGATED``, ``SPECIES``, ``SKIN_BY_VOLUME_FRACTION``,
+  spec and the scales can ask them (``NAME``, ``ELONGATED``, ``SPECIES``, ``SKIN_BY_VOLUME_FRACTION``, ``RANDOM_START``,
   ``body`` for the semi-axes and principal moments, ``spec_error`` for combinations the shape refuses);
 - ``kernels.py``: njit functions of one particle or one list slot (``pre_step``, ``rotate``, ``pair``,
   ``observe``) that specialise the one CPU time loop (engine/loops/cpu.py);
@@ -31,7 +31,8 @@ SHAPES = {
 
 #: what a shape package must provide: module suffix -> names it defines (engine/shapes/README.md)
 REQUIRED = {
-    "": ("NAME", "SUMMARY", "ELONGATED", "SPECIES", "MIXED", "SKIN_BY_VOLUME_FRACTION", "body", "spec_error"),
+    "": ("NAME", "SUMMARY", "ELONGATED", "SPECIES", "MIXED", "SKIN_BY_VOLUME_FRACTION", "RANDOM_START",
+         "body", "spec_error"),
     ".kernels": ("NAME", "EXACT_DISPLACEMENT", "pre_step", "rotate", "settle", "pair", "observe"),
     ".device": ("FLAGS", "make_cuda"),
     ".host": ("SYSTEM", "initial_system", "writer_fields", "cpu_backend", "cuda_ensemble", "cuda_backend"),

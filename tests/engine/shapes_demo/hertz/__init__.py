@@ -18,6 +18,8 @@ ELONGATED = False
 SPECIES = False
 #: runs precision "mixed"
 MIXED = False
+#: a null ``start`` may be the sphere's random sequential addition (engine/start_kind.py)
+RANDOM_START = True
 #: a null verlet_skin follows the sphere's volume-fraction rule
 SKIN_BY_VOLUME_FRACTION = True
 #: moment of inertia of a solid sphere in units of m a^2
