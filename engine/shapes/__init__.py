@@ -14,8 +14,10 @@ A shape is one package under engine/shapes/ (engine/shapes/README.md lists the s
 - its backend classes where the shared ones need the shape's own state (``cpu_backend.py``,
   ``cuda_backend.py``: subclasses of the shared machinery of engine/loops/, never an engine.backends module).
 
-Nothing outside engine/shapes/ names a shape package: engine/backends/registry.py, engine/backends/ensemble.py,
-engine/simulate.py, engine/spec.py and engine/scales.py reach a shape through these functions.
+A package elsewhere on the path joins at run time through :func:`register` (the same as one more line in
+``SHAPES``). Nothing outside engine/shapes/ names a shape package: engine/backends/registry.py,
+engine/backends/ensemble.py, engine/simulate.py, engine/spec.py, engine/scales.py and engine/start_kind.py reach a
+shape through these functions, at call time.
 """
 
 from __future__ import annotations
