@@ -23,12 +23,15 @@ shape through these functions, at call time.
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
 #: spec shape name -> package (the one line a new shape adds)
 SHAPES = {
     "sphere": "engine.shapes.sphere",
     "ellipsoid": "engine.shapes.spheroid",
 }
+#: the shapes of the source lines above (never removed by unregister)
+_BUILT_IN = frozenset(SHAPES)
 
 
 #: what a shape package must provide: module suffix -> names it defines (engine/shapes/README.md)
@@ -45,6 +48,9 @@ def register(name: str, package: str) -> None:
     """Register the shape package ``package`` (an importable dotted name, anywhere on the path) under the spec
     name ``name``: the run-time equivalent of one line in :data:`SHAPES`. From then on the spec accepts
     ``shape = name`` and every layer reaches the package through the lookups below.
+
+    A package outside engine/shapes/ has its sources added to the compiled code's disk-cache key
+    (engine.jitcache.include_sources), as the engine's own are.
 
     Raises ValueError when the name is taken, or when the package (or one of its parts) cannot be imported or
     lacks a required name (:data:`REQUIRED`); nothing is registered then.
@@ -66,7 +72,32 @@ def register(name: str, package: str) -> None:
         if importlib.import_module(package + part).NAME != name:
             raise ValueError(f"shape {name!r}: {package + part}.NAME is "
                              f"{importlib.import_module(package + part).NAME!r}, expected {name!r}")
+    root = _outside_root(package)
+    if root is not None:
+        from engine.jitcache import include_sources   # a package outside engine/shapes/ joins the cache key
+
+        include_sources(root)
     SHAPES[name] = package
+
+
+def unregister(name: str) -> None:
+    """Remove a shape added by :func:`register` (tests do, after a plug-in's run); the shapes of :data:`SHAPES`'s
+    source lines cannot be removed."""
+    if name in _BUILT_IN:
+        raise ValueError(f"shape name = {name!r} is built in; only a registered shape can be removed")
+    if name not in SHAPES:
+        raise ValueError(f"shape name = {name!r} is not registered; registered: {sorted(SHAPES)}")
+    root = _outside_root(SHAPES.pop(name))
+    if root is not None:
+        from engine.jitcache import exclude_sources
+
+        exclude_sources(root)
+
+
+def _outside_root(package: str):
+    """The folder of ``package`` if it lies outside engine/shapes/ (not hashed by engine.jitcache), else None."""
+    root = Path(importlib.import_module(package).__file__).resolve().parent
+    return None if Path(__file__).resolve().parent in root.parents else root
 
 
 def _part(name: str, part: str):

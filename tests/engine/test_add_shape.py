@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 import pytest
 
-from engine.shapes import SHAPES, register
+from engine.shapes import SHAPES, register, unregister
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = "tests.engine.shapes_demo.hertz"
@@ -30,9 +30,14 @@ SPEC = dict(shape="hertz", n_particles=27, volume_fraction=0.35, box_length=0.5,
 
 @pytest.fixture
 def hertz():
+    from engine.jitcache import source_digest
+
+    engine_digest = source_digest()
     register("hertz", PACKAGE)
+    assert source_digest() != engine_digest     # the package's sources are in the compiled code's cache key
     yield
-    SHAPES.pop("hertz")
+    unregister("hertz")
+    assert "hertz" not in SHAPES and source_digest() == engine_digest
 
 
 def _series(path) -> dict:
@@ -52,6 +57,8 @@ def test_register_checks_the_package_and_refuses_a_taken_name(hertz):
     with pytest.raises(ValueError, match="NAME is 'hertz', expected 'other'"):
         register("other", PACKAGE)
     assert "demo" not in SHAPES and "other" not in SHAPES
+    with pytest.raises(ValueError, match="'sphere' is built in"):
+        unregister("sphere")
 
 
 def test_a_registered_shape_is_a_valid_spec_value_and_its_refusals_hold(hertz):
