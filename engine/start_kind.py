@@ -12,8 +12,8 @@ Two protocols place the particles (``spec.start``):
 
 ``spec.start = null`` picks ``"random"`` wherever RSA is cheap (one-size particles of a shape whose trait
 ``RANDOM_START`` says so, the sphere's, up to PARALLEL_START_MIN particles and RANDOM_MAX_VOLUME_FRACTION; every
-species spec), ``"lattice"`` otherwise (ellipsoids, larger sphere starts, denser gases). ``spec.thermalization = null`` is what that start needs
-(:func:`thermalization_collisions`).
+species spec), ``"lattice"`` otherwise (ellipsoids, larger sphere starts, denser gases).
+``spec.thermalization = null`` is what that start needs (:func:`thermalization_collisions`).
 """
 
 from __future__ import annotations
