@@ -35,7 +35,9 @@ def _hash_sources() -> str:
 
 
 #: the digest of the engine sources as this module's import found them (source_digest)
-_DIGEST = _hash_sources()
+_DIGEST = _ENGINE_DIGEST = _hash_sources()
+#: package folder -> hash of its sources, for the shape packages registered from outside engine/ (include_sources)
+_PLUGINS: dict = {}
 
 
 def source_digest() -> str:
@@ -45,6 +47,38 @@ def source_digest() -> str:
     process would load it. (Hashing again also cost about 1 ms of Python, and up to 16 ms of waiting for the GIL
     measured on the GPU start-up thread, for every kernel set a GPU job makes.)"""
     return _DIGEST
+
+
+def include_sources(package_dir) -> None:
+    """Add the sources of a shape package kept outside the hashed folders (engine.shapes.register) to
+    :func:`source_digest`, so that machine code compiled from it is never loaded after it changed. Hashed when the
+    package is registered (the code this process compiles from then on is that source); kernels compiled later in
+    this process are filed under the new digest, which depends only on the set of packages included (registering
+    the same package again changes nothing)."""
+    root = Path(package_dir).resolve()
+    h = hashlib.sha1()
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    _PLUGINS[str(root)] = h.hexdigest()
+    _combine()
+
+
+def exclude_sources(package_dir) -> None:
+    """Undo :func:`include_sources` for a package that is unregistered (engine.shapes.unregister)."""
+    _PLUGINS.pop(str(Path(package_dir).resolve()), None)
+    _combine()
+
+
+def _combine() -> None:
+    global _DIGEST
+    if not _PLUGINS:
+        _DIGEST = _ENGINE_DIGEST
+        return
+    combined = hashlib.sha1(_ENGINE_DIGEST.encode())
+    for key in sorted(_PLUGINS):
+        combined.update(_PLUGINS[key].encode())
+    _DIGEST = combined.hexdigest()[:16]
 
 
 def configure() -> None:

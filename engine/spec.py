@@ -240,7 +240,7 @@ class SimulationSpec(BaseModel):
                                   schema["properties"], field_schema_keywords(FIELD_RANGES)))
 
     shape: str = Field(
-        "sphere", json_schema_extra={"enum": list(SHAPES)},
+        "sphere",   # its schema enum is the registry at schema time (field_schema_keywords)
         description="Particle shape, a plug-in of engine/shapes/: "
                     + "; ".join(f"'{k}' ({traits(k).SUMMARY})" for k in SHAPES) + ".")
     n_particles: int = Field(

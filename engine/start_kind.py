@@ -10,16 +10,17 @@ Two protocols place the particles (``spec.start``):
 - ``"lattice"``: the sites of an fcc lattice with a random displacement each (the protocol of the rough-sphere
   cooling papers), which must be melted by ``thermalization`` collisions per particle of elastic dynamics.
 
-``spec.start = null`` picks ``"random"`` wherever RSA is cheap (one-size spheres up to PARALLEL_START_MIN
-particles and RANDOM_MAX_VOLUME_FRACTION; every species spec), ``"lattice"`` otherwise (ellipsoids, larger
-sphere starts, denser gases). ``spec.thermalization = null`` is what that start needs
-(:func:`thermalization_collisions`).
+``spec.start = null`` picks ``"random"`` wherever RSA is cheap (one-size particles of a shape whose trait
+``RANDOM_START`` says so, the sphere's, up to PARALLEL_START_MIN particles and RANDOM_MAX_VOLUME_FRACTION; every
+species spec), ``"lattice"`` otherwise (ellipsoids, larger sphere starts, denser gases).
+``spec.thermalization = null`` is what that start needs (:func:`thermalization_collisions`).
 """
 
 from __future__ import annotations
 
 
 from engine.scales import species_table
+from engine.shapes import traits
 
 #: one-size lattice starts of at least this many particles are drawn in parallel (engine/scene.py's docstring)
 PARALLEL_START_MIN = 1 << 20
@@ -51,7 +52,7 @@ def start_protocol(spec) -> str:
         return spec.start
     if species_table(spec) is not None:
         return RANDOM
-    if spec.shape == "sphere" and spec.n_particles < PARALLEL_START_MIN \
+    if traits(spec.shape).RANDOM_START and spec.n_particles < PARALLEL_START_MIN \
             and spec.volume_fraction <= RANDOM_MAX_VOLUME_FRACTION:
         return RANDOM
     return LATTICE

@@ -90,7 +90,8 @@ def case_spec(e_n: float, e_t: float, seed: int, backend: str, quick: bool, n_pa
         n, box = int(n_particles), float(box_length)
     s_end = S_END_QUICK if quick else S_END
     base = SimulationSpec(n_particles=n, volume_fraction=phi, box_length=box, e_n=e_n, e_t=e_t,
-                          velocity_rms=8.0, seed=seed, backend=backend, snapshots=0, thermalization=1.0)
+                          velocity_rms=8.0, seed=seed, backend=backend, snapshots=0, start="lattice",
+                          thermalization=1.0)   # the protocol of the figures in docs/physics.md §7.4
     p = derive(base)
     k = tau_factor(p.radius, p.number_density, p.mass, base.volume_fraction, p.temperature0)
     tau_end = tau_for_collisions(e_n, e_t, s_end * 1.05)

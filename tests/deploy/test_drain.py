@@ -51,7 +51,9 @@ def test_drain_worker_waits_for_a_running_job_whose_worker_dies_then_runs_it(tmp
 
 
 def test_cli_exit_when_idle_exits_zero(tmp_path):
-    env = clean_env(tmp_path, DEMQ_DATA_DIR=str(tmp_path / "data"))
+    # no warm-up of every kernel specialisation: this test is about drain mode, and on an empty kernel cache the
+    # warm-up compiles for minutes (tests/jobs/test_warm.py tests it)
+    env = clean_env(tmp_path, DEMQ_DATA_DIR=str(tmp_path / "data"), DEMQ_WORKER_WARM="off")
     r = subprocess.run([sys.executable, "-m", "service.cli", "worker", "--exit-when-idle"], cwd=ROOT, env=env,
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr

@@ -24,7 +24,8 @@ TINY = dict(n_particles=64, volume_fraction=0.05, box_length=0.5, t_end=0.05, th
 PACKAGE = {
     "__init__.py": '''
         """A sphere under another name (test plug-in): the sphere's traits."""
-        from engine.shapes.sphere import ELONGATED, SPECIES, SKIN_BY_VOLUME_FRACTION, body, spec_error  # noqa: F401
+        from engine.shapes.sphere import (ELONGATED, SPECIES, SKIN_BY_VOLUME_FRACTION, RANDOM_START,  # noqa: F401
+                                          body, spec_error)
 
         NAME = "ball"
         SUMMARY = "a sphere under another name"

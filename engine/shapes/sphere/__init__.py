@@ -16,6 +16,9 @@ ELONGATED = False
 SPECIES = True
 #: runs precision "mixed": positions in float64, the rest in float32 (engine/precision.py)
 MIXED = True
+#: a null ``start`` may place it by random sequential addition (engine/start_kind.py: cheap for small, dilute,
+#: one-size scenes of spheres)
+RANDOM_START = True
 #: a null verlet_skin follows the volume-fraction rule of engine.spec.default_verlet_skin (else its CPU value)
 SKIN_BY_VOLUME_FRACTION = True
 #: moment of inertia of a solid sphere in units of m a^2

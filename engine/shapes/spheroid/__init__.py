@@ -18,6 +18,8 @@ ELONGATED = True
 SPECIES = False
 #: runs precision "mixed": the contact solver has no mixed-precision variant
 MIXED = False
+#: a null ``start`` never places it by random sequential addition (engine/start_kind.py): always the lattice
+RANDOM_START = False
 #: a null verlet_skin is the CPU default (the skin rule over phi was measured for spheres only)
 SKIN_BY_VOLUME_FRACTION = False
 

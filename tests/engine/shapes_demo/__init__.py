@@ -1,0 +1,1 @@
+"""Shape packages that live outside engine/ and are registered at run time (engine.shapes.register)."""
