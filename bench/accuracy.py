@@ -9,7 +9,7 @@ Knobs (all through the public spec / backend parameters; nothing here changes an
   fraction, engine.spec.default_verlet_skin): cost only, in the cooling gas and in a sweep over volume
   fractions, where the default rule's skin at each phi is compared with the fastest;
 - rebuild policy: the engine has exactly one (rebuild when a particle has moved more than L_v/2,
-  engine/backends/cpu.py run_steps); there is no switch, so no rows;
+  engine/loops/cpu.py run_steps); there is no switch, so no rows;
 - ellipsoids: the contact algorithm. The spec exposes none: the engine always runs the Perram-Wertheim
   (PW) maximisation by safeguarded Newton. Its iteration tolerance (engine.shapes.spheroid.cpu_backend.PW_TOL,
   a run-time argument of the kernel) is varied here by this bench only; paper 003's Delta/P overlap test,

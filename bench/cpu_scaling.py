@@ -2,7 +2,7 @@
 
     python -m bench cpu_scaling --n 4096 32768 262144 --phi 0.058 0.008 --threads 1 2
 
-What is timed (docs/design.md): the full rough-sphere step of engine/backends/cpu.py — velocity Verlet, periodic
+What is timed (docs/design.md): the full rough-sphere step of engine/loops/cpu.py — velocity Verlet, periodic
 wrap, Fincham quaternion update, tangential springs with history and contact-event corrections, torques,
 Verlet lists rebuilt by the L_v/2 rule with spring carry-over, stability guards — plus the observables
 reduction at the default output cadence (t_end/200 of a run as long as the timed one). Not timed: JIT

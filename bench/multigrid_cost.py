@@ -11,7 +11,7 @@ skin L_v = 0.4 R_s (the CPU default, in units of the smallest radius).
 What is timed, per build (median and fastest of --reps builds after a JIT warm-up; single-grid and
 multigrid builds alternate, so a shared machine's load hits both alike), at 1 Numba thread and at all
 threads:
-- single grid: engine/backends/cpu.py ``bin_particles`` + ``build_list`` (cells of edge >= 2 R_max + L_v,
+- single grid: engine/loops/cpu.py ``bin_particles`` + ``build_list`` (cells of edge >= 2 R_max + L_v,
   nc <= (2N)^(1/3) + 1 per edge: today's CPU build, with the spring carry-over from the previous list);
 - multigrid: engine/multigrid.py ``bin_levels`` + ``build_levels_carry`` (paper 004 Algorithm 1 with the
   search rule of engine/multigrid.py; what the CPU backend runs when the radii span more than one level,
@@ -36,8 +36,8 @@ import numpy as np
 
 from bench import out_dir
 from engine.backends.base import cell_grid
-from engine.backends.cpu import bin_particles, build_list
-from engine.backends.cpu_shared import SLOT
+from engine.loops.cpu import bin_particles, build_list
+from engine.loops.cpu_shared import SLOT
 from engine.cells import cell_coords, neighbour_cell, neighbour_cell_count
 from engine.multigrid import (bin_levels, build_levels_carry, count_candidates, grid_levels, level_arrays,
                               main_level)
@@ -46,7 +46,7 @@ from engine.scene import place_species
 
 @numba.njit(parallel=True, cache=True)
 def single_candidates(pos, nc, inv_cell, cell_start, out):
-    """Distance tests per particle of engine/backends/cpu.py build_list (27 cells, fewer if nc < 3)."""
+    """Distance tests per particle of engine/loops/cpu.py build_list (27 cells, fewer if nc < 3)."""
     for i in numba.prange(pos.shape[0]):
         cx, cy, cz = cell_coords(pos[i, 0], pos[i, 1], pos[i, 2], inv_cell, nc)
         cnt = 0

@@ -63,7 +63,7 @@ def _patch_loaded() -> None:
             _wrap(m.CudaEnsemble, "__init__", "CudaEnsemble()"), _wrap(m.CudaEnsemble, "advance", "advance", 3),
             _wrap(m.CudaEnsemble, "warmup", "warmup"), _wrap(m, "_touched_empty", "_touched_empty")] + [
             _wrap(m.CudaEnsemble, n, n, 2) for n in ("_upload_particles", "_prime", "_scene_rows", "_host_slot")]),
-        "cuda-start": ("engine.backends.cuda_start", "SPHERE_TARGETS", lambda m: [
+        "cuda-start": ("engine.loops.cuda_start", "SPHERE_TARGETS", lambda m: [
             _wrap(m, "draw_start", "device start draw"), _wrap(m, "load", "device start load")]),
         "h5md": ("engine.h5md", "H5MDWriter", lambda m: [
             _wrap(m.H5MDWriter, n, "h5md." + n) for n in ("_create", "_write_frame", "_write_block", "finish",

@@ -1,7 +1,7 @@
 """The measured effect of each compile-time specialisation (docs/design.md).
 
 The engine builds its time loop for the argument types it is given, so a scene that does not need a
-piece of physics does not pay for it (engine/backends/cpu.py module doc):
+piece of physics does not pay for it (engine/loops/cpu.py module doc):
 
 - smooth vs rough spheres: ``k_t = None`` (e_t = -1 or mu = 0) drops the tangential spring, the torque
   and the spin update ("rotation off when it carries no energy");

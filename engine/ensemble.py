@@ -128,8 +128,9 @@ SETUP_THREADS_MIN_SCENES = 8
 
 def _setup_threads(specs) -> int:
     """Threads for setting up the scenes of an ensemble (256 small scenes took 0.8 s on one): up to 8,
-    for 8 or more scenes whose starts are all drawn by NumPy (engine.scene, the sequential generator: each scene
-    its own Generator, so a start does not depend on the thread; NumPy releases the GIL in its array loops).
+    for 8 or more scenes whose starts are all drawn sequentially (engine.scene: each scene its own NumPy Generator,
+    so a start does not depend on the thread; NumPy's array loops and the random sequential addition, compiled
+    with nogil, release the GIL).
     One thread otherwise: the parallel generator's prange code must not be entered by two threads at once."""
     from engine.scene import SEQUENTIAL_GENERATOR, start_generator
 

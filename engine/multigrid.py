@@ -29,7 +29,7 @@ level li finds its neighbours j
 
 Every pair is then found exactly once from each side (large-large at their common level, large-small at
 the larger one's level), which gives a full, symmetric list, and the cell width of the level where a pair
-is tested is >= L_c^l >= R_i + R_j + L_v. Pair test as paper 004 Eq. 1 and engine/backends/cpu.py:
+is tested is >= L_c^l >= R_i + R_j + L_v. Pair test as paper 004 Eq. 1 and engine/loops/cpu.py:
 |r_ij| < R_i + R_j + L_v with the minimum image.
 
 Layout of the binned particles (:class:`MultigridBuilder`): per level a counting sort over the keys
@@ -256,7 +256,7 @@ def build_levels_carry(pos, radius, level, skin, box, inv_box, half, nc, inv_cel
                        cell_start, cell_list, nbr_old, nn_old, hist_old, nbr, nn, hist, x_ref):
     """As :func:`build_levels`, with the contact history of the CPU backend carried over.
 
-    Same contract as engine/backends/cpu.py ``build_list``: a pair found in the old list keeps its slot
+    Same contract as engine/loops/cpu.py ``build_list``: a pair found in the old list keeps its slot
     data (tangential spring, previous overlap, dashpot force); a new pair starts with a zero spring and
     its current overlap R_i + R_j - |r_ij| as the previous one.
     """

@@ -25,7 +25,7 @@ Box-Muller), so the start is the same whatever the thread count, and sums (mean 
 in fixed blocks; the N sites are those of smallest 64-bit key (a parallel radix select). These starts differ
 from the sequential NumPy draws of smaller N (``start_generator`` says which one a spec gets; the result's
 /parameters@start_generator records it). A GPU job draws its large sphere start on the device instead
-(:class:`StartDraw`, engine/backends/cuda_start.py): the same draws from the same per-particle functions
+(:class:`StartDraw`, engine/loops/cuda_start.py): the same draws from the same per-particle functions
 (:func:`_site_position`, :func:`_stream_values`) and the same block sums, equal to the host's to rounding.
 """
 
@@ -257,7 +257,7 @@ def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
     w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
     if start_generator(spec) == PARALLEL_GENERATOR:
         streams, radius = parallel_start_streams(spec, p)
-        if on_device:    # drawn by the GPU job's backend (engine/backends/cuda_start.py)
+        if on_device:    # drawn by the GPU job's backend (engine/loops/cuda_start.py)
             return SphereSystem(
                 box_length=spec.box_length, position=None, velocity=None, angular_velocity=None, orientation=None,
                 radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]),
@@ -439,7 +439,7 @@ def _site_position(j, i, m, a, half_gap, box, place_key):
     """Particle i's position (m) at site j of the fcc lattice of m^3 cells of edge ``a`` (numbered as
     :func:`fcc_sites` numbers them): the site displaced uniformly in a ball of radius ``half_gap`` (direction from
     three normals, radius from a uniform: draws 0-4 of particle i in the stream ``place_key``), wrapped into
-    [0, box). One source for the host's draws (:func:`_draw_start`) and the GPU's (engine/backends/cuda_start.py)."""
+    [0, box). One source for the host's draws (:func:`_draw_start`) and the GPU's (engine/loops/cuda_start.py)."""
     c = j // 4
     b = j - 4 * c
     ix = c // (m * m)
@@ -462,7 +462,7 @@ def _site_position(j, i, m, a, half_gap, box, place_key):
 def _stream_values(key, i, dim, unit):
     """Particle i's row of a stream (dim 1-4 values; the unused ones 0): standard normals from draws 0..dim-1 of
     the stream ``key``, normalised to a unit quaternion when ``unit`` (dim 4: uniform orientations). One source for
-    the host's draws (:func:`_draw_start`) and the GPU's (engine/backends/cuda_start.py)."""
+    the host's draws (:func:`_draw_start`) and the GPU's (engine/loops/cuda_start.py)."""
     g0, g1 = _normal_pair(key, i, 0)
     g2 = 0.0
     g3 = 0.0
@@ -659,7 +659,7 @@ def _stream_sums(sums, s: int, dim: int) -> np.ndarray:
 
 def stream_mean(block_sums: np.ndarray, n: int, rms) -> np.ndarray:
     """A stream's mean (dim), from its (blocks x dim) block sums; 0 for unit rows (rms None) and n <= 1. The host's
-    and the GPU's draws (engine/backends/cuda_start.py) both take it here, from the same block sums."""
+    and the GPU's draws (engine/loops/cuda_start.py) both take it here, from the same block sums."""
     if rms is None or n <= 1:
         return np.zeros(block_sums.shape[1])
     return block_sums.sum(axis=0) / n
@@ -716,11 +716,11 @@ def _check_streams(streams) -> None:
         raise ValueError("unit rows are drawn for quaternions only (dim 4)")
 
 
-# ---- large starts drawn on the GPU (engine/backends/cuda_start.py) --------------------------------------
+# ---- large starts drawn on the GPU (engine/loops/cuda_start.py) --------------------------------------
 
 @dataclass(frozen=True)
 class StartDraw:
-    """A large one-size start of spheres, to be drawn on the GPU that runs it (engine/backends/cuda_start.py) in
+    """A large one-size start of spheres, to be drawn on the GPU that runs it (engine/loops/cuda_start.py) in
     place of the host's :func:`_parallel_draws`: the same counter-based draws, lattice and site selection, the same
     block sums and the same host arithmetic for means and scales. Sites are the same; values are equal to rounding
     (the device's log, cos, sin, pow are libdevice's, the host's libm's; the device may contract a * b + c into

@@ -79,6 +79,6 @@ def start_generator(spec) -> str:
 
 
 def device_start(spec) -> bool:
-    """Whether a GPU job of ``spec`` draws its start on the device (engine/backends/cuda_start.py): a large
+    """Whether a GPU job of ``spec`` draws its start on the device (engine/loops/cuda_start.py): a large
     one-size sphere lattice start (the parallel generator), unless :data:`DEVICE_START` is False."""
     return DEVICE_START and spec.shape == "sphere" and start_generator(spec) == PARALLEL_GENERATOR

@@ -9,7 +9,7 @@ run-time value of the same compiled code. :func:`specialisations` lists the comb
 shape refuses some: spheroids run neither species nor mixed precision); :func:`warm` runs a tiny scene of each
 through the same entry point a job uses (engine.simulate.run, plus a two-scene engine.ensemble.run_ensemble on the
 GPU for the packed kernels), and draws a large start's kernels (engine.scene.load_parallel_start; on the GPU also
-the device start's, engine.backends.cuda_start.load). Compiled code
+the device start's, engine.loops.cuda_start.load). Compiled code
 goes to numba's disk cache (engine/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of later
 jobs load it from. Nothing of a warm-up's scenes is kept.
 
@@ -160,8 +160,8 @@ def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str
 
 
 def _load_device_start(precision: str) -> None:
-    """The kernels of a large sphere start drawn on the GPU (engine/backends/cuda_start.py) in ``precision``."""
-    from engine.backends.cuda_start import load
+    """The kernels of a large sphere start drawn on the GPU (engine/loops/cuda_start.py) in ``precision``."""
+    from engine.loops.cuda_start import load
     from engine.precision import position_dtype, state_dtype
 
     load(position_dtype(precision), state_dtype(precision))

@@ -1,4 +1,4 @@
-"""Large starts drawn on the GPU (engine/backends/cuda_start.py) under the Numba CUDA simulator: the same start as the
+"""Large starts drawn on the GPU (engine/loops/cuda_start.py) under the Numba CUDA simulator: the same start as the
 host's draws (engine.scene._parallel_draws).
 
 Under the simulator the kernels call the same compiled engine.scene functions as the host and add in Python's
@@ -25,7 +25,7 @@ def _streams():
 def _device_arrays(d, pos_dtype, dtype, extra_cols=0, col0=0):
     from numba import cuda
 
-    from engine.backends.cuda_start import draw_start
+    from engine.loops.cuda_start import draw_start
 
     n = d.n + extra_cols
     stream = cuda.stream()

@@ -1,4 +1,4 @@
-"""Every registered shape brings the CUDA parts the one CUDA time loop (engine/backends/cuda_loop.py) needs.
+"""Every registered shape brings the CUDA parts the one CUDA time loop (engine/loops/cuda_loop.py) needs.
 
 The CUDA simulator must be on before numba.cuda is first imported, so the check runs in a child process.
 """
@@ -18,7 +18,7 @@ PARTS = ("PREDICTS", "TORQUE", "NOBS", "OBS_MAX", "translated", "rotate", "spin_
 def _child() -> None:
     import numpy as np
 
-    from engine.backends import cuda_kernels, cuda_loop
+    from engine.loops import cuda_kernels, cuda_loop
     from engine.shapes import SHAPES, device
 
     for name in SHAPES:

@@ -168,7 +168,7 @@ p = derive(spec)
 contacts = run_contacts(spec, p)
 s = startup.GpuStartup(shape, host(shape).standin_system(p, 3), contacts)
 s.wait()
-import engine.backends.cuda_loop as loop
+import engine.loops.cuda_loop as loop
 print("ERROR", s.error, "KERNEL SETS", len(loop._cache))
 """
 

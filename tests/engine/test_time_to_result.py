@@ -39,7 +39,7 @@ def test_which_starts_are_drawn_in_parallel():
 def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_host_if_the_job_runs_on_the_cpu(
         monkeypatch, tmp_path):
     """engine.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
-    host arrays: engine/backends/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
+    host arrays: engine/loops/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
     host, the same start as always; with start_kind.DEVICE_START False and for other shapes the host draws."""
     import engine.simulate as sim
 
@@ -415,7 +415,7 @@ def test_frame_slots_reuse_a_free_slot_and_else_wait_for_the_older_one():
 # ---- the auto list mode's probe rule ---------------------------------------------------------------------
 
 def _lists(steps_left, per_step=1e-3, steps_per_stage=20):
-    from engine.backends.cuda_listmodes import HostLists
+    from engine.loops.cuda_listmodes import HostLists
 
     fake = types.SimpleNamespace(
         stages=[{"mode": "gpu", "steps": steps_per_stage}] * 5, decisions=[],
@@ -425,7 +425,7 @@ def _lists(steps_left, per_step=1e-3, steps_per_stage=20):
 
 
 def test_auto_probes_only_when_the_rest_of_the_run_can_repay_it():
-    from engine.backends.cuda_listmodes import MIN_STAGES_LEFT, MIN_WALL_LEFT_S
+    from engine.loops.cuda_listmodes import MIN_STAGES_LEFT, MIN_WALL_LEFT_S
 
     per_step, stage = 1e-3, 20
     enough = int(max(MIN_STAGES_LEFT * stage, MIN_WALL_LEFT_S / per_step)) + 1
@@ -544,9 +544,9 @@ def _factory(flag):
 
 def test_factory_kernels_get_a_cache_key_that_is_stable_across_rebuilds():
     """A new process rebuilds the closures; numba-cuda's own key pickles the closure's dispatchers, which is not
-    stable, so engine.backends.cuda_cache keys by (engine sources, specialisation, name): equal for a rebuild
+    stable, so engine.loops.cuda_cache keys by (engine sources, specialisation, name): equal for a rebuild
     of the same specialisation, different for another one. No GPU needed (nothing is compiled)."""
-    from engine.backends import cuda_cache
+    from engine.loops import cuda_cache
 
     if cuda_cache.SIM:
         pytest.skip("the CUDA simulator caches nothing")
@@ -565,7 +565,7 @@ def test_factory_kernels_get_a_cache_key_that_is_stable_across_rebuilds():
 def test_cuda_kernel_cache_loads_without_refreshing_the_target():
     """numba-cuda refreshes every CUDA registry before a disk-cache load (about 0.3 s once per process); the
     stable-key cache loads without it. No GPU needed: the load itself is replaced."""
-    from engine.backends import cuda_cache
+    from engine.loops import cuda_cache
 
     if cuda_cache.SIM:
         pytest.skip("the CUDA simulator caches nothing")

@@ -1,4 +1,4 @@
-"""Real-GPU checks of the large starts drawn on the device (engine/backends/cuda_start.py): the same start as the
+"""Real-GPU checks of the large starts drawn on the device (engine/loops/cuda_start.py): the same start as the
 host's draws to rounding, and a job that draws its start on the device writes the file of one that draws it on the
 host (engine.start_kind.DEVICE_START = False), to rounding. Skipped without a GPU."""
 
@@ -23,7 +23,7 @@ TOL = 1e-13
 def _device(d, pos_dtype, dtype):
     from numba import cuda
 
-    from engine.backends.cuda_start import draw_start
+    from engine.loops.cuda_start import draw_start
 
     stream = cuda.stream()
     pos = cuda.device_array((3, d.n), pos_dtype, stream=stream)

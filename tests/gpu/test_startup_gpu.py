@@ -49,7 +49,7 @@ def test_a_fresh_process_writes_the_same_file_with_and_without_the_startup_threa
     # the trajectory itself: bit for bit
     assert not [n for n in differ if not n.startswith("observables/")], differ
     # the observables' block sums end in one float atomic per block, whose order varies from run to run
-    # (engine/backends/cuda_kernels.py): equal to rounding, as between any two GPU runs; a Sonine coefficient
+    # (engine/loops/cuda_kernels.py): equal to rounding, as between any two GPU runs; a Sonine coefficient
     # cancels O(1) moment ratios against each other, so its rounding is absolute, ~1e-13
     for name in differ:
         assert np.allclose(files["0"][name], files["1"][name], rtol=1e-9, atol=1e-12), (name, differ[name])

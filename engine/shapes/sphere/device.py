@@ -1,12 +1,12 @@
 """The sphere shape's CUDA parts (papers 001, 002, 004): what a sphere adds to the one CUDA time loop.
 
-engine/backends/cuda_loop.py builds the GPU time loop (kick-drift, forces, closing half kick, the many-steps
+engine/loops/cuda_loop.py builds the GPU time loop (kick-drift, forces, closing half kick, the many-steps
 cooperative kernel, observe) once for every shape; a shape package's ``device.py`` (this file for the sphere,
 found by engine.shapes.device(name)) provides :func:`make_cuda`, which returns the device functions that specialise it at
 compile time (closures over the precision, uniform particles and the shape's own flags, as
 engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The interface, for any shape:
 
-- ``make_cuda(L, DT, UNIFORM, TPB, *flags)``: ``L`` is the layout module (engine/backends/cuda_kernels.py: the
+- ``make_cuda(L, DT, UNIFORM, TPB, *flags)``: ``L`` is the layout module (engine/loops/cuda_kernels.py: the
   per-scene table columns D_*, F_*; passed in so that a shape module never imports a backend), ``DT`` the
   working precision, ``flags`` the shape's compile-time switches (``FLAGS`` names them; the host passes them
   in that order). Returns a SimpleNamespace with:

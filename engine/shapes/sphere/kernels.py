@@ -1,6 +1,6 @@
 """The sphere shape plug-in (papers 001, 002, 004): what a sphere adds to the shared CPU time loop.
 
-A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/backends/cpu.py's one time loop
+A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/loops/cpu.py's one time loop
 (``make_run_steps``, built from the shared kick-drift ``make_step`` and force loop ``make_forces``), plain
 ``@numba.njit`` functions of one particle or one list slot:
 
@@ -18,7 +18,7 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
 - ``pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
   ext)``: the pair evaluator (contact geometry and force law) of list slot kk of particle i (neighbour j):
   returns (F_x, F_y, F_z, T_x, T_y, T_z, overlap relative to the pair's size or 0) on i and advances the slot's
-  history ``hist[i, kk, :]`` (cpu_shared.SLOT) in place. engine/backends/cpu.py ``make_forces`` sums it over the
+  history ``hist[i, kk, :]`` (cpu_shared.SLOT) in place. engine/loops/cpu.py ``make_forces`` sums it over the
   full Verlet list.
 
 ``spin`` is what the closing half kick advances with ``torque * spin_inv`` (spheres: the angular velocity and

@@ -1,5 +1,5 @@
 """The spheroid shape's CUDA parts (prolate ellipsoids, paper 003; frictionless or rough): what an ellipsoid adds to the
-one CUDA time loop (engine/backends/cuda_loop.py; the interface is in engine/shapes/sphere/device.py).
+one CUDA time loop (engine/loops/cuda_loop.py; the interface is in engine/shapes/sphere/device.py).
 
 The device functions call the same ``@numba.njit`` physics as the CPU plug-in (engine/shapes/spheroid/kernels.py):
 :func:`engine.physics.ellipsoid.ellipsoid_pair_screened` (exact disjointness screens, Perram-Wertheim contact
@@ -13,7 +13,7 @@ Eqs. 13-21, renormalised every step).
 Layout (device, particle index fastest; engine/shapes/spheroid/cuda_backend.py allocates it):
     ``spin`` = angm (3, N): space-frame angular momentum L (kg m^2/s), kicked by the torque with unit factor;
     ``spin_inv`` = inv_i (3, N): principal 1/I about the body axes; ``rad`` = the bounding radius a (largest
-    semi-axis: the broad phase is the bounding-sphere list of engine/backends/cuda_kernels.py);
+    semi-axis: the broad phase is the bounding-sphere list of engine/loops/cuda_kernels.py);
     ``ext`` = (axes (3, N), vel_p (3, N), omega_p (3, N), pos_prev (3, N), quat_prev (4, N), inv_i (3, N)):
     semi-axes, the predicted end-of-step velocities v + F/m dt/2 and angular velocities R I^-1 R^T (L + tau dt/2)
     written by the kick-drift (so the force phase reads no force of another particle: one force buffer), the

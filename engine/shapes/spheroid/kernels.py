@@ -1,5 +1,5 @@
 """The spheroid shape plug-in (frictionless prolate ellipsoids, paper 003): what an ellipsoid adds to the
-shared CPU time loop (engine/backends/cpu.py ``make_run_steps``, ``make_forces``; the interface is in engine/shapes/sphere/kernels.py).
+shared CPU time loop (engine/loops/cpu.py ``make_run_steps``, ``make_forces``; the interface is in engine/shapes/sphere/kernels.py).
 
 - Broad phase: the list radius ``rad`` is the bounding-sphere radius (largest semi-axis); the force loop runs the
   Perram-Wertheim contact (engine/physics/ellipsoid.py) only for pairs whose bounding spheres overlap, behind
