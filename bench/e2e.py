@@ -68,6 +68,7 @@ SWITCHES = {
     "kernel_cache": ("engine.loops.cuda_cache", "ENABLED", False),
     "multigrid": ("engine.loops.cuda_rebuild", "MULTIGRID", False),
     "multistep": ("engine.loops.cuda_ensemble", "MULTISTEP", False),
+    "launch_cache": ("engine.loops.cuda_launch", "ENABLED", False),
 }
 
 
@@ -157,10 +158,13 @@ def _sum_timings(summaries) -> dict:
     return out
 
 
-def run_case(case: str, quick: bool, workdir: Path, off=()) -> dict:
-    """Time one case in this process (the caller gives it a fresh one), with the SWITCHES ``off`` turned off."""
+def run_case(case: str, quick: bool, workdir: Path, off=(), start=None) -> dict:
+    """Time one case in this process (the caller gives it a fresh one), with the SWITCHES ``off`` turned off and,
+    when ``start`` is given, every scene started that way (the spec's ``start``: "lattice" or "random")."""
     info = case_specs(case, quick)
     path, raw = info["path"], info["specs"]
+    if start is not None:
+        raw = [dict(d, start=start) for d in raw]
     if off and path == "worker":
         raise ValueError(f"--off does not reach the jobs of case {case} (they run in the service's processes)")
     switch_off(off)
@@ -291,12 +295,12 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
             server.kill()
 
 
-def fresh_process(case: str, quick: bool, off=()) -> dict:
+def fresh_process(case: str, quick: bool, off=(), start=None) -> dict:
     """run_case in a new Python process (compilation / cache load counted, as for a user's first call)."""
     with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
         code = ("import json,sys; sys.path.insert(0, %r); from bench.e2e import run_case; from pathlib import Path; "
-                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r)))"
-                % (str(ROOT), case, quick, d, tuple(off)))
+                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r, %r)))"
+                % (str(ROOT), case, quick, d, tuple(off), start))
         p = subprocess.run([sys.executable, "-c", code], cwd=str(ROOT), capture_output=True, text=True)
         for line in p.stdout.splitlines():
             if line.startswith("E2E-ROW "):
@@ -323,6 +327,9 @@ def main(argv=None, out_dir=None) -> int:
                     + ", ".join(f"{k} ({m}.{s} = {v})" for k, (m, s, v) in SWITCHES.items()))
     ap.add_argument("--cases", nargs="*", default=None, help="cases to run (default: the GPU cases when a GPU "
                     "is present, and the CPU cases)")
+    ap.add_argument("--start", choices=("lattice", "random"), default=None,
+                    help="start every scene this way (default: the spec's default start; 'lattice' for a comparison "
+                         "with code older than the random start)")
     ap.add_argument("--reps", type=int, default=1, help="runs per case (median of the end-to-end wall time)")
     ap.add_argument("--quick", action="store_true", help="small scenes (smoke test)")
     ap.add_argument("--out", type=Path, default=out_dir or Path("bench-out") / "e2e",
@@ -340,8 +347,8 @@ def main(argv=None, out_dir=None) -> int:
     def once(case):
         if args.same_process:
             with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
-                return run_case(case, args.quick, Path(d), args.off)
-        return fresh_process(case, args.quick, args.off)
+                return run_case(case, args.quick, Path(d), args.off, args.start)
+        return fresh_process(case, args.quick, args.off, args.start)
 
     for case in args.cases:
         first = once(case) if args.prime else None

@@ -28,6 +28,12 @@ numba-cuda (the CUDA kernels, engine/loops/):
 - ``numba.cuda.cudadrv.driver.device_memset(dst, val, size, stream)``: a memset on a stream (no public API).
 - ``Context.mempin(owner, pointer, size, mapped)`` of ``numba.cuda.current_context()``: page-lock existing host
   memory in place (cuMemHostRegister); the public API only allocates new pinned arrays.
+- a kernel launch without the dispatcher (:func:`prepare_launch`, used by engine/loops/cuda_launch.py): a compiled
+  kernel's ``argument_types``, its private ``_prepare_args`` (numba-cuda 0.30 flattens each array argument into
+  meminfo, parent, size, itemsize, pointer, shape and strides, and each scalar into one ctypes value), its
+  ``_codelibrary.get_cufunc()``, the dispatcher's ``configure`` (its ``griddim``, ``blockdim``, ``stream``,
+  ``pre_launch_callbacks`` and ``sharedmem``) and ``_launch_config_sensitive``, and the module-level
+  ``LaunchConfig``, ``launch`` and ``CUDA_CORE_GE_1_0`` of ``numba.cuda.dispatcher`` (cuda.core's).
 
 The CUDA parts import numba.cuda only when called (a CPU job never imports it).
 """
@@ -166,3 +172,45 @@ def page_lock(arrays) -> list:
 
     ctx = cuda.current_context()
     return [ctx.mempin(a, a.ctypes.data, a.nbytes, mapped=False) for a in arrays]
+
+
+def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
+    """What numba-cuda's own launch of ``dispatcher[config](*args)`` hands to cuda.core, kept for later launches
+    with the same arrays: ``(launch, stream, launch_config, kernel, kargs, slots)``, where ``launch(stream,
+    launch_config, kernel, *kargs)`` launches and ``slots`` lists ``(position in args, index in kargs, ctypes type or
+    None)`` of each top-level scalar argument (its value is refilled per launch). None where such a launch would not
+    be numba-cuda's (a launch-configuration-sensitive, debug or cooperative kernel, pre-launch callbacks, dynamic
+    shared memory, host arrays copied per launch, a scalar inside a tuple). The kernel must have been launched once
+    with these argument types (so that it is compiled)."""
+    import ctypes
+
+    from numba.cuda import dispatcher as nd
+
+    if any(isinstance(a, tuple) and any(isinstance(x, scalar_types) for x in a) for a in args):
+        return None
+    griddim, blockdim, stream = config
+    if getattr(dispatcher, "_launch_config_sensitive", False):
+        return None
+    kernel = dispatcher.compile(tuple(dispatcher.typeof_pyval(a) for a in args))
+    if kernel.debug or kernel.cooperative:
+        return None
+    lc = dispatcher.configure(griddim, blockdim, stream)    # normalised dimensions, cuda.core stream
+    if lc.pre_launch_callbacks or lc.sharedmem:
+        return None
+    stream = lc.stream
+    kargs, retr, slots = [], [], []
+    for pos, (t, v) in enumerate(zip(kernel.argument_types, args)):
+        start = len(kargs)
+        kernel._prepare_args(t, v, stream, retr, kargs)
+        if isinstance(v, scalar_types):
+            if len(kargs) != start + 1:
+                return None
+            first = kargs[start]
+            slots.append((pos, start, type(first) if isinstance(first, ctypes._SimpleCData) else None))
+    if retr:
+        return None
+    if nd.CUDA_CORE_GE_1_0:
+        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0, is_cooperative=False)
+    else:
+        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0, cooperative_launch=False)
+    return (nd.launch, stream, launch_config, kernel._codelibrary.get_cufunc().kernel, kargs, slots)

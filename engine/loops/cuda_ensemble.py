@@ -41,6 +41,7 @@ from engine.errors import BackendUnavailable, InstabilityError
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_frames import StateFrames
+from engine.loops.cuda_launch import LaunchCache
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
@@ -125,6 +126,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._horizon: Optional[int] = None     # the driver's plan: the run ends about here (plan())
         self._call_end: Optional[int] = None    # the current advance call ends here
         self._poll_ev = None                    # the event _wait_stream polls (made at its first use)
+        self._lc = LaunchCache()                # the per-step kernels' launches (engine/loops/cuda_launch.py)
         self._orient = True                     # the compiled specialisation tracks orientations
         self.lists = None                       # host-built Verlet lists (set_list_mode), None: built on the GPU
         self.kl = None                          # the multigrid / host-list kernels, where used

@@ -21,14 +21,15 @@ from engine.loops.status import BAD_VALUE, OVERLAP, instability_error as _instab
 
 class TimeLoop:
     """The stepping part of a CUDA ensemble. The ensemble provides its device arrays and tables, ``k`` (kernels),
-    ``stream``, ``lists`` and :meth:`_step_arrays`."""
+    ``_lc`` (the launch cache of the per-step kernels, engine/loops/cuda_launch.py), ``stream``, ``lists`` and
+    :meth:`_step_arrays`."""
 
     def _forces(self, step: int, n: int | None = None, grid=None) -> None:
         spin, _, rad, ext = self._step_arrays()
         n = self.n if n is None else n
-        self.k["forces"][grid or self._grid(n)](
+        self._lc.launch("forces", self.k["forces"], grid or self._grid(n), (
             n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
-            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
+            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
 
     def _coop_grid(self) -> tuple:
         """Blocks of the cooperative launch: all co-resident (a grid sync needs it)."""
@@ -46,9 +47,9 @@ class TimeLoop:
     def _kick_drift(self, first: int, step: int, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, ext = self._step_arrays()
         n = self.n if n is None else n
-        self.k["kick_drift"][grid or self._grid(n)](
+        self._lc.launch("kick_drift", self.k["kick_drift"], grid or self._grid(n), (
             n, first, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.inv_m1, spin_inv,
-            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext)
+            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
 
     def _half_kick(self, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, _ = self._step_arrays()

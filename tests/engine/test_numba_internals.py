@@ -193,3 +193,25 @@ def test_a_kernel_gets_the_stable_key_cache_and_its_key_keeps_numba_cudas_layout
     base, ours = super(cls, cache)._index_key(sig, codegen), cache._index_key(sig, codegen)
     _check(base[-1] == ("launch_config", ("lc",)) and ours[-1] == base[-1], "CUDACache._index_key",
            f"launch-configuration part {base[-1]!r}")
+
+
+@cuda_only
+def test_the_launch_internals_of_prepare_launch_have_the_expected_shape():
+    """engine.numba_internals.prepare_launch replays numba-cuda's own kernel launch: the compiled kernel's argument
+    flattening and launch, the dispatcher's configuration and cuda.core's launch entry (the cached path's results
+    are checked bit for bit on a GPU, tests/gpu/test_cuda_gpu.py)."""
+    from numba.cuda import dispatcher as nd
+
+    for name in ("LaunchConfig", "launch", "CUDA_CORE_GE_1_0"):
+        _check(hasattr(nd, name), f"numba.cuda.dispatcher.{name}", "missing")
+    kernel_class = nd._Kernel
+    _check(_params(kernel_class._prepare_args) == ["self", "ty", "val", "stream", "retr", "kernelargs"],
+           "numba.cuda.dispatcher._Kernel._prepare_args", f"parameters {_params(kernel_class._prepare_args)}")
+    launch_src = inspect.getsource(kernel_class.launch)
+    _check("self._prepare_args(t, v, stream, retr, kernelargs)" in launch_src
+           and "launch(stream, config, kernel, *kernelargs)" in launch_src and "cufunc.kernel" in launch_src,
+           "numba.cuda.dispatcher._Kernel.launch", "no longer _prepare_args per argument, then cuda.core's launch")
+    for name in ("argument_types", "debug", "cooperative"):
+        _check(name in inspect.getsource(kernel_class), f"numba.cuda.dispatcher._Kernel.{name}", "missing")
+    for name in ("configure", "compile", "typeof_pyval"):
+        _check(hasattr(nd.CUDADispatcher, name), f"numba.cuda.dispatcher.CUDADispatcher.{name}", "missing")

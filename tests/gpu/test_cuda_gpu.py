@@ -230,3 +230,26 @@ def test_ensemble_scenes_equal_single_runs_and_both_loops_agree():
         assert rel <= 1e-9, rel
         assert math.isclose(obs[k]["kinetic_energy_translational"], b.observe()["kinetic_energy_translational"],
                             rel_tol=1e-9)
+
+
+def test_cached_launches_give_the_same_trajectory(monkeypatch):
+    """The launch cache (engine/loops/cuda_launch.py) hands cuda.core the argument list numba-cuda built for the
+    first launch with the same arrays, scalars refilled: the trajectory is bit for bit the one of launches through
+    numba-cuda's dispatcher (the one-launch-per-phase loop, 150 steps in 3 calls with contacts and rebuilds)."""
+    import engine.loops.cuda_launch as launch
+    from engine.backends.cuda import CudaBackend
+
+    system, c = _dense()
+    states = {}
+    for cached in (True, False):
+        monkeypatch.setattr(launch, "ENABLED", cached)
+        gpu = CudaBackend(system, c)
+        gpu.e.multistep = False
+        for _ in range(3):
+            gpu.advance(50)
+        lc = gpu.e._lc
+        assert (lc.hits > 100) == cached and (lc.off_reason is None) == cached, (cached, lc.hits, lc.off_reason)
+        assert gpu.builds > 1
+        states[cached] = gpu.state()
+    for key in ("position", "velocity", "angular_velocity", "orientation"):
+        assert np.array_equal(states[True][key], states[False][key]), key

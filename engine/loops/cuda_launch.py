@@ -1,0 +1,135 @@
+"""Kernel launches at the cost of the driver call, for the time loop's per-step kernels.
+
+At N = 2M the per-step loop waits on the host: numba-cuda types every argument of every launch in Python
+(the type dispatch ``_cuda_call``) and then flattens each array into its pointer, shape and strides. For the
+loop's per-step kernels, with 20 to 28 arguments (one a tuple of arrays), that costs more host time per step than
+the kernels take on an H100 (docs/performance.md, "GPU: the time loop").
+
+:class:`LaunchCache` keeps, per kernel and set of argument arrays, the flattened argument list that numba-cuda
+built for the first launch with those arrays. A later launch with the same arrays (the same Python objects, so
+the same device pointers) only replaces the scalar arguments (n, step, ...) and hands the list to cuda.core's
+``launch``, as numba-cuda's own ``_Kernel.launch`` does. Same kernel, same argument values, same stream: the
+results are bit-identical (tests/gpu/test_cuda_gpu.py runs both ways). The numba-cuda internals it needs are
+engine/numba_internals.py's (:func:`engine.numba_internals.prepare_launch`).
+
+Not used (every launch goes through numba-cuda) under the CUDA simulator, with ``ENABLED`` False (bench/e2e.py
+``--off launch_cache``), for a kernel that is launch-config sensitive, compiled with debug, or has pre-launch
+callbacks, or wherever preparing the cached list fails (numba-cuda internals other than those of numba-cuda 0.30:
+the first such failure turns the cache off for the process and is recorded in :attr:`LaunchCache.off_reason`).
+"""
+
+from __future__ import annotations
+
+import os
+import weakref
+from collections import OrderedDict
+
+import numpy as np
+
+SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+
+#: False: every launch goes through numba-cuda's dispatcher (bench/e2e.py --off launch_cache)
+ENABLED = True
+
+_SCALAR = (bool, int, float, np.integer, np.floating, np.bool_)
+
+
+def _ident(a):
+    """Cache-key part of one argument: the object for arrays (by identity), the type for scalars (whose value
+    is filled in per launch), element identities for tuples."""
+    if isinstance(a, _SCALAR):
+        return ("s", type(a))
+    if isinstance(a, tuple):
+        return ("t",) + tuple(_ident(x) for x in a)
+    return id(a)
+
+
+def _weak_arrays(args) -> tuple:
+    """Weak references to the non-scalar arguments (tuple elements included); TypeError for an object that
+    takes none."""
+    out = []
+    for a in args:
+        if isinstance(a, tuple):
+            out.extend(_weak_arrays(a))
+        elif not isinstance(a, _SCALAR):
+            out.append(weakref.ref(a))
+    return tuple(out)
+
+
+def _alive(entry) -> bool:
+    for ref in entry[-1]:
+        if ref() is None:
+            return False
+    return True
+
+
+class LaunchCache:
+    """Cached flattened arguments per (kernel name, launch configuration, argument arrays); at most ``size``
+    entries per kernel (the loop alternates between two force buffers). An entry holds weak references to its
+    arrays: it keeps no device memory alive (a list reallocated on growth is freed as soon as the backend lets
+    it go), and an entry whose array is gone is never used again, even when a new array gets the old one's
+    identity; it is dropped at the next miss."""
+
+    def __init__(self, size: int = 4, enabled: bool | None = None):
+        self.size = size
+        self.enabled = (ENABLED and not SIM) if enabled is None else enabled
+        self.off_reason = None if self.enabled else (
+            "simulator" if SIM else "engine.loops.cuda_launch.ENABLED is False" if not ENABLED
+            else "turned off by the caller")
+        self.entries: dict = {}
+        self.name_misses: dict = {}
+        self.given_up: set = set()
+        self.hits = 0
+        self.misses = 0
+
+    def launch(self, name: str, dispatcher, config: tuple, args: tuple) -> None:
+        """Launch ``dispatcher[config](*args)``, through the cache when possible. config: (grid, block, stream)."""
+        if not self.enabled:
+            dispatcher[config](*args)
+            return
+        if name in self.given_up:
+            dispatcher[config](*args)
+            return
+        key = (config[0], config[1], id(config[2])) + tuple(_ident(a) for a in args)
+        per = self.entries.setdefault(name, OrderedDict())
+        entry = per.get(key)
+        if entry is not None and not _alive(entry):
+            entry = None        # an array of the entry is gone: the identities may now be another array's
+        if entry is None:
+            dispatcher[config](*args)        # compiles or loads, and launches, as always
+            self.misses += 1
+            self.name_misses[name] = self.name_misses.get(name, 0) + 1
+            if self.name_misses[name] > 8 * self.size:   # new arrays at every launch: caching only costs
+                self.given_up.add(name)
+                per.clear()
+                return
+            try:
+                entry = self._prepare(dispatcher, config, args)
+            except Exception as exc:  # numba-cuda internals not as expected: numba-cuda launches from now on
+                self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
+                self.entries.clear()
+                return
+            for old in [k for k, e in per.items() if not _alive(e)]:
+                del per[old]
+            if entry is not None:
+                try:
+                    per[key] = entry[:6] + (_weak_arrays(args),)
+                except TypeError:   # an argument that takes no weak reference: not cached
+                    return
+                if len(per) > self.size:
+                    per.popitem(last=False)
+            return
+        per.move_to_end(key)
+        core_launch, stream, launch_config, kernel, kargs, slots = entry[:6]
+        for pos, slot, ctype in slots:
+            kargs[slot] = ctype(args[pos]) if ctype is not None else args[pos]
+        core_launch(stream, launch_config, kernel, *kargs)
+        self.hits += 1
+
+    @staticmethod
+    def _prepare(dispatcher, config: tuple, args: tuple):
+        """The cache entry of one launch (engine.numba_internals.prepare_launch), or None where the cache must not be
+        used for this kernel."""
+        from engine.numba_internals import prepare_launch
+
+        return prepare_launch(dispatcher, config, args, _SCALAR)
