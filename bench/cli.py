@@ -23,7 +23,7 @@ BENCHMARKS: dict[str, bool] = {
     "gpu_scaling": True, "gpu_ensemble": True, "gpu_ellipsoid_scaling": True, "cpu_scaling": True,
     "ellipsoid_cpu_speed": True, "vs_lammps": True, "e2e": True, "e2e_profile": True, "list_modes": True,
     "multigrid_cost": True, "specialisation": True, "auto_trial": True, "vs_jaxmd": True,
-    "step_phases": False, "batch_where": False, "driver_overhead": False, "host_memory": False,
+    "loop_ab": False, "step_phases": False, "batch_where": False, "driver_overhead": False, "host_memory": False,
     "setup_timeline": False, "start_draw": False, "writer_processes": False, "download_speed": False,
     # accuracy against cost, stability, physics studies
     "accuracy": True, "stability": True, "ellipsoid_geometry_accuracy": True, "ellipsoid_recollisions": True,

@@ -10,8 +10,9 @@ dt is rounded to the nearest float32 (relative change < 6e-8) and given to both 
 ``jax_md.simulate.velocity_verlet`` casts its dt to float32 even with x64 enabled, so only such a dt is the same
 step on both sides. Both start from demq's start of the spec (``engine.scene.initial_spheres``, drawn on the host
 for JAX-MD; a GPU job of demq draws the same start on the device, equal to rounding): JAX-MD gets its positions,
-wrapped into [0, L), and the momenta m v. That start is an fcc lattice with random displacements, so the first
-contacts come late (after ~1800 steps at N = 4096); demq's ``collisions`` in the JSON counts those of each run.
+wrapped into [0, L), and the momenta m v. At the cases' N (2^21 and more) demq's default start is the fcc lattice
+with random displacements, whose first contacts come late; --quick (N = 4096) starts from the random equilibrium
+start, with contacts from the first step. demq's ``collisions`` in the JSON counts those of each run.
 
 JAX-MD: ``energy.soft_sphere_neighbor_list`` with alpha = 2, sigma = 2a, epsilon = k_n sigma^2. Its pair energy
 U = epsilon/alpha (1 - r/sigma)^alpha (r < sigma) gives the force -dU/dr = epsilon/sigma (1 - r/sigma)
@@ -79,7 +80,7 @@ CASES = {
     "rough-2M-f64": (2_097_152, "float64", 2000, True),
     "rough-8M-f32": (8_388_608, "float32", 1000, True),
 }
-QUICK_N, QUICK_STEPS = 4096, 3000     # the lattice start's first contacts come after ~1800 steps
+QUICK_N, QUICK_STEPS = 4096, 3000
 FORMATS = ("Dense", "OrderedSparse")
 SKINS = (0.8, 1.6)          # JAX-MD dr_threshold in radii
 WARMUP_STEPS = 10

@@ -48,10 +48,10 @@ from types import SimpleNamespace
 import numpy as np
 from numba import cuda
 
-from engine.physics.contact import (contact_begins, contact_elastic_energy, contact_end_fraction, min_image,
-                                    sphere_contact, sphere_contact_end, sphere_separation)
+from engine.physics.contact import contact_elastic_energy, min_image, sphere_separation
 from engine.physics.integrate import kick
 from engine.physics.rotation import sphere_quat_turn
+from engine.shapes.sphere.law import sphere_pair
 
 #: the compile-time flags of make_cuda, in order
 FLAGS = ("rough", "coulomb", "orient")
@@ -145,9 +145,24 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                 spd[s, D_BOX], spd[s, D_INVBOX], spd[s, D_HP], spd[s, D_DT], spd[s, D_KN], spd[s, D_GN],
                 spd[s, D_KT], spd[s, D_MU], r0, im0)
 
+    if ROUGH and COULOMB:
+        @cuda.jit(device=True)
+        def law_constants(k_t, mu):
+            return k_t, mu
+    elif ROUGH:
+        @cuda.jit(device=True)
+        def law_constants(k_t, mu):
+            return k_t, None
+    else:
+        @cuda.jit(device=True)
+        def law_constants(k_t, mu):
+            return None, None
+
     @cuda.jit(device=True)
     def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
-        """The sphere law of list slot kk (sphere_contact / sphere_contact_end), history advanced in place."""
+        """List slot kk of sphere i (neighbour j): the gather from and scatter into this backend's layout of the
+        sphere's one pair evaluator (law.sphere_pair), history advanced in place. The predicted end-of-step
+        velocities u = v + F_old/m dt/2 of both partners (the CPU's vel_p) are read only while in contact."""
         xi, yi, zi, ri, imi, box, inv_box, hp, dt, k_n, gn_coef, k_t, mu, r0, im0 = p
         fx, fy, fz, tx, ty, tz, wsi = acc
         omega = spin
@@ -157,85 +172,47 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                                                  min_image(yi - pos[1, j], box, inv_box, HALF),
                                                  min_image(zi - pos[2, j], box, inv_box, HALF), ri + rj, HALF)
         delta_prev = hist[3, kk, i]
+        hist[3, kk, i] = delta
+        if not (delta > ZERO or delta_prev > ZERO):
+            return fx, fy, fz, tx, ty, tz, wsi
+        imj = im0 if UNIFORM else inv_m[j]
+        vix = vel[0, i]
+        viy = vel[1, i]
+        viz = vel[2, i]
+        vjx = vel[0, j]
+        vjy = vel[1, j]
+        vjz = vel[2, j]
+        ux = vix - vjx
+        uy = viy - vjy
+        uz = viz - vjz
         if delta > ZERO:
-            if contact_begins(delta, delta_prev):
-                ext[1][i] += 1      # one collision (counted in both partners' lists)
-            imj = im0 if UNIFORM else inv_m[j]
-            m12 = one / (imi + imj)
-            vix = vel[0, i]
-            viy = vel[1, i]
-            viz = vel[2, i]
-            vjx = vel[0, j]
-            vjy = vel[1, j]
-            vjz = vel[2, j]
-            # predicted end-of-step velocities v + F/m dt/2 (CPU: vel_p in kick_drift)
-            uix = kick(vix, f_old[0, i], imi, hp)
-            uiy = kick(viy, f_old[1, i], imi, hp)
-            uiz = kick(viz, f_old[2, i], imi, hp)
-            ujx = kick(vjx, f_old[0, j], imj, hp)
-            ujy = kick(vjy, f_old[1, j], imj, hp)
-            ujz = kick(vjz, f_old[2, j], imj, hp)
-            if ROUGH and COULOMB:
-                g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                   uix - ujx, uiy - ujy, uiz - ujz,
-                                   omega[0, i], omega[1, i], omega[2, i],
-                                   omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                   hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
-                                   hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, HALF)
-            elif ROUGH:
-                g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                   uix - ujx, uiy - ujy, uiz - ujz,
-                                   omega[0, i], omega[1, i], omega[2, i],
-                                   omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                   hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
-                                   hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), k_t, None, dt, HALF)
-            else:
-                g = sphere_contact(rx, ry, rz, d, vix - vjx, viy - vjy, viz - vjz,
-                                   uix - ujx, uiy - ujy, uiz - ujz,
-                                   ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
-                                   hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], delta_prev,
-                                   hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), None, None, dt, HALF)
-            fx += g[0]
-            fy += g[1]
-            fz += g[2]
-            if ROUGH:
-                tx += g[3]
-                ty += g[4]
-                tz += g[5]
-                hist[0, kk, i] = g[6]
-                hist[1, kk, i] = g[7]
-                hist[2, kk, i] = g[8]
-            hist[4, kk, i] = g[10]
+            ux = kick(vix, f_old[0, i], imi, hp) - kick(vjx, f_old[0, j], imj, hp)
+            uy = kick(viy, f_old[1, i], imi, hp) - kick(vjy, f_old[1, j], imj, hp)
+            uz = kick(viz, f_old[2, i], imi, hp) - kick(vjz, f_old[2, j], imj, hp)
+        law_kt, law_mu = law_constants(k_t, mu)
+        gx, gy, gz, gtx, gty, gtz, xix, xiy, xiz, fd, began = sphere_pair(
+            rx, ry, rz, d, delta, delta_prev, vix - vjx, viy - vjy, viz - vjz, ux, uy, uz,
+            omega[0, i] if ROUGH else ZERO, omega[1, i] if ROUGH else ZERO, omega[2, i] if ROUGH else ZERO,
+            omega[0, j] if ROUGH else ZERO, omega[1, j] if ROUGH else ZERO, omega[2, j] if ROUGH else ZERO, ri, rj,
+            hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[4, kk, i], one / (imi + imj), k_n, gn_coef,
+            law_kt, law_mu, dt, HALF)
+        if began:
+            ext[1][i] += 1      # one collision (counted in both partners' lists)
+        fx += gx
+        fy += gy
+        fz += gz
+        if ROUGH:
+            tx += gtx
+            ty += gty
+            tz += gtz
+            hist[0, kk, i] = xix
+            hist[1, kk, i] = xiy
+            hist[2, kk, i] = xiz
+        if delta > ZERO:
+            hist[4, kk, i] = fd
             ov = delta / min(ri, rj)
             if ov > wsi:
                 wsi = ov
-        elif delta_prev > ZERO:
-            pe = contact_end_fraction(delta_prev, delta)
-            vjx = vel[0, j]
-            vjy = vel[1, j]
-            vjz = vel[2, j]
-            if ROUGH:
-                e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
-                                       omega[0, i], omega[1, i], omega[2, i],
-                                       omega[0, j], omega[1, j], omega[2, j], ri, rj,
-                                       hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
-                                       k_t, pe, dt, HALF)
-            else:
-                e = sphere_contact_end(rx, ry, rz, d, vel[0, i] - vjx, vel[1, i] - vjy, vel[2, i] - vjz,
-                                       ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ri, rj,
-                                       hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i],
-                                       None, pe, dt, HALF)
-            fx += e[0]
-            fy += e[1]
-            fz += e[2]
-            if ROUGH:
-                tx += e[3]
-                ty += e[4]
-                tz += e[5]
-                hist[0, kk, i] = ZERO
-                hist[1, kk, i] = ZERO
-                hist[2, kk, i] = ZERO
-        hist[3, kk, i] = delta
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)

@@ -42,10 +42,10 @@ from numba import prange
 
 from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
-from engine.physics.contact import (contact_begins, contact_elastic_energy, contact_end_fraction, min_image,
-                                    sphere_contact, sphere_contact_end, sphere_separation)
+from engine.physics.contact import contact_elastic_energy, min_image, sphere_separation
 from engine.physics.integrate import kick
 from engine.physics.rotation import sphere_quat_turn
+from engine.shapes.sphere.law import sphere_pair
 
 NAME = "sphere"
 EXACT_DISPLACEMENT = False
@@ -122,7 +122,8 @@ def settle(spin, quat, ext, drifted, dt, half):
 def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
          ext):
     """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), slot history advanced in place,
-    and the overlap relative to the smaller radius (0 when not in contact), for the shared force loop.
+    and the overlap relative to the smaller radius (0 when not in contact), for the shared force loop: the
+    gather from and scatter into this backend's rows of the sphere's one pair evaluator (law.sphere_pair).
 
     vel, spin: mid-step velocities and angular velocities (spring increment); vel_p: predicted end-of-step
     velocities (normal dashpot). law = (k_t, mu): None = smooth / no Coulomb limit.
@@ -135,56 +136,25 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
                                              min_image(pos[i, 1] - pos[j, 1], box, inv_box, half),
                                              min_image(pos[i, 2] - pos[j, 2], box, inv_box, half), ri + rj, half)
     delta_prev = hist[i, kk, 3]
-    fx = 0.0
-    fy = 0.0
-    fz = 0.0
-    tx = 0.0
-    ty = 0.0
-    tz = 0.0
-    ov = 0.0
-    if delta > 0:
-        if contact_begins(delta, delta_prev):
-            ext[1][i] += 1      # one collision (counted in both partners' lists)
-        m12 = 1 / (inv_m[i] + inv_m[j])
-        g = sphere_contact(rx, ry, rz, d,
-                           vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
-                           vel_p[i, 0] - vel_p[j, 0], vel_p[i, 1] - vel_p[j, 1],
-                           vel_p[i, 2] - vel_p[j, 2],
-                           omega[i, 0], omega[i, 1], omega[i, 2],
-                           omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
-                           hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], delta_prev,
-                           hist[i, kk, 4], m12, k_n, gn_coef * math.sqrt(m12), k_t, law[1], dt, half)
-        fx = g[0]
-        fy = g[1]
-        fz = g[2]
-        if k_t is not None:
-            tx = g[3]
-            ty = g[4]
-            tz = g[5]
-            hist[i, kk, 0] = g[6]
-            hist[i, kk, 1] = g[7]
-            hist[i, kk, 2] = g[8]
-        hist[i, kk, 4] = g[10]
-        ov = delta / min(ri, rj)
-    elif delta_prev > 0:
-        e = sphere_contact_end(rx, ry, rz, d,
-                               vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
-                               omega[i, 0], omega[i, 1], omega[i, 2],
-                               omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
-                               hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], k_t,
-                               contact_end_fraction(delta_prev, delta), dt, half)
-        fx = e[0]
-        fy = e[1]
-        fz = e[2]
-        if k_t is not None:
-            tx = e[3]
-            ty = e[4]
-            tz = e[5]
-            hist[i, kk, 0] = 0
-            hist[i, kk, 1] = 0
-            hist[i, kk, 2] = 0
     hist[i, kk, 3] = delta
-    return fx, fy, fz, tx, ty, tz, ov
+    if not (delta > 0 or delta_prev > 0):
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    m12 = 1 / (inv_m[i] + inv_m[j])
+    fx, fy, fz, tx, ty, tz, xix, xiy, xiz, fd, began = sphere_pair(
+        rx, ry, rz, d, delta, delta_prev, vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
+        vel_p[i, 0] - vel_p[j, 0], vel_p[i, 1] - vel_p[j, 1], vel_p[i, 2] - vel_p[j, 2],
+        omega[i, 0], omega[i, 1], omega[i, 2], omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
+        hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], hist[i, kk, 4], m12, k_n, gn_coef, k_t, law[1], dt, half)
+    if began:
+        ext[1][i] += 1      # one collision (counted in both partners' lists)
+    if k_t is not None:
+        hist[i, kk, 0] = xix
+        hist[i, kk, 1] = xiy
+        hist[i, kk, 2] = xiz
+    else:
+        tx = ty = tz = 0.0
+    hist[i, kk, 4] = fd
+    return fx, fy, fz, tx, ty, tz, (delta / min(ri, rj)) if delta > 0 else 0.0
 
 
 @numba.njit(cache=True)  # a plain loop over particles: the CPU backend calls it once per record
