@@ -145,18 +145,19 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                 spd[s, D_BOX], spd[s, D_INVBOX], spd[s, D_HP], spd[s, D_DT], spd[s, D_KN], spd[s, D_GN],
                 spd[s, D_KT], spd[s, D_MU], r0, im0)
 
+    # the contact constants of the compiled law: None prunes the tangential spring / the Coulomb cap
     if ROUGH and COULOMB:
         @cuda.jit(device=True)
-        def law_constants(k_t, mu):
-            return k_t, mu
+        def law_constants(k_n, gn_coef, k_t, mu):
+            return k_n, gn_coef, k_t, mu
     elif ROUGH:
         @cuda.jit(device=True)
-        def law_constants(k_t, mu):
-            return k_t, None
+        def law_constants(k_n, gn_coef, k_t, mu):
+            return k_n, gn_coef, k_t, None
     else:
         @cuda.jit(device=True)
-        def law_constants(k_t, mu):
-            return None, None
+        def law_constants(k_n, gn_coef, k_t, mu):
+            return k_n, gn_coef, None, None
 
     @cuda.jit(device=True)
     def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
@@ -189,13 +190,12 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             ux = kick(vix, f_old[0, i], imi, hp) - kick(vjx, f_old[0, j], imj, hp)
             uy = kick(viy, f_old[1, i], imi, hp) - kick(vjy, f_old[1, j], imj, hp)
             uz = kick(viz, f_old[2, i], imi, hp) - kick(vjz, f_old[2, j], imj, hp)
-        law_kt, law_mu = law_constants(k_t, mu)
         gx, gy, gz, gtx, gty, gtz, xix, xiy, xiz, fd, began = sphere_pair(
             rx, ry, rz, d, delta, delta_prev, vix - vjx, viy - vjy, viz - vjz, ux, uy, uz,
             omega[0, i] if ROUGH else ZERO, omega[1, i] if ROUGH else ZERO, omega[2, i] if ROUGH else ZERO,
             omega[0, j] if ROUGH else ZERO, omega[1, j] if ROUGH else ZERO, omega[2, j] if ROUGH else ZERO, ri, rj,
-            hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[4, kk, i], one / (imi + imj), k_n, gn_coef,
-            law_kt, law_mu, dt, HALF)
+            hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[4, kk, i], one / (imi + imj),
+            law_constants(k_n, gn_coef, k_t, mu), dt, HALF)
         if began:
             ext[1][i] += 1      # one collision (counted in both partners' lists)
         fx += gx

@@ -144,7 +144,7 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
         rx, ry, rz, d, delta, delta_prev, vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1], vel[i, 2] - vel[j, 2],
         vel_p[i, 0] - vel_p[j, 0], vel_p[i, 1] - vel_p[j, 1], vel_p[i, 2] - vel_p[j, 2],
         omega[i, 0], omega[i, 1], omega[i, 2], omega[j, 0], omega[j, 1], omega[j, 2], ri, rj,
-        hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], hist[i, kk, 4], m12, k_n, gn_coef, k_t, law[1], dt, half)
+        hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], hist[i, kk, 4], m12, (k_n, gn_coef, k_t, law[1]), dt, half)
     if began:
         ext[1][i] += 1      # one collision (counted in both partners' lists)
     if k_t is not None:

@@ -18,22 +18,24 @@ from engine.physics.contact import contact_begins, contact_end_fraction, sphere_
 
 @numba.njit
 def sphere_pair(rx, ry, rz, d, delta, delta_prev, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wjy, wjz, ri, rj,
-                xix, xiy, xiz, fd_prev, m12, k_n, gn_coef, k_t, mu, dt, half):
+                xix, xiy, xiz, fd_prev, m12, law, dt, half):
     """The law of one list slot of sphere i (neighbour j) that is in contact now (delta > 0) or was at the
     previous step (delta_prev > 0); a slot in neither state has no force and keeps its history.
 
     Inputs: r = r_i - r_j (m, minimum image), d = |r|, delta = r_i + r_j - d and delta_prev the overlaps now and
     one step earlier (m); v = v_i - v_j at mid-step and u = v_i - v_j predicted at the end of the step (m/s; u is
     read only while in contact); w_i, w_j the angular velocities (rad/s); the radii r_i, r_j (m); the slot's
-    tangential spring xi (m) and previous dashpot force fd_prev (N); the reduced mass m12 (kg); k_n (N/m); gn_coef
-    (kg^1/2 / s: gamma_n = gn_coef sqrt(m12)); k_t (N/m) or None (smooth spheres); mu or None (no Coulomb cap);
-    dt (s); half = 0.5 in the working precision.
+    tangential spring xi (m) and previous dashpot force fd_prev (N); the reduced mass m12 (kg); the contact
+    constants law = (k_n (N/m), gn_coef (kg^1/2 / s: gamma_n = gn_coef sqrt(m12)), k_t (N/m) or None (smooth
+    spheres), mu or None (no Coulomb cap)); dt (s); half = 0.5 in the working precision. (At most 30 arguments:
+    a longer call compiles to bytecode that numba-cuda does not read on Python 3.12.)
 
     Returns (F_x, F_y, F_z, tau_x, tau_y, tau_z, xi_x, xi_y, xi_z, F_d, began): the force (N) and torque (N m) on
     i, the slot's new spring (m) and dashpot force (N), and whether the contact began in this step (one collision).
     In contact: engine.physics.contact.sphere_contact. A contact that ended inside this step: the impulse
     correction of sphere_contact_end, the spring reset to zero, the dashpot force kept.
     """
+    k_n, gn_coef, k_t, mu = law
     if delta > half - half:
         g = sphere_contact(rx, ry, rz, d, vx, vy, vz, ux, uy, uz, wix, wiy, wiz, wjx, wjy, wjz, ri, rj, xix, xiy, xiz,
                            delta_prev, fd_prev, m12, k_n, gn_coef * math.sqrt(m12), k_t, mu, dt, half)
