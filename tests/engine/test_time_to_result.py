@@ -72,7 +72,7 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
 
 
 def test_parallel_start_is_a_valid_homogeneous_gas():
-    from scipy.spatial import cKDTree
+    from engine.pairs import periodic_pairs
 
     spec = _big()
     p = derive(spec)
@@ -81,8 +81,10 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
     v, w, q, x = sy.velocity, sy.angular_velocity, sy.orientation, sy.position
     assert np.all((x >= 0.0) & (x < box))
     # no two spheres overlap (periodic box)
-    d, _ = cKDTree(x, boxsize=box).query(x, k=2)
-    assert d[:, 1].min() >= 2.0 * p.radius
+    close = periodic_pairs(x, box, 2.0 * p.radius)                 # pairs at distance <= 2a: only touching ones
+    r = x[close[:, 1]] - x[close[:, 0]]
+    r -= box * np.round(r / box)
+    assert np.all(np.sum(r * r, axis=1) >= (2.0 * p.radius) ** 2)
     # zero momentum and exactly the requested rms speed (to rounding)
     assert np.abs(v.mean(axis=0)).max() < 1e-12 * spec.velocity_rms
     assert math.sqrt(np.mean(np.sum(v * v, axis=1))) == pytest.approx(spec.velocity_rms, rel=1e-12)

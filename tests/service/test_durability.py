@@ -24,6 +24,7 @@ from jobs.stores import open_store
 from jobs.worker import Worker
 from service.app import create_app
 from tests import waiting
+from tests.extras import assert_figure
 from tests.jobs.conftest import ROOT, TINY, make_settings
 from tests.jobs.fake_engine import TARGET
 
@@ -187,7 +188,7 @@ def test_end_to_end_real_engine_submit_done_download(tmp_path):
                 assert f[f"observables/{name}/value"].shape[0] > 1
         energy = c.get(f"/jobs/{job_id}/energy").json()
         assert energy["kinetic_energy_translational"][0] > 0
-        assert c.get(f"/jobs/{job_id}/plot.png").content[:4] == b"\x89PNG"
+        assert_figure(c.get(f"/jobs/{job_id}/plot.png"))
 
 
 def test_cli_local_submit_wait_writes_result(tmp_path):
