@@ -35,9 +35,10 @@ REAL_LONG = {**TINY, "t_end": 1.0}
 
 
 def start_worker(settings, engine_run=TARGET, **env) -> subprocess.Popen:
-    """`demq worker` in its own process (session), configured through DEMQ_* variables."""
+    """`demq worker` in its own process (session), configured through DEMQ_* variables; like ``settings`` (from
+    make_settings) it does not warm every kernel specialisation first: a real-engine job compiles only its own."""
     full_env = {**os.environ, "PYTHONPATH": str(ROOT), "DEMQ_ENGINE_RUN": engine_run,
-                "DEMQ_DATA_DIR": str(settings.data_dir), "DEMQ_POLL_SECONDS": "0.05",
+                "DEMQ_WORKER_WARM": settings.warm, "DEMQ_DATA_DIR": str(settings.data_dir), "DEMQ_POLL_SECONDS": "0.05",
                 "DEMQ_LEASE_SECONDS": str(settings.lease_s), "DEMQ_HEARTBEAT_SECONDS": str(settings.heartbeat_s),
                 "DEMQ_CHECKPOINT_INTERVAL": "0.3", "DEMQ_PROGRESS_SECONDS": "0.1", **env}
     full_env.pop("DEMQ_DATABASE_URL", None)
