@@ -17,7 +17,7 @@ from engine.errors import InstabilityError
 from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
 from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
-                          STREAM_SITES, STREAM_SPIN, STREAM_VELOCITY, _bits, _parallel_draws,
+                          STREAM_SITES, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY, _bits, _parallel_draws,
                           _smallest_sites, _stream_key, device_start, initial_ellipsoids, initial_spheres,
                           start_generator)
 from engine.spec import SimulationSpec
@@ -161,7 +161,11 @@ def test_parallel_start_does_not_depend_on_the_thread_count():
     try:
         numba.set_num_threads(1)
         one = _parallel_draws(50_000, 7, streams, place=(4.6, 0.05))
-        vel_one = _parallel_draws(50_000, 7, streams[:1])[1][0]     # the velocities alone, no positions
+        # the velocities with other companions (spheroid spins, in another order), no positions: as many streams
+        # as above, so the compiled draw of three streams serves both
+        others = _parallel_draws(50_000, 7, [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN_AXIS, 1, 3.0),
+                                             (STREAM_QUATERNION, 4, None)])[1]
+        vel_one = others[0]
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
         many = _parallel_draws(50_000, 7, streams, place=(4.6, 0.05))
     finally:
@@ -169,7 +173,7 @@ def test_parallel_start_does_not_depend_on_the_thread_count():
     assert np.array_equal(one[0], many[0])
     assert all(np.array_equal(a, b) for a, b in zip(one[1], many[1]))
     # a stream's draws do not depend on the other streams drawn with it
-    assert np.array_equal(vel_one, many[1][0])
+    assert np.array_equal(vel_one, many[1][0]) and np.array_equal(others[2], many[1][2])
     with pytest.raises(ValueError, match="quaternions only"):    # unit rows are quaternions (quat_unit)
         _parallel_draws(10, 7, [(STREAM_QUATERNION, 3, None)])
 
