@@ -154,8 +154,26 @@ def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypat
     assert [s for s, _ in loaded] == ["sphere", "sphere"]     # a species start is NumPy's: one-size spheres then
 
 
-def test_parallel_start_does_not_depend_on_the_thread_count():
-    # 50 000 of the 55 296 sites of a 24^3-cell lattice: the site selection runs too
+_DRAWS_ON_TWO_THREADS = """
+import sys
+import numba
+import numpy as np
+from engine.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, _parallel_draws
+assert numba.get_num_threads() == 2, numba.get_num_threads()
+pos, arrays = _parallel_draws(50_000, 7, [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 5.0), (STREAM_QUATERNION, 4, None)],
+                              place=(4.6, 0.05))
+np.savez(sys.argv[1], pos, *arrays)
+"""
+
+
+def test_parallel_start_does_not_depend_on_the_thread_count(tmp_path):
+    # 50 000 of the 55 296 sites of a 24^3-cell lattice: the site selection runs too. Here on one thread
+    # (tests/conftest.py), in a child process on two.
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
     streams = [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 5.0), (STREAM_QUATERNION, 4, None)]
     threads = numba.get_num_threads()
     try:
@@ -166,10 +184,15 @@ def test_parallel_start_does_not_depend_on_the_thread_count():
         others = _parallel_draws(50_000, 7, [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN_AXIS, 1, 3.0),
                                              (STREAM_QUATERNION, 4, None)])[1]
         vel_one = others[0]
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-        many = _parallel_draws(50_000, 7, streams, place=(4.6, 0.05))
     finally:
         numba.set_num_threads(threads)
+    root = Path(__file__).resolve().parents[2]
+    p = subprocess.run([sys.executable, "-c", _DRAWS_ON_TWO_THREADS, str(tmp_path / "two.npz")],
+                       capture_output=True, text=True, timeout=600, cwd=str(tmp_path),
+                       env={**os.environ, "NUMBA_NUM_THREADS": "2", "PYTHONPATH": str(root)})
+    assert p.returncode == 0, p.stderr[-3000:]
+    with np.load(tmp_path / "two.npz") as f:
+        many = (f["arr_0"], [f[f"arr_{k}"] for k in (1, 2, 3)])
     assert np.array_equal(one[0], many[0])
     assert all(np.array_equal(a, b) for a, b in zip(one[1], many[1]))
     # a stream's draws do not depend on the other streams drawn with it
