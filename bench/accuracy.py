@@ -796,9 +796,9 @@ def _kind(r: dict) -> str:
 
 
 def plot(panels: list, path: Path, backend: str = "cpu") -> None:
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("the accuracy report's figure")
     import matplotlib.pyplot as plt
 
     cols = 3

@@ -321,9 +321,9 @@ def analyse(args) -> int:
 
 
 def _plot(cells, dsmc, path):
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("the cooling-seeds figure")
     import matplotlib.pyplot as plt
 
     fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(17, 4.8))

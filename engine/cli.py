@@ -232,6 +232,13 @@ def cmd_export(args) -> int:
 
 
 def cmd_validate(args) -> int:
+    from engine.optional import MissingExtra, require_matplotlib
+
+    try:                   # the reports end in figures: refuse before a long run rather than after it
+        require_matplotlib("demq validate (its report's figures)")
+    except MissingExtra as exc:
+        print(exc, file=sys.stderr)
+        return 2
     out_dir = args.out_dir or f"reports/{args.case}"
     if args.case == "encounter-dsmc":
         from engine.validation import encounter_report

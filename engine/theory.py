@@ -8,7 +8,7 @@ Luding, Huthmann, McNamara & Zippelius, PRE 58, 3416 (1998), as quoted by paper 
     tau = (2/3) G T(0)^(1/2) t,  G = 8 (2a)^2 (N/V) sqrt(pi/m) g(2a)  (Carnahan-Starling g).
 
 with T and R normalised by T(0). The equations were checked against an independent derivation and
-the LSODA values of docs/physics.md §6.3 (tests/engine/test_theory.py).
+the LSODA values of docs/physics.md §6.3 (tests/engine/test_theory.py); they are integrated with engine/ode.py.
 """
 
 from __future__ import annotations
@@ -49,13 +49,13 @@ def r_infinity(e_n: float, e_t: float, q: float = Q_SPHERE) -> float:
 
 def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q: float = Q_SPHERE,
                rates=None):
-    """T(tau)/T(0) and R(tau)/T(0) solving paper 001 Eqs. 1-2 (LSODA, rtol 1e-10).
+    """T(tau)/T(0) and R(tau)/T(0) solving paper 001 Eqs. 1-2 (Dormand-Prince 5(4) of engine/ode.py, rtol 1e-10).
 
     tau: increasing array of scaled times starting anywhere >= 0; returns two arrays like tau.
     rates: optional callable T -> (f_tr, f_rot) that scales the right-hand sides of dT/dtau and dR/dtau (a
     correction to the collision operator measured elsewhere, e.g. engine.validation.hcs_dsmc's soft contact).
     """
-    from scipy.integrate import solve_ivp
+    from engine.ode import solve
 
     tau = np.asarray(tau, dtype=float)
     coeffs = luding_coefficients(e_n, e_t, q)
@@ -74,9 +74,8 @@ def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q:
     span = (0.0, float(max(tau.max(), 0.0)))
     if span[1] == 0.0:
         return np.full_like(tau, t0), np.full_like(tau, r0)
-    sol = solve_ivp(rhs, span, [t0, r0], method="LSODA", t_eval=np.clip(tau, 0.0, None),
-                    rtol=1e-10, atol=1e-13)
-    return sol.y[0], sol.y[1]
+    y = solve(rhs, span, [t0, r0], np.clip(tau, 0.0, None), rtol=1e-10, atol=1e-13)
+    return y[0], y[1]
 
 
 def collisions_per_particle(t_over_t0, tau) -> np.ndarray:

@@ -15,7 +15,7 @@ it directly in a frame, for the pairs whose centres are closer than ``r_cut``:
   (-1 for equal velocities). The energy a collision dissipates scales with this normal relative speed squared.
 
 Units: any consistent velocity unit (ratios are dimensionless); positions and ``r_cut`` in the box's length unit.
-Pairs in a periodic box (minimum image), found with scipy's cKDTree.
+Pairs in a periodic box (minimum image), found with the cell list of engine/pairs.py.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 
 def neighbour_velocity_correlation(position, velocity, box: float, r_cut: float) -> dict:
     """c_v, g_n_ratio and the pair counts of one frame (module docstring). position, velocity: (N, 3)."""
-    from scipy.spatial import cKDTree
+    from engine.pairs import periodic_pairs
 
     x = np.mod(np.asarray(position, dtype=float), box)
     v = np.asarray(velocity, dtype=float)
@@ -35,7 +35,7 @@ def neighbour_velocity_correlation(position, velocity, box: float, r_cut: float)
     v2 = float(np.mean(np.sum(v * v, axis=1)))
     if not r_cut < 0.5 * box:
         raise ValueError(f"r_cut = {r_cut} must be below half the box edge {box} (minimum image)")
-    pairs = cKDTree(x, boxsize=box).query_pairs(r_cut, output_type="ndarray")
+    pairs = periodic_pairs(x, box, r_cut)
     if len(pairs) == 0 or v2 == 0.0:
         return {"c_v": math.nan, "g_n_ratio": math.nan, "pairs": int(len(pairs)), "approaching": 0}
     i, j = pairs[:, 0], pairs[:, 1]

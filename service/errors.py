@@ -28,6 +28,24 @@ def rejected():
         raise InvalidRequest(exc.errors) from None
 
 
+@contextmanager
+def needs_extra():
+    """Turn :class:`engine.optional.MissingExtra` raised inside (a figure without matplotlib) into a 501 answer
+    whose detail names the extra to install."""
+    from fastapi import HTTPException
+
+    from engine.optional import MissingExtra
+
+    try:
+        yield
+    except MissingExtra as exc:
+        raise HTTPException(501, str(exc)) from None
+
+
+#: The 501 of a route that draws a figure, for its OpenAPI ``responses``.
+NEEDS_PLOTS = {501: {"description": "this server lacks matplotlib (the plots extra)"}}
+
+
 #: The methods a 405's ``Allow`` header may list.
 HTTP_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
 

@@ -109,7 +109,11 @@ def _title(fr: Frame, path_label: str) -> str:
 
 
 def render_matplotlib(fr: Frame, title: str = "", size=(6.4, 5.6), dpi: int = 100) -> bytes:
-    """PNG of the frame as an orthographic projection (see the module docstring)."""
+    """PNG of the frame as an orthographic projection (see the module docstring). Needs the ``plots`` extra
+    (engine.optional.MissingExtra without it)."""
+    from engine.optional import require
+
+    require("matplotlib", "plots", "the snapshot picture (renderer=matplotlib, or auto without OVITO)")
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.collections import EllipseCollection, LineCollection

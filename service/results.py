@@ -1,4 +1,6 @@
-"""Reading results: a job's energy time series and cooling-curve plot, a batch's mean-curve plot, against theory."""
+"""Reading results: a job's energy time series and cooling-curve plot, a batch's mean-curve plot, against theory.
+
+The plots need the ``plots`` extra (matplotlib); without it they raise engine.optional.MissingExtra."""
 
 from __future__ import annotations
 
@@ -76,9 +78,10 @@ def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
 def batch_plot_png(path: Path, title: str) -> bytes:
     """Mean T/T0 and R/T0 over the seeds of each group of a batch file, with +-1 standard-error bands,
     against Luding's ODE (spheres) or Haff's law (ellipsoids); T0 is the group's mean T(0)."""
-    from matplotlib.figure import Figure
-
     from engine.ensemble_stats import read_batch_result
+    from engine.optional import require
+
+    Figure = require("matplotlib.figure", "plots", "the batch plot").Figure
 
     data = read_batch_result(path)
     fig = Figure(figsize=(7.2, 5.0), dpi=100)
@@ -126,8 +129,9 @@ def cooling_plot_png(path: Path, title: str) -> bytes:
     T0 is the translational temperature at the first record (start of the cooling run); the theory
     starts from the measured R(0)/T(0) and uses the effective tangential restitution (engine.params).
     """
-    from matplotlib.figure import Figure
+    from engine.optional import require
 
+    Figure = require("matplotlib.figure", "plots", "the cooling plot").Figure
     series = read_energy(path)
     t = np.asarray(series["time"])
     temp = np.asarray(series["temperature_translational"])

@@ -381,6 +381,12 @@ def _cross(p, r):
 
 
 @numba.njit(cache=True)
+def _dot(p, r):
+    # written out: numba's ``p @ r`` calls BLAS through scipy, which the light install leaves out
+    return p[0] * r[0] + p[1] * r[1] + p[2] * r[2]
+
+
+@numba.njit(cache=True)
 def _tangent_curvature(u0, u1, u2, n0, n1, n2, t10, t11, t12, t20, t21, t22, a, b):
     """Support point x(n) of a spheroid (axis u, semi-axes a along u, b) at the outward unit normal n and the
     tangential entries (t1 H t1, t2 H t2, t1 H t2) of its curvature-radius tensor
@@ -560,17 +566,17 @@ def impulse_batch(v, w2, I, J, Q, NV, XA, XB, m, i_perp, zeta):
         lb = _cross(-xb, nn)
         g = (v[j] + _cross(ob, -xb)) - (v[i] + _cross(oa, xa))
         gn = g[0] * nn[0] + g[1] * nn[1] + g[2] * nn[2]
-        invmeff = 2.0 / m + (la @ la + lb @ lb) / i_perp
+        invmeff = 2.0 / m + (_dot(la, la) + _dot(lb, lb)) / i_perp
         e = e_eff(zeta, invmeff * 0.5 * m - 1.0)
         jimp = -(1.0 + e) * gn / invmeff
         v[j] += jimp * nn / m
         v[i] -= jimp * nn / m
         doa = -jimp * la / i_perp
         dob = jimp * lb / i_perp
-        w2[i, 0] += doa @ ya
-        w2[i, 1] += doa @ za
-        w2[j, 0] += dob @ yb
-        w2[j, 1] += dob @ zb
+        w2[i, 0] += _dot(doa, ya)
+        w2[i, 1] += _dot(doa, za)
+        w2[j, 0] += _dot(dob, yb)
+        w2[j, 1] += _dot(dob, zb)
 
 
 # ---- the DSMC ----------------------------------------------------------------------------------------------

@@ -108,9 +108,9 @@ def table(summ: dict) -> str:
 def plot(runs: dict, summ: dict, path: Path) -> None:
     """Late ratio per xi (the 'first' diagnostic only in the table: it sits ~15 % lower), the same relative
     to the impulse DSMC (with the DEM), and the relaxation at the largest xi."""
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("a validation report's figures")
     import matplotlib.pyplot as plt
     import numpy as np
 

@@ -274,9 +274,9 @@ def write(report: Path, res: dict, command: str) -> None:
     (report / "dsmc.json").write_text(json.dumps(
         {k: {a: (b.tolist() if isinstance(b, np.ndarray) else b) for a, b in c.items()} for k, c in res.items()},
         indent=1))
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("a validation report's figures")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(len(res), 2, figsize=(12, 4 * len(res)), squeeze=False)

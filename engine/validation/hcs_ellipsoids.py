@@ -327,9 +327,9 @@ def analyse(runs: list, xi: float, e_n: float) -> dict:
 
 
 def plot(results: dict, path: Path) -> None:
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("a validation report's figures")
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(17, 4.8))

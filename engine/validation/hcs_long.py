@@ -350,9 +350,9 @@ def _fmt_tau(t: float) -> str:
 
 
 def _plots(results: dict, out: Path) -> None:
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("a validation report's figures")
     import matplotlib.pyplot as plt
 
     keys = list(results)

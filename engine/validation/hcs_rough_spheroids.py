@@ -106,9 +106,9 @@ def analyse_limit(spheres: list, spheroids: list) -> dict:
 
 
 def plot(limit: dict, cells: dict, path: Path) -> None:
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("a validation report's figures")
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))

@@ -125,9 +125,9 @@ def measured_restitution(spec: SimulationSpec) -> tuple[float, float]:
 
 
 def plot(results: dict, path: Path) -> None:
-    import matplotlib
+    from engine.optional import require_matplotlib
 
-    matplotlib.use("Agg")
+    require_matplotlib("a validation report's figures")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4.5), squeeze=False)

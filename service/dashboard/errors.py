@@ -20,7 +20,7 @@ from service.errors import allowed_methods
 
 TITLES = {400: "Bad request", 401: "Token needed", 403: "Forbidden", 404: "Not found",
           405: "Method not allowed", 409: "Not available", 410: "Gone", 413: "Request too large",
-          422: "Invalid request"}
+          422: "Invalid request", 501: "Not installed"}
 _JOB_PATH = re.compile(r"^/(?:ui/)?jobs/([0-9A-Za-z_-]{1,64})(?:/|$)")
 _BATCH_PATH = re.compile(r"^/(?:ui/)?batches/([0-9A-Za-z_-]{1,64})(?:/|$)")
 

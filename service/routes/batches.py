@@ -17,7 +17,7 @@ from jobs.store import NewJob
 from service.backends import check_backends
 from service.deps import SettingsDep, StoreDep, wake_worker
 from service.downloads import Download
-from service.errors import InvalidRequest, rejected
+from service.errors import NEEDS_PLOTS, InvalidRequest, needs_extra, rejected
 from service.results import batch_plot_png
 from service.schemas import BatchIn, BatchOut
 
@@ -81,12 +81,14 @@ def get_batch_result(batch_id: BatchId, store: StoreDep, settings: SettingsDep, 
 
 
 @router.get("/{batch_id}/plot.png", response_class=Response, responses={
-    **RESULT_RESPONSES, 200: {"content": {"image/png": {}}, "description": "PNG"}})
+    **RESULT_RESPONSES, **NEEDS_PLOTS, 200: {"content": {"image/png": {}}, "description": "PNG"}})
 def get_batch_plot(batch_id: BatchId, store: StoreDep, settings: SettingsDep, partial: Partial = False) -> Response:
     """Mean T/T0 and R/T0 of each group of the batch with +-1 standard-error bands, against Luding's ODE
     (spheres) or Haff's law (ellipsoids)."""
     path = _batch_file(store, settings, batch_id, partial)
-    return Response(batch_plot_png(path, f"batch {batch_id[:8]}: mean over seeds"), media_type="image/png")
+    with needs_extra():
+        png = batch_plot_png(path, f"batch {batch_id[:8]}: mean over seeds")
+    return Response(png, media_type="image/png")
 
 
 router.add_api_route("/{batch_id}/plot", get_batch_plot, methods=["GET"], response_class=Response,

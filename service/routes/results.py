@@ -16,7 +16,7 @@ from jobs.schema import DONE
 from jobs.store import Job
 from service.deps import JobDep
 from service.downloads import Download
-from service.errors import InvalidRequest
+from service.errors import NEEDS_PLOTS, InvalidRequest, needs_extra
 from service.results import cooling_plot_png, energy_csv, read_energy
 
 router = APIRouter(prefix="/jobs", tags=["results"])
@@ -53,12 +53,15 @@ def get_energy(job: JobDep, format: Annotated[Literal["json", "csv"], Query()] =
 
 
 @router.get("/{job_id}/plot.png", response_class=Response,
-            responses={**RESPONSES, 200: {"content": {"image/png": {}}, "description": "PNG"}})
+            responses={**RESPONSES, **NEEDS_PLOTS, 200: {"content": {"image/png": {}}, "description": "PNG"}})
 def get_plot(job: JobDep) -> Response:
     """T/T0 and R/T0 against the scaled time tau, with Luding's mean-field theory (spheres)."""
     s = job.spec
     title = f"job {job.id[:8]}: N={s['n_particles']}, e_n={s['e_n']}, e_t={s['e_t']}, phi={s['volume_fraction']}"
-    return Response(cooling_plot_png(_result_file(job), title), media_type="image/png")
+    path = _result_file(job)
+    with needs_extra():
+        png = cooling_plot_png(path, title)
+    return Response(png, media_type="image/png")
 
 
 SNAPSHOT_RESPONSES = {**RESPONSES, 409: {"description": "the job is not done, or its result has no snapshot frame"},
@@ -106,7 +109,8 @@ def get_gsd(job: JobDep) -> FileResponse:
 
 
 @router.get("/{job_id}/snapshot.png", response_class=Response, responses={
-    **SNAPSHOT_RESPONSES, 422: {"description": "frame index out of range, or an unknown colour/renderer"},
+    **SNAPSHOT_RESPONSES, **NEEDS_PLOTS,
+    422: {"description": "frame index out of range, or an unknown colour/renderer"},
     200: {"content": {"image/png": {}}, "description": "PNG"}})
 def get_snapshot(job: JobDep,
                  frame: Annotated[int, Query(description="snapshot frame, Python-style: 0 = first, -1 = last")] = -1,
@@ -123,7 +127,8 @@ def get_snapshot(job: JobDep,
                                "msg": "OVITO is not installed on this server (pip install ovito, and a Vulkan "
                                       "loader): use renderer=auto or matplotlib"}])
     try:
-        png = snapshot_png(path, frame, color, renderer, label=f"job {job.id[:8]}: ")
+        with needs_extra():
+            png = snapshot_png(path, frame, color, renderer, label=f"job {job.id[:8]}: ")
     except NoSnapshot:
         raise _no_snapshot(job) from None
     except FrameOutOfRange as exc:

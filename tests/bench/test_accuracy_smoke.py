@@ -117,6 +117,7 @@ def test_front_with_error_bars():
     assert accuracy.dominates(b, a) and not accuracy.dominates(a, b)
 
 
+@pytest.mark.heavy   # compiles a kernel of every specialisation the report compares: over a minute on 2 cores
 def test_specialisation_report(tmp_path):
     assert specialisation.main(out_dir=tmp_path, variant="tiny", backend="cpu", threads=1,
                                log=lambda *_: None) == 0

@@ -13,7 +13,7 @@ instead, in numpy longdouble (80-bit x87 on x86: 64-bit mantissa, eps = 1.1e-19)
   (each end by the stable quadratic formula).
 
 The tests below check the oracle itself against closed forms (docs/physics.md §2.6) and against a
-direct constrained minimisation of max(rho_A^2, rho_B^2) with scipy (a third method).
+direct constrained minimisation of max(rho_A^2, rho_B^2) with scipy (a third method; the reference extra).
 """
 
 from __future__ import annotations
@@ -178,9 +178,11 @@ def test_oracle_parallel_at_angle_and_sphere():
     assert abs(float(w2[0]) - 0.34) < 1e-16             # (d/2)^2 = (1 + 0.36)/4
 
 
+@pytest.mark.heavy
 def test_oracle_agrees_with_direct_minimisation():
-    """Third method: W_0^2 = min_p max(rho_A^2(p), rho_B^2(p)) by scipy SLSQP (float64, loose tol)."""
-    from scipy.optimize import minimize
+    """Third method: W_0^2 = min_p max(rho_A^2(p), rho_B^2(p)) by scipy SLSQP (float64, loose tol; the reference
+    extra)."""
+    minimize = pytest.importorskip("scipy.optimize", reason="scipy (pip install '.[reference]')").minimize
 
     data = random_overlapping(12, seed=5, h_range=(1e-2, 1e-1))
     for k in range(12):

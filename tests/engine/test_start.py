@@ -7,10 +7,9 @@ import math
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
-
 from engine import SimulationSpec
 from engine.errors import SpecError
+from engine.pairs import periodic_pairs
 from engine.params import derive
 from engine.scene import initial_spheres
 from engine.start_kind import (LATTICE, PARALLEL_START_MIN, RANDOM, RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION,
@@ -24,9 +23,8 @@ def carnahan_starling(phi: float) -> float:
 def contact_value(position: np.ndarray, box: float, radius: float, shell: float = 0.03) -> tuple[float, float]:
     """g(sigma) as the pair density in the shell sigma <= r < sigma (1 + shell) over the ideal gas's (pairs closer
     than sigma, overlaps of soft spheres, are counted in), and its Poisson standard error."""
-    tree = cKDTree(np.mod(position, box), boxsize=box)
     sigma = 2.0 * radius
-    pairs = (float(np.ravel(tree.count_neighbors(tree, [sigma * (1.0 + shell)]))[0]) - len(position)) / 2.0
+    pairs = float(len(periodic_pairs(position, box, sigma * (1.0 + shell))))
     ideal = 0.5 * len(position) ** 2 / box**3 * 4.0 / 3.0 * math.pi * sigma**3 * ((1.0 + shell) ** 3 - 1.0)
     return pairs / ideal, math.sqrt(pairs) / ideal
 
@@ -70,8 +68,7 @@ def test_random_start_is_non_overlapping_uniform_and_maxwellian():
     p = derive(spec)
     system = initial_spheres(spec, p)
     pos = np.asarray(system.position)
-    tree = cKDTree(pos, boxsize=spec.box_length)
-    assert not tree.query_pairs(2.0 * p.radius)                        # no two spheres overlap
+    assert len(periodic_pairs(pos, spec.box_length, 2.0 * p.radius)) == 0   # no two spheres overlap
     counts = np.histogramdd(pos, bins=4, range=[(0, spec.box_length)] * 3)[0].ravel()
     # 64 cells of ~312 spheres: a uniform start scatters by less than Poisson's sqrt(312) ~ 18 (hard cores)
     assert counts.std() < 1.5 * math.sqrt(counts.mean())

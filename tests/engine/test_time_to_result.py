@@ -17,7 +17,7 @@ from engine.errors import InstabilityError
 from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
 from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
-                          STREAM_SITES, STREAM_SPIN, STREAM_VELOCITY, _bits, _parallel_draws,
+                          STREAM_SITES, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY, _bits, _parallel_draws,
                           _smallest_sites, _stream_key, device_start, initial_ellipsoids, initial_spheres,
                           start_generator)
 from engine.spec import SimulationSpec
@@ -72,7 +72,7 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
 
 
 def test_parallel_start_is_a_valid_homogeneous_gas():
-    from scipy.spatial import cKDTree
+    from engine.pairs import periodic_pairs
 
     spec = _big()
     p = derive(spec)
@@ -81,8 +81,10 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
     v, w, q, x = sy.velocity, sy.angular_velocity, sy.orientation, sy.position
     assert np.all((x >= 0.0) & (x < box))
     # no two spheres overlap (periodic box)
-    d, _ = cKDTree(x, boxsize=box).query(x, k=2)
-    assert d[:, 1].min() >= 2.0 * p.radius
+    close = periodic_pairs(x, box, 2.0 * p.radius)                 # pairs at distance <= 2a: only touching ones
+    r = x[close[:, 1]] - x[close[:, 0]]
+    r -= box * np.round(r / box)
+    assert np.all(np.sum(r * r, axis=1) >= (2.0 * p.radius) ** 2)
     # zero momentum and exactly the requested rms speed (to rounding)
     assert np.abs(v.mean(axis=0)).max() < 1e-12 * spec.velocity_rms
     assert math.sqrt(np.mean(np.sum(v * v, axis=1))) == pytest.approx(spec.velocity_rms, rel=1e-12)
@@ -152,22 +154,49 @@ def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypat
     assert [s for s, _ in loaded] == ["sphere", "sphere"]     # a species start is NumPy's: one-size spheres then
 
 
-def test_parallel_start_does_not_depend_on_the_thread_count():
-    # 50 000 of the 55 296 sites of a 24^3-cell lattice: the site selection runs too
+_DRAWS_ON_TWO_THREADS = """
+import sys
+import numba
+import numpy as np
+from engine.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, _parallel_draws
+assert numba.get_num_threads() == 2, numba.get_num_threads()
+pos, arrays = _parallel_draws(50_000, 7, [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 5.0), (STREAM_QUATERNION, 4, None)],
+                              place=(4.6, 0.05))
+np.savez(sys.argv[1], pos, *arrays)
+"""
+
+
+def test_parallel_start_does_not_depend_on_the_thread_count(tmp_path):
+    # 50 000 of the 55 296 sites of a 24^3-cell lattice: the site selection runs too. Here on one thread
+    # (tests/conftest.py), in a child process on two.
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
     streams = [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 5.0), (STREAM_QUATERNION, 4, None)]
     threads = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
         one = _parallel_draws(50_000, 7, streams, place=(4.6, 0.05))
-        vel_one = _parallel_draws(50_000, 7, streams[:1])[1][0]     # the velocities alone, no positions
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-        many = _parallel_draws(50_000, 7, streams, place=(4.6, 0.05))
+        # the velocities with other companions (spheroid spins, in another order), no positions: as many streams
+        # as above, so the compiled draw of three streams serves both
+        others = _parallel_draws(50_000, 7, [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN_AXIS, 1, 3.0),
+                                             (STREAM_QUATERNION, 4, None)])[1]
+        vel_one = others[0]
     finally:
         numba.set_num_threads(threads)
+    root = Path(__file__).resolve().parents[2]
+    p = subprocess.run([sys.executable, "-c", _DRAWS_ON_TWO_THREADS, str(tmp_path / "two.npz")],
+                       capture_output=True, text=True, timeout=600, cwd=str(tmp_path),
+                       env={**os.environ, "NUMBA_NUM_THREADS": "2", "PYTHONPATH": str(root)})
+    assert p.returncode == 0, p.stderr[-3000:]
+    with np.load(tmp_path / "two.npz") as f:
+        many = (f["arr_0"], [f[f"arr_{k}"] for k in (1, 2, 3)])
     assert np.array_equal(one[0], many[0])
     assert all(np.array_equal(a, b) for a, b in zip(one[1], many[1]))
     # a stream's draws do not depend on the other streams drawn with it
-    assert np.array_equal(vel_one, many[1][0])
+    assert np.array_equal(vel_one, many[1][0]) and np.array_equal(others[2], many[1][2])
     with pytest.raises(ValueError, match="quaternions only"):    # unit rows are quaternions (quat_unit)
         _parallel_draws(10, 7, [(STREAM_QUATERNION, 3, None)])
 

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from jobs.warm import PRECISIONS, specialisations
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,6 +58,7 @@ def _env(cache: Path) -> dict:
     return {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(cache), "NUMBA_NUM_THREADS": "1"}
 
 
+@pytest.mark.heavy   # compiles six kernels into an empty cache: about a minute on 2 cores
 def test_warm_fills_the_cache_so_that_a_job_in_a_fresh_process_compiles_nothing(tmp_path):
     cache = tmp_path / "numba-cache"   # empty: everything the job needs must come from the warm-up
     warm = [sys.executable, "-m", "service.cli", "warm", "--backend", "cpu", "--shape", "sphere",

@@ -10,6 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
+from tests.extras import assert_figure
 from tests.jobs.conftest import make_settings
 from tests.service.conftest import TINY, finish_with_fake_result
 
@@ -191,9 +192,7 @@ def test_result_energy_and_plot_of_a_done_job(client, settings):
     assert len(rows) == 22 and float(rows[1][1]) == 0.0
     assert client.get(f"/jobs/{job_id}/energy", params={"format": "xml"}).status_code == 422
 
-    r = client.get(f"/jobs/{job_id}/plot.png")
-    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
-    assert r.content[:8] == b"\x89PNG\r\n\x1a\n" and len(r.content) > 10_000
+    assert_figure(client.get(f"/jobs/{job_id}/plot.png"), min_bytes=10_000)
 
 
 def test_deleted_result_file_is_410(client, settings):

@@ -17,6 +17,7 @@ from engine.params import derive
 from engine.spec import SimulationSpec
 from engine.theory import DOF_SMOOTH_SPHERE, haff_rate, haff_rate_smooth_spheres
 from service.app import create_app
+from tests.extras import assert_figure
 from tests.jobs.conftest import TINY, make_settings
 from tests.service.conftest import finish_with_fake_result
 from tests.waiting import wait_for
@@ -143,8 +144,7 @@ def test_batch_result_routes_404_409_partial_and_plot(client, settings):
     client.post(f"/jobs/{ids[5]}/cancel")
     assert client.get(f"/batches/{bid}/result").status_code == 200  # every job has ended
     for path in (f"/batches/{bid}/plot.png", f"/batches/{bid}/plot"):
-        r = client.get(path)
-        assert r.status_code == 200 and r.content[:8] == b"\x89PNG\r\n\x1a\n" and len(r.content) > 10_000
+        assert_figure(client.get(path), min_bytes=10_000)
     paths = client.get("/openapi.json").json()["paths"]
     assert {"/batches/{batch_id}/result", "/batches/{batch_id}/plot.png"} <= set(paths)
 
@@ -204,5 +204,4 @@ def test_sweep_over_http_runs_as_one_ensemble_with_batch_statistics(tmp_path):
         # stronger dissipation cools faster
         assert data["groups"][0]["kinetic_energy_translational_ratio"]["mean"][-1] < \
             data["groups"][1]["kinetic_energy_translational_ratio"]["mean"][-1]
-        png = c.get(f"/batches/{bid}/plot.png")
-        assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+        assert_figure(c.get(f"/batches/{bid}/plot.png"))

@@ -10,6 +10,7 @@ from fastapi.testclient import TestClient
 from jobs.schema import FAILED
 from service.app import create_app
 from service.deps import TOKEN_COOKIE
+from tests.extras import assert_figure
 from tests.service.conftest import TINY, finish_with_fake_result, make_settings
 
 HTML = {"accept": "text/html,application/xhtml+xml,application/xml;q=0.9,*/*;q=0.8"}  # a browser's navigation
@@ -95,7 +96,7 @@ def test_done_job_page_has_plot_downloads_and_spec(client, settings):
     assert f'src="/jobs/{job_id}/snapshot.png?frame=-1&amp;color=speed"' in page
     assert re.search(r'class="changed"><th>e_t</th><td class="mono">-1.0</td>', page)  # a changed key stands out
     assert "hx-get" not in page and 'id="cancel"' not in page  # ended: no polling, nothing to cancel
-    assert client.get(f"/jobs/{job_id}/plot.png").headers["content-type"] == "image/png"
+    assert_figure(client.get(f"/jobs/{job_id}/plot.png"))
     assert '<th>stiffness</th><td class="mono">1e8</td>' in page  # not 100000000.0
 
 
@@ -163,7 +164,7 @@ def test_batch_page_shows_the_sweep_and_the_mean_curves(client, settings):
         finish_with_fake_result(client.store, settings, job_id)
     page = client.get(f"/ui/batches/{batch['batch_id']}").text
     assert f'src="/batches/{batch["batch_id"]}/plot.png?partial=true"' in page
-    assert client.get(f"/batches/{batch['batch_id']}/plot.png", params={"partial": True}).status_code == 200
+    assert_figure(client.get(f"/batches/{batch['batch_id']}/plot.png", params={"partial": True}))
     for job_id in batch["job_ids"][2:]:
         finish_with_fake_result(client.store, settings, job_id)
     assert client.get(f"/ui/batches/{batch['batch_id']}/live").headers["HX-Refresh"] == "true"

@@ -15,6 +15,7 @@ from engine.simulate import run
 from jobs.schema import DONE, FAILED
 from service.app import create_app
 from service.render import ovito_available
+from tests.extras import NO_PLOTS, hide_matplotlib, needs_plots
 from tests.jobs.conftest import make_settings
 from tests.service.conftest import TINY, finish_with_fake_result
 
@@ -52,6 +53,8 @@ def _png(r):
     return img
 
 
+@pytest.mark.heavy   # draws with matplotlib: the `plots` extra
+@needs_plots
 @pytest.mark.parametrize("shape", ["sphere", "ellipsoid"])
 def test_snapshot_png_of_a_real_result(client, settings, engine_results, shape):
     spec = SPHERES if shape == "sphere" else ELLIPSOIDS
@@ -78,6 +81,20 @@ def test_snapshot_png_errors(client, settings, engine_results):
     if not ovito_available():
         r = client.get(f"/jobs/{job_id}/snapshot.png", params={"renderer": "ovito"})
         assert r.status_code == 422 and "OVITO is not installed" in r.json()["detail"][0]["msg"]
+
+
+def test_snapshot_without_matplotlib_or_ovito_answers_501(client, settings, engine_results, monkeypatch):
+    from service import render
+
+    hide_matplotlib(monkeypatch)
+    monkeypatch.setattr(render, "ovito_available", lambda: False)
+    job_id = _done_job(client, settings, SPHERES, engine_results["sphere"])
+    for renderer in ("matplotlib", "auto"):
+        r = client.get(f"/jobs/{job_id}/snapshot.png", params={"renderer": renderer})
+        assert r.status_code == 501 and r.json()["detail"].startswith("the snapshot picture"), r.text
+        assert NO_PLOTS in r.json()["detail"]
+    # the frame is checked before drawing: a bad index stays a 422
+    assert client.get(f"/jobs/{job_id}/snapshot.png", params={"frame": 5}).status_code == 422
 
 
 def test_not_done_failed_and_snapshotless_jobs_are_409(client, settings):
@@ -150,6 +167,8 @@ def _big_result(path, n=4096):
     return w.finish({})
 
 
+@pytest.mark.heavy   # draws with matplotlib: the `plots` extra
+@needs_plots
 @pytest.mark.parametrize("renderer", ["matplotlib", "auto"])
 def test_snapshot_of_4096_particles(client, settings, tmp_path, renderer):
     """A picture of a 4096-spheroid frame by each renderer (its speed is not a test's business)."""

@@ -5,7 +5,13 @@ from __future__ import annotations
 
 import json
 
+import pytest
 
+from tests.extras import needs_plots
+
+
+@pytest.mark.heavy   # a physics validation whose report ends in figures: the `plots` extra
+@needs_plots
 def test_validate_encounter_dsmc_quick(tmp_path):
     import argparse
 

@@ -11,6 +11,7 @@ from engine.theory import luding_ode
 from engine.validation.hcs_dsmc import _hard_rule, cooling, soft_contact_loss
 from engine.validation.hcs_long import scene_spec
 from engine.validation.sonine import _dsmc
+from tests.extras import figure_or_missing_extra
 
 
 def test_elastic_gas_keeps_t_and_collides_at_three_quarters_per_tau():
@@ -95,7 +96,8 @@ def test_decomposition_takes_the_collision_rate_only_where_it_is_precise(tmp_pat
                         rate_T=z + 0.02, rate_R=z + 0.005, rate_se=se, rate_used=bool(se <= hcs_dsmc.RATE_SE_MAX))
     # ~10 records per tau window at tau >= 5: the window SE is err / sqrt(records)
     assert res["precise"]["rate_used"] and not res["noisy"]["rate_used"]
-    hcs_dsmc.write(tmp_path, res, "test")
+    with figure_or_missing_extra():              # dsmc.png last, after the tables
+        hcs_dsmc.write(tmp_path, res, "test")
     md = (tmp_path / "dsmc.md").read_text()
     precise, noisy = md.split("## noisy")
     assert "rest - rate T %" in precise and "| +3.00 ± 0.10 | +2.00 | +1.00 ± 0.10 |" in precise

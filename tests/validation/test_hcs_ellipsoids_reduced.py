@@ -8,9 +8,14 @@ cooling at xi = 1.5, whose rotation couples well (<D>_S = 0.2).
 
 import json
 
+import pytest
+
 from engine.validation import hcs_ellipsoids as h
+from tests.extras import needs_plots
 
 
+@pytest.mark.heavy   # a physics validation whose report ends in figures: the `plots` extra
+@needs_plots
 def test_smooth_spheroid_cooling_haff_and_rotation(tmp_path):
     h.main(out_dir=tmp_path, seeds=1, quick=True, cells=((1.5, 0.8),), threads=1, dsmc=False)
     s = json.loads((tmp_path / "summary.json").read_text())["1.5/0.8"]

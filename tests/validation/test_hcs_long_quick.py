@@ -10,8 +10,11 @@ import numpy as np
 import pytest
 
 from engine.validation import hcs_long
+from tests.extras import needs_plots
 
 
+@pytest.mark.heavy   # a physics validation whose report ends in figures: the `plots` extra
+@needs_plots
 def test_quick_long_cooling_follows_the_ode_and_measures_the_modes(tmp_path):
     rc = hcs_long.main(out_dir=tmp_path, quick=True, backend="cpu", keep=True)
     summary = json.loads((tmp_path / "summary.json").read_text())
@@ -120,10 +123,11 @@ def test_quick_checks_fail_on_a_deviating_or_clustered_case():
 def test_cli_dispatches_hcs_long(monkeypatch):
     import argparse
 
-    from engine import cli
+    from engine import cli, optional
 
     seen = {}
     monkeypatch.setattr(hcs_long, "main", lambda **kw: seen.update(kw) or 0)
+    monkeypatch.setattr(optional, "require_matplotlib", lambda what: None)   # the dispatch, with or without plots
     ap = argparse.ArgumentParser()
     cli.register(ap.add_subparsers())
     args = ap.parse_args(["validate", "hcs-long", "--quick", "--backend", "cpu", "-o", "x"])

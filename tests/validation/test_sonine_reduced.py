@@ -2,7 +2,11 @@
 The DSMC reference is checked against two exact limits first."""
 
 import json
+
+import pytest
+
 from engine.validation import sonine as v
+from tests.extras import needs_plots
 
 
 def test_dsmc_elastic_limit_is_maxwellian():
@@ -23,6 +27,8 @@ def test_dsmc_rough_limits():
     assert abs(r["T_ratio"] / v.maxwellian_temperature_ratio(0.8, 0.8) - 1) < 0.01, r["T_ratio"]
 
 
+@pytest.mark.heavy   # a physics validation whose report ends in figures: the `plots` extra
+@needs_plots
 def test_quick_validation_runs_and_passes(tmp_path):
     """`demq validate sonine --quick --ensemble`: e_n = 0.4, 6 seeds of N = 800 as one (CPU) ensemble, the code
     path of the full GPU report (~30 s on one core)."""
