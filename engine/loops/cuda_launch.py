@@ -20,13 +20,12 @@ the first such failure turns the cache off for the process and is recorded in :a
 
 from __future__ import annotations
 
-import os
 import weakref
 from collections import OrderedDict
 
 import numpy as np
 
-SIM = os.environ.get("NUMBA_ENABLE_CUDASIM") == "1"
+from engine.loops.cuda_cache import SIM
 
 #: False: every launch goes through numba-cuda's dispatcher (bench/e2e.py --off launch_cache)
 ENABLED = True

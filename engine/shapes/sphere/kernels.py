@@ -147,12 +147,10 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
         hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], hist[i, kk, 4], m12, (k_n, gn_coef, k_t, law[1]), dt, half)
     if began:
         ext[1][i] += 1      # one collision (counted in both partners' lists)
-    if k_t is not None:
+    if k_t is not None:     # smooth spheres: the evaluator's torque is zero and the spring stays untouched
         hist[i, kk, 0] = xix
         hist[i, kk, 1] = xiy
         hist[i, kk, 2] = xiz
-    else:
-        tx = ty = tz = 0.0
     hist[i, kk, 4] = fd
     return fx, fy, fz, tx, ty, tz, (delta / min(ri, rj)) if delta > 0 else 0.0
 
