@@ -69,6 +69,7 @@ SWITCHES = {
     "multigrid": ("engine.loops.cuda_rebuild", "MULTIGRID", False),
     "multistep": ("engine.loops.cuda_ensemble", "MULTISTEP", False),
     "launch_cache": ("engine.loops.cuda_launch", "ENABLED", False),
+    "displacement_bound": ("engine.loops.cuda_stepping", "DISPLACEMENT_BOUND", False),
 }
 
 

@@ -2,12 +2,20 @@
 
 In one warm process (kernels compiled by a 20-step run of each variant first), each repetition runs every variant
 once, in turn, on the same case of bench/vs_jaxmd.py (its scene, its spec: no thermalisation, no snapshots), and
-prints one JSON line per run: the loop and end-to-end Cundall numbers. A variant is ``default`` or a ``+``-joined
-list of bench/e2e.py ``--off`` switch names (e.g. ``launch_cache``, ``multistep``), or ``multistep_on`` (the
-many-steps-per-launch loop forced for a large scene). For the cost of one piece of machinery inside the loop,
-without the fresh-process noise of bench/e2e.py.
+prints one JSON line per run: the loop and end-to-end Cundall numbers and the neighbour-list builds. A variant is
+``default`` or a ``+``-joined list of: bench/e2e.py ``--off`` switch names (e.g. ``launch_cache``,
+``displacement_bound``), ``multistep_on`` (the many-steps-per-launch loop forced for a large scene), ``blocks=B``
+(every force kernel compiled for B blocks per SM: engine/loops/cuda_loop.py FORCES_BLOCKS_PER_SM; ``blocks=0``: none
+compiled with launch bounds). For the cost
+of one piece of machinery inside the loop, without the fresh-process noise of bench/e2e.py.
 
     python -m bench loop_ab --cases elastic-2M-f64 elastic-8M-f32 --variants launch_cache default multistep_on
+    python -m bench loop_ab --cases rough-2M-f64 --variants default blocks=2 blocks=3
+    python -m bench loop_ab --cases elastic-1M-f64 packed-256x4096-f64 --variants default multistep
+
+Cases: those of bench/vs_jaxmd.py and :data:`EXTRA` (one 1M-sphere scene and 256 packed scenes of 4096 at the
+same sphere size; 1M rough spheroids). For several scenes the loop figure is N x steps over the ensemble's loop
+seconds.
 """
 
 from __future__ import annotations
@@ -23,52 +31,123 @@ if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+#: the engine's own FORCES_BLOCKS_PER_SM, kept at the first apply() (every variant starts from it)
+_DEFAULT_BLOCKS: list = []
+
+
 def apply(variant: str) -> None:
     """Put every switch back on, then turn off those the variant names (bench.e2e.SWITCHES)."""
     import importlib
 
     from bench.e2e import SWITCHES, switch_off
     import engine.loops.cuda_ensemble as ensemble
+    import engine.loops.cuda_loop as loop
 
     for module, setting, _ in SWITCHES.values():
         mod = importlib.import_module(module)
         setattr(mod, setting, None if (module, setting) == ("engine.loops.cuda_ensemble", "MULTISTEP") else True)
-    if variant == "multistep_on":
-        ensemble.MULTISTEP = True
-    elif variant != "default":
-        switch_off(variant.split("+"))
+    if not _DEFAULT_BLOCKS:
+        _DEFAULT_BLOCKS.append(loop.FORCES_BLOCKS_PER_SM)
+    loop.FORCES_BLOCKS_PER_SM = _DEFAULT_BLOCKS[0]
+    off = []
+    for part in ([] if variant == "default" else variant.split("+")):
+        if part == "multistep_on":
+            ensemble.MULTISTEP = True
+        elif part.startswith("blocks="):
+            b = int(part.split("=", 1)[1])
+            loop.FORCES_BLOCKS_PER_SM = {"*": b} if b > 0 else None
+        else:
+            off.append(part)
+    switch_off(off)
+
+
+#: cases beyond bench/vs_jaxmd.py's: name -> (scenes, N per scene, precision, steps, contact); the JAX-MD scene
+#: (phi = 0.058, k_n = 1e8, rho = 2000, v_rms = 2) at its sphere size (box 2 m x (N / 2^21)^(1/3)), and the rough
+#: spheroids of the spheroid papers (xi = 2, phi = 0.05, e_n = e_t = 0.8)
+EXTRA = {
+    "elastic-1M-f64": (1, 1 << 20, "float64", 20_000, "elastic"),
+    "packed-256x4096-f64": (256, 4096, "float64", 20_000, "elastic"),
+    "spheroids-rough-1M-f64": (1, 1 << 20, "float64", 2000, "spheroid"),
+}
+
+
+def extra_specs(case: str, steps: int, backend: str) -> list:
+    """The specs of an EXTRA case (one per scene, own seeds), t_end = steps x dt exactly."""
+    from bench.vs_jaxmd import SCENE
+    from engine.params import derive
+    from engine.spec import SimulationSpec
+
+    k, n, precision, _, contact = EXTRA[case]
+    base = dict(SCENE, n_particles=n, precision=precision, thermalization=0.0, snapshots=0, backend=backend,
+                box_length=SCENE["box_length"] * (n / 2**21) ** (1 / 3))
+    if contact == "elastic":
+        base.update(e_n=1.0, e_t=-1.0)
+    else:
+        base.update(shape="ellipsoid", elongation=2.0, volume_fraction=0.05, e_n=0.8, e_t=0.8)
+    out = []
+    for seed in range(1, k + 1):
+        spec = SimulationSpec(**base, seed=seed)
+        dt = derive(spec).dt
+        out.append(SimulationSpec(**base, seed=seed, dt=dt, t_end=steps * dt))
+    return out
 
 
 def main(argv=None) -> int:
     from bench.vs_jaxmd import CASES, case_spec
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", nargs="+", choices=list(CASES), default=["elastic-2M-f64"])
+    ap.add_argument("--cases", nargs="+", choices=list(CASES) + list(EXTRA), default=["elastic-2M-f64"])
     ap.add_argument("--variants", nargs="+", default=["launch_cache", "default"])
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda")
     ap.add_argument("--steps-scale", type=float, default=1.0)
     args = ap.parse_args(argv)
-    from engine import run
+    import h5py
+
+    from engine import run, run_ensemble
+
+    def specs_of(case: str, steps: int) -> list:
+        if case in EXTRA:
+            return extra_specs(case, steps, args.backend)
+        n, precision, _, rough = CASES[case]
+        return [case_spec(n, precision, steps, rough, args.backend)]
+
+    def run_case(specs: list, tmp: Path) -> tuple:
+        """(summaries, wall s): one scene through engine.run, several through one run_ensemble."""
+        t0 = time.perf_counter()
+        if len(specs) == 1:
+            out = [run(specs[0], tmp / "run.h5", backend=args.backend)]
+        else:
+            out = run_ensemble(specs, [tmp / f"run{k}.h5" for k in range(len(specs))], backend=args.backend)
+        wall = time.perf_counter() - t0
+        for s in out:
+            if isinstance(s, BaseException):
+                raise s
+        return out, wall
 
     with tempfile.TemporaryDirectory(prefix="loop_ab_") as tmp:
+        tmp = Path(tmp)
         for case in args.cases:
-            n, precision, steps, rough = CASES[case]
+            steps = EXTRA[case][3] if case in EXTRA else CASES[case][2]
             steps = max(1, int(steps * args.steps_scale))
             for v in args.variants:
                 apply(v)
-                run(case_spec(n, precision, 20, rough, args.backend), Path(tmp) / "warm.h5", backend=args.backend)
+                run_case(specs_of(case, 20), tmp)
             for rep in range(args.reps):
                 for v in args.variants:
                     apply(v)
-                    spec = case_spec(n, precision, steps, rough, args.backend)
-                    t0 = time.perf_counter()
-                    s = run(spec, Path(tmp) / "run.h5", backend=args.backend)
-                    wall = time.perf_counter() - t0
-                    print(json.dumps({"case": case, "variant": v, "rep": rep, "device": s.device, "steps": s.steps,
-                                      "loop_s": round(s.loop_s, 4), "wall_s": round(wall, 3),
-                                      "cundall_loop": float(f"{n * s.steps / s.loop_s:.3e}"),
-                                      "cundall_end_to_end": float(f"{n * s.steps / wall:.3e}")}), flush=True)
+                    specs = specs_of(case, steps)
+                    summaries, wall = run_case(specs, tmp)
+                    n = sum(sp.n_particles for sp in specs)
+                    loop_s = max(s.loop_s for s in summaries)
+                    steps_done = summaries[0].steps
+                    with h5py.File(summaries[0].output, "r") as f:
+                        builds = int(f["parameters"].attrs["neighbour_builds"])
+                    print(json.dumps({"case": case, "variant": v, "rep": rep, "device": summaries[0].device,
+                                      "scenes": len(specs), "n": n, "steps": steps_done, "list_builds": builds,
+                                      "loop_s": round(loop_s, 4), "wall_s": round(wall, 3),
+                                      "cundall_loop": float(f"{n * steps_done / loop_s:.3e}"),
+                                      "cundall_end_to_end": float(f"{n * steps_done / wall:.3e}")}), flush=True)
     apply("default")
     return 0
 

@@ -59,7 +59,7 @@ def measure(n: int, precision: str, launches: int, loop_steps: int, warm_s: floa
             for j in range(launches):
                 step = e.steps_done + j
                 if name == "kick_drift":
-                    e._kick_drift(0, step)
+                    e._kick_drift(0, step, exact=0)
                 else:
                     e._forces(step)
             b.record(e.stream)

@@ -10,8 +10,8 @@ force law) and its observables. Layout, per-scene tables, status words and the n
 engine/loops/cuda_kernels.py's; the physics stays in engine/physics/ (njit functions every backend calls).
 
 Kernel arguments (device arrays, particle index fastest), the same for every shape:
-    kick_drift(n, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi,
-               status, step, ext)
+    kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf,
+               spi, status, step, ext)
     forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf, spi,
            status, step, ext)
     half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi)
@@ -22,6 +22,9 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
 ``spin`` is the rotational state the torque kicks (spheres: angular velocity; spheroids: angular momentum),
 ``rad`` the list radius, ``ext`` a tuple of the shape's own arrays; f_old/f_new (f0/f1) are the double buffer
 of the forces (a shape that does not read other particles' old forces gets the same array twice).
+``exact`` = 0: kick_drift does not read x_ref and reports no displacement, only the speeds (the host bounds the
+displacements by the sum of max |v| dt, engine/loops/cuda_stepping.py). With one scene (``spi`` of one row) no
+kernel reads ``sc``: every particle is in scene 0.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from numba import cuda
 from numba.cuda import types as ct
 
 from engine.loops import cuda_kernels as L
-from engine.loops.cuda_cache import cache_kernels
+from engine.loops.cuda_cache import SIM, cache_kernels
 from engine.loops.cuda_kernels import (D_BOX, D_DT, D_HP, D_IM0, D_INVBOX, F_LIM2INV, F_OVL, F_V2F, I_ACTIVE,
                                           I_N, I_START, NSS, S_D2, S_D2B, S_RUN_DONE, S_RUN_REBUILD, S_V2, SS0,
                                           SS_BAD_ID, SS_OVL, SS_OVL_ID)
@@ -41,23 +44,41 @@ from engine.shapes import device as shape_device
 
 _cache: dict = {}
 
+#: blocks of the force kernel each SM must hold, by (shape, precision, shape flags) or "*" (its launch bounds: the
+#: compiler keeps the registers to 65536 / (TPB x blocks) and spills the rest); a specialisation not named is
+#: left to the compiler. Set where it measurably pays (docs/performance.md, "GPU: the time loop"): smooth
+#: float64 spheres, 96 registers and 2 blocks of 256 threads left alone, run their force kernel with 3 blocks
+#: (80 registers, 20 bytes spilled on the rare contact path) 5 % faster on an H100; rough spheres (126
+#: registers) and float32 (56) lose when forced. None: no launch bounds anywhere (bench loop_ab's variants).
+FORCES_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3,
+                                     ("sphere", "<f8", (False, False, True)): 3}
+
 
 def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
     """The kernel set of one shape and specialisation (cached): the neighbour-list kernels of
     cuda_kernels.grid_kernels, the time loop of this module and the shape's own kernels. ``flags``: the shape's
     compile-time switches in the order of its ``FLAGS``."""
-    key = (shape, np.dtype(dtype).str, tuple(bool(f) for f in flags), uniform, tpb)
+    flags = tuple(bool(f) for f in flags)
+    key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags))
     if key not in _cache:
         dt = np.dtype(dtype).type
         parts = shape_device(shape).make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
-        k.update(cache_kernels(_make(parts, dt, uniform, tpb), ("loop",) + key[:2] + tuple(map(str, key[2:]))))
+        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5]), ("loop",) + key[:2] + tuple(map(str, key[2:]))))
         k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))
         _cache[key] = k
     return _cache[key]
 
 
-def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
+def force_blocks(shape: str, dtype, flags: tuple):
+    """Blocks per SM the force kernel is compiled for (:data:`FORCES_BLOCKS_PER_SM`), or None (always under the
+    CUDA simulator, whose jit takes no launch bounds)."""
+    if not FORCES_BLOCKS_PER_SM or SIM:
+        return None
+    return FORCES_BLOCKS_PER_SM.get((shape, np.dtype(dtype).str, flags), FORCES_BLOCKS_PER_SM.get("*"))
+
+
+def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure per specialisation)
     ZERO = DT(0)
     HALF = DT(0.5)
     BIG = DT(np.finfo(DT).max)
@@ -69,15 +90,20 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
 
     block_max2, fail = L.device_helpers(TPB)
 
+    @cuda.jit(device=True)
+    def scene_of(i, sc, spi):
+        """The scene of particle slot i: 0 when there is one (sc is not read: 4 bytes a particle per pass)."""
+        return 0 if spi.shape[0] == 1 else sc[i]
+
     # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
 
     @cuda.jit(device=True)
-    def kick_drift_one(i, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd,
-                       spf, spi, status, step, ext):
+    def kick_drift_one(i, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc,
+                       spd, spf, spi, status, step, ext):
         """v += F/m hk (hk = dt/2 on the first step of a call, else dt), x += v dt wrapped, then the shape's
-        rotation step; returns the normalised squared displacement since the build and speed (0, 0 for a
-        skipped scene)."""
-        s = sc[i]
+        rotation step; returns the normalised squared displacement since the build (0 unless ``exact``) and
+        speed (0, 0 for a skipped scene)."""
+        s = scene_of(i, sc, spi)
         if spi[s, I_ACTIVE] == 0:
             return 0.0, 0.0
         dt = spd[s, D_DT]
@@ -100,8 +126,9 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             translated(k, i, x_old, v, f, im, hp, ext)
             x = drift_wrap(x_old, v, dt, box, inv_box)
             pos[k, i] = x
-            d = min_image(x - x_ref[k, i], box, inv_box, HALF)
-            dsp += d * d
+            if exact:
+                d = min_image(x - x_ref[k, i], box, inv_box, HALF)
+                dsp += d * d
             v2 += v * v
         ok = rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)
         if not (dsp < BIG) or not (v2 < BIG) or not ok:
@@ -114,7 +141,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                    spf, spi, status, step, ext):
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
         in list order); per-slot history advanced in place; a scene whose overlap exceeds its limit stops."""
-        s = sc[i]
+        s = scene_of(i, sc, spi)
         if spi[s, I_ACTIVE] == 0:
             return
         p = particle(i, s, pos, rad, inv_m, ids, spd)
@@ -138,14 +165,14 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
 
     @cuda.jit
-    def kick_drift(n, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf,
-                   spi, status, step, ext):
+    def kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd,
+                   spf, spi, status, step, ext):
         sh = cuda.shared.array(SH2, ct.float64)
         md = 0.0
         mv = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            d2, v2 = kick_drift_one(i, first, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids,
-                                    sc, spd, spf, spi, status, step, ext)
+            d2, v2 = kick_drift_one(i, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref,
+                                    ids, sc, spd, spf, spi, status, step, ext)
             md = max(md, d2)
             mv = max(mv, v2)
         block_max2(sh, md, mv)
@@ -153,7 +180,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             cuda.atomic.max(status, S_D2, sh[0])
             cuda.atomic.max(status, S_V2, sh[TPB])
 
-    @cuda.jit
+    @(cuda.jit(launch_bounds=(TPB, FORCE_BLOCKS)) if FORCE_BLOCKS else cuda.jit)
     def forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
                spi, status, step, ext):
         i0 = cuda.grid(1)
@@ -168,7 +195,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     def half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi):
         """Closing half kick (velocities and the rotational state synchronous with positions)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
+            s = scene_of(i, sc, spi)
             if spi[s, I_ACTIVE] == 0:
                 continue
             hk = spd[s, D_HP]
@@ -184,7 +211,7 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         """The shape's end-of-call work (``settle_one``: spheres bring their lazy orientations up to date), before
         the closing half kick; launched only when the shape has some."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            settle_one(i, sc[i], spin, quat, ext, spd, spi, step)
+            settle_one(i, scene_of(i, sc, spi), spin, quat, ext, spd, spi, step)
 
     # ---- many steps per launch (small scenes and ensembles: launch overhead paid once per chunk) -------
 
@@ -226,8 +253,8 @@ def _make(P, DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                     status[S_D2B if even else S_D2] = 0.0  # the other parity's slot, free until next step
                 md = 0.0
                 for i in range(i0, n, stride):
-                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, pos, vel, spin, quat, fa, torque, inv_m,
-                                            spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext)
+                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, 1, pos, vel, spin, quat, fa, torque,
+                                            inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext)
                     md = max(md, d2)
                 block_max2(sh, md, 0.0)
                 if cuda.threadIdx.x == 0:

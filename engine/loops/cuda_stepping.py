@@ -18,6 +18,10 @@ from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.status import BAD_VALUE, OVERLAP, instability_error as _instability
 
+#: False: every kick_drift measures the displacements since the list build against x_ref (bench/e2e.py --off
+#: displacement_bound); True: only where the bound max|v| dt summed over the steps nears L_v/2
+DISPLACEMENT_BOUND = True
+
 
 class TimeLoop:
     """The stepping part of a CUDA ensemble. The ensemble provides its device arrays and tables, ``k`` (kernels),
@@ -44,11 +48,11 @@ class TimeLoop:
                 self._coop_blocks = max(1, min(fit, (self.n + self.tpb - 1) // self.tpb))
         return self._coop_blocks, self.tpb, self.stream
 
-    def _kick_drift(self, first: int, step: int, n: int | None = None, grid=None) -> None:
+    def _kick_drift(self, first: int, step: int, n: int | None = None, grid=None, exact: int = 1) -> None:
         spin, spin_inv, _, ext = self._step_arrays()
         n = self.n if n is None else n
         self._lc.launch("kick_drift", self.k["kick_drift"], grid or self._grid(n), (
-            n, first, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.inv_m1, spin_inv,
+            n, first, exact, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.inv_m1, spin_inv,
             self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
 
     def _half_kick(self, n: int | None = None, grid=None) -> None:
@@ -153,18 +157,34 @@ class TimeLoop:
                 return
 
     def _advance_per_phase(self, nsteps: int, failed: dict) -> None:
+        """One launch per phase. The rebuild before the forces of step t is decided from step t-1's status
+        (copied to pinned memory while step t's kick-drift runs): with B an upper bound of the largest
+        displacement at step t-1 and u = 2 max|v| dt of step t-1 (both in units of L_v/2), the list is rebuilt
+        when B + u > 1. B is exact where kick_drift measured the displacements against x_ref (the first step
+        of a call, CPU-built lists, and the steps where the bound nears the limit); elsewhere B grows by
+        u/2 = max|v| dt a step, which bounds every particle's displacement (``DISPLACEMENT_BOUND``; x_ref is
+        then not read: 24 bytes a particle-step in float64)."""
         s = self.stream
         rebuilt_prev = False
         prev = None  # slot of the previous step's status copy
+        bound = 0.0     # the largest displacement at the step of the status last read, or an upper bound of it
+        u_last = 1.0    # 2 max|v| dt of that step
+        exact_of = [1, 1]  # whether the kick_drift of the step whose status sits in slot 0 / 1 measured exactly
         for st in range(nsteps):
             step = self.steps_done
             prof = self.profile is not None
             if prof:
                 e0 = self._ev(); e0.record(s)
-            self._kick_drift(1 if st == 0 else 0, step)
+            # measure exactly where the bound (known up to step t-2) could decide the next rebuild: bound + u
+            # after two more steps of at most u/2, plus the margin u of the rule, with half a step to spare;
+            # and always while a pipelined CPU build waits for its L_v/4 signal
+            bounded = DISPLACEMENT_BOUND and (self.lists is None or self.lists.exit_threshold() >= 1.0)
+            exact = 1 if (st == 0 or not bounded or bound + 2.5 * u_last > 1.0) else 0
+            self._kick_drift(1 if st == 0 else 0, step, exact=exact)
             if prof:
                 e1 = self._ev(); e1.record(s)
             slot = st % 2
+            exact_of[slot] = exact
             self.status.copy_to_host(self.status_h[slot], stream=s)
             self.events[slot].record(s)
             # decide the rebuild from the previous step's status (already on the host, no GPU stall);
@@ -173,14 +193,21 @@ class TimeLoop:
                 # first step of the call: this step's displacement is known exactly
                 self.events[slot].synchronize()
                 h = self.status_h[slot]
-                rebuild = math.sqrt(h[K.S_D2]) > 1.0
+                bound = math.sqrt(h[K.S_D2])
+                rebuild = bound > 1.0
             else:
                 self.events[prev].synchronize()
                 h = self.status_h[prev]
-                if not rebuilt_prev and math.sqrt(h[K.S_D2]) > 1.0:
-                    self.late_rebuilds += 1
-                d_prev = 0.0 if rebuilt_prev else math.sqrt(h[K.S_D2])
-                rebuild = d_prev + math.sqrt(h[K.S_V2]) > 1.0
+                u_last = math.sqrt(h[K.S_V2])
+                if rebuilt_prev:
+                    bound = 0.0
+                elif exact_of[prev]:
+                    bound = math.sqrt(h[K.S_D2])
+                    if bound > 1.0:
+                        self.late_rebuilds += 1
+                else:
+                    bound += 0.5 * u_last
+                rebuild = bound + u_last > 1.0
             self._collect(h, failed)
             if prof:
                 e2 = self._ev(); e2.record(s)

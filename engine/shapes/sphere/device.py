@@ -138,12 +138,11 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
 
     @cuda.jit(device=True)
     def particle(i, s, pos, rad, inv_m, ids, spd):
-        """Position, radius, 1/m of i and the scene's contact constants, read once per particle."""
-        r0 = spd[s, D_R0]
-        im0 = spd[s, D_IM0]
-        return (pos[0, i], pos[1, i], pos[2, i], r0 if UNIFORM else rad[i], im0 if UNIFORM else inv_m[i],
-                spd[s, D_BOX], spd[s, D_INVBOX], spd[s, D_HP], spd[s, D_DT], spd[s, D_KN], spd[s, D_GN],
-                spd[s, D_KT], spd[s, D_MU], r0, im0)
+        """What every list slot of sphere i needs, read once: its position and radius, the box. The contact
+        constants and 1/m are read in :func:`pair` only for a slot in contact: few slots are, and values held
+        across the whole list loop would cost registers, hence occupancy, in every slot."""
+        return (pos[0, i], pos[1, i], pos[2, i], spd[s, D_R0] if UNIFORM else rad[i], spd[s, D_BOX],
+                spd[s, D_INVBOX])
 
     # the contact constants of the compiled law: None prunes the tangential spring / the Coulomb cap
     if ROUGH and COULOMB:
@@ -164,19 +163,25 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         """List slot kk of sphere i (neighbour j): the gather from and scatter into this backend's layout of the
         sphere's one pair evaluator (law.sphere_pair), history advanced in place. The predicted end-of-step
         velocities u = v + F_old/m dt/2 of both partners (the CPU's vel_p) are read only while in contact."""
-        xi, yi, zi, ri, imi, box, inv_box, hp, dt, k_n, gn_coef, k_t, mu, r0, im0 = p
+        xi, yi, zi, ri, box, inv_box = p
         fx, fy, fz, tx, ty, tz, wsi = acc
         omega = spin
         one = HALF + HALF
-        rj = r0 if UNIFORM else rad[j]
+        rj = ri if UNIFORM else rad[j]
         rx, ry, rz, d, delta = sphere_separation(min_image(xi - pos[0, j], box, inv_box, HALF),
                                                  min_image(yi - pos[1, j], box, inv_box, HALF),
                                                  min_image(zi - pos[2, j], box, inv_box, HALF), ri + rj, HALF)
         delta_prev = hist[3, kk, i]
-        hist[3, kk, i] = delta
+        # the new overlap is stored once the slot's other reads are issued (here, and at the end for a contact):
+        # stored straight after reading delta_prev, before this branch, it stalled every slot on the load (the
+        # force kernel took 2.3 times as long on an H100: long-scoreboard stalls, same instructions and bytes)
         if not (delta > ZERO or delta_prev > ZERO):
+            hist[3, kk, i] = delta
             return fx, fy, fz, tx, ty, tz, wsi
-        imj = im0 if UNIFORM else inv_m[j]
+        hp = spd[s, D_HP]
+        dt = spd[s, D_DT]
+        imi = spd[s, D_IM0] if UNIFORM else inv_m[i]
+        imj = spd[s, D_IM0] if UNIFORM else inv_m[j]
         vix = vel[0, i]
         viy = vel[1, i]
         viz = vel[2, i]
@@ -195,7 +200,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             omega[0, i] if ROUGH else ZERO, omega[1, i] if ROUGH else ZERO, omega[2, i] if ROUGH else ZERO,
             omega[0, j] if ROUGH else ZERO, omega[1, j] if ROUGH else ZERO, omega[2, j] if ROUGH else ZERO, ri, rj,
             hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[4, kk, i], one / (imi + imj),
-            law_constants(k_n, gn_coef, k_t, mu), dt, HALF)
+            law_constants(spd[s, D_KN], spd[s, D_GN], spd[s, D_KT], spd[s, D_MU]), dt, HALF)
         if began:
             ext[1][i] += 1      # one collision (counted in both partners' lists)
         fx += gx
@@ -213,6 +218,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             ov = delta / min(ri, rj)
             if ov > wsi:
                 wsi = ov
+        hist[3, kk, i] = delta
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)

@@ -27,16 +27,16 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
     ZERO = DT(0)
     HALF = DT(0.5)
     f64 = np.float64
-    D_BOX, D_INVBOX, D_R0 = L.D_BOX, L.D_INVBOX, L.D_R0
+    D_BOX, D_INVBOX, D_R0, D_KN = L.D_BOX, L.D_INVBOX, L.D_R0, L.D_KN
     F_KN = L.F_KN
     observe_sphere = parts.observe_one
 
     @cuda.jit(device=True)
     def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
         """Hertz force on i from list slot kk (neighbour j), no torque; the slot keeps the overlap."""
-        xi, yi, zi, ri, imi, box, inv_box, hp, dt, k_n, gn_coef, k_t, mu, r0, im0 = p
+        xi, yi, zi, ri, box, inv_box = p       # the sphere's ``particle``: position, radius, box
         fx, fy, fz, tx, ty, tz, wsi = acc
-        rj = r0 if UNIFORM else rad[j]
+        rj = ri if UNIFORM else rad[j]
         rx = min_image(xi - pos[0, j], box, inv_box, HALF)
         ry = min_image(yi - pos[1, j], box, inv_box, HALF)
         rz = min_image(zi - pos[2, j], box, inv_box, HALF)
@@ -45,7 +45,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
         if delta > ZERO:
             if contact_begins(delta, hist[3, kk, i]):
                 ext[1][i] += 1      # one collision (counted in both partners' lists)
-            f_over_d = hertz_force(delta, ri * rj / (ri + rj), k_n) / d
+            f_over_d = hertz_force(delta, ri * rj / (ri + rj), spd[s, D_KN]) / d
             fx += f_over_d * rx
             fy += f_over_d * ry
             fz += f_over_d * rz
