@@ -32,11 +32,17 @@ import importlib
 import os
 import signal
 import sys
+import time
 import traceback
 from dataclasses import asdict
 from typing import Callable, Optional
 
 from jobs.packing import ENSEMBLE, ONE, SEQUENCE
+
+#: Least wall seconds between two progress messages of one job (its first and last messages and a phase change go
+#: at once). Each message is a pipe write here and a wake-up of the worker's thread, which shares its interpreter
+#: with the HTTP service: at every record, a small job spent about a quarter of its time on them.
+PROGRESS_SEND_S = 0.05
 
 #: TEST HOOK: a job whose spec seed equals this variable's value kills its simulation process with
 #: SIGSEGV at the first progress report (the crash-isolation tests use it). Unset in production.
@@ -113,12 +119,22 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
 
 
 def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):
-    """Per-job progress callback and cancel check: progress(k, p), should_cancel(k)."""
+    """Per-job progress callback and cancel check: progress(k, p), should_cancel(k).
+
+    The engine reports progress at every record (200 times in a default job); a job's report goes to the worker
+    when it is its first or its last (fraction 1), when its phase changed, or :data:`PROGRESS_SEND_S` after the
+    last one sent (the worker writes the latest to the row at most every DEMQ_PROGRESS_SECONDS anyway)."""
     crash_seed = os.environ.get(TEST_CRASH_ENV)
+    sent: dict = {}   # k -> (monotonic time, phase) of the job's last message
 
     def progress(k: int, p) -> None:
         if crash_seed is not None and crash_seed == str(specs[k].seed):  # TEST HOOK, see TEST_CRASH_ENV
             os.kill(os.getpid(), signal.SIGSEGV)
+        now = time.monotonic()
+        last = sent.get(k)
+        if last is not None and last[1] == p.phase and now - last[0] < PROGRESS_SEND_S and p.fraction < 1.0:
+            return
+        sent[k] = (now, p.phase)
         conn.send(("progress", k, asdict(p)))
 
     def should_cancel(k: int) -> bool:
