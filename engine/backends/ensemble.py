@@ -36,7 +36,6 @@ a single scene; :func:`resolve_backend` says which backend a name resolves to wi
 
 from __future__ import annotations
 
-import numbers
 from contextlib import contextmanager
 from typing import Mapping, Sequence
 
@@ -59,13 +58,6 @@ BACKEND_NAMES = ("auto", "cpu", "cuda")
 #: took 0.08-0.13 s on one thread, 0.4-21 s on two. The numbers written do not depend on the thread count
 #: (tests/engine/test_threads.py), only the time does.
 ONE_THREAD_BELOW = 1024
-
-
-def _particles(scene) -> int:
-    """The particle count of a system or a CPU backend (``n``); :data:`ONE_THREAD_BELOW` when it has none (then
-    the thread count is left alone)."""
-    n = getattr(scene, "n", None)
-    return int(n) if isinstance(n, numbers.Integral) else ONE_THREAD_BELOW
 
 
 @contextmanager
@@ -117,8 +109,9 @@ class SerialEnsemble(Ensemble):
         if len(systems) != len(contacts) or not systems:
             raise ValueError("an ensemble needs one ContactParams per scene and at least one scene")
         self._backends: list = []
+        self._sizes = [int(system.n) for system in systems]   # particles per scene (their Numba thread count)
         for system, contact in zip(systems, contacts):
-            with scene_threads(_particles(system)):   # the build's list and first forces are parallel loops too
+            with scene_threads(system.n):   # the build's list and first forces are parallel loops too
                 self._backends.append(make_backend(name, system, contact))
         first = self._backends[0]
         self.name = first.name
@@ -171,7 +164,7 @@ class SerialEnsemble(Ensemble):
                 continue
             backend = self._backends[k]
             try:
-                with scene_threads(_particles(backend)):
+                with scene_threads(self._sizes[k]):
                     backend.advance(int(n))
             except Exception as exc:  # one scene's failure: the others go on
                 failed[k] = exc
