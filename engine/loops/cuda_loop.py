@@ -142,11 +142,14 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
         in list order); per-slot history advanced in place; a scene whose overlap exceeds its limit stops."""
         s = scene_of(i, sc, spi)
+        # the particle's own reads are issued before the scene's active flag is known (harmless for a stopped
+        # scene, whose slots are then left alone): one memory latency less per particle in a latency-bound kernel
+        p = particle(i, s, pos, rad, inv_m, ids, spd)
+        m = nn[i]
         if spi[s, I_ACTIVE] == 0:
             return
-        p = particle(i, s, pos, rad, inv_m, ids, spd)
         acc = (ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ZERO)
-        for kk in range(nn[i]):
+        for kk in range(m):
             acc = pair(i, kk, nbr[kk, i], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
         fx, fy, fz, tx, ty, tz, worst = acc
         f_new[0, i] = fx
