@@ -1,8 +1,8 @@
 """The tangential contact law of rough spheres applied to spheroids: pure njit functions.
 
-:func:`rough_spheroid_pair` is the whole pair law that both backends call (engine/shapes/spheroid/kernels.py and
-device.py); the functions above it are its parts, tested on their own (tests/engine/test_rough_spheroid_physics.py).
-Derivation: docs/physics.md §2.5.
+:func:`rough_spheroid_pair` is the whole pair law that both backends call, through the spheroid's pair evaluator
+(engine/shapes/spheroid/law.py); the functions above it are its parts, tested on their own
+(tests/engine/test_rough_spheroid_physics.py). Derivation: docs/physics.md §2.5.
 
 Conventions (those of engine.physics.ellipsoid.ellipsoid_pair_screened): body A at c_A, body B at c_B,
 r = c_B - c_A, the contact point C, lever arms r_A = C - c_A and r_B = C - c_B, the unit normal n from A to B.
@@ -153,7 +153,7 @@ def rough_spheroid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb
                         delta_prev, fd_prev, xix, xiy, xiz, kt_prev,
                         m12, k_n, gamma_n, f_t, mu, dt, tol, margin, screened_gap, half):
     """The rough spheroid pair law: paper 003's normal contact plus paper 001's tangential spring at
-    the contact point C. The one source both backends call (engine/shapes/spheroid/kernels.py, device.py).
+    the contact point C. The one source both backends call (through engine/shapes/spheroid/law.py).
 
     Geometry and normal force are :func:`engine.physics.ellipsoid.ellipsoid_pair_geometry_screened` (same
     arguments, same screens and contact start/end rules), so the normal part is bit for bit the smooth law's.

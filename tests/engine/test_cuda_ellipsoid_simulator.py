@@ -8,6 +8,10 @@ to equal the CPU run bit for bit. The one-launch-per-phase loop decides rebuilds
 rebuild earlier than the CPU, which reorders neighbours), so there only rounding differences are allowed.
 The comparison runs in child processes because the simulator must be switched on before numba.cuda is first
 imported; two of them side by side (single scenes; ensemble), one per core of the CI machine.
+
+The light test (:func:`test_both_loops_run_the_one_spheroid_law`) runs the spheroid's one pair evaluator and
+rotation step (engine/shapes/spheroid/law.py) through both loops on 8 spheroids: the CPU and simulator
+trajectories agree bit for bit, and both backends' ``pair`` and ``rotate`` are seen calling law.py's functions.
 """
 
 import sys
@@ -18,7 +22,6 @@ import pytest
 
 from tests.cudasim import run_children
 
-pytestmark = pytest.mark.heavy   # the CUDA simulator on whole spheroid scenes: about 1.5 min of CPU
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -111,9 +114,11 @@ def _rough(e_t=0.5, **kw):
 
 def _child(part: str) -> None:
     """One of the two independent parts of the check (the test runs them side by side): "scenes" (single
-    scenes, both loops, float64 and float32) or "ensemble"."""
+    scenes, both loops, float64 and float32) or "ensemble"; or the light check "law"."""
     worst = {}
-    if part == "scenes":
+    if part == "law":
+        _law(worst)
+    elif part == "scenes":
         _scenes(worst)
         _float32(worst)
     else:
@@ -229,6 +234,116 @@ class _SceneOf:
         return self.ens.observe()[self.k]
 
 
+class _Spy:
+    """Stands for an njit function under a module's name: counts the calls and passes them on."""
+
+    def __init__(self, fn):
+        self.fn, self.calls = fn, 0
+
+    def __call__(self, *args):
+        self.calls += 1
+        return self.fn(*args)
+
+
+def _spy(module, name: str) -> _Spy:
+    spy = _Spy(getattr(module, name))
+    setattr(module, name, spy)
+    return spy
+
+
+def _cpu_slots_through_law(cpu) -> int:
+    """Every list slot of the CPU backend's present state through the compiled ``pair`` and through its
+    plain-Python source with law.spheroid_pair spied on: the same results and history, bit for bit, and the law
+    called for every slot past the bounding-sphere test. Returns the slots in contact."""
+    from engine.shapes.spheroid import kernels, law
+
+    args = (cpu.pos, cpu.vel, cpu.vel_p, cpu._spin, cpu._quat_arg, cpu._rad_list, cpu.inv_m)
+    tail = (cpu.box_c, cpu.inv_box, cpu.half, cpu.k_n, cpu.gn_coef, cpu._law, cpu.dt, cpu._ext)
+    in_contact = 0
+    for i in range(cpu.n):
+        for kk in range(cpu.nn[i]):
+            j = cpu.nbr[i, kk]
+            h_py, h_jit = cpu.hist.copy(), cpu.hist.copy()
+            g_jit = kernels.pair(i, kk, j, *args, h_jit, *tail)
+            spy = _spy(kernels, "spheroid_pair")
+            try:
+                g_py = kernels.pair.py_func(i, kk, j, *args, h_py, *tail)
+            finally:
+                kernels.spheroid_pair = law.spheroid_pair
+            assert tuple(map(float, g_py)) == tuple(map(float, g_jit)), (i, kk, g_py, g_jit)
+            assert np.array_equal(h_py, h_jit), (i, kk)
+            d = cpu.pos[j] - cpu.pos[i]
+            d -= cpu.box * np.round(d / cpu.box)
+            reached = np.dot(d, d) < (cpu._rad_list[i] + cpu._rad_list[j]) ** 2 or cpu.hist[i, kk, 3] > 0
+            assert (spy.calls > 0) == reached, (i, kk, spy.calls)
+            in_contact += g_py[6] > 0
+    return in_contact
+
+
+def _cpu_rotation_through_law(cpu) -> None:
+    """Particle 0's CPU rotation step through the compiled ``rotate`` and through its plain-Python source with
+    law.spheroid_rotation spied on: the same angular momentum, orientation and predicted spin, bit for bit."""
+    from engine.shapes.spheroid import kernels, law
+
+    out = []
+    for python in (False, True):
+        spin, quat, ext = cpu._spin.copy(), cpu.quat.copy(), tuple(a.copy() for a in cpu._ext)
+        torque = np.full_like(cpu.torque, 1e-3)
+        spy = _spy(kernels, "spheroid_rotation") if python else None
+        try:
+            (kernels.rotate.py_func if python else kernels.rotate)(
+                0, 0.0, cpu.pos, cpu.vel, spin, quat, torque, cpu._spin_inv, cpu.x_ref, ext, cpu.dt, cpu.dt * 0.5,
+                cpu.dt, cpu.box_c, cpu.inv_box, cpu.half, 0)
+        finally:
+            kernels.spheroid_rotation = law.spheroid_rotation
+        out.append((spin, quat, ext[2]))
+    assert spy.calls == 1
+    for a, b in zip(*out):
+        assert np.array_equal(a, b)
+    assert not np.array_equal(out[0][1][0], cpu.quat[0]) and not np.array_equal(out[0][0][0], cpu._spin[0])
+
+
+def _law(worst: dict) -> None:
+    """8 spheroids, frictionless and rough, 2 x 12 steps in both loops (the CUDA one under the simulator, many
+    steps per launch: bit for bit the CPU's) through contacts, with law.py's functions spied on in device.py: the
+    device pair and rotate ran them (the rough spins only when rough; spheroid_gap: contacts that started after a
+    screened step); the CPU's pair and rotate run them too (:func:`_cpu_slots_through_law`,
+    :func:`_cpu_rotation_through_law`)."""
+    from engine.shapes.spheroid import device
+    from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
+
+    spies = {name: _spy(device, name)
+             for name in ("spheroid_pair", "spheroid_gap", "spheroid_rotation", "mid_step_omega")}
+    for label, system, c in (("law smooth xi=2", tiny_ellipsoids(2.0, n_side=2, seed=8), contact()),
+                             ("law rough xi=2", tiny_ellipsoids(2.0, n_side=2, seed=8), _rough())):
+        calls = {name: spy.calls for name, spy in spies.items()}
+        cpu = CpuEllipsoidBackend(system, c)
+        gpu = CudaEllipsoidBackend(system, c)
+        gpu.e.multistep = True
+        assert gpu.device == "CUDA simulator"
+        slots = 0
+        for chunk in (12, 12):
+            cpu.advance(chunk)
+            gpu.advance(chunk)
+            slots += _cpu_slots_through_law(cpu)
+        _cpu_rotation_through_law(cpu)
+        obs = _compare(label, cpu, gpu, worst, exact=True)
+        new = {name: spy.calls - calls[name] for name, spy in spies.items()}
+        # the gap of a contact that starts after a screened step: the retry path of both loops' pair ran too
+        assert new["spheroid_pair"] > 0 and new["spheroid_gap"] > 0, (label, new)
+        assert new["spheroid_rotation"] >= 24 * cpu.n, (label, new)
+        assert (new["mid_step_omega"] > 0) == ("rough" in label), (label, new)
+        assert slots > 0, label
+        print(label, "contacts", obs["contacts"], "device law calls", new, "CPU slots in contact", slots)
+
+
+def test_both_loops_run_the_one_spheroid_law():
+    (rc, out, err), = run_children({"law": [__file__, "--child", "law"]}, timeout=300).values()
+    assert rc == 0 and "SIMULATOR-OK" in out, out[-4000:] + err[-4000:]
+
+
+@pytest.mark.heavy   # the CUDA simulator on whole spheroid scenes: about 1.5 min of CPU
 def test_cuda_ellipsoid_backend_matches_cpu_under_simulator():
     children = {part: [__file__, "--child", part] for part in ("scenes", "ensemble")}
     for part, (rc, out, err) in run_children(children, timeout=900).items():

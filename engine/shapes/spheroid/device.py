@@ -1,14 +1,15 @@
 """The spheroid shape's CUDA parts (prolate ellipsoids, paper 003; frictionless or rough): what an ellipsoid adds to the
 one CUDA time loop (engine/loops/cuda_loop.py; the interface is in engine/shapes/sphere/device.py).
 
-The device functions call the same ``@numba.njit`` physics as the CPU plug-in (engine/shapes/spheroid/kernels.py):
-:func:`engine.physics.ellipsoid.ellipsoid_pair_screened` (exact disjointness screens, Perram-Wertheim contact
-function, contact point and normal, overlap, force with the contact start/end corrections, torques) and
-:func:`~engine.physics.ellipsoid.ellipsoid_contact` for the previous step's gap of a contact that starts right
-after a screened step; :func:`engine.physics.rotation.fincham_quat_step_body`,
-:func:`~engine.physics.rotation.space_omega`, :func:`~engine.physics.rotation.body_omega` (Euler's equations in
-the body frame through the space-frame angular momentum L, Fincham's leap-frog for the quaternion, paper 003
-Eqs. 13-21, renormalised every step).
+The device functions call the same ``@numba.njit`` functions as the CPU plug-in (engine/shapes/spheroid/kernels.py)
+and keep only the gather from and scatter into this backend's layout: the spheroid's pair evaluator
+:func:`engine.shapes.spheroid.law.spheroid_pair` (exact disjointness screens, Perram-Wertheim contact function,
+contact point and normal, overlap, normal force with the contact start/end corrections, the rough law's tangential
+spring, torques), :func:`~engine.shapes.spheroid.law.spheroid_gap` for the previous step's gap of a contact that
+starts right after a screened step, :func:`~engine.shapes.spheroid.law.mid_step_omega` (the rough spring's
+mid-step spins) and :func:`~engine.shapes.spheroid.law.spheroid_rotation` (Euler's equations in the body frame
+through the space-frame angular momentum L, Fincham's leap-frog for the quaternion, paper 003 Eqs. 13-21,
+renormalised every step); observe reads :func:`engine.physics.rotation.body_omega`.
 
 Layout (device, particle index fastest; engine/shapes/spheroid/cuda_backend.py allocates it):
     ``spin`` = angm (3, N): space-frame angular momentum L (kg m^2/s), kicked by the torque with unit factor;
@@ -39,10 +40,11 @@ import numpy as np
 from numba import cuda
 
 from engine.physics.contact import contact_elastic_energy, min_image
-from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
+from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV
 from engine.physics.integrate import kick
-from engine.physics.rotation import body_omega, fincham_quat_step_body, space_omega
-from engine.physics.rough_spheroid import rough_spheroid_pair
+from engine.physics.rotation import body_omega
+from engine.shapes.spheroid.law import (S_DELTA, S_FD, S_KT, S_STATUS, S_XI_X, S_XI_Y, S_XI_Z, mid_step_omega,
+                                        spheroid_gap, spheroid_pair, spheroid_rotation)
 
 #: the compile-time flags of make_cuda, in order: rough contacts (tangential spring, 6 history words), Coulomb
 #: limit (orientation is always tracked)
@@ -79,23 +81,14 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
 
     @cuda.jit(device=True)
     def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step):
-        """L += tau hk; q by Fincham's leap-frog with L(t) = L - tau dt/2 and L(t + dt/2) = L
-        (engine/shapes/spheroid/kernels.py: rotate); predicted space-frame w at t + dt into omega_p; the
-        orientation before the step into quat_prev. True when L and q are finite."""
+        """The orientation before the step into quat_prev, then the gather from and scatter into this backend's
+        layout of the spheroid's one rotation step (law.spheroid_rotation: L += tau hk, q by Fincham's leap-frog,
+        the predicted space-frame w at t + dt into omega_p). True when L and q are finite."""
         angm = spin
         omega_p = ext[2]
         quat_prev = ext[4]
         for k in range(4):
             quat_prev[k, i] = quat[k, i]
-        tx = torque[0, i]
-        ty = torque[1, i]
-        tz = torque[2, i]
-        lx = angm[0, i] + tx * hk
-        ly = angm[1, i] + ty * hk
-        lz = angm[2, i] + tz * hk
-        angm[0, i] = lx
-        angm[1, i] = ly
-        angm[2, i] = lz
         if UNIFORM:
             ii1 = spd[s, E_II1]
             ii2 = spd[s, E_II2]
@@ -104,14 +97,16 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             ii1 = spin_inv[0, i]
             ii2 = spin_inv[1, i]
             ii3 = spin_inv[2, i]
-        q0, q1, q2, q3 = fincham_quat_step_body(quat[0, i], quat[1, i], quat[2, i], quat[3, i],
-                                                lx - tx * hp, ly - ty * hp, lz - tz * hp, lx, ly, lz,
-                                                ii1, ii2, ii3, dt, HALF)
+        lx, ly, lz, q0, q1, q2, q3, wx, wy, wz = spheroid_rotation(
+            quat[0, i], quat[1, i], quat[2, i], quat[3, i], angm[0, i], angm[1, i], angm[2, i],
+            torque[0, i], torque[1, i], torque[2, i], ii1, ii2, ii3, hk, hp, dt, HALF)
+        angm[0, i] = lx
+        angm[1, i] = ly
+        angm[2, i] = lz
         quat[0, i] = q0
         quat[1, i] = q1
         quat[2, i] = q2
         quat[3, i] = q3
-        wx, wy, wz = space_omega(q0, q1, q2, q3, lx + tx * hp, ly + ty * hp, lz + tz * hp, ii1, ii2, ii3, HALF)
         omega_p[0, i] = wx
         omega_p[1, i] = wy
         omega_p[2, i] = wz
@@ -142,28 +137,12 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             return None
 
     @cuda.jit(device=True)
-    def spin_inv_of(i, ext):
-        """Principal 1/I of particle i (per-particle constants: ext[5])."""
-        inv_i = ext[5]
-        return inv_i[0, i], inv_i[1, i], inv_i[2, i]
-
-    @cuda.jit(device=True)
-    def mid_step_omega(i, quat, quat_prev, angm, ii1, ii2, ii3):
-        """Mid-step space-frame angular velocity for the rough spring: L(t + dt/2) with the orientation
-        normalize(q(t) + q(t + dt)) (engine/shapes/spheroid/kernels.py: mid_step_omega)."""
-        q0 = quat_prev[0, i] + quat[0, i]
-        q1 = quat_prev[1, i] + quat[1, i]
-        q2 = quat_prev[2, i] + quat[2, i]
-        q3 = quat_prev[3, i] + quat[3, i]
-        sc = ONE / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
-        return space_omega(q0 * sc, q1 * sc, q2 * sc, q3 * sc, angm[0, i], angm[1, i], angm[2, i], ii1, ii2, ii3,
-                           HALF)
-
-    @cuda.jit(device=True)
     def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
-        """Perram-Wertheim contact of list slot kk (behind the exact screens) when the bounding spheres overlap
-        or the pair was in contact at the previous step; a contact starting after a screened step gets that
-        step's gap from pos_prev/quat_prev; overlap and dashpot history advanced in place."""
+        """List slot kk of particle i (neighbour j), evaluated when the bounding spheres overlap or the pair was
+        in contact at the previous step: the gather from and scatter into this backend's layout of the spheroid's
+        one pair evaluator (law.spheroid_pair, with (A, B) = (lower id, higher id)); a contact starting after a
+        screened step gets that step's gap from pos_prev/quat_prev (law.spheroid_gap); overlap, dashpot (and
+        rough: spring) history advanced in place."""
         idi, box, inv_box, dt, k_n, gn_coef, tol, margin, r0, im0 = p
         fx, fy, fz, tx, ty, tz, worst = acc
         axes = ext[0]
@@ -198,54 +177,44 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             m12 = ONE / (inv_m[a] + inv_m[b])
             aa, ba, ca = axes[0, a], axes[1, a], axes[2, a]
             ab, bb, cb = axes[0, b], axes[1, b], axes[2, b]
-        d_prev = hist[3, kk, i]
+        sa = (aa, ba, ca)
+        sb = (ab, bb, cb)
+        qa = (quat[0, a], quat[1, a], quat[2, a], quat[3, a])
+        qb = (quat[0, b], quat[1, b], quat[2, b], quat[3, b])
         if ROUGH:
             if UNIFORM:
-                ia1 = spd[s, E_II1]
-                ia2 = spd[s, E_II2]
-                ia3 = spd[s, E_II3]
-                ib1 = ia1
-                ib2 = ia2
-                ib3 = ia3
+                ia = (spd[s, E_II1], spd[s, E_II2], spd[s, E_II3])
+                ib = ia
             else:
-                ia1, ia2, ia3 = spin_inv_of(a, ext)
-                ib1, ib2, ib3 = spin_inv_of(b, ext)
-            wa = mid_step_omega(a, quat, quat_prev, spin, ia1, ia2, ia3)
-            wb = mid_step_omega(b, quat, quat_prev, spin, ib1, ib2, ib3)
-            f_t = spd[s, E_FT]
-            mu = friction_of(spd, s)
+                inv_i = ext[5]
+                ia = (inv_i[0, a], inv_i[1, a], inv_i[2, a])
+                ib = (inv_i[0, b], inv_i[1, b], inv_i[2, b])
+            rough = ((vel[0, b] - vel[0, a], vel[1, b] - vel[1, a], vel[2, b] - vel[2, a]),
+                     mid_step_omega((quat_prev[0, a], quat_prev[1, a], quat_prev[2, a], quat_prev[3, a]), qa,
+                                    (spin[0, a], spin[1, a], spin[2, a]), ia, HALF),
+                     mid_step_omega((quat_prev[0, b], quat_prev[1, b], quat_prev[2, b], quat_prev[3, b]), qb,
+                                    (spin[0, b], spin[1, b], spin[2, b]), ib, HALF),
+                     ia, ib, (hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[5, kk, i]), spd[s, E_FT],
+                     friction_of(spd, s))
+        else:
+            rough = None
+        d_prev = hist[3, kk, i]
         for _ in range(2):
-            if ROUGH:
-                g = rough_spheroid_pair(
-                    rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
-                    quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
-                    vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
-                    omega_p[0, a], omega_p[1, a], omega_p[2, a],
-                    omega_p[0, b], omega_p[1, b], omega_p[2, b],
-                    vel[0, b] - vel[0, a], vel[1, b] - vel[1, a], vel[2, b] - vel[2, a],
-                    wa[0], wa[1], wa[2], wb[0], wb[1], wb[2], ia1, ia2, ia3, ib1, ib2, ib3,
-                    d_prev, hist[4, kk, i], hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[5, kk, i],
-                    m12, k_n, gn_coef * math.sqrt(m12), f_t, mu, dt, tol, margin, SCREENED_GAP, HALF)
-                status = g[15]
-            else:
-                g = ellipsoid_pair_screened(
-                    rx, ry, rz, quat[0, a], quat[1, a], quat[2, a], quat[3, a], aa, ba, ca,
-                    quat[0, b], quat[1, b], quat[2, b], quat[3, b], ab, bb, cb,
-                    vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a],
-                    omega_p[0, a], omega_p[1, a], omega_p[2, a],
-                    omega_p[0, b], omega_p[1, b], omega_p[2, b],
-                    d_prev, hist[4, kk, i], m12, k_n, gn_coef * math.sqrt(m12), dt, tol, margin, SCREENED_GAP,
-                    HALF)
-                status = g[11]
+            g = spheroid_pair(rx, ry, rz, qa, qb, sa, sb,
+                              (vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a]),
+                              (omega_p[0, a], omega_p[1, a], omega_p[2, a]),
+                              (omega_p[0, b], omega_p[1, b], omega_p[2, b]),
+                              d_prev, hist[4, kk, i], m12, (k_n, gn_coef, tol, margin, SCREENED_GAP), rough, dt, HALF)
+            status = g[S_STATUS]
             if status != PAIR_NEEDS_PREV:
                 break
             # a contact starts after a screened step: the gap of that step, from its state
-            d_prev = ellipsoid_contact(
-                min_image(pos_prev[0, b] - pos_prev[0, a], box, inv_box, HALF),
-                min_image(pos_prev[1, b] - pos_prev[1, a], box, inv_box, HALF),
-                min_image(pos_prev[2, b] - pos_prev[2, a], box, inv_box, HALF),
-                quat_prev[0, a], quat_prev[1, a], quat_prev[2, a], quat_prev[3, a], aa, ba, ca,
-                quat_prev[0, b], quat_prev[1, b], quat_prev[2, b], quat_prev[3, b], ab, bb, cb, tol, HALF)[2]
+            d_prev = spheroid_gap(min_image(pos_prev[0, b] - pos_prev[0, a], box, inv_box, HALF),
+                                  min_image(pos_prev[1, b] - pos_prev[1, a], box, inv_box, HALF),
+                                  min_image(pos_prev[2, b] - pos_prev[2, a], box, inv_box, HALF),
+                                  (quat_prev[0, a], quat_prev[1, a], quat_prev[2, a], quat_prev[3, a]),
+                                  (quat_prev[0, b], quat_prev[1, b], quat_prev[2, b], quat_prev[3, b]), sa, sb, tol,
+                                  HALF)
         if i == a:
             fx += g[0]
             fy += g[1]
@@ -260,14 +229,14 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             tx += g[6]
             ty += g[7]
             tz += g[8]
-        delta = g[9]
+        delta = g[S_DELTA]
         hist[3, kk, i] = delta
-        hist[4, kk, i] = g[10]
+        hist[4, kk, i] = g[S_FD]
         if ROUGH and status == PAIR_DONE:
-            hist[0, kk, i] = g[11]
-            hist[1, kk, i] = g[12]
-            hist[2, kk, i] = g[13]
-            hist[5, kk, i] = g[14]
+            hist[0, kk, i] = g[S_XI_X]
+            hist[1, kk, i] = g[S_XI_Y]
+            hist[2, kk, i] = g[S_XI_Z]
+            hist[5, kk, i] = g[S_KT]
         if delta > ZERO:
             bmin = spd[s, E_BMIN] if UNIFORM else min(min(ba, ca), min(bb, cb))
             ov = delta / bmin

@@ -1,5 +1,8 @@
-"""The spheroid shape plug-in (frictionless prolate ellipsoids, paper 003): what an ellipsoid adds to the
-shared CPU time loop (engine/loops/cpu.py ``make_run_steps``, ``make_forces``; the interface is in engine/shapes/sphere/kernels.py).
+"""The spheroid shape plug-in (prolate ellipsoids, paper 003; frictionless or rough): what an ellipsoid adds to
+the shared CPU time loop (engine/loops/cpu.py ``make_run_steps``, ``make_forces``; the interface is in
+engine/shapes/sphere/kernels.py). The contact law and the rotation step are law.py's (``spheroid_pair``,
+``spheroid_gap``, ``spheroid_rotation``, the functions the CUDA loop's device.py calls too); this module gathers
+their inputs from the CPU backend's rows and scatters their results into them.
 
 - Broad phase: the list radius ``rad`` is the bounding-sphere radius (largest semi-axis); the force loop runs the
   Perram-Wertheim contact (engine/physics/ellipsoid.py) only for pairs whose bounding spheres overlap, behind
@@ -14,10 +17,12 @@ shared CPU time loop (engine/loops/cpu.py ``make_run_steps``, ``make_forces``; t
   (engine/physics/rotation.py: fincham_quat_step_body), renormalised every step; predicted end-of-step
   velocities and angular velocities feed the dashpot.
 - ``EXACT_DISPLACEMENT = True``: ``step`` measures every particle's displacement since the last build.
-- ``law = (tol, margin, screened_gap)``: Perram-Wertheim Newton tolerance, screen margin, stored gap of a
-  screened pair; ``ext = (inv_i, axes, omega_p, pos_prev, quat_prev)``: inverse principal moments (N, 3),
-  semi-axes (N, 3), predicted space-frame angular velocities, positions and orientations before the step.
-- List slots 3 and 4 hold the overlap (-inf: screened) and the dashpot force of the previous step; 0-2 unused.
+- ``law = (tol, margin, screened_gap, f_t, mu)``: Perram-Wertheim Newton tolerance, screen margin, stored gap of
+  a screened pair, the rough law's factor (None: frictionless) and Coulomb coefficient (None: no cap);
+  ``ext = (inv_i, axes, omega_p, pos_prev, quat_prev)``: inverse principal moments (N, 3), semi-axes (N, 3),
+  predicted space-frame angular velocities, positions and orientations before the step.
+- List slots 3 and 4 hold the overlap (-inf: screened) and the dashpot force of the previous step; rough
+  contacts (6 words) the spring in 0-2 (m) and the contact's k_t in 5 (N/m); frictionless: 0-2 unused.
 """
 
 from __future__ import annotations
@@ -29,9 +34,10 @@ import numba
 from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.physics.contact import contact_elastic_energy, min_image
-from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV, ellipsoid_contact, ellipsoid_pair_screened
-from engine.physics.rough_spheroid import rough_spheroid_pair
-from engine.physics.rotation import body_omega, fincham_quat_step_body, space_omega
+from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV
+from engine.physics.rotation import body_omega
+from engine.shapes.spheroid.law import (S_DELTA, S_FD, S_KT, S_STATUS, S_XI_X, S_XI_Y, S_XI_Z, mid_step_omega,
+                                        spheroid_gap, spheroid_pair, spheroid_rotation)
 
 NAME = "ellipsoid"
 EXACT_DISPLACEMENT = True
@@ -51,29 +57,23 @@ def pre_step(i, pos, quat, ext):
 
 @numba.njit(inline="always")
 def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
-    """The ellipsoid's half of the kick-drift of particle i after the shared translation: L += tau hk, q by
-    Fincham's leap-frog on the body-frame angular velocity, predicted space-frame angular velocity at t + dt
-    into ext[2]. Returns (squared displacement since the last list build (m^2), finite)."""
+    """The ellipsoid's half of the kick-drift of particle i after the shared translation: the gather from and
+    scatter into this backend's rows of the spheroid's one rotation step (law.spheroid_rotation: L += tau hk, q by
+    Fincham's leap-frog, the predicted space-frame angular velocity at t + dt into ext[2]). Returns (squared
+    displacement since the last list build (m^2), finite)."""
     angm = spin
     inv_i = ext[0]
     omega_p = ext[2]
-    lx = angm[i, 0] + torque[i, 0] * hk
-    ly = angm[i, 1] + torque[i, 1] * hk
-    lz = angm[i, 2] + torque[i, 2] * hk
+    lx, ly, lz, q0, q1, q2, q3, wx, wy, wz = spheroid_rotation(
+        quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], angm[i, 0], angm[i, 1], angm[i, 2],
+        torque[i, 0], torque[i, 1], torque[i, 2], inv_i[i, 0], inv_i[i, 1], inv_i[i, 2], hk, hp, dt, half)
     angm[i, 0] = lx
     angm[i, 1] = ly
     angm[i, 2] = lz
-    i1_, i2_, i3_ = inv_i[i, 0], inv_i[i, 1], inv_i[i, 2]
-    q0, q1, q2, q3 = fincham_quat_step_body(
-        quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
-        lx - torque[i, 0] * hp, ly - torque[i, 1] * hp, lz - torque[i, 2] * hp, lx, ly, lz,
-        i1_, i2_, i3_, dt, half)
     quat[i, 0] = q0
     quat[i, 1] = q1
     quat[i, 2] = q2
     quat[i, 3] = q3
-    wx, wy, wz = space_omega(q0, q1, q2, q3, lx + torque[i, 0] * hp, ly + torque[i, 1] * hp,
-                             lz + torque[i, 2] * hp, i1_, i2_, i3_, half)
     omega_p[i, 0] = wx
     omega_p[i, 1] = wy
     omega_p[i, 2] = wz
@@ -93,79 +93,42 @@ def settle(spin, quat, ext, drifted, dt, half):
     return
 
 
-@numba.njit
-def mid_step_omega(i, quat, quat_prev, angm, inv_i, half):
-    """Space-frame angular velocity (rad/s) of particle i at mid-step: L(t + dt/2) (after the kick) with the
-    orientation normalize(q(t) + q(t + dt)) (second order in dt), for the rough contact's spring (the midpoint
-    rule of the sphere code)."""
-    q0 = quat_prev[i, 0] + quat[i, 0]
-    q1 = quat_prev[i, 1] + quat[i, 1]
-    q2 = quat_prev[i, 2] + quat[i, 2]
-    q3 = quat_prev[i, 3] + quat[i, 3]
-    s = (half + half) / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
-    return space_omega(q0 * s, q1 * s, q2 * s, q3 * s, angm[i, 0], angm[i, 1], angm[i, 2], inv_i[i, 0],
-                       inv_i[i, 1], inv_i[i, 2], half)
-
-
-@numba.njit
-def pair_law(f_t, mu, a, b, i, kk, rx, ry, rz, d_prev, vel, vel_p, spin, quat, hist, m12, k_n, gn, dt, law, ext,
-             half):
-    """The pair law of list slot kk of i for the ordered pair (a, b): frictionless (f_t None, pruned at compile
-    time: engine.physics.ellipsoid.ellipsoid_pair_screened) or rough (engine.physics.rough_spheroid.
-    rough_spheroid_pair with the slot's spring and k_t, history words 0-2 and 5, written here). Returns
-    (F_A (3), tau_A (3), tau_B (3), delta, F_dashpot, status)."""
-    inv_i = ext[0]
-    axes = ext[1]
-    omega_p = ext[2]
+@numba.njit  # not inlined: its f_t None branch is pruned by the argument's type
+def rough_inputs(f_t, mu, a, b, i, kk, vel, quat, quat_prev, angm, inv_i, hist, half):
+    """The tangential inputs of law.spheroid_pair for the ordered pair (a, b) from this backend's rows: None for
+    frictionless contacts (f_t None, pruned at compile time), else (v_b - v_a at mid-step, the mid-step spins of a
+    and b (law.mid_step_omega), 1/I of a and b, the slot's spring and k_t (history words 0-2 and 5), f_t, mu)."""
     if f_t is None:
-        return ellipsoid_pair_screened(
-            rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
-            axes[a, 0], axes[a, 1], axes[a, 2],
-            quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
-            axes[b, 0], axes[b, 1], axes[b, 2],
-            vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
-            omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
-            omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
-            d_prev, hist[i, kk, 4], m12, k_n, gn, dt, law[0], law[1], law[2], half)
-    quat_prev = ext[4]
-    wa = mid_step_omega(a, quat, quat_prev, spin, inv_i, half)
-    wb = mid_step_omega(b, quat, quat_prev, spin, inv_i, half)
-    g = rough_spheroid_pair(
-        rx, ry, rz, quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3],
-        axes[a, 0], axes[a, 1], axes[a, 2],
-        quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3],
-        axes[b, 0], axes[b, 1], axes[b, 2],
-        vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2],
-        omega_p[a, 0], omega_p[a, 1], omega_p[a, 2],
-        omega_p[b, 0], omega_p[b, 1], omega_p[b, 2],
-        vel[b, 0] - vel[a, 0], vel[b, 1] - vel[a, 1], vel[b, 2] - vel[a, 2],
-        wa[0], wa[1], wa[2], wb[0], wb[1], wb[2],
-        inv_i[a, 0], inv_i[a, 1], inv_i[a, 2], inv_i[b, 0], inv_i[b, 1], inv_i[b, 2],
-        d_prev, hist[i, kk, 4], hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], hist[i, kk, 5],
-        m12, k_n, gn, f_t, mu, dt, law[0], law[1], law[2], half)
-    if g[15] == PAIR_DONE:
-        hist[i, kk, 0] = g[11]
-        hist[i, kk, 1] = g[12]
-        hist[i, kk, 2] = g[13]
-        hist[i, kk, 5] = g[14]
-    return g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8], g[9], g[10], g[15]
+        return None
+    ia = (inv_i[a, 0], inv_i[a, 1], inv_i[a, 2])
+    ib = (inv_i[b, 0], inv_i[b, 1], inv_i[b, 2])
+    return ((vel[b, 0] - vel[a, 0], vel[b, 1] - vel[a, 1], vel[b, 2] - vel[a, 2]),
+            mid_step_omega((quat_prev[a, 0], quat_prev[a, 1], quat_prev[a, 2], quat_prev[a, 3]),
+                           (quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3]), (angm[a, 0], angm[a, 1], angm[a, 2]),
+                           ia, half),
+            mid_step_omega((quat_prev[b, 0], quat_prev[b, 1], quat_prev[b, 2], quat_prev[b, 3]),
+                           (quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3]), (angm[b, 0], angm[b, 1], angm[b, 2]),
+                           ib, half),
+            ia, ib, (hist[i, kk, 0], hist[i, kk, 1], hist[i, kk, 2], hist[i, kk, 5]), f_t, mu)
 
 
 @numba.njit(inline="always")
 def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
          ext):
-    """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), overlap/dashpot history updated,
-    and the overlap (m) relative to the smallest semi-axis of the pair (0 when not in contact), for the shared
-    force loop.
+    """Force (3, N) and torque (3, N m) on i from list slot kk (neighbour j), overlap/dashpot (and rough: spring)
+    history updated, and the overlap (m) relative to the smallest semi-axis of the pair (0 when not in contact),
+    for the shared force loop: the gather from and scatter into this backend's rows of the spheroid's one pair
+    evaluator (law.spheroid_pair), behind the bounding-sphere test.
 
-    Pairs proven disjoint by the exact screens (margin >= 0) store screened_gap (-inf) as their gap; a contact
-    that starts right after such a step gets the previous gap evaluated from pos_prev/quat_prev (see
-    engine.physics.ellipsoid.ellipsoid_pair_screened). law = (tol, margin, screened_gap, f_t, mu): f_t None for
-    frictionless contacts (paper 003), else (arccos(-e_t)/pi)^2 of the rough law (:func:`pair_law`); mu None: no
-    Coulomb cap. ext = (inv_i, axes, omega_p, pos_prev, quat_prev). Both partners evaluate the pair as
-    (a, b) = (lower id, higher id): their slots hold the same (a, b) spring, bit for bit.
+    law = (tol, margin, screened_gap, f_t, mu): f_t None for frictionless contacts (paper 003), else
+    (arccos(-e_t)/pi)^2 of the rough law; mu None: no Coulomb cap. ext = (inv_i, axes, omega_p, pos_prev,
+    quat_prev). Both partners evaluate the pair as (a, b) = (lower id, higher id): their slots hold the same
+    (a, b) spring, bit for bit. A contact that starts right after a screened step gets the previous gap
+    evaluated from pos_prev/quat_prev (law.spheroid_gap).
     """
+    inv_i = ext[0]
     axes = ext[1]
+    omega_p = ext[2]
     pos_prev = ext[3]
     quat_prev = ext[4]
     tol = law[0]
@@ -181,27 +144,36 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
         hist[i, kk, 4] = 0
         return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     m12 = 1 / (inv_m[a] + inv_m[b])
+    qa = (quat[a, 0], quat[a, 1], quat[a, 2], quat[a, 3])
+    qb = (quat[b, 0], quat[b, 1], quat[b, 2], quat[b, 3])
+    sa = (axes[a, 0], axes[a, 1], axes[a, 2])
+    sb = (axes[b, 0], axes[b, 1], axes[b, 2])
+    rough = rough_inputs(law[3], law[4], a, b, i, kk, vel, quat, quat_prev, spin, inv_i, hist, half)
     d_prev = hist[i, kk, 3]
     for _ in range(2):
-        g = pair_law(law[3], law[4], a, b, i, kk, rx, ry, rz, d_prev, vel, vel_p, spin, quat, hist, m12, k_n,
-                     gn_coef * math.sqrt(m12), dt, law, ext, half)
-        if g[11] != PAIR_NEEDS_PREV:
+        g = spheroid_pair(rx, ry, rz, qa, qb, sa, sb,
+                          (vel_p[b, 0] - vel_p[a, 0], vel_p[b, 1] - vel_p[a, 1], vel_p[b, 2] - vel_p[a, 2]),
+                          (omega_p[a, 0], omega_p[a, 1], omega_p[a, 2]), (omega_p[b, 0], omega_p[b, 1], omega_p[b, 2]),
+                          d_prev, hist[i, kk, 4], m12, (k_n, gn_coef, tol, law[1], law[2]), rough, dt, half)
+        if g[S_STATUS] != PAIR_NEEDS_PREV:
             break
         # a contact starts after a screened step: the gap of that step, from its state
-        d_prev = ellipsoid_contact(
-            min_image(pos_prev[b, 0] - pos_prev[a, 0], box, inv_box, half),
-            min_image(pos_prev[b, 1] - pos_prev[a, 1], box, inv_box, half),
-            min_image(pos_prev[b, 2] - pos_prev[a, 2], box, inv_box, half),
-            quat_prev[a, 0], quat_prev[a, 1], quat_prev[a, 2], quat_prev[a, 3],
-            axes[a, 0], axes[a, 1], axes[a, 2],
-            quat_prev[b, 0], quat_prev[b, 1], quat_prev[b, 2], quat_prev[b, 3],
-            axes[b, 0], axes[b, 1], axes[b, 2], tol, half)[2]
-    delta = g[9]
+        d_prev = spheroid_gap(min_image(pos_prev[b, 0] - pos_prev[a, 0], box, inv_box, half),
+                              min_image(pos_prev[b, 1] - pos_prev[a, 1], box, inv_box, half),
+                              min_image(pos_prev[b, 2] - pos_prev[a, 2], box, inv_box, half),
+                              (quat_prev[a, 0], quat_prev[a, 1], quat_prev[a, 2], quat_prev[a, 3]),
+                              (quat_prev[b, 0], quat_prev[b, 1], quat_prev[b, 2], quat_prev[b, 3]), sa, sb, tol, half)
+    delta = g[S_DELTA]
     hist[i, kk, 3] = delta
-    hist[i, kk, 4] = g[10]
+    hist[i, kk, 4] = g[S_FD]
+    if law[3] is not None and g[S_STATUS] == PAIR_DONE:
+        hist[i, kk, 0] = g[S_XI_X]
+        hist[i, kk, 1] = g[S_XI_Y]
+        hist[i, kk, 2] = g[S_XI_Z]
+        hist[i, kk, 5] = g[S_KT]
     ov = 0.0
     if delta > 0:
-        ov = delta / min(min(axes[a, 1], axes[a, 2]), min(axes[b, 1], axes[b, 2]))
+        ov = delta / min(min(sa[1], sa[2]), min(sb[1], sb[2]))
     if i == a:
         return g[0], g[1], g[2], g[3], g[4], g[5], ov
     return -g[0], -g[1], -g[2], g[6], g[7], g[8], ov
