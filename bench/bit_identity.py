@@ -3,7 +3,7 @@
 For refactors that must not change a bit: run this in two checkouts and compare the printed
 digests (the whole file's, and its trajectory and observables apart). Only the public path (``engine.run``) and
 the result file (H5MD contract) are used, so it runs on any commit that has them. Cases: spheres smooth, rough,
-Coulomb, two species; frictionless ellipsoids (xi = 2).
+Coulomb, two species; ellipsoids (xi = 2) frictionless, rough and rough with Coulomb friction.
 
     python -m bench bit_identity --backend cpu
     NUMBA_ENABLE_CUDASIM=1 python -m bench bit_identity --backend cuda      # the CUDA simulator (slow: tiny N)
@@ -30,6 +30,8 @@ CASES = {
     "spheres-species": dict(e_t=0.8, species=[{"radius_ratio": 1.0, "number_fraction": 0.5},
                                                {"radius_ratio": 0.6, "number_fraction": 0.5}]),
     "ellipsoids-smooth": dict(shape="ellipsoid", elongation=2.0, e_t=-1.0),
+    "ellipsoids-rough": dict(shape="ellipsoid", elongation=2.0, e_t=0.8),
+    "ellipsoids-coulomb": dict(shape="ellipsoid", elongation=2.0, e_t=0.8, friction=0.2),
 }
 DATASETS = ("particles/all/position/value", "particles/all/velocity/value", "particles/all/angular_velocity/value",
             "particles/all/orientation/value", "observables/kinetic_energy_translational/value",
