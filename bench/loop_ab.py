@@ -1,4 +1,4 @@
-"""Side-by-side loop variants: one JAX-MD comparison case through ``engine.run``, engine settings switched per run.
+"""Side-by-side loop variants of one case (JAX-MD scenes, 1M scene, 256 packed scenes, 1M rough spheroids).
 
 In one warm process (kernels compiled by a 20-step run of each variant first), each repetition runs every variant
 once, in turn, on the same case of bench/vs_jaxmd.py (its scene, its spec: no thermalisation, no snapshots), and
