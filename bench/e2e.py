@@ -16,7 +16,8 @@ compilation or its disk-cache load is part of the figure, as for a user who star
 starts, for side-by-side A/B timings (see SWITCHES): ``startup`` (the start-up thread, engine/startup.py),
 ``device_start`` (large starts drawn on the GPU, engine/start_kind.py), ``kernel_cache`` (the kernels' disk cache,
 engine/loops/cuda_cache.py), ``multigrid`` (the multigrid list build), ``multistep`` (the many-steps-per-launch
-loop: the per-phase loop at every size). Not for the worker cases, whose jobs run in processes of the service.
+loop: the per-phase loop at every size), ``launch_cache`` (engine/loops/cuda_launch.py), ``displacement_bound`` (every
+kick-drift measures displacements against x_ref, engine/loops/cuda_stepping.py). Not for the worker cases, whose jobs run in processes of the service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
 that the step count is exact):

@@ -31,12 +31,9 @@ if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-#: the engine's own FORCES_BLOCKS_PER_SM, kept at the first apply() (every variant starts from it)
-_DEFAULT_BLOCKS: list = []
-
-
-def apply(variant: str) -> None:
-    """Put every switch back on, then turn off those the variant names (bench.e2e.SWITCHES)."""
+def apply(variant: str, default_blocks) -> None:
+    """Put every switch back on and the force kernels' launch bounds to the engine's ``default_blocks``, then turn
+    off those the variant names (bench.e2e.SWITCHES) and set its ``blocks=B``."""
     import importlib
 
     from bench.e2e import SWITCHES, switch_off
@@ -46,9 +43,7 @@ def apply(variant: str) -> None:
     for module, setting, _ in SWITCHES.values():
         mod = importlib.import_module(module)
         setattr(mod, setting, None if (module, setting) == ("engine.loops.cuda_ensemble", "MULTISTEP") else True)
-    if not _DEFAULT_BLOCKS:
-        _DEFAULT_BLOCKS.append(loop.FORCES_BLOCKS_PER_SM)
-    loop.FORCES_BLOCKS_PER_SM = _DEFAULT_BLOCKS[0]
+    loop.FORCES_BLOCKS_PER_SM = default_blocks
     off = []
     for part in ([] if variant == "default" else variant.split("+")):
         if part == "multistep_on":
@@ -104,7 +99,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     import h5py
 
+    import engine.loops.cuda_loop as loop
     from engine import run, run_ensemble
+
+    default_blocks = loop.FORCES_BLOCKS_PER_SM
 
     def specs_of(case: str, steps: int) -> list:
         if case in EXTRA:
@@ -131,11 +129,11 @@ def main(argv=None) -> int:
             steps = EXTRA[case][3] if case in EXTRA else CASES[case][2]
             steps = max(1, int(steps * args.steps_scale))
             for v in args.variants:
-                apply(v)
+                apply(v, default_blocks)
                 run_case(specs_of(case, 20), tmp)
             for rep in range(args.reps):
                 for v in args.variants:
-                    apply(v)
+                    apply(v, default_blocks)
                     specs = specs_of(case, steps)
                     summaries, wall = run_case(specs, tmp)
                     n = sum(sp.n_particles for sp in specs)
@@ -148,7 +146,7 @@ def main(argv=None) -> int:
                                       "loop_s": round(loop_s, 4), "wall_s": round(wall, 3),
                                       "cundall_loop": float(f"{n * steps_done / loop_s:.3e}"),
                                       "cundall_end_to_end": float(f"{n * steps_done / wall:.3e}")}), flush=True)
-    apply("default")
+    apply("default", default_blocks)
     return 0
 
 

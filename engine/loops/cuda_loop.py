@@ -64,7 +64,8 @@ def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
         dt = np.dtype(dtype).type
         parts = shape_device(shape).make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
-        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5]), ("loop",) + key[:2] + tuple(map(str, key[2:]))))
+        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5]),
+                               ("loop",) + key[:2] + tuple(map(str, key[2:]))))
         k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))
         _cache[key] = k
     return _cache[key]
