@@ -9,6 +9,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+#: heavy: ~30 s of CUDA simulator (a thin-skin scene needs tens of one-launch-per-phase steps to show the bound
+#: at work); the light run already sits near its time budget
+pytestmark = pytest.mark.heavy
+
 SCRIPT = r'''
 import tempfile
 from pathlib import Path
