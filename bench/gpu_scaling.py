@@ -29,23 +29,24 @@ def scene(n, phi, precision, seed=1):
     from engine.simulate import contact_params
     from engine.spec import SimulationSpec
 
-    spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.5, friction=0.5,
-                          precision=precision, seed=seed, snapshots=1)
+    spec = SimulationSpec(n_particles=n, volume_fraction=phi, precision=precision, seed=seed, snapshots=1,
+                          **{**dict(e_n=0.8, e_t=0.5, friction=0.5), **contact})
     p = derive(spec)
     c = contact_params(spec, p, thermalization=False)
     assert c.orientation and c.k_t is not None and c.friction is not None
     return initial_spheres(spec, p), c
 
 
-def lattice_scene(n, phi, precision, seed=1):
-    """A fast start for very large N: jittered simple-cubic lattice (no fcc placement)."""
+def lattice_scene(n, phi, precision, seed=1, **contact):
+    """A fast start for very large N: jittered simple-cubic lattice (no fcc placement); ``contact`` overrides the
+    rough paper-001 contact (e_n = 0.8, e_t = 0.5, friction 0.5)."""
     from engine.backends.base import SphereSystem
     from engine.params import derive
     from engine.simulate import contact_params
     from engine.spec import SimulationSpec
 
-    spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.5, friction=0.5,
-                          precision=precision, seed=seed, snapshots=1)
+    spec = SimulationSpec(n_particles=n, volume_fraction=phi, precision=precision, seed=seed, snapshots=1,
+                          **{**dict(e_n=0.8, e_t=0.5, friction=0.5), **contact})
     p = derive(spec)
     c = contact_params(spec, p, thermalization=False)
     rng = np.random.default_rng(seed)

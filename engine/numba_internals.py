@@ -28,6 +28,9 @@ numba-cuda (the CUDA kernels, engine/loops/):
 - ``numba.cuda.cudadrv.driver.device_memset(dst, val, size, stream)``: a memset on a stream (no public API).
 - ``Context.mempin(owner, pointer, size, mapped)`` of ``numba.cuda.current_context()``: page-lock existing host
   memory in place (cuMemHostRegister); the public API only allocates new pinned arrays.
+- a device array's ``device_ctypes_pointer`` and the ``handle`` of a numba-cuda ``Stream`` and ``Event``, given to
+  cuda-python's ``cuda.bindings.driver`` directly (:func:`async_copy_and_record`: the time loop's per-step status
+  copy, where numba-cuda's checked wrappers cost more host time than the step takes on the GPU).
 - a kernel launch without the dispatcher (:func:`prepare_launch`, used by engine/loops/cuda_launch.py): a compiled
   kernel's ``argument_types``, its private ``_prepare_args`` (numba-cuda 0.30 flattens each array argument into
   meminfo, parent, size, itemsize, pointer, shape and strides, and each scalar into one ctypes value), its
@@ -163,6 +166,36 @@ def device_memset(array, value: int, stream) -> None:
     from numba.cuda.cudadrv.driver import device_memset as memset
 
     memset(array, value, array.nbytes, stream=stream)
+
+
+def async_copy_and_record(device_array, host_array, stream, event):
+    """A function that queues, on ``stream``, the copy of the whole ``device_array`` into the pinned ``host_array``
+    (same size), then records ``event``: straight through cuda-python's driver bindings (``cuMemcpyDtoHAsync``,
+    ``cuEventRecord``) with the pointers and handles resolved once. numba-cuda's ``copy_to_host`` and
+    ``Event.record`` check and convert their arguments at every call (about 40 us of Python for a copy of 100
+    bytes): the per-step status copy of the GPU time loop then costs more host time than the step takes on the GPU.
+    The arrays, stream and event must outlive the function. Raises RuntimeError naming the call where the driver
+    refuses."""
+    from cuda.bindings import driver as cu
+
+    if device_array.nbytes != host_array.nbytes:
+        raise ValueError(f"copy of {device_array.nbytes} bytes into a buffer of {host_array.nbytes}")
+    src = int(device_array.device_ctypes_pointer.value)
+    dst = int(host_array.ctypes.data)
+    nbytes = int(host_array.nbytes)
+    hs = int(stream.handle)
+    he = int(event.handle)
+    copy, record, success = cu.cuMemcpyDtoHAsync, cu.cuEventRecord, cu.CUresult.CUDA_SUCCESS
+
+    def copy_and_record() -> None:
+        err, = copy(dst, src, nbytes, hs)
+        if err != success:
+            raise RuntimeError(f"cuMemcpyDtoHAsync: {err}")
+        err, = record(he, hs)
+        if err != success:
+            raise RuntimeError(f"cuEventRecord: {err}")
+
+    return copy_and_record
 
 
 def page_lock(arrays) -> list:

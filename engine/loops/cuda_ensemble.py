@@ -23,6 +23,9 @@ Step (velocity Verlet, closing and opening half kicks fused as on the CPU):
      the largest speed, each normalised by the scene's L_v/2, folded into a device ``status``;
   2. rebuild (rare) when some particle has moved more than L_v/2;
   3. forces over the full list: one thread per particle, each writes only its own force, torque and slots.
+For a shape that declares its pair evaluator ``FUSABLE`` (smooth spheres), the per-phase loop runs 3 and the next
+step's 1 in one launch (cuda_loop ``forces_kick_drift``; the shape's :meth:`_fused_out` / :meth:`_swap_fused`
+hold the other halves of the double-buffered positions and velocities).
 
 :class:`CudaSceneBackend` is one scene (K = 1) behind the single :class:`~engine.backends.protocol.Backend`
 interface, for code that drives one backend by hand (tests, bench).
@@ -126,6 +129,9 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._horizon: Optional[int] = None     # the driver's plan: the run ends about here (plan())
         self._call_end: Optional[int] = None    # the current advance call ends here
         self._poll_ev = None                    # the event _wait_stream polls (made at its first use)
+        self._status_copiers = None             # per pinned status slot: copy + event record (TimeLoop._status_copy)
+        self._carry = None                      # (step, builds, bound, speed) at the last per-phase call's end
+        self._last_kick = None                  # what _close_call reads of that call's last kick-drift
         self._lc = LaunchCache()                # the per-step kernels' launches (engine/loops/cuda_launch.py)
         self._orient = True                     # the compiled specialisation tracks orientations
         self.lists = None                       # host-built Verlet lists (set_list_mode), None: built on the GPU
@@ -227,6 +233,15 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     def _step_arrays(self) -> tuple:
         """(spin, spin_inv, list radius, ext) of the time loop's kernels (engine/loops/cuda_loop.py)."""
 
+    def _fused_out(self) -> tuple:
+        """(pos_out, vel_out): the other halves of the double buffer that cuda_loop's
+        ``forces_kick_drift`` writes; called only for a shape whose kernel set has it (``FUSABLE``)."""
+        raise NotImplementedError(f"{type(self).__name__}: the shape's kernels have no fused step")
+
+    def _swap_fused(self) -> None:
+        """After a fused launch: the halves :meth:`_fused_out` returned become the current state arrays."""
+        raise NotImplementedError(f"{type(self).__name__}: the shape's kernels have no fused step")
+
     @abc.abstractmethod
     def _observe_args(self) -> tuple:
         """observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext) (cuda_loop)."""
@@ -305,6 +320,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.spi_h[s, K.I_ORIENT] = 1 if contact.orientation else 0
 
     def _upload_params(self) -> None:
+        self._carry = None      # dt, skin or contact changed: the next call measures its first step again
         self.spd.copy_to_device(self.spd_h, stream=self.stream)
         self.spf.copy_to_device(self.spf_h, stream=self.stream)
         self.spi.copy_to_device(self.spi_h, stream=self.stream)

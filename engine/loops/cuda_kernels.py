@@ -55,10 +55,11 @@ I_NC, I_COFF, I_ACTIVE, I_START, I_N, I_ORIENT = range(6)
 NI = 6
 
 # global status slots; S_D2 (+1): max over particles of (displacement since the build / (L_v/2))^2 (two
-# slots: the multi-step kernel alternates them by step parity); S_V2: max (2 |v| dt / (L_v/2))^2
+# slots: the multi-step kernel and the fused force-and-kick-drift kernel alternate them by step parity); S_V2
+# (and S_V2B, its other parity): max (2 |v| dt / (L_v/2))^2
 # S_CHECK: max (displacement from a list's snapshot / (L_v/2))^2, the a-posteriori check of a CPU-built list
-S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK = range(8)
-SS0 = 8
+S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK, S_V2B = range(9)
+SS0 = 9
 # per-scene status words
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5

@@ -1,4 +1,4 @@
-"""Kernel launches at the cost of the driver call, for the time loop's per-step kernels.
+"""Kernel launches at the cost of the driver call, for the time loop's per-step and per-record kernels.
 
 At N = 2M the per-step loop waits on the host: numba-cuda types every argument of every launch in Python
 (the type dispatch ``_cuda_call``) and then flattens each array into its pointer, shape and strides. For the
@@ -31,15 +31,23 @@ from engine.loops.cuda_cache import SIM
 ENABLED = True
 
 _SCALAR = (bool, int, float, np.integer, np.floating, np.bool_)
+#: the scalar types the loop passes, recognised by one set lookup (others by isinstance, :func:`_ident`)
+_SCALAR_TYPES = frozenset((bool, int, float, np.int32, np.int64, np.float32, np.float64, np.bool_))
 
 
 def _ident(a):
     """Cache-key part of one argument: the object for arrays (by identity), the type for scalars (whose value
-    is filled in per launch), element identities for tuples."""
+    is filled in per launch), element identities for tuples. (Computed for every argument of every launch: a type
+    lookup first, the isinstance checks only for what it does not know.)"""
+    t = type(a)
+    if t in _SCALAR_TYPES:
+        return ("s", t)
+    if t is tuple:
+        return ("t",) + tuple(map(_ident, a))
     if isinstance(a, _SCALAR):
-        return ("s", type(a))
+        return ("s", t)
     if isinstance(a, tuple):
-        return ("t",) + tuple(_ident(x) for x in a)
+        return ("t",) + tuple(map(_ident, a))
     return id(a)
 
 
@@ -89,7 +97,7 @@ class LaunchCache:
         if name in self.given_up:
             dispatcher[config](*args)
             return
-        key = (config[0], config[1], id(config[2])) + tuple(_ident(a) for a in args)
+        key = (config[0], config[1], id(config[2])) + tuple(map(_ident, args))
         per = self.entries.setdefault(name, OrderedDict())
         entry = per.get(key)
         if entry is not None and not _alive(entry):

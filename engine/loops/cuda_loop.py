@@ -14,6 +14,9 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
                spi, status, step, ext)
     forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf, spi,
            status, step, ext)
+    forces_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new, torque,
+                      spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext)
+                                                         (only for a shape with ``FUSABLE``)
     half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi)
     settle(n, spin, quat, sc, spd, spi, step, ext)       (only for a shape with ``settle_one``)
     run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad, x_ref,
@@ -36,16 +39,17 @@ from numba.cuda import types as ct
 from engine.loops import cuda_kernels as L
 from engine.loops.cuda_cache import SIM, cache_kernels
 from engine.loops.cuda_kernels import (D_BOX, D_DT, D_HP, D_IM0, D_INVBOX, F_LIM2INV, F_OVL, F_V2F, I_ACTIVE,
-                                          I_N, I_START, NSS, S_D2, S_D2B, S_RUN_DONE, S_RUN_REBUILD, S_V2, SS0,
-                                          SS_BAD_ID, SS_OVL, SS_OVL_ID)
+                                          I_N, I_START, NSS, S_D2, S_D2B, S_RUN_DONE, S_RUN_REBUILD, S_V2, S_V2B,
+                                          SS0, SS_BAD_ID, SS_OVL, SS_OVL_ID)
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
 from engine.shapes import device as shape_device
 
 _cache: dict = {}
 
-#: blocks of the force kernel each SM must hold, by (shape, precision, shape flags) or "*" (its launch bounds: the
-#: compiler keeps the registers to 65536 / (TPB x blocks) and spills the rest); a specialisation not named is
+#: blocks of the force kernel (and of the fused force-and-kick-drift kernel) each SM must hold, by (shape,
+#: precision, shape flags) or "*" (its launch bounds: the compiler keeps the registers to 65536 / (TPB x blocks)
+#: and spills the rest); a specialisation not named is
 #: left to the compiler. Set where it measurably pays (docs/performance.md, "GPU: the time loop"): smooth
 #: float64 spheres, 96 registers and 2 blocks of 256 threads left alone, run their force kernel with 3 blocks
 #: (80 registers, 20 bytes spilled on the rare contact path) 5 % faster on an H100; rough spheres (126
@@ -99,13 +103,45 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
     # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
 
     @cuda.jit(device=True)
-    def kick_drift_one(i, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc,
-                       spd, spf, spi, status, step, ext):
-        """v += F/m hk (hk = dt/2 on the first step of a call, else dt), x += v dt wrapped, then the shape's
-        rotation step; returns the normalised squared displacement since the build (0 unless ``exact``) and
-        speed (0, 0 for a skipped scene)."""
+    def translate(k, i, x_old, u, f, xr, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext):
+        """Component k of particle i's translation: v = u + f im hk, x = x_old + v dt wrapped (stored), the
+        shape's ``translated`` hook; returns the squared displacement from xr (0 unless ``exact``) and v^2."""
+        v = kick(u, f, im, hk)
+        vel_out[k, i] = v
+        translated(k, i, x_old, v, f, im, hp, ext)
+        x = drift_wrap(x_old, v, dt, box, inv_box)
+        pos_out[k, i] = x
+        d = min_image(x - xr, box, inv_box, HALF) if exact else ZERO
+        return d * d, v * v
+
+    @cuda.jit(device=True)
+    def kick_drift_one(i, first, exact, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
+                       spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext):
+        """v += F/m hk (hk = dt/2 on the first step of a call, else dt; F = (fx, fy, fz)), x += v dt wrapped,
+        then the shape's rotation step; returns the normalised squared displacement since the build (0 unless
+        ``exact``) and speed (0, 0 for a skipped scene). Reads pos and vel, writes pos_out and vel_out (the same
+        arrays, or the other half of the fused kernel's double buffer; a skipped scene's particles are copied
+        across). Every read is issued before the first write: one memory latency, not one per component (the
+        compiler may not move a read past a write that could alias it)."""
         s = scene_of(i, sc, spi)
+        x0 = pos[0, i]
+        x1 = pos[1, i]
+        x2 = pos[2, i]
+        u0 = vel[0, i]
+        u1 = vel[1, i]
+        u2 = vel[2, i]
+        r0 = r1 = r2 = ZERO
+        if exact:
+            r0 = x_ref[0, i]
+            r1 = x_ref[1, i]
+            r2 = x_ref[2, i]
         if spi[s, I_ACTIVE] == 0:
+            pos_out[0, i] = x0
+            pos_out[1, i] = x1
+            pos_out[2, i] = x2
+            vel_out[0, i] = u0
+            vel_out[1, i] = u1
+            vel_out[2, i] = u2
             return 0.0, 0.0
         dt = spd[s, D_DT]
         if PREDICTS:
@@ -117,20 +153,11 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]
         im = spd[s, D_IM0] if UNIFORM else inv_m[i]
-        v2 = ZERO
-        dsp = ZERO
-        for k in range(3):
-            x_old = pos[k, i]
-            f = force[k, i]
-            v = kick(vel[k, i], f, im, hk)
-            vel[k, i] = v
-            translated(k, i, x_old, v, f, im, hp, ext)
-            x = drift_wrap(x_old, v, dt, box, inv_box)
-            pos[k, i] = x
-            if exact:
-                d = min_image(x - x_ref[k, i], box, inv_box, HALF)
-                dsp += d * d
-            v2 += v * v
+        d0, w0 = translate(0, i, x0, u0, fx, r0, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext)
+        d1, w1 = translate(1, i, x1, u1, fy, r1, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext)
+        d2, w2 = translate(2, i, x2, u2, fz, r2, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext)
+        dsp = ZERO + d0 + d1 + d2
+        v2 = ZERO + w0 + w1 + w2
         ok = rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)
         if not (dsp < BIG) or not (v2 < BIG) or not ok:
             fail(status, spi, s, SS_BAD_ID, ids[i], step)
@@ -141,14 +168,15 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
     def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
                    spf, spi, status, step, ext):
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
-        in list order); per-slot history advanced in place; a scene whose overlap exceeds its limit stops."""
+        in list order); per-slot history advanced in place; a scene whose overlap exceeds its limit stops.
+        Returns the force (stored in f_new too; zero for a skipped scene)."""
         s = scene_of(i, sc, spi)
         # the particle's own reads are issued before the scene's active flag is known (harmless for a stopped
         # scene, whose slots are then left alone): one memory latency less per particle in a latency-bound kernel
         p = particle(i, s, pos, rad, inv_m, ids, spd)
         m = nn[i]
         if spi[s, I_ACTIVE] == 0:
-            return
+            return ZERO, ZERO, ZERO
         acc = (ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ZERO)
         for kk in range(m):
             acc = pair(i, kk, nbr[kk, i], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
@@ -165,6 +193,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
             b = SS0 + NSS * s
             cuda.atomic.max(status, b + SS_OVL, w64)
             fail(status, spi, s, SS_OVL_ID, ids[i], step)
+        return fx, fy, fz
 
     # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
 
@@ -175,8 +204,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         md = 0.0
         mv = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            d2, v2 = kick_drift_one(i, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref,
-                                    ids, sc, spd, spf, spi, status, step, ext)
+            d2, v2 = kick_drift_one(i, first, exact, pos, pos, vel, vel, spin, quat, force[0, i], force[1, i],
+                                    force[2, i], torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status,
+                                    step, ext)
             md = max(md, d2)
             mv = max(mv, v2)
         block_max2(sh, md, mv)
@@ -188,12 +218,47 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
     def forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
                spi, status, step, ext):
         i0 = cuda.grid(1)
-        if i0 == 0:  # reset the per-step maxima for the next kick_drift (stream-ordered after its copy)
+        if i0 == 0:  # reset the per-step maxima, both parities, for the next kick_drift (stream-ordered after its copy)
             status[S_D2] = 0.0
             status[S_V2] = 0.0
+            status[S_D2B] = 0.0
+            status[S_V2B] = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
             forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
                        spf, spi, status, step, ext)
+
+    @(cuda.jit(launch_bounds=(TPB, FORCE_BLOCKS)) if FORCE_BLOCKS else cuda.jit)
+    def forces_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new, torque,
+                          spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext):
+        """The forces of step ``step`` and the kick-drift of step + 1, one pass over the particles (a shape with
+        ``FUSABLE``: its pair evaluator reads no neighbour state the kick-drift rewrites but positions and
+        velocities). The pair evaluators read the neighbours' positions and velocities of step ``step`` from
+        pos, vel while this pass writes step + 1's into pos_out, vel_out: no particle's new state is seen by
+        another's forces of the same step, and the trajectory is that of the two kernels forces then
+        kick_drift. The maxima go to the status slots of parity ``par`` (S_D2/S_V2 or S_D2B/S_V2B) and the
+        other parity's are cleared for the next launch (the host copied them out after the previous launch)."""
+        sh = cuda.shared.array(SH2, ct.float64)
+        i0 = cuda.grid(1)
+        if i0 == 0:
+            if par == 0:
+                status[S_D2B] = 0.0
+                status[S_V2B] = 0.0
+            else:
+                status[S_D2] = 0.0
+                status[S_V2] = 0.0
+        md = 0.0
+        mv = 0.0
+        for i in range(i0, n, cuda.gridsize(1)):
+            fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids,
+                                    sc, spd, spf, spi, status, step, ext)
+            d2, v2 = kick_drift_one(i, 0, exact, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
+                                    spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+            md = max(md, d2)
+            mv = max(mv, v2)
+        block_max2(sh, md, mv)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
+            cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
 
     @cuda.jit
     def half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi):
@@ -257,8 +322,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
                     status[S_D2B if even else S_D2] = 0.0  # the other parity's slot, free until next step
                 md = 0.0
                 for i in range(i0, n, stride):
-                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, 1, pos, vel, spin, quat, fa, torque,
-                                            inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext)
+                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, 1, pos, pos, vel, vel, spin, quat,
+                                            fa[0, i], fa[1, i], fa[2, i], torque, inv_m, spin_inv, x_ref, ids, sc,
+                                            spd, spf, spi, status, step, ext)
                     md = max(md, d2)
                 block_max2(sh, md, 0.0)
                 if cuda.threadIdx.x == 0:
@@ -299,6 +365,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         block_accumulate(sh, vals, acc, s)
 
     k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
+    if P.FUSABLE:
+        k["forces_kick_drift"] = forces_kick_drift
     if settle_one is not None:
         k["settle"] = settle
     return k

@@ -16,7 +16,7 @@ from engine.numba_internals import device_memset
 
 class ObserveSums:
     """The observe part of a CUDA ensemble. The ensemble provides ``stream``, ``n_scenes``, ``sizes``, ``tpb``,
-    ``max_blocks``, ``active``, ``k`` (kernels), ``_NOBS``, :meth:`_observe_args`, :meth:`_observables` and
+    ``max_blocks``, ``active``, ``k`` (kernels), ``_lc`` (the launch cache), ``_NOBS``, :meth:`_observe_args`, :meth:`_observables` and
     :meth:`_wait_stream`."""
 
     def _init_observe(self) -> None:
@@ -36,7 +36,7 @@ class ObserveSums:
             device_memset(sums.acc, 0, s)   # all-zero bits: 0.0
         per_scene = (int(self.sizes.max()) + self.tpb - 1) // self.tpb
         bx = max(1, min(per_scene, max(1, self.max_blocks // nk)))
-        self.k["observe"][(bx, nk), self.tpb, s](*self._observe_args(), sums.acc)
+        self._lc.launch("observe", self.k["observe"], ((bx, nk), self.tpb, s), self._observe_args() + (sums.acc,))
         sums.acc.copy_to_host(sums.host, stream=s)
         self._wait_stream()
         return sums.host.copy()

@@ -21,6 +21,9 @@ from engine.loops.status import BAD_VALUE, OVERLAP, instability_error as _instab
 #: False: every kick_drift measures the displacements since the list build against x_ref (bench/e2e.py --off
 #: displacement_bound); True: only where the bound max|v| dt summed over the steps nears L_v/2
 DISPLACEMENT_BOUND = True
+#: True: the per-phase loop runs a step's forces and the next kick-drift in one launch where the shape's kernels
+#: allow it (cuda_loop ``forces_kick_drift``); False: two launches a step (bench/e2e.py --off fused, the tests)
+FUSED = True
 
 
 class TimeLoop:
@@ -34,6 +37,18 @@ class TimeLoop:
         self._lc.launch("forces", self.k["forces"], grid or self._grid(n), (
             n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
             self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
+
+    def _forces_kick_drift(self, step: int, par: int, exact: int, n: int | None = None, grid=None) -> None:
+        """The forces of ``step`` and the kick-drift of step + 1 in one launch (cuda_loop ``forces_kick_drift``);
+        the double buffers swap: the new state becomes the current one."""
+        spin, spin_inv, rad, ext = self._step_arrays()
+        pos_out, vel_out = self._fused_out()
+        self._lc.launch("forces_kick_drift", self.k["forces_kick_drift"], grid or self._grid(self.n), (
+            self.n if n is None else n, par, exact, self.pos, pos_out, self.vel, vel_out, spin, self.quat, rad,
+            self.inv_m1, self.f_cur, self.f_nxt, self.torque, spin_inv, self.x_ref, self.nbr, self.nn, self.hist,
+            self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
+        self._swap_fused()
+        self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
 
     def _coop_grid(self) -> tuple:
         """Blocks of the cooperative launch: all co-resident (a grid sync needs it)."""
@@ -58,16 +73,16 @@ class TimeLoop:
     def _half_kick(self, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, _ = self._step_arrays()
         n = self.n if n is None else n
-        self.k["half_kick"][grid or self._grid(n)](n, self.vel, spin, self.f_cur, self.torque, self.inv_m1,
-                                                   spin_inv, self.sc, self.spd, self.spi)
+        self._lc.launch("half_kick", self.k["half_kick"], grid or self._grid(n), (
+            n, self.vel, spin, self.f_cur, self.torque, self.inv_m1, spin_inv, self.sc, self.spd, self.spi))
 
     def _settle(self, n: int | None = None, grid=None) -> None:
         """The shape's end-of-call work (cuda_loop ``settle``), when it has some, at step ``steps_done``."""
         if "settle" in self.k:
             spin, _, _, ext = self._step_arrays()
             n = self.n if n is None else n
-            self.k["settle"][grid or self._grid(n)](n, spin, self.quat, self.sc, self.spd, self.spi, self.steps_done,
-                                                    ext)
+            self._lc.launch("settle", self.k["settle"], grid or self._grid(n), (
+                n, spin, self.quat, self.sc, self.spd, self.spi, self.steps_done, ext))
 
     def _run_steps(self, nmax: int, first: int, step0: int, grid=None, n: int | None = None, thr=None,
                    status=None) -> None:
@@ -87,6 +102,9 @@ class TimeLoop:
         self._half_kick(n=0, grid=g)
         self._settle(n=0, grid=g)
         self._observe_sums()
+        if "forces_kick_drift" in self.k:      # the fused step (n = 0: the buffers swap twice, state unchanged)
+            for par in (1, 0):
+                self._forces_kick_drift(0, par, 1, n=0, grid=g)
         if self.multistep:
             self._run_steps(1, 1, 0, grid=g, n=0, thr=1.0, status=cuda.to_device(self._fresh_status(), stream=s))
         s.synchronize()
@@ -117,6 +135,8 @@ class TimeLoop:
         self._settle()
         self._half_kick()
         self._collect(self._read_status_now(), failed)
+        if not self.multistep:
+            self._close_call()
         return failed
 
     def _advance_multistep(self, nsteps: int, failed: dict) -> None:
@@ -157,84 +177,148 @@ class TimeLoop:
                 return
 
     def _advance_per_phase(self, nsteps: int, failed: dict) -> None:
-        """One launch per phase. The rebuild before the forces of step t is decided from step t-1's status
-        (copied to pinned memory while step t's kick-drift runs): with B an upper bound of the largest
-        displacement at step t-1 and u = 2 max|v| dt of step t-1 (both in units of L_v/2), the list is rebuilt
-        when B + u > 1. B is exact where kick_drift measured the displacements against x_ref (the first step
-        of a call, CPU-built lists, and the steps where the bound nears the limit); elsewhere B grows by
-        u/2 = max|v| dt a step, which bounds every particle's displacement (``DISPLACEMENT_BOUND``; x_ref is
-        then not read: 24 bytes a particle-step in float64)."""
+        """One launch per phase, or, for a shape whose kernels fuse them (``forces_kick_drift``, with ``FUSED``),
+        one launch per step: the forces of step t and the kick-drift of step t + 1 in one pass, positions,
+        velocities (and spins the pair reads) double-buffered.
+
+        The rebuild before the forces of step t is decided from step t-1's status (copied to pinned memory while
+        the GPU runs on): with B an upper bound of the largest displacement at step t-1 and u = 2 max|v| dt of
+        step t-1 (both in units of L_v/2), the list is rebuilt when B + u > 1. B is exact where the kick-drift
+        measured the displacements against x_ref (the first step of a call, CPU-built lists, and the steps where
+        the bound nears the limit); elsewhere B grows by u/2 = max|v| dt a step, which bounds every particle's
+        displacement (``DISPLACEMENT_BOUND``; x_ref is then not read: 24 bytes a particle-step in float64)."""
         s = self.stream
+        fused = FUSED and "forces_kick_drift" in self.k
+        # the bound at the previous call's last kick-drift (_close_call), valid while nothing has moved, rebuilt or
+        # changed the scenes' constants since: the first step's rebuild is then decided without waiting for the GPU
+        carry, self._carry = self._carry, None
+        if carry is not None and (self.lists is not None or carry[:2] != (self.steps_done, self.builds)):
+            carry = None
         rebuilt_prev = False
         prev = None  # slot of the previous step's status copy
         bound = 0.0     # the largest displacement at the step of the status last read, or an upper bound of it
         u_last = 1.0    # 2 max|v| dt of that step
-        exact_of = [1, 1]  # whether the kick_drift of the step whose status sits in slot 0 / 1 measured exactly
+        exact_of = [1, 1]  # whether the kick-drift whose status sits in slot 0 / 1 measured exactly
+        prof = self.profile is not None
+        # the kick-drift of step 0 of the call; later ones run here too (one-phase launches) or in the fused
+        # launch of the previous step's forces. Its status goes to pinned slot st % 2, read from the device slots
+        # of parity st % 2 (the fused kernel alternates them; the one-phase kernels use parity 0)
+        self._kick_drift(1, self.steps_done)
+        self._status_copy(0)
         for st in range(nsteps):
             step = self.steps_done
-            prof = self.profile is not None
             if prof:
                 e0 = self._ev(); e0.record(s)
-            # measure exactly where the bound (known up to step t-2) could decide the next rebuild: bound + u
-            # after two more steps of at most u/2, plus the margin u of the rule, with half a step to spare;
-            # and always while a pipelined CPU build waits for its L_v/4 signal
+            # the bound decides only where the lists are not waiting for a pipelined CPU build's L_v/4 signal
             bounded = DISPLACEMENT_BOUND and (self.lists is None or self.lists.exit_threshold() >= 1.0)
-            exact = 1 if (st == 0 or not bounded or bound + 2.5 * u_last > 1.0) else 0
-            self._kick_drift(1 if st == 0 else 0, step, exact=exact)
+            if st > 0 and not fused:
+                exact = 1 if (not bounded or bound + 2.5 * u_last > 1.0) else 0
+                self._kick_drift(0, step, exact=exact)
+                exact_of[st % 2] = exact
+                self._status_copy(st % 2)
             if prof:
                 e1 = self._ev(); e1.record(s)
             slot = st % 2
-            exact_of[slot] = exact
-            self.status.copy_to_host(self.status_h[slot], stream=s)
-            self.events[slot].record(s)
+            par = slot if fused else 0
             # decide the rebuild from the previous step's status (already on the host, no GPU stall);
             # displacements and speeds are normalised by each scene's L_v/2
-            if prev is None:
-                # first step of the call: this step's displacement is known exactly
+            if prev is None and carry is not None:
+                # first step of the call: the bound and speed at the previous call's last step, one step back
+                h = None
+                bound, u_last = carry[2], carry[3]
+                d2 = bound * bound
+                rebuild = bound + u_last > 1.0
+            elif prev is None:
+                # first step of the call: this step's displacement is known exactly (the GPU catches up first)
                 self.events[slot].synchronize()
                 h = self.status_h[slot]
-                bound = math.sqrt(h[K.S_D2])
+                d2 = h[K.S_D2]
+                bound = math.sqrt(d2)
                 rebuild = bound > 1.0
             else:
                 self.events[prev].synchronize()
                 h = self.status_h[prev]
-                u_last = math.sqrt(h[K.S_V2])
+                d2 = h[K.S_D2B if (fused and prev == 1) else K.S_D2]
+                u_last = math.sqrt(h[K.S_V2B if (fused and prev == 1) else K.S_V2])
                 if rebuilt_prev:
                     bound = 0.0
                 elif exact_of[prev]:
-                    bound = math.sqrt(h[K.S_D2])
+                    bound = math.sqrt(d2)
                     if bound > 1.0:
                         self.late_rebuilds += 1
                 else:
                     bound += 0.5 * u_last
                 rebuild = bound + u_last > 1.0
-            self._collect(h, failed)
+            if h is not None:
+                self._collect(h, failed)
             if prof:
                 e2 = self._ev(); e2.record(s)
             if rebuild:
                 self._rebuild()
-            elif self.lists is not None and self.lists.exit_threshold() < 1.0 and math.sqrt(h[K.S_D2]) > 0.5:
+            elif self.lists is not None and self.lists.exit_threshold() < 1.0 and math.sqrt(d2) > 0.5:
                 self.lists.signal()  # L_v/4 passed (paper 004 B3): the pipelined CPU build starts
             rebuilt_prev = rebuild
             if prof:
                 e3 = self._ev(); e3.record(s)
-            self._forces(step)
-            self.launches += 2
-            self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
+            if fused and st + 1 < nsteps:
+                # measure exactly where the bound (known up to step t-1) could decide a rebuild: bound + u after
+                # two more steps of at most u/2, plus the margin u of the rule, with half a step to spare
+                exact = 1 if (not bounded or bound + 2.5 * u_last > 1.0) else 0
+                self._forces_kick_drift(step, 1 - par, exact)
+                exact_of[1 - slot] = exact
+                self._status_copy(1 - slot)
+                self.launches += 1
+            else:
+                self._forces(step)
+                self.launches += 2
+                self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
             if prof:
                 e4 = self._ev(); e4.record(s)
                 self._prof_events.append((e0, e1, e2, e3, e4))
             prev = slot
             self.steps_done += 1
-        h = self._read_status_now()
-        if not rebuilt_prev and math.sqrt(h[K.S_D2]) > 1.0:
-            self.late_rebuilds += 1
+        last = (nsteps - 1) % 2
+        self._last_kick = (last, fused and last == 1, exact_of[last], rebuilt_prev, bound)
         if self.profile is not None:
+            names = ("kick_drift", "status_copy", "rebuild", "forces_kick_drift" if fused else "forces")
             for e0, e1, e2, e3, e4 in self._prof_events:
-                for name, a, b in (("kick_drift", e0, e1), ("status_copy", e1, e2), ("rebuild", e2, e3),
-                                   ("forces", e3, e4)):
+                for name, a, b in zip(names, (e0, e1, e2, e3), (e1, e2, e3, e4)):
                     self.profile[name] = self.profile.get(name, 0.0) + cuda.event_elapsed_time(a, b)
             self._prof_events = []
+
+    def _close_call(self) -> None:
+        """After a per-phase call, once the stream has finished: the last kick-drift's status (its pinned slot)
+        gives the displacement bound B and speed u the next call starts from (``_carry``), and counts a late
+        rebuild when the last step's forces ran on a list its displacements had outgrown."""
+        slot, odd, exact, rebuilt, bound = self._last_kick
+        h = self.status_h[slot]
+        u = math.sqrt(h[K.S_V2B if odd else K.S_V2])
+        d = math.sqrt(h[K.S_D2B if odd else K.S_D2])
+        if rebuilt:
+            b = 0.0     # rebuilt before the last forces: x_ref holds the last kick-drift's positions
+        elif exact:
+            b = d
+            if d > 1.0:
+                self.late_rebuilds += 1
+        else:
+            b = bound + 0.5 * u
+        self._carry = (self.steps_done, self.builds, b, u)
+
+    def _status_copy(self, slot: int) -> None:
+        """The status words to pinned slot ``slot`` after what the stream holds, and the slot's event (through
+        engine.numba_internals.async_copy_and_record on a GPU: numba-cuda's copy and record cost about as much host
+        time as a step of 2M spheres takes on an H100)."""
+        if self._status_copiers is None:
+            if SIM:
+                self._status_copiers = [
+                    (lambda k=k: (self.status.copy_to_host(self.status_h[k], stream=self.stream),
+                                  self.events[k].record(self.stream))) for k in range(2)]
+            else:
+                from engine.numba_internals import async_copy_and_record
+
+                self._status_copiers = [async_copy_and_record(self.status, self.status_h[k], self.stream,
+                                                              self.events[k]) for k in range(2)]
+        self._status_copiers[slot]()
 
     def _ev(self):
         return cuda.event(timing=True) if not SIM else cuda.event()

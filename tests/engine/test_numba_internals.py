@@ -196,6 +196,23 @@ def test_a_kernel_gets_the_stable_key_cache_and_its_key_keeps_numba_cudas_layout
 
 
 @cuda_only
+def test_the_driver_bindings_of_the_status_copy_are_there():
+    """engine.numba_internals.async_copy_and_record calls cuda-python's driver with the handles of numba-cuda's
+    stream and event and a device array's pointer (the copy itself is checked on a GPU, tests/gpu/test_cuda_gpu.py)."""
+    from cuda.bindings import driver as cu
+    from numba.cuda.cudadrv import devicearray, driver
+
+    for name in ("cuMemcpyDtoHAsync", "cuEventRecord"):
+        _check(hasattr(cu, name), f"cuda.bindings.driver.{name}", "missing")
+    _check(hasattr(cu.CUresult, "CUDA_SUCCESS"), "cuda.bindings.driver.CUresult.CUDA_SUCCESS", "missing")
+    for cls in (driver.Stream, driver.Event):
+        _check("self.handle = handle" in inspect.getsource(cls.__init__), f"numba.cuda.cudadrv.driver.{cls.__name__}",
+               "no longer keeps its driver handle in .handle")
+    _check(hasattr(devicearray.DeviceNDArrayBase, "device_ctypes_pointer"),
+           "numba.cuda.cudadrv.devicearray.DeviceNDArrayBase.device_ctypes_pointer", "missing")
+
+
+@cuda_only
 def test_the_launch_internals_of_prepare_launch_have_the_expected_shape():
     """engine.numba_internals.prepare_launch replays numba-cuda's own kernel launch: the compiled kernel's argument
     flattening and launch, the dispatcher's configuration and cuda.core's launch entry (the cached path's results

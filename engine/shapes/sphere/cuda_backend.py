@@ -53,6 +53,7 @@ class CudaEnsemble(CudaEnsembleBase):
             self.quat = up(cat([s.orientation for s in systems]), 4)
         self.f_cur = self._zeros((3, n), dt_)
         self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
+        self._alt = None     # the fused step's other halves of pos and vel (_fused_out)
         self.torque = self._zeros((3, n), dt_)
         # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
         self.q_last = self._zeros(n, np.int64)
@@ -141,6 +142,18 @@ class CudaEnsemble(CudaEnsembleBase):
         self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
         # scenes that already fail at t = 0 (overlapping start): reported by the first advance
         self._pending = self._collect(self._read_status_now())
+
+    def _fused_out(self) -> tuple:
+        """The other halves of the fused step's double buffer (made at the first fused launch): positions and
+        velocities (only smooth spheres fuse: their spins never change in the loop)."""
+        if self._alt is None:
+            st = self.stream
+            self._alt = (cuda.device_array(self.pos.shape, self.pos.dtype, stream=st),
+                         cuda.device_array(self.vel.shape, self.vel.dtype, stream=st))
+        return self._alt
+
+    def _swap_fused(self) -> None:
+        (self.pos, self.vel), self._alt = self._alt, (self.pos, self.vel)
 
     def _step_arrays(self) -> tuple:
         """(spin, spin_inv, list radius, ext) of the time loop's kernels (engine/loops/cuda_loop.py):

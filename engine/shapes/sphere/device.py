@@ -12,6 +12,9 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   in that order). Returns a SimpleNamespace with:
   - ``PREDICTS``: the translation hook ``translated`` needs the predicted-velocity half step hp = dt/2;
   - ``TORQUE``: the force phase writes the torque (False: no torque array is ever written);
+  - ``FUSABLE``: the pair evaluator reads no state of another particle that the kick-drift rewrites but its
+    position and velocity: the per-phase loop then runs a step's forces and the next kick-drift in one pass
+    (cuda_loop ``forces_kick_drift``, positions and velocities double-buffered);
   - ``NOBS``, ``OBS_MAX``: the observe sums per scene and the slot that is a maximum;
   - ``translated(k, i, x_old, v, f, im, hp, ext)``: after the shared kick of component k of particle i
     (v = the new velocity, f = the force, x_old = the position before the drift);
@@ -265,6 +268,10 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
                                                         f64(hist[2, kk, i]), spf[s, F_KN], spf[s, F_KT], 0.5)
                 vals[O_MAX] = max(vals[O_MAX], delta / f64(min(ri, rj)))
 
-    return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, NOBS=NOBS, OBS_MAX=O_MAX, translated=translated,
-                           rotate=rotate, settle_one=settle_one if ORIENT else None, spin_kick=spin_kick,
+    # FUSABLE for smooth spheres: a rough pair reads the neighbours' spins, which the kick-drift rewrites (with
+    # the spins double-buffered too, the fused rough kernel was no faster than the two on an H100: it needs more
+    # registers than one block of 256 threads per SM leaves)
+    return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, FUSABLE=not ROUGH, NOBS=NOBS,
+                           OBS_MAX=O_MAX, translated=translated, rotate=rotate,
+                           settle_one=settle_one if ORIENT else None, spin_kick=spin_kick,
                            particle=particle, pair=pair, observe_one=observe_one, kernels={})
