@@ -57,11 +57,13 @@ def apply(variant: str, default_blocks) -> None:
 
 
 #: cases beyond bench/vs_jaxmd.py's: name -> (scenes, N per scene, precision, steps, contact); the JAX-MD scene
-#: (phi = 0.058, k_n = 1e8, rho = 2000, v_rms = 2) at its sphere size (box 2 m x (N / 2^21)^(1/3)), and the rough
-#: spheroids of the spheroid papers (xi = 2, phi = 0.05, e_n = e_t = 0.8)
+#: (phi = 0.058, k_n = 1e8, rho = 2000, v_rms = 2) at its sphere size (box 2 m x (N / 2^21)^(1/3)), elastic or
+#: rough (e_n = e_t = 0.8), and the rough spheroids of the spheroid papers (xi = 2, phi = 0.05, e_n = e_t = 0.8)
 EXTRA = {
     "elastic-1M-f64": (1, 1 << 20, "float64", 20_000, "elastic"),
+    "rough-1M-f64": (1, 1 << 20, "float64", 20_000, "rough"),
     "packed-256x4096-f64": (256, 4096, "float64", 20_000, "elastic"),
+    "packed-rough-256x4096-f64": (256, 4096, "float64", 20_000, "rough"),
     "spheroids-rough-1M-f64": (1, 1 << 20, "float64", 2000, "spheroid"),
 }
 
@@ -77,6 +79,8 @@ def extra_specs(case: str, steps: int, backend: str) -> list:
                 box_length=SCENE["box_length"] * (n / 2**21) ** (1 / 3))
     if contact == "elastic":
         base.update(e_n=1.0, e_t=-1.0)
+    elif contact == "rough":
+        base.update(e_n=0.8, e_t=0.8)
     else:
         base.update(shape="ellipsoid", elongation=2.0, volume_fraction=0.05, e_n=0.8, e_t=0.8)
     out = []
