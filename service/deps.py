@@ -1,4 +1,5 @@
-"""Typed FastAPI dependencies: the settings, the store, the bearer-token check, job lookup."""
+"""Typed FastAPI dependencies: the settings, the store, the bearer-token check, the refusal of undeclared query
+parameters, job lookup."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import secrets
 from typing import Annotated, Optional
 
 from fastapi import Depends, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from jobs.settings import Settings
@@ -52,6 +54,28 @@ def require_token(request: Request, settings: Annotated[Settings, Depends(get_se
     if token_matches(settings, request.cookies.get(TOKEN_COOKIE)):
         return
     raise HTTPException(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
+
+
+def _declared_query(dependant) -> set:
+    """The query parameter names an operation declares: its own and its dependencies' (FastAPI's Dependant)."""
+    names = {p.alias for p in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _declared_query(sub)
+    return names
+
+
+def known_query_only(request: Request) -> None:
+    """Refuse query parameters the operation does not declare, with a 422 naming each (as unknown body fields
+    are refused): a misspelt filter such as ``GET /jobs?stat=done`` must not be silently ignored."""
+    route = request.scope.get("route")
+    if route is None or not request.query_params:
+        return
+    declared = _declared_query(route.dependant)
+    unknown = [k for k in dict.fromkeys(request.query_params.keys()) if k not in declared]
+    if unknown:
+        raise RequestValidationError([{"loc": ("query", k), "type": "extra_forbidden",
+                                       "msg": f"unknown query parameter {k!r}; this operation takes "
+                                              f"{', '.join(sorted(declared)) or 'none'}"} for k in unknown])
 
 
 def get_job(job_id: str, store: Annotated[JobStore, Depends(get_store)]) -> Job:

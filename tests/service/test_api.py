@@ -273,3 +273,16 @@ def test_batch_with_cuda_refused_whole_naming_each_combination(client):
     assert client.get("/jobs").json()["total"] == 0
     client.store.register_worker("gpu-0", "host-b", 12, ["cuda"])
     assert client.post("/batches", json={"specs": [TINY, {**TINY, "backend": "cuda"}]}).status_code == 201
+
+
+def test_an_undeclared_query_parameter_is_422_naming_it(client):
+    """A misspelt filter is refused, not ignored (unknown body fields are refused the same way); declared ones
+    still work, and /healthz takes none."""
+    r = client.get("/jobs", params={"stat": "done"})
+    assert r.status_code == 422
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["query", "stat"] and err["type"] == "extra_forbidden"
+    assert "state" in err["msg"] and "'stat'" in err["msg"]
+    assert client.get("/jobs", params={"state": "done", "limit": 5}).status_code == 200
+    r = client.get("/healthz", params={"verbose": "1"})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "verbose"]
