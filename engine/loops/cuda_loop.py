@@ -136,12 +136,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
             r1 = x_ref[1, i]
             r2 = x_ref[2, i]
         if spi[s, I_ACTIVE] == 0:
-            pos_out[0, i] = x0
-            pos_out[1, i] = x1
-            pos_out[2, i] = x2
-            vel_out[0, i] = u0
-            vel_out[1, i] = u1
-            vel_out[2, i] = u2
+            for k in range(3):
+                pos_out[k, i] = pos[k, i]
+                vel_out[k, i] = vel[k, i]
             return 0.0, 0.0
         dt = spd[s, D_DT]
         if PREDICTS:
