@@ -36,6 +36,7 @@ a single scene; :func:`resolve_backend` says which backend a name resolves to wi
 
 from __future__ import annotations
 
+import time
 from contextlib import contextmanager
 from typing import Mapping, Sequence
 
@@ -75,6 +76,74 @@ def scene_threads(n_particles: int):
         numba.set_num_threads(before)
 
 
+@contextmanager
+def numba_threads(count: int):
+    """Numba's thread count (this calling thread's) set to ``count`` inside the block, restored on exit."""
+    before = numba.get_num_threads()
+    if count == before:
+        yield count
+        return
+    numba.set_num_threads(count)
+    try:
+        yield count
+    finally:
+        numba.set_num_threads(before)
+
+
+class ThreadChoice:
+    """The Numba thread count for the next advance of one CPU scene: one or all, whichever took less wall time
+    per step in its latest advance (:meth:`pick`, then :meth:`record` the advance's steps and seconds).
+
+    Why: every step of the CPU loop is a few ``parallel=True`` regions whose threads meet at each region's end
+    (engine/loops/cpu.py). On an idle machine all threads are faster from about :data:`ONE_THREAD_BELOW` particles
+    up: the default job's time loop (4096 spheres, 127 000 steps) took 2.7-3.5 s on two threads against 4.8 s on
+    one on the 2-core VM (2026-11-27). But when another process keeps a core busy, the OS deschedules one of the
+    two threads for whole time slices while the other waits at the meeting: the same loop took 8.4-12.9 s on two
+    threads with one other busy process, 48 s with two, against 4.1-5.3 s on one thread. Which count is faster
+    depends on the machine's load at the time, so the scene measures it: it starts on all threads (the choice
+    before this class), tries one thread on its second advance, then advances on the faster; the slower count is
+    tried again after a number of advances that grows with how much slower it was (16 (ratio - 1), at least 4, at
+    most 256), so that trials cost about 1/16 of the loop time and a change of load is noticed within a few
+    hundred advances at most. Scenes below :data:`ONE_THREAD_BELOW` particles always run on one thread. The numbers
+    written do not depend on the thread count (tests/engine/test_threads.py), only the time does.
+    """
+
+    def __init__(self, n_particles: int, threads: int | None = None):
+        most = numba.get_num_threads() if threads is None else int(threads)
+        self.counts = (most, 1) if n_particles >= ONE_THREAD_BELOW and most > 1 else (1,)
+        self.cost: dict = {}          # thread count -> wall seconds per step of its latest advance
+        self.best = self.counts[0]
+        self.wait = 0                 # advances on the best count before the other is tried again
+
+    def pick(self) -> int:
+        """The thread count for the next advance."""
+        for count in self.counts:
+            if count not in self.cost:          # each count measured once first
+                return count
+        if self.wait <= 0:
+            return self.counts[1] if self.best == self.counts[0] else self.counts[0]
+        return self.best
+
+    def record(self, count: int, steps: int, seconds: float) -> None:
+        """An advance of ``steps`` steps on ``count`` threads took ``seconds`` of wall time."""
+        if steps <= 0 or count not in self.counts or len(self.counts) == 1:
+            return
+        self.cost[count] = seconds / steps
+        if len(self.cost) < len(self.counts):
+            return
+        other = self.counts[1] if count == self.counts[0] else self.counts[0]
+        if count == self.best:
+            self.wait -= 1
+            if self.cost[count] > self.cost[other]:
+                self.wait = 0     # slower now than the other count was at its trial: try it next
+            return
+        # a trial of the other count (or the first measurement of both): choose again, schedule the next trial
+        self.best = min(self.counts, key=lambda c: self.cost[c])
+        fast, slow = sorted((self.cost[count], self.cost[other]))
+        ratio = slow / fast if fast > 0 else 1.0
+        self.wait = int(min(256, max(4, round(16 * (ratio - 1)))))
+
+
 def check_backend_name(name: str) -> None:
     """BackendUnavailable unless ``name`` is 'auto', 'cpu' or 'cuda'."""
     if name not in BACKEND_NAMES:
@@ -110,6 +179,7 @@ class SerialEnsemble(Ensemble):
             raise ValueError("an ensemble needs one ContactParams per scene and at least one scene")
         self._backends: list = []
         self._sizes = [int(system.n) for system in systems]   # particles per scene (their Numba thread count)
+        self._threads = [ThreadChoice(n) for n in self._sizes]   # each scene's thread count per advance
         for system, contact in zip(systems, contacts):
             with scene_threads(system.n):   # the build's list and first forces are parallel loops too
                 self._backends.append(make_backend(name, system, contact))
@@ -163,9 +233,12 @@ class SerialEnsemble(Ensemble):
             if n <= 0 or not self._active[k]:
                 continue
             backend = self._backends[k]
+            choice = self._threads[k]
             try:
-                with scene_threads(self._sizes[k]):
+                with numba_threads(choice.pick()) as count:
+                    t0 = time.perf_counter()
                     backend.advance(int(n))
+                    choice.record(count, int(n), time.perf_counter() - t0)
             except Exception as exc:  # one scene's failure: the others go on
                 failed[k] = exc
                 self.deactivate(k)
