@@ -206,20 +206,44 @@ def make_step(shape):
     """The one CPU kick-drift, specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
 
     ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-    chunk_a, chunk_b, s)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``,
+    chunk_a, chunk_b, s, nn)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``,
     then the shared translation v += F/m hk, predicted end-of-step velocity v + F/m dt/2 (the normal
-    dashpot's), x += v dt wrapped into the box, then the shape's ``rotate``, which returns the particle's
-    displacement measure (module docstring of engine/shapes/sphere/kernels.py: |v|^2 or the exact squared
-    displacement) and whether its state is finite. Per chunk: the largest measure into ``chunk_a``, the first
-    non-finite particle into ``chunk_b`` (-1: none).
+    dashpot's), x += v dt wrapped into the box, then the shape's ``rotate`` with the particle's torque, which
+    returns the particle's displacement measure (module docstring of engine/shapes/sphere/kernels.py: |v|^2 or the
+    exact squared displacement) and whether its state is finite. Per chunk: the largest measure into ``chunk_a``,
+    the first non-finite particle into ``chunk_b`` (-1: none).
+
+    A particle with an empty list (``nn[i] == 0``) has had zero force and torque since the last build
+    (:func:`index_active`): it is kicked with a zero of the working precision instead of its six stored zeros, the
+    same arithmetic on the same values, so the same bits. The zero is a compile-time constant, so the inlined
+    ``rotate`` drops what only a torque does (a sphere's pending orientation turn). In a dilute gas that is nearly
+    every particle, and the default job's step went from about 6.0 to 4.3 ns per particle on one thread.
     """
     if shape.NAME in _step_loops:
         return _step_loops[shape.NAME]
     pre_step = shape.pre_step
     rotate = shape.rotate
 
+    def one(i, fx, fy, fz, tq, pos, vel, spin, quat, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, hp, dt, box,
+            inv_box, half, s):
+        # the kick-drift of particle i under force (fx, fy, fz) and torque tq: (displacement measure, finite)
+        pre_step(i, pos, quat, ext)
+        im = inv_m[i]
+        v2 = 0.0
+        for k in range(3):
+            f = fx if k == 0 else (fy if k == 1 else fz)
+            v = kick(vel[i, k], f, im, hk)
+            vel[i, k] = v
+            vel_p[i, k] = kick(v, f, im, hp)
+            pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+            v2 += v * v
+        return rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half,
+                      s)
+
+    one = numba.njit(inline="always")(one)
+
     def step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-             chunk_a, chunk_b, s):
+             chunk_a, chunk_b, s, nn):
         n = pos.shape[0]
         nch = chunk_a.shape[0]
         hp = dt * half
@@ -228,18 +252,17 @@ def make_step(shape):
             i1 = (c + 1) * n // nch
             m = 0.0
             bad = -1
+            zero = force.dtype.type(0)  # 0 of the force's precision, a compile-time constant inside the loop
             for i in range(i0, i1):
-                pre_step(i, pos, quat, ext)
-                im = inv_m[i]
-                v2 = 0.0
-                for k in range(3):
-                    v = kick(vel[i, k], force[i, k], im, hk)
-                    vel[i, k] = v
-                    vel_p[i, k] = kick(v, force[i, k], im, hp)
-                    pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
-                    v2 += v * v
-                measure, ok = rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box,
-                                     inv_box, half, s)
+                if nn[i] == 0:
+                    measure, ok = one(i, zero, zero, zero, (zero, zero, zero), pos, vel, spin, quat, torque, inv_m,
+                                      spin_inv, x_ref, vel_p, ext, hk, hp, dt, box, inv_box, half, s)
+                else:
+                    tq = (zero, zero, zero)
+                    if torque is not None:  # pruned when there are no torques (then tq is not read)
+                        tq = (torque[i, 0], torque[i, 1], torque[i, 2])
+                    measure, ok = one(i, force[i, 0], force[i, 1], force[i, 2], tq, pos, vel, spin, quat, torque,
+                                      inv_m, spin_inv, x_ref, vel_p, ext, hk, hp, dt, box, inv_box, half, s)
                 if not ok:
                     if bad < 0:
                         bad = i
@@ -356,7 +379,7 @@ def make_run_steps(shape):
         for s in range(nsteps):
             hk = dt * half if s == 0 else dt
             step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box,
-                 half, chunk_a, chunk_b, s)
+                 half, chunk_a, chunk_b, s, nn)
             for c in range(chunk_b.shape[0]):
                 if chunk_b[c] >= 0:
                     return BAD_VALUE, s, chunk_b[c], 0.0, builds
