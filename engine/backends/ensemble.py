@@ -92,46 +92,55 @@ def numba_threads(count: int):
 
 class ThreadChoice:
     """The Numba thread count for the next advance of one CPU scene: one or all, whichever took less wall time
-    per step in its latest advance (:meth:`pick`, then :meth:`record` the advance's steps and seconds).
+    per step in its latest advance (:meth:`pick`, then :meth:`record` the advance's steps, wall and CPU seconds).
 
     Why: every step of the CPU loop is a few ``parallel=True`` regions whose threads meet at each region's end
     (engine/loops/cpu.py). On an idle machine all threads are faster from about :data:`ONE_THREAD_BELOW` particles
-    up: the default job's time loop (4096 spheres, 127 000 steps) took 2.7-3.5 s on two threads against 4.8 s on
-    one on the 2-core VM (2026-11-27). But when another process keeps a core busy, the OS deschedules one of the
-    two threads for whole time slices while the other waits at the meeting: the same loop took 8.4-12.9 s on two
-    threads with one other busy process, 48 s with two, against 4.1-5.3 s on one thread. Which count is faster
-    depends on the machine's load at the time, so the scene measures it: it starts on all threads (the choice
-    before this class), tries one thread on its second advance, then advances on the faster; the slower count is
-    tried again after a number of advances that grows with how much slower it was (16 (ratio - 1), at least 4, at
-    most 256), so that trials cost about 1/16 of the loop time and a change of load is noticed within a few
-    hundred advances at most. Scenes below :data:`ONE_THREAD_BELOW` particles always run on one thread. The numbers
-    written do not depend on the thread count (tests/engine/test_threads.py), only the time does.
+    up: the default job's time loop (4096 spheres, 127 000 steps) took 1.8 s on two threads against 3.0 s on one
+    on the 2-core VM (2026-11-27). But when another process keeps a core busy, the OS deschedules one of the two
+    threads for whole time slices while the other waits at the meeting: two threads took 9.6 and 14.7 s beside
+    another session's tests (one thread: 3.0-3.1 s), and the job before this class took 9.5-10.8 s beside one busy
+    loop (3.4-3.7 s with it) and 56-110 s beside two (8-12 s). Which count is faster depends on the machine's load
+    at the time, so the scene measures it. It starts on one thread; all threads are
+    tried only after an advance on one thread that had its core to itself (the thread's CPU time at least 90 % of
+    the wall time: on a machine with every core busy, all threads lose by far, and even one trial costs more than
+    the choice saves); then it advances on the faster count, and the slower one is tried again after a number of
+    advances that grows with how much slower it was (16 (ratio - 1), at least 4, at most 256: trials cost about
+    1/16 of the time), or on the next advance when the faster one has become slower than the other was. Scenes
+    below :data:`ONE_THREAD_BELOW` particles always run on one thread. The numbers written do not depend on the
+    thread count (tests/engine/test_threads.py), only the time does.
     """
 
     def __init__(self, n_particles: int, threads: int | None = None):
         most = numba.get_num_threads() if threads is None else int(threads)
-        self.counts = (most, 1) if n_particles >= ONE_THREAD_BELOW and most > 1 else (1,)
+        self.counts = (1, most) if n_particles >= ONE_THREAD_BELOW and most > 1 else (1,)
         self.cost: dict = {}          # thread count -> wall seconds per step of its latest advance
-        self.best = self.counts[0]
+        self.best = 1
         self.wait = 0                 # advances on the best count before the other is tried again
+        self.core_free = False        # the latest advance on one thread had its core to itself
 
     def pick(self) -> int:
         """The thread count for the next advance."""
-        for count in self.counts:
-            if count not in self.cost:          # each count measured once first
-                return count
+        if len(self.counts) == 1 or 1 not in self.cost:
+            return 1
+        most = self.counts[1]
+        if most not in self.cost or (self.wait <= 0 and self.best == 1):
+            return most if self.core_free else 1      # all threads only where a core was free
         if self.wait <= 0:
-            return self.counts[1] if self.best == self.counts[0] else self.counts[0]
+            return 1
         return self.best
 
-    def record(self, count: int, steps: int, seconds: float) -> None:
-        """An advance of ``steps`` steps on ``count`` threads took ``seconds`` of wall time."""
+    def record(self, count: int, steps: int, seconds: float, cpu_seconds: float | None = None) -> None:
+        """An advance of ``steps`` steps on ``count`` threads took ``seconds`` of wall time and ``cpu_seconds`` of the
+        calling thread's CPU time (None: not measured, taken as a free core)."""
+        if count == 1:
+            self.core_free = cpu_seconds is None or cpu_seconds >= 0.9 * seconds
         if steps <= 0 or count not in self.counts or len(self.counts) == 1:
             return
         self.cost[count] = seconds / steps
         if len(self.cost) < len(self.counts):
             return
-        other = self.counts[1] if count == self.counts[0] else self.counts[0]
+        other = self.counts[1] if count == 1 else 1
         if count == self.best:
             self.wait -= 1
             if self.cost[count] > self.cost[other]:
@@ -236,9 +245,9 @@ class SerialEnsemble(Ensemble):
             choice = self._threads[k]
             try:
                 with numba_threads(choice.pick()) as count:
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.thread_time()
                     backend.advance(int(n))
-                    choice.record(count, int(n), time.perf_counter() - t0)
+                    choice.record(count, int(n), time.perf_counter() - t0, time.thread_time() - c0)
             except Exception as exc:  # one scene's failure: the others go on
                 failed[k] = exc
                 self.deactivate(k)

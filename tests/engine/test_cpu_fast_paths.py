@@ -212,24 +212,24 @@ def test_active_set_and_zero_forces_hold_after_every_advance():
 
 
 def test_thread_choice_takes_the_faster_count():
-    def run(cost, calls=200, n=4096):
+    def run(cost, calls=200, n=4096, free=True):
         tc = ThreadChoice(n, threads=2)
         used = []
         for _ in range(calls):
             k = tc.pick()
             used.append(k)
-            tc.record(k, 100, 100 * cost[k])
+            tc.record(k, 100, 100 * cost[k], 100 * cost[k] * (1.0 if free else 0.6))
         return used
 
     idle = run({2: 0.7, 1: 1.0})
-    assert idle[0] == 2 and idle.count(2) > 0.8 * len(idle) and idle.count(1) < 40    # trials of one thread
+    assert idle[:2] == [1, 2] and idle.count(2) > 0.8 * len(idle) and idle.count(1) < 40    # trials of one thread
     busy = run({2: 8.0, 1: 1.0})
-    assert busy[:2] == [2, 1] and busy.count(2) <= 3                                    # trial cost bounded
-    small = run({2: 0.5, 1: 1.0}, n=ONE_THREAD_BELOW - 1)
-    assert set(small) == {1}
+    assert busy[:2] == [1, 2] and busy.count(2) <= 3                                        # trial cost bounded
+    assert set(run({2: 8.0, 1: 1.0}, free=False)) == {1}     # every core busy: all threads not even tried
+    assert set(run({2: 0.5, 1: 1.0}, n=ONE_THREAD_BELOW - 1)) == {1}
     # a load that comes while on all threads: one thread is tried on the next advance
     tc = ThreadChoice(4096, threads=2)
-    for k, c in ((2, 0.7), (1, 1.0), (2, 0.7), (2, 5.0)):
+    for k, c in ((1, 1.0), (2, 0.7), (2, 0.7), (2, 5.0)):
         assert tc.pick() == k
-        tc.record(k, 10, 10 * c)
+        tc.record(k, 10, 10 * c, 10 * c)
     assert tc.pick() == 1
