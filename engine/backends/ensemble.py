@@ -36,6 +36,7 @@ a single scene; :func:`resolve_backend` says which backend a name resolves to wi
 
 from __future__ import annotations
 
+import time
 from contextlib import contextmanager
 from typing import Mapping, Sequence
 
@@ -75,6 +76,83 @@ def scene_threads(n_particles: int):
         numba.set_num_threads(before)
 
 
+@contextmanager
+def numba_threads(count: int):
+    """Numba's thread count (this calling thread's) set to ``count`` inside the block, restored on exit."""
+    before = numba.get_num_threads()
+    if count == before:
+        yield count
+        return
+    numba.set_num_threads(count)
+    try:
+        yield count
+    finally:
+        numba.set_num_threads(before)
+
+
+class ThreadChoice:
+    """The Numba thread count for the next advance of one CPU scene: one or all, whichever took less wall time
+    per step in its latest advance (:meth:`pick`, then :meth:`record` the advance's steps, wall and CPU seconds).
+
+    Why: every step of the CPU loop is a few ``parallel=True`` regions whose threads meet at each region's end
+    (engine/loops/cpu.py). On an idle machine all threads are faster from about :data:`ONE_THREAD_BELOW` particles
+    up: the default job's time loop (4096 spheres, 127 000 steps) took 1.8 s on two threads against 3.0 s on one
+    on the 2-core VM (2026-11-27). But when another process keeps a core busy, the OS deschedules one of the two
+    threads for whole time slices while the other waits at the meeting: two threads took 9.6 and 14.7 s beside
+    another session's tests (one thread: 3.0-3.1 s), and the job before this class took 9.5-10.8 s beside one busy
+    loop (3.4-3.7 s with it) and 56-110 s beside two (8-12 s). Which count is faster depends on the machine's load
+    at the time, so the scene measures it. It starts on one thread; all threads are
+    tried only after an advance on one thread that had its core to itself (the thread's CPU time at least 90 % of
+    the wall time: on a machine with every core busy, all threads lose by far, and even one trial costs more than
+    the choice saves); then it advances on the faster count, and the slower one is tried again after a number of
+    advances that grows with how much slower it was (16 (ratio - 1), at least 4, at most 256: trials cost about
+    1/16 of the time), or on the next advance when the faster one has become slower than the other was. Scenes
+    below :data:`ONE_THREAD_BELOW` particles always run on one thread. The numbers written do not depend on the
+    thread count (tests/engine/test_threads.py), only the time does.
+    """
+
+    def __init__(self, n_particles: int, threads: int | None = None):
+        most = numba.get_num_threads() if threads is None else int(threads)
+        self.counts = (1, most) if n_particles >= ONE_THREAD_BELOW and most > 1 else (1,)
+        self.cost: dict = {}          # thread count -> wall seconds per step of its latest advance
+        self.best = 1
+        self.wait = 0                 # advances on the best count before the other is tried again
+        self.core_free = False        # the latest advance on one thread had its core to itself
+
+    def pick(self) -> int:
+        """The thread count for the next advance."""
+        if len(self.counts) == 1 or 1 not in self.cost:
+            return 1
+        most = self.counts[1]
+        if most not in self.cost or (self.wait <= 0 and self.best == 1):
+            return most if self.core_free else 1      # all threads only where a core was free
+        if self.wait <= 0:
+            return 1
+        return self.best
+
+    def record(self, count: int, steps: int, seconds: float, cpu_seconds: float | None = None) -> None:
+        """An advance of ``steps`` steps on ``count`` threads took ``seconds`` of wall time and ``cpu_seconds`` of the
+        calling thread's CPU time (None: not measured, taken as a free core)."""
+        if count == 1:
+            self.core_free = cpu_seconds is None or cpu_seconds >= 0.9 * seconds
+        if steps <= 0 or count not in self.counts or len(self.counts) == 1:
+            return
+        self.cost[count] = seconds / steps
+        if len(self.cost) < len(self.counts):
+            return
+        other = self.counts[1] if count == 1 else 1
+        if count == self.best:
+            self.wait -= 1
+            if self.cost[count] > self.cost[other]:
+                self.wait = 0     # slower now than the other count was at its trial: try it next
+            return
+        # a trial of the other count (or the first measurement of both): choose again, schedule the next trial
+        self.best = min(self.counts, key=lambda c: self.cost[c])
+        fast, slow = sorted((self.cost[count], self.cost[other]))
+        ratio = slow / fast if fast > 0 else 1.0
+        self.wait = int(min(256, max(4, round(16 * (ratio - 1)))))
+
+
 def check_backend_name(name: str) -> None:
     """BackendUnavailable unless ``name`` is 'auto', 'cpu' or 'cuda'."""
     if name not in BACKEND_NAMES:
@@ -110,6 +188,7 @@ class SerialEnsemble(Ensemble):
             raise ValueError("an ensemble needs one ContactParams per scene and at least one scene")
         self._backends: list = []
         self._sizes = [int(system.n) for system in systems]   # particles per scene (their Numba thread count)
+        self._threads = [ThreadChoice(n) for n in self._sizes]   # each scene's thread count per advance
         for system, contact in zip(systems, contacts):
             with scene_threads(system.n):   # the build's list and first forces are parallel loops too
                 self._backends.append(make_backend(name, system, contact))
@@ -163,9 +242,12 @@ class SerialEnsemble(Ensemble):
             if n <= 0 or not self._active[k]:
                 continue
             backend = self._backends[k]
+            choice = self._threads[k]
             try:
-                with scene_threads(self._sizes[k]):
+                with numba_threads(choice.pick()) as count:
+                    t0, c0 = time.perf_counter(), time.thread_time()
                     backend.advance(int(n))
+                    choice.record(count, int(n), time.perf_counter() - t0, time.thread_time() - c0)
             except Exception as exc:  # one scene's failure: the others go on
                 failed[k] = exc
                 self.deactivate(k)

@@ -292,7 +292,7 @@ def _cpu_rotation_through_law(cpu) -> None:
         spy = _spy(kernels, "spheroid_rotation") if python else None
         try:
             (kernels.rotate.py_func if python else kernels.rotate)(
-                0, 0.0, cpu.pos, cpu.vel, spin, quat, torque, cpu._spin_inv, cpu.x_ref, ext, cpu.dt, cpu.dt * 0.5,
+                0, 0.0, cpu.pos, cpu.vel, spin, quat, torque, (torque[0, 0], torque[0, 1], torque[0, 2]), cpu._spin_inv, cpu.x_ref, ext, cpu.dt, cpu.dt * 0.5,
                 cpu.dt, cpu.box_c, cpu.inv_box, cpu.half, 0)
         finally:
             kernels.spheroid_rotation = law.spheroid_rotation

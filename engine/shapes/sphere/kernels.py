@@ -9,9 +9,11 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
   the last list build by sum max|v| dt (the exact displacement is read only when the bound passes L_v/2);
   True = ``rotate`` returns the exact squared displacement since the last build (m^2);
 - ``pre_step(i, pos, quat, ext)``: anything to keep from before particle i's step;
-- ``rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s)``: the
-  shape's rotation step of particle i after the shared translation (kick hk, predicted velocity at hp = dt/2,
-  drift dt) in step s of the loop's call (0, 1, ...); returns (displacement measure, state finite);
+- ``rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s)``:
+  the shape's rotation step of particle i after the shared translation (kick hk, predicted velocity at hp = dt/2,
+  drift dt) in step s of the loop's call (0, 1, ...), with the torque on i ``tq`` = (tau_x, tau_y, tau_z) (the
+  loop's own zeros for a particle whose list is empty; ``torque`` is the torque array, or None when torques are
+  off, read only as that switch); returns (displacement measure, state finite);
 - ``settle(spin, quat, ext, drifted, dt, half)``: called by the loop before it returns, after ``drifted``
   kick-drifts in the call: whatever the shape's ``rotate`` left pending is brought up to date (spheres: lazy
   orientations; a shape that advances every step: nothing);
@@ -58,14 +60,15 @@ def pre_step(i, pos, quat, ext):
 
 
 @numba.njit(inline="always")
-def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
+def rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
     """The sphere's half of the kick-drift of particle i in step s of the call, after the shared translation (v +=
     F/m hk, predicted v + F/m dt/2 for the dashpot, x += v dt wrapped; v2 = |v|^2): w += tau/I hk (rough), and the
     orientation (when tracked) lazily, as the GPU does (engine/shapes/sphere/device.py): ``ext[0][i]`` is the step
     of the call from which sphere i's turns are pending, all with the spin it has now. Only a torque about to
     change that spin brings q up to date, here before the kick (the exact rotation over those steps,
     engine.physics.rotation.sphere_quat_turn); :func:`settle` does it for every sphere when the loop returns. A
-    free sphere does no orientation work at all. Returns (|v|^2, finite).
+    free sphere does no orientation work at all. ``tq``: the torque on i, (tau_x, tau_y, tau_z) (N m); ``torque``
+    None (smooth spheres): no torques, no spin update (pruned at compile time). Returns (|v|^2, finite).
 
     The predicted end-of-step velocity: with the mid-step velocity instead, the damping force lags by dt/2,
     which acts like a stiffness change of gamma dt/(2 m12) and shifts e_n at first order in dt (by 4.5e-3 at
@@ -75,9 +78,9 @@ def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt
     omega = spin
     w2 = 0.0
     if torque is not None:
-        tx = torque[i, 0]
-        ty = torque[i, 1]
-        tz = torque[i, 2]
+        tx = tq[0]
+        ty = tq[1]
+        tz = tq[2]
         if quat is not None:
             if tx != 0 or ty != 0 or tz != 0:    # the kick will change w: turn q with the w it had first
                 _catch_up(i, omega, quat, ext, s, dt, half)

@@ -56,17 +56,17 @@ def pre_step(i, pos, quat, ext):
 
 
 @numba.njit(inline="always")
-def rotate(i, v2, pos, vel, spin, quat, torque, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
+def rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s):
     """The ellipsoid's half of the kick-drift of particle i after the shared translation: the gather from and
     scatter into this backend's rows of the spheroid's one rotation step (law.spheroid_rotation: L += tau hk, q by
-    Fincham's leap-frog, the predicted space-frame angular velocity at t + dt into ext[2]). Returns (squared
-    displacement since the last list build (m^2), finite)."""
+    Fincham's leap-frog, the predicted space-frame angular velocity at t + dt into ext[2]); ``tq`` the torque on i
+    (tau_x, tau_y, tau_z) (N m). Returns (squared displacement since the last list build (m^2), finite)."""
     angm = spin
     inv_i = ext[0]
     omega_p = ext[2]
     lx, ly, lz, q0, q1, q2, q3, wx, wy, wz = spheroid_rotation(
         quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3], angm[i, 0], angm[i, 1], angm[i, 2],
-        torque[i, 0], torque[i, 1], torque[i, 2], inv_i[i, 0], inv_i[i, 1], inv_i[i, 2], hk, hp, dt, half)
+        tq[0], tq[1], tq[2], inv_i[i, 0], inv_i[i, 1], inv_i[i, 2], hk, hp, dt, half)
     angm[i, 0] = lx
     angm[i, 1] = ly
     angm[i, 2] = lz
