@@ -170,7 +170,9 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.c_cnt = self._zeros(n, np.int32)
         self._alloc_store(max(1024, n // 8))
         self.status = cuda.to_device(self._fresh_status(), stream=self.stream)
-        self.status_h = [cuda.pinned_array(K.status_len(nk), np.float64) for _ in range(2)]
+        # pinned status copies: the per-step slots 0 and 1 of the per-phase loop, and 2 for a wait-now read
+        # (TimeLoop._read_status_now), which must not overwrite a step's status still to be read
+        self.status_h = [cuda.pinned_array(K.status_len(nk), np.float64) for _ in range(3)]
         self.events = [(cuda.event() if SIM else cuda.event(timing=False)) for _ in range(2)]
 
     def _init_tables(self, systems: list, contacts: list) -> None:

@@ -178,8 +178,8 @@ class TimeLoop:
 
     def _advance_per_phase(self, nsteps: int, failed: dict) -> None:
         """One launch per phase, or, for a shape whose kernels fuse them (``forces_kick_drift``, with ``FUSED``),
-        one launch per step: the forces of step t and the kick-drift of step t + 1 in one pass, positions,
-        velocities (and spins the pair reads) double-buffered.
+        one launch per step: the forces of step t and the kick-drift of step t + 1 in one pass, positions and
+        velocities double-buffered.
 
         The rebuild before the forces of step t is decided from step t-1's status (copied to pinned memory while
         the GPU runs on): with B an upper bound of the largest displacement at step t-1 and u = 2 max|v| dt of
@@ -324,7 +324,7 @@ class TimeLoop:
         return cuda.event(timing=True) if not SIM else cuda.event()
 
     def _read_status_now(self) -> np.ndarray:
-        h = self.status_h[0]
+        h = self.status_h[2]
         self.status.copy_to_host(h, stream=self.stream)
         self._wait_stream()
         return h

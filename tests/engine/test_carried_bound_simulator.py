@@ -1,0 +1,73 @@
+"""The per-phase CUDA loop's carried bound (engine/loops/cuda_stepping.py ``_close_call``), under the CUDA
+simulator: an advance call's first rebuild is decided from the displacement bound the previous call ended with,
+not from a wait for the GPU; that bound is never below the particles' true largest displacement since the list
+build, and no rebuild comes late. Two packed scenes (where no host-built list
+machinery is attached), smooth (fused step) and rough (two launches), a thin skin, calls of an odd number of steps
+(the last kick-drift's status then sits in the pinned slot that a wait-now status read must not overwrite)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+#: heavy: ~40 s of CUDA simulator (two contacts x 12 calls of 5 steps of two packed scenes)
+pytestmark = pytest.mark.heavy
+
+SCRIPT = r'''
+import numpy as np
+import engine.loops.cuda_stepping as st
+from engine.loops import cuda_kernels as K
+from engine.backends.cuda import CudaEnsemble
+from engine.params import derive
+from engine.scene import initial_spheres
+from engine.simulate import contact_params
+from engine.spec import SimulationSpec
+
+def scene(seed, e_t):
+    spec = SimulationSpec(n_particles=32, volume_fraction=0.1, e_n=0.8, e_t=e_t, velocity_rms=12.0,
+                          verlet_skin=0.1, seed=seed, thermalization=0.0)
+    p = derive(spec)
+    return initial_spheres(spec, p), contact_params(spec, p, thermalization=False)
+
+carried = []
+orig = st.TimeLoop._advance_per_phase
+def spy(self, nsteps, failed):
+    carried.append(self._carry is not None and self._carry[:2] == (self.steps_done, self.builds))
+    return orig(self, nsteps, failed)
+st.TimeLoop._advance_per_phase = spy
+
+for e_t in (-1.0, 0.8):
+    scenes = [scene(1, e_t), scene(2, e_t)]
+    ens = CudaEnsemble([s for s, _ in scenes], [c for _, c in scenes])
+    ens.multistep = False
+    assert ens.lists is None
+    carried.clear()
+    for _ in range(12):
+        failed = ens.advance(5)
+        assert not failed, failed
+        # the carried bound bounds every particle's displacement since the list build (in units of L_v/2)
+        pos, xr, sc = ens.pos.copy_to_host(), ens.x_ref.copy_to_host(), ens.sc.copy_to_host()
+        box = ens.spd_h[sc, K.D_BOX]
+        d = pos - xr
+        d -= box * np.round(d / box)
+        true = float(np.sqrt(((d * d).sum(axis=0) * ens.spf_h[sc, K.F_LIM2INV]).max()))
+        assert ens._carry[2] >= true * (1 - 1e-9), (e_t, ens.steps_done, ens._carry, true)  # 1e-9: the device's
+        # and numpy's rounding of the same float64 sum
+    print(e_t, "builds", ens.builds, "late", ens.late_rebuilds, "carried", sum(carried), "of", len(carried))
+    assert ens.builds >= 4, ens.builds
+    assert sum(carried) >= 6, carried
+    assert ens.late_rebuilds == 0, ens.late_rebuilds
+print("CARRY-OK")
+'''
+
+
+def test_a_call_starts_from_the_previous_calls_bound_and_rebuilds_in_time():
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    root = Path(__file__).resolve().parents[2]
+    r = subprocess.run([sys.executable, "-c", SCRIPT], cwd=root, env=env, capture_output=True, text=True,
+                       timeout=900)
+    assert r.returncode == 0 and "CARRY-OK" in r.stdout, r.stdout[-3000:] + r.stderr[-3000:]
