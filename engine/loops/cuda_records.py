@@ -16,8 +16,8 @@ from engine.numba_internals import device_memset
 
 class ObserveSums:
     """The observe part of a CUDA ensemble. The ensemble provides ``stream``, ``n_scenes``, ``sizes``, ``tpb``,
-    ``max_blocks``, ``active``, ``k`` (kernels), ``_lc`` (the launch cache), ``_NOBS``, :meth:`_observe_args`, :meth:`_observables` and
-    :meth:`_wait_stream`."""
+    ``max_blocks``, ``active``, ``k`` (kernels), ``_lc`` (the launch cache), ``_NOBS``, :meth:`_observe_args`,
+    :meth:`_observables` and :meth:`_wait_stream`."""
 
     def _init_observe(self) -> None:
         self._sums = None    # the observe kernel's accumulator and host buffer (_ObserveSlot), made at the first observe
