@@ -18,7 +18,7 @@ from jobs.store import JobStore
 from jobs.stores import open_store
 from jobs.worker import Worker
 from service import dashboard
-from service.deps import known_query_only, require_token
+from service.deps import query_as_declared, require_token
 from service.errors import InvalidRequest, on_invalid_request, on_validation_error
 from service.limits import BodySizeLimit
 from service.routes import batches, health, jobs, results
@@ -67,7 +67,7 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
     # without a token they are open and the document says so.
     auth = [Depends(require_token)] if settings.token is not None else []
     auth_responses = {401: {"description": "missing or wrong bearer token"}} if auth else {}
-    known_query = [Depends(known_query_only)]      # after auth: a request without the token gets its 401 first
+    known_query = [Depends(query_as_declared)]     # after auth: a request without the token gets its 401 first
     app.include_router(health.router, dependencies=known_query)
     for module in (jobs, batches, results):
         app.include_router(module.router, dependencies=auth + known_query, responses=auth_responses)

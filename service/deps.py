@@ -4,7 +4,8 @@ parameters, job lookup."""
 from __future__ import annotations
 
 import secrets
-from typing import Annotated, Optional
+from types import UnionType
+from typing import Annotated, Optional, Union, get_args, get_origin
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.exceptions import RequestValidationError
@@ -56,26 +57,39 @@ def require_token(request: Request, settings: Annotated[Settings, Depends(get_se
     raise HTTPException(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
 
 
-def _declared_query(dependant) -> set:
-    """The query parameter names an operation declares: its own and its dependencies' (FastAPI's Dependant)."""
-    names = {p.alias for p in dependant.query_params}
+def _declared_query(dependant) -> dict:
+    """The query parameters an operation declares, its own and its dependencies' (FastAPI's Dependant): name ->
+    whether it takes several values (a list, tuple or set annotation, optional or not)."""
+    names = {}
+    for p in dependant.query_params:
+        annotation = p.field_info.annotation
+        kinds = [annotation] + list(get_args(annotation) if get_origin(annotation) in (Union, UnionType) else [])
+        names[p.alias] = any(get_origin(k) in (list, tuple, set, frozenset) for k in kinds)
     for sub in dependant.dependencies:
-        names |= _declared_query(sub)
+        names.update(_declared_query(sub))
     return names
 
 
-def known_query_only(request: Request) -> None:
-    """Refuse query parameters the operation does not declare, with a 422 naming each (as unknown body fields
-    are refused): a misspelt filter such as ``GET /jobs?stat=done`` must not be silently ignored."""
+def query_as_declared(request: Request) -> None:
+    """Refuse query parameters the operation does not declare, and a single-valued one given more than once, with a
+    422 naming each (as unknown body fields are refused): a misspelt filter such as ``GET /jobs?stat=done`` must
+    not be silently ignored, nor ``?batch_id=a&batch_id=b`` read as its last value."""
     route = request.scope.get("route")
     if route is None or not request.query_params:
         return
     declared = _declared_query(route.dependant)
-    unknown = [k for k in dict.fromkeys(request.query_params.keys()) if k not in declared]
-    if unknown:
-        raise RequestValidationError([{"loc": ("query", k), "type": "extra_forbidden",
-                                       "msg": f"unknown query parameter {k!r}; this operation takes "
-                                              f"{', '.join(sorted(declared)) or 'none'}"} for k in unknown])
+    errors = []
+    for k in dict.fromkeys(request.query_params.keys()):
+        if k not in declared:
+            errors.append({"loc": ("query", k), "type": "extra_forbidden",
+                           "msg": f"unknown query parameter {k!r}; this operation takes "
+                                  f"{', '.join(sorted(declared)) or 'none'}"})
+        elif not declared[k] and len(request.query_params.getlist(k)) > 1:
+            errors.append({"loc": ("query", k), "type": "too_many_values",
+                           "msg": f"query parameter {k!r} takes one value, got "
+                                  f"{len(request.query_params.getlist(k))}"})
+    if errors:
+        raise RequestValidationError(errors)
 
 
 def get_job(job_id: str, store: Annotated[JobStore, Depends(get_store)]) -> Job:

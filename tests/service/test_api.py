@@ -286,3 +286,10 @@ def test_an_undeclared_query_parameter_is_422_naming_it(client):
     assert client.get("/jobs", params={"state": "done", "limit": 5}).status_code == 200
     r = client.get("/healthz", params={"verbose": "1"})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["query", "verbose"]
+
+
+def test_a_single_valued_query_parameter_given_twice_is_422(client):
+    r = client.get("/jobs?batch_id=a&batch_id=b")
+    assert r.status_code == 422
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["query", "batch_id"] and err["type"] == "too_many_values" and "2" in err["msg"]

@@ -1,8 +1,11 @@
 """Property-based fuzzing of every operation in the OpenAPI schema (schemathesis), with all its checks.
 
 Every built-in check runs (server errors, status codes, content types, response schemas, schema-violating
-requests accepted, missing or ignored auth, ...) on schema-valid and schema-violating requests, except
-that the built-in "schema-valid request rejected" is replaced by :func:`schema_predicts_every_422`: a
+requests accepted, missing or ignored auth, ...) on schema-valid and schema-violating requests, except that
+"schema-violating request accepted" skips a case whose violations never reach the server
+(:func:`negative_data_rejection_as_sent`: an added query parameter whose value is None is not sent; on the
+token server this test sets the Authorization header itself), and that the built-in "schema-valid request
+rejected" is replaced by :func:`schema_predicts_every_422`: a
 spec may be refused for a rule that no JSON schema can state (the box must hold the neighbour cutoff,
 dt must resolve a contact, species fractions must sum to 1, the run's cost must be within the server's
 limits, a 'cuda' spec needs a live worker that runs CUDA: none runs here), so a 422 on a schema-valid request is allowed only with errors of those kinds, never with a
@@ -24,7 +27,8 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings as hsettings
 from schemathesis import GenerationMode
-from schemathesis.specs.openapi.checks import positive_data_acceptance
+from schemathesis.core.parameters import ParameterLocation
+from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 
 from service.app import create_app
 from tests.jobs.conftest import make_settings
@@ -78,9 +82,37 @@ def schema_predicts_every_422(ctx, response, case) -> None:
     return None
 
 
+def _query_violation_unsent(case) -> bool:
+    """Whether the case's query violation never reaches the server: every parameter it adds that the operation
+    does not declare has the value None, for which the HTTP client sends no parameter at all."""
+    declared = {p.name for p in case.operation.query}
+    extra = {k: v for k, v in (case.query or {}).items() if k not in declared}
+    return bool(extra) and all(v is None for v in extra.values())
+
+
+def negative_data_rejection_as_sent(ctx, response, case, sent_headers: bool = False):
+    """schemathesis's "schema-violating request accepted", except for a case whose violations all stay behind in
+    the client: a query of :func:`_query_violation_unsent`, and with ``sent_headers`` (the token server: this test
+    sets the Authorization header itself) the headers."""
+    if case.meta is not None and not case.meta.generation.mode.is_positive:
+        negative = {loc for loc, info in (case.meta.components or {}).items() if not info.mode.is_positive}
+        unsent = {ParameterLocation.QUERY} if _query_violation_unsent(case) else set()
+        if sent_headers:
+            unsent.add(ParameterLocation.HEADER)
+        if negative and negative <= unsent:
+            return None
+    return negative_data_rejection(ctx, response, case)
+
+
+def _with_sent_headers(ctx, response, case):
+    return negative_data_rejection_as_sent(ctx, response, case, sent_headers=True)
+
+
 def _run(case, **kwargs) -> None:
-    response = case.call_and_validate(excluded_checks=[positive_data_acceptance],
-                                      additional_checks=[schema_predicts_every_422], **kwargs)
+    token = "headers" in kwargs
+    response = case.call_and_validate(excluded_checks=[positive_data_acceptance, negative_data_rejection],
+                                      additional_checks=[schema_predicts_every_422, _with_sent_headers if token
+                                                         else negative_data_rejection_as_sent], **kwargs)
     SEEN[f"{case.method} {case.path}"][response.status_code] += 1
 
 
