@@ -54,21 +54,32 @@ def cell_coords_of(c, nc):
 
 
 @numba.njit
-def _offset_low(nc):
+def offset_low(nc):
     """The first offset per axis: -1, or 0 when the grid has fewer than 3 cells per side."""
     return -1 if nc >= 3 else 0
 
 
 @numba.njit
-def _offset_span(nc):
+def offset_span(nc):
     """Offsets per axis: 3 (nc >= 3), 2 (nc = 2) or 1 (nc = 1), so that no cell is visited twice."""
     return 3 if nc >= 3 else nc
+
+
+@numba.njit(inline="always")
+def wrap_cell(c, nc):
+    """Cell coordinate c (-1 <= c <= nc, a coordinate plus an offset) wrapped into [0, nc): (c + nc) % nc by a
+    comparison instead of an integer division (a list build wraps 81 of them per particle)."""
+    if c < 0:
+        return c + nc
+    if c >= nc:
+        return c - nc
+    return c
 
 
 @numba.njit
 def neighbour_cell_count(nc):
     """How many distinct neighbour cells (the cell itself included) a cell has: 27, 8 or 1."""
-    m = _offset_span(nc)
+    m = offset_span(nc)
     return m * m * m
 
 
@@ -76,8 +87,8 @@ def neighbour_cell_count(nc):
 def neighbour_cell(cx, cy, cz, k, nc):
     """Flat index of the k-th neighbour cell (0 <= k < neighbour_cell_count(nc)) of cell (cx, cy, cz),
     wrapped periodically; k runs over the offsets ox (outermost), oy, oz (innermost), each ascending."""
-    m = _offset_span(nc)
-    lo = _offset_low(nc)
+    m = offset_span(nc)
+    lo = offset_low(nc)
     ax = (cx + lo + k // (m * m) + nc) % nc
     ay = (cy + lo + (k // m) % m + nc) % nc
     az = (cz + lo + k % m + nc) % nc

@@ -47,7 +47,7 @@ from engine.loops.system import ContactParams, cell_grid
 from engine.loops.cpu_shared import SLOT, cpu_name, worst_overlap
 from engine.backends.protocol import Backend
 from engine.loops.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
-from engine.cells import cell_coords_of, cell_index_of, distance2
+from engine.cells import cell_coords_of, cell_index_of, distance2, offset_low, offset_span, wrap_cell
 from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
@@ -107,16 +107,6 @@ def bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor):
         cursor[c] += 1
 
 
-@numba.njit(inline="always")
-def wrap_cell(c, nc):
-    """Cell coordinate c (-1 <= c <= nc) wrapped into [0, nc): (c + nc) % nc without an integer division."""
-    if c < 0:
-        return c + nc
-    if c >= nc:
-        return c - nc
-    return c
-
-
 @numba.njit(parallel=True, cache=True)
 def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
                nbr_old, nn_old, hist_old, nbr, nn, hist, x_ref):
@@ -133,8 +123,8 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
     """
     n = pos.shape[0]
     max_nb = nbr.shape[1]
-    span = 3 if nc >= 3 else nc          # offsets per axis (cells._offset_span)
-    low = -1 if nc >= 3 else 0           # the first offset (cells._offset_low)
+    span = offset_span(nc)
+    low = offset_low(nc)
     for i in prange(n):
         cx, cy, cz = cell_coords_of(cell_of[i], nc)
         xi = pos[i, 0]

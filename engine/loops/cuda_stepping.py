@@ -26,6 +26,12 @@ DISPLACEMENT_BOUND = True
 FUSED = True
 
 
+def _maxima(h, odd: bool) -> tuple:
+    """(squared displacement, squared speed) maxima of a status copy h: the slots of parity 1 (S_D2B, S_V2B) for a
+    kick-drift run in a fused launch of odd parity, else those of parity 0."""
+    return (h[K.S_D2B], h[K.S_V2B]) if odd else (h[K.S_D2], h[K.S_V2])
+
+
 class TimeLoop:
     """The stepping part of a CUDA ensemble. The ensemble provides its device arrays and tables, ``k`` (kernels),
     ``_lc`` (the launch cache of the per-step kernels, engine/loops/cuda_launch.py), ``stream``, ``lists`` and
@@ -238,8 +244,8 @@ class TimeLoop:
             else:
                 self.events[prev].synchronize()
                 h = self.status_h[prev]
-                d2 = h[K.S_D2B if (fused and prev == 1) else K.S_D2]
-                u_last = math.sqrt(h[K.S_V2B if (fused and prev == 1) else K.S_V2])
+                d2, v2 = _maxima(h, fused and prev == 1)
+                u_last = math.sqrt(v2)
                 if rebuilt_prev:
                     bound = 0.0
                 elif exact_of[prev]:
@@ -291,9 +297,8 @@ class TimeLoop:
         gives the displacement bound B and speed u the next call starts from (``_carry``), and counts a late
         rebuild when the last step's forces ran on a list its displacements had outgrown."""
         slot, odd, exact, rebuilt, bound = self._last_kick
-        h = self.status_h[slot]
-        u = math.sqrt(h[K.S_V2B if odd else K.S_V2])
-        d = math.sqrt(h[K.S_D2B if odd else K.S_D2])
+        d2, v2 = _maxima(self.status_h[slot], odd)
+        u, d = math.sqrt(v2), math.sqrt(d2)
         if rebuilt:
             b = 0.0     # rebuilt before the last forces: x_ref holds the last kick-drift's positions
         elif exact:

@@ -7,17 +7,16 @@ machinery is attached), smooth (fused step) and rough (two launches), a thin ski
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
+
+from tests.cudasim import run_children
 
 #: heavy: ~40 s of CUDA simulator (two contacts x 12 calls of 5 steps of two packed scenes)
 pytestmark = pytest.mark.heavy
 
 SCRIPT = r'''
+from tests.cudasim import fast_block_polling
+fast_block_polling()
 import numpy as np
 import engine.loops.cuda_stepping as st
 from engine.loops import cuda_kernels as K
@@ -66,8 +65,5 @@ print("CARRY-OK")
 
 
 def test_a_call_starts_from_the_previous_calls_bound_and_rebuilds_in_time():
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-    root = Path(__file__).resolve().parents[2]
-    r = subprocess.run([sys.executable, "-c", SCRIPT], cwd=root, env=env, capture_output=True, text=True,
-                       timeout=900)
-    assert r.returncode == 0 and "CARRY-OK" in r.stdout, r.stdout[-3000:] + r.stderr[-3000:]
+    rc, out, err = run_children({"run": ["-c", SCRIPT]}, timeout=900)["run"]
+    assert rc == 0 and "CARRY-OK" in out, out[-3000:] + err[-3000:]

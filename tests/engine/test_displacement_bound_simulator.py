@@ -5,18 +5,17 @@ velocities double-buffered) gives the two-launch step's trajectory. Each bit for
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
+
+from tests.cudasim import run_children
 
 #: heavy: ~45 s of CUDA simulator (a thin-skin scene needs tens of one-launch-per-phase steps to show the bound
 #: at work); the light run already sits near its time budget
 pytestmark = pytest.mark.heavy
 
 SCRIPT = r'''
+from tests.cudasim import fast_block_polling
+fast_block_polling()
 import tempfile
 from pathlib import Path
 import h5py, numpy as np
@@ -76,8 +75,5 @@ print("BOUND-OK", steps, builds_b, flags_b.count(0), len(flags_b), nf)
 
 
 def test_the_bound_and_the_fused_step_keep_the_trajectory():
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-    root = Path(__file__).resolve().parents[2]
-    r = subprocess.run([sys.executable, "-c", SCRIPT], cwd=root, env=env, capture_output=True, text=True,
-                       timeout=900)
-    assert r.returncode == 0 and "BOUND-OK" in r.stdout, r.stdout[-3000:] + r.stderr[-3000:]
+    rc, out, err = run_children({"run": ["-c", SCRIPT]}, timeout=900)["run"]
+    assert rc == 0 and "BOUND-OK" in out, out[-3000:] + err[-3000:]
