@@ -168,6 +168,26 @@ def device_memset(array, value: int, stream) -> None:
     memset(array, value, array.nbytes, stream=stream)
 
 
+def async_copy_device(dst, src, stream) -> None:
+    """Queue, on ``stream``, the copy of the whole contiguous device array ``src`` into the contiguous device array
+    ``dst`` of the same size, straight through cuda-python's ``cuMemcpyDtoDAsync``. numba-cuda's
+    ``copy_to_device`` checks, views and converts both arrays at every call (about 0.2 ms of Python each): a list
+    rebuild copies every permuted particle array back from its scratch, which at a few thousand particles cost
+    more host time than the rebuild's kernels take on the GPU. Raises ValueError for a size or layout it does not
+    handle and RuntimeError naming the call where the driver refuses."""
+    from cuda.bindings import driver as cu
+
+    if dst.nbytes != src.nbytes or not (dst.is_c_contiguous() and src.is_c_contiguous()):
+        raise ValueError(f"device copy of {src.nbytes} bytes into {dst.nbytes}: both must be contiguous and of one "
+                         "size")
+    if src.nbytes == 0:
+        return
+    err, = cu.cuMemcpyDtoDAsync(int(dst.device_ctypes_pointer.value), int(src.device_ctypes_pointer.value),
+                                int(src.nbytes), int(stream.handle))
+    if err != cu.CUresult.CUDA_SUCCESS:
+        raise RuntimeError(f"cuMemcpyDtoDAsync: {err}")
+
+
 def async_copy_and_record(device_array, host_array, stream, event):
     """A function that queues, on ``stream``, the copy of the whole ``device_array`` into the pinned ``host_array``
     (same size), then records ``event``: straight through cuda-python's driver bindings (``cuMemcpyDtoHAsync``,
@@ -212,9 +232,9 @@ def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
     with the same arrays: ``(launch, stream, launch_config, kernel, kargs, slots)``, where ``launch(stream,
     launch_config, kernel, *kargs)`` launches and ``slots`` lists ``(position in args, index in kargs, ctypes type or
     None)`` of each top-level scalar argument (its value is refilled per launch). None where such a launch would not
-    be numba-cuda's (a launch-configuration-sensitive, debug or cooperative kernel, pre-launch callbacks, dynamic
-    shared memory, host arrays copied per launch, a scalar inside a tuple). The kernel must have been launched once
-    with these argument types (so that it is compiled)."""
+    be numba-cuda's (a launch-configuration-sensitive or debug kernel, pre-launch callbacks, dynamic shared memory,
+    host arrays copied per launch, a scalar inside a tuple). A cooperative kernel keeps its cooperative launch. The
+    kernel must have been launched once with these argument types (so that it is compiled)."""
     import ctypes
 
     from numba.cuda import dispatcher as nd
@@ -225,7 +245,7 @@ def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
     if getattr(dispatcher, "_launch_config_sensitive", False):
         return None
     kernel = dispatcher.compile(tuple(dispatcher.typeof_pyval(a) for a in args))
-    if kernel.debug or kernel.cooperative:
+    if kernel.debug:
         return None
     lc = dispatcher.configure(griddim, blockdim, stream)    # normalised dimensions, cuda.core stream
     if lc.pre_launch_callbacks or lc.sharedmem:
@@ -243,7 +263,9 @@ def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
     if retr:
         return None
     if nd.CUDA_CORE_GE_1_0:
-        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0, is_cooperative=False)
+        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0,
+                                       is_cooperative=bool(kernel.cooperative))
     else:
-        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0, cooperative_launch=False)
+        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0,
+                                       cooperative_launch=bool(kernel.cooperative))
     return (nd.launch, stream, launch_config, kernel._codelibrary.get_cufunc().kernel, kargs, slots)

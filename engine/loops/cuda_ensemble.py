@@ -132,6 +132,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._call_end: Optional[int] = None    # the current advance call ends here
         self._poll_ev = None                    # the event _wait_stream polls (made at its first use)
         self._status_copiers = None             # per pinned status slot: copy + event record (TimeLoop._status_copy)
+        self._now_copier = None                 # the same for the wait-now read (TimeLoop._read_status_now)
         self._carry = None                      # (step, builds, bound, speed) at the last per-phase call's end
         self._last_kick = None                  # what _close_call reads of that call's last kick-drift
         self._lc = LaunchCache()                # the per-step kernels' launches (engine/loops/cuda_launch.py)
@@ -163,6 +164,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.scratch_x = self.scratch if self.pos_dtype is dt_ else cuda.device_array((3, n), self.pos_dtype,
                                                                                       stream=self.stream)
         self.scratch_i = cuda.device_array(n, np.int32, stream=self.stream)
+        self._scratch_views = {}                # ListBuilds._scratch_rows
         self.scratch_l = cuda.device_array(n if self._permuted_i64() else 1, np.int64, stream=self.stream)
         self.order = cuda.device_array(n, np.int32, stream=self.stream)
         self.inv_old = cuda.device_array(n, np.int32, stream=self.stream)

@@ -40,7 +40,7 @@ import numpy as np
 from numba import cuda
 from numba.cuda import types as ct
 
-from engine.loops.cuda_cache import cache_kernels
+from engine.loops.cuda_cache import SIM, cache_kernels
 from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
@@ -137,9 +137,38 @@ def _make_reducer(TPB, NV, MAXSLOT):
 def _make_helpers(TPB):
     f64 = np.float64
 
+    WARPS = TPB // 32
+
     @cuda.jit(device=True)
-    def block_max2(sh, a, b):
-        """Block-wide max of (a, b) into sh[0], sh[TPB] (all threads must call)."""
+    def block_max2_shuffle(sh, a, b):
+        """Block-wide max of (a, b) into sh[0], sh[TPB], for thread 0 to read (all threads must call; TPB a
+        multiple of 32). Each warp reduces by shuffles, then thread 0 over the warps' maxima: one block barrier
+        instead of one per halving of a shared-memory tree (the many-steps kernel of a small scene, latency-bound,
+        runs this reduction every step)."""
+        t = cuda.threadIdx.x
+        off = 16
+        while off > 0:
+            oa = cuda.shfl_down_sync(0xFFFFFFFF, a, off)
+            ob = cuda.shfl_down_sync(0xFFFFFFFF, b, off)
+            if oa > a:
+                a = oa
+            if ob > b:
+                b = ob
+            off //= 2
+        if (t & 31) == 0:
+            sh[t >> 5] = a
+            sh[(t >> 5) + TPB] = b
+        cuda.syncthreads()
+        if t == 0:
+            for w in range(1, WARPS):
+                if sh[w] > sh[0]:
+                    sh[0] = sh[w]
+                if sh[w + TPB] > sh[TPB]:
+                    sh[TPB] = sh[w + TPB]
+
+    @cuda.jit(device=True)
+    def block_max2_tree(sh, a, b):
+        """The same maxima by a shared-memory tree (the CUDA simulator has no warp shuffles)."""
         t = cuda.threadIdx.x
         sh[t] = a
         sh[t + TPB] = b
@@ -153,6 +182,8 @@ def _make_helpers(TPB):
                     sh[t + TPB] = sh[t + TPB + s]
             cuda.syncthreads()
             s //= 2
+
+    block_max2 = block_max2_tree if SIM else block_max2_shuffle
 
     @cuda.jit(device=True)
     def fail(status, spi, s, word, value, step):
@@ -184,6 +215,12 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     def fill_i32(a, value):
         for i in range(cuda.grid(1), a.shape[0], cuda.gridsize(1)):
             a[i] = value
+
+    @cuda.jit
+    def set_word(a, slot, value):
+        """a[slot] = value, in stream order (a status word reset before a kernel that accumulates into it)."""
+        if cuda.grid(1) == 0:
+            a[slot] = value
 
     @cuda.jit
     def count_cells(n, pos, sc, spf, spi, count):
@@ -347,9 +384,9 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         if cuda.threadIdx.x == 0:
             cuda.atomic.max(status, S_NEED_NB, sh[0])
 
-    return dict(fill_i32=fill_i32, count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets,
-                scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32,
-                inverse_perm=inverse_perm, compact=compact, build=build)
+    return dict(fill_i32=fill_i32, set_word=set_word, count_cells=count_cells, tile_scan=tile_scan,
+                add_offsets=add_offsets, scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows,
+                gather_i32=gather_i32, inverse_perm=inverse_perm, compact=compact, build=build)
 
 
 @cuda.jit

@@ -71,7 +71,7 @@ def _alive(entry) -> bool:
 
 
 class LaunchCache:
-    """Cached flattened arguments per (kernel name, launch configuration, argument arrays); at most ``size``
+    """Cached flattened arguments per (kernel name, dispatcher, launch configuration, argument arrays); at most ``size``
     entries per kernel (the loop alternates between two force buffers). An entry holds weak references to its
     arrays: it keeps no device memory alive (a list reallocated on growth is freed as soon as the backend lets
     it go), and an entry whose array is gone is never used again, even when a new array gets the old one's
@@ -97,7 +97,9 @@ class LaunchCache:
         if name in self.given_up:
             dispatcher[config](*args)
             return
-        key = (config[0], config[1], id(config[2])) + tuple(map(_ident, args))
+        # the dispatcher is part of the key: a scene that changes its specialisation (a contact law switched on
+        # after the thermalisation) launches the new kernel under the same name with the same arrays
+        key = (id(dispatcher), config[0], config[1], id(config[2])) + tuple(map(_ident, args))
         per = self.entries.setdefault(name, OrderedDict())
         entry = per.get(key)
         if entry is not None and not _alive(entry):
@@ -120,7 +122,7 @@ class LaunchCache:
                 del per[old]
             if entry is not None:
                 try:
-                    per[key] = entry[:6] + (_weak_arrays(args),)
+                    per[key] = entry[:6] + (dispatcher, _weak_arrays(args))   # (holds its id for the key)
                 except TypeError:   # an argument that takes no weak reference: not cached
                     return
                 if len(per) > self.size:

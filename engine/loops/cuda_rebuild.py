@@ -44,12 +44,13 @@ class ListBuilds:
         return SimpleNamespace(m=m, tile=tile, nb=nb, bsum=dev(nb), bsum_scan=dev(nb), bsum_tot=dev(1))
 
     def _exclusive_scan(self, src, dst, b: SimpleNamespace) -> None:
-        k, s = self.k, self.stream
-        k["tile_scan"][b.nb, self.tpb, s](src, dst, b.m, b.bsum, 16)
+        k, s, lc = self.k, self.stream, self._lc
+        lc.launch("tile_scan", k["tile_scan"], (b.nb, self.tpb, s), (src, dst, b.m, b.bsum, 16))
         if b.nb > 1:
             items = (b.nb + self.tpb - 1) // self.tpb
-            k["tile_scan"][1, self.tpb, s](b.bsum, b.bsum_scan, b.nb, b.bsum_tot, items)
-            k["add_offsets"][self._grid(b.m)](dst, b.m, b.bsum_scan, b.tile)
+            lc.launch("tile_scan_sums", k["tile_scan"], (1, self.tpb, s),
+                      (b.bsum, b.bsum_scan, b.nb, b.bsum_tot, items))
+            lc.launch("add_offsets", k["add_offsets"], self._grid(b.m), (dst, b.m, b.bsum_scan, b.tile))
 
     def _alloc_list(self, max_nb: int) -> None:
         s = self.stream
@@ -80,45 +81,56 @@ class ListBuilds:
         self.lists = HostLists(self, mode)
 
     def _sort_and_permute(self) -> None:
-        k, n, s = self.k, self.n, self.stream
-        k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
-        k["count_cells"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.count)
+        k, n, s, lc = self.k, self.n, self.stream, self._lc
+        lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (self.count, 0))
+        lc.launch("count_cells", k["count_cells"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
+                                                                     self.count))
         # exclusive scan of ncell + 1 counts (the last is 0) -> cell_start, cell_start[ncell] = n
         self._exclusive_scan(self.count, self.cell_start, self._scan_cells)
-        k["fill_i32"][self._grid(self.ncell + 1)](self.count, 0)
-        k["scatter"][self._grid(n)](n, self.pos, self.sc, self.spf, self.spi, self.cell_start, self.count,
-                                    self.order)
-        k["sort_cells"][self._grid(self.ncell)](self.ncell, self.cell_start, self.order, self.ids)
-        k["inverse_perm"][self._grid(n)](n, self.order, self.inv_old)
-        # permute the particle arrays into cell order (forces too: the next force step reads them)
+        lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (self.count, 0))
+        lc.launch("scatter", k["scatter"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
+                                                            self.cell_start, self.count, self.order))
+        lc.launch("sort_cells", k["sort_cells"], self._grid(self.ncell), (self.ncell, self.cell_start, self.order,
+                                                                           self.ids))
+        lc.launch("inverse_perm", k["inverse_perm"], self._grid(n), (n, self.order, self.inv_old))
+        # permute the particle arrays into cell order (forces too: the next force step reads them), each through
+        # its own launch-cache name (an array and its scratch rows are the same objects at every rebuild)
         # (torque need not move: the next force step rewrites it before any kick reads it)
-        for a in self._permuted_arrays() + self._per_particle:
-            tmp = (self.scratch if a.dtype == self.scratch.dtype else self.scratch_x)[:a.shape[0]]
-            k["gather_rows"][self._grid(n)](n, a, tmp, self.order)
+        for q, a in enumerate(self._permuted_arrays() + self._per_particle):
+            tmp = self._scratch_rows(a)
+            lc.launch(f"gather_rows/{q}", k["gather_rows"], self._grid(n), (n, a, tmp, self.order))
             _copy(a, tmp, s)
-        for a in (self.ids, self.lvl) if self.multigrid else (self.ids,):
-            k["gather_i32"][self._grid(n)](n, a, self.scratch_i, self.order)
-            _copy(a, self.scratch_i, s)
-        for a in self._permuted_i64():   # (gather_i32 is typed at launch: the same kernel for int64)
-            k["gather_i32"][self._grid(n)](n, a, self.scratch_l, self.order)
-            _copy(a, self.scratch_l, s)
+        ints = [(self.scratch_i, a) for a in ((self.ids, self.lvl) if self.multigrid else (self.ids,))]
+        ints += [(self.scratch_l, a) for a in self._permuted_i64()]
+        for q, (tmp, a) in enumerate(ints):   # (gather_i32 is typed at launch: the same kernel for int64)
+            lc.launch(f"gather_i32/{q}", k["gather_i32"], self._grid(n), (n, a, tmp, self.order))
+            _copy(a, tmp, s)
+
+    def _scratch_rows(self, a):
+        """The scratch rows that permuted array ``a`` is gathered into: a view made once per row count and
+        precision (the launch cache knows its arrays by identity)."""
+        base = self.scratch if a.dtype == self.scratch.dtype else self.scratch_x
+        key = (id(base), a.shape[0])
+        view = self._scratch_views.get(key)
+        if view is None:
+            view = self._scratch_views[key] = base[:a.shape[0]]
+        return view
 
     def _set_status(self, slot: int, value: float) -> None:
-        self.status[slot:slot + 1].copy_to_device(np.full(1, value), stream=self.stream)
+        """status[slot] = value, in stream order."""
+        self._lc.launch("set_word", self.k["set_word"], (1, 32, self.stream), (self.status, slot, float(value)))
 
     def _compact(self) -> None:
         """Copy the history that must survive the rebuild into the compact store (grown when full)."""
         while True:
             self._set_status(K.S_NCOMP, 0.0)
-            self.k["compact"][self._grid(self.n)](self.n, self.pos, self.radius1, self.nbr, self.nn, self.hist,
-                                                  self.sc, self.spd, self.spi, self.c_off, self.c_cnt, self.cj,
-                                                  self.chist, self.status)
-            total = np.zeros(1)
-            self.status[K.S_NCOMP:K.S_NCOMP + 1].copy_to_host(total, stream=self.stream)
-            self.stream.synchronize()
-            if int(total[0]) <= self.store_cap:
+            self._lc.launch("compact", self.k["compact"], self._grid(self.n), (
+                self.n, self.pos, self.radius1, self.nbr, self.nn, self.hist, self.sc, self.spd, self.spi,
+                self.c_off, self.c_cnt, self.cj, self.chist, self.status))
+            total = int(self._read_status_now()[K.S_NCOMP])
+            if total <= self.store_cap:
                 return
-            self._alloc_store(int(total[0] * 1.25) + 1024)
+            self._alloc_store(int(total * 1.25) + 1024)
 
     def _rebuild(self) -> None:
         """A list rebuild: on the GPU, or by the CPU-built list modes when they are on (paper 004 §3)."""
@@ -136,19 +148,16 @@ class ListBuilds:
         while True:
             self._set_status(K.S_NEED_NB, 0.0)
             if self.multigrid:
-                self.kl["mg_build"][self._grid(self.n)](
+                self._lc.launch("mg_build", self.kl["mg_build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
                     self.c_off, self.c_cnt, self.cj, self.chist, self.order, self.inv_old, self.nbr, self.nn,
-                    self.hist, self.x_ref, self.sc, self.spd, self.spi, self.status)
+                    self.hist, self.x_ref, self.sc, self.spd, self.spi, self.status))
             else:
-                self.k["build"][self._grid(self.n)](
+                self._lc.launch("build", self.k["build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.cell_start, self.c_off, self.c_cnt, self.cj,
                     self.chist, self.order, self.inv_old, self.nbr, self.nn, self.hist, self.x_ref, self.sc,
-                    self.spd, self.spf, self.spi, self.status)
-            need = np.zeros(1)
-            self.status[K.S_NEED_NB:K.S_NEED_NB + 1].copy_to_host(need, stream=self.stream)
-            self.stream.synchronize()
-            need = int(need[0])
+                    self.spd, self.spf, self.spi, self.status))
+            need = int(self._read_status_now()[K.S_NEED_NB])
             if need <= self.max_nb:
                 break
             # the kept history is in the compact store: the list can be reallocated and rebuilt
@@ -209,13 +218,15 @@ class ListBuilds:
 
     def _bin_levels(self) -> None:
         """Main and secondary bins of every level (counting sort by bin)."""
-        k, n = self.k, self.n
-        k["fill_i32"][self._grid(self.mg_nbins + 1)](self.mg_count, 0)
-        self.kl["mg_count"][self._grid(n)](n, self.pos, self.sc, self.lvl, self.mgi, self.mgf, self.mg_count)
+        k, n, lc = self.k, self.n, self._lc
+        lc.launch("fill_i32", k["fill_i32"], self._grid(self.mg_nbins + 1), (self.mg_count, 0))
+        lc.launch("mg_count", self.kl["mg_count"], self._grid(n), (n, self.pos, self.sc, self.lvl, self.mgi, self.mgf,
+                                                                     self.mg_count))
         self._exclusive_scan(self.mg_count, self.mg_start, self._scan_mg)
-        k["fill_i32"][self._grid(self.mg_nbins)](self.mg_cursor, 0)
-        self.kl["mg_scatter"][self._grid(n)](n, self.pos, self.sc, self.lvl, self.mgi, self.mgf, self.mg_start,
-                                             self.mg_cursor, self.mg_items)
+        lc.launch("fill_i32", k["fill_i32"], self._grid(self.mg_nbins), (self.mg_cursor, 0))
+        lc.launch("mg_scatter", self.kl["mg_scatter"], self._grid(n), (n, self.pos, self.sc, self.lvl, self.mgi,
+                                                                         self.mgf, self.mg_start, self.mg_cursor,
+                                                                         self.mg_items))
 
     def _restore_springs(self, pairs, springs) -> None:
         nbr, nn, hist = (a.copy_to_host(stream=self.stream) for a in (self.nbr, self.nn, self.hist))

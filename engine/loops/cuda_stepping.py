@@ -93,11 +93,11 @@ class TimeLoop:
     def _run_steps(self, nmax: int, first: int, step0: int, grid=None, n: int | None = None, thr=None,
                    status=None) -> None:
         spin, spin_inv, rad, ext = self._step_arrays()
-        self.k["run_steps"][grid or self._coop_grid()](
-            self.n if n is None else n, nmax, first, 0, self._exit_thr if thr is None else thr, self.pos, self.vel,
-            spin, self.quat, self.f_cur, self.f_nxt, self.torque, self.inv_m1, spin_inv, rad, self.x_ref, self.nbr,
-            self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
-            self.status if status is None else status, step0, ext)
+        self._lc.launch("run_steps", self.k["run_steps"], grid or self._coop_grid(), (
+            self.n if n is None else n, nmax, first, 0, float(self._exit_thr if thr is None else thr), self.pos,
+            self.vel, spin, self.quat, self.f_cur, self.f_nxt, self.torque, self.inv_m1, spin_inv, rad, self.x_ref,
+            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
+            self.status if status is None else status, step0, ext))
 
     def warmup(self) -> None:
         """Compile the kernels of the current specialisation without advancing (launches with n = 0)."""
@@ -329,9 +329,22 @@ class TimeLoop:
         return cuda.event(timing=True) if not SIM else cuda.event()
 
     def _read_status_now(self) -> np.ndarray:
+        """The status words once the stream has run all it holds (pinned slot 2; on a GPU the copy goes through
+        engine.numba_internals.async_copy_and_record, as the per-step copies do)."""
         h = self.status_h[2]
-        self.status.copy_to_host(h, stream=self.stream)
-        self._wait_stream()
+        if SIM:
+            self.status.copy_to_host(h, stream=self.stream)
+            self.stream.synchronize()
+            return h
+        if self._now_copier is None:
+            from engine.numba_internals import async_copy_and_record
+
+            if self._poll_ev is None:
+                self._poll_ev = cuda.event(timing=False)
+            self._now_copier = async_copy_and_record(self.status, h, self.stream, self._poll_ev)
+        self._now_copier()
+        while not self._poll_ev.query():
+            time.sleep(2e-5)
         return h
 
     def _wait_stream(self) -> None:

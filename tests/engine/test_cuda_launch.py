@@ -89,7 +89,7 @@ def test_an_entry_whose_array_died_is_not_used_even_under_a_reused_identity():
     lc.launch("forces", k, (1, 32, None), (1, a))
     (key,) = lc.entries["forces"]
     (entry,) = lc.entries["forces"].values()
-    stale = entry[:6] + (((lambda: None),),)              # as if a had died: its reference answers None
+    stale = entry[:7] + (((lambda: None),),)              # as if a had died: its reference answers None
     lc.entries["forces"][key] = stale
     lc.launch("forces", k, (1, 32, None), (2, a))         # same key, dead entry: through the dispatcher
     assert len(k.calls) == 2 and launched == [] and lc.hits == 0
@@ -103,3 +103,24 @@ def test_a_scalar_inside_a_tuple_argument_is_not_cached():
     for step in range(3):
         lc.launch("observe", k, (1, 32, None), (5, (a, step)))
     assert [c[1][1][1] for c in k.calls] == [0, 1, 2] and lc.hits == 0
+
+
+def test_another_dispatcher_under_the_same_name_and_arrays_is_launched_itself():
+    """A scene switches its kernel specialisation (a contact law turned on after the thermalisation) and launches
+    the new kernel under the same name with the same arrays: the launch must be the new kernel's, not a hit on the
+    old one's entry."""
+    launched = []
+
+    def prepare(dispatcher, config, args):
+        return (lambda stream, cfg, kern, *ka: launched.append((kern, ka)), None, None, dispatcher, [args[0]],
+                [(0, 0, None)])
+
+    old, new, a = _Kernel(), _Kernel(), _Array()
+    lc = LaunchCache(enabled=True)
+    lc._prepare = prepare
+    lc.launch("forces", old, (1, 32, None), (1, a))       # miss: through the old dispatcher
+    lc.launch("forces", old, (1, 32, None), (2, a))       # hit: the old kernel
+    lc.launch("forces", new, (1, 32, None), (3, a))       # the new specialisation: through the new dispatcher
+    lc.launch("forces", new, (1, 32, None), (4, a))       # hit: the new kernel
+    assert [c[1] for c in old.calls] == [(1, a)] and [c[1] for c in new.calls] == [(3, a)]
+    assert launched == [(old, (2,)), (new, (4,))]

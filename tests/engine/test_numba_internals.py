@@ -197,12 +197,13 @@ def test_a_kernel_gets_the_stable_key_cache_and_its_key_keeps_numba_cudas_layout
 
 @cuda_only
 def test_the_driver_bindings_of_the_status_copy_are_there():
-    """engine.numba_internals.async_copy_and_record calls cuda-python's driver with the handles of numba-cuda's
-    stream and event and a device array's pointer (the copy itself is checked on a GPU, tests/gpu/test_cuda_gpu.py)."""
+    """engine.numba_internals.async_copy_and_record and async_copy_device call cuda-python's driver with the handles
+    of numba-cuda's stream and event and device arrays' pointers (the copies themselves are checked on a GPU,
+    tests/gpu/test_cuda_gpu.py)."""
     from cuda.bindings import driver as cu
     from numba.cuda.cudadrv import devicearray, driver
 
-    for name in ("cuMemcpyDtoHAsync", "cuEventRecord"):
+    for name in ("cuMemcpyDtoHAsync", "cuMemcpyDtoDAsync", "cuEventRecord"):
         _check(hasattr(cu, name), f"cuda.bindings.driver.{name}", "missing")
     _check(hasattr(cu.CUresult, "CUDA_SUCCESS"), "cuda.bindings.driver.CUresult.CUDA_SUCCESS", "missing")
     for cls in (driver.Stream, driver.Event):
@@ -210,6 +211,8 @@ def test_the_driver_bindings_of_the_status_copy_are_there():
                "no longer keeps its driver handle in .handle")
     _check(hasattr(devicearray.DeviceNDArrayBase, "device_ctypes_pointer"),
            "numba.cuda.cudadrv.devicearray.DeviceNDArrayBase.device_ctypes_pointer", "missing")
+    _check(hasattr(devicearray.DeviceNDArray, "is_c_contiguous"),
+           "numba.cuda.cudadrv.devicearray.DeviceNDArray.is_c_contiguous", "missing")
 
 
 @cuda_only

@@ -255,6 +255,35 @@ def test_cached_launches_give_the_same_trajectory(monkeypatch):
         assert np.array_equal(states[True][key], states[False][key]), key
 
 
+@pytest.mark.parametrize("multistep", [False, True])
+def test_a_contact_law_switched_on_mid_run_runs_its_own_kernels_through_the_cache(monkeypatch, multistep):
+    """A scene that changes its kernel specialisation under way (Coulomb friction switched on after 50 steps
+    without it, as a job's cooling follows its thermalisation) launches the new kernels through the launch cache:
+    bit for bit the trajectory of launches through numba-cuda's dispatcher, in both loops (the cache once keyed
+    its entries by kernel name and arrays only, and went on launching the frictionless kernels). The friction
+    matters in this scene: without the switch the trajectory differs."""
+    import engine.loops.cuda_launch as launch
+    from engine.backends.cuda import CudaBackend
+
+    system, c = _dense()
+    frictionless = dataclasses.replace(c, friction=None)
+    states = {}
+    for cached, switch in ((True, True), (False, True), (False, False)):
+        monkeypatch.setattr(launch, "ENABLED", cached)
+        gpu = CudaBackend(system, frictionless)
+        gpu.e.multistep = multistep
+        gpu.advance(50)
+        if switch:
+            gpu.set_contact(c)
+        gpu.advance(100)
+        assert gpu.builds > 1
+        assert (gpu.e._lc.hits > 0) == cached, gpu.e._lc.hits
+        states[cached, switch] = gpu.state()
+    for key in ("position", "velocity", "angular_velocity"):
+        assert np.array_equal(states[True, True][key], states[False, True][key]), key
+    assert not np.array_equal(states[False, True]["angular_velocity"], states[False, False]["angular_velocity"])
+
+
 def test_fused_step_gives_the_two_launch_trajectory(monkeypatch):
     """The per-phase loop's fused step (a step's forces and the next kick-drift in one launch, positions and
     velocities double-buffered, engine/loops/cuda_loop.py ``forces_kick_drift``) integrates the trajectory of the
@@ -307,3 +336,26 @@ def test_the_status_copy_through_the_driver_bindings_copies_and_records():
     copy()
     event.synchronize()
     assert np.array_equal(host, src + 1.0)
+
+
+def test_the_device_copy_through_the_driver_bindings_copies_in_stream_order():
+    """engine.numba_internals.async_copy_device: the source's bytes land in the destination in stream order (a
+    kernel queued after the copy reads them), and a size or layout it does not handle is refused."""
+    from numba import cuda
+
+    from engine.numba_internals import async_copy_device
+
+    stream = cuda.stream()
+    src = cuda.to_device(np.arange(24, dtype=np.float64).reshape(3, 8), stream=stream)
+    dst = cuda.to_device(np.zeros((3, 8)), stream=stream)
+    async_copy_device(dst, src, stream)
+    stream.synchronize()
+    assert np.array_equal(dst.copy_to_host(), np.arange(24, dtype=np.float64).reshape(3, 8))
+    rows = cuda.to_device(np.zeros((4, 8)), stream=stream)[:3]   # the first rows of a scratch array: contiguous
+    async_copy_device(rows, src, stream)
+    stream.synchronize()
+    assert np.array_equal(rows.copy_to_host(), src.copy_to_host())
+    with pytest.raises(ValueError):
+        async_copy_device(cuda.device_array((2, 8)), src, stream)
+    with pytest.raises(ValueError):
+        async_copy_device(cuda.device_array((3, 16))[:, ::2], src, stream)      # a strided view
