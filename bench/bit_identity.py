@@ -7,6 +7,7 @@ Coulomb, two species; ellipsoids (xi = 2) frictionless, rough and rough with Cou
 
     python -m bench bit_identity --backend cpu
     NUMBA_ENABLE_CUDASIM=1 python -m bench bit_identity --backend cuda      # the CUDA simulator (slow: tiny N)
+    python -m bench bit_identity --backend cuda --launch-cache off         # a GPU: the same digests as with it on
 """
 
 from __future__ import annotations
@@ -51,8 +52,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--backend", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--cases", nargs="*", default=list(CASES))
+    ap.add_argument("--launch-cache", choices=["on", "off"], default="on",
+                    help="off: every GPU launch through numba-cuda's dispatcher (engine/loops/cuda_launch.py); the "
+                         "digests must not change")
     args = ap.parse_args(argv)
     from engine import run
+
+    if args.launch_cache == "off":
+        import engine.loops.cuda_launch as launch
+
+        launch.ENABLED = False
 
     out = {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -33,7 +33,7 @@ BENCHMARKS: dict[str, bool] = {
     "hcs_start": True,
     "orientation": False, "bit_identity": False,
     # the service under load
-    "load_service": False, "small_jobs": True, "cancel_latency": False,
+    "load_service": False, "small_jobs": True, "cancel_latency": False, "first_job": True,
 }
 
 

@@ -48,7 +48,8 @@ class Server:
     def __init__(self, log: Path):
         self.data = Path(tempfile.mkdtemp(prefix="demq-small-"))
         self.port = _free_port()
-        env = {**os.environ, "PYTHONPATH": str(ROOT), "DEMQ_DATA_DIR": str(self.data)}
+        path = os.pathsep.join([str(ROOT)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else []))
+        env = {**os.environ, "PYTHONPATH": path, "DEMQ_DATA_DIR": str(self.data)}
         self.log = open(log, "w")
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
                                      cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)

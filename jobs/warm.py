@@ -22,9 +22,11 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import tempfile
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
@@ -113,9 +115,41 @@ def local_backends() -> tuple[str, ...]:
 
 
 def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str]] = None,
-         precisions: Optional[Sequence[str]] = None) -> WarmReport:
-    """Compile or load every specialisation (:func:`specialisations`; default: this host's backends) in this
-    process; a specialisation that fails is reported and skipped (its jobs compile it themselves)."""
+         precisions: Optional[Sequence[str]] = None, processes: Optional[int] = None) -> WarmReport:
+    """Compile or load every specialisation (:func:`specialisations`; default: this host's backends); a
+    specialisation that fails is reported and skipped (its jobs compile it themselves).
+
+    With ``processes`` > 1 (default :func:`warm_processes`), the specialisations are first compiled in that many
+    spawned processes, one (backend, precision) group at a time each (a group's specialisations share most of their
+    kernels), then all of them run once more in this process, which loads them from the disk cache and compiles
+    whatever the parallel pass left out (two processes that store overloads of one function at once may each keep
+    only its own in the cache's index). The report's ``compiled`` counts the compilations of all the processes,
+    its ``failed`` those of the last pass."""
+    todo = specialisations(backends or local_backends(), shapes, precisions)
+    n = warm_processes(len(todo)) if processes is None else processes
+    t0 = time.perf_counter()
+    compiled_apart = 0
+    if n > 1:
+        groups: dict = {}
+        for sp in todo:
+            groups.setdefault((sp.backend, sp.precision), []).append(sp)
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(n, len(groups)), mp_context=ctx) as pool:
+            compiled_apart = sum(part.compiled for part in pool.map(_warm_list, groups.values()))
+    report = _warm_list(todo)
+    report.compiled += compiled_apart
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+def warm_processes(count: int) -> int:
+    """Processes of a warm-up of ``count`` specialisations: half the CPU cores, at most 8 (each holds a numba
+    compiler and, on a GPU host, a CUDA context); 1 on a machine of 3 cores or fewer."""
+    return max(1, min(count, 8, (os.cpu_count() or 1) // 2)) if (os.cpu_count() or 1) > 3 else 1
+
+
+def _warm_list(todo: list) -> WarmReport:
+    """Run a tiny scene of each specialisation in ``todo`` in this process (compiling or loading its kernels)."""
     from numba.core import event
 
     from engine.ensemble import run_ensemble
@@ -139,7 +173,7 @@ def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str
     t0 = time.perf_counter()
     try:
         with tempfile.TemporaryDirectory(prefix="demq-warm-") as tmp:
-            for k, sp in enumerate(specialisations(backends or local_backends(), shapes, precisions)):
+            for k, sp in enumerate(todo):
                 spec = SimulationSpec.model_validate(sp.spec_dict())
                 try:
                     run(spec, Path(tmp) / f"{k}.h5")

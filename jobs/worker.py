@@ -127,10 +127,12 @@ class Worker:
         backends = self._backends()
         self._register(backends)
         try:
-            self._warm(backends)
+            # the first claim's process starts up (imports, GPU context, the default spec's kernels) while the
+            # warm-up runs, so that the first job does not wait for it after the worker is ready
             self._keep_standby = self.settings.standby_enabled
             if self._keep_standby and not self._stop.is_set():
                 self._standby = self._spawn_standby(None)
+            self._warm(backends)
             while not self._stop.is_set():
                 jobs = self._next(None)
                 if not jobs:

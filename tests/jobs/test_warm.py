@@ -93,3 +93,29 @@ def test_warm_in_a_process_of_its_own_reports_and_a_stop_ends_it():
     stop = threading.Event()
     stop.set()
     assert warm_in_process(["cpu"], stop=stop) is None
+
+
+@pytest.mark.heavy   # compiles twelve CPU specialisations in two processes: about two minutes on 2 cores
+def test_a_warm_up_in_several_processes_leaves_every_specialisation_loadable(tmp_path):
+    """The parallel form (a host of many cores): two spawned processes compile the float64 and float32 groups, then
+    the last pass in this process loads all twelve from the cache; a second warm-up compiles nothing."""
+    code = ("import json, sys; from jobs.warm import warm; r = warm(['cpu'], ['sphere'], ['float64', 'float32'], "
+            "processes=2); print(json.dumps([r.kernels, r.compiled, r.failed]))")
+    runs = []
+    for _ in range(2):
+        p = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=_env(tmp_path / "numba-cache"),
+                           capture_output=True, text=True, timeout=1800)
+        assert p.returncode == 0, p.stderr[-3000:]
+        runs.append(json.loads(p.stdout.strip().splitlines()[-1]))
+    (kernels, compiled, failed), again = runs
+    assert kernels == 12 and failed == [] and compiled > 0, runs[0]
+    assert again == [12, 0, []], again
+
+
+def test_the_warm_up_runs_in_one_process_on_a_small_machine(monkeypatch):
+    import jobs.warm as w
+
+    monkeypatch.setattr(w.os, "cpu_count", lambda: 2)
+    assert w.warm_processes(48) == 1
+    monkeypatch.setattr(w.os, "cpu_count", lambda: 16)
+    assert w.warm_processes(48) == 8 and w.warm_processes(3) == 3
