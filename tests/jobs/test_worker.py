@@ -153,6 +153,17 @@ def test_claims_run_in_standby_processes_and_none_is_left_behind(tmp_path, caplo
     store.close()
 
 
+def test_the_first_standby_starts_up_while_the_warm_up_runs(tmp_path):
+    """A fresh worker's first claim must not wait for its simulation process after the warm-up: the standby is
+    started before the warm-up begins."""
+    settings, store, worker = _standby_worker(tmp_path)
+    seen = []
+    worker._warm = lambda backends: seen.append(worker._standby is not None and worker._standby.proc.is_alive())
+    worker.run_forever(exit_when_idle=True)
+    assert seen == [True]
+    store.close()
+
+
 def test_cancel_and_stop_reach_a_job_in_a_standby_process(tmp_path):
     settings, store, worker = _standby_worker(tmp_path)
     cancel, stop = _enqueue(store, t_end=30.0, seed=5), None
