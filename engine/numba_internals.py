@@ -170,16 +170,16 @@ def device_memset(array, value: int, stream) -> None:
 
 def async_copy_device(dst, src, stream) -> None:
     """Queue, on ``stream``, the copy of the whole contiguous device array ``src`` into the contiguous device array
-    ``dst`` of the same size, straight through cuda-python's ``cuMemcpyDtoDAsync``. numba-cuda's
+    ``dst`` of the same shape and type, straight through cuda-python's ``cuMemcpyDtoDAsync``. numba-cuda's
     ``copy_to_device`` checks, views and converts both arrays at every call (about 0.2 ms of Python each): a list
     rebuild copies every permuted particle array back from its scratch, which at a few thousand particles cost
     more host time than the rebuild's kernels take on the GPU. Raises ValueError for a size or layout it does not
     handle and RuntimeError naming the call where the driver refuses."""
     from cuda.bindings import driver as cu
 
-    if dst.nbytes != src.nbytes or not (dst.is_c_contiguous() and src.is_c_contiguous()):
-        raise ValueError(f"device copy of {src.nbytes} bytes into {dst.nbytes}: both must be contiguous and of one "
-                         "size")
+    if dst.shape != src.shape or dst.dtype != src.dtype or not (dst.is_c_contiguous() and src.is_c_contiguous()):
+        raise ValueError(f"device copy of {src.shape} {src.dtype} into {dst.shape} {dst.dtype}: both must be "
+                         "contiguous, of one shape and one type")
     if src.nbytes == 0:
         return
     err, = cu.cuMemcpyDtoDAsync(int(dst.device_ctypes_pointer.value), int(src.device_ctypes_pointer.value),
