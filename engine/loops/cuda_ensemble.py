@@ -130,9 +130,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._exit_thr = 1.0  # run_steps exits when (displacement / (L_v/2))^2 exceeds it
         self._horizon: Optional[int] = None     # the driver's plan: the run ends about here (plan())
         self._call_end: Optional[int] = None    # the current advance call ends here
-        self._poll_ev = None                    # the event _wait_stream polls (made at its first use)
         self._status_copiers = None             # per pinned status slot: copy + event record (TimeLoop._status_copy)
-        self._now_copier = None                 # the same for the wait-now read (TimeLoop._read_status_now)
         self._carry = None                      # (step, builds, bound, speed) at the last per-phase call's end
         self._last_kick = None                  # what _close_call reads of that call's last kick-drift
         self._lc = LaunchCache()                # the per-step kernels' launches (engine/loops/cuda_launch.py)
@@ -175,7 +173,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         # pinned status copies: the per-step slots 0 and 1 of the per-phase loop, and 2 for a wait-now read
         # (TimeLoop._read_status_now), which must not overwrite a step's status still to be read
         self.status_h = [cuda.pinned_array(K.status_len(nk), np.float64) for _ in range(3)]
-        self.events = [(cuda.event() if SIM else cuda.event(timing=False)) for _ in range(2)]
+        self.events = [(cuda.event() if SIM else cuda.event(timing=False)) for _ in range(3)]   # one per slot
 
     def _init_tables(self, systems: list, contacts: list) -> None:
         """The per-scene constant tables (spd: working precision, spf: float64, spi: int32) with the cell grids."""

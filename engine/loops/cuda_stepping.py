@@ -312,51 +312,42 @@ class TimeLoop:
     def _status_copy(self, slot: int) -> None:
         """The status words to pinned slot ``slot`` after what the stream holds, and the slot's event (through
         engine.numba_internals.async_copy_and_record on a GPU: numba-cuda's copy and record cost about as much host
-        time as a step of 2M spheres takes on an H100)."""
+        time as a step of 2M spheres takes on an H100). Slots 0 and 1: the per-phase loop's steps; 2: a wait-now
+        read (:meth:`_read_status_now`)."""
         if self._status_copiers is None:
             if SIM:
                 self._status_copiers = [
                     (lambda k=k: (self.status.copy_to_host(self.status_h[k], stream=self.stream),
-                                  self.events[k].record(self.stream))) for k in range(2)]
+                                  self.events[k].record(self.stream))) for k in range(3)]
             else:
                 from engine.numba_internals import async_copy_and_record
 
                 self._status_copiers = [async_copy_and_record(self.status, self.status_h[k], self.stream,
-                                                              self.events[k]) for k in range(2)]
+                                                              self.events[k]) for k in range(3)]
         self._status_copiers[slot]()
 
     def _ev(self):
         return cuda.event(timing=True) if not SIM else cuda.event()
 
     def _read_status_now(self) -> np.ndarray:
-        """The status words once the stream has run all it holds (pinned slot 2; on a GPU the copy goes through
-        engine.numba_internals.async_copy_and_record, as the per-step copies do)."""
-        h = self.status_h[2]
-        if SIM:
-            self.status.copy_to_host(h, stream=self.stream)
-            self.stream.synchronize()
-            return h
-        if self._now_copier is None:
-            from engine.numba_internals import async_copy_and_record
-
-            if self._poll_ev is None:
-                self._poll_ev = cuda.event(timing=False)
-            self._now_copier = async_copy_and_record(self.status, h, self.stream, self._poll_ev)
-        self._now_copier()
-        while not self._poll_ev.query():
-            time.sleep(2e-5)
-        return h
+        """The status words once the stream has run all it holds (pinned slot 2)."""
+        self._status_copy(2)
+        self._poll(self.events[2])
+        return self.status_h[2]
 
     def _wait_stream(self) -> None:
-        """Wait for the stream by polling an event with short sleeps, which release the GIL, so that the result
-        files' I/O thread (engine/h5md.py) works while the GPU does (a blocking synchronize may hold it)."""
+        """Wait until the stream has run all it holds."""
+        self.events[2].record(self.stream)
+        self._poll(self.events[2])
+
+    @staticmethod
+    def _poll(event) -> None:
+        """Wait for ``event`` by polling it with short sleeps, which release the GIL, so that the result files' I/O
+        thread (engine/h5md.py) works while the GPU does (a blocking synchronize may hold it)."""
         if SIM:
-            self.stream.synchronize()
+            event.synchronize()
             return
-        if self._poll_ev is None:
-            self._poll_ev = cuda.event(timing=False)
-        self._poll_ev.record(self.stream)
-        while not self._poll_ev.query():
+        while not event.query():
             time.sleep(2e-5)
 
     def _collect(self, h, failed: dict | None = None) -> dict:
