@@ -18,7 +18,9 @@ starts, for side-by-side A/B timings (see SWITCHES): ``startup`` (the start-up t
 engine/loops/cuda_cache.py), ``multigrid`` (the multigrid list build), ``multistep`` (the many-steps-per-launch
 loop: the per-phase loop at every size), ``launch_cache`` (engine/loops/cuda_launch.py), ``displacement_bound`` (every
 kick-drift measures displacements against x_ref, engine/loops/cuda_stepping.py), ``fused`` (two launches a step
-instead of the fused force-and-kick-drift kernel, engine/loops/cuda_stepping.py). Not for the worker cases, whose jobs run in processes of the service.
+instead of the fused force-and-kick-drift kernel, engine/loops/cuda_stepping.py), ``multistep_fused`` (two passes
+and two grid syncs a step in the many-steps kernel instead of one, engine/loops/cuda_stepping.py). Not for the
+worker cases, whose jobs run in processes of the service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
 that the step count is exact):
@@ -73,6 +75,7 @@ SWITCHES = {
     "launch_cache": ("engine.loops.cuda_launch", "ENABLED", False),
     "displacement_bound": ("engine.loops.cuda_stepping", "DISPLACEMENT_BOUND", False),
     "fused": ("engine.loops.cuda_stepping", "FUSED", False),
+    "multistep_fused": ("engine.loops.cuda_stepping", "MULTISTEP_FUSED", False),
 }
 
 

@@ -105,6 +105,7 @@ class Worker:
         self._last_seen = 0.0
         self._standby: Optional[_SimProcess] = None   # the next claim's process, started up (run_forever)
         self._keep_standby = False
+        self._exiting: list[_SimProcess] = []         # processes whose jobs all ended done, still exiting
 
     def stop(self) -> None:
         """Stop claiming; a running job is stopped (checkpointed by the engine) and released."""
@@ -134,6 +135,7 @@ class Worker:
                 self._standby = self._spawn_standby(None)
             self._warm(backends)
             while not self._stop.is_set():
+                self._reap(wait=False)
                 jobs = self._next(None)
                 if not jobs:
                     if exit_when_idle and self._drained():
@@ -148,6 +150,7 @@ class Worker:
             if self._standby is not None:
                 self._standby.close()
                 self._standby = None
+            self._reap(wait=True)
             self._unregister()
         log.info("worker %s stopped", self.owner)
 
@@ -218,6 +221,7 @@ class Worker:
             claimed = self._next(job_id)
             if claimed:
                 self.execute_pack(claimed)
+                self._reap(wait=True)
             else:
                 if self.on_progress is not None:
                     self.on_progress(job, {"fraction": job.progress, "phase": job.phase or job.state,
@@ -311,10 +315,29 @@ class Worker:
         if self._keep_standby:    # the next claim's process starts up while this one runs
             self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
         pack_error = self._supervise(slots, sim.proc, sim.receiver, sim.flags, mode)
+        if all(slot.outcome == DONE for slot in slots) and sim.proc.is_alive():
+            # every job has its result file and is done: the next claim does not wait for this process's exit
+            # (a GPU process's context teardown takes seconds); it is joined later (_reap)
+            self._exiting.append(sim)
+            return {slot.job.id: slot.outcome for slot in slots}
         sim.receiver.close()
         sim.proc.join()
         self._conclude_rest(slots, sim.proc.exitcode, pack_error, mode)
         return {slot.job.id: slot.outcome for slot in slots}
+
+    def _reap(self, wait: bool) -> None:
+        """Join the processes of :attr:`_exiting` that have exited (all of them with ``wait``; one that does not
+        exit within STANDBY_CLOSE_S is killed: its jobs are already done)."""
+        for sim in list(self._exiting):
+            if wait:
+                sim.proc.join(timeout=STANDBY_CLOSE_S)
+                if sim.proc.is_alive():
+                    sim.proc.kill()
+                    sim.proc.join()
+            if not sim.proc.is_alive():
+                sim.proc.join()
+                sim.receiver.close()
+                self._exiting.remove(sim)
 
     # ---- the standby simulation process (time to result) --------------------------------------------
     def _spawn_standby(self, warm_spec_json: Optional[str]) -> Optional["_SimProcess"]:
@@ -359,8 +382,8 @@ class Worker:
         return sim
 
     def _supervise(self, slots: list["_Slot"], proc, receiver, flags, mode: str = ONE) -> Optional[str]:
-        """Relay progress and heartbeats (per job) until the process ends, concluding each job as its
-        final message arrives; return the pack-level error message, if any."""
+        """Relay progress and heartbeats (per job) until the process ends or every job has ended done,
+        concluding each job as its final message arrives; return the pack-level error message, if any."""
         s = self.settings
         sequence = mode == SEQUENCE
         pack_error = None
@@ -393,6 +416,8 @@ class Worker:
                     slot.final = (kind, payload)
                     if slot.outcome is None:
                         self._conclude(slot)
+                    if all(x.outcome == DONE for x in slots):
+                        break   # every job's result is in: what is left of the process is its exit
             elif not proc.is_alive():
                 if receiver.poll(0):
                     continue   # it sent its last messages and exited between the poll and this check: read them

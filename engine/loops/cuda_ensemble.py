@@ -246,6 +246,15 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         """After a fused launch: the halves :meth:`_fused_out` returned become the current state arrays."""
         raise NotImplementedError(f"{type(self).__name__}: the shape's kernels have no fused step")
 
+    def _multistep_out(self) -> tuple:
+        """(pos_b, vel_b, spin_b): the other halves of the double buffer of cuda_loop's ``run_steps_fused``; called
+        only for a shape whose kernel set has it (``MULTISTEP_FUSABLE``)."""
+        raise NotImplementedError(f"{type(self).__name__}: the shape's kernels have no fused many-steps loop")
+
+    def _swap_multistep(self) -> None:
+        """After a fused many-steps launch that ended in the second halves: they become the current state."""
+        raise NotImplementedError(f"{type(self).__name__}: the shape's kernels have no fused many-steps loop")
+
     @abc.abstractmethod
     def _observe_args(self) -> tuple:
         """observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext) (cuda_loop)."""

@@ -58,8 +58,9 @@ NI = 6
 # slots: the multi-step kernel and the fused force-and-kick-drift kernel alternate them by step parity); S_V2
 # (and S_V2B, its other parity): max (2 |v| dt / (L_v/2))^2
 # S_CHECK: max (displacement from a list's snapshot / (L_v/2))^2, the a-posteriori check of a CPU-built list
-S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK, S_V2B = range(9)
-SS0 = 9
+# S_D2C: the third slot of the fused many-steps kernel, which rotates the step maxima through S_D2, S_D2B, S_D2C
+S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK, S_V2B, S_D2C = range(10)
+SS0 = 10
 # per-scene status words
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5

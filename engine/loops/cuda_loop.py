@@ -21,6 +21,9 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
     settle(n, spin, quat, sc, spd, spi, step, ext)       (only for a shape with ``settle_one``)
     run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad, x_ref,
               nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
+    run_steps_fused(n, nmax, first, thr, pos, pos_b, vel, vel_b, spin, spin_b, quat, f0, f1, torque, inv_m, spin_inv,
+                    rad, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
+                                                         (only for a shape with ``MULTISTEP_FUSABLE``)
     observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc)
 ``spin`` is the rotational state the torque kicks (spheres: angular velocity; spheroids: angular momentum),
 ``rad`` the list radius, ``ext`` a tuple of the shape's own arrays; f_old/f_new (f0/f1) are the double buffer
@@ -39,8 +42,8 @@ from numba.cuda import types as ct
 from engine.loops import cuda_kernels as L
 from engine.loops.cuda_cache import SIM, cache_kernels
 from engine.loops.cuda_kernels import (D_BOX, D_DT, D_HP, D_IM0, D_INVBOX, F_LIM2INV, F_OVL, F_V2F, I_ACTIVE,
-                                          I_N, I_START, NSS, S_D2, S_D2B, S_RUN_DONE, S_RUN_REBUILD, S_V2, S_V2B,
-                                          SS0, SS_BAD_ID, SS_OVL, SS_OVL_ID)
+                                          I_N, I_START, NSS, S_D2, S_D2B, S_D2C, S_RUN_DONE, S_RUN_REBUILD, S_V2,
+                                          S_V2B, SS0, SS_BAD_ID, SS_OVL, SS_OVL_ID)
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
 from engine.shapes import device as shape_device
@@ -338,6 +341,86 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
             status[S_RUN_DONE] = f64(done)
             status[S_RUN_REBUILD] = 1.0 if done < nmax else 0.0
 
+    @cuda.jit(device=True)
+    def drift_slot(st):
+        """The status slot of the displacement maximum of step st's drift in run_steps_fused (three in rotation)."""
+        r = st % 3
+        return S_D2 if r == 0 else (S_D2B if r == 1 else S_D2C)
+
+    @cuda.jit
+    def run_steps_fused(n, nmax, first, thr, pos, pos_b, vel, vel_b, spin, spin_b, quat, f0, f1, torque, inv_m,
+                        spin_inv, rad, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext):
+        """run_steps with one grid sync a step (a shape with ``MULTISTEP_FUSABLE``): the drift of step 0, then
+        for each step st one pass of the forces of st and the drift of st + 1, as cuda_loop's
+        ``forces_kick_drift`` does for one step. Positions, velocities and spins are double-buffered: step st's
+        state is read from the first half (pos, vel, spin) when st is even and from the second (pos_b, vel_b,
+        spin_b) when odd, and the drift of st + 1 writes the other half, so no particle's new state is seen by
+        another's forces of the same step and the trajectory is that of run_steps. The launch ends after the
+        forces of step nmax - 1, or, like run_steps, after the drift of the first step whose largest displacement
+        exceeds the threshold (status[S_RUN_REBUILD] = 1); status[S_RUN_DONE] = the whole steps done; the state
+        is then in the half of parity S_RUN_DONE (after an exit) or S_RUN_DONE - 1. The displacement maxima rotate
+        through three slots: a slot is cleared one pass before it is written and read after that pass's sync, so
+        no thread clears a slot that another may still read; on exit S_D2 holds the exiting drift's maximum."""
+        g = cuda.cg.this_grid()
+        sh = cuda.shared.array(SH2, ct.float64)
+        i0 = cuda.grid(1)
+        stride = cuda.gridsize(1)
+        if i0 == 0:
+            status[S_D2] = 0.0
+            status[S_D2B] = 0.0
+            status[S_D2C] = 0.0
+            status[S_RUN_DONE] = 0.0
+            status[S_RUN_REBUILD] = 0.0
+        g.sync()
+        md = 0.0
+        for i in range(i0, n, stride):
+            d2, v2 = kick_drift_one(i, first, 1, pos, pos, vel, vel, spin, quat, f0[0, i], f0[1, i], f0[2, i],
+                                    torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step0, ext)
+            md = max(md, d2)
+        block_max2(sh, md, 0.0)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_D2, sh[0])
+        g.sync()
+        exit_max = status[S_D2]
+        done = 0
+        if not (exit_max > thr):
+            for st in range(nmax):
+                if (st & 1) == 0:
+                    fa, fb = f0, f1
+                    p_in, p_out, v_in, v_out, w_in, w_out = pos, pos_b, vel, vel_b, spin, spin_b
+                else:
+                    fa, fb = f1, f0
+                    p_in, p_out, v_in, v_out, w_in, w_out = pos_b, pos, vel_b, vel, spin_b, spin
+                step = step0 + st
+                more = st + 1 < nmax
+                slot = drift_slot(st + 1)
+                if i0 == 0:
+                    status[drift_slot(st + 2)] = 0.0
+                md = 0.0
+                for i in range(i0, n, stride):
+                    fx, fy, fz = forces_one(i, p_in, v_in, w_in, quat, rad, inv_m, fa, fb, torque, nbr, nn, hist, ids,
+                                            sc, spd, spf, spi, status, step, ext)
+                    if more:
+                        for k in range(3):
+                            w_out[k, i] = w_in[k, i]
+                        d2, v2 = kick_drift_one(i, 0, 1, p_in, p_out, v_in, v_out, w_out, quat, fx, fy, fz, torque,
+                                                inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+                        md = max(md, d2)
+                done += 1
+                if not more:
+                    break
+                block_max2(sh, md, 0.0)
+                if cuda.threadIdx.x == 0:
+                    cuda.atomic.max(status, slot, sh[0])
+                g.sync()
+                exit_max = status[slot]
+                if exit_max > thr:
+                    break
+        if i0 == 0:
+            status[S_RUN_DONE] = f64(done)
+            status[S_RUN_REBUILD] = 1.0 if done < nmax else 0.0
+            status[S_D2] = exit_max
+
     # ---- observables ----------------------------------------------------------------------------------
 
     NOBS = P.NOBS
@@ -364,6 +447,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
     k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
     if P.FUSABLE:
         k["forces_kick_drift"] = forces_kick_drift
+    if P.MULTISTEP_FUSABLE:
+        k["run_steps_fused"] = run_steps_fused
     if settle_one is not None:
         k["settle"] = settle
     return k

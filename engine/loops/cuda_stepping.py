@@ -21,6 +21,10 @@ from engine.loops.status import BAD_VALUE, OVERLAP, instability_error as _instab
 #: False: every kick_drift measures the displacements since the list build against x_ref (bench/e2e.py --off
 #: displacement_bound); True: only where the bound max|v| dt summed over the steps nears L_v/2
 DISPLACEMENT_BOUND = True
+#: True: the many-steps loop runs a step's forces and the next kick-drift in one pass, one grid sync a step, where the
+#: shape's kernels allow it (cuda_loop ``run_steps_fused``); False: two passes a step (bench/e2e.py --off
+#: multistep_fused, the tests)
+MULTISTEP_FUSED = True
 #: True: the per-phase loop runs a step's forces and the next kick-drift in one launch where the shape's kernels
 #: allow it (cuda_loop ``forces_kick_drift``); False: two launches a step (bench/e2e.py --off fused, the tests)
 FUSED = True
@@ -56,18 +60,20 @@ class TimeLoop:
         self._swap_fused()
         self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
 
-    def _coop_grid(self) -> tuple:
-        """Blocks of the cooperative launch: all co-resident (a grid sync needs it)."""
+    def _coop_grid(self, name: str = "run_steps") -> tuple:
+        """Blocks of the cooperative launch of kernel ``name``: all co-resident (a grid sync needs it)."""
         if self._coop_blocks is None:
+            self._coop_blocks = {}
+        if name not in self._coop_blocks:
             if SIM:
-                self._coop_blocks = 1  # the simulator syncs a cooperative grid of one block only
+                self._coop_blocks[name] = 1  # the simulator syncs a cooperative grid of one block only
             else:
-                if not self.k["run_steps"].overloads:
+                if not self.k[name].overloads:
                     self.warmup()
-                kern = next(iter(self.k["run_steps"].overloads.values()))
+                kern = next(iter(self.k[name].overloads.values()))
                 fit = kern.max_cooperative_grid_blocks(self.tpb)
-                self._coop_blocks = max(1, min(fit, (self.n + self.tpb - 1) // self.tpb))
-        return self._coop_blocks, self.tpb, self.stream
+                self._coop_blocks[name] = max(1, min(fit, (self.n + self.tpb - 1) // self.tpb))
+        return self._coop_blocks[name], self.tpb, self.stream
 
     def _kick_drift(self, first: int, step: int, n: int | None = None, grid=None, exact: int = 1) -> None:
         spin, spin_inv, _, ext = self._step_arrays()
@@ -90,9 +96,23 @@ class TimeLoop:
             self._lc.launch("settle", self.k["settle"], grid or self._grid(n), (
                 n, spin, self.quat, self.sc, self.spd, self.spi, self.steps_done, ext))
 
+    def _multistep_fused(self) -> bool:
+        return MULTISTEP_FUSED and "run_steps_fused" in self.k
+
     def _run_steps(self, nmax: int, first: int, step0: int, grid=None, n: int | None = None, thr=None,
                    status=None) -> None:
+        """The many-steps kernel: cuda_loop ``run_steps_fused`` where the shape's kernels have it (the caller swaps
+        the double buffer's halves where the launch ended in the second), else ``run_steps``."""
         spin, spin_inv, rad, ext = self._step_arrays()
+        if self._multistep_fused():
+            pos_b, vel_b, spin_b = self._multistep_out()
+            grid = grid or self._coop_grid("run_steps_fused")
+            self._lc.launch("run_steps_fused", self.k["run_steps_fused"], grid, (
+                self.n if n is None else n, nmax, first, float(self._exit_thr if thr is None else thr), self.pos,
+                pos_b, self.vel, vel_b, spin, spin_b, self.quat, self.f_cur, self.f_nxt, self.torque, self.inv_m1,
+                spin_inv, rad, self.x_ref, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
+                self.spi, self.status if status is None else status, step0, ext))
+            return
         self._lc.launch("run_steps", self.k["run_steps"], grid or self._coop_grid(), (
             self.n if n is None else n, nmax, first, 0, float(self._exit_thr if thr is None else thr), self.pos,
             self.vel, spin, self.quat, self.f_cur, self.f_nxt, self.torque, self.inv_m1, spin_inv, rad, self.x_ref,
@@ -160,6 +180,9 @@ class TimeLoop:
             done = int(h[K.S_RUN_DONE])
             if done % 2 == 1:
                 self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
+            # the fused kernel leaves the state in the half of the last drift: step `done` after an exit, else done - 1
+            if self._multistep_fused() and (done if h[K.S_RUN_REBUILD] > 0 else done - 1) % 2 == 1:
+                self._swap_multistep()
             self.steps_done += done
             remaining -= done
             self._collect(h, failed)

@@ -154,3 +154,13 @@ def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=N
                                      cundall=specs[k].n_particles * (N_STEPS - start[k]) / wall,
                                      resumed_from_step=start[k] or None, extra={"ensemble_size": len(specs)}))
     return results
+
+
+def run_slow_exit(spec, output, **kwargs) -> RunSummary:
+    """Like :func:`run`, but the process takes 3 s to exit after the run (a GPU context's teardown): a thread
+    that the interpreter joins at its exit sleeps that long."""
+    import threading
+
+    summary = run(spec, output, **kwargs)
+    threading.Thread(target=time.sleep, args=(3.0,)).start()
+    return summary

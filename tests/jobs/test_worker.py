@@ -153,6 +153,23 @@ def test_claims_run_in_standby_processes_and_none_is_left_behind(tmp_path, caplo
     store.close()
 
 
+def test_the_next_claim_does_not_wait_for_a_finished_process_to_exit(tmp_path):
+    """Once every job of a claim has ended done, the worker claims the next one without waiting for the old
+    process's exit (a GPU process's context teardown takes seconds; here a thread holds the exit 3 s), and the
+    process is still joined: none is left when the worker stops."""
+    import multiprocessing
+
+    settings, store, worker = _standby_worker(tmp_path, ensemble_max_jobs=1,
+                                              engine_run="tests.jobs.fake_engine:run_slow_exit")
+    first, second = (_enqueue(store, seed=s) for s in (1, 2))
+    worker.run_forever(exit_when_idle=True)
+    first, second = store.get(first.id), store.get(second.id)
+    assert (first.state, second.state) == (DONE, DONE)
+    assert second.started_at - first.finished_at < 1.5, (first.finished_at, second.started_at)
+    assert multiprocessing.active_children() == []
+    store.close()
+
+
 def test_the_first_standby_starts_up_while_the_warm_up_runs(tmp_path):
     """A fresh worker's first claim must not wait for its simulation process after the warm-up: the standby is
     started before the warm-up begins."""

@@ -54,6 +54,7 @@ class CudaEnsemble(CudaEnsembleBase):
         self.f_cur = self._zeros((3, n), dt_)
         self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
         self._alt = None     # the fused step's other halves of pos and vel (_fused_out)
+        self._alt_spin = None  # and of omega, for the fused many-steps kernel (_multistep_out)
         self.torque = self._zeros((3, n), dt_)
         # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
         self.q_last = self._zeros(n, np.int64)
@@ -154,6 +155,17 @@ class CudaEnsemble(CudaEnsembleBase):
 
     def _swap_fused(self) -> None:
         (self.pos, self.vel), self._alt = self._alt, (self.pos, self.vel)
+
+    def _multistep_out(self) -> tuple:
+        """The other halves of the fused many-steps kernel's double buffer: positions and velocities (those of
+        :meth:`_fused_out`) and angular velocities (made at first use)."""
+        if self._alt_spin is None:
+            self._alt_spin = cuda.device_array(self.omega.shape, self.omega.dtype, stream=self.stream)
+        return self._fused_out() + (self._alt_spin,)
+
+    def _swap_multistep(self) -> None:
+        self._swap_fused()
+        self.omega, self._alt_spin = self._alt_spin, self.omega
 
     def _step_arrays(self) -> tuple:
         """(spin, spin_inv, list radius, ext) of the time loop's kernels (engine/loops/cuda_loop.py):

@@ -15,6 +15,10 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``FUSABLE``: the pair evaluator reads no state of another particle that the kick-drift rewrites but its
     position and velocity: the per-phase loop then runs a step's forces and the next kick-drift in one pass
     (cuda_loop ``forces_kick_drift``, positions and velocities double-buffered);
+  - ``MULTISTEP_FUSABLE``: the same with the spin too (the pair evaluator reads no other particle's state
+    the kick-drift rewrites but its position, velocity and ``spin``): the many-steps kernel then runs a step's
+    forces and the next kick-drift in one pass, one grid sync a step (cuda_loop ``run_steps_fused``; positions,
+    velocities and spins double-buffered);
   - ``NOBS``, ``OBS_MAX``: the observe sums per scene and the slot that is a maximum;
   - ``translated(k, i, x_old, v, f, im, hp, ext)``: after the shared kick of component k of particle i
     (v = the new velocity, f = the force, x_old = the position before the drift);
@@ -271,7 +275,9 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     # FUSABLE for smooth spheres: a rough pair reads the neighbours' spins, which the kick-drift rewrites (with
     # the spins double-buffered too, the fused rough kernel was no faster than the two on an H100: it needs more
     # registers than one block of 256 threads per SM leaves)
-    return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, FUSABLE=not ROUGH, NOBS=NOBS,
+    # MULTISTEP_FUSABLE for every sphere: the pair reads the neighbours' positions, velocities and spins only, all
+    # three double-buffered by the fused many-steps kernel (small scenes: there a step is bound by its grid syncs)
+    return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, FUSABLE=not ROUGH, MULTISTEP_FUSABLE=True, NOBS=NOBS,
                            OBS_MAX=O_MAX, translated=translated, rotate=rotate,
                            settle_one=settle_one if ORIENT else None, spin_kick=spin_kick,
                            particle=particle, pair=pair, observe_one=observe_one, kernels={})

@@ -304,7 +304,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
                     hist[3, kk, i] = ZERO
 
     # not FUSABLE: the pair evaluator reads the neighbours' orientations, which the rotation step rewrites
-    return SimpleNamespace(PREDICTS=True, TORQUE=True, FUSABLE=False, NOBS=NACC,
+    return SimpleNamespace(PREDICTS=True, TORQUE=True, FUSABLE=False, MULTISTEP_FUSABLE=False, NOBS=NACC,
                            OBS_MAX=A_OVL, translated=translated, rotate=rotate, settle_one=None,
                            spin_kick=spin_kick, particle=particle, pair=pair,
                            observe_one=observe_one, kernels=dict(clamp_history=clamp_history))
