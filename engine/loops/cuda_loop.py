@@ -284,6 +284,17 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
 
     # ---- many steps per launch (small scenes and ensembles: launch overhead paid once per chunk) -------
 
+    @cuda.jit(device=True)
+    def begin_run(g, i0, status):
+        """The many-steps kernels' start: their status words cleared (by thread 0), then a grid sync."""
+        if i0 == 0:
+            status[S_D2] = 0.0
+            status[S_D2B] = 0.0
+            status[S_D2C] = 0.0
+            status[S_RUN_DONE] = 0.0
+            status[S_RUN_REBUILD] = 0.0
+        g.sync()
+
     @cuda.jit
     def run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad,
                   x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext):
@@ -300,12 +311,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         sh = cuda.shared.array(SH2, ct.float64)
         i0 = cuda.grid(1)
         stride = cuda.gridsize(1)
-        if i0 == 0:
-            status[S_D2] = 0.0
-            status[S_D2B] = 0.0
-            status[S_RUN_DONE] = 0.0
-            status[S_RUN_REBUILD] = 0.0
-        g.sync()
+        begin_run(g, i0, status)
         done = 0
         for st in range(nmax):
             even = (st & 1) == 0
@@ -361,17 +367,11 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         is then in the half of parity S_RUN_DONE (after an exit) or S_RUN_DONE - 1. The displacement maxima rotate
         through three slots: a slot is cleared one pass before it is written and read after that pass's sync, so
         no thread clears a slot that another may still read; on exit S_D2 holds the exiting drift's maximum."""
-        g = cuda.cg.this_grid()
-        sh = cuda.shared.array(SH2, ct.float64)
         i0 = cuda.grid(1)
         stride = cuda.gridsize(1)
-        if i0 == 0:
-            status[S_D2] = 0.0
-            status[S_D2B] = 0.0
-            status[S_D2C] = 0.0
-            status[S_RUN_DONE] = 0.0
-            status[S_RUN_REBUILD] = 0.0
-        g.sync()
+        sh = cuda.shared.array(SH2, ct.float64)
+        g = cuda.cg.this_grid()
+        begin_run(g, i0, status)
         md = 0.0
         for i in range(i0, n, stride):
             d2, v2 = kick_drift_one(i, first, 1, pos, pos, vel, vel, spin, quat, f0[0, i], f0[1, i], f0[2, i],
