@@ -10,7 +10,10 @@ compilation or its disk-cache load is part of the figure, as for a user who star
   rebuilds, no output) — a diagnostic, printed beside the end-to-end figure;
 * where the rest went (RunSummary.extra["timings"], engine/simulate.py TIMINGS): setup (spec, placement,
   velocities), build (device upload, first list), compile (or cache load), loop, records, snapshots,
-  checkpoints, open and close of the file, and "other" (imports excluded: the clock starts at the call).
+  checkpoints, open and close of the file, and "other" (imports excluded: the clock starts at the call);
+* the process's seconds (``process_s``): the fresh process from its start to its exit, the interpreter, every
+  import and the exit included (what a user's ``python -c`` of the job takes; with ``--off``, whose switches import
+  their modules before the call's clock starts, the fair figure to compare).
 
 ``--off NAME ...`` turns latency machinery of the GPU path off in the process that runs each case, before the case
 starts, for side-by-side A/B timings (see SWITCHES): ``startup`` (the start-up thread, engine/startup.py),
@@ -308,10 +311,12 @@ def fresh_process(case: str, quick: bool, off=(), start=None) -> dict:
         code = ("import json,sys; sys.path.insert(0, %r); from bench.e2e import run_case; from pathlib import Path; "
                 "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r, %r)))"
                 % (str(ROOT), case, quick, d, tuple(off), start))
+        t0 = time.perf_counter()
         p = subprocess.run([sys.executable, "-c", code], cwd=str(ROOT), capture_output=True, text=True)
+        process_s = time.perf_counter() - t0
         for line in p.stdout.splitlines():
             if line.startswith("E2E-ROW "):
-                return json.loads(line[8:])
+                return {**json.loads(line[8:]), "process_s": process_s}
         raise RuntimeError(f"case {case} failed (exit {p.returncode}):\n{p.stderr[-3000:]}")
 
 
@@ -363,12 +368,14 @@ def main(argv=None, out_dir=None) -> int:
         row = sorted(reps, key=lambda r: r["wall_s"])[(len(reps) - 1) // 2]   # median (lower for even)
         row["walls"] = [r["wall_s"] for r in reps]
         row["off"] = list(args.off)
-        row["runs"] = [{"wall_s": r["wall_s"], "loop_s": r["loop_s"], "timings": r["timings"],
-                        "gpu_startup": r.get("gpu_startup")} for r in reps]
+        row["runs"] = [{"wall_s": r["wall_s"], "loop_s": r["loop_s"], "process_s": r.get("process_s"),
+                        "timings": r["timings"], "gpu_startup": r.get("gpu_startup")} for r in reps]
         if first is not None:
             row["first_run"] = {"wall_s": first["wall_s"], "timings": first["timings"]}
         rows.append(row)
+        procs = [r["process_s"] for r in reps if r.get("process_s") is not None]
         print(f"{case}: wall {row['wall_s']:.2f} s (runs {', '.join(f'{w:.2f}' for w in row['walls'])}"
+              + (f"; processes {', '.join(f'{w:.2f}' for w in procs)} s" if procs else "")
               + (f"; first run {first['wall_s']:.2f} s" if first else "") + "), "
               f"end-to-end {row['e2e_cundall']:.3g}, loop {row['loop_cundall']:.3g} particle-steps/s, "
               f"e2e/loop {row['e2e_over_loop']:.2f}; " + ", ".join(f"{k} {v:.2f}" for k, v in row["timings"].items()),
