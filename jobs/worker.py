@@ -326,17 +326,11 @@ class Worker:
         return {slot.job.id: slot.outcome for slot in slots}
 
     def _reap(self, wait: bool) -> None:
-        """Join the processes of :attr:`_exiting` that have exited (all of them with ``wait``; one that does not
-        exit within STANDBY_CLOSE_S is killed: its jobs are already done)."""
+        """Join the processes of :attr:`_exiting` that have exited (all of them with ``wait``: one that does not
+        exit within STANDBY_CLOSE_S is killed, its jobs are already done)."""
         for sim in list(self._exiting):
-            if wait:
-                sim.proc.join(timeout=STANDBY_CLOSE_S)
-                if sim.proc.is_alive():
-                    sim.proc.kill()
-                    sim.proc.join()
-            if not sim.proc.is_alive():
-                sim.proc.join()
-                sim.receiver.close()
+            if wait or not sim.proc.is_alive():
+                sim.close()
                 self._exiting.remove(sim)
 
     # ---- the standby simulation process (time to result) --------------------------------------------
@@ -582,7 +576,8 @@ class _SimProcess:
     claims: Optional[object] = None    # a standby's claim pipe, until it has its claim
 
     def close(self) -> None:
-        """End a standby that will get no claim (or a process that died): tell it, then wait or kill."""
+        """End a standby that will get no claim, a process that died or one whose jobs are all done: tell a standby,
+        then wait (STANDBY_CLOSE_S) or kill."""
         if self.claims is not None:
             try:
                 self.claims.send(None)

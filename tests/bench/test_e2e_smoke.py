@@ -39,3 +39,9 @@ def test_every_off_switch_names_an_engine_setting_that_is_on_by_default(monkeypa
         assert getattr(mod, setting) == off_value, name
     with pytest.raises(ValueError, match="unknown switch"):
         e2e.switch_off(["no-such-switch"])
+
+
+def test_a_fresh_process_case_reports_the_process_seconds():
+    """The fresh-process path also times the whole process (interpreter start to exit), which holds the call."""
+    row = e2e.fresh_process("quickstart", quick=True)
+    assert 0 < row["wall_s"] < row["process_s"]
