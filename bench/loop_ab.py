@@ -6,16 +6,18 @@ prints one JSON line per run: the loop and end-to-end Cundall numbers and the ne
 ``default`` or a ``+``-joined list of: bench/e2e.py ``--off`` switch names (e.g. ``launch_cache``,
 ``displacement_bound``), ``multistep_on`` (the many-steps-per-launch loop forced for a large scene), ``blocks=B``
 (every force kernel compiled for B blocks per SM: engine/loops/cuda_loop.py FORCES_BLOCKS_PER_SM; ``blocks=0``: none
-compiled with launch bounds). For the cost
+compiled with launch bounds), ``gc_off`` (Python's cyclic garbage collector off during the run). For the cost
 of one piece of machinery inside the loop, without the fresh-process noise of bench/e2e.py.
 
     python -m bench loop_ab --cases elastic-2M-f64 elastic-8M-f32 --variants launch_cache default multistep_on
     python -m bench loop_ab --cases rough-2M-f64 --variants default blocks=2 blocks=3
-    python -m bench loop_ab --cases elastic-1M-f64 packed-256x4096-f64 --variants default multistep
+    python -m bench loop_ab --cases elastic-1M-f64 packed-256x4096-f64 --variants default gc_off --start random
 
 Cases: those of bench/vs_jaxmd.py and :data:`EXTRA` (one 1M-sphere scene and 256 packed scenes of 4096 at the
 same sphere size; 1M rough spheroids). For several scenes the loop figure is N x steps over the ensemble's loop
-seconds.
+seconds. Compare one scene with packed scenes at the same ``--start``: by default a scene of 2^20 particles or more
+starts on the lattice, whose list stays nearly empty over a short run, and a 4096-sphere scene from the random
+start.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ if __name__ == "__main__":
 def apply(variant: str, default_blocks) -> None:
     """Put every switch back on and the force kernels' launch bounds to the engine's ``default_blocks``, then turn
     off those the variant names (bench.e2e.SWITCHES) and set its ``blocks=B``."""
+    import gc
     import importlib
 
     from bench.e2e import SWITCHES, switch_off
@@ -44,9 +47,12 @@ def apply(variant: str, default_blocks) -> None:
         mod = importlib.import_module(module)
         setattr(mod, setting, None if (module, setting) == ("engine.loops.cuda_ensemble", "MULTISTEP") else True)
     loop.FORCES_BLOCKS_PER_SM = default_blocks
+    gc.enable()
     off = []
     for part in ([] if variant == "default" else variant.split("+")):
-        if part == "multistep_on":
+        if part == "gc_off":
+            gc.disable()
+        elif part == "multistep_on":
             ensemble.MULTISTEP = True
         elif part.startswith("blocks="):
             b = int(part.split("=", 1)[1])
@@ -68,15 +74,16 @@ EXTRA = {
 }
 
 
-def extra_specs(case: str, steps: int, backend: str) -> list:
-    """The specs of an EXTRA case (one per scene, own seeds), t_end = steps x dt exactly."""
+def extra_specs(case: str, steps: int, backend: str, start=None) -> list:
+    """The specs of an EXTRA case (one per scene, own seeds), t_end = steps x dt exactly; ``start``: the spec's start
+    protocol (None: the engine's choice by size, which differs between one 1M scene and 4096-sphere scenes)."""
     from bench.vs_jaxmd import SCENE
     from engine.params import derive
     from engine.spec import SimulationSpec
 
     k, n, precision, _, contact = EXTRA[case]
     base = dict(SCENE, n_particles=n, precision=precision, thermalization=0.0, snapshots=0, backend=backend,
-                box_length=SCENE["box_length"] * (n / 2**21) ** (1 / 3))
+                box_length=SCENE["box_length"] * (n / 2**21) ** (1 / 3), start=start)
     if contact == "elastic":
         base.update(e_n=1.0, e_t=-1.0)
     elif contact == "rough":
@@ -100,19 +107,24 @@ def main(argv=None) -> int:
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda")
     ap.add_argument("--steps-scale", type=float, default=1.0)
+    ap.add_argument("--start", choices=("lattice", "random"), default=None,
+                    help="every scene's start protocol (default: the engine's choice by size: the lattice for one "
+                         "scene of 2^20 or more, whose list is then nearly empty over a short run, RSA below)")
     args = ap.parse_args(argv)
     import h5py
 
     import engine.loops.cuda_loop as loop
     from engine import run, run_ensemble
+    from engine.start_kind import start_protocol
 
     default_blocks = loop.FORCES_BLOCKS_PER_SM
 
     def specs_of(case: str, steps: int) -> list:
         if case in EXTRA:
-            return extra_specs(case, steps, args.backend)
+            return extra_specs(case, steps, args.backend, args.start)
         n, precision, _, rough = CASES[case]
-        return [case_spec(n, precision, steps, rough, args.backend)]
+        spec = case_spec(n, precision, steps, rough, args.backend)
+        return [spec if args.start is None else type(spec)(**dict(spec.model_dump(), start=args.start))]
 
     def run_case(specs: list, tmp: Path) -> tuple:
         """(summaries, wall s): one scene through engine.run, several through one run_ensemble."""
@@ -146,7 +158,8 @@ def main(argv=None) -> int:
                     with h5py.File(summaries[0].output, "r") as f:
                         builds = int(f["parameters"].attrs["neighbour_builds"])
                     print(json.dumps({"case": case, "variant": v, "rep": rep, "device": summaries[0].device,
-                                      "scenes": len(specs), "n": n, "steps": steps_done, "list_builds": builds,
+                                      "scenes": len(specs), "n": n, "start": start_protocol(specs[0]),
+                                      "steps": steps_done, "list_builds": builds,
                                       "loop_s": round(loop_s, 4), "wall_s": round(wall, 3),
                                       "cundall_loop": float(f"{n * steps_done / loop_s:.3e}"),
                                       "cundall_end_to_end": float(f"{n * steps_done / wall:.3e}")}), flush=True)

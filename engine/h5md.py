@@ -77,6 +77,14 @@ _io_lock = threading.Lock()
 _io_pool = None
 
 
+def _records() -> tuple:
+    """An empty block of observable records: ([steps], [times], [{name: value}]). Three lists, not a tuple per
+    record: a record's step, time and dict of numbers are objects the cyclic garbage collector does not track, so
+    the records a long run (or 256 packed scenes) keeps in memory add no work to its collections, which otherwise
+    paused a packed GPU run's time loop for up to 0.1 s (docs/performance.md, "Packed ensembles")."""
+    return [], [], []
+
+
 def _io() -> ThreadPoolExecutor:
     """The process's one HDF5 I/O thread (background writers)."""
     global _io_pool
@@ -107,7 +115,7 @@ class H5MDWriter:
         self.n = n
         self.dtype = np.dtype(dtype)
         self.f = None
-        self._pending: list = []     # (step, time, {name: value}) records not yet written
+        self._pending = _records()   # records not yet written (steps, times, {name: value} dicts)
         self._groups: dict = {}      # observable name -> its [step, time, value] datasets
         self._bg = background
         self._jobs: deque = deque()  # futures of the background file work, in order
@@ -228,25 +236,28 @@ class H5MDWriter:
             if not math.isfinite(value):
                 raise InstabilityError(f"observable {name} is not finite at step {step} (t = {time:g} s): "
                                        f"the run blew up; nothing non-finite is written", step=step)
-        self._pending.append((step, time, values))
-        if len(self._pending) >= OBSERVABLE_BLOCK:
+        steps, times, rows = self._pending
+        steps.append(step)
+        times.append(time)
+        rows.append(values)
+        if len(steps) >= OBSERVABLE_BLOCK:
             self._write_pending()
 
     def _write_pending(self) -> None:
         """Hand the observables kept in memory to the file (now, or queued on the I/O thread)."""
-        if not self._pending:
+        if not self._pending[0]:
             return
-        rows, self._pending = self._pending, []
+        rows, self._pending = self._pending, _records()
         if self._deferred:
             self._blocks.append(rows)
             return
         self._submit(self._write_block, rows)
 
-    def _write_block(self, rows: list) -> None:
-        """Write a block of observable records [(step, time, {name: value})]: one write per dataset and name
+    def _write_block(self, rows: tuple) -> None:
+        """Write a block of observable records ([steps], [times], [{name: value}]): one write per dataset and name
         (a new series is created with its first block as data; later blocks resize it once)."""
         block: dict = {}  # name -> ([steps], [times], [values]), in the writer's thread, not the caller's
-        for step, time, values in rows:
+        for step, time, values in zip(*rows):
             for name, value in values.items():
                 col = block.get(name)
                 if col is None:

@@ -1,0 +1,39 @@
+"""bench/loop_ab.py's cases and variants: a packed case compared with one scene at the same start, and the variants
+that switch the garbage collector off and back on."""
+
+from __future__ import annotations
+
+import gc
+
+import pytest
+
+from bench import loop_ab
+from engine.start_kind import start_protocol
+
+
+def test_by_default_one_large_scene_and_packed_small_scenes_start_differently_and_start_makes_them_alike():
+    one = loop_ab.extra_specs("elastic-1M-f64", 100, "cpu")
+    packed = loop_ab.extra_specs("packed-256x4096-f64", 100, "cpu")
+    assert len(one) == 1 and len(packed) == 256 and one[0].n_particles == 256 * packed[0].n_particles
+    assert start_protocol(one[0]) == "lattice" and start_protocol(packed[0]) == "random"
+    for start in ("random", "lattice"):
+        specs = loop_ab.extra_specs("elastic-1M-f64", 100, "cpu", start) + \
+            loop_ab.extra_specs("packed-256x4096-f64", 100, "cpu", start)
+        assert {start_protocol(s) for s in specs} == {start}
+        assert all(s.thermalization == 0.0 and s.snapshots == 0 for s in specs)
+    # the same sphere size and density: the box scales with N
+    assert packed[0].box_length ** 3 * 256 == pytest.approx(one[0].box_length ** 3)
+
+
+def test_the_gc_off_variant_turns_the_collector_off_and_default_turns_it_back_on():
+    import engine.loops.cuda_loop as loop
+
+    blocks = loop.FORCES_BLOCKS_PER_SM
+    try:
+        loop_ab.apply("gc_off", blocks)
+        assert not gc.isenabled()
+        loop_ab.apply("default", blocks)
+        assert gc.isenabled()
+    finally:
+        gc.enable()
+        loop.FORCES_BLOCKS_PER_SM = blocks
