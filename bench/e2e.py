@@ -22,7 +22,9 @@ engine/loops/cuda_cache.py), ``multigrid`` (the multigrid list build), ``multist
 loop: the per-phase loop at every size), ``launch_cache`` (engine/loops/cuda_launch.py), ``displacement_bound`` (every
 kick-drift measures displacements against x_ref, engine/loops/cuda_stepping.py), ``fused`` (two launches a step
 instead of the fused force-and-kick-drift kernel, engine/loops/cuda_stepping.py), ``multistep_fused`` (two passes
-and two grid syncs a step in the many-steps kernel instead of one, engine/loops/cuda_stepping.py). Not for the
+and two grid syncs a step in the many-steps kernel instead of one, engine/loops/cuda_stepping.py),
+``observe_in_forces`` (a lone smooth-sphere scene's records by the closing half kick and the observe kernel instead of
+the last force pass of each advance call, engine/loops/cuda_stepping.py). Not for the
 worker cases, whose jobs run in processes of the service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
@@ -79,6 +81,7 @@ SWITCHES = {
     "displacement_bound": ("engine.loops.cuda_stepping", "DISPLACEMENT_BOUND", False),
     "fused": ("engine.loops.cuda_stepping", "FUSED", False),
     "multistep_fused": ("engine.loops.cuda_stepping", "MULTISTEP_FUSED", False),
+    "observe_in_forces": ("engine.loops.cuda_stepping", "OBSERVE_IN_FORCES", False),
 }
 
 

@@ -49,6 +49,10 @@ with ``pip download --no-deps -d .whl jax-md==0.2.29 flax optax treescope rich p
 cloudpickle etils absl-py jraph e3nn-jax sympy mpmath attrs ml-collections typing-extensions`` plus PyYAML and
 msgpack for the host's Python (``--only-binary=:all: --platform manylinux2014_x86_64 --python-version 3.X``),
 and install them with ``pip install --no-index --no-deps .whl/*.whl``.
+With jax 0.11.2 (the GPU image's on 2026-11-28) no flax release on the PyPI mirror (up to 0.12.8) imports
+``flax.nnx``, which ``jax_md.energy`` imports at module load: 0.12.1-0.12.8 subclass
+``jax.experimental.hijax.HiPrimitive`` (gone in 0.11.2) and read ``jax.core.Effect``, 0.12.0 and older import
+``jax._src.core.mutable_array``; the bench then runs demq alone.
 """
 
 from __future__ import annotations

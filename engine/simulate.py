@@ -234,6 +234,35 @@ class SceneRun:
         """Steps from the current position to the scene's next stop (0: it is at a stop)."""
         return self._target - self.step_done
 
+    def stops_ahead(self, limit: int) -> list:
+        """Steps from the current position to the stops one advance call may run through: the next stop, then, while
+        each stop passed is a record stop only (no snapshot, not the run's last stop, in the cooling run), the
+        following ones within ``limit`` steps."""
+        out = [self.steps_to_next()]
+        if self.phase != "cooling" or self.done:
+            return out
+        ev, idx = self._event_steps, self._idx
+        while idx + 1 < len(ev) and self.records.trigger(ev[idx]) and not self.snapshots.trigger(ev[idx]):
+            idx += 1
+            if ev[idx] - self.step_done > limit:
+                break
+            out.append(ev[idx] - self.step_done)
+        return out
+
+    def at_record(self, obs: dict, k: int, wall_s: float) -> None:
+        """A record stop passed inside a longer advance call (:meth:`stops_ahead`): advanced k steps in wall_s, then
+        what :meth:`at_stop` does there with the observables the time loop summed: the record with its energy check
+        and the progress. No snapshot is due there; a due checkpoint waits for the call's last stop, where the state
+        can be read."""
+        self.advanced(k, wall_s)
+        p, step_done = self.p, self.step_done
+        t_sim = step_done * p.dt
+        t0 = time.perf_counter()
+        self._record(step_done, t_sim, self._counted(obs))
+        self.timings["records"] += time.perf_counter() - t0
+        self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
+        self._next_event()
+
     def check_cancel(self) -> None:
         if self.should_cancel is not None and self.should_cancel():
             raise Cancelled("run cancelled on request")
@@ -575,6 +604,11 @@ class _Runner:
         """Advance the active scenes to their next stops (per scene, or all by the nearest stop); {i: error} of the
         scenes that failed, or None when the ensemble itself failed (every active scene then ended with it)."""
         runs, ens = self.runs, self.ens
+        if not self.per_scene and len(self.active) == 1 and ens.observes_in_loop():
+            i = next(iter(self.active))
+            at = runs[i].stops_ahead(self._steps_within(runs[i], RECORDS_CALL_S))
+            if len(at) > 1:
+                return self.advance_through_records(i, at)
         dist = {i: runs[i].steps_to_next() for i in self.active}
         failed: dict = {}
         try:
@@ -598,6 +632,36 @@ class _Runner:
             for i in sorted(self.active):
                 self.end(i, exc)
             return None
+        return failed
+
+    @staticmethod
+    def _steps_within(run: SceneRun, seconds: float) -> int:
+        """The steps scene ``run`` takes in about ``seconds`` of its time loop so far (0 before its first call)."""
+        return int(seconds * run.steps_run / run.wall) if run.wall > 0 else 0
+
+    def advance_through_records(self, i: int, at: list) -> Optional[dict]:
+        """Scene i alone, on an ensemble that sums observables in its time loop (``observes_in_loop``): one advance
+        through the stops ``at`` (SceneRun.stops_ahead), each record passed on the way handed its observables
+        (SceneRun.at_record); the last stop is then handled as every stop is, its observables answering observe()."""
+        run = self.runs[i]
+        t0 = time.perf_counter()
+        try:
+            failed, obs = self.ens.advance_observing(at[-1], at)
+        except Exception as exc:  # the ensemble itself failed
+            self.end(i, exc)
+            return None
+        wall = time.perf_counter() - t0
+        if i in failed:
+            return failed
+        done = 0
+        try:
+            for k, o in zip(at[:-1], obs[:-1]):
+                run.at_record(o[i], k - done, wall * (k - done) / at[-1])
+                done = k
+        except Exception as exc:  # a record's energy check
+            self.end(i, exc)
+            return {}
+        run.advanced(at[-1] - done, wall * (at[-1] - done) / at[-1])
         return failed
 
     def stops(self) -> set:
@@ -655,6 +719,9 @@ class _Runner:
             self.settle(i, summary, deactivated=True)
 
 
+#: wall seconds of time loop one advance call of a lone scene may run through records (``observes_in_loop``): the
+#: cancel checks and checkpoints wait for the call's end
+RECORDS_CALL_S = 0.25
 #: an ensemble of at least this many scenes on the GPU writes its files at the end in writer processes
 DEFER_MIN_SCENES = 8
 #: ... if every scene's file (snapshot frames kept in memory until then) is at most this large

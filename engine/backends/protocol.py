@@ -125,6 +125,23 @@ class Ensemble(abc.ABC):
                              f"{sorted(counts)}")
         return self.advance(counts.pop()) if counts else {}
 
+    def advance_observing(self, nsteps: int, at) -> tuple:
+        """Advance every active scene nsteps steps and observe them after each count of steps in ``at`` (increasing,
+        the last one nsteps): ({k: error} of the scenes that blew up, [:meth:`observe` after each count]). Afterwards
+        :meth:`observe` answers the last. Default: :meth:`advance` to each count, then :meth:`observe`."""
+        failed, out, done = {}, [], 0
+        for k in at:
+            failed.update(self.advance(k - done))
+            done = k
+            out.append(self.observe())
+        return failed, out
+
+    def observes_in_loop(self) -> bool:
+        """True where :meth:`advance_observing` sums the observables inside the time loop, so that advancing through
+        several records in one call saves the host's stops (one-scene CUDA ensembles of smooth spheres); the driver
+        then does (engine/simulate.py). Default: False."""
+        return False
+
     def deactivate_many(self, ks) -> None:
         """Several scenes drop out at once (a packed ensemble does it in one device round trip)."""
         for k in ks:

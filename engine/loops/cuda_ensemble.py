@@ -133,6 +133,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._status_copiers = None             # per pinned status slot: copy + event record (TimeLoop._status_copy)
         self._carry = None                      # (step, builds, bound, speed) at the last per-phase call's end
         self._last_kick = None                  # what _close_call reads of that call's last kick-drift
+        self._open = False                      # velocities half a step behind the positions (TimeLoop._close)
         self._lc = LaunchCache()                # the per-step kernels' launches (engine/loops/cuda_launch.py)
         self._orient = True                     # the compiled specialisation tracks orientations
         self.lists = None                       # host-built Verlet lists (set_list_mode), None: built on the GPU
@@ -334,6 +335,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
 
     def _upload_params(self) -> None:
         self._carry = None      # dt, skin or contact changed: the next call measures its first step again
+        self._observed_at = None    # the force pass's sums were of the old constants
         self.spd.copy_to_device(self.spd_h, stream=self.stream)
         self.spf.copy_to_device(self.spf_h, stream=self.stream)
         self.spi.copy_to_device(self.spi_h, stream=self.stream)
@@ -350,6 +352,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         for k, contact in contacts.items():
             if contact.precision != self.contact[k].precision:
                 raise ValueError("the precision of a scene cannot change inside an ensemble")
+        self._close()   # with the kernels of the constants that computed the forces it kicks with
         self._sync_active()
         for k, contact in contacts.items():
             self._set_scene_contact(k, contact)
@@ -363,6 +366,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     def deactivate_many(self, ks) -> None:
         """Scenes ks drop out together: one device round trip for all (the scenes of a packed batch end in
         the same round; one by one, 256 of them took ~1 s of syncs and parameter uploads)."""
+        self._close()   # before the flags stop the half kick (a finished scene's state is read after)
         self._sync_active()
         for k in ks:
             self.active[k] = False
@@ -420,7 +424,8 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         """Bytes of device memory this backend holds (all arrays)."""
         views = set(self._view_names)
         return sum(v.nbytes for name, v in vars(self).items() if name not in views and _is_dev(v)
-                   and not (name == "f_nxt" and v is self.f_cur)) + (0 if self._sums is None else self._sums.acc.nbytes)
+                   and not (name == "f_nxt" and v is self.f_cur)) + sum(
+            slot.acc.nbytes for slot in (self._sums, self._rows) if slot is not None)
 
 
 def _is_dev(a) -> bool:

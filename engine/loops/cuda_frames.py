@@ -29,7 +29,8 @@ PIN_AFTER_FRAMES = 3
 
 class StateFrames:
     """The state-copy part of a CUDA ensemble: :meth:`_scene_rows` and its host buffer slots. The ensemble provides
-    ``stream``, ``starts``, ``sizes``, ``dtype``, ``pos_dtype``, ``ids``, ``_grid`` and :meth:`state_arrays`."""
+    ``stream``, ``starts``, ``sizes``, ``dtype``, ``pos_dtype``, ``ids``, ``_grid``, :meth:`state_arrays` and
+    :meth:`_close` (velocities level with the positions)."""
 
     def _init_frames(self) -> None:
         """The buffers are made at their first use; a large scene's first slot on a thread during the build."""
@@ -47,6 +48,7 @@ class StateFrames:
         one copy moves exactly those n_k rows into a reused host buffer (:meth:`_host_slot`); one sync for all.
         ``reuse``: False returns copies; True or a buffer slot number returns views of that slot's host
         buffers (slot 0 for True), valid until the next call with the same slot."""
+        self._close()
         s = self.stream
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         nmax = int(self.sizes.max())

@@ -25,6 +25,10 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
                     rad, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
                                                          (only for a shape with ``MULTISTEP_FUSABLE``)
     observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc)
+    forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf, spi,
+                   status, step, ext, obs_rad, mass, inertia, acc, row)
+    forces_observe_kick_drift(<forces_kick_drift's arguments>, obs_rad, mass, inertia, acc, row)
+                                                         (only for a shape with ``FUSABLE``; one scene)
 ``spin`` is the rotational state the torque kicks (spheres: angular velocity; spheroids: angular momentum),
 ``rad`` the list radius, ``ext`` a tuple of the shape's own arrays; f_old/f_new (f0/f1) are the double buffer
 of the forces (a shape that does not read other particles' old forces gets the same array twice).
@@ -55,10 +59,14 @@ _cache: dict = {}
 #: and spills the rest); a specialisation not named is
 #: left to the compiler. Set where it measurably pays (docs/performance.md, "GPU: the time loop"): smooth
 #: float64 spheres, 96 registers and 2 blocks of 256 threads left alone, run their force kernel with 3 blocks
-#: (80 registers, 20 bytes spilled on the rare contact path) 5 % faster on an H100; rough spheres (126
-#: registers) and float32 (56) lose when forced. None: no launch bounds anywhere (bench loop_ab's variants).
+#: (80 registers, 20 bytes spilled on the rare contact path) 5 % faster on an H100; smooth float32 spheres, whose
+#: fused kernel takes 72 registers (3 blocks, 35 % of the warps active), with 4 blocks: the 8M-sphere loop 14 %
+#: faster on an H200 (bench loop_ab --variants default blocks=4); rough spheres (126 registers) lose when forced.
+#: None: no launch bounds anywhere (bench loop_ab's variants).
 FORCES_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3,
-                                     ("sphere", "<f8", (False, False, True)): 3}
+                                     ("sphere", "<f8", (False, False, True)): 3,
+                                     ("sphere", "<f4", (False, False, False)): 4,
+                                     ("sphere", "<f4", (False, False, True)): 4}
 
 
 def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
@@ -440,13 +448,88 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         if spi[s, I_ACTIVE] != 0:
             a0 = spi[s, I_START]
             for li in range(cuda.blockIdx.x * TPB + cuda.threadIdx.x, spi[s, I_N], cuda.gridDim.x * TPB):
-                observe_one(a0 + li, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf,
-                            ext)
+                j = a0 + li
+                observe_one(j, s, vals, vel[0, j], vel[1, j], vel[2, j], pos, spin, quat, rad, mass, inertia, nbr, nn,
+                            hist, spd, spf, ext)
         block_accumulate(sh, vals, acc, s)
+
+    @cuda.jit(device=True)
+    def observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn, hist, spd,
+                       spf, ext):
+        """Particle i's observe sums (one scene) from its velocity half a step behind, brought level with the
+        positions in registers, v = u + F/m dt/2 (the closing half kick's expression), and not stored."""
+        im = spd[0, D_IM0] if UNIFORM else inv_m[i]
+        hk = spd[0, D_HP]
+        observe_one(i, 0, vals, kick(vel[0, i], fx, im, hk), kick(vel[1, i], fy, im, hk), kick(vel[2, i], fz, im, hk),
+                    pos, spin, quat, obs_rad, mass, inertia, nbr, nn, hist, spd, spf, ext)
+
+    @cuda.jit
+    def forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
+                       spi, status, step, ext, obs_rad, mass, inertia, acc, row):
+        """The forces of ``step`` (as ``forces``) and, in the same pass, the observe sums of the state they complete
+        into acc[row] (as ``observe``): one scene of a shape with ``FUSABLE`` (its force pass leaves the spins alone),
+        velocities half a step behind the positions (:func:`observe_synced`): the state stays so, and the next
+        step's kick is a whole one."""
+        sh = cuda.shared.array(SH_OBS, ct.float64)
+        vals = cuda.local.array(NOBS, ct.float64)
+        for q in range(NOBS):
+            vals[q] = 0.0
+        i0 = cuda.grid(1)
+        if i0 == 0:
+            status[S_D2] = 0.0
+            status[S_V2] = 0.0
+            status[S_D2B] = 0.0
+            status[S_V2B] = 0.0
+        if spi[0, I_ACTIVE] != 0:
+            for i in range(i0, n, cuda.gridsize(1)):
+                fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist,
+                                        ids, sc, spd, spf, spi, status, step, ext)
+                observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
+                               hist, spd, spf, ext)
+        block_accumulate(sh, vals, acc, row)
+
+    @cuda.jit
+    def forces_observe_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new,
+                                  torque, spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext,
+                                  obs_rad, mass, inertia, acc, row):
+        """``forces_kick_drift`` with the observe sums of the state its forces complete into acc[row], as
+        ``forces_observe`` (one scene): a record inside an advance call costs no pass and no wait of its own."""
+        sh = cuda.shared.array(SH2, ct.float64)
+        sh_obs = cuda.shared.array(SH_OBS, ct.float64)
+        vals = cuda.local.array(NOBS, ct.float64)
+        for q in range(NOBS):
+            vals[q] = 0.0
+        i0 = cuda.grid(1)
+        if i0 == 0:
+            if par == 0:
+                status[S_D2B] = 0.0
+                status[S_V2B] = 0.0
+            else:
+                status[S_D2] = 0.0
+                status[S_V2] = 0.0
+        md = 0.0
+        mv = 0.0
+        for i in range(i0, n, cuda.gridsize(1)):
+            fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids,
+                                    sc, spd, spf, spi, status, step, ext)
+            if spi[0, I_ACTIVE] != 0:
+                observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
+                               hist, spd, spf, ext)
+            d2, v2 = kick_drift_one(i, 0, exact, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
+                                    spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+            md = max(md, d2)
+            mv = max(mv, v2)
+        block_max2(sh, md, mv)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
+            cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
+        block_accumulate(sh_obs, vals, acc, row)
 
     k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
     if P.FUSABLE:
         k["forces_kick_drift"] = forces_kick_drift
+        k["forces_observe"] = forces_observe
+        k["forces_observe_kick_drift"] = forces_observe_kick_drift
     if P.MULTISTEP_FUSABLE:
         k["run_steps_fused"] = run_steps_fused
     if settle_one is not None:

@@ -16,6 +16,7 @@ from numba import cuda
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
+from engine.loops.cuda_records import RECORD_ROWS
 from engine.loops.status import BAD_VALUE, OVERLAP, instability_error as _instability
 
 #: False: every kick_drift measures the displacements since the list build against x_ref (bench/e2e.py --off
@@ -28,6 +29,11 @@ MULTISTEP_FUSED = True
 #: True: the per-phase loop runs a step's forces and the next kick-drift in one launch where the shape's kernels
 #: allow it (cuda_loop ``forces_kick_drift``); False: two launches a step (bench/e2e.py --off fused, the tests)
 FUSED = True
+#: True: a lone scene of smooth spheres in the per-phase loop ends each advance call with the force pass that also
+#: sums the observables (cuda_loop ``forces_observe``) and leaves its velocities half a step behind until the state
+#: is read (:meth:`TimeLoop._close`); False: every call ends with the closing half kick, and observe() launches the
+#: observe kernel and waits for it (bench/e2e.py --off observe_in_forces)
+OBSERVE_IN_FORCES = True
 
 
 def _maxima(h, odd: bool) -> tuple:
@@ -131,6 +137,12 @@ class TimeLoop:
         if "forces_kick_drift" in self.k:      # the fused step (n = 0: the buffers swap twice, state unchanged)
             for par in (1, 0):
                 self._forces_kick_drift(0, par, 1, n=0, grid=g)
+        if "forces_observe" in self.k and self.n_scenes == 1:
+            self._record_rows()
+            for fused in (True, False):
+                self._observe_in_forces(0, 0, fused, n=0, grid=g)
+                if fused:
+                    self._observe_in_forces(0, 0, fused, n=0, grid=g)     # the buffers swap back
         if self.multistep:
             self._run_steps(1, 1, 0, grid=g, n=0, thr=1.0, status=cuda.to_device(self._fresh_status(), stream=s))
         s.synchronize()
@@ -149,21 +161,80 @@ class TimeLoop:
     def advance(self, nsteps: int) -> dict:
         """Advance every active scene nsteps steps; returns {scene: InstabilityError} of the scenes that
         blew up in this call (stopped on the device at their own step; the others went on)."""
-        nsteps = int(nsteps)
+        return self._advance(int(nsteps), (int(nsteps),))[0]
+
+    def advance_observing(self, nsteps: int, at) -> tuple:
+        """:meth:`Ensemble.advance_observing`: a lone smooth-sphere scene in the per-phase loop (``_ends_calls_open``)
+        sums the observables in the force passes of the steps in ``at``, in calls of up to RECORD_ROWS of them with
+        one wait each; other ensembles advance to each and observe."""
+        nsteps, at = int(nsteps), [int(k) for k in at]
+        if not at or at[-1] != nsteps or any(b <= a for a, b in zip([0] + at, at)):
+            raise ValueError(f"observation steps {at} must increase from 1 to nsteps = {nsteps}")
+        if not self._ends_calls_open():
+            return super().advance_observing(nsteps, at)
+        failed, out, done = {}, [], 0
+        for c in range(0, len(at), RECORD_ROWS):
+            chunk = [k - done for k in at[c:c + RECORD_ROWS]]
+            f, rows = self._advance(chunk[-1], chunk)
+            failed.update(f)
+            out += [[self._observables(s, r.tolist()) if self.active[s] else None for s in range(self.n_scenes)]
+                    for r in rows]
+            done = at[c:c + RECORD_ROWS][-1]
+            if not self.active.any():
+                out += [[None] * self.n_scenes for _ in at[len(out):]]
+                break
+        return failed, out
+
+    def observes_in_loop(self) -> bool:
+        return self._ends_calls_open()
+
+    def _advance(self, nsteps: int, at: tuple) -> tuple:
+        """advance(nsteps); where the call ends open (``_ends_calls_open``), the observe sums of the state after each
+        count of steps in ``at`` (1 <= k <= nsteps, increasing) are summed in that step's force pass: returns
+        (failed, their rows (len(at), NOBS) on the host, or None), and the last row answers observe() until the
+        state moves."""
         self._call_end = self.steps_done + nsteps
         failed, self._pending = dict(self._pending), {}
         if nsteps <= 0 or not self.active.any():
-            return failed
+            return failed, None
+        self._observed_at = None
+        keep_open = self._ends_calls_open()
+        if not keep_open:
+            self._close()
         if self.multistep:
             self._advance_multistep(nsteps, failed)
         else:
-            self._advance_per_phase(nsteps, failed)
-        self._settle()
-        self._half_kick()
+            self._advance_per_phase(nsteps, failed, at if keep_open else ())
+        if keep_open:
+            self._open = True
+            self._rows.copy_to_host()
+        else:
+            self._settle()
+            self._half_kick()
         self._collect(self._read_status_now(), failed)
+        rows = None
+        if keep_open:
+            rows = self._rows.host[:len(at)].copy()
+            self._last_row = rows[-1:]
+            self._observed_at = self.steps_done
         if not self.multistep:
             self._close_call()
-        return failed
+        return failed, rows
+
+    def _ends_calls_open(self) -> bool:
+        """Whether an advance call sums its observables in its force passes (cuda_loop ``forces_observe``) and ends
+        with the velocities half a step behind (``OBSERVE_IN_FORCES``: one scene in the per-phase loop, a shape whose
+        force pass leaves the spins alone)."""
+        return OBSERVE_IN_FORCES and not self.multistep and self.n_scenes == 1 and "forces_observe" in self.k
+
+    def _close(self) -> None:
+        """The velocities brought level with the positions where a call left them half a step behind (the deferred
+        closing half kick, and the shape's end-of-call work before it): before the state is read, the scene's
+        constants change or it drops out. The next call then starts with the opening half kick."""
+        if self._open:
+            self._settle()
+            self._half_kick()
+            self._open = False
 
     def _advance_multistep(self, nsteps: int, failed: dict) -> None:
         remaining, first = nsteps, 1
@@ -205,10 +276,12 @@ class TimeLoop:
                 self.steps_done += remaining
                 return
 
-    def _advance_per_phase(self, nsteps: int, failed: dict) -> None:
+    def _advance_per_phase(self, nsteps: int, failed: dict, observe_at=()) -> None:
         """One launch per phase, or, for a shape whose kernels fuse them (``forces_kick_drift``, with ``FUSED``),
         one launch per step: the forces of step t and the kick-drift of step t + 1 in one pass, positions and
-        velocities double-buffered.
+        velocities double-buffered. A call that starts with the velocities half a step behind (``_open``) starts
+        with a whole kick. ``observe_at``: after each of these counts of steps the force pass also sums the
+        observables into the next row of ``_record_rows`` (``_observe_in_forces``).
 
         The rebuild before the forces of step t is decided from step t-1's status (copied to pinned memory while
         the GPU runs on): with B an upper bound of the largest displacement at step t-1 and u = 2 max|v| dt of
@@ -232,7 +305,10 @@ class TimeLoop:
         # the kick-drift of step 0 of the call; later ones run here too (one-phase launches) or in the fused
         # launch of the previous step's forces. Its status goes to pinned slot st % 2, read from the device slots
         # of parity st % 2 (the fused kernel alternates them; the one-phase kernels use parity 0)
-        self._kick_drift(1, self.steps_done)
+        rows = {k: r for r, k in enumerate(observe_at)}
+        if rows:
+            self._record_rows()
+        self._kick_drift(0 if self._open else 1, self.steps_done)
         self._status_copy(0)
         for st in range(nsteps):
             step = self.steps_done
@@ -289,16 +365,24 @@ class TimeLoop:
             rebuilt_prev = rebuild
             if prof:
                 e3 = self._ev(); e3.record(s)
+            row = rows.get(st + 1)
             if fused and st + 1 < nsteps:
                 # measure exactly where the bound (known up to step t-1) could decide a rebuild: bound + u after
                 # two more steps of at most u/2, plus the margin u of the rule, with half a step to spare
                 exact = 1 if (not bounded or bound + 2.5 * u_last > 1.0) else 0
-                self._forces_kick_drift(step, 1 - par, exact)
+                if row is None:
+                    self._forces_kick_drift(step, 1 - par, exact)
+                else:
+                    self._observe_in_forces(step, row, True, 1 - par, exact)
+                    self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
                 exact_of[1 - slot] = exact
                 self._status_copy(1 - slot)
                 self.launches += 1
             else:
-                self._forces(step)
+                if row is None:
+                    self._forces(step)
+                else:
+                    self._observe_in_forces(step, row, False)
                 self.launches += 2
                 self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
             if prof:

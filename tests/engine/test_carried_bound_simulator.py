@@ -34,9 +34,9 @@ def scene(seed, e_t):
 
 carried = []
 orig = st.TimeLoop._advance_per_phase
-def spy(self, nsteps, failed):
+def spy(self, nsteps, failed, *args):
     carried.append(self._carry is not None and self._carry[:2] == (self.steps_done, self.builds))
-    return orig(self, nsteps, failed)
+    return orig(self, nsteps, failed, *args)
 st.TimeLoop._advance_per_phase = spy
 
 for e_t in (-1.0, 0.8):

@@ -33,8 +33,9 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)``: the pair
     evaluator of list slot kk (neighbour j): adds the force and torque on i to ``acc`` = (F_x, F_y, F_z, T_x,
     T_y, T_z, worst overlap relative to the pair's size) and returns it; advances the slot's history in place;
-  - ``observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)``: particle
-    i's share of the observe sums ``vals`` (float64);
+  - ``observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)``:
+    particle i's share of the observe sums ``vals`` (float64), its velocity (v0, v1, v2) given (synchronous with
+    the positions: the observe kernel reads it, the fused force pass of a record computes it);
   - ``kernels``: the shape's own kernels (a dict, may be empty).
 
 Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,
@@ -229,7 +230,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)
-    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
+    def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
         """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments, contact starts of
         particle i (engine.shapes.sphere.kernels.observe)."""
         vals[O_COLL] += f64(ext[1][i])
@@ -239,9 +240,9 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         r0 = spd[s, D_R0]
         m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
         ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
-        vx = f64(vel[0, i])
-        vy = f64(vel[1, i])
-        vz = f64(vel[2, i])
+        vx = f64(v0)
+        vy = f64(v1)
+        vz = f64(v2)
         wx = f64(omega[0, i])
         wy = f64(omega[1, i])
         wz = f64(omega[2, i])

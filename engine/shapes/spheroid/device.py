@@ -245,7 +245,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
         return fx, fy, fz, tx, ty, tz, worst
 
     @cuda.jit(device=True)
-    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
+    def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
         """Particle i's share of the sums of engine.shapes.spheroid.kernels.observe (``inertia`` is 1/I here): E_tr = m v^2/2;
         E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
         perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in docs/physics.md §2.7);
@@ -262,9 +262,9 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             ii1 = inertia[0, i]
             ii2 = inertia[1, i]
             ii3 = inertia[2, i]
-        vx = f64(vel[0, i])
-        vy = f64(vel[1, i])
-        vz = f64(vel[2, i])
+        vx = f64(v0)
+        vy = f64(v1)
+        vz = f64(v2)
         wb0, wb1, wb2 = body_omega(quat[0, i], quat[1, i], quat[2, i], quat[3, i], angm[0, i], angm[1, i],
                                    angm[2, i], ii1, ii2, ii3, HALF)
         w0 = f64(wb0)

@@ -56,10 +56,10 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)
-    def observe_one(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
+    def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
         """The sphere's sums of particle i with the Hertz elastic energy in slot 3 instead of the spring's."""
         e_sphere = vals[3]
-        observe_sphere(i, s, vals, pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)
+        observe_sphere(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)
         vals[3] = e_sphere
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]
