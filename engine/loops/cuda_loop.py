@@ -235,6 +235,26 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
             forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
                        spf, spi, status, step, ext)
 
+    @cuda.jit(device=True)
+    def clear_other_parity(i0, par, status):
+        """Thread 0 of a fused pass of parity ``par`` clears the other parity's maxima for the next launch (the host
+        copied them out after the previous one)."""
+        if i0 == 0:
+            if par == 0:
+                status[S_D2B] = 0.0
+                status[S_V2B] = 0.0
+            else:
+                status[S_D2] = 0.0
+                status[S_V2] = 0.0
+
+    @cuda.jit(device=True)
+    def publish_maxima(sh, md, mv, par, status):
+        """The block's largest squared displacement and speed into the status slots of parity ``par``."""
+        block_max2(sh, md, mv)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
+            cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
+
     @(cuda.jit(launch_bounds=(TPB, FORCE_BLOCKS)) if FORCE_BLOCKS else cuda.jit)
     def forces_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new, torque,
                           spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext):
@@ -247,13 +267,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         other parity's are cleared for the next launch (the host copied them out after the previous launch)."""
         sh = cuda.shared.array(SH2, ct.float64)
         i0 = cuda.grid(1)
-        if i0 == 0:
-            if par == 0:
-                status[S_D2B] = 0.0
-                status[S_V2B] = 0.0
-            else:
-                status[S_D2] = 0.0
-                status[S_V2] = 0.0
+        clear_other_parity(i0, par, status)
         md = 0.0
         mv = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
@@ -263,10 +277,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
                                     spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)
-        block_max2(sh, md, mv)
-        if cuda.threadIdx.x == 0:
-            cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
-            cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
+        publish_maxima(sh, md, mv, par, status)
 
     @cuda.jit
     def half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi):
@@ -496,17 +507,11 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         ``forces_observe`` (one scene): a record inside an advance call costs no pass and no wait of its own."""
         sh = cuda.shared.array(SH2, ct.float64)
         sh_obs = cuda.shared.array(SH_OBS, ct.float64)
+        i0 = cuda.grid(1)
+        clear_other_parity(i0, par, status)
         vals = cuda.local.array(NOBS, ct.float64)
         for q in range(NOBS):
             vals[q] = 0.0
-        i0 = cuda.grid(1)
-        if i0 == 0:
-            if par == 0:
-                status[S_D2B] = 0.0
-                status[S_V2B] = 0.0
-            else:
-                status[S_D2] = 0.0
-                status[S_V2] = 0.0
         md = 0.0
         mv = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
@@ -519,10 +524,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
                                     spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)
-        block_max2(sh, md, mv)
-        if cuda.threadIdx.x == 0:
-            cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
-            cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
+        publish_maxima(sh, md, mv, par, status)
         block_accumulate(sh_obs, vals, acc, row)
 
     k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
