@@ -29,10 +29,11 @@ MULTISTEP_FUSED = True
 #: True: the per-phase loop runs a step's forces and the next kick-drift in one launch where the shape's kernels
 #: allow it (cuda_loop ``forces_kick_drift``); False: two launches a step (bench/e2e.py --off fused, the tests)
 FUSED = True
-#: True: a lone scene of smooth spheres in the per-phase loop ends each advance call with the force pass that also
-#: sums the observables (cuda_loop ``forces_observe``) and leaves its velocities half a step behind until the state
-#: is read (:meth:`TimeLoop._close`); False: every call ends with the closing half kick, and observe() launches the
-#: observe kernel and waits for it (bench/e2e.py --off observe_in_forces)
+#: True: a lone scene of smooth spheres in the per-phase loop sums its observables in the force pass of each step it
+#: is observed at (cuda_loop ``forces_observe``, ``forces_observe_kick_drift``: the end of an advance call, and the
+#: records :meth:`TimeLoop.advance_observing` passes inside one) and leaves its velocities half a step behind until
+#: the state is read (:meth:`TimeLoop._close`); False: every call ends with the closing half kick, and observe()
+#: launches the observe kernel and waits for it (bench/e2e.py --off observe_in_forces)
 OBSERVE_IN_FORCES = True
 
 
