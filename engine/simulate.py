@@ -34,6 +34,7 @@ import dataclasses
 import json
 import shutil
 import time
+from types import SimpleNamespace
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
@@ -251,17 +252,10 @@ class SceneRun:
 
     def at_record(self, obs: dict, k: int, wall_s: float) -> None:
         """A record stop passed inside a longer advance call (:meth:`stops_ahead`): advanced k steps in wall_s, then
-        what :meth:`at_stop` does there with the observables the time loop summed: the record with its energy check
-        and the progress. No snapshot is due there; a due checkpoint waits for the call's last stop, where the state
-        can be read."""
+        :meth:`at_stop` with the observables the time loop summed there (no snapshot is due at such a stop; a due
+        checkpoint waits for the call's last stop, where the state can be read)."""
         self.advanced(k, wall_s)
-        p, step_done = self.p, self.step_done
-        t_sim = step_done * p.dt
-        t0 = time.perf_counter()
-        self._record(step_done, t_sim, self._counted(obs))
-        self.timings["records"] += time.perf_counter() - t0
-        self._report("cooling", p.n_thermalization_steps + step_done, t_sim, step_done)
-        self._next_event()
+        self.at_stop(SimpleNamespace(observe=lambda: obs), checkpoint=False)
 
     def check_cancel(self) -> None:
         if self.should_cancel is not None and self.should_cancel():
@@ -299,16 +293,16 @@ class SceneRun:
                                      deferred=self.defer_file, **common)
         self.timings["open"] += time.perf_counter() - t0
 
-    def at_stop(self, view) -> None:
+    def at_stop(self, view, checkpoint: bool = True) -> None:
         """Handle the stop the scene has reached: each writer whose trigger fires here acts (engine/writers/:
-        records with the energy check, snapshot, progress, checkpoint)."""
+        records with the energy check, snapshot, progress, checkpoint; ``checkpoint`` False: not here)."""
         if self.phase == "thermalization":
             self._thermalization_stop(view)
             return
         p = self.p
         step_done = self.step_done
         t_sim = step_done * p.dt
-        ck_due = self.ck.due() and step_done < p.n_steps
+        ck_due = checkpoint and self.ck.due() and step_done < p.n_steps
         tm = self.timings
         t0 = time.perf_counter()
         obs = self._counted(view.observe())

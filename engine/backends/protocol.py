@@ -129,6 +129,7 @@ class Ensemble(abc.ABC):
         """Advance every active scene nsteps steps and observe them after each count of steps in ``at`` (increasing,
         the last one nsteps): ({k: error} of the scenes that blew up, [:meth:`observe` after each count]). Afterwards
         :meth:`observe` answers the last. Default: :meth:`advance` to each count, then :meth:`observe`."""
+        check_observation_steps(nsteps, at)
         failed, out, done = {}, [], 0
         for k in at:
             failed.update(self.advance(k - done))
@@ -162,3 +163,11 @@ class Ensemble(abc.ABC):
         """Extra run attributes of scene k for its result file (where a CUDA run built its Verlet lists). Default:
         none."""
         return {}
+
+
+def check_observation_steps(nsteps: int, at) -> None:
+    """ValueError unless the observation steps ``at`` of :meth:`Ensemble.advance_observing` increase from at least 1
+    to exactly nsteps."""
+    at = [int(k) for k in at]
+    if not at or at[0] < 1 or at[-1] != int(nsteps) or any(b <= a for a, b in zip(at, at[1:])):
+        raise ValueError(f"observation steps {at} must increase from 1 or more to nsteps = {nsteps}")

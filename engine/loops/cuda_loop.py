@@ -205,6 +205,36 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
 
     # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
 
+    @cuda.jit(device=True)
+    def clear_maxima(i0, status):
+        """Thread 0 of a force pass resets the per-step maxima, both parities, for the next kick-drift
+        (stream-ordered after the status copy of the previous one)."""
+        if i0 == 0:
+            status[S_D2] = 0.0
+            status[S_V2] = 0.0
+            status[S_D2B] = 0.0
+            status[S_V2B] = 0.0
+
+    @cuda.jit(device=True)
+    def clear_other_parity(i0, par, status):
+        """Thread 0 of a fused pass of parity ``par`` clears the other parity's maxima for the next launch (the host
+        copied them out after the previous one)."""
+        if i0 == 0:
+            if par == 0:
+                status[S_D2B] = 0.0
+                status[S_V2B] = 0.0
+            else:
+                status[S_D2] = 0.0
+                status[S_V2] = 0.0
+
+    @cuda.jit(device=True)
+    def publish_maxima(sh, md, mv, par, status):
+        """The block's largest squared displacement and speed into the status slots of parity ``par``."""
+        block_max2(sh, md, mv)
+        if cuda.threadIdx.x == 0:
+            cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
+            cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
+
     @cuda.jit
     def kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd,
                    spf, spi, status, step, ext):
@@ -226,34 +256,10 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
     def forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
                spi, status, step, ext):
         i0 = cuda.grid(1)
-        if i0 == 0:  # reset the per-step maxima, both parities, for the next kick_drift (stream-ordered after its copy)
-            status[S_D2] = 0.0
-            status[S_V2] = 0.0
-            status[S_D2B] = 0.0
-            status[S_V2B] = 0.0
+        clear_maxima(i0, status)
         for i in range(i0, n, cuda.gridsize(1)):
             forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
                        spf, spi, status, step, ext)
-
-    @cuda.jit(device=True)
-    def clear_other_parity(i0, par, status):
-        """Thread 0 of a fused pass of parity ``par`` clears the other parity's maxima for the next launch (the host
-        copied them out after the previous one)."""
-        if i0 == 0:
-            if par == 0:
-                status[S_D2B] = 0.0
-                status[S_V2B] = 0.0
-            else:
-                status[S_D2] = 0.0
-                status[S_V2] = 0.0
-
-    @cuda.jit(device=True)
-    def publish_maxima(sh, md, mv, par, status):
-        """The block's largest squared displacement and speed into the status slots of parity ``par``."""
-        block_max2(sh, md, mv)
-        if cuda.threadIdx.x == 0:
-            cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
-            cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
 
     @(cuda.jit(launch_bounds=(TPB, FORCE_BLOCKS)) if FORCE_BLOCKS else cuda.jit)
     def forces_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new, torque,
@@ -486,11 +492,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         for q in range(NOBS):
             vals[q] = 0.0
         i0 = cuda.grid(1)
-        if i0 == 0:
-            status[S_D2] = 0.0
-            status[S_V2] = 0.0
-            status[S_D2B] = 0.0
-            status[S_V2B] = 0.0
+        clear_maxima(i0, status)
         if spi[0, I_ACTIVE] != 0:
             for i in range(i0, n, cuda.gridsize(1)):
                 fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist,

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import numpy as np
 from numba import cuda
 
+from engine.backends.protocol import check_observation_steps
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_records import RECORD_ROWS
@@ -138,6 +139,8 @@ class TimeLoop:
         if "forces_kick_drift" in self.k:      # the fused step (n = 0: the buffers swap twice, state unchanged)
             for par in (1, 0):
                 self._forces_kick_drift(0, par, 1, n=0, grid=g)
+        # also for a small scene in the many-steps loop: a worker warms every specialisation with tiny scenes, and a
+        # large lone scene of the same specialisation runs these
         if "forces_observe" in self.k and self.n_scenes == 1:
             self._record_rows()
             for fused in (True, False):
@@ -168,9 +171,8 @@ class TimeLoop:
         """:meth:`Ensemble.advance_observing`: a lone smooth-sphere scene in the per-phase loop (``_ends_calls_open``)
         sums the observables in the force passes of the steps in ``at``, in calls of up to RECORD_ROWS of them with
         one wait each; other ensembles advance to each and observe."""
+        check_observation_steps(nsteps, at)
         nsteps, at = int(nsteps), [int(k) for k in at]
-        if not at or at[-1] != nsteps or any(b <= a for a, b in zip([0] + at, at)):
-            raise ValueError(f"observation steps {at} must increase from 1 to nsteps = {nsteps}")
         if not self._ends_calls_open():
             return super().advance_observing(nsteps, at)
         failed, out, done = {}, [], 0
@@ -178,15 +180,16 @@ class TimeLoop:
             chunk = [k - done for k in at[c:c + RECORD_ROWS]]
             f, rows = self._advance(chunk[-1], chunk)
             failed.update(f)
+            if rows is None:     # nothing active
+                break
             out += [[self._observables(s, r.tolist()) if self.active[s] else None for s in range(self.n_scenes)]
                     for r in rows]
             done = at[c:c + RECORD_ROWS][-1]
-            if not self.active.any():
-                out += [[None] * self.n_scenes for _ in at[len(out):]]
-                break
+        out += [[None] * self.n_scenes for _ in at[len(out):]]
         return failed, out
 
     def observes_in_loop(self) -> bool:
+        """:meth:`Ensemble.observes_in_loop`: where :meth:`advance_observing` sums in the force passes."""
         return self._ends_calls_open()
 
     def _advance(self, nsteps: int, at: tuple) -> tuple:

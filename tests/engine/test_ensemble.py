@@ -253,3 +253,32 @@ def test_which_ensembles_are_set_up_on_threads():
     big = SimulationSpec(n_particles=1 << 20, volume_fraction=0.058, box_length=2.0 * 256 ** (1 / 3))
     assert ens_mod._setup_threads(small[:7] + [big]) == 1              # a parallel (prange) start
     assert 1 <= ens_mod._setup_threads(small) <= 8
+
+
+def _two_cpu_scenes():
+    from engine.params import derive
+    from engine.scene import initial_spheres
+    from engine.simulate import contact_params
+
+    out = []
+    for seed in (1, 2):
+        spec = SimulationSpec(n_particles=64, volume_fraction=0.1, e_n=0.8, e_t=0.8, seed=seed, thermalization=0.0)
+        p = derive(spec)
+        out.append((initial_spheres(spec, p), contact_params(spec, p, thermalization=False)))
+    return [s for s, _ in out], [c for _, c in out]
+
+
+def test_advance_observing_by_default_observes_after_each_count_as_advance_then_observe_does():
+    systems, contacts = _two_cpu_scenes()
+    a, b = SerialEnsemble("cpu", systems, contacts), SerialEnsemble("cpu", systems, contacts)
+    assert not a.observes_in_loop()
+    failed, seen = a.advance_observing(30, [10, 25, 30])
+    assert failed == {} and len(seen) == 3
+    done = 0
+    for k, obs in zip((10, 25, 30), seen):
+        assert b.advance(k - done) == {}
+        done = k
+        assert b.observe() == obs       # the same steps on the same backend: bit for bit
+    for bad in ([], [0, 30], [10, 10, 30], [10, 20]):
+        with pytest.raises(ValueError, match="observation steps"):
+            a.advance_observing(30, bad)
