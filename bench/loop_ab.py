@@ -6,7 +6,8 @@ prints one JSON line per run: the loop and end-to-end Cundall numbers and the ne
 ``default`` or a ``+``-joined list of: bench/e2e.py ``--off`` switch names (e.g. ``launch_cache``,
 ``displacement_bound``), ``multistep_on`` (the many-steps-per-launch loop forced for a large scene), ``blocks=B``
 (every force kernel compiled for B blocks per SM: engine/loops/cuda_loop.py FORCES_BLOCKS_PER_SM; ``blocks=0``: none
-compiled with launch bounds), ``gc_off`` (Python's cyclic garbage collector off during the run). For the cost
+compiled with launch bounds), ``observe_blocks=B`` (the same for the force passes that also sum a record's
+observables: OBSERVE_BLOCKS_PER_SM), ``gc_off`` (Python's cyclic garbage collector off during the run). For the cost
 of one piece of machinery inside the loop, without the fresh-process noise of bench/e2e.py.
 
     python -m bench loop_ab --cases elastic-2M-f64 elastic-8M-f32 --variants launch_cache default multistep_on
@@ -34,8 +35,9 @@ if __name__ == "__main__":
 
 
 def apply(variant: str, default_blocks) -> None:
-    """Put every switch back on and the force kernels' launch bounds to the engine's ``default_blocks``, then turn
-    off those the variant names (bench.e2e.SWITCHES) and set its ``blocks=B``."""
+    """Put every switch back on and the force kernels' launch bounds to the engine's ``default_blocks`` (the force
+    and observing tables), then turn off those the variant names (bench.e2e.SWITCHES) and set its ``blocks=B`` and
+    ``observe_blocks=B``."""
     import gc
     import importlib
 
@@ -46,7 +48,7 @@ def apply(variant: str, default_blocks) -> None:
     for module, setting, _ in SWITCHES.values():
         mod = importlib.import_module(module)
         setattr(mod, setting, None if (module, setting) == ("engine.loops.cuda_ensemble", "MULTISTEP") else True)
-    loop.FORCES_BLOCKS_PER_SM = default_blocks
+    loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = default_blocks
     gc.enable()
     off = []
     for part in ([] if variant == "default" else variant.split("+")):
@@ -57,6 +59,9 @@ def apply(variant: str, default_blocks) -> None:
         elif part.startswith("blocks="):
             b = int(part.split("=", 1)[1])
             loop.FORCES_BLOCKS_PER_SM = {"*": b} if b > 0 else None
+        elif part.startswith("observe_blocks="):
+            b = int(part.split("=", 1)[1])
+            loop.OBSERVE_BLOCKS_PER_SM = {"*": b} if b > 0 else None
         else:
             off.append(part)
     switch_off(off)
@@ -117,7 +122,7 @@ def main(argv=None) -> int:
     from engine import run, run_ensemble
     from engine.start_kind import start_protocol
 
-    default_blocks = loop.FORCES_BLOCKS_PER_SM
+    default_blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
 
     def specs_of(case: str, steps: int) -> list:
         if case in EXTRA:

@@ -258,9 +258,11 @@ def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
     if start_generator(spec) == PARALLEL_GENERATOR:
         streams, radius = parallel_start_streams(spec, p)
         if on_device:    # drawn by the GPU job's backend (engine/loops/cuda_start.py)
+            # one size: the constants as broadcast views (the backend keeps them per scene; no N-long host arrays)
             return SphereSystem(
                 box_length=spec.box_length, position=None, velocity=None, angular_velocity=None, orientation=None,
-                radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]),
+                radius=np.broadcast_to(np.float64(p.radius), (n,)), mass=np.broadcast_to(np.float64(p.mass), (n,)),
+                inertia=np.broadcast_to(np.float64(p.inertia[0]), (n,)),
                 draw=StartDraw.of(n, spec.seed, streams, spec.box_length, radius))
         pos, (vel, omega, quat) = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, radius))
         return SphereSystem(
@@ -758,7 +760,9 @@ def drawn_on_host(system):
     if d is None:
         return system
     pos, (vel, omega, quat) = d.on_host()
-    return replace(system, position=pos, velocity=vel, angular_velocity=omega, orientation=quat, draw=None)
+    # the CPU loops take writable arrays of their own, not the device start's broadcast constants
+    return replace(system, position=pos, velocity=vel, angular_velocity=omega, orientation=quat, draw=None,
+                   radius=np.array(system.radius), mass=np.array(system.mass), inertia=np.array(system.inertia))
 
 
 fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)

@@ -68,33 +68,45 @@ FORCES_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3
                                      ("sphere", "<f4", (False, False, False)): 4,
                                      ("sphere", "<f4", (False, False, True)): 4}
 
+#: Blocks of 256 threads per SM that the force passes which also sum a record's observables (forces_observe,
+#: forces_observe_kick_drift) are compiled for, keyed as FORCES_BLOCKS_PER_SM; absent or None: left to the
+#: compiler. Smooth spheres, left alone, take 123 registers (float32: 2 blocks, 25 % of the warps active); with 3
+#: blocks the 8M-sphere loop with 200 records is 6 % (float32) and 14 % (float64) faster on an H200 (bench loop_ab
+#: --variants default observe_blocks=3 observe_blocks=4; 4 blocks gained less).
+OBSERVE_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3,
+                                      ("sphere", "<f8", (False, False, True)): 3,
+                                      ("sphere", "<f4", (False, False, False)): 3,
+                                      ("sphere", "<f4", (False, False, True)): 3}
+
 
 def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
     """The kernel set of one shape and specialisation (cached): the neighbour-list kernels of
     cuda_kernels.grid_kernels, the time loop of this module and the shape's own kernels. ``flags``: the shape's
     compile-time switches in the order of its ``FLAGS``."""
     flags = tuple(bool(f) for f in flags)
-    key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags))
+    key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags),
+           force_blocks(shape, dtype, flags, OBSERVE_BLOCKS_PER_SM))
     if key not in _cache:
         dt = np.dtype(dtype).type
         parts = shape_device(shape).make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
-        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5]),
+        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6]),
                                ("loop",) + key[:2] + tuple(map(str, key[2:]))))
         k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))
         _cache[key] = k
     return _cache[key]
 
 
-def force_blocks(shape: str, dtype, flags: tuple):
-    """Blocks per SM the force kernel is compiled for (:data:`FORCES_BLOCKS_PER_SM`), or None (always under the
-    CUDA simulator, whose jit takes no launch bounds)."""
-    if not FORCES_BLOCKS_PER_SM or SIM:
+def force_blocks(shape: str, dtype, flags: tuple, table: dict | None | bool = True):
+    """Blocks per SM the force kernel is compiled for (``table``; True: :data:`FORCES_BLOCKS_PER_SM`), or None
+    (always under the CUDA simulator, whose jit takes no launch bounds)."""
+    table = FORCES_BLOCKS_PER_SM if table is True else table
+    if not table or SIM:
         return None
-    return FORCES_BLOCKS_PER_SM.get((shape, np.dtype(dtype).str, flags), FORCES_BLOCKS_PER_SM.get("*"))
+    return table.get((shape, np.dtype(dtype).str, flags), table.get("*"))
 
 
-def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure per specialisation)
+def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa: C901  (one closure per specialisation)
     ZERO = DT(0)
     HALF = DT(0.5)
     BIG = DT(np.finfo(DT).max)
@@ -480,7 +492,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
         observe_one(i, 0, vals, kick(vel[0, i], fx, im, hk), kick(vel[1, i], fy, im, hk), kick(vel[2, i], fz, im, hk),
                     pos, spin, quat, obs_rad, mass, inertia, nbr, nn, hist, spd, spf, ext)
 
-    @cuda.jit
+    @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)
     def forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
                        spi, status, step, ext, obs_rad, mass, inertia, acc, row):
         """The forces of ``step`` (as ``forces``) and, in the same pass, the observe sums of the state they complete
@@ -501,7 +513,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None):  # noqa: C901  (one closure p
                                hist, spd, spf, ext)
         block_accumulate(sh, vals, acc, row)
 
-    @cuda.jit
+    @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)
     def forces_observe_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new,
                                   torque, spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext,
                                   obs_rad, mass, inertia, acc, row):

@@ -13,12 +13,21 @@ from typing import ClassVar, Optional
 import numpy as np
 
 
+def rows_equal(a) -> bool:
+    """Whether every row of ``a`` (axis 0) equals its first: True at once for an empty array or a broadcast view
+    along axis 0 (stride 0: one row stored), otherwise by comparing them."""
+    a = np.asarray(a)
+    return a.shape[0] == 0 or a.strides[0] == 0 or bool(np.all(a == a[0]))
+
+
 @dataclass
 class SphereSystem:
     """Host-side state of N spheres in a periodic cube, SI units, rows in particle-id order.
 
     position (N,3) m in [0, L); velocity (N,3) m/s; angular_velocity (N,3) rad/s (space frame);
-    orientation (N,4) unit quaternions (w,x,y,z), body -> space; radius, mass, inertia (N,) m, kg, kg m^2.
+    orientation (N,4) unit quaternions (w,x,y,z), body -> space; radius, mass, inertia (N,) m, kg, kg m^2 (a
+    one-size start may hold them as read-only broadcast views of one value: :func:`rows_equal` reads that without
+    scanning).
     contact_pairs (M,2) int64 ids (i, j) and contact_springs (M,3) m: tangential springs of contacts
     carried over from a checkpoint (both orderings present); empty for a fresh start.
     draw: a large start still to be drawn on the GPU (engine.scene.StartDraw; the GPU backend draws it when it is

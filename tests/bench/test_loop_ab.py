@@ -28,7 +28,7 @@ def test_by_default_one_large_scene_and_packed_small_scenes_start_differently_an
 def test_the_gc_off_variant_turns_the_collector_off_and_default_turns_it_back_on():
     import engine.loops.cuda_loop as loop
 
-    blocks = loop.FORCES_BLOCKS_PER_SM
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
     try:
         loop_ab.apply("gc_off", blocks)
         assert not gc.isenabled()
@@ -36,4 +36,19 @@ def test_the_gc_off_variant_turns_the_collector_off_and_default_turns_it_back_on
         assert gc.isenabled()
     finally:
         gc.enable()
-        loop.FORCES_BLOCKS_PER_SM = blocks
+        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = blocks
+
+
+def test_blocks_variants_set_the_force_and_observing_launch_bounds_and_default_restores_them():
+    import engine.loops.cuda_loop as loop
+
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
+    try:
+        loop_ab.apply("blocks=2+observe_blocks=3", blocks)
+        assert loop.FORCES_BLOCKS_PER_SM == {"*": 2} and loop.OBSERVE_BLOCKS_PER_SM == {"*": 3}
+        loop_ab.apply("observe_blocks=0", blocks)
+        assert loop.FORCES_BLOCKS_PER_SM == blocks[0] and loop.OBSERVE_BLOCKS_PER_SM is None
+        loop_ab.apply("default", blocks)
+        assert (loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM) == blocks
+    finally:
+        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = blocks

@@ -15,6 +15,7 @@ import pytest
 
 import engine.start_kind as start_kind
 from engine.errors import InstabilityError
+from engine.loops.system import rows_equal
 from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
 from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
@@ -50,6 +51,12 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
     left = initial_spheres(spec, p, on_device=True)
     assert left.draw is not None and left.position is None and left.velocity is None and left.n == spec.n_particles
     assert left.draw.n_sites >= spec.n_particles and np.array_equal(left.radius, host.radius)
+    # its one-size constants are broadcast views (no N-long host arrays), which rows_equal knows without a scan
+    for attr in ("radius", "mass", "inertia"):
+        a = getattr(left, attr)
+        assert a.strides == (0,) and not a.flags.writeable and np.array_equal(a, getattr(host, attr)), attr
+    assert rows_equal(left.radius) and rows_equal(np.zeros((0, 3))) and rows_equal(np.ones((4, 3)))
+    assert not rows_equal(np.array([1.0, 1.0, 2.0])) and not rows_equal(np.array([[1.0, 2.0], [1.0, 3.0]]))
     assert initial_spheres(_big(PARALLEL_START_MIN - 1), p, on_device=True).draw is None     # a small start
 
     class Started:                 # stands for a GPU start-up (engine/startup.py), as on a machine with a GPU
@@ -59,8 +66,11 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
     monkeypatch.setattr(sim, "begin_gpu_startup", lambda *a: Started())
     scene = sim.SceneRun(spec.model_copy(update={"backend": "cpu"}), tmp_path / "x.h5")
     assert scene.backend == "cpu" and scene.system.draw is None
-    for attr in ("position", "velocity", "angular_velocity", "orientation"):
+    for attr in ("position", "velocity", "angular_velocity", "orientation", "radius", "mass", "inertia"):
         assert np.array_equal(getattr(scene.system, attr), getattr(host, attr)), attr
+    # the CPU loops get writable arrays of their own
+    assert all(getattr(scene.system, a).flags.writeable and getattr(scene.system, a).flags.c_contiguous
+               for a in ("radius", "mass", "inertia"))
     assert device_start(spec) and not device_start(_big(shape="ellipsoid", elongation=2.0))
     # a job that runs on the GPU leaves its start to the device, unless start_kind.DEVICE_START is False
     monkeypatch.setattr(sim, "resolve_backend", lambda name, shape: "cuda")

@@ -17,6 +17,7 @@ from numba import cuda
 from engine.loops import cuda_kernels as K
 from engine.loops import cuda_loop
 from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
+from engine.loops.system import rows_equal
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
 from engine.shapes.sphere import device as SC
 
@@ -38,9 +39,10 @@ class CudaEnsemble(CudaEnsembleBase):
         dt_, n = self.dtype, self.n
         rad, mass, inertia = (self._cat(arrays)[:, 0] for arrays in (
             [s.radius for s in systems], [s.mass for s in systems], [s.inertia for s in systems]))
-        self.uniform = all(s.n == 0 or (np.all(s.radius == s.radius[0]) and np.all(s.mass == s.mass[0])
-                                        and np.all(s.inertia == s.inertia[0])) for s in systems)
-        self._rmax = [float(np.max(s.radius)) if s.n else 0.0 for s in systems]
+        uniform = [rows_equal(s.radius) and rows_equal(s.mass) and rows_equal(s.inertia) for s in systems]
+        self.uniform = all(uniform)
+        self._rmax = [0.0 if not s.n else float(s.radius[0]) if u else float(np.max(s.radius))
+                      for s, u in zip(systems, uniform)]
         self._scene0 = [(rad[i], mass[i], inertia[i]) if s_n else (0, 0, 0)
                         for i, s_n in zip(self.starts, self.sizes)]
         up, cat = self._up, self._cat
