@@ -44,15 +44,12 @@ results.md and each run's log in --out.
 
 JAX-MD on an offline host with jax (jaxlib, numpy, scipy, ml_dtypes, opt_einsum): ``import jax_md`` also imports
 flax, optax, treescope, rich, pygments, msgpack, PyYAML, cloudpickle, etils, absl-py, jraph, e3nn-jax, sympy,
-mpmath, attrs and ml_collections (not pymatgen, which its metadata asks for). Fetch them where PyPI is reachable
-with ``pip download --no-deps -d .whl jax-md==0.2.29 flax optax treescope rich pygments markdown-it-py mdurl
-cloudpickle etils absl-py jraph e3nn-jax sympy mpmath attrs ml-collections typing-extensions`` plus PyYAML and
-msgpack for the host's Python (``--only-binary=:all: --platform manylinux2014_x86_64 --python-version 3.X``),
-and install them with ``pip install --no-index --no-deps .whl/*.whl``.
-With jax 0.11.2 (the GPU image's on 2026-11-28) no flax release on the PyPI mirror (up to 0.12.8) imports
-``flax.nnx``, which ``jax_md.energy`` imports at module load: 0.12.1-0.12.8 subclass
-``jax.experimental.hijax.HiPrimitive`` (gone in 0.11.2) and read ``jax.core.Effect``, 0.12.0 and older import
-``jax._src.core.mutable_array``; the bench then runs demq alone.
+mpmath, attrs and ml_collections (not pymatgen, which its metadata asks for). Carry only what the host lacks, and
+keep the flax that came with its jax: a flax release built for another jax fails at ``import jax_md`` (flax.nnx
+reads jax internals that move between releases). On the GPU image of 2026-11-28 (jax 0.11.2 with flax 0.12.10,
+optax, treescope and the rest installed) four wheels are missing: ``pip download --no-deps --only-binary=:all:
+--platform any -d .whl/jaxmd jax-md==0.2.29 jraph e3nn-jax ml-collections``; install them beside the others
+(``pip install --no-index --no-deps --target DIR .whl/jaxmd/*.whl``). Without JAX-MD the bench runs demq alone.
 """
 
 from __future__ import annotations
