@@ -151,8 +151,11 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.contact = list(contacts)
         self.box = np.array([float(s.box_length) for s in systems])
         self.x_ref = cuda.device_array((3, n), self.pos_dtype, stream=self.stream)
-        self.ids = cuda.to_device(np.arange(n, dtype=np.int32), stream=self.stream)
-        self.sc = cuda.to_device(np.repeat(np.arange(nk, dtype=np.int32), self.sizes), stream=self.stream)
+        self.ids = cuda.device_array(n, np.int32, stream=self.stream)
+        self.sc = cuda.device_array(n, np.int32, stream=self.stream)
+        if n:
+            K.slot_ids_and_scenes[self._grid(n)](cuda.to_device(np.cumsum(self.sizes), stream=self.stream), self.ids,
+                                                 self.sc)
 
     def _init_scratch(self) -> None:
         """Scratch arrays of the permutation and the list build, the compact store and the status words."""

@@ -411,7 +411,27 @@ def scatter_rows(src, a0, dst):
             dst[r, a0 + i] = src[i, r]
 
 
-cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows}, ("gather",))
+@cuda.jit
+def slot_ids_and_scenes(ends, ids, sc):
+    """ids[i] = i and sc[i] = the scene of slot i, scene k holding slots ends[k - 1] .. ends[k] - 1 (ends: the
+    cumulative scene sizes, ends[-1] = N): an ensemble's first identity order and scene index, made on the device
+    (uploaded, they were two N-long host arrays and copies of a large job's set-up)."""
+    nk = ends.shape[0]
+    for i in range(cuda.grid(1), ids.shape[0], cuda.gridsize(1)):
+        ids[i] = i
+        lo = 0
+        hi = nk - 1
+        while lo < hi:          # the first scene whose end lies beyond i
+            mid = (lo + hi) // 2
+            if ends[mid] > i:
+                hi = mid
+            else:
+                lo = mid + 1
+        sc[i] = lo
+
+
+cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows, "slot_ids_and_scenes": slot_ids_and_scenes},
+              ("gather",))
 
 
 @cuda.jit(device=True)

@@ -115,6 +115,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
     PREDICTS, TORQUE = P.PREDICTS, P.TORQUE
     translated, rotate, spin_kick = P.translated, P.rotate, P.spin_kick
     particle, pair, observe_one = P.particle, P.pair, P.observe_one
+    observe_after_forces = P.observe_after_forces if P.FUSABLE else None
 
     block_max2, fail = L.device_helpers(TPB)
 
@@ -486,10 +487,11 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
     def observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn, hist, spd,
                        spf, ext):
         """Particle i's observe sums (one scene) from its velocity half a step behind, brought level with the
-        positions in registers, v = u + F/m dt/2 (the closing half kick's expression), and not stored."""
+        positions in registers, v = u + F/m dt/2 (the closing half kick's expression), and not stored; called
+        right after particle i's force pass (the shape's ``observe_after_forces``)."""
         im = spd[0, D_IM0] if UNIFORM else inv_m[i]
         hk = spd[0, D_HP]
-        observe_one(i, 0, vals, kick(vel[0, i], fx, im, hk), kick(vel[1, i], fy, im, hk), kick(vel[2, i], fz, im, hk),
+        observe_after_forces(i, 0, vals, kick(vel[0, i], fx, im, hk), kick(vel[1, i], fy, im, hk), kick(vel[2, i], fz, im, hk),
                     pos, spin, quat, obs_rad, mass, inertia, nbr, nn, hist, spd, spf, ext)
 
     @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)

@@ -74,7 +74,9 @@ def contact_elastic_energy(delta, xix, xiy, xiz, k_n, k_t, half):
 
 @numba.njit
 def rotate_spring_into_plane(xx, xy, xz, nx, ny, nz):
-    """Project the spring onto the plane normal to n and restore its length (rigid rotation)."""
+    """Project the spring onto the plane normal to n and restore its length (rigid rotation). A spring along n
+    to rounding (old2 / new2 beyond the precision's range) has no direction in the plane to be restored along: its
+    projection is returned as it is, not scaled by an infinite factor (which gave NaN)."""
     dot = xx * nx + xy * ny + xz * nz
     px = xx - dot * nx
     py = xy - dot * ny
@@ -82,8 +84,10 @@ def rotate_spring_into_plane(xx, xy, xz, nx, ny, nz):
     old2 = xx * xx + xy * xy + xz * xz
     new2 = px * px + py * py + pz * pz
     if new2 > 0:
-        s = math.sqrt(old2 / new2)
-        return px * s, py * s, pz * s
+        ratio = old2 / new2
+        if ratio < math.inf:
+            s = math.sqrt(ratio)
+            return px * s, py * s, pz * s
     return px, py, pz
 
 

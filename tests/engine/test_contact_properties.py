@@ -256,5 +256,24 @@ def test_contact_end_antisymmetric_and_finite(c, p, gap_frac):
     assert finite(end(r, z, z, z, c["ai"], c["aj"], n * 1e-4))
 
 
+@pytest.mark.parametrize("dtype, spring, off_axis", [(np.float64, 1e-4, 1e-160), (np.float32, 1e-2, 5e-22)])
+def test_a_spring_along_n_to_rounding_stays_finite(dtype, spring, off_axis):
+    """The kind of case the property test above found: a spring along n but for a component so small that its
+    projection onto the contact plane, squared, is a subnormal number, so that scaling it back to the spring's
+    length overflowed to inf (and 0 x inf gave NaN). Projected and rotated, and settled at a contact's end, it
+    must stay finite, in both precisions."""
+    from engine.physics.contact import rotate_spring_into_plane
+
+    c = dtype
+    z = c(0.0)
+    d = c(0.019)
+    xi = (z, c(spring), c(off_axis))
+    out = rotate_spring_into_plane(*xi, z, c(1.0), z)
+    assert all(np.isfinite(out)) and out[2] == c(off_axis)    # the projection, not scaled
+    e = sphere_contact_end(z, d, z, d, z, z, z, z, z, z, z, z, z, c(0.0146), c(0.0038), z, *xi, c(1e4), c(0.7),
+                           c(DT), c(HALF))
+    assert all(np.isfinite(e))
+
+
 if __name__ == "__main__":  # pragma: no cover
     pytest.main([__file__, "-q"])

@@ -82,6 +82,20 @@ def _ensemble() -> None:
         for key in ("position", "velocity", "angular_velocity", "orientation"):
             assert np.array_equal(sa[key], sb[key]), (k, key)
     assert np.array_equal(a.f_cur.copy_to_host(), b.f_cur.copy_to_host())
+    # the slots' scene index and particle ids made on the device: scenes stay in their columns, each scene's ids a
+    # permutation of its own after the first list build; the kernel itself with an empty scene among others
+    sizes = [other.n, n]
+    assert np.array_equal(a.sc.copy_to_host(), np.repeat([0, 1], sizes))
+    ids = a.ids.copy_to_host()
+    assert np.array_equal(np.sort(ids[:other.n]), np.arange(other.n))
+    assert np.array_equal(np.sort(ids[other.n:]), np.arange(other.n, other.n + n))
+    from numba import cuda
+
+    from engine.loops import cuda_kernels as K
+    ids_d, sc_d = cuda.device_array(9, np.int32), cuda.device_array(9, np.int32)
+    K.slot_ids_and_scenes[2, 32](cuda.to_device(np.cumsum([3, 0, 5, 1])), ids_d, sc_d)
+    assert np.array_equal(ids_d.copy_to_host(), np.arange(9))
+    assert np.array_equal(sc_d.copy_to_host(), [0, 0, 0, 2, 2, 2, 2, 2, 3])
     print("ensemble ok")
 
 

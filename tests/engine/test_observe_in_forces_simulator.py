@@ -44,14 +44,23 @@ spec = SimulationSpec(n_particles=32, volume_fraction=0.1, e_n=0.8, e_t=-1.0, ve
 p = derive(spec)
 system, contact = initial_spheres(spec, p), contact_params(spec, p, thermalization=False)
 
-def backend(open_records):
+def backend(open_records, scene=None):
     st.OBSERVE_IN_FORCES = open_records
-    return CudaBackend(system, contact)
+    return CudaBackend(*(scene or (system, contact)))
+
+# the same gas with spheres 0 and 1 placed overlapping by 1 % of a radius and approaching: a contact at every
+# record below (the dilute start has none so early)
+import dataclasses
+pos, vel = system.position.copy(), system.velocity.copy()
+pos[1] = (pos[0] + [1.99 * p.radius, 0.0, 0.0]) % spec.box_length
+vel[0], vel[1] = [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]
+touching = dataclasses.replace(system, position=pos, velocity=vel), contact
 '''
 
 BACKEND = r'''
-# 1. the force pass's observables against the observe kernel's at the same state
-b = backend(True)
+# 1. the force pass's observables (its overlaps from the slots' history) against the observe kernel's (from the
+# positions) at the same state, with contacts in every record
+b = backend(True, touching)
 for _ in range(3):
     b.advance(4)
     o_pass = b.observe()
@@ -63,6 +72,7 @@ for _ in range(3):
     for key, v in o_kernel.items():
         np.testing.assert_allclose(np.asarray(o_pass[key], float), np.asarray(v, float), rtol=1e-13, atol=1e-300,
                                    err_msg=key)   # the same velocities and sums; only the block sums' order may differ
+    assert o_kernel["contacts"] > 0 and o_kernel["elastic_energy"] > 0.0 and o_kernel["max_overlap"] > 0.0, o_kernel
 assert len(launches) == 3 and all(r == 0 and not f for _, r, f in launches), launches
 
 # 2. calls split at records give one long call's trajectory bit for bit, and so does one call observing at the same

@@ -36,6 +36,9 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)``:
     particle i's share of the observe sums ``vals`` (float64), its velocity (v0, v1, v2) given (synchronous with
     the positions: the observe kernel reads it, the fused force pass of a record computes it);
+  - ``observe_after_forces`` (same arguments; a ``FUSABLE`` shape): ``observe_one`` called by the force pass of a
+    record right after particle i's forces at the same positions, so it may read what that pass stored (the
+    sphere: each slot's overlap, instead of the neighbours' positions); a shape may give ``observe_one`` itself;
   - ``kernels``: the shape's own kernels (a dict, may be empty).
 
 Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,
@@ -230,32 +233,47 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)
-    def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
-        """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments, contact starts of
-        particle i (engine.shapes.sphere.kernels.observe)."""
+    def observe_own(i, s, vals, v0, v1, v2, spin, mass, inertia, spd, ext):
+        """Sphere i's own share of the observe sums: contacts begun, E_tr, E_rot, momentum and the Sonine moments
+        (engine.shapes.sphere.kernels.observe), from its velocity (v0, v1, v2)."""
         vals[O_COLL] += f64(ext[1][i])
-        omega = spin
-        box = spd[s, D_BOX]
-        inv_box = spd[s, D_INVBOX]
-        r0 = spd[s, D_R0]
         m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
         ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
         vx = f64(v0)
         vy = f64(v1)
         vz = f64(v2)
-        wx = f64(omega[0, i])
-        wy = f64(omega[1, i])
-        wz = f64(omega[2, i])
-        vals[0] += 0.5 * m * (vx * vx + vy * vy + vz * vz)
-        vals[1] += 0.5 * ii * (wx * wx + wy * wy + wz * wz)
+        wx = f64(spin[0, i])
+        wy = f64(spin[1, i])
+        wz = f64(spin[2, i])
+        et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
+        er_i = 0.5 * ii * (wx * wx + wy * wy + wz * wz)
+        vals[0] += et_i
+        vals[1] += er_i
         vals[4] += m * vx
         vals[5] += m * vy
         vals[6] += m * vz
-        et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
-        er_i = 0.5 * ii * (wx * wx + wy * wy + wz * wz)
         vals[O_TR2] += et_i * et_i
         vals[O_ROT2] += er_i * er_i
         vals[O_X] += et_i * er_i
+
+    @cuda.jit(device=True)
+    def observe_contact(vals, delta, kk, i, s, ri, rj, hist, spf):
+        """List slot kk of sphere i in contact with overlap ``delta`` (m, float64): the contacts, the elastic
+        energy (half of the pair's: each pair appears in both partners' lists) and the largest overlap relative
+        to the smaller radius."""
+        vals[2] += 1.0
+        vals[3] += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]), f64(hist[2, kk, i]),
+                                                spf[s, F_KN], spf[s, F_KT], 0.5)
+        vals[O_MAX] = max(vals[O_MAX], delta / f64(min(ri, rj)))
+
+    @cuda.jit(device=True)
+    def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
+        """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments, contact starts of
+        particle i (engine.shapes.sphere.kernels.observe); the overlaps from the positions."""
+        observe_own(i, s, vals, v0, v1, v2, spin, mass, inertia, spd, ext)
+        box = spd[s, D_BOX]
+        inv_box = spd[s, D_INVBOX]
+        r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
         for kk in range(nn[i]):
             j = nbr[kk, i]
@@ -266,12 +284,21 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             rs = ri + rj
             d2 = rx * rx + ry * ry + rz * rz
             if d2 < rs * rs:
-                vals[2] += 1.0
-                delta = f64(rs - math.sqrt(d2))
-                # each pair appears in both partners' lists
-                vals[3] += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
-                                                        f64(hist[2, kk, i]), spf[s, F_KN], spf[s, F_KT], 0.5)
-                vals[O_MAX] = max(vals[O_MAX], delta / f64(min(ri, rj)))
+                observe_contact(vals, f64(rs - math.sqrt(d2)), kk, i, s, ri, rj, hist, spf)
+
+    @cuda.jit(device=True)
+    def observe_after_forces(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf,
+                             ext):
+        """:func:`observe_one` right after the force pass of the same positions has run for sphere i: the
+        overlaps are the ones its pair evaluators just stored (hist[3], the overlap each slot's force used), so no
+        neighbour position is read again."""
+        observe_own(i, s, vals, v0, v1, v2, spin, mass, inertia, spd, ext)
+        r0 = spd[s, D_R0]
+        ri = r0 if UNIFORM else rad[i]
+        for kk in range(nn[i]):
+            delta = hist[3, kk, i]
+            if delta > ZERO:
+                observe_contact(vals, f64(delta), kk, i, s, ri, r0 if UNIFORM else rad[nbr[kk, i]], hist, spf)
 
     # FUSABLE for smooth spheres: a rough pair reads the neighbours' spins, which the kick-drift rewrites (with
     # the spins double-buffered too, the fused rough kernel was no faster than the two on an H100: it needs more
@@ -279,6 +306,6 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     # MULTISTEP_FUSABLE for every sphere: the pair reads the neighbours' positions, velocities and spins only, all
     # three double-buffered by the fused many-steps kernel (small scenes: there a step is bound by its grid syncs)
     return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, FUSABLE=not ROUGH, MULTISTEP_FUSABLE=True, NOBS=NOBS,
-                           OBS_MAX=O_MAX, translated=translated, rotate=rotate,
+                           OBS_MAX=O_MAX, translated=translated, rotate=rotate, observe_after_forces=observe_after_forces,
                            settle_one=settle_one if ORIENT else None, spin_kick=spin_kick,
                            particle=particle, pair=pair, observe_one=observe_one, kernels={})

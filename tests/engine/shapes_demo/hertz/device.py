@@ -75,4 +75,6 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
             if delta > 0:
                 vals[3] += 0.5 * hertz_energy(delta, f64(ri) * f64(rj) / (f64(ri) + f64(rj)), spf[s, F_KN])
 
-    return SimpleNamespace(**{**vars(parts), "pair": pair, "observe_one": observe_one})
+    # after a force pass too its sums come from the positions (the sphere's reads the spring's overlaps)
+    return SimpleNamespace(**{**vars(parts), "pair": pair, "observe_one": observe_one,
+                              "observe_after_forces": observe_one})
