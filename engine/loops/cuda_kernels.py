@@ -430,8 +430,8 @@ def slot_ids_and_scenes(ends, ids, sc):
         sc[i] = lo
 
 
-cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows, "slot_ids_and_scenes": slot_ids_and_scenes},
-              ("gather",))
+cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows,
+               "slot_ids_and_scenes": slot_ids_and_scenes}, ("gather",))
 
 
 @cuda.jit(device=True)

@@ -85,7 +85,7 @@ def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
     compile-time switches in the order of its ``FLAGS``."""
     flags = tuple(bool(f) for f in flags)
     key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags),
-           force_blocks(shape, dtype, flags, OBSERVE_BLOCKS_PER_SM))
+           observe_blocks(shape, dtype, flags))
     if key not in _cache:
         dt = np.dtype(dtype).type
         parts = shape_device(shape).make_cuda(L, dt, uniform, tpb, *key[2])
@@ -97,16 +97,25 @@ def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
     return _cache[key]
 
 
-def force_blocks(shape: str, dtype, flags: tuple, table: dict | None | bool = True):
-    """Blocks per SM the force kernel is compiled for (``table``; True: :data:`FORCES_BLOCKS_PER_SM`), or None
-    (always under the CUDA simulator, whose jit takes no launch bounds)."""
-    table = FORCES_BLOCKS_PER_SM if table is True else table
+def force_blocks(shape: str, dtype, flags: tuple):
+    """Blocks per SM the force kernels are compiled for (:data:`FORCES_BLOCKS_PER_SM`), or None."""
+    return _blocks(FORCES_BLOCKS_PER_SM, shape, dtype, flags)
+
+
+def observe_blocks(shape: str, dtype, flags: tuple):
+    """Blocks per SM the force passes that sum a record are compiled for (:data:`OBSERVE_BLOCKS_PER_SM`), or None."""
+    return _blocks(OBSERVE_BLOCKS_PER_SM, shape, dtype, flags)
+
+
+def _blocks(table: dict | None, shape: str, dtype, flags: tuple):
+    """The entry of ``table`` for this specialisation (or its "*" entry), or None: no table, no entry, or the CUDA
+    simulator, whose jit takes no launch bounds."""
     if not table or SIM:
         return None
     return table.get((shape, np.dtype(dtype).str, flags), table.get("*"))
 
 
-def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa: C901  (one closure per specialisation)
+def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa: C901  (a closure per specialisation)
     ZERO = DT(0)
     HALF = DT(0.5)
     BIG = DT(np.finfo(DT).max)
@@ -491,8 +500,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         right after particle i's force pass (the shape's ``observe_after_forces``)."""
         im = spd[0, D_IM0] if UNIFORM else inv_m[i]
         hk = spd[0, D_HP]
-        observe_after_forces(i, 0, vals, kick(vel[0, i], fx, im, hk), kick(vel[1, i], fy, im, hk), kick(vel[2, i], fz, im, hk),
-                    pos, spin, quat, obs_rad, mass, inertia, nbr, nn, hist, spd, spf, ext)
+        observe_after_forces(i, 0, vals, kick(vel[0, i], fx, im, hk), kick(vel[1, i], fy, im, hk),
+                             kick(vel[2, i], fz, im, hk), pos, spin, quat, obs_rad, mass, inertia, nbr, nn, hist, spd,
+                             spf, ext)
 
     @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)
     def forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,

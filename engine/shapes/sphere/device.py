@@ -306,6 +306,6 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     # MULTISTEP_FUSABLE for every sphere: the pair reads the neighbours' positions, velocities and spins only, all
     # three double-buffered by the fused many-steps kernel (small scenes: there a step is bound by its grid syncs)
     return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, FUSABLE=not ROUGH, MULTISTEP_FUSABLE=True, NOBS=NOBS,
-                           OBS_MAX=O_MAX, translated=translated, rotate=rotate, observe_after_forces=observe_after_forces,
-                           settle_one=settle_one if ORIENT else None, spin_kick=spin_kick,
-                           particle=particle, pair=pair, observe_one=observe_one, kernels={})
+                           OBS_MAX=O_MAX, translated=translated, rotate=rotate,
+                           settle_one=settle_one if ORIENT else None, spin_kick=spin_kick, particle=particle,
+                           pair=pair, observe_one=observe_one, observe_after_forces=observe_after_forces, kernels={})
