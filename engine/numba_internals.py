@@ -234,7 +234,8 @@ def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
     None)`` of each top-level scalar argument (its value is refilled per launch). None where such a launch would not
     be numba-cuda's (a launch-configuration-sensitive or debug kernel, pre-launch callbacks, dynamic shared memory,
     host arrays copied per launch, a scalar inside a tuple). A cooperative kernel keeps its cooperative launch. The
-    kernel must have been launched once with these argument types (so that it is compiled)."""
+    kernel must have been launched once in this process (numba-cuda then knows whether it is launch-configuration
+    sensitive); argument types it has not been launched with are compiled or loaded here."""
     import ctypes
 
     from numba.cuda import dispatcher as nd

@@ -222,6 +222,12 @@ class SceneRun:
     # ---- what the driver asks -------------------------------------------------------------------------
 
     @property
+    def reads_state(self) -> bool:
+        """Whether the run copies the scene's state to the host: snapshots, or checkpoints (a checkpoint directory).
+        A scene that only records its observables never does; its backend need not prepare for it."""
+        return bool(self.snaps) or self.ck.dir is not None
+
+    @property
     def initial_contact(self) -> ContactParams:
         """Contact constants the scene's backend starts with."""
         return self.therm if self.phase == "thermalization" else self.cool
@@ -793,7 +799,8 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     """
     scene = SceneRun(spec, output, progress=progress, should_cancel=should_cancel, checkpoint_dir=checkpoint_dir,
                      checkpoint_interval=checkpoint_interval, backend=backend)
-    (result,) = drive([scene], lambda systems, contacts: make_ensemble(scene.backend, systems, contacts))
+    (result,) = drive([scene], lambda systems, contacts: make_ensemble(scene.backend, systems, contacts,
+                                                                    reads_state=scene.reads_state))
     if isinstance(result, BaseException):
         raise result
     return result

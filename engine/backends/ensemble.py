@@ -283,7 +283,8 @@ class SerialEnsemble(Ensemble):
         return b
 
 
-def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams]) -> Ensemble:
+def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams], *,
+                  reads_state: bool = True) -> Ensemble:
     """An ensemble of the scenes for backend 'cpu', 'cuda' or 'auto'.
 
     'cpu' -> :class:`SerialEnsemble` of CPU backends; 'cuda' -> the shape's packed CUDA ensemble
@@ -291,6 +292,8 @@ def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams
     :meth:`start_alone` takes the scene's list mode and raises a start that fails at t = 0, as a CPU backend's
     constructor does); 'auto' -> 'cuda' when a CUDA GPU is present, else 'cpu'. All scenes must have the same
     shape.
+    ``reads_state``: whether the driver will copy scenes' state to the host (snapshots, checkpoints); False lets a
+    CUDA ensemble skip the host buffers it would prepare for it.
     """
     shapes = {shape_of(s) for s in systems}
     if len(shapes) > 1:
@@ -298,7 +301,7 @@ def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams
     shape = shapes.pop() if shapes else "sphere"
     resolved = resolve_backend(name, shape)
     if resolved == "cuda":
-        ensemble = host(shape).cuda_ensemble()(list(systems), list(contacts))
+        ensemble = host(shape).cuda_ensemble()(list(systems), list(contacts), reads_state=reads_state)
         if len(systems) == 1:
             ensemble.start_alone(contacts[0])
         return ensemble

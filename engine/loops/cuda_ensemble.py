@@ -87,7 +87,10 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     #: the observe kernel's sums per scene (the shape's NOBS)
     _NOBS: int
 
-    def __init__(self, systems: list, contacts: list):
+    def __init__(self, systems: list, contacts: list, reads_state: bool = True):
+        """``reads_state``: whether the driver will copy scenes' state to the host (snapshots, checkpoints); a large
+        scene's first host frame slot is then made on a thread during the build (:meth:`_prepare_frame_slot`)."""
+        self.reads_state = reads_state
         if not SIM and not cuda.is_available():
             raise BackendUnavailable("backend = 'cuda' but no CUDA GPU is available here")
         if len(systems) != len(contacts) or not systems:
@@ -100,7 +103,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._init_frames()
         self._init_observe()
         self._upload_particles(systems)
-        if self._slot_prep is None:
+        if self._slot_prep is None and reads_state:
             self._prepare_frame_slot()
         self._views()
         self._init_scratch()

@@ -5,8 +5,8 @@ At N = 2M the per-step loop waits on the host: numba-cuda types every argument o
 loop's per-step kernels, with 20 to 28 arguments (one a tuple of arrays), that costs more host time per step than
 the kernels take on an H100 (docs/performance.md, "GPU: the time loop").
 
-:class:`LaunchCache` keeps, per kernel and set of argument arrays, the flattened argument list that numba-cuda
-built for the first launch with those arrays. A later launch with the same arrays (the same Python objects, so
+:class:`LaunchCache` keeps, per kernel and set of argument arrays, the flattened argument list that numba-cuda's
+launch builds, made once for the first launch with those arrays. A later launch with the same arrays (the same Python objects, so
 the same device pointers) only replaces the scalar arguments (n, step, ...) and hands the list to cuda.core's
 ``launch``, as numba-cuda's own ``_Kernel.launch`` does. Same kernel, same argument values, same stream: the
 results are bit-identical (tests/gpu/test_cuda_gpu.py runs both ways). The numba-cuda internals it needs are
@@ -105,35 +105,54 @@ class LaunchCache:
         if entry is not None and not _alive(entry):
             entry = None        # an array of the entry is gone: the identities may now be another array's
         if entry is None:
-            dispatcher[config](*args)        # compiles or loads, and launches, as always
-            self.misses += 1
-            self.name_misses[name] = self.name_misses.get(name, 0) + 1
-            if self.name_misses[name] > 8 * self.size:   # new arrays at every launch: caching only costs
-                self.given_up.add(name)
-                per.clear()
+            entry = self._miss(name, per, key, dispatcher, config, args)
+            if entry is None:
                 return
-            try:
-                entry = self._prepare(dispatcher, config, args)
-            except Exception as exc:  # numba-cuda internals not as expected: numba-cuda launches from now on
-                self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
-                self.entries.clear()
-                return
-            for old in [k for k, e in per.items() if not _alive(e)]:
-                del per[old]
-            if entry is not None:
-                try:
-                    per[key] = entry[:6] + (dispatcher, _weak_arrays(args))   # (holds its id for the key)
-                except TypeError:   # an argument that takes no weak reference: not cached
-                    return
-                if len(per) > self.size:
-                    per.popitem(last=False)
-            return
-        per.move_to_end(key)
+        else:
+            per.move_to_end(key)
+            self.hits += 1
         core_launch, stream, launch_config, kernel, kargs, slots = entry[:6]
         for pos, slot, ctype in slots:
             kargs[slot] = ctype(args[pos]) if ctype is not None else args[pos]
         core_launch(stream, launch_config, kernel, *kargs)
-        self.hits += 1
+
+    def _miss(self, name: str, per: OrderedDict, key: tuple, dispatcher, config: tuple, args: tuple):
+        """A launch with arrays the cache has no entry for. A kernel this process has not launched yet goes through
+        numba-cuda (which compiles or loads it and learns its launch-configuration sensitivity) and its entry is
+        kept; a kernel already launched is launched through its new entry, which the caller gets (numba-cuda's
+        own launch would flatten the same arguments once more: half a millisecond for the loop's kernels). None:
+        the launch has happened."""
+        self.misses += 1
+        self.name_misses[name] = self.name_misses.get(name, 0) + 1
+        if self.name_misses[name] > 8 * self.size:   # new arrays at every launch: caching only costs
+            self.given_up.add(name)
+            per.clear()
+            dispatcher[config](*args)
+            return None
+        first = not getattr(dispatcher, "overloads", None)
+        if first:
+            dispatcher[config](*args)
+        try:
+            entry = self._prepare(dispatcher, config, args)
+        except Exception as exc:  # numba-cuda internals not as expected: numba-cuda launches from now on
+            self.enabled, self.off_reason = False, f"{type(exc).__name__}: {exc}"
+            self.entries.clear()
+            entry = None
+        for old in [k for k, e in per.items() if not _alive(e)]:
+            del per[old]
+        try:
+            entry = None if entry is None else entry[:6] + (dispatcher, _weak_arrays(args))  # (holds its id)
+        except TypeError:   # an argument that takes no weak reference: not cached
+            entry = None
+        if entry is not None:
+            per[key] = entry
+            if len(per) > self.size:
+                per.popitem(last=False)
+        if entry is None or first:
+            if not first:
+                dispatcher[config](*args)
+            return None
+        return entry
 
     @staticmethod
     def _prepare(dispatcher, config: tuple, args: tuple):

@@ -36,6 +36,8 @@ FUSED = True
 #: the state is read (:meth:`TimeLoop._close`); False: every call ends with the closing half kick, and observe()
 #: launches the observe kernel and waits for it (bench/e2e.py --off observe_in_forces)
 OBSERVE_IN_FORCES = True
+#: what :meth:`TimeLoop.warmup` has warmed in this process: (kernel set, position and state types, loop kind)
+_WARMED: set = set()
 
 
 def _maxima(h, odd: bool) -> tuple:
@@ -77,7 +79,7 @@ class TimeLoop:
                 self._coop_blocks[name] = 1  # the simulator syncs a cooperative grid of one block only
             else:
                 if not self.k[name].overloads:
-                    self.warmup()
+                    self._warm_launches()
                 kern = next(iter(self.k[name].overloads.values()))
                 fit = kern.max_cooperative_grid_blocks(self.tpb)
                 self._coop_blocks[name] = max(1, min(fit, (self.n + self.tpb - 1) // self.tpb))
@@ -128,7 +130,18 @@ class TimeLoop:
             self.status if status is None else status, step0, ext))
 
     def warmup(self) -> None:
-        """Compile the kernels of the current specialisation without advancing (launches with n = 0)."""
+        """Compile (or load) the kernels of the current specialisation without advancing (:meth:`_warm_launches`). A
+        process does it once per kernel set, array types and kind of loop: a later ensemble of the same kind (the
+        next job of a worker) finds them loaded and skips the launches, each of which costs about half a millisecond
+        of host time for its arguments."""
+        key = (id(self.k), np.dtype(self.pos_dtype).str, np.dtype(self.dtype).str, self.multistep,
+               self.multistep and self._multistep_fused(), self.n_scenes == 1)
+        if key not in _WARMED:
+            self._warm_launches()
+            _WARMED.add(key)
+
+    def _warm_launches(self) -> None:
+        """Launch every kernel of the time loop with n = 0 (compiled or loaded at the first launch), then wait."""
         s = self.stream
         g = (1, self.tpb, s)
         self._kick_drift(1, 0, n=0, grid=g)

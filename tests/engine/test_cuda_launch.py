@@ -124,3 +124,42 @@ def test_another_dispatcher_under_the_same_name_and_arrays_is_launched_itself():
     lc.launch("forces", new, (1, 32, None), (4, a))       # hit: the new kernel
     assert [c[1] for c in old.calls] == [(1, a)] and [c[1] for c in new.calls] == [(3, a)]
     assert launched == [(old, (2,)), (new, (4,))]
+
+
+class _CompiledKernel(_Kernel):
+    """A dispatcher this process has launched before: it holds an overload (numba-cuda's ``overloads``)."""
+
+    overloads = {"sig": object()}
+
+
+def test_a_kernel_launched_before_is_launched_through_its_new_entry_alone():
+    """A miss on a kernel numba-cuda has launched in this process: the flattened list is made once and the launch
+    goes through it, not also through the dispatcher (which would flatten the arguments a second time); a kernel
+    never launched goes through numba-cuda first, which compiles or loads it."""
+    launched = []
+
+    def prepare(dispatcher, config, args):
+        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, list(args), [(0, 0, None)])
+
+    seen, fresh, a, b = _CompiledKernel(), _Kernel(), _Array(), _Array()
+    lc = LaunchCache(enabled=True)
+    lc._prepare = prepare
+    lc.launch("forces", seen, (1, 32, None), (7, a))
+    lc.launch("forces", seen, (1, 32, None), (8, a))
+    lc.launch("forces", seen, (1, 32, None), (9, b))      # new arrays: a miss, still no dispatcher launch
+    assert seen.calls == [] and [ka[0] for ka in launched] == [7, 8, 9] and (lc.misses, lc.hits) == (2, 1)
+    launched.clear()
+    lc.launch("kick", fresh, (1, 32, None), (1, a))       # first launch of this kernel: numba-cuda's
+    lc.launch("kick", fresh, (1, 32, None), (2, a))       # then the entry kept from it
+    assert [c[1][0] for c in fresh.calls] == [1] and [ka[0] for ka in launched] == [2]
+
+
+def test_a_kernel_that_cannot_be_cached_is_launched_by_its_dispatcher_once_per_launch():
+    """_prepare answering None (e.g. a launch-configuration-sensitive kernel): every launch goes through numba-cuda,
+    exactly once, also for a kernel launched before."""
+    k, a = _CompiledKernel(), _Array()
+    lc = LaunchCache(enabled=True)
+    lc._prepare = lambda dispatcher, config, args: None
+    for step in range(3):
+        lc.launch("observe", k, (1, 32, None), (step, a))
+    assert [c[1][0] for c in k.calls] == [0, 1, 2] and lc.hits == 0

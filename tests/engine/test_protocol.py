@@ -112,14 +112,34 @@ try:
 except InstabilityError as exc:
     print("RAISED", exc)
 print("ONE-PATH-OK")
+
+# a driver that reads no state (no snapshots, no checkpoints) gets no host frame slot prepared
+cls = host("sphere").cuda_ensemble()
+prepared = []
+cls._prepare_frame_slot = lambda self: prepared.append(self.reads_state)
+make_ensemble("cuda", [tiny_system()], [contact()], reads_state=False)
+make_ensemble("cuda", [tiny_system()], [contact()])
+assert prepared == [True], prepared
+
+# a process warms a kernel set once: the next ensemble of the same kind skips the n = 0 launches
+import engine.loops.cuda_stepping as stepping
+warm_launches = []
+kick = cls._kick_drift
+cls._kick_drift = lambda self, *a, **kw: (warm_launches.append(kw.get("n")), kick(self, *a, **kw))
+for precision in ("float64", "float64", "float32"):
+    make_ensemble("cuda", [tiny_system()], [contact(precision=precision)]).warmup()
+assert warm_launches == [0, 0], warm_launches    # the second float64 ensemble launched nothing
+print("WARM-ONCE-OK")
 """
 
 
 def test_a_lone_gpu_job_is_its_ensemble_itself():
     """One scene on the GPU (engine.run's path) is the shape's CUDA ensemble itself, not wrapped: it takes the
-    scene's list mode and raises a start that fails at t = 0 at once, as a CPU backend's constructor does."""
+    scene's list mode and raises a start that fails at t = 0 at once, as a CPU backend's constructor does. (The same
+    child: a CUDA ensemble prepares no host frame slot for a driver that reads no state, and a process warms each
+    kernel set once.)"""
     from tests.cudasim import run_children
 
     (rc, out, err), = run_children({"one": ["-c", _ONE_GPU_JOB]}, timeout=600).values()
     assert rc == 0, err[-3000:]
-    assert "ONE-PATH-OK" in out and "RAISED" in out and "overlap" in out.split("RAISED", 1)[1].lower(), out
+    assert "ONE-PATH-OK" in out and "WARM-ONCE-OK" in out and "RAISED" in out and "overlap" in out.split("RAISED", 1)[1].lower(), out

@@ -98,7 +98,8 @@ class CudaEnsemble(CudaEnsembleBase):
         self.vel = cuda.device_array((3, n), self.dtype, stream=st)
         self.omega = cuda.device_array((3, n), self.dtype, stream=st)
         self.quat = cuda.device_array((4, n), self.dtype, stream=st)
-        self._prepare_frame_slot()     # beside the draws
+        if self.reads_state:
+            self._prepare_frame_slot()     # beside the draws
         for sy, col0 in zip(systems, self.starts):
             if sy.draw is not None:
                 targets = {"vel": self.vel, "omega": self.omega, "quat": self.quat}

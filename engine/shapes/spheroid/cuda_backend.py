@@ -55,13 +55,13 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
     host_lists = False
     _view_names = ("radius1", "inv_m1")
 
-    def __init__(self, systems: list, contacts: list):
+    def __init__(self, systems: list, contacts: list, reads_state: bool = True):
         for k, s in enumerate(systems):
             if not isinstance(s, EllipsoidSystem):
                 raise TypeError(f"scene {k}: CudaEllipsoidEnsemble needs EllipsoidSystem scenes, got {type(s).__name__}")
         # rough contacts keep the spring and the contact's k_t: 6 history words (engine/shapes/spheroid/device.py)
         self.hist_words = SLOT_ROUGH if any(c.rough for c in contacts) else K.HW
-        super().__init__(systems, contacts)
+        super().__init__(systems, contacts, reads_state)
 
     # ---- set-up (hooks of CudaEnsembleBase) -------------------------------------------------------------
 
