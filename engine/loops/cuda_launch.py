@@ -6,9 +6,9 @@ loop's per-step kernels, with 20 to 28 arguments (one a tuple of arrays), that c
 the kernels take on an H100 (docs/performance.md, "GPU: the time loop").
 
 :class:`LaunchCache` keeps, per kernel and set of argument arrays, the flattened argument list that numba-cuda's
-launch builds, made once for the first launch with those arrays. A later launch with the same arrays (the same Python objects, so
-the same device pointers) only replaces the scalar arguments (n, step, ...) and hands the list to cuda.core's
-``launch``, as numba-cuda's own ``_Kernel.launch`` does. Same kernel, same argument values, same stream: the
+launch builds, made once for the first launch with those arrays. A later launch with the same arrays (the same
+Python objects, so the same device pointers) only replaces the scalar arguments (n, step, ...) and hands the list to
+cuda.core's ``launch``, as numba-cuda's own ``_Kernel.launch`` does. Same kernel, same argument values, same stream: the
 results are bit-identical (tests/gpu/test_cuda_gpu.py runs both ways). The numba-cuda internals it needs are
 engine/numba_internals.py's (:func:`engine.numba_internals.prepare_launch`).
 
@@ -129,7 +129,7 @@ class LaunchCache:
             per.clear()
             dispatcher[config](*args)
             return None
-        first = not getattr(dispatcher, "overloads", None)
+        first = not dispatcher.overloads      # numba-cuda's compiled kernels of this dispatcher, by signature
         if first:
             dispatcher[config](*args)
         try:

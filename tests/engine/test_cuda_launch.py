@@ -7,8 +7,11 @@ from engine.loops.cuda_launch import LaunchCache
 
 
 class _Kernel:
-    """Stands for a numba-cuda dispatcher: ``k[config](*args)`` launches; it has no ``compile``, so preparing a
-    cached argument list fails, as it would with numba-cuda internals other than the expected ones."""
+    """Stands for a numba-cuda dispatcher not launched yet in this process (no ``overloads``): ``k[config](*args)``
+    launches; it has no ``compile``, so preparing a cached argument list fails, as it would with numba-cuda internals
+    other than the expected ones."""
+
+    overloads: dict = {}
 
     def __init__(self):
         self.calls = []
