@@ -148,10 +148,10 @@ class LaunchCache:
             per[key] = entry
             if len(per) > self.size:
                 per.popitem(last=False)
-        if entry is None or first:
-            if not first:
-                dispatcher[config](*args)
+        if first:               # launched above
             return None
+        if entry is None:       # not cacheable: numba-cuda launches it
+            dispatcher[config](*args)
         return entry
 
     @staticmethod
