@@ -143,3 +143,18 @@ def test_a_lone_gpu_job_is_its_ensemble_itself():
     (rc, out, err), = run_children({"one": ["-c", _ONE_GPU_JOB]}, timeout=600).values()
     assert rc == 0, err[-3000:]
     assert "ONE-PATH-OK" in out and "WARM-ONCE-OK" in out and "RAISED" in out and "overlap" in out.split("RAISED", 1)[1].lower(), out
+
+
+def test_a_scene_reads_its_state_only_for_snapshots_or_checkpoints(tmp_path):
+    """SceneRun.reads_state, which make_ensemble passes on (a CUDA ensemble prepares host frame buffers only then)."""
+    from engine.simulate import SceneRun
+    from engine.spec import SimulationSpec
+
+    def scene(snapshots, checkpoint_dir=None):
+        spec = SimulationSpec(n_particles=64, volume_fraction=0.05, t_end=0.001, thermalization=0.0,
+                              snapshots=snapshots, backend="cpu")
+        return SceneRun(spec, tmp_path / "x.h5", checkpoint_dir=checkpoint_dir)
+
+    assert not scene(0).reads_state
+    assert scene(2).reads_state
+    assert scene(0, tmp_path / "ck").reads_state
