@@ -25,7 +25,7 @@ BENCHMARKS: dict[str, bool] = {
     "multigrid_cost": True, "specialisation": True, "auto_trial": True, "vs_jaxmd": True,
     "loop_ab": False, "step_phases": False, "batch_where": False, "driver_overhead": False, "host_memory": False,
     "setup_timeline": False, "start_draw": False, "writer_processes": False, "download_speed": False,
-    "cpu_default_job": False,
+    "cpu_default_job": False, "cpu_small_scenes": False,
     # accuracy against cost, stability, physics studies
     "accuracy": True, "stability": True, "ellipsoid_geometry_accuracy": True, "ellipsoid_recollisions": True,
     "ellipsoid_screen_stats": True, "ellipsoid_dsmc_refs": True, "ellipsoid_encounter_dsmc": True,

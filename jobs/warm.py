@@ -4,8 +4,9 @@ host spent 16.9 s of its 21 s compiling).
 
 The engine compiles per *specialisation*: backend ('cpu', 'cuda') x shape (engine/shapes/) x precision (float64,
 float32, mixed) x contact law (rough, smooth, rough with Coulomb friction; thermalisation and cooling contacts) x
-sizes (one size, or species: the multigrid lists). Everything else in a spec (N, phi, e_n, dt, seeds, ...) is a
-run-time value of the same compiled code. :func:`specialisations` lists the combinations the engine accepts (a
+sizes (one size, or species: the multigrid lists), and on the CPU x scene size (the small scenes' time loop
+without parallel regions, the larger ones' in regions: engine/loops/cpu.py SERIAL_LOOP_BELOW). Everything else in a
+spec (N, phi, e_n, dt, seeds, ...) is a run-time value of the same compiled code. :func:`specialisations` lists the combinations the engine accepts (a
 shape refuses some: spheroids run neither species nor mixed precision); :func:`warm` runs a tiny scene of each
 through the same entry point a job uses (engine.simulate.run, plus a two-scene engine.ensemble.run_ensemble on the
 GPU for the packed kernels), and draws a large start's kernels (engine.scene.load_parallel_start; on the GPU also
@@ -153,6 +154,7 @@ def _warm_list(todo: list) -> WarmReport:
     from numba.core import event
 
     from engine.ensemble import run_ensemble
+    from engine.loops.cpu import SERIAL_LOOP_BELOW
     from engine.params import derive
     from engine.scene import load_parallel_start
     from engine.simulate import run
@@ -177,6 +179,8 @@ def _warm_list(todo: list) -> WarmReport:
                 spec = SimulationSpec.model_validate(sp.spec_dict())
                 try:
                     run(spec, Path(tmp) / f"{k}.h5")
+                    if sp.backend == "cpu":   # the time loop of the larger scenes (parallel regions)
+                        run(spec.model_copy(update={"n_particles": SERIAL_LOOP_BELOW}), Path(tmp) / f"{k}p.h5")
                     if sp.backend == "cuda":   # the packed kernels of an ensemble of several scenes
                         run_ensemble([spec, spec.model_copy(update={"seed": 1})],
                                      [Path(tmp) / f"{k}a.h5", Path(tmp) / f"{k}b.h5"])

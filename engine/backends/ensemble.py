@@ -57,7 +57,8 @@ BACKEND_NAMES = ("auto", "cpu", "cuda")
 #: at N = 64, 30 against 39 ns at 256, 19-26 against 20-220 ns at 1024, 18-25 against 14-134 ns at 2048, 23
 #: against 14 ns at 4096 (the wide ranges: another process busy on the machine); a default 64-sphere job's loop
 #: took 0.08-0.13 s on one thread, 0.4-21 s on two. The numbers written do not depend on the thread count
-#: (tests/engine/test_threads.py), only the time does.
+#: (tests/engine/test_threads.py), only the time does. Such a scene also advances in the loop compiled without
+#: parallel regions (engine.loops.cpu.SERIAL_LOOP_BELOW, the same size), faster again on one thread.
 ONE_THREAD_BELOW = 1024
 
 

@@ -193,13 +193,47 @@ def index_active(nn, active, n_active, force, torque):
     n_active[0] = m
 
 
+#: A scene of fewer particles than this advances in the time loop compiled without parallel regions
+#: (:func:`make_run_steps` with ``parallel=False``); it runs on one Numba thread anyway
+#: (engine.backends.ensemble.ONE_THREAD_BELOW, the same size). Why: each ``parallel=True`` region enters Numba's
+#: thread pool and meets its threads at its end even on one thread, two regions a step (kick-drift, forces); for a
+#: small scene that was most of the step: 64 spheres took 73 ns a particle-step in regions, 28 ns without (2-core
+#: VM, one thread, 2026-11-28, bench/cpu_small_scenes.py). From about a thousand particles on, the regions' loops are
+#: the faster ones (1024: 21.4 against 21.0 ns; 4096: 12.9 against 14.3 ns): numba compiles a region's body with
+#: its arrays marked as not aliased, which plain njit does not offer. The numbers are the same bits either way
+#: (tests/engine/test_threads.py).
+SERIAL_LOOP_BELOW = 1024
+
 _loops: dict = {}
 _force_loops: dict = {}
 _step_loops: dict = {}
+_serial_twins: dict = {}
 
 
-def make_step(shape):
-    """The one CPU kick-drift, specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
+def _serial_jit(py_func):
+    """njit of a loop written with ``prange``, as a plain loop with the error model of a parallel region's body
+    (numba compiles a ``prange`` body with ``error_model="numpy"``: a division by zero gives inf or nan instead of
+    a test and a Python exception at every division). With Python's model the force loop of 4096 spheres took 27 us
+    a call against 17 us with numpy's (2-core VM); the quotients are the same IEEE ones either way."""
+    return numba.njit(error_model="numpy")(py_func)
+
+
+def serial_twin(kernel):
+    """``kernel`` (a ``parallel=True`` njit dispatcher) compiled again without parallel regions (its ``prange``
+    loops run as plain loops; :func:`_serial_jit`), cached on disk under its own key: a building block of the
+    small scenes' loop (:data:`SERIAL_LOOP_BELOW`)."""
+    if not kernel.targetoptions.get("parallel"):
+        return kernel
+    twin = _serial_twins.get(kernel)
+    if twin is None:
+        name = f"{kernel.py_func.__module__}.{kernel.py_func.__qualname__}"
+        twin = _serial_twins[kernel] = cache_closure(_serial_jit(kernel.py_func), ("serial", name))
+    return twin
+
+
+def make_step(shape, parallel: bool = True):
+    """The one CPU kick-drift (``parallel``: in one parallel region; else compiled as a plain loop, for the small
+    scenes' loop), specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
 
     ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
     chunk_a, chunk_b, s, nn)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``,
@@ -215,8 +249,8 @@ def make_step(shape):
     ``rotate`` drops what only a torque does (a sphere's pending orientation turn). In a dilute gas that is nearly
     every particle, and the default job's step went from about 6.0 to 4.8 ns per particle on one thread.
     """
-    if shape.NAME in _step_loops:
-        return _step_loops[shape.NAME]
+    if (shape.NAME, parallel) in _step_loops:
+        return _step_loops[shape.NAME, parallel]
     pre_step = shape.pre_step
     rotate = shape.rotate
 
@@ -267,13 +301,14 @@ def make_step(shape):
             chunk_a[c] = m
             chunk_b[c] = bad
 
-    loop = cache_closure(numba.njit(parallel=True)(step), ("cpu.step", shape.NAME))
-    _step_loops[shape.NAME] = loop
+    loop = cache_closure((numba.njit(parallel=True) if parallel else _serial_jit)(step), ("cpu.step", shape.NAME, parallel))
+    _step_loops[shape.NAME, parallel] = loop
     return loop
 
 
-def make_forces(shape):
-    """The one CPU force loop, specialised by a shape's pair evaluator ``shape.pair`` (cached on disk per shape):
+def make_forces(shape, parallel: bool = True):
+    """The one CPU force loop, specialised by a shape's pair evaluator ``shape.pair`` (cached on disk per shape;
+    ``parallel`` as in :func:`make_step`):
 
     ``compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
     k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx, active, n_active)`` sums the forces and torques of every
@@ -283,8 +318,8 @@ def make_forces(shape):
     ranges of ``active``) the largest relative overlap and its particle (the stability guard). ``torque = None``
     (smooth spheres): torques are neither summed nor written.
     """
-    if shape.NAME in _force_loops:
-        return _force_loops[shape.NAME]
+    if (shape.NAME, parallel) in _force_loops:
+        return _force_loops[shape.NAME, parallel]
     pair = shape.pair
 
     def compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
@@ -327,14 +362,17 @@ def make_forces(shape):
             chunk_ovl[c] = worst
             chunk_ovl_idx[c] = worst_i
 
-    loop = cache_closure(numba.njit(parallel=True)(compute_forces), ("cpu.compute_forces", shape.NAME))
-    _force_loops[shape.NAME] = loop
+    loop = cache_closure((numba.njit(parallel=True) if parallel else _serial_jit)(compute_forces),
+                         ("cpu.compute_forces", shape.NAME, parallel))
+    _force_loops[shape.NAME, parallel] = loop
     return loop
 
 
-def make_run_steps(shape):
+def make_run_steps(shape, parallel: bool = True):
     """The compiled time loop of a shape plug-in (engine/shapes/): one loop for every shape, specialised by the
-    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.jitcache).
+    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.jitcache). With
+    ``parallel`` False every kernel it calls is its :func:`serial_twin`: the loop of the scenes below
+    :data:`SERIAL_LOOP_BELOW` particles.
 
     ``run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
     ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
@@ -356,11 +394,18 @@ def make_run_steps(shape):
     mg = None: the single linked-cell grid; else the multigrid arrays (level, nc, inv_cell, start_off,
     list_off, cell_start, cell_list) of engine/multigrid.py (scenes with more than one grid level).
     """
-    if shape.NAME in _loops:
-        return _loops[shape.NAME]
-    step = make_step(shape)
-    forces = make_forces(shape)
-    settle = shape.settle
+    if (shape.NAME, parallel) in _loops:
+        return _loops[shape.NAME, parallel]
+    step = make_step(shape, parallel)
+    forces = make_forces(shape, parallel)
+    kernel = (lambda k: k) if parallel else serial_twin
+    settle = kernel(shape.settle)
+    largest_displacement2 = kernel(max_displacement2)
+    build = kernel(build_list)
+    copy = kernel(copy_list)
+    bin_multigrid = kernel(bin_levels)
+    build_multigrid = kernel(build_levels_carry)
+    close_kick = kernel(half_kick)
     exact = bool(shape.EXACT_DISPLACEMENT)
 
     def steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
@@ -389,18 +434,18 @@ def make_run_steps(shape):
                 disp_bound[0] += math.sqrt(m2) * dt
                 rebuild = False
                 if disp_bound[0] * disp_bound[0] > limit2:
-                    exact2 = max_displacement2(pos, x_ref, box, inv_box, half, chunk_a)
+                    exact2 = largest_displacement2(pos, x_ref, box, inv_box, half, chunk_a)
                     rebuild = exact2 > limit2
                     disp_bound[0] = math.sqrt(exact2)
             if rebuild:
                 disp_bound[0] = 0.0
                 if mg is None:
                     bin_particles(pos, nc, inv_cell, cell_start, cell_list, cell_of, cursor)
-                    build_list(pos, rad, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
+                    build(pos, rad, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of,
                                nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
                 else:
-                    bin_levels(pos, mg[0], mg[1], mg[2], mg[3], mg[4], mg[5], mg[6])
-                    build_levels_carry(pos, rad, mg[0], skin, box, inv_box, half, mg[1], mg[2], mg[3], mg[4],
+                    bin_multigrid(pos, mg[0], mg[1], mg[2], mg[3], mg[4], mg[5], mg[6])
+                    build_multigrid(pos, rad, mg[0], skin, box, inv_box, half, mg[1], mg[2], mg[3], mg[4],
                                        mg[5], mg[6], nbr, nn, hist, nbr_new, nn_new, hist_new, x_ref)
                 builds += 1
                 need = 0
@@ -409,7 +454,7 @@ def make_run_steps(shape):
                         need = nn_new[i]
                 if need > nbr_new.shape[1]:
                     return OVERFLOW, s, -1, float(need), builds
-                copy_list(nbr_new, nn_new, hist_new, nbr, nn, hist)
+                copy(nbr_new, nn_new, hist_new, nbr, nn, hist)
                 index_active(nn, active, n_active, force, torque)
             forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                    k_n, gn_coef, law, dt, ext, chunk_a, chunk_b, active, n_active)
@@ -433,11 +478,11 @@ def make_run_steps(shape):
                 # nothing left pending, whatever the exit (a step that stopped early had drifted already)
                 settle(spin, quat, ext, nsteps if status == OK else done + 1, dt, half)
             if status == OK:
-                half_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
+                close_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
         return status, done, who, value, builds
 
-    loop = cache_closure(numba.njit(run_steps), ("cpu.run_steps", shape.NAME))
-    _loops[shape.NAME] = loop
+    loop = cache_closure(numba.njit(run_steps), ("cpu.run_steps", shape.NAME, parallel))
+    _loops[shape.NAME, parallel] = loop
     return loop
 
 
@@ -458,6 +503,7 @@ class CpuLoop(Backend):
 
     def _init_loop(self, n: int, rmax: float, rmin: float, skin: float) -> None:
         self.disp_bound = np.zeros(1)     # upper bound of the displacement since the last build (m)
+        self.parallel_loop = n >= SERIAL_LOOP_BELOW   # the time loop in parallel regions (SERIAL_LOOP_BELOW)
         self.device = cpu_name()
         self.steps_done = 0
         self.builds = 0
@@ -560,7 +606,7 @@ class CpuLoop(Backend):
 
     def advance(self, nsteps: int, _compile_only: bool = False) -> None:
         """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
-        run_steps = make_run_steps(self.shape)
+        run_steps = make_run_steps(self.shape, self.parallel_loop)
         left = int(nsteps)
         while left > 0 or _compile_only:
             _compile_only = False

@@ -121,10 +121,28 @@ def test_checkpoint_resume_matches_uninterrupted_run(tmp_path, precision):
             assert va.shape == vb.shape
             assert np.array_equal(a[f"observables/{name}/step"][()], b[f"observables/{name}/step"][()])
             assert np.allclose(va, vb, rtol=rtol, atol=0), np.max(np.abs(vb / va - 1))
+        for element in ("position", "velocity"):   # the resumed file's frames: each once, at the same steps
+            assert np.array_equal(a[f"particles/all/{element}/step"][()], b[f"particles/all/{element}/step"][()])
+            assert b[f"particles/all/{element}/value"].shape == a[f"particles/all/{element}/value"].shape
         pa = a["particles/all/position/value"][-1]
         pb = b["particles/all/position/value"][-1]
         assert pa.dtype == pb.dtype == np.float64
         assert np.abs(pa - pb).max() < rtol
+
+
+def test_a_cpu_scene_writes_its_file_in_place(tmp_path, monkeypatch):
+    """A CPU scene's file work runs in the calling thread (engine.simulate._file_thread): it never asks for the I/O
+    thread, and its file is whole."""
+    import engine.h5md as h5md
+
+    def no_thread():
+        raise AssertionError("a CPU scene handed its file work to the I/O thread")
+
+    monkeypatch.setattr(h5md, "_io", no_thread)
+    run(SimulationSpec(**TINY), tmp_path / "a.h5")
+    with h5py.File(tmp_path / "a.h5") as f:
+        assert f["particles/all/position/value"].shape[0] == TINY["snapshots"]
+        assert f["observables/kinetic_energy_translational/value"].shape[0] > 1
 
 
 def test_resume_from_first_record_writes_it_once(tmp_path):

@@ -1,6 +1,7 @@
-"""The CPU engine's result does not depend on Numba's thread count: each thread owns its particles and sums their
-pairs in list order, so a run writes the same numbers on one thread (this process, tests/conftest.py) and on two (a
-child process), bit for bit."""
+"""The CPU engine's result does not depend on Numba's thread count or on the loop: each thread owns its particles and
+sums their pairs in list order, so a run writes the same numbers on one thread in the loop without parallel regions
+(this process, tests/conftest.py; the small scenes' loop, engine/loops/cpu.py SERIAL_LOOP_BELOW) and on two threads
+in the parallel loop (a child process), bit for bit."""
 
 from __future__ import annotations
 
@@ -19,9 +20,16 @@ ROOT = Path(__file__).resolve().parents[2]
 _RUN = """
 import json, sys
 import numba
+import engine.backends.ensemble as ensemble
+import engine.loops.cpu as cpu
 from engine.simulate import run
 assert numba.get_num_threads() == 2, numba.get_num_threads()
-run(json.loads(sys.argv[1]), sys.argv[2])
+cpu.SERIAL_LOOP_BELOW = 0                                      # every scene in the parallel loop ...
+ensemble.ONE_THREAD_BELOW = 0
+ensemble.ThreadChoice.pick = lambda self: max(self.counts)     # ... on both threads
+spec = json.loads(sys.argv[1])
+run(spec, sys.argv[2])
+assert list(cpu._loops) == [(spec.get("shape", "sphere"), True)], list(cpu._loops)
 """
 
 
@@ -44,8 +52,11 @@ def test_one_and_two_threads_write_the_same_numbers(tmp_path, spec):
 
     from engine.simulate import run
 
+    from engine.loops import cpu
+
     assert numba.get_num_threads() == 1
     run(spec, tmp_path / "one.h5")      # compiles or loads the kernels, which the child then loads from disk
+    assert (spec.get("shape", "sphere"), False) in cpu._loops          # a small scene: the loop without regions
     p = subprocess.run([sys.executable, "-c", _RUN, json.dumps(spec), str(tmp_path / "two.h5")], cwd=str(tmp_path),
                        capture_output=True, text=True, timeout=600,
                        env={**os.environ, "NUMBA_NUM_THREADS": "2", "PYTHONPATH": str(ROOT)})

@@ -367,8 +367,9 @@ def test_a_non_finite_frame_on_the_io_thread_never_reaches_a_result(tmp_path):
 
 
 def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp_path):
-    """H5MDWriter._append writes a C-ordered frame of the dataset's type as its chunk (H5Dwrite_chunk); any other
-    array (here Fortran-ordered copies, float32 into a float64 file) goes through HDF5's write. Same bytes."""
+    """A frame series (engine.h5md._FrameSeries.append) writes a C-ordered frame of the dataset's type as its chunk
+    (H5Dwrite_chunk); any other array (here Fortran-ordered copies, float32 into a float64 file) goes through HDF5's
+    write. Same bytes."""
     rng = np.random.default_rng(5)
     frames = [{"position": rng.random((40, 3)), "orientation": rng.random((40, 4)),
                "velocity": rng.random((40, 3)).astype(np.float32)} for _ in range(3)]
