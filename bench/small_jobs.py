@@ -1,19 +1,21 @@
 """Small jobs come back fast: latency of real jobs through `demq serve` (the workstation default: SQLite, one
 embedded worker) on this machine's CPU.
 
-Two scenes, each on a fresh server and data directory:
+Up to three scenes, each on a fresh server and data directory:
 
 1. ``--jobs`` jobs of 64 spheres (the default spec otherwise) submitted from ``--clients`` threads at once;
    printed: each job's time from its submission to done (median, 90th percentile) against the time from the
    first submission until the last job is done, and how long the submissions themselves took (while the worker
    keeps up with them, a job's latency is close to its own run; a backlog is worked off in submission order).
-2. ten default jobs (4096 spheres) and one of 512 spheres, submitted together as one batch of specs, the small
+2. with ``--lone K``: K jobs of 64 spheres submitted one at a time, each 1.5 s after the previous one was done;
+   printed: each one's time from its submission to done.
+3. ten default jobs (4096 spheres) and one of 512 spheres, submitted together as one batch of specs, the small
    one last; printed: when the small one was done against the first of the ten.
 
 Times are the server's own (the job rows' created_at and finished_at). Nothing is asserted here: the figures go
 into docs/performance.md.
 
-    python -m bench small_jobs [--jobs 100] [--clients 10] [--out DIR]
+    python -m bench small_jobs [--jobs 100] [--clients 10] [--lone K] [--skip-large] [--out DIR]
 """
 
 from __future__ import annotations
@@ -130,6 +132,23 @@ def many_small(out: Path, n_jobs: int, clients: int) -> dict:
             "median_over_last": statistics.median(latency) / (last - first)}
 
 
+def lone_jobs(out: Path, count: int, pause_s: float = 1.5) -> dict:
+    """``count`` jobs of 64 spheres submitted one at a time, each ``pause_s`` after the previous one was done (the
+    pace of a person submitting by hand): each job's time from its submission to done."""
+    server = Server(out / "lone_jobs.log")
+    latency = []
+    try:
+        for k in range(count):
+            r = httpx.post(f"{server.url}/jobs", json={"n_particles": 64, "seed": k}, timeout=60)
+            r.raise_for_status()
+            job = server.wait_all_done([r.json()["id"]])[0]
+            latency.append(_t(job["finished_at"]) - _t(job["created_at"]))
+            time.sleep(pause_s)
+    finally:
+        server.close()
+    return {"jobs": count, "latency_s": latency, "median_latency_s": statistics.median(latency)}
+
+
 def small_among_large(out: Path) -> dict:
     server = Server(out / "small_among_large.log")
     try:
@@ -154,7 +173,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=100)
     ap.add_argument("--clients", type=int, default=10)
-    ap.add_argument("--skip-large", action="store_true", help="only the many small jobs")
+    ap.add_argument("--skip-large", action="store_true", help="only the many small jobs (and --lone)")
+    ap.add_argument("--lone", type=int, default=0, help="then this many lone small jobs, one at a time")
     ap.add_argument("--out", type=Path, default=Path("bench-out/small_jobs"))
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -164,6 +184,10 @@ def main(argv=None) -> int:
           f"90th percentile {m['p90_latency_s']:.2f} s; first submit to last done {m['first_submit_to_last_done_s']:.2f} s "
           f"(median / last = {m['median_over_last']:.2f}); the submissions took {m['submit_window_s']:.2f} s; "
           f"states {m['states']}")
+    if args.lone:
+        report["lone"] = lone = lone_jobs(args.out, args.lone)
+        print(f"{args.lone} lone jobs of 64 spheres, one at a time: submit-to-done "
+              f"{' '.join(f'{x:.2f}' for x in lone['latency_s'])} s (median {lone['median_latency_s']:.2f} s)")
     if not args.skip_large:
         report["small_among_large"] = s = small_among_large(args.out)
         print(f"ten default jobs and one of 512 spheres in one batch: the small one done after {s['small_done_s']:.1f} s, "
