@@ -58,9 +58,9 @@ def _small_jobs(jobs: int, folder: Path) -> None:
         s = run(spec.model_copy(update={"seed": k + 1}), folder / f"job-{k}.h5")
         wall.append(time.perf_counter() - t0)
         loop.append(s.loop_s)
-    print(f"{jobs} default jobs of 64 spheres ({s.steps} steps each): engine.run median {statistics.median(wall) * 1e3:.1f} ms "
-          f"({min(wall) * 1e3:.1f}-{max(wall) * 1e3:.1f}), of which the time loop {statistics.median(loop) * 1e3:.1f} ms",
-          flush=True)
+    print(f"{jobs} default jobs of 64 spheres ({s.steps} steps each): engine.run median "
+          f"{statistics.median(wall) * 1e3:.1f} ms ({min(wall) * 1e3:.1f}-{max(wall) * 1e3:.1f}), of which the time "
+          f"loop {statistics.median(loop) * 1e3:.1f} ms", flush=True)
 
 
 def main(argv=None) -> int:

@@ -6,9 +6,10 @@ The engine compiles per *specialisation*: backend ('cpu', 'cuda') x shape (engin
 float32, mixed) x contact law (rough, smooth, rough with Coulomb friction; thermalisation and cooling contacts) x
 sizes (one size, or species: the multigrid lists), and on the CPU x scene size (the small scenes' time loop
 without parallel regions, the larger ones' in regions: engine/loops/cpu.py SERIAL_LOOP_BELOW). Everything else in a
-spec (N, phi, e_n, dt, seeds, ...) is a run-time value of the same compiled code. :func:`specialisations` lists the combinations the engine accepts (a
-shape refuses some: spheroids run neither species nor mixed precision); :func:`warm` runs a tiny scene of each
-through the same entry point a job uses (engine.simulate.run, plus a two-scene engine.ensemble.run_ensemble on the
+spec (N, phi, e_n, dt, seeds, ...) is a run-time value of the same compiled code. :func:`specialisations` lists the
+combinations the engine accepts (a shape refuses some: spheroids run neither species nor mixed precision);
+:func:`warm` runs a tiny scene of each (on the CPU also one of SERIAL_LOOP_BELOW particles) through the same entry
+point a job uses (engine.simulate.run, plus a two-scene engine.ensemble.run_ensemble on the
 GPU for the packed kernels), and draws a large start's kernels (engine.scene.load_parallel_start; on the GPU also
 the device start's, engine.loops.cuda_start.load). Compiled code
 goes to numba's disk cache (engine/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of later

@@ -301,7 +301,8 @@ def make_step(shape, parallel: bool = True):
             chunk_a[c] = m
             chunk_b[c] = bad
 
-    loop = cache_closure((numba.njit(parallel=True) if parallel else _serial_jit)(step), ("cpu.step", shape.NAME, parallel))
+    loop = cache_closure((numba.njit(parallel=True) if parallel else _serial_jit)(step),
+                         ("cpu.step", shape.NAME, parallel))
     _step_loops[shape.NAME, parallel] = loop
     return loop
 
