@@ -561,8 +561,9 @@ class _Runner:
             h5md_pool.prewarm(min(len(runs), h5md_pool.MAX_PROCESSES), ready=writer_process_ready)
             for r in runs:
                 r.defer_file = True
+        file_thread = _file_thread(ens)
         for r in runs:
-            r.file_thread = _file_thread(ens)
+            r.file_thread = file_thread
         try:
             self.open_all()
             at_start = set(self.active)

@@ -219,9 +219,9 @@ class Settings:
     def standby_enabled(self) -> bool:
         """Whether a running worker keeps its next claim's simulation process started up (jobs/worker.py). Auto: on
         a GPU host, and on a CPU host of more than one core, where the standby starts up beside a running claim
-        without taking its core. A lone 64-sphere CPU job through ``demq serve`` was done 0.22-0.24 s after its
-        submission with a standby against 0.85-0.90 s without (2-core VM, 2026-11-28); a CPU standby holds about
-        160 MB of memory while it waits."""
+        without taking its core. A lone 64-sphere CPU job through ``demq serve`` was done 0.20-0.27 s after its
+        submission with a standby against 0.72-0.99 s without (2-core VM, 2026-11-28, bench/small_jobs.py
+        ``--lone``); a CPU standby holds about 160 MB of memory while it waits."""
         if self.standby == "auto":
             from engine.startup import nvidia_driver
 

@@ -50,9 +50,8 @@ def _datasets(path) -> dict:
 def test_one_and_two_threads_write_the_same_numbers(tmp_path, spec):
     import numba
 
-    from engine.simulate import run
-
     from engine.loops import cpu
+    from engine.simulate import run
 
     assert numba.get_num_threads() == 1
     run(spec, tmp_path / "one.h5")      # compiles or loads the kernels, which the child then loads from disk

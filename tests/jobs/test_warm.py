@@ -69,11 +69,14 @@ def test_warm_fills_the_cache_so_that_a_job_in_a_fresh_process_compiles_nothing(
     assert line.startswith("warm: 6 kernels in ") and "failed" not in line, line
     assert int(line.split("(")[1].split()[0]) > 0      # it compiled (an empty cache)
 
-    probe = subprocess.run([sys.executable, "-c", PROBE, json.dumps(JOB)], cwd=ROOT, env=_env(cache),
-                           capture_output=True, text=True, timeout=600)
-    assert probe.returncode == 0, probe.stderr[-3000:]
-    got = json.loads(probe.stdout.strip().splitlines()[-1])
-    assert got["compiled"] == []   # every function the job called was loaded from the warm-up's cache
+    # the small job's time loop (no parallel regions) and a larger one's (parallel regions: engine/loops/cpu.py
+    # SERIAL_LOOP_BELOW), each in a fresh process
+    for job in (JOB, {**JOB, "n_particles": 2048, "box_length": 1.6}):
+        probe = subprocess.run([sys.executable, "-c", PROBE, json.dumps(job)], cwd=ROOT, env=_env(cache),
+                               capture_output=True, text=True, timeout=600)
+        assert probe.returncode == 0, probe.stderr[-3000:]
+        got = json.loads(probe.stdout.strip().splitlines()[-1])
+        assert got["compiled"] == [], job   # every function the job called was loaded from the warm-up's cache
 
     again = subprocess.run(warm, cwd=ROOT, env=_env(cache), capture_output=True, text=True, timeout=1800)
     assert again.returncode == 0, again.stderr[-3000:]
