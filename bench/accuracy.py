@@ -12,8 +12,8 @@ Knobs (all through the public spec / backend parameters; nothing here changes an
   engine/loops/cpu.py run_steps); there is no switch, so no rows;
 - ellipsoids: the contact algorithm. The spec exposes none: the engine always runs the Perram-Wertheim
   (PW) maximisation by safeguarded Newton. Its iteration tolerance (engine.shapes.spheroid.cpu_backend.PW_TOL,
-  a run-time argument of the kernel) is varied here by this bench only; paper 003's Delta/P overlap test,
-  which the engine does not use, is measured beside it as an overlap classifier.
+  a run-time argument of the kernel) is varied here by this bench only; the Delta/P overlap test of
+  Rubio-Largo et al. (2015), which the engine does not use, is measured beside it as an overlap classifier.
 
 Scenes and errors (references in brackets):
 
@@ -21,7 +21,7 @@ Scenes and errors (references in brackets):
   giving peak overlaps log-uniform in 0.2 % ... 2 % of the radius and contact starts at every phase of a
   step. Errors: max |e_n - e_n,nominal| over the head-on pairs [exact: the dashpot is built for it] and
   max |e_t - e_t,ref| over the oblique pairs [the same pair at float64, dt = t_c/200; the analytic
-  e_t,eff of paper 001 Eq. 4 misses O(delta/a) lever-arm terms, docs/physics.md, so its offset is
+  e_t,eff of Hidalgo et al. (2013) Eq. 4 misses O(delta/a) lever-arm terms, docs/physics.md, so its offset is
   listed separately].
 - ``elastic_smooth`` / ``elastic_rough``: elastic gas (e_n = 1; smooth e_t = -1, rough e_t = 1). The error
   of a knob is the energy error it adds per collision, measured without seed noise on a sample of binary
@@ -1007,7 +1007,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
          "**Knobs that do not exist in the engine**: the rebuild policy (one rule: rebuild when a particle has "
          "moved more than L_v/2; no switch, so no rows) and the ellipsoid contact algorithm (the spec exposes "
          "none; the engine always uses the Perram-Wertheim (PW) maximisation; this bench varies its Newton "
-         "tolerance and measures paper 003's Delta/P test as a classifier only).", "",
+         "tolerance and measures the Delta/P test of Rubio-Largo et al. (2015) as a classifier only).", "",
          "![accuracy against cost](accuracy.png)", "",
          f"## Verdict on the defaults (dt = t_c/50, float64, L_v = {DEFAULT['skin']:g} a on this backend at the "
          f"gas scenes' phi = {size['phi']:g}; PW tolerance 1e-15)", ""]
@@ -1032,7 +1032,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
           f"this dashpot; the head-on pairs are run again with e_n = {E_N_LOW}, where the dashpot's dt error is "
           "larger); de_t "
           "against the same pairs at float64, t_c/200, because the analytic e_t,eff = "
-          f"{col['e_t_effective']:.5f} (paper 001 Eq. 4, docs/physics.md) neglects O(delta/a) lever-arm and "
+          f"{col['e_t_effective']:.5f} (Hidalgo et al. 2013, Eq. 4, docs/physics.md) neglects O(delta/a) lever-arm and "
           f"normal-rotation terms: the reference differs from it by {_e(col['ref_e_t_offset'])} (e_n: "
           f"{_e(col['ref_e_n_error'])}). Cost: the pair scene itself (all pairs in contact a third of the run; "
           f"median of {COLLISION_REPS if res['reps'] >= 3 else res['reps']} runs of a few ms each).",
@@ -1147,7 +1147,8 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
                      f"{_e(r['err_delta_p99'])} | {_e(r['err_normal_max'])} | {_e(r['err_point_max'])} | {r['nan']} | "
                      f"{r['missed']} | {r['pairs_per_s']:.3g} | "
                      f"{r['cundall']:.3g} | {_e(r['drift'])} | {_front_cell(r)} |")
-        L += ["", "Paper 003's Delta/P overlap test on the same pairs (all overlapping), as a classifier:", "",
+        L += ["", "The Delta/P overlap test of Rubio-Largo et al. (2015) on the same pairs (all overlapping), as a "
+              "classifier:", "",
               "| precision | overlapping pairs called disjoint | pairs/s |", "|---|---|---|"]
         for r in ell["paper"]:
             L.append(f"| {r['precision']} | {r['called_disjoint']} of {r['pairs']} | {r['pairs_per_s']:.3g} |")

@@ -6,8 +6,8 @@ What is timed (docs/design.md): the full rough-sphere step of engine/loops/cpu.p
 wrap, Fincham quaternion update, tangential springs with history and contact-event corrections, torques,
 Verlet lists rebuilt by the L_v/2 rule with spring carry-over, stability guards — plus the observables
 reduction at the default output cadence (t_end/200 of a run as long as the timed one). Not timed: JIT
-compilation (warmed up first), placement, the first list build. The gas is the spec's scene (paper 001
-parameters; box scaled with N at fixed phi) after a short elastic warm-up so that collisions are under way.
+compilation (warmed up first), placement, the first list build. The gas is the spec's scene (the parameters of
+Hidalgo et al. 2013; box scaled with N at fixed phi) after a short elastic warm-up so that collisions are under way.
 Each figure is the median of --reps timed runs of about --seconds wall seconds each.
 """
 
@@ -30,7 +30,7 @@ from engine.spec import SimulationSpec
 
 
 def scene(n: int, phi: float, precision: str):
-    # keep the paper-001 particle size (a = 1.55 cm): L grows with N at fixed phi
+    # keep the Hidalgo et al. (2013) particle size (a = 1.55 cm): L grows with N at fixed phi
     a = 0.015508762272485004
     box = (n * 4.0 / 3.0 * 3.141592653589793 * a**3 / phi) ** (1 / 3)
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, box_length=box, precision=precision, backend="cpu",

@@ -262,8 +262,9 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
     port = _free_port()
     env = {**os.environ, "DEMQ_DATA_DIR": str(workdir / "data"), "DEMQ_PORT": str(port),
            "DEMQ_HOST": "127.0.0.1", "DEMQ_MAX_PARTICLE_STEPS": "1e15"}
+    log = open(workdir / "server.log", "w")   # a file, not a pipe nobody reads: a full pipe would stall the server
     server = subprocess.Popen([sys.executable, "-c", "from service.cli import main; main()", "serve"],
-                              cwd=str(ROOT), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                              cwd=str(ROOT), env=env, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     try:
         with httpx.Client(base_url=url, timeout=60.0) as c:
@@ -297,7 +298,7 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
                 raise RuntimeError(f"batch did not finish cleanly: {sorted(set(states))}, result {got.status_code}")
             n_total = sum(d["n_particles"] for d in raw)
             steps = int(round(base["t_end"] / base["dt"]))
-            loop = max(j.get("wall_s") or 0.0 for j in page["items"])
+            loop = max(j.get("loop_s") or 0.0 for j in page["items"])
             return _row(case, n_total, steps, wall, loop, {"loop": loop},
                         {"scenes": len(raw), "path": "worker", "jobs": len(states)})
     finally:
@@ -306,6 +307,10 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
             server.wait(timeout=30)
         except subprocess.TimeoutExpired:
             server.kill()
+        log.close()
+        keep = os.environ.get("DEMQ_E2E_SERVER_LOG")   # a copy of the server's log, where asked for
+        if keep:
+            Path(keep).write_text((workdir / "server.log").read_text())
 
 
 def fresh_process(case: str, quick: bool, off=(), start=None) -> dict:

@@ -2,7 +2,7 @@
 
 A 13-cell matrix (bench/hcs_ellipsoids_cuda.py, one seed per cell) gave a late T_tr/T_rot of
 1.0493 +- 0.0068 at xi = 2.5, e_n = 0.9, +4.0 % from the e_eff(D) DSMC value 1.0093. This script runs, as ONE
-CUDA ensemble (engine.ensemble.run_ensemble), the paper-003 scene of engine/validation/hcs_ellipsoids.py
+CUDA ensemble (engine.ensemble.run_ensemble), the Rubio-Largo et al. (2015) scene of engine/validation/hcs_ellipsoids.py
 (phi = 0.058, v_rms = 3.5 m/s, 3 elastic sphere-rate collisions of thermalisation, Gamma_0 t_end = 40; box edge
 2 m (N/4096)^(1/3)) for:
 
@@ -60,8 +60,8 @@ def parse_groups(items):
 
 
 def scenes(groups, collisions, backend):
-    """(label, spec, file name) of every run: hcs_ellipsoids' paper-003 spec (full_spec for N = 4096) with
-    SNAPSHOTS snapshots."""
+    """(label, spec, file name) of every run: the Rubio-Largo et al. (2015) spec of hcs_ellipsoids (full_spec for
+    N = 4096) with SNAPSHOTS snapshots."""
     out = []
     for xi, e, n, k in groups:
         for seed in range(k):
@@ -379,7 +379,8 @@ def main(argv=None):
     ap.add_argument("--runs", nargs="*", default=MAIN, help="xi:e:N:seeds")
     ap.add_argument("--extra", nargs="*", default=EXTRA, help="xi:e:N:seeds, dropped first to fit --budget-s")
     ap.add_argument("--backend", default="cuda")
-    ap.add_argument("--collisions", type=float, default=40.0, help="Gamma_0 t_end (40: the paper-003 runs)")
+    ap.add_argument("--collisions", type=float, default=40.0,
+                    help="Gamma_0 t_end (40: as in the runs of Rubio-Largo et al. 2015)")
     ap.add_argument("--budget-s", type=float, default=330.0)
     ap.add_argument("--probe-steps", type=int, default=2000)
     ap.add_argument("--dsmc", default=None, help="JSON of bench/ellipsoid_dsmc_refs.py")

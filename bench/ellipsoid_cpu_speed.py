@@ -1,4 +1,4 @@
-"""CPU speed of the ellipsoid backend on the paper-003 gas: Cundall number of
+"""CPU speed of the ellipsoid backend on the Rubio-Largo et al. (2015) gas: Cundall number of
 ``CpuEllipsoidBackend.advance`` after compilation, placement and the first list build, median of --reps runs,
 and a fingerprint of the final state (so that two code versions can be checked for identical trajectories).
 

@@ -4,7 +4,7 @@ Samples N random overlapping pairs (b = 1, xi in [1, 4]; 10 % spheres, 30 % iden
 the rest independent; overlap depth h = contact distance - centre distance log-uniform in
 [1e-6, 1e-2] b), computes the contact with engine/physics/ellipsoid.py in float64 and float32 and
 compares with the longdouble oracle of tests/engine/test_ellipsoid_oracle.py (bisection on the
-primal tangency curve, a different method). Also counts how often paper 003's Delta/P test calls
+primal tangency curve, a different method). Also counts how often the Delta/P test of Rubio-Largo et al. (2015) calls
 these overlapping pairs "disjoint". Prints the table and writes it to OUT/ellipsoid_geometry_accuracy.md.
 
     python -m bench ellipsoid_geometry_accuracy [--n 10000] [--seed 2024] [--out DIR]
@@ -69,8 +69,8 @@ def main():
         paper_batch(c(data["r"]), c(data["qa"]), c(data["axes_a"]), c(data["qb"]), c(data["axes_b"]),
                     dtype(0.5), pd)
         summary.append(f"- {np.dtype(dtype).name}: NaN {nan}; robust (Perram-Wertheim) test missed {miss} of "
-                       f"{args.n} overlaps; delta <= 0 for {neg} pairs deeper than 1e-6 b; paper 003's "
-                       f"Delta/P test called {int(pd.sum())} of these overlapping pairs \"disjoint\" "
+                       f"{args.n} overlaps; delta <= 0 for {neg} pairs deeper than 1e-6 b; the Delta/P test of "
+                       f"Rubio-Largo et al. (2015) called {int(pd.sum())} of these overlapping pairs \"disjoint\" "
                        f"({int(pd[spheres].sum())} of the {int(spheres.sum())} equal-sphere pairs, where "
                        f"Delta == 0 identically; {int(pd[~spheres].sum())} of the other {int((~spheres).sum())}).")
     wall = time.time() - t0
@@ -95,8 +95,8 @@ def main():
         *summary, "",
         "float32: the absolute error of delta is ~1e-7 b (the rounding of 1 - W_0^2), so the relative "
         "error of overlaps near 1e-6 b is O(1); the force error k_n * 1e-7 b is what that costs. "
-        "Paper 003's Delta/P test fails elsewhere too: Delta == 0 identically for identical parallel "
-        "pairs (every aligned lattice start), float32 sign noise for near-parallel pairs, deep overlaps "
+        "The Delta/P test of Rubio-Largo et al. (2015) fails elsewhere too: Delta == 0 identically for identical "
+        "parallel pairs (every aligned lattice start), float32 sign noise for near-parallel pairs, deep overlaps "
         "called disjoint (tests/engine/test_ellipsoid_geometry.py). The engine never uses it.", ""])
     print(text)
     (out_dir(args.out, "ellipsoid_geometry_accuracy") / "ellipsoid_geometry_accuracy.md").write_text(text)

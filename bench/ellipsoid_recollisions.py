@@ -4,7 +4,7 @@ The DSMC reference of the late T_tr/T_rot (engine/validation/hcs_ellipsoids.py: 
 from uncorrelated pre-collision states (molecular chaos) and applies one instantaneous impulse. Two elongated
 bodies can instead touch several times in one encounter (a contact ends, the pair rotates, another part of them
 touches): those contacts are correlated, which the DSMC cannot represent, and their share grows with the
-elongation. This script counts them in the DEM itself (CPU backend, the paper-003 gas of
+elongation. This script counts them in the DEM itself (CPU backend, the Rubio-Largo et al. (2015) gas of
 bench/gpu_ellipsoid_scaling.py: phi = 0.058, engine contact constants, e_n = 0.9): an encounter is a maximal
 interval in which the bounding spheres (radius a) of a pair overlap; a contact starts when the pair's overlap
 becomes positive. Reported per xi: encounters with at least one contact, the share with two or more, and the

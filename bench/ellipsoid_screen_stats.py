@@ -1,7 +1,7 @@
 """How many pairs each exact screen removes before the Perram-Wertheim solve (speed).
 
-Takes a snapshot of the paper-003 gas (bench/gpu_ellipsoid_scaling.py's random gas, xi = 2, phi = 0.058 by
-default) after --steps steps of the CPU backend, and classifies every list pair (i < j) whose bounding spheres
+Takes a snapshot of the Rubio-Largo et al. (2015) gas (bench/gpu_ellipsoid_scaling.py's random gas, xi = 2, phi = 0.058
+by default) after --steps steps of the CPU backend, and classifies every list pair (i < j) whose bounding spheres
 (radius a) overlap -- the pairs the force kernel sends to the contact function -- with the engine's own
 functions (engine/physics/ellipsoid.py):
 

@@ -1,10 +1,10 @@
 """Cundall number of the CUDA ellipsoid backend against N and precision, and its ratio to spheres (the
 must-show 5), plus the ensemble rows K x 4096 ellipsoids.
 
-Scene: the paper-003 gas -- frictionless prolate spheroids, elongation xi = 2, phi = 0.058, e_n = 0.9,
+Scene: the Rubio-Largo et al. (2015) gas -- frictionless prolate spheroids, elongation xi = 2, phi = 0.058, e_n = 0.9,
 the engine's contact constants for that spec (engine.params.derive: k_n, gamma_n, dt = t_c/50, skin), box edge
-2 m x (N/4096)^(1/3) (paper-001 particle size, as engine/validation/hcs_ellipsoids.py), v_rms = 3.5 m/s and
-spins about the two axes perpendicular to the symmetry axis at the same temperature. Placement: uniformly random
+2 m x (N/4096)^(1/3) (the particle size of Hidalgo et al. 2013, as engine/validation/hcs_ellipsoids.py), v_rms = 3.5 m/s
+and spins about the two axes perpendicular to the symmetry axis at the same temperature. Placement: uniformly random
 centres and orientations, every overlapping ellipsoid (Perram-Wertheim W_0 < 1, the engine's own test) redrawn
 until none is left -- a random gas in which bounding spheres overlap as often as in the thermalised gas (about
 one pair per particle; a lattice start has none, and the force kernel would then never run the contact
@@ -154,7 +154,7 @@ _placed: dict = {}
 
 
 def ellipsoid_gas(n, phi, precision, seed=1, xi=XI, e_n=0.9):
-    """(EllipsoidSystem, ContactParams) of the paper-003 gas (module docstring); placement cached per
+    """(EllipsoidSystem, ContactParams) of the Rubio-Largo et al. (2015) gas (module docstring); placement cached per
     (n, phi, seed, xi) so both precisions start from the same configuration."""
     from engine.backends.base import EllipsoidSystem
     from engine.params import derive
@@ -281,7 +281,8 @@ def plan(ns, precisions, ks, ensemble, spheres_last=False, controls=False):
 
 
 def table(rows, info) -> str:
-    out = [f"{info['gpu']}: ellipsoids xi = {XI}, phi = {PHI} (paper-003 gas); spheres: rough, Coulomb, rotation",
+    out = [f"{info['gpu']}: ellipsoids xi = {XI}, phi = {PHI} (the gas of Rubio-Largo et al. 2015); spheres: rough, "
+           "Coulomb, rotation",
            "", "| precision | N | ellipsoids: Cundall (median) | loop | KD | rebuild | forces | B/particle | max_nb | "
            "contacts/particle | spheres: Cundall | ratio ell/sph |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     sph = {(r["precision"], r["n"]): r for r in rows if r.get("shape") == "sphere" and "error" not in r}

@@ -39,7 +39,7 @@ def scene(n, phi, precision, seed=1):
 
 def lattice_scene(n, phi, precision, seed=1, **contact):
     """A fast start for very large N: jittered simple-cubic lattice (no fcc placement); ``contact`` overrides the
-    rough paper-001 contact (e_n = 0.8, e_t = 0.5, friction 0.5)."""
+    rough contact of Hidalgo et al. (2013) (e_n = 0.8, e_t = 0.5, friction 0.5)."""
     from engine.backends.base import SphereSystem
     from engine.params import derive
     from engine.simulate import contact_params

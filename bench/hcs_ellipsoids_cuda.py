@@ -1,7 +1,7 @@
 """The issue-4 ellipsoid cooling matrix as ONE CUDA ensemble, within a wall-time budget (device machine).
 
-Runs ``engine.validation.hcs_ellipsoids.main(..., backend='cuda', ensemble=True)`` (paper-003 runs: N = 4096,
-phi = 0.058, Gamma_0 t_end = 40; 312 000-651 000 steps a cell, xi = 1.15 longest) for the cells that fit
+Runs ``engine.validation.hcs_ellipsoids.main(..., backend='cuda', ensemble=True)`` (the runs of Rubio-Largo et al. 2015:
+N = 4096, phi = 0.058, Gamma_0 t_end = 40; 312 000-651 000 steps a cell, xi = 1.15 longest) for the cells that fit
 in ``--budget-s``. A killed ensemble leaves only unreadable .h5.part files, so the cells are chosen before
 the run: a probe ensemble of all requested cells (random gas starts, bounding spheres overlapping as in the
 thermalised gas) is timed for ``--probe-steps`` steps, and the projected wall time

@@ -1,6 +1,6 @@
 """The random start against the lattice start: does a cooling run from each follow Luding's ODE as closely?
 
-The paper-001 scene (4096 rough spheres, phi = 0.008, e_n = e_t = 0.8, velocity_rms 2 m/s) cools from two
+The Hidalgo et al. (2013) scene (4096 rough spheres, phi = 0.008, e_n = e_t = 0.8, velocity_rms 2 m/s) cools from two
 starts, ``--seeds`` seeds each, all packed into one ensemble run:
 
 - ``random``: the default start (random sequential addition, Maxwellian velocities and spins) with its
@@ -36,7 +36,8 @@ STARTS = {"random": {"start": None, "thermalization": None},
 
 
 def scene(start: str, seed: int, tau_end: float, backend: str, **overrides) -> SimulationSpec:
-    """The paper-001 cooling scene from ``start`` ("random" or "lattice"), recorded 200 times up to tau_end."""
+    """The Hidalgo et al. (2013) cooling scene from ``start`` ("random" or "lattice"), recorded 200 times up to
+    tau_end."""
     base = SimulationSpec(e_n=0.8, e_t=0.8, seed=seed, backend=backend, snapshots=0, **STARTS[start],
                           **overrides)
     p = derive(base)
@@ -109,8 +110,8 @@ def main(argv=None) -> int:
     report["difference"] = compare_starts(report["random"], report["lattice"], args.tau)
     (args.out / "hcs_start.json").write_text(json.dumps(report))
 
-    print(f"paper-001 scene, {args.seeds} seeds per start, tau <= {args.tau:g}, device {report['random']['device']}, "
-          f"{wall:.0f} s")
+    print(f"scene of Hidalgo et al. (2013), {args.seeds} seeds per start, tau <= {args.tau:g}, "
+          f"device {report['random']['device']}, {wall:.0f} s")
     print(f"{'start':8} {'max |T/T_ODE - 1|':>22} {'max |R/R_ODE - 1|':>22}")
     for start in STARTS:
         r = report[start]

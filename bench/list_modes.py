@@ -1,13 +1,13 @@
-"""Paper 004 on the GPU machine: the three Verlet-list modes and the multigrid cost.
+"""Skorych & Dosta (2022) on the GPU machine: their three Verlet-list modes and the multigrid cost.
 
 ``python -m bench list_modes --out DIR`` (NVIDIA GPU required):
 
 1. Modes: for each scene (dilute and dense, N from 1e5 to 1e7, mono- and polydisperse) the same start is
-   run for the same number of steps with the list built on the GPU, on the CPU sequentially (paper 004
-   Fig. 1A) and on the CPU pipelined (Fig. 1B), and with ``list_mode = "auto"``. Reported per scene:
+   run for the same number of steps with the list built on the GPU, on the CPU sequentially (Skorych & Dosta
+   2022, Fig. 1A) and on the CPU pipelined (Fig. 1B), and with ``list_mode = "auto"``. Reported per scene:
    wall time of each mode, particle-steps per second, the sequential mode's tau_CPU, tau_GPU, tau_exch
    per stage, q (Eq. 5), G_max (Eq. 9), the measured gain G = t_seq / t_par - 1 (Eq. 7) and whether
-   auto was within 5 % of the best mode. Also a G against G_max plot (paper 004 Fig. 5).
+   auto was within 5 % of the best mode. Also a G against G_max plot (Skorych & Dosta 2022, Fig. 5).
 2. Multigrid cost: GPU list-build time and time per step at size ratios 1, 2, 5, 10 with the multigrid
    levels and with one grid of cell >= 2 R_max + L_v (engine.loops.cuda_rebuild.MULTIGRID = False), same start.
 
@@ -167,7 +167,7 @@ def multigrid_cost(n=1_000_000, phi=0.2, ratios=(1, 2, 5, 10), reps=5) -> list:
 
 
 def report(out: Path, rows: list, cost: list, device: str) -> None:
-    lines = [f"# Paper 004 list modes and multigrid cost — {device}", "",
+    lines = [f"# Skorych & Dosta (2022) list modes and multigrid cost — {device}", "",
              "Command: `python -m bench list_modes --out DIR`. Each mode runs the same start for the same "
              "steps (the GPU-list run's count to reach 10 rebuilds); wall time excludes compilation and the "
              "first build. q = tau_CPU/tau_GPU of the sequential mode (Eq. 5), G_max by Eq. 9, "
@@ -206,7 +206,7 @@ def report(out: Path, rows: list, cost: list, device: str) -> None:
         ax.set_xscale("log")
         ax.set_xlabel("q = tau_CPU / tau_GPU (sequential mode)")
         ax.set_ylabel("gain G of the pipelined mode")
-        ax.set_title(f"paper 004 Fig. 5 analogue, {device}", fontsize=8)
+        ax.set_title(f"analogue of Skorych & Dosta (2022) Fig. 5, {device}", fontsize=8)
         ax.legend(fontsize=6)
         fig.tight_layout()
         fig.savefig(out / "g_vs_gmax.png", dpi=120)

@@ -13,7 +13,7 @@ multigrid builds alternate, so a shared machine's load hits both alike), at 1 Nu
 threads:
 - single grid: engine/loops/cpu.py ``bin_particles`` + ``build_list`` (cells of edge >= 2 R_max + L_v,
   nc <= (2N)^(1/3) + 1 per edge: today's CPU build, with the spring carry-over from the previous list);
-- multigrid: engine/multigrid.py ``bin_levels`` + ``build_levels_carry`` (paper 004 Algorithm 1 with the
+- multigrid: engine/multigrid.py ``bin_levels`` + ``build_levels_carry`` (Skorych & Dosta 2022, Algorithm 1 with the
   search rule of engine/multigrid.py; what the CPU backend runs when the radii span more than one level,
   with the same carry-over).
 Both start from the list of the same positions as the "previous" list, so the carry-over does the full

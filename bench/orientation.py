@@ -6,8 +6,8 @@
 ``reference``: the lattice gas of tests/engine/test_cuda_simulator.py (27 rough spheres, contacts
 from the first steps), spins of 10, 100, 300 rad/s per component. The same start is run at dt = t_c/50 and at
 t_c/1000 (CPU backend, one step per call: the mid-step spins are read back as w(t) - tau/I dt/2). Printed: the
-largest |q - q_ref| of the engine's lazy exact turns and of paper 001's per-step Fincham update of the same
-t_c/50 spins, q_ref = Fincham per step through the t_c/1000 run's spins, and the largest spin difference
+largest |q - q_ref| of the engine's lazy exact turns and of the per-step Fincham update (Hidalgo et al. 2013) of the
+same t_c/50 spins, q_ref = Fincham per step through the t_c/1000 run's spins, and the largest spin difference
 between the two runs (the contact's own O(dt^2) error, which both schemes inherit). The test
 tests/engine/test_lazy_orientation.py compares the schemes against the t_c/50 run's own spins instead (that
 isolates the orientation integrator).

@@ -12,10 +12,15 @@ Up to three scenes, each on a fresh server and data directory:
 3. ten default jobs (4096 spheres) and one of 512 spheres, submitted together as one batch of specs, the small
    one last; printed: when the small one was done against the first of the ten.
 
+``--lanes L ...`` runs only this instead: a CPU worker (it sees no GPU) with L lanes (DEMQ_WORKER_LANES, jobs/worker.py),
+for each L, ``--lane-jobs`` jobs of 512 spheres as one batch; printed: the time from the batch's submission until
+its last job is done, against the first L's, and the jobs' distinct end times.
+
 Times are the server's own (the job rows' created_at and finished_at). Nothing is asserted here: the figures go
 into docs/performance.md.
 
     python -m bench small_jobs [--jobs 100] [--clients 10] [--lone K] [--skip-large] [--out DIR]
+    python -m bench small_jobs --lanes 1 8 [--lane-jobs 200]
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import threading
 import time
 from datetime import datetime
 from pathlib import Path
+from typing import Optional
 
 import httpx
 
@@ -47,20 +53,23 @@ def _free_port() -> int:
 class Server:
     """`demq serve` with its embedded worker on a fresh data directory, on loopback, once the worker is warm."""
 
-    def __init__(self, log: Path):
+    def __init__(self, log: Path, env_extra: Optional[dict] = None, wait_for_warm_up: bool = True):
         self.data = Path(tempfile.mkdtemp(prefix="demq-small-"))
         self.port = _free_port()
         path = os.pathsep.join([str(ROOT)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else []))
-        env = {**os.environ, "PYTHONPATH": path, "DEMQ_DATA_DIR": str(self.data)}
+        env = {**os.environ, "PYTHONPATH": path, "DEMQ_DATA_DIR": str(self.data), **(env_extra or {})}
         self.log = open(log, "w")
         self.proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
                                      cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         self.url = f"http://127.0.0.1:{self.port}"
-        # ready = the API answers and the embedded worker has logged its warm-up ("warm: N kernels in X s"); the
-        # ceiling only catches a hang (a first warm-up on an empty kernel cache compiles for minutes)
+        # ready = the API answers and (unless not asked for) the embedded worker has logged the end of its warm-up
+        # ("warm: N kernels in X s"); the ceiling only catches a hang (a first warm-up on an empty kernel cache
+        # compiles for minutes)
         deadline = time.monotonic() + 1800
         while time.monotonic() < deadline:
-            if "warm: " in log.read_text() or "warm-up failed" in log.read_text():
+            text = log.read_text()
+            warmed = any(line in text for line in ("warm: ", "warm-up ended without", "cannot start the warm-up"))
+            if warmed or not wait_for_warm_up:
                 try:
                     if httpx.get(f"{self.url}/healthz").status_code == 200:
                         return
@@ -169,15 +178,56 @@ def small_among_large(out: Path) -> dict:
             "states": sorted({j["state"] for j in jobs})}
 
 
+def lanes(out: Path, lane_counts: list, n_jobs: int, n_particles: int = 512) -> list:
+    """A CPU worker's lanes (DEMQ_WORKER_LANES): for each count, a fresh server whose worker sees no GPU
+    (CUDA_VISIBLE_DEVICES empty), one job to load the kernels, then ``n_jobs`` jobs of ``n_particles`` spheres (the
+    default spec otherwise) as one batch; the time from the batch's submission to its last job done, and how many
+    distinct end times the jobs have (each job reported done as its own run ends, not with its claim)."""
+    rows = []
+    for count in lane_counts:
+        env = {"DEMQ_WORKER_LANES": str(count), "CUDA_VISIBLE_DEVICES": "", "DEMQ_WORKER_WARM": "off"}
+        server = Server(out / f"lanes_{count}.log", env_extra=env, wait_for_warm_up=False)
+        try:
+            first = httpx.post(f"{server.url}/jobs", json={"n_particles": n_particles, "seed": 10**6}, timeout=60)
+            first.raise_for_status()
+            server.wait_all_done([first.json()["id"]])
+            r = httpx.post(f"{server.url}/batches", json={"base": {"n_particles": n_particles},
+                                                        "sweep": {"seed": list(range(n_jobs))}}, timeout=60)
+            r.raise_for_status()
+            jobs = server.wait_all_done(r.json()["job_ids"])
+        finally:
+            server.close()
+        t0 = min(_t(j["created_at"]) for j in jobs)
+        ends = sorted(_t(j["finished_at"]) for j in jobs)
+        rows.append({"lanes": count, "jobs": n_jobs, "n_particles": n_particles, "span_s": ends[-1] - t0,
+                     "distinct_end_times": len(set(ends)), "states": sorted({j["state"] for j in jobs})})
+    base = rows[0]["span_s"]
+    for row in rows:
+        row["speed_up"] = base / row["span_s"]
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=100)
     ap.add_argument("--clients", type=int, default=10)
     ap.add_argument("--skip-large", action="store_true", help="only the many small jobs (and --lone)")
     ap.add_argument("--lone", type=int, default=0, help="then this many lone small jobs, one at a time")
+    ap.add_argument("--lanes", type=int, nargs="+", default=None, metavar="L",
+                    help="only this: a CPU worker with L lanes for each L (the first is the reference), "
+                         "--lane-jobs jobs of 512 spheres each")
+    ap.add_argument("--lane-jobs", type=int, default=200)
     ap.add_argument("--out", type=Path, default=Path("bench-out/small_jobs"))
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.lanes:
+        rows = lanes(args.out, args.lanes, args.lane_jobs)
+        for row in rows:
+            print(f"{row['lanes']} lane(s), {os.cpu_count()} cores: {row['jobs']} jobs of {row['n_particles']} spheres "
+                  f"done {row['span_s']:.2f} s after the batch's submission (x{row['speed_up']:.2f} of {rows[0]['lanes']} "
+                  f"lane(s)); {row['distinct_end_times']} distinct end times; states {row['states']}", flush=True)
+        (args.out / "lanes.json").write_text(json.dumps(rows, indent=2))
+        return 0
     report = {"cpus": os.cpu_count(), "many_small": many_small(args.out, args.jobs, args.clients)}
     m = report["many_small"]
     print(f"{args.jobs} jobs of 64 spheres from {args.clients} threads: median submit-to-done {m['median_latency_s']:.2f} s, "

@@ -19,8 +19,8 @@ piece of physics does not pay for it (engine/loops/cpu.py module doc):
 Method: each variant gets its own backend built from the same thermalised state, is compiled (not
 timed), then advanced ``steps`` steps ``reps`` times; Cundall number = N x steps / wall s (median).
 One switch differs from the baseline per row (two in 'maximal'; baseline: rough e_t = 0.8, no Coulomb
-limit, orientation off, float64, no output). Scenes: the paper-001 default spec (N = 4096, phi = 0.008: ~1e-4 contacts per
-particle) and a contact-rich gas (phi = 0.3).
+limit, orientation off, float64, no output). Scenes: the default spec, the scene of Hidalgo et al. (2013) (N = 4096,
+phi = 0.008: ~1e-4 contacts per particle) and a contact-rich gas (phi = 0.3).
 
     PYTHONPATH=. NUMBA_NUM_THREADS=1 python -m bench specialisation [--quick] [--backend cuda] [--n N]
     python -m bench specialisation [--quick] [--backend cpu|cuda]
@@ -74,7 +74,7 @@ def _scenes(cfg: dict, backend: str) -> dict:
     size = replace(ACC_SIZES["full"], gas_n=cfg["n"], phi=0.3)
     dense = gas_spec(size, dt_fraction=50, precision="float64", skin=0.4, e_n=0.8, e_t=0.8, collisions=1.0,
                      thermalization=0.0, backend=backend)
-    return {"dilute (paper-001 default, phi = 0.008)": (dilute, False),
+    return {"dilute (default spec, Hidalgo et al. 2013, phi = 0.008)": (dilute, False),
             "contact-rich (phi = 0.3)": (dense, True)}
 
 
@@ -156,8 +156,8 @@ def build_output(cfg: dict, backend: str, log) -> list:
                 s = run(spec, Path(tmp) / "o.h5", backend=backend)
                 runs.append(s.cundall)
             cund = float(statistics.median(runs))
-            rows.append({"scene": "driver, paper-001 default spec", "variant": f"snapshots={snaps}", "what": what,
-                         "cundall": cund, "runs": runs, "n": n, "steps": s.steps, "device": s.device})
+            rows.append({"scene": "driver, default spec (Hidalgo et al. 2013)", "variant": f"snapshots={snaps}",
+                         "what": what, "cundall": cund, "runs": runs, "n": n, "steps": s.steps, "device": s.device})
             log(f"output snapshots={snaps}: Cundall {cund:.3g}")
     ref = rows[1]["cundall"]
     for r in rows:
@@ -257,7 +257,7 @@ def write_report(out: Path, res: dict, cmd: str) -> str:
                          f"{min(r['runs']):.3g}-{max(r['runs']):.3g} | {r['vs_baseline']:.2f} | "
                          f"{r['contacts_per_particle']:.2g} | {spec_name} | {sp} |")
         L.append("")
-    L += ["### Snapshot output (driver, paper-001 default spec)", "",
+    L += ["### Snapshot output (driver, default spec of Hidalgo et al. 2013)", "",
           "Whole `run()` of the default spec (N as above, no thermalisation, 200 observable records); "
           "x relative to snapshots = 2 (orientation on in both), so the last row is the cost of more frames "
           "alone and the snapshots = 0 row what orientation + 2 frames cost.", "",

@@ -1,7 +1,7 @@
 """GPU time per step phase, kernel by kernel (kick_drift, forces and, for smooth spheres, the fused kernel).
 
 A diagnostic of the one-launch-per-phase loop, less noisy than the phase shares of bench/gpu_scaling.py (CUDA
-events around the phases of whole steps, host waits included): on the paper-001 rough scene (lattice start,
+events around the phases of whole steps, host waits included): on the Hidalgo et al. (2013) rough scene (lattice start,
 phi = 0.058, e_t = 0.5, Coulomb 0.5, orientations tracked), after ``--warm-s`` seconds of steps (lists and
 contacts settle, the GPU's clocks ramp up: without it the first scene timed in a process ran up to 40 % slow), it
 times ``--launches`` back-to-back launches of kick_drift alone, then of forces alone, with CUDA events (GPU time
@@ -31,7 +31,7 @@ import numpy as np
 _TOUCHED = ("pos", "vel", "omega", "quat", "q_last", "f_cur", "f_nxt", "torque", "hist")
 
 
-#: --contact: the paper-001 rough scene of the module doc, or elastic frictionless spheres (bench/vs_jaxmd.py's)
+#: --contact: the module doc's rough scene (Hidalgo et al. 2013), or elastic frictionless spheres (bench/vs_jaxmd.py's)
 CONTACTS = {"paper": {}, "elastic": dict(e_n=1.0, e_t=-1.0, friction=None)}
 
 

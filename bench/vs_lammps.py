@@ -2,7 +2,7 @@
 
     python -m bench vs_lammps --n 4096 32768 262144 --steps 10000 10000 3000 --threads 1 --out DIR
 
-The scene: the paper-001 radius of the default spec (a = 1.55 cm, engine/params.py ``derive``),
+The scene: the Hidalgo et al. (2013) radius of the default spec (a = 1.55 cm, engine/params.py ``derive``),
 velocity_rms = 3 m/s, e_n = e_t = 0.8, k_n = 1e8 N/m, density 2000 kg/m^3, no Coulomb limit
 (friction = null); phi = 0.008 at N = 4096 and 0.058 above (``--phi`` overrides); the box grows with N so that
 the radius stays the default one. No thermalisation (``thermalization = 0``), so both codes start from the
@@ -12,9 +12,9 @@ into the LAMMPS data file, and both integrate the dissipative gas from there for
 LAMMPS, with its units (``units si``; pair_gran docs: F_n = k_n delta n - m_eff gamma_n v_n,
 F_t = -(k_t Delta s_t + m_eff gamma_t v_t), m_eff = m_i m_j/(m_i + m_j)):
 - ``Kn`` = demq k_n (N/m);
-- ``gamma_n`` = demq gamma_n / m12 (1/s): demq's gamma_n (kg/s, paper 001, params.py) is a force per
+- ``gamma_n`` = demq gamma_n / m12 (1/s): demq's gamma_n (kg/s, Hidalgo et al. 2013, params.py) is a force per
   velocity, LAMMPS's is per unit effective mass; equal spheres, so m_eff = m12 for every pair;
-- ``Kt`` = demq k_t (paper 001 Eq. 4, N/m), ``gamma_t`` = 0 with dampflag 0 (no tangential damping);
+- ``Kt`` = demq k_t (Hidalgo et al. 2013, Eq. 4, N/m), ``gamma_t`` = 0 with dampflag 0 (no tangential damping);
 - ``xmu`` = 1e4, the largest LAMMPS accepts (friction effectively off, as demq's default friction = null);
 - ``timestep`` = demq dt (t_c/50), ``neighbor`` skin of one radius (``--lammps-skin``, in radii),
   ``neigh_modify delay 0 every 10 check yes``, ``fix nve/sphere``, no gravity, periodic cube.
@@ -63,12 +63,12 @@ LOOP_RE = re.compile(r"Loop time of ([0-9.eE+-]+) on (\d+) procs for (\d+) steps
 
 
 def default_radius() -> float:
-    """Radius of the default spec (paper 001: N = 4096, phi = 0.008, L = 2 m), in m."""
+    """Radius of the default spec (Hidalgo et al. 2013: N = 4096, phi = 0.008, L = 2 m), in m."""
     return derive(SimulationSpec()).radius
 
 
 def default_phi(n: int) -> float:
-    """The densities: 0.008 at N = 4096 (paper 001), 0.058 for the larger gases."""
+    """The densities: 0.008 at N = 4096 (Hidalgo et al. 2013), 0.058 for the larger gases."""
     return 0.008 if n <= 4096 else 0.058
 
 

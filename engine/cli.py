@@ -5,15 +5,21 @@ The console script itself lives in service/cli.py (it also offers the queue comm
 
 Bad input ends in one line per problem on stderr and exit status 2, before anything is written: a spec
 file that is missing or not a JSON object, a ``--set`` that is not KEY=VALUE, an invalid value (the line
-names the field and the value), a run beyond the cost limits (engine/limits.py, the service's defaults;
-``--allow-large`` runs it anyway). The helpers here are shared with ``demq submit`` (service/cli.py).
+names the field and the value), a misspelt key (the line suggests the spec key it is closest to), a run beyond
+the cost limits (engine/limits.py, the service's defaults; ``--allow-large`` runs it anyway), a backend this
+machine cannot run (``cuda`` without a GPU: asked of the engine's GPU probe, nothing compiled), a missing
+extra (``demq validate``'s figures need matplotlib, except sonine's, which prints them as a table). The
+helpers here are shared with ``demq submit`` and ``demq warm`` (service/cli.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
+import os
 import sys
+import typing
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -64,8 +70,40 @@ def _shown(value) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def spec_error_lines(errors: list[dict]) -> list[str]:
-    """Pydantic errors of a spec as lines that name the field and the value."""
+def _model_of(annotation):
+    """The pydantic model class inside a field's type (``Optional[List[Species]]`` -> Species), or None."""
+    from pydantic import BaseModel
+
+    if typing.get_origin(annotation) is None and isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        model = _model_of(arg)
+        if model is not None:
+            return model
+    return None
+
+
+def did_you_mean(model, loc) -> str:
+    """'; did you mean 'n_particles'?' for the unknown key at ``loc`` (pydantic's error location: keys and list
+    indices) of a ``model`` input, by difflib against the field names of the model that holds the key there;
+    '' when none is close."""
+    for part in loc[:-1]:
+        if isinstance(part, int):                     # an item of a list field: the same model
+            continue
+        field = model.model_fields.get(part) if model is not None else None
+        model = _model_of(field.annotation) if field is not None else None
+    if model is None or not loc:
+        return ""
+    names = [field.alias or name for name, field in model.model_fields.items()]
+    close = difflib.get_close_matches(str(loc[-1]), names, n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def spec_error_lines(errors: list[dict], model=None) -> list[str]:
+    """Pydantic errors of a spec (of ``model``, default :class:`engine.spec.SimulationSpec`) as lines that name
+    the field and the value; an unknown key gets the closest field name as a suggestion."""
+    from engine.spec import SimulationSpec
+
     lines = []
     for err in errors:
         loc = ".".join(str(x) for x in err["loc"])
@@ -74,7 +112,8 @@ def spec_error_lines(errors: list[dict]) -> list[str]:
         if not loc:                                   # a rule across fields: its message names them
             lines.append(f"invalid spec: {msg}")
         elif err["type"] == "extra_forbidden":
-            lines.append(f"invalid spec: {loc} = {_shown(err.get('input'))}: {field!r} is not a spec key")
+            lines.append(f"invalid spec: {loc} = {_shown(err.get('input'))}: {field!r} is not a spec key"
+                         f"{did_you_mean(model or SimulationSpec, err['loc'])}")
         elif msg.startswith(f"{field} "):             # the message names the field and its value already
             lines.append(f"invalid spec: {msg}" if loc == field else f"invalid spec: {loc}: {msg}")
         else:
@@ -90,10 +129,11 @@ def validate_spec(data: dict, model=None):
 
     from engine.spec import SimulationSpec
 
+    model = model or SimulationSpec
     try:
-        return (model or SimulationSpec).model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
-        raise SpecInputError(*spec_error_lines(exc.errors())) from None
+        raise SpecInputError(*spec_error_lines(exc.errors(), model)) from None
     except ArithmeticError as exc:       # a derived size or time scale overflows (box_length = 1e300)
         raise SpecInputError(f"invalid spec: its numbers cannot be evaluated ({exc}): use physically "
                              f"sized values") from None
@@ -118,19 +158,38 @@ def estimate_line(spec) -> str:
 
 
 def missing_output_dir(output) -> Optional[str]:
-    """The line to print when ``output``'s folder does not exist (None when it does)."""
+    """The line to print when ``output``'s folder does not exist or ``output`` is a folder (None when neither)."""
+    if Path(output).is_dir():
+        return f"cannot write {str(output)!r}: it is a folder; give -o the name of a file in it"
     parent = Path(output).resolve().parent
     return None if parent.is_dir() else f"cannot write {str(output)!r}: the folder {str(parent)!r} does not exist"
+
+
+def backend_refusal(backend: str, fix: str = "use --backend auto (or cpu) to run on this machine") -> Optional[str]:
+    """The line refusing ``backend`` where it cannot run, ending in ``fix`` (None where it can run): 'cuda'
+    without a usable CUDA GPU, by the probe the engine's backend factory asks (engine.backends.base.cuda_available:
+    it compiles nothing, and without an NVIDIA driver it does not even import numba-cuda); the CUDA simulator
+    counts as a GPU, as there. 'auto' and 'cpu' always run."""
+    if backend != "cuda" or os.environ.get("NUMBA_ENABLE_CUDASIM") == "1":
+        return None
+    from engine.backends.base import cuda_available
+
+    if cuda_available():
+        return None
+    return f"backend = 'cuda' but no CUDA GPU is available here; {fix}"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run one spec locally and write an HDF5 result")
     p.add_argument("spec", nargs="?", default=None,
-                   help="spec JSON file ('-' = stdin); omitted = the default spec (paper 001 setup)")
+                   help="spec JSON file ('-' = stdin); omitted = the default spec: the default "
+                        "scene of Hidalgo et al. (2013)")
     p.add_argument("-o", "--output", default="demq-run.h5", help="output HDF5 path")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a spec key (JSON value), e.g. --set n_particles=512")
-    p.add_argument("--backend", choices=["auto", "cpu", "cuda"], default=None)
+    p.add_argument("--backend", choices=["auto", "cpu", "cuda"], default=None,
+                   help="override the spec's backend: cpu, cuda (refused up front without a GPU) or auto (cuda "
+                        "where a GPU is, else cpu)")
     p.add_argument("--allow-large", action="store_true",
                    help="run a spec beyond the cost limits (particle-steps, memory) that the service refuses")
     p.add_argument("--quiet", action="store_true",
@@ -146,7 +205,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seeds per case (default 4 spheres, 1 ellipsoids, 8 rough spheroids (quick: 2), 12 "
                         "hcs-long, sonine 64 (quick: 6), encounter-dsmc 4 (quick: 2) per rule)")
     v.add_argument("--quick", action="store_true", help="reduced size for a smoke test")
-    v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto")
+    v.add_argument("--backend", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="where the runs go: cpu, cuda (refused up front without a GPU) or auto (default: cuda "
+                        "where a GPU is, else cpu)")
     v.add_argument("--jobs", type=int, default=1, help="runs at a time (separate processes)")
     v.add_argument("--threads", type=int, default=0, help="Numba threads per run (0 = all)")
     v.add_argument("--ensemble", action="store_true",
@@ -173,9 +234,9 @@ def cmd_run(args) -> int:
             data["backend"] = args.backend
         spec = validate_spec(data)
         refusals = [] if args.allow_large else cost_refusals(spec, DEFAULT_MAX_PARTICLE_STEPS, DEFAULT_MAX_MEMORY_BYTES)
-        no_dir = missing_output_dir(args.output)
-        if refusals or no_dir:
-            raise SpecInputError(*refusals, *([no_dir] if no_dir else []))
+        refusals += [line for line in (backend_refusal(spec.backend), missing_output_dir(args.output)) if line]
+        if refusals:
+            raise SpecInputError(*refusals)
     except SpecInputError as exc:
         for line in exc.lines:
             print(f"demq run: {line}", file=sys.stderr)
@@ -204,11 +265,18 @@ def run(spec, output, progress=None):
 
 
 def cmd_export(args) -> int:
-    from pathlib import Path
+    import h5py
 
     src = Path(args.result)
+    problem = None
     if not src.is_file():
-        print(f"export: no result file {src}", file=sys.stderr)
+        problem = f"no result file {src}; pass the HDF5 result of demq run or demq fetch"
+    elif not h5py.is_hdf5(src):
+        problem = f"{src} is not an HDF5 file; pass the HDF5 result of demq run or demq fetch"
+    elif args.format == "gsd":
+        problem = missing_output_dir(args.output or src.with_suffix(".gsd"))
+    if problem:
+        print(f"demq export: {problem}", file=sys.stderr)
         return 2
     try:
         if args.format == "xdmf":
@@ -218,26 +286,35 @@ def cmd_export(args) -> int:
             if out is None:
                 raise ValueError(f"{src}: the result holds no snapshot frame: nothing to point at")
             if args.output and Path(args.output) != out:
-                print("export: the xdmf sidecar is always <stem>.xmf next to the result (it names the "
+                print("demq export: the xdmf sidecar is always <stem>.xmf next to the result (it names the "
                       "HDF5 file relatively); -o is ignored", file=sys.stderr)
         else:
             from engine.export_gsd import export_gsd
 
             out = export_gsd(src, args.output or src.with_suffix(".gsd"))
     except (OSError, KeyError, ValueError) as exc:
-        print(f"export failed: {exc}", file=sys.stderr)
+        print(f"demq export: failed: {exc}", file=sys.stderr)
         return 1
     print(f"wrote {out}")
     return 0
 
 
+#: the validations whose report stands without its pictures (its figures are printed as a table; it draws the
+#: pictures where matplotlib is installed); the others are refused up front without matplotlib
+FIGURES_OPTIONAL = ("sonine",)
+
+
 def cmd_validate(args) -> int:
     from engine.optional import MissingExtra, require_matplotlib
 
-    try:                   # the reports end in figures: refuse before a long run rather than after it
-        require_matplotlib("demq validate (its report's figures)")
-    except MissingExtra as exc:
-        print(exc, file=sys.stderr)
+    refusal = backend_refusal(args.backend)
+    if refusal is None and args.case not in FIGURES_OPTIONAL:
+        try:               # the report ends in figures: refuse before a long run rather than after it
+            require_matplotlib(f"the report of {args.case} (its figures)")
+        except MissingExtra as exc:
+            refusal = str(exc)
+    if refusal:
+        print(f"demq validate: {refusal}", file=sys.stderr)
         return 2
     out_dir = args.out_dir or f"reports/{args.case}"
     if args.case == "encounter-dsmc":

@@ -69,8 +69,17 @@ def _type_names(k: int) -> list[str]:
     return [string.ascii_uppercase[i] if i < 26 else f"T{i}" for i in range(k)]
 
 
+def _create_for_gsd(path: Path) -> None:
+    """Create ``path`` empty with mode 0666 less the umask, as HDF5 creates the results (0644 under the usual
+    umask 022): libgsd creates its files 0640, and keeps the mode of a file that exists when it opens it (a
+    leftover of an interrupted export is removed first, as its mode could be any)."""
+    path.unlink(missing_ok=True)
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666))
+
+
 def export_gsd(h5_path, out_path) -> Path:
-    """Write every snapshot frame of the result ``h5_path`` to the GSD file ``out_path`` (atomically)."""
+    """Write every snapshot frame of the result ``h5_path`` to the GSD file ``out_path`` (atomically; its mode is
+    that of the results: 0666 less the umask)."""
     import gsd.hoomd
 
     out_path = Path(out_path)
@@ -107,6 +116,7 @@ def export_gsd(h5_path, out_path) -> Path:
             return g["value"][k].astype(float) if g is not None and g["value"].shape[0] > k else default
 
         tmp = out_path.with_name(out_path.name + ".part")
+        _create_for_gsd(tmp)
         with gsd.hoomd.open(tmp, "w") as traj:
             for k in range(frames):
                 pos = np.mod(part["position/value"][k].astype(float), edges) - edges / 2.0

@@ -1,7 +1,7 @@
-"""Multigrid linked cells for wide size distributions (paper 004 §2.2, Eqs. 1-4, Algorithm 1).
+"""Multigrid linked cells for wide size distributions (Skorych & Dosta 2022, §2.2, Eqs. 1-4, Algorithm 1).
 
 One linked-cell grid of edge >= 2 R_max + L_v makes every small particle search cells sized for the
-largest one: at a size ratio of 10 a small sphere scans ~1000 times the volume it needs. Paper 004
+largest one: at a size ratio of 10 a small sphere scans ~1000 times the volume it needs. Skorych & Dosta (2022)
 keeps a hierarchy of grids j = 0 (coarsest) .. n_levels-1 with nominal cell sizes
 
     L_c^j = L_c^0 / 2^j,  L_c^0 = 2 R_max + L_v,
@@ -11,7 +11,7 @@ so that U_max^j = U_min^(j-1) and U_max^0 = R_max. A cell of level j keeps a mai
 (U_min^j < R <= U_max^j) and a secondary list (R <= U_min^j); only main-main and main-secondary pairs
 are tested at level j, so the small-small pairs go to the finer levels whose cells suit them.
 
-**Defect of paper 004 and what we do instead.** Algorithm 1 tests ``U_min^j < R_i < U_max^j``
+**Defect of Skorych & Dosta (2022) and what we do instead.** Algorithm 1 tests ``U_min^j < R_i < U_max^j``
 (strict on both sides), while the text (below Eq. 4) has ``U_min^j < R_i <= U_max^j``. With the strict
 test no particle with R = R_max (U_max^0 = R_max exactly) enters any main list, and a particle whose
 radius equals a band edge U_max^j = U_min^(j-1) would be lost too: those pairs are never found. We use
@@ -29,7 +29,7 @@ level li finds its neighbours j
 
 Every pair is then found exactly once from each side (large-large at their common level, large-small at
 the larger one's level), which gives a full, symmetric list, and the cell width of the level where a pair
-is tested is >= L_c^l >= R_i + R_j + L_v. Pair test as paper 004 Eq. 1 and engine/loops/cpu.py:
+is tested is >= L_c^l >= R_i + R_j + L_v. Pair test as Skorych & Dosta (2022) Eq. 1 and engine/loops/cpu.py:
 |r_ij| < R_i + R_j + L_v with the minimum image.
 
 Layout of the binned particles (:class:`MultigridBuilder`): per level a counting sort over the keys
@@ -39,7 +39,7 @@ main+secondary run on to ``cell_start[start_off[l] + 2c + 2]``. Level l holds th
 level >= l; within a cell they are in ascending id order.
 
 All kernels are ``nogil=True``: a Python thread that runs :meth:`MultigridBuilder.build` releases the
-GIL (paper 004 §3, the pipelined CPU-GPU mode). They use Numba's parallel layer: do not run two of them
+GIL (Skorych & Dosta 2022, §3, the pipelined CPU-GPU mode). They use Numba's parallel layer: do not run two of them
 at the same time from two Python threads under the default workqueue layer (it is not thread-safe);
 one builder thread while the main thread drives CUDA is fine.
 """
@@ -65,7 +65,7 @@ CELL_MARGIN = 1.0e-6
 
 @dataclass(frozen=True, eq=False)
 class Levels:
-    """Grid levels j = 0 (coarsest) .. n_levels-1 of the multigrid linked cells (paper 004 Eqs. 3-4).
+    """Grid levels j = 0 (coarsest) .. n_levels-1 of the multigrid linked cells (Skorych & Dosta 2022, Eqs. 3-4).
 
     cell:  float64 (n_levels,) nominal cell size L_c^j = L_c^0 / 2^j in m, L_c^0 = 2 R_max + L_v.
     nc:    int64 (n_levels,) cells per box edge, nc_j = max(1, floor(box / (L_c^j (1 + CELL_MARGIN)))),
@@ -106,7 +106,7 @@ def grid_levels(box: float, n: int, r_min: float, r_max: float, skin: float, max
     Levels are added while U_min^j >= r_min (then particles can be secondary at level j and need a finer
     level), up to ``max_levels``; particles smaller than the last level's band are main there (still
     correct: the last level's cells are >= 2 U_max + L_v wide). A monodisperse scene has one level,
-    which is the single grid of edge >= 2 R + L_v (paper 004 §2.2).
+    which is the single grid of edge >= 2 R + L_v (Skorych & Dosta 2022, §2.2).
     """
     if not (box > 0 and math.isfinite(box)):
         raise ValueError(f"box = {box} must be a finite length > 0 m")

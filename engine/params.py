@@ -4,16 +4,17 @@ Owns :func:`derive` (every derived number of a validated spec) and the cost esti
 and the contact time that the spec's own checks also need come from engine/scales.py (which imports
 neither this module nor engine/spec.py); this module imports the spec only for the default Verlet skin.
 
-Paper 001 (Hidalgo et al. 2013) and docs/physics.md §1:
+Hidalgo et al. (2013) and docs/physics.md §1:
 - normal spring-dashpot m12 d''+ gamma_n d' + k_n d = 0, contact ending when the overlap returns to
   zero (rule (a)); t_c = pi sqrt(m12/k_n) (elastic contact time, docs/physics.md §3.4);
-- gamma_n = sqrt(4 k_n m12 / ((pi/ln(1/e_n))^2 + 1))            (paper 001, text after Eq. 3);
-- k_t = k_n q/(1+q) (arccos(-e_t)/pi)^2, q = 2/5                  (paper 001 Eq. 4).
+- gamma_n = sqrt(4 k_n m12 / ((pi/ln(1/e_n))^2 + 1))            (Hidalgo et al. 2013, text after Eq. 3);
+- k_t = k_n q/(1+q) (arccos(-e_t)/pi)^2, q = 2/5                  (Hidalgo et al. 2013, Eq. 4).
 Eq. 4 is exact only for gamma_n = 0: with damping the contact lasts pi/omega instead of pi/omega_0 and
 the spring model yields e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n / pi)^2)) (docs/physics.md §1.3),
 which is what the theory is compared with.
 
-Polydisperse spheres (spec ``species``): species k has radius R_k = radius_ratio_k R_max and
+Polydisperse spheres (spec ``species``, in its normal form: the largest radius_ratio is 1 and the fractions
+sum to 1, engine.spec.normal_species): species k has radius R_k = radius_ratio_k R_max and
 count N_k = round(N f_k) (the remainder goes to the species with the largest fraction, the first of
 equal ones); R_max follows from the total solid volume sum_k N_k (4/3) pi R_k^3 = phi L^3. Mass
 m_k = density (4/3) pi R_k^3, inertia 0.4 m_k R_k^2. Per pair, m12 = m_i m_j/(m_i + m_j) and
@@ -24,7 +25,7 @@ small-small one, t_c = pi sqrt(m12/k_n) with m12 = m_min/2, and dt = t_c/50 of t
 <m>; ``species_*`` list every species (one entry for a monodisperse spec). All species start at the
 same temperature T0 = <m> v_rms^2 / 3 (equipartition: ``velocity_rms`` is then the mass-weighted rms
 speed sqrt(sum m|v|^2 / sum m)). The Verlet skin ``verlet_skin`` is in units of the SMALLEST radius
-(for one size: of the radius), so the small particles' lists stay short (paper 004: L_v ~ 2 R_min).
+(for one size: of the radius), so the small particles' lists stay short (Skorych & Dosta 2022: L_v ~ 2 R_min).
 """
 
 from __future__ import annotations
@@ -42,14 +43,14 @@ from engine.start_kind import start_protocol, thermalization_collisions
 
 
 def gamma_n_from_restitution(e_n: float, k_n: float, m12: float) -> float:
-    """Normal damping gamma_n in kg/s giving restitution e_n (paper 001; exact for rule (a))."""
+    """Normal damping gamma_n in kg/s giving restitution e_n (Hidalgo et al. 2013; exact for rule (a))."""
     if e_n >= 1.0:
         return 0.0
     return math.sqrt(4.0 * k_n * m12 / ((math.pi / math.log(1.0 / e_n)) ** 2 + 1.0))
 
 
 def k_t_paper(e_t: float, k_n: float, q: float = Q_SPHERE) -> float:
-    """Tangential stiffness in N/m by paper 001 Eq. 4 (0 for smooth particles, e_t = -1)."""
+    """Tangential stiffness in N/m by Hidalgo et al. (2013) Eq. 4 (0 for smooth particles, e_t = -1)."""
     return k_n * q / (1.0 + q) * (math.acos(-e_t) / math.pi) ** 2
 
 
@@ -231,7 +232,7 @@ def estimate_cost(spec) -> dict:
     """Memory (bytes) and work (particle-steps) a spec will need; used to refuse oversize jobs.
 
     Species specs: every particle's list has the stride of the largest count (:func:`list_slots`,
-    ~ (R_L/R_s)^2 small neighbours per large one), plus the multigrid cell arrays (paper 004
+    ~ (R_L/R_s)^2 small neighbours per large one), plus the multigrid cell arrays (Skorych & Dosta 2022,
     Algorithm 1: per level 2 nc^3 + 1 int64 cell starts, and one int32 entry per particle per level
     at or above its own).
     """

@@ -1,7 +1,8 @@
 """Initial states: homogeneous non-overlapping placement and Maxwellian velocities (docs/physics.md §5).
 
 Which placement a spec gets is engine/start_kind.py's ``start_protocol``: "random" (random sequential addition,
-below) for species and for one-size spheres where it is cheap, "lattice" (paper 001's protocol) otherwise.
+below) for species and for one-size spheres where it is cheap, "lattice" (the protocol of Hidalgo et al. (2013))
+otherwise.
 
 Placement (one size, "lattice"): the sites of an fcc lattice with at least N sites fill the box; N of them are chosen at
 random and each particle is displaced at random inside the free room around its site (at most half
@@ -283,10 +284,10 @@ def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
 
 
 def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
-    """Start of an ellipsoid spec (paper 003 §4): bounding spheres (radius a) placed without overlap,
+    """Start of an ellipsoid spec (Rubio-Largo et al. 2015, §4): bounding spheres (radius a) placed without overlap,
     uniformly random orientations, Maxwellian velocities, and spins about the two axes perpendicular to
     the symmetry axis at the translational temperature per degree of freedom; no spin about the axis when
-    the contacts are frictionless (they can neither create nor use it: paper 003 sets omega_y(0) = 0), a
+    the contacts are frictionless (they can neither create nor use it: Rubio-Largo et al. (2015) set omega_y(0) = 0), a
     thermal one when they are rough (all three rotational dof exchange energy)."""
     n = spec.n_particles
     a = p.semi_axes[0]

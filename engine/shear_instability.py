@@ -23,7 +23,7 @@ What is used here (the derivation of (1)-(2) is standard and was redone; the coe
 quoted from the papers named, from memory checked against an independent implementation — the
 denominator nu_eta* - zeta*/2 of the Garzó–Dufty viscosity in SedFoam's GarzoDuftyModViscosity.C):
 
-- cooling rate of the rough gas from Luding's mean-field ODE (paper 001; engine/theory.py) in its
+- cooling rate of the rough gas from Luding's mean-field ODE (Hidalgo et al. 2013; engine/theory.py) in its
   asymptotic state R/T = r_inf: zeta = (4/3) omega_E (A - B r_inf). For smooth spheres this is
   (1 - e^2) omega_E/3, i.e. zeta* = (5/12) chi (1 - e^2) (Maxwellian; Sonine corrections neglected);
 - shear viscosity of inelastic hard spheres, Garzó & Dufty, PRE 59, 5895 (1999), Enskog, first Sonine,

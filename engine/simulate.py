@@ -11,7 +11,7 @@ engine/backends/protocol.py): :func:`run` is an ensemble of one scene (``make_en
 :class:`~engine.backends.ensemble.SerialEnsemble`, on the GPU the shape's CUDA ensemble itself),
 ``engine.ensemble.run_ensemble`` packs many scenes into one ensemble.
 
-Protocol (paper 001): a homogeneous non-overlapping start with Gaussian translational and angular
+Protocol (Hidalgo et al. 2013): a homogeneous non-overlapping start with Gaussian translational and angular
 velocities at equal temperatures, ``thermalization`` collisions per particle with dissipation off
 (e_n = 1; rough spheres keep a perfectly rough elastic spring, e_t = 1, smooth ones stay smooth), then
 the cooling run from t = 0 to t_end with the spec's contact law. Observables are recorded every
@@ -94,7 +94,7 @@ def contact_params(spec: SimulationSpec, p: Derived, *, thermalization: bool) ->
     """Contact constants for the cooling run or the dissipation-free thermalisation."""
     smooth = spec.smooth
     if thermalization:
-        k_t = None if smooth else p.k_n * Q_SPHERE / (1.0 + Q_SPHERE)  # paper 001 Eq. 4 at e_t = 1
+        k_t = None if smooth else p.k_n * Q_SPHERE / (1.0 + Q_SPHERE)  # Hidalgo et al. (2013) Eq. 4 at e_t = 1
         return ContactParams(k_n=p.k_n, gamma_n_coef=0.0, k_t=k_t, friction=None, dt=p.dt, skin=p.skin,
                              precision=spec.precision, orientation=spec.snapshots > 0,
                              overlap_limit=spec.overlap_limit, list_mode=spec.list_mode)

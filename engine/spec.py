@@ -3,7 +3,7 @@
 Every key here is part of the contract shared by the engine, the job queue, the HTTP API and the
 result files (the spec is stored verbatim in ``/parameters@spec``). SI units throughout.
 
-Defaults reproduce the setup of paper 001 (Hidalgo et al. 2013): N = 4096 rough spheres in a
+Defaults reproduce the setup of Hidalgo et al. (2013): N = 4096 rough spheres in a
 periodic cube of L = 2 m at volume fraction 0.008, k_n = 1e8 N/m, density 2000 kg/m^3,
 e_n = e_t = 0.8. The default ``velocity_rms`` keeps the largest overlap near 1 % of the radius and
 the default ``t_end`` keeps a default run to about a minute on a laptop CPU.
@@ -40,6 +40,9 @@ SPECIES_MAX_VOLUME_FRACTION = 0.30
 
 #: Most species a spec may list.
 MAX_SPECIES = 16
+
+#: Species number fractions whose sum is within this of 1 are kept as given; others are divided by their sum.
+SPECIES_FRACTION_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -118,7 +121,7 @@ FIELD_RANGES: dict[str, Range] = {
 
 #: The ranges of a species entry's fields.
 SPECIES_RANGES: dict[str, Range] = {
-    "radius_ratio": Range(0.01, 1.0, why=" (radius relative to the largest species)"),
+    "radius_ratio": Range(0.01, 1.0, why=" (a relative radius; the list is scaled so that the largest is 1)"),
     "number_fraction": Range(0.0, 1.0, low_open=True),
 }
 
@@ -152,17 +155,46 @@ class Species(BaseModel):
         schema["properties"], field_schema_keywords(SPECIES_RANGES)))
 
     radius_ratio: float = Field(
-        ..., description="Radius relative to the largest species, in [0.01, 1]; the largest species has "
-                         "exactly 1. Absolute radii follow from n_particles, volume_fraction and box_length.")
+        ..., description="Relative radius of this species, in [0.01, 1]: the list's ratios are divided by the "
+                         "largest one (which becomes exactly 1; the stored spec holds the divided values), so "
+                         "the sizes differ by a factor of 100 at most. Absolute radii follow from n_particles, "
+                         "volume_fraction and box_length.")
     number_fraction: float = Field(
-        ..., description="Fraction of the n_particles spheres in this species, in (0, 1]; the fractions sum "
-                         "to 1. Counts are round(N f), the remainder going to the largest fraction.")
+        ..., description="Relative number of the n_particles spheres in this species, in (0, 1]: the list's "
+                         "fractions are divided by their sum unless it is 1 within 1e-9 (the stored spec holds "
+                         "the divided values). Counts are round(N f), the remainder going to the largest "
+                         "fraction.")
 
     @field_validator("radius_ratio", "number_fraction")
     @classmethod
     def _in_range(cls, v: float, info) -> float:
         SPECIES_RANGES[info.field_name].check(info.field_name, v)
         return v
+
+
+def normal_species(entries: List[Species]) -> List[Species]:
+    """The normal form of a size distribution, the one the stored spec, the derived parameters and the result's
+    /parameters hold: every radius_ratio divided by the largest (which becomes exactly 1), entries of equal
+    ratio merged into the first of them (their number_fraction values added), and the number_fraction values
+    divided by their sum unless it is within SPECIES_FRACTION_TOLERANCE of 1 (and no merged fraction
+    exceeds 1). So no rule across entries refuses a list: [0.5, 0.25] and [1, 0.5] are one distribution.
+
+    Each entry stays in its range, so the entries are built unchecked: a ratio r >= 0.01 of a largest t <= 1
+    becomes r/t >= r (rounding is monotone), and a fraction f of a sum S >= f becomes f/S <= 1; one so small that
+    f/S underflows to 0 holds no particle, which the spec's cross-field check refuses naming
+    ``species[k].number_fraction`` and n_particles (engine.scales.species_counts). Idempotent, bit for bit: a list
+    already in normal form comes back with the same values (the worker re-validates the stored spec).
+    """
+    largest = max(s.radius_ratio for s in entries)
+    merged: dict[float, List[float]] = {}
+    for s in entries:
+        merged.setdefault(s.radius_ratio / largest, []).append(s.number_fraction)
+    fractions = {ratio: math.fsum(parts) for ratio, parts in merged.items()}
+    total = math.fsum(fractions.values())
+    kept = abs(total - 1.0) <= SPECIES_FRACTION_TOLERANCE and max(fractions.values()) <= 1.0
+    scale = 1.0 if kept else total
+    entry = type(entries[0])
+    return [entry.model_construct(radius_ratio=ratio, number_fraction=f / scale) for ratio, f in fractions.items()]
 
 
 #: Largest Verlet skin L_v (radii) a null ``verlet_skin`` resolves to, per resolved backend: the fastest
@@ -255,7 +287,7 @@ class SimulationSpec(BaseModel):
         1.0, description="Aspect ratio xi = a/b of a prolate spheroid (>= 1); must be 1 for spheres.")
     friction: Optional[float] = Field(
         None, description="Coulomb friction coefficient mu >= 0; null = no sliding limit "
-                          "(Luding's constant-e_t model of paper 001).")
+                          "(Luding's constant-e_t model of Hidalgo et al. 2013).")
     stiffness: float = Field(1.0e8, description="Normal spring constant k_n in N/m (> 0).")
     density: float = Field(2000.0, description="Material density in kg/m^3 (> 0).")
     box_length: float = Field(
@@ -291,7 +323,7 @@ class SimulationSpec(BaseModel):
     verlet_skin: Optional[float] = Field(
         None, description="Verlet-list skin L_v in units of the particle radius (0 < L_v <= 4; species: "
                           "of the smallest radius); the list is rebuilt when a particle has moved more than "
-                          "L_v/2 (paper 004). null = the fastest skin of `python -m bench accuracy` for the "
+                          "L_v/2 (Skorych & Dosta 2022). null = the fastest skin of `python -m bench accuracy` for the "
                           "backend and density: L_max = 0.4 on the CPU, 0.8 on CUDA up to phi = 0.11, then "
                           "L_max x (mean free path / 1.6 radii), at least 0.2 (0.2 from phi = 0.18 on the "
                           "CPU, 0.27 on CUDA); ellipsoids 0.4. The value used is in the result's /parameters.")
@@ -300,13 +332,14 @@ class SimulationSpec(BaseModel):
                           "stops with an error (0 < limit <= 0.5).")
     species: Optional[List[Species]] = Field(
         None, description="Polydisperse spheres: a list of 1 ... 16 sizes {radius_ratio, number_fraction} "
-                          "(radius relative to the largest, which must be 1; fractions of N summing to 1). "
+                          "(relative radii, divided by the largest; relative numbers, divided by their sum; "
+                          "entries of equal size merged; the stored spec holds this normal form). "
                           "null = one size. Spheres only, volume_fraction <= 0.30. All species start at the "
                           "same temperature <m> v_rms^2/3 (velocity_rms is the mass-weighted rms speed); "
                           "the Verlet skin is in units of the smallest radius, dt = t_c/50 of the "
                           "small-small contact, overlaps count relative to the smaller radius of a pair.")
     list_mode: Literal["auto", "gpu", "cpu-sequential", "cpu-pipelined"] = Field(
-        "auto", description="Where the CUDA backend builds the Verlet list (paper 004 §3): 'gpu'; "
+        "auto", description="Where the CUDA backend builds the Verlet list (Skorych & Dosta 2022, §3): 'gpu'; "
                             "'cpu-sequential' (the GPU waits while CPU threads build it); 'cpu-pipelined' "
                             "(CPU threads build the next list while the GPU integrates, checked a posteriori); "
                             "'auto' (measures tau_CPU, tau_GPU and the transfers while running and keeps the "
@@ -335,24 +368,13 @@ class SimulationSpec(BaseModel):
     @field_validator("species")
     @classmethod
     def _species(cls, v: Optional[List[Species]]) -> Optional[List[Species]]:
+        """The entry count (also in the JSON schema), then the list's normal form (:func:`normal_species`)."""
         if v is None:
             return v
         if not 1 <= len(v) <= MAX_SPECIES:
             raise ValueError(f"species has {len(v)} entries, outside the allowed range 1 ... {MAX_SPECIES} "
                              f"(or null for one size)")
-        top = max(s.radius_ratio for s in v)
-        if top != 1.0:
-            raise ValueError(f"species: the largest radius_ratio is {top:g}, but it must be exactly 1 "
-                             f"(radius_ratio is relative to the largest species)")
-        ratios = [s.radius_ratio for s in v]
-        if len(set(ratios)) != len(ratios):
-            raise ValueError(f"species: radius_ratio values {ratios} repeat; give each size once "
-                             f"(add the number_fraction of equal sizes)")
-        total = math.fsum(s.number_fraction for s in v)
-        if abs(total - 1.0) > 1e-9:
-            raise ValueError(f"species: the number_fraction values sum to {total:.12g}, but must sum to 1 "
-                             f"(within 1e-9)")
-        return v
+        return normal_species(v)
 
     # ---- checks that need several fields (sizes and time scales: engine/scales.py) -------------------
 

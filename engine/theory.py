@@ -1,7 +1,7 @@
-"""Mean-field references for homogeneous cooling (paper 001 Eqs. 1-2; paper 003 Eqs. 27-29).
+"""Mean-field references for homogeneous cooling (Hidalgo et al. 2013, Eqs. 1-2; Rubio-Largo et al. 2015, Eqs. 27-29).
 
 Temperatures are per degree of freedom in J (k_B = 1): T = 2 E_tr/(3N), R = 2 E_rot/(3N) for spheres.
-Luding, Huthmann, McNamara & Zippelius, PRE 58, 3416 (1998), as quoted by paper 001:
+Luding, Huthmann, McNamara & Zippelius, PRE 58, 3416 (1998), as quoted by Hidalgo et al. (2013):
 
     dT/dtau = -A T^(3/2) + B T^(1/2) R,      dR/dtau = B T^(3/2) - C T^(1/2) R,
     A = (1 - e_n^2)/4 + eta (1 - eta),  B = eta^2/q,  C = (eta/q)(1 - eta/q),  eta = q (1 + e_t)/(2q + 2),
@@ -21,7 +21,7 @@ from engine.params import Q_SPHERE, carnahan_starling_g
 
 
 def luding_coefficients(e_n: float, e_t: float, q: float = Q_SPHERE) -> tuple[float, float, float]:
-    """(A, B, C) of paper 001 Eqs. 1-2."""
+    """(A, B, C) of Hidalgo et al. (2013) Eqs. 1-2."""
     eta = q * (1.0 + e_t) / (2.0 * q + 2.0)
     a = (1.0 - e_n**2) / 4.0 + eta * (1.0 - eta)
     b = eta**2 / q
@@ -31,8 +31,8 @@ def luding_coefficients(e_n: float, e_t: float, q: float = Q_SPHERE) -> tuple[fl
 
 def luding_per_collision(t, r, coeffs):
     """Changes of T/T0 and R/T0 per collision and particle in Luding's Maxwellian closure, at the state (t, r)
-    = (T/T0, R/T0): paper 001 Eqs. 1-2 divided by the Enskog collision frequency (3/4) (T/T0)^(1/2) per unit tau,
-    i.e. (4/3) (-A t + B r) and (4/3) (B t - C r). coeffs = (A, B, C) of :func:`luding_coefficients`; t, r scalars
+    = (T/T0, R/T0): Hidalgo et al. (2013) Eqs. 1-2 divided by the Enskog collision frequency (3/4) (T/T0)^(1/2) per unit
+    tau, i.e. (4/3) (-A t + B r) and (4/3) (B t - C r). coeffs = (A, B, C) of :func:`luding_coefficients`; t, r scalars
     or arrays. :func:`luding_ode` integrates these times the Enskog frequency."""
     a, b, c = coeffs
     return 4.0 / 3.0 * (-a * t + b * r), 4.0 / 3.0 * (b * t - c * r)
@@ -49,7 +49,8 @@ def r_infinity(e_n: float, e_t: float, q: float = Q_SPHERE) -> float:
 
 def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q: float = Q_SPHERE,
                rates=None):
-    """T(tau)/T(0) and R(tau)/T(0) solving paper 001 Eqs. 1-2 (Dormand-Prince 5(4) of engine/ode.py, rtol 1e-10).
+    """T(tau)/T(0) and R(tau)/T(0) solving Hidalgo et al. (2013) Eqs. 1-2
+    (Dormand-Prince 5(4) of engine/ode.py, rtol 1e-10).
 
     tau: increasing array of scaled times starting anywhere >= 0; returns two arrays like tau.
     rates: optional callable T -> (f_tr, f_rot) that scales the right-hand sides of dT/dtau and dR/dtau (a
@@ -79,21 +80,22 @@ def luding_ode(e_n: float, e_t: float, tau, t0: float = 1.0, r0: float = 1.0, q:
 
 
 def collisions_per_particle(t_over_t0, tau) -> np.ndarray:
-    """s(tau) = (3/4) int_0^tau (T/T0)^(1/2) dtau': collisions per particle by tau for a Maxwellian gas (paper
-    001's tau, in which the Enskog collision frequency is (3/4) (T/T0)^(1/2)); cumulative trapezoid on the grid."""
+    """s(tau) = (3/4) int_0^tau (T/T0)^(1/2) dtau': collisions per particle by tau for a Maxwellian gas (the
+    tau of Hidalgo et al. 2013, in which the Enskog collision frequency is (3/4) (T/T0)^(1/2)); cumulative trapezoid on
+    the grid."""
     root = np.sqrt(np.maximum(np.asarray(t_over_t0, dtype=float), 0.0))
     return 0.75 * np.concatenate([[0.0], np.cumsum(0.5 * (root[1:] + root[:-1]) * np.diff(tau))])
 
 
 def collision_g(radius: float, number_density: float, mass: float, volume_fraction: float) -> float:
-    """G = 8 (2a)^2 n sqrt(pi/m) g(2a) in s^-1 J^-1/2 (paper 001)."""
+    """G = 8 (2a)^2 n sqrt(pi/m) g(2a) in s^-1 J^-1/2 (Hidalgo et al. 2013)."""
     return 8.0 * (2.0 * radius) ** 2 * number_density * math.sqrt(math.pi / mass) * \
         carnahan_starling_g(volume_fraction)
 
 
 def tau_factor(radius: float, number_density: float, mass: float, volume_fraction: float,
                temperature0: float) -> float:
-    """d tau / d t = (2/3) G T(0)^(1/2) in 1/s (paper 001)."""
+    """d tau / d t = (2/3) G T(0)^(1/2) in 1/s (Hidalgo et al. 2013)."""
     return 2.0 / 3.0 * collision_g(radius, number_density, mass, volume_fraction) * math.sqrt(temperature0)
 
 
@@ -106,19 +108,19 @@ def tau_factor_for(spec) -> float:
 
 
 def haff(t, t0_inverse: float):
-    """Haff's law T(t)/T(0) = (1 + t/t0)^-2 (paper 003 Eq. 27 with 1/t0 = t0_inverse)."""
+    """Haff's law T(t)/T(0) = (1 + t/t0)^-2 (Rubio-Largo et al. 2015, Eq. 27 with 1/t0 = t0_inverse)."""
     return (1.0 + np.asarray(t, dtype=float) * t0_inverse) ** -2
 
 
 #: Degrees of freedom that share the energy in Haff's law: smooth spheres (translation only) and smooth
-#: prolate spheroids (translation + the two rotations perpendicular to the axis; paper 003).
+#: prolate spheroids (translation + the two rotations perpendicular to the axis; Rubio-Largo et al. 2015).
 DOF_SMOOTH_SPHERE, DOF_SMOOTH_SPHEROID = 3, 5
 
 
 def haff_rate(e_n: float, collision_rate0: float, dof: int) -> float:
     """Haff's 1/t0 = (1 - e_n^2) Gamma_0 / (2 D_f) for smooth particles whose D_f degrees of freedom
     share the energy equally (each collision loses (1 - e^2) T; docs/physics.md §6.2): D_f = 3 for smooth
-    spheres, 5 for prolate spheroids (paper 003); Gamma_0 the collision frequency per particle at T(0)."""
+    spheres, 5 for prolate spheroids (Rubio-Largo et al. 2015); Gamma_0 the collision frequency per particle at T(0)."""
     return (1.0 - e_n**2) * collision_rate0 / (2.0 * dof)
 
 

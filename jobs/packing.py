@@ -82,7 +82,7 @@ class Packer:
         """(shape, precision, resolved backend) of a job; None if it cannot be packed."""
         spec = job.spec
         if spec.get("list_mode", "auto") in ("cpu-sequential", "cpu-pipelined"):
-            return None  # a CPU-built Verlet list serves one scene (paper 004 §3): it runs alone
+            return None  # a CPU-built Verlet list serves one scene (Skorych & Dosta 2022, §3): it runs alone
         try:
             shape, precision, backend = spec["shape"], spec["precision"], spec["backend"]
             resolved = self.resolve(backend, shape)

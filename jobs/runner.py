@@ -10,10 +10,17 @@ message names the job by its index k in the claim::
 
     ("started", k, None)                  a sequence's job k starts (the jobs before it have ended)
     ("progress", k, {phase, fraction, step, time, eta_s, cundall, loop_s, resumed_from_step})
+    ("progress_many", None, {k: {...}})   a pack's progress: the latest of each job that reported since the
+                                          last such message, at most every PROGRESS_SEND_S (one message for
+                                          the whole pack, not one per job: 256 jobs at each of 200 records had
+                                          filled the pipe faster than the worker read it, and the pack waited)
     ("done", k, {backend, device, loop_s, job_wall_s, cundall, steps, resumed_from_step, ensemble_size})
     ("cancelled", k, reason)
     ("error", k, readable message)
     ("error", None, readable message)     the pack as a whole failed (no job is singled out)
+
+A standby process says first, before its claim: ("compiling", None, None) once if its start-up compiles kernels
+(an empty or partial kernel cache), then ("ready", None, None) when its start-up is done.
 
 A sequence's or a pack's jobs report done / cancelled / error one by one, as their runs end. Each job has its own
 cancel flag (a shared byte array), so one job stops without disturbing the others; a sequence's job whose flag is
@@ -32,8 +39,10 @@ import importlib
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
+from contextlib import contextmanager
 from dataclasses import asdict
 from typing import Callable, Optional
 
@@ -61,11 +70,20 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
+def _use_threads(threads: Optional[int]) -> None:
+    """Run the engine's CPU loops on ``threads`` Numba threads (a worker's lane: its share of the cores); None: all.
+    Set before the engine (and so numba) is imported in this process."""
+    if threads is not None:
+        os.environ["NUMBA_NUM_THREADS"] = str(threads)
+
+
 def child_main(engine_target: str, spec_jsons: list, outputs: list, checkpoint_dirs: list,
-               checkpoint_interval: float, conn, cancel_flags, parent_pid: int, mode: str = ONE) -> None:
+               checkpoint_interval: float, conn, cancel_flags, parent_pid: int, mode: str = ONE,
+               threads: Optional[int] = None) -> None:
     """Entry point of the simulation process (a top-level function, so ``spawn`` can import it). ``mode``: ONE
     (``engine_target`` runs spec_jsons[0]), SEQUENCE (it runs each spec in turn, in the given order) or ENSEMBLE
-    (``engine_target`` runs them all as one ensemble)."""
+    (``engine_target`` runs them all as one ensemble). ``threads``: Numba threads of its CPU loops (None: all)."""
+    _use_threads(threads)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
@@ -85,13 +103,16 @@ def child_main(engine_target: str, spec_jsons: list, outputs: list, checkpoint_d
         conn.close()
 
 
-def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Optional[str] = None) -> None:
+def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Optional[str] = None,
+                 threads: Optional[int] = None) -> None:
     """Entry point of a standby simulation process: started by the worker before its claim, it pays the
     process's one-off start-up (the engine's imports, numba's targets, on a GPU the driver, the context and
     the kernels of ``warm_spec_json``'s specialisation: engine.simulate.warm_process) while the worker waits
     for work or runs the previous claim, then runs the one claim it receives on ``claims`` as
     :func:`child_main` would, and exits. ``None`` instead of a claim (or a closed pipe): exit at once.
-    ``warm_spec_json`` None: nothing is warmed (a non-default engine: its module is imported with the claim)."""
+    ``warm_spec_json`` None: nothing is warmed (a non-default engine: its module is imported with the claim).
+    ``threads``: as for :func:`child_main`."""
+    _use_threads(threads)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
@@ -101,10 +122,14 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
             from engine.simulate import warm_process
             from engine.spec import SimulationSpec
 
-            warm_process(SimulationSpec.model_validate_json(warm_spec_json))
+            with _tell_when_compiling(conn):
+                warm_process(SimulationSpec.model_validate_json(warm_spec_json))
+        except BrokenPipeError:
+            pass
         except Exception:  # noqa: BLE001  (a start-up that fails here is paid again, and reported, by the job)
             pass
     try:
+        conn.send(("ready", None, None))
         claim = claims.recv()
     except (EOFError, OSError):
         claim = None
@@ -116,6 +141,35 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
     engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, mode = claim
     child_main(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
                parent_pid, mode)
+
+
+@contextmanager
+def _tell_when_compiling(conn):
+    """Send ("compiling", None, None) once when numba starts compiling inside the block (the kernel cache lacked
+    something): a standby that compiles will not be ready soon, and the worker does not hold a claim of another
+    specialisation for it (jobs/worker.py ``_hand_to_standby``)."""
+    from numba.core import event
+
+    told = threading.Event()
+
+    class _Listener(event.Listener):
+        def on_start(self, ev) -> None:
+            if not told.is_set():
+                told.set()
+                try:
+                    conn.send(("compiling", None, None))
+                except OSError:
+                    pass
+
+        def on_end(self, ev) -> None:
+            pass
+
+    listener = _Listener()
+    event.register("numba:compile", listener)
+    try:
+        yield
+    finally:
+        event.unregister("numba:compile", listener)
 
 
 def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):
@@ -141,6 +195,32 @@ def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):
         return bool(cancel_flags[k]) or os.getppid() != parent_pid
 
     return progress, should_cancel
+
+
+class _PackProgress:
+    """A pack's progress reports, gathered: the latest report of each job, sent as one ``progress_many`` message at
+    most every :data:`PROGRESS_SEND_S` (and before any job's final message, so a job's last progress precedes its
+    end)."""
+
+    def __init__(self, specs: dict, conn):
+        self.conn = conn
+        self.latest: dict = {}
+        self.sent_at = 0.0
+        self.crash_seed = os.environ.get(TEST_CRASH_ENV)
+        self.specs = specs
+
+    def report(self, k: int, p) -> None:
+        if self.crash_seed is not None and self.crash_seed == str(self.specs[k].seed):  # TEST HOOK (TEST_CRASH_ENV)
+            os.kill(os.getpid(), signal.SIGSEGV)
+        self.latest[k] = p
+        if time.monotonic() - self.sent_at >= PROGRESS_SEND_S:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.latest:
+            self.conn.send(("progress_many", None, {k: asdict(p) for k, p in self.latest.items()}))
+            self.latest = {}
+        self.sent_at = time.monotonic()
 
 
 def _final(k: Optional[int], outcome) -> tuple:
@@ -219,22 +299,26 @@ def _run_pack(engine_run_ensemble, spec_jsons, outputs, checkpoint_dirs, checkpo
             index.append(k)
     if not index:
         return
-    progress, should_cancel = _hooks(specs, conn, cancel_flags, parent_pid)
+    _, should_cancel = _hooks(specs, conn, cancel_flags, parent_pid)
+    gathered = _PackProgress(specs, conn)
     sent: set = set()
 
     def on_result(i: int, outcome) -> None:
         sent.add(index[i])
+        gathered.flush()
         conn.send(_final(index[i], outcome))
 
     try:
         run_ensemble = load_callable(engine_run_ensemble)
         run_ensemble([specs[k] for k in index], [outputs[k] for k in index],
-                     progress=lambda i, p: progress(index[i], p), should_cancel=lambda i: should_cancel(index[i]),
+                     progress=lambda i, p: gathered.report(index[i], p),
+                     should_cancel=lambda i: should_cancel(index[i]),
                      checkpoint_dirs=[checkpoint_dirs[k] for k in index], checkpoint_interval=checkpoint_interval,
                      on_result=on_result)
     except BrokenPipeError:
         raise
     except Exception as exc:  # the pack as a whole failed: the worker decides what its jobs become
+        gathered.flush()
         conn.send(("error", None, _final(None, exc)[2]))
         return
     missing = [k for k in index if k not in sent]

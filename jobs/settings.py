@@ -70,8 +70,14 @@ DEMQ_WORKER_STANDBY            ``auto``                            ``on``: a run
                                                                    the host has more than one CPU core.
 DEMQ_WORKER_WARM               ``on``                              ``on``: with the default engine, a worker compiles
                                                                    (or loads from numba's disk cache) every kernel
-                                                                   specialisation it can run before its first claim
+                                                                   specialisation it can run, beside its claims, at
+                                                                   the lowest priority and paused while a claim runs
                                                                    (jobs/warm.py, also ``demq warm``); ``off``: not.
+DEMQ_WORKER_LANES              ``auto``                            Claims a worker runs at once, each in its own
+                                                                   simulation process with cores / lanes Numba
+                                                                   threads; ``auto``: one per two cores on a CPU-only
+                                                                   host of more than 3 cores, else 1 (a GPU worker:
+                                                                   1, its claims share the GPU).
 =============================  ==================================  =================================================
 
 Test hook (not a setting): ``DEMQ_TEST_CRASH=<seed>`` makes the simulation process of a job whose
@@ -119,6 +125,7 @@ _ENV = {
     "worker_id": "DEMQ_WORKER_ID",
     "standby": "DEMQ_WORKER_STANDBY",
     "warm": "DEMQ_WORKER_WARM",
+    "lanes": "DEMQ_WORKER_LANES",
 }
 
 
@@ -166,6 +173,7 @@ class Settings:
     worker_id: str = ""
     standby: str = "auto"
     warm: str = "on"
+    lanes: str = "auto"
 
     @classmethod
     def from_env(cls, environ=None, **overrides) -> "Settings":
@@ -199,6 +207,8 @@ class Settings:
             raise ValueError(f"DEMQ_WORKER_STANDBY = {s.standby!r} must be one of {', '.join(STANDBY_VALUES)}")
         if s.warm not in SWITCH_VALUES:
             raise ValueError(f"DEMQ_WORKER_WARM = {s.warm!r} must be one of {', '.join(SWITCH_VALUES)}")
+        if s.lanes != "auto" and not (s.lanes.isdigit() and int(s.lanes) >= 1):
+            raise ValueError(f"DEMQ_WORKER_LANES = {s.lanes!r} must be 'auto' or a whole number >= 1")
         if not s.ensemble_cost_ratio >= 1:
             raise ValueError(f"DEMQ_ENSEMBLE_COST_RATIO = {s.ensemble_cost_ratio} must be >= 1")
         if s.cpu_packs not in CPU_PACK_VALUES:
@@ -233,6 +243,15 @@ class Settings:
         """Whether a worker warms every kernel specialisation before its first claim (jobs/warm.py): only for the
         default engine (another engine, e.g. the tests' fake one, compiles nothing of the engine's)."""
         return self.warm in ("on", "1") and self.engine_run == DEFAULT_ENGINE_RUN
+
+    def lane_count(self, backends) -> int:
+        """Claims a worker runs at once (jobs/worker.py lanes): DEMQ_WORKER_LANES, or with ``auto`` one per two CPU
+        cores on a host that runs only CPU jobs (``backends`` without 'cuda') and has more than 3 cores, else 1. A
+        GPU worker keeps one lane: its claims share one GPU."""
+        if self.lanes != "auto":
+            return int(self.lanes)
+        cores = os.cpu_count() or 1
+        return 1 if "cuda" in backends or cores <= 3 else cores // 2
 
     @property
     def packing(self) -> bool:

@@ -202,16 +202,26 @@ class SqlJobStore(JobStore):
         return out
 
     def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
+        stmt = self._finish_stmt(job_id, owner, state, fields, time.time())
+        with self._write() as conn:
+            return conn.execute(stmt).rowcount == 1
+
+    def finish_many(self, owner: str, ends: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, bool]:
+        """One transaction for all of them (one commit: a pack's 256 jobs that end in the same second)."""
+        now = time.time()
+        statements = [(job_id, self._finish_stmt(job_id, owner, state, fields, now)) for job_id, state, fields in ends]
+        with self._write() as conn:
+            return {job_id: conn.execute(stmt).rowcount == 1 for job_id, stmt in statements}
+
+    def _finish_stmt(self, job_id: str, owner: str, state: str, fields: dict[str, Any], now: float):
         if state not in (DONE, FAILED, CANCELLED):
             raise ValueError(f"finish() needs a final state, got {state!r}")
         unknown = set(fields) - set(FINISH_COLUMNS)
         if unknown:
             raise ValueError(f"finish() cannot set {sorted(unknown)}")
         t = self.table
-        stmt = (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
-                .values(state=state, finished_at=time.time(), lease_owner=None, lease_expires_at=None, **fields))
-        with self._write() as conn:
-            return conn.execute(stmt).rowcount == 1
+        return (update(t).where(t.c.id == job_id, t.c.lease_owner == owner, t.c.state == RUNNING)
+                .values(state=state, finished_at=now, lease_owner=None, lease_expires_at=None, **fields))
 
     def release(self, job_id: str, owner: str, error: Optional[str] = None) -> bool:
         t = self.table

@@ -182,6 +182,11 @@ class JobStore(ABC):
     def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
         """End a leased job as done, failed or cancelled with the given columns; False if not leased."""
 
+    def finish_many(self, owner: str, ends: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, bool]:
+        """:meth:`finish` for several jobs (a pack's jobs that ended together): ``ends`` holds (job id, state,
+        columns); {job id: whether it was still leased to ``owner`` and is now ended}."""
+        return {job_id: self.finish(job_id, owner, state, **fields) for job_id, state, fields in ends}
+
     @abstractmethod
     def release(self, job_id: str, owner: str, error: Optional[str] = None) -> bool:
         """Give a leased job back to the queue without counting the attempt (worker shutdown).

@@ -25,6 +25,8 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
+import sys
 import tempfile
 import threading
 import time
@@ -136,7 +138,8 @@ def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str
         for sp in todo:
             groups.setdefault((sp.backend, sp.precision), []).append(sp)
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=min(n, len(groups)), mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=min(n, len(groups)), mp_context=ctx,
+                                 initializer=_die_with_parent) as pool:
             compiled_apart = sum(part.compiled for part in pool.map(_warm_list, groups.values()))
     report = _warm_list(todo)
     report.compiled += compiled_apart
@@ -206,8 +209,12 @@ def _load_device_start(precision: str) -> None:
     load(position_dtype(precision), state_dtype(precision))
 
 
-def _warm_main(conn, backends, shapes=None, precisions=None) -> None:
-    """Entry point of the worker's warm-up process."""
+def _warm_main(conn, backends, shapes=None, precisions=None, background=False) -> None:
+    """Entry point of the worker's warm-up process. ``background``: it runs beside the worker's claims, so it leads a
+    process group of its own (the worker pauses, resumes and ends the group: :class:`BackgroundWarmUp`), at the
+    lowest CPU priority, and dies with the worker."""
+    if background:
+        _lead_low_priority_group()
     try:
         conn.send(warm(backends, shapes, precisions))
     except Exception as exc:  # noqa: BLE001
@@ -216,31 +223,128 @@ def _warm_main(conn, backends, shapes=None, precisions=None) -> None:
         conn.close()
 
 
+def _lead_low_priority_group() -> None:
+    """Make this process the leader of a new process group (its compile processes join it), at nice 19, killed
+    with its parent (Linux)."""
+    try:
+        os.setpgid(0, 0)
+    except OSError:   # already made the leader by the worker (BackgroundWarmUp)
+        pass
+    try:
+        os.nice(19)
+    except OSError:   # lowering the priority needs no privilege; a platform without nice keeps its own
+        pass
+    _die_with_parent()
+
+
+def _die_with_parent() -> None:
+    """SIGKILL this process when its parent exits (Linux: a worker killed with -9 leaves no paused warm-up)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        PR_SET_PDEATHSIG = 1
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
 def warm_in_process(backends: Sequence[str], stop: Optional[threading.Event] = None,
                     shapes: Optional[Sequence[str]] = None,
                     precisions: Optional[Sequence[str]] = None) -> Optional[WarmReport]:
-    """:func:`warm` in a spawned process (the caller holds no compiled code and no GPU context); its report, or
-    None if ``stop`` was set first (the process is then killed) or it died without one."""
-    ctx = multiprocessing.get_context("spawn")
-    receiver, sender = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_warm_main, args=(sender, tuple(backends), shapes, precisions), name="demq-warm")
-    proc.start()
-    sender.close()
+    """:func:`warm` in a spawned process (the caller holds no compiled code and no GPU context), waited for; its
+    report, or None if ``stop`` was set first (the process is then killed) or it died without one."""
+    warm_up = BackgroundWarmUp(backends, shapes, precisions, background=False)
     try:
         while True:
-            if receiver.poll(0.2):
-                try:
-                    return receiver.recv()
-                except EOFError:
-                    return None
+            report = warm_up.poll(0.2)
+            if report is not None or not warm_up.running:
+                return report
             if stop is not None and stop.is_set():
-                proc.kill()   # its work is lost: a later warm-up (or each job) compiles what it had not stored
-                return None
-            if not proc.is_alive() and not receiver.poll(0):
-                return None
+                return None   # its work is lost: a later warm-up (or each job) compiles what it had not stored
     finally:
-        receiver.close()
-        proc.join(timeout=5)
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
+        warm_up.close()
+
+
+class BackgroundWarmUp:
+    """The worker's warm-up (:func:`warm`) in a spawned process that runs beside the claims and never delays one.
+
+    The process leads its own process group (its parallel compile processes are in it too) at nice 19. The worker
+    :meth:`pause` s the group (SIGSTOP) while a claim's simulation process runs, so the claim has the cores, the
+    GPU and the memory bandwidth to itself, and :meth:`resume` s it (SIGCONT) while the worker waits for work. A
+    claim whose kernels the warm-up has not reached yet compiles (or loads) its own, as a job does without a
+    warm-up. Numba's disk cache replaces its files atomically, so a claim and the warm-up may store the same
+    function. :meth:`close` kills the group (its work so far stays in the cache).
+
+    Only what the claims leave: on a worker that always has work, the warm-up waits; on an idle one it fills the
+    cache for the claims to come.
+    """
+
+    def __init__(self, backends: Sequence[str], shapes: Optional[Sequence[str]] = None,
+                 precisions: Optional[Sequence[str]] = None, background: bool = True):
+        ctx = multiprocessing.get_context("spawn")
+        self._receiver, sender = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_warm_main, args=(sender, tuple(backends), shapes, precisions, background),
+                                 name="demq-warm")
+        self._proc.start()
+        sender.close()
+        self._group = background
+        if background:   # the group exists from here on; the process also forms it itself (a race either way)
+            try:
+                os.setpgid(self._proc.pid, self._proc.pid)
+            except OSError:
+                pass
+        self._paused = False
+        self.report: Optional[WarmReport] = None
+        self.t_start = time.monotonic()
+
+    @property
+    def running(self) -> bool:
+        """Whether the warm-up has neither reported nor exited."""
+        if self.report is not None or self._receiver.closed:
+            return False
+        return self._proc.is_alive() or self._receiver.poll(0)
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    def poll(self, timeout: float = 0.0) -> Optional[WarmReport]:
+        """The report once the warm-up has sent it (waiting up to ``timeout`` seconds), else None."""
+        if self.report is None and not self._receiver.closed:
+            try:
+                if self._receiver.poll(timeout):
+                    self.report = self._receiver.recv()
+            except (EOFError, OSError):   # it died without a report
+                self._receiver.close()
+        return self.report
+
+    def pause(self) -> None:
+        """Stop the warm-up's processes where they are (SIGSTOP to its group) while a claim runs."""
+        if self._group and not self._paused and self.running:
+            self._signal(signal.SIGSTOP)
+            self._paused = True
+
+    def resume(self) -> None:
+        """Let a paused warm-up go on (SIGCONT)."""
+        if self._paused:
+            self._signal(signal.SIGCONT)
+            self._paused = False
+
+    def close(self) -> None:
+        """End the warm-up now (its processes killed if still running) and reap its process."""
+        if self._proc.is_alive():
+            self._signal(signal.SIGKILL) if self._group else self._proc.kill()
+        self._proc.join(timeout=5)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join()
+        self._paused = False
+        if not self._receiver.closed:
+            self._receiver.close()
+
+    def _signal(self, sig: int) -> None:
+        try:
+            os.killpg(self._proc.pid, sig)
+        except (ProcessLookupError, PermissionError):   # the group has exited (or not formed yet: below)
+            try:
+                os.kill(self._proc.pid, sig)
+            except ProcessLookupError:
+                pass

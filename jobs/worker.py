@@ -1,9 +1,11 @@
 """The worker: claims a job — or several — and runs the claim in its own simulation process.
 
 At its start a worker registers in the store's worker table (the backends it can run: "cpu", and "cuda" where a
-GPU is), and, with the default engine, warms every kernel specialisation it can be asked for (jobs/warm.py:
-compiled, or loaded from numba's disk cache, before the first claim); it refreshes its row at every poll and
-heartbeat and removes it when it stops.
+GPU is; `demq serve` registers its embedded worker before it answers a request) and claims at once. With the
+default engine it also warms every kernel specialisation it can be asked for (jobs/warm.py: compiled, or loaded
+from numba's disk cache) in a process group of its own beside the claims, at the lowest CPU priority and paused
+while a claim runs: a claim compiles or loads only its own kernels and never waits for the others'. It refreshes
+its row at every poll and heartbeat and removes it when it stops.
 
 A claim (:meth:`Worker._next`) takes the next queued job and, with packing on (DEMQ_ENSEMBLE_MAX_JOBS > 1),
 queued jobs that can go with it (jobs/packing.py), up to DEMQ_ENSEMBLE_MAX_JOBS jobs and the worker's fair
@@ -51,7 +53,7 @@ import signal
 import socket
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -68,6 +70,10 @@ log = logging.getLogger("demq.worker")
 
 #: Queued rows read per claim to find jobs to pack, per allowed job of a pack.
 PEEK_FACTOR = 4
+
+#: Most messages of a simulation process read in one go before the supervisor's bookkeeping (heartbeats, cancels,
+#: deadlines) runs again.
+DRAIN_MESSAGES = 10_000
 
 #: Seconds a standby process that gets no claim has to exit before it is killed.
 STANDBY_CLOSE_S = 0.5
@@ -106,15 +112,25 @@ class Worker:
         self._standby: Optional[_SimProcess] = None   # the next claim's process, started up (run_forever)
         self._keep_standby = False
         self._exiting: list[_SimProcess] = []         # processes whose jobs all ended done, still exiting
+        self._registered: Optional[tuple[str, ...]] = None   # the backends entered in the worker table
+        self._warm_up = None                          # the background warm-up (jobs/warm.py), while it runs
+        self._gate = _ClaimGate()                     # claims running in this worker's lanes (pauses the warm-up)
+        self._lanes: list[tuple["Worker", threading.Thread]] = []   # the other lanes (run_forever)
+        self.threads: Optional[int] = None            # Numba threads of its simulation processes (None: all)
+        self._is_lane = False                         # one of another worker's lanes (not the first)
 
     def stop(self) -> None:
         """Stop claiming; a running job is stopped (checkpointed by the engine) and released."""
         self._stop.set()
         self._wake.set()
+        for lane, _ in self._lanes:
+            lane.stop()
 
     def wake(self) -> None:
         """Look for queued jobs now instead of at the end of the idle wait (the service calls it on submit)."""
         self._wake.set()
+        for lane, _ in self._lanes:
+            lane.wake()
 
     @property
     def stopping(self) -> bool:
@@ -125,17 +141,20 @@ class Worker:
         """Claim and run jobs until :meth:`stop`; with ``exit_when_idle`` (drain mode, for Slurm job
         arrays), also return once the table holds no queued and no running job."""
         log.info("worker %s started on %s", self.owner, _safe_url(self.settings.database_url))
-        backends = self._backends()
-        self._register(backends)
+        backends = self.register()
         try:
-            # the first claim's process starts up (imports, GPU context, the default spec's kernels) while the
-            # warm-up runs, so that the first job does not wait for it after the worker is ready
+            self._start_lanes(backends, exit_when_idle)
+            # the first claim's process starts up (imports, GPU context, the default spec's kernels) at once, and
+            # the warm-up of every other specialisation beside it: neither holds up a claim
             self._keep_standby = self.settings.standby_enabled
-            if self._keep_standby and not self._stop.is_set():
+            if self._keep_standby and not self._stop.is_set() and not self._is_lane:
+                # (the other lanes start their standbys with their first claims: a dozen processes compiling the
+                # default spec at once on an empty cache would hold up the first claims)
                 self._standby = self._spawn_standby(None)
             self._warm(backends)
             while not self._stop.is_set():
                 self._reap(wait=False)
+                self._warm_up_progress()
                 jobs = self._next(None)
                 if not jobs:
                     if exit_when_idle and self._drained():
@@ -144,9 +163,18 @@ class Worker:
                     self._wake.wait(self.settings.poll_s)
                     self._wake.clear()
                 else:
-                    self.execute_pack(jobs)
+                    self._run_claim(jobs)
         finally:
             self._keep_standby = False
+            if self._lanes and not exit_when_idle:
+                for lane, _ in self._lanes:
+                    lane.stop()
+            for _, thread in self._lanes:
+                thread.join()
+            if self._warm_up is not None:
+                self._gate.attach(None)
+                self._warm_up.close()
+                self._warm_up = None
             if self._standby is not None:
                 self._standby.close()
                 self._standby = None
@@ -154,7 +182,46 @@ class Worker:
             self._unregister()
         log.info("worker %s stopped", self.owner)
 
+    def _run_claim(self, jobs: list[Job]) -> dict[str, str]:
+        """:meth:`execute_pack` with the background warm-up paused meanwhile (the claims have the host to
+        themselves: it goes on once no lane runs one)."""
+        self._gate.enter()
+        try:
+            return self.execute_pack(jobs)
+        finally:
+            self._gate.leave()
+
+    def _start_lanes(self, backends: tuple[str, ...], exit_when_idle: bool) -> None:
+        """With several lanes (Settings.lane_count), start the others: each a worker of its own in a thread of this
+        process, with its own row in the worker table (so that the fair share divides the queue among lanes), its own
+        claims, standby and supervision, and cores / lanes Numba threads for its simulation processes, as this one.
+        Only this lane warms kernels; a claim in any lane pauses that warm-up."""
+        lanes = self.settings.lane_count(backends) if not self._stop.is_set() else 1
+        if lanes <= 1:
+            return
+        self.threads = max(1, (os.cpu_count() or 1) // lanes)
+        for k in range(1, lanes):
+            lane = Worker(self.store, replace(self.settings, worker_id=f"{self.owner}/lane{k}", lanes="1", warm="off"),
+                          on_progress=self.on_progress)
+            lane.threads, lane._gate, lane._is_lane = self.threads, self._gate, True
+            lane.register(backends)
+            thread = threading.Thread(target=lane.run_forever, args=(exit_when_idle,), daemon=True,
+                                      name=f"demq-worker-lane{k}")
+            self._lanes.append((lane, thread))
+        for _, thread in self._lanes:
+            thread.start()
+        log.info("worker %s: %d lanes (claims at once), %d Numba threads each", self.owner, lanes, self.threads)
+
     # ---- the worker table and the warm-up --------------------------------------------------------
+    def register(self, backends: Optional[tuple[str, ...]] = None) -> tuple[str, ...]:
+        """Find the backends this worker can run (unless given) and enter them in the worker table, once; return
+        them. The service calls it before it answers its first request (service/app.py), so that the admission check
+        (service/backends.py) knows from then on what the embedded worker's host can run."""
+        if self._registered is None:
+            self._registered = backends if backends is not None else self._backends()
+            self._register(self._registered)
+        return self._registered
+
     def _backends(self) -> tuple[str, ...]:
         """What this worker can run: 'cpu', and 'cuda' where a CUDA GPU is present."""
         try:
@@ -188,19 +255,36 @@ class Worker:
             log.error("cannot unregister worker %s: %s", self.owner, exc)
 
     def _warm(self, backends: tuple[str, ...]) -> None:
-        """Compile (or load from the disk cache) every kernel specialisation this worker can run, in a process of
-        its own, before the first claim (jobs/warm.py), so no job waits for the compiler. Default engine only."""
-        if not self.settings.warm_enabled:
+        """Start compiling (or loading from the disk cache) every kernel specialisation this worker can run, in a
+        process group of its own beside the claims (jobs/warm.py BackgroundWarmUp: nice 19, paused while a claim
+        runs), so that later jobs find their kernels compiled and no job waits for another's. Default engine only."""
+        if not self.settings.warm_enabled or self._stop.is_set():
             return
-        from jobs.warm import warm_in_process
+        from jobs.warm import BackgroundWarmUp
 
         try:
-            report = warm_in_process(backends, stop=self._stop)
+            self._warm_up = BackgroundWarmUp(backends)
         except Exception as exc:  # noqa: BLE001  (each job then compiles what it needs, as without the warm-up)
-            log.error("warm-up failed, jobs compile their own kernels: %s", exc)
+            log.error("cannot start the warm-up, jobs compile their own kernels: %s", exc)
             return
+        self._gate.attach(self._warm_up)
+        log.info("warm-up of every kernel specialisation started beside the claims (%s)", " ".join(backends))
+
+    def _warm_up_progress(self) -> None:
+        """Log the background warm-up's report once it has one (or that it ended without one), and let it go."""
+        warm_up = self._warm_up
+        if warm_up is None:
+            return
+        report = warm_up.poll(0)
         if report is not None:
             log.info("%s", report.line())
+        elif warm_up.running:
+            return
+        else:
+            log.error("the warm-up ended without a report; jobs compile their own kernels")
+        self._gate.attach(None)
+        warm_up.close()
+        self._warm_up = None
 
     def _drained(self) -> bool:
         """No job queued and none running anywhere (a running job's worker may still die and the
@@ -308,7 +392,7 @@ class Worker:
             receiver, sender = ctx.Pipe(duplex=False)
             flags = ctx.RawArray("b", len(slots))  # per-job cancel flags, read by the simulation's cancel checks
             proc = ctx.Process(target=child_main, name=f"demq-job-{jobs[0].id}",
-                               args=claim[:5] + (sender, flags, os.getpid(), mode))
+                               args=claim[:5] + (sender, flags, os.getpid(), mode, self.threads))
             proc.start()
             sender.close()
             sim = _SimProcess(proc, receiver, flags)
@@ -348,22 +432,31 @@ class Worker:
             claims_in, claims_out = ctx.Pipe(duplex=False)
             flags = ctx.RawArray("b", s.ensemble_max_jobs if s.packing else 1)
             proc = ctx.Process(target=standby_main, name="demq-standby",
-                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json))
+                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json, self.threads))
             proc.start()
         except Exception as exc:  # noqa: BLE001  (out of processes or memory: claims spawn their own)
             log.error("cannot start a standby simulation process: %s", exc)
             return None
         sender.close()
         claims_in.close()
-        return _SimProcess(proc, receiver, flags, claims_out)
+        return _SimProcess(proc, receiver, flags, claims_out, warm_key=_specialisation(warm_spec_json))
 
     def _hand_to_standby(self, claim: tuple, n_jobs: int, job_id: str) -> Optional["_SimProcess"]:
-        """Give ``claim`` to the standby process; None if there is none fit to take it."""
+        """Give ``claim`` to the standby process; None if there is none fit to take it. A standby still compiling
+        the kernels of another specialisation than the claim's (an empty kernel cache) is not waited for: it is
+        ended (what it compiled stays in the cache) and the claim gets a process of its own, which compiles or
+        loads only what the claim needs."""
         sim, self._standby = self._standby, None
         if sim is None:
             return None
+        sim.read_start_up()
         if not sim.proc.is_alive() or len(sim.flags) < n_jobs:
             sim.close()
+            return None
+        if sim.compiling and not sim.ready and sim.warm_key != _specialisation(claim[1][0]):
+            log.info("job %s: the standby process is still compiling another specialisation's kernels; the claim "
+                     "gets a process of its own", job_id)
+            sim.close(grace_s=0.0)
             return None
         try:
             sim.claims.send(claim)
@@ -387,31 +480,39 @@ class Worker:
             now = time.monotonic()
             kill_at = min((x.kill_at for x in slots if x.outcome is None and x.kill_at is not None), default=now + 1.0)
             if receiver.poll(max(0.01, min(0.2, last_poll + s.cancel_poll_s - now, kill_at - now))):
-                try:
-                    kind, k, payload = receiver.recv()
-                except EOFError:
-                    break  # the process has exited (or closed its end): everything was read
-                if k is None:
-                    pack_error = payload
-                    continue
-                slot = slots[k]
-                if kind == "started":
-                    slot.started = True
-                    if slot.outcome is None:
-                        slot.latest, slot.pending = {}, {"phase": "starting", "eta_s": None}
-                elif kind == "progress":
-                    if slot.outcome is None:
-                        slot.pending = slot.latest = payload
-                        if sequence:
-                            _estimate_waiting(slots, k, payload)
-                        if self.on_progress is not None:
-                            self.on_progress(slot.job, payload)
-                else:
-                    slot.final = (kind, payload)
-                    if slot.outcome is None:
-                        self._conclude(slot)
-                    if all(x.outcome == DONE for x in slots):
-                        break   # every job's result is in: what is left of the process is its exit
+                # everything the pipe holds is read before the bookkeeping below, which is O(jobs): with one pass
+                # per message, a pack of 256 jobs had kept its process waiting on a full pipe
+                ended, finals = False, []
+                for _ in range(DRAIN_MESSAGES):
+                    try:
+                        kind, k, payload = receiver.recv()
+                    except EOFError:
+                        ended = True  # the process has exited (or closed its end): everything was read
+                        break
+                    if kind == "progress_many":
+                        for j, progress in payload.items():
+                            self._progress(slots, j, progress, sequence)
+                    elif kind in ("compiling", "ready"):
+                        pass   # a standby's start-up, said before it took this claim
+                    elif k is None:
+                        pack_error = payload
+                    elif kind == "started":
+                        slot = slots[k]
+                        slot.started = True
+                        if slot.outcome is None:
+                            slot.latest, slot.pending = {}, {"phase": "starting", "eta_s": None}
+                    elif kind == "progress":
+                        self._progress(slots, k, payload, sequence)
+                    else:
+                        slots[k].final = (kind, payload)
+                        if slots[k].outcome is None:
+                            finals.append(slots[k])
+                    if not receiver.poll(0):
+                        break
+                if finals:
+                    self._conclude_all(finals)
+                if ended or all(x.outcome == DONE for x in slots):
+                    break   # every job's result is in: what is left of the process is its exit
             elif not proc.is_alive():
                 if receiver.poll(0):
                     continue   # it sent its last messages and exited between the poll and this check: read them
@@ -442,8 +543,10 @@ class Worker:
                 last_poll = now
                 if asking:
                     try:
-                        for x in (x for x in beating if x.job.id in self.store.cancel_requests(asking)):
-                            x.stop_reason = "cancel"
+                        requested = self.store.cancel_requests(asking)   # one read for the claim's jobs
+                        for x in beating:
+                            if x.job.id in requested:
+                                x.stop_reason = "cancel"
                     except SQLAlchemyError as exc:
                         log.error("reading the cancel requests failed, retrying: %s", exc)
             for k, x in enumerate(slots):
@@ -480,6 +583,39 @@ class Worker:
                         self._conclude(x)
         return pack_error
 
+    def _progress(self, slots: list["_Slot"], k: int, progress: dict, sequence: bool) -> None:
+        """Job k's progress report: kept for the next heartbeat's write (and the waiting ETAs of a sequence)."""
+        slot = slots[k]
+        if slot.outcome is None:
+            slot.pending = slot.latest = progress
+            if sequence:
+                _estimate_waiting(slots, k, progress)
+            if self.on_progress is not None:
+                self.on_progress(slot.job, progress)
+
+    def _conclude_all(self, slots: list["_Slot"]) -> None:
+        """Conclude the jobs whose final messages just arrived: those done in one transaction (a pack's jobs end
+        together), each other one as :meth:`_conclude` says."""
+        done = [x for x in slots if x.final[0] == "done" and x.stop_reason != "lease lost"]
+        if len(done) > 1:
+            ends = [(x.job.id, DONE, self._done_columns(x)) for x in done]
+            self.store.finish_many(self.owner, ends)
+            for x in done:
+                shutil.rmtree(x.checkpoints, ignore_errors=True)
+                log.info("job %s: %s", x.job.id, DONE)
+                x.outcome = DONE
+        for x in slots:
+            if x.outcome is None:
+                self._conclude(x)
+
+    @staticmethod
+    def _done_columns(slot: "_Slot") -> dict:
+        """The job-table columns of a job whose run reported done: its last progress and its run summary."""
+        payload = slot.final[1]
+        summary = {k: payload[k] for k in ("loop_s", "job_wall_s", "cundall", "backend", "device", "resumed_from_step")}
+        return {**_columns(slot.latest), **summary, "progress": 1.0, "eta_s": 0.0, "error": None,
+                "result_path": str(slot.output)}
+
     def _conclude(self, slot: "_Slot", exitcode=None) -> Optional[str]:
         """Write a job's end to the table from its final message and stop reason; None if neither
         explains it (the process died: see :meth:`_conclude_rest`)."""
@@ -491,9 +627,7 @@ class Worker:
             return slot.outcome
         if kind == "done":
             state = DONE
-            summary = {k: payload[k] for k in ("loop_s", "job_wall_s", "cundall", "backend", "device", "resumed_from_step")}
-            self.store.finish(job.id, self.owner, DONE, **{**progress, **summary, "progress": 1.0, "eta_s": 0.0},
-                              error=None, result_path=str(slot.output))
+            self.store.finish(job.id, self.owner, DONE, **self._done_columns(slot))
         elif kind == "error":
             state = FAILED
             self.store.finish(job.id, self.owner, FAILED, error=payload, **progress)
@@ -566,6 +700,35 @@ class Worker:
                 partial_path(x.output).unlink(missing_ok=True)   # a killed run's partial result
 
 
+class _ClaimGate:
+    """The claims running in a worker's lanes, counted: the background warm-up (jobs/warm.py BackgroundWarmUp) of the
+    worker's first lane is paused while any lane runs a claim and goes on when none does."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._running = 0
+        self._warm_up = None
+
+    def attach(self, warm_up) -> None:
+        """The warm-up to pause and resume (paused at once if a lane already runs a claim); None once it ended."""
+        with self._lock:
+            self._warm_up = warm_up
+            if warm_up is not None and self._running:
+                warm_up.pause()
+
+    def enter(self) -> None:
+        with self._lock:
+            self._running += 1
+            if self._running == 1 and self._warm_up is not None:
+                self._warm_up.pause()
+
+    def leave(self) -> None:
+        with self._lock:
+            self._running -= 1
+            if self._running == 0 and self._warm_up is not None:
+                self._warm_up.resume()
+
+
 @dataclass
 class _SimProcess:
     """A simulation process and the worker's ends of its pipes."""
@@ -574,10 +737,23 @@ class _SimProcess:
     receiver: object                   # its messages (jobs/runner.py's protocol)
     flags: object                      # per-job cancel bytes (shared memory)
     claims: Optional[object] = None    # a standby's claim pipe, until it has its claim
+    warm_key: Optional[tuple] = None   # a standby's: the specialisation it starts up for (_specialisation)
+    compiling: bool = False            # a standby's start-up has compiled kernels (said "compiling")
+    ready: bool = False                # a standby's start-up is done (said "ready")
 
-    def close(self) -> None:
+    def read_start_up(self) -> None:
+        """Read what a standby has said of its start-up so far ("compiling", "ready"), without waiting."""
+        try:
+            while not self.ready and self.receiver.poll(0):
+                kind = self.receiver.recv()[0]
+                self.compiling |= kind == "compiling"
+                self.ready |= kind == "ready"
+        except (EOFError, OSError):   # it died: the caller sees that it is not alive
+            pass
+
+    def close(self, grace_s: float = STANDBY_CLOSE_S) -> None:
         """End a standby that will get no claim, a process that died or one whose jobs are all done: tell a standby,
-        then wait (STANDBY_CLOSE_S) or kill."""
+        then wait (``grace_s``) or kill."""
         if self.claims is not None:
             try:
                 self.claims.send(None)
@@ -585,7 +761,7 @@ class _SimProcess:
                 pass
             self.claims.close()
             self.claims = None
-        self.proc.join(timeout=STANDBY_CLOSE_S)
+        self.proc.join(timeout=grace_s)
         if self.proc.is_alive():   # still starting up (it reads the pipe only then): its start-up is not needed
             self.proc.kill()
             self.proc.join()
@@ -639,3 +815,26 @@ def _safe_url(url: str) -> str:
 
 def _spec_json(job: Job) -> str:
     return json.dumps(job.spec)
+
+
+#: engine/loops/cpu.py SERIAL_LOOP_BELOW (the CPU's time loop without parallel regions below it) and the size from
+#: which a sphere scene starts on the lattice (engine/start_kind.py): sizes that compile other code (the worker
+#: process imports no numba to read them; tests/jobs/test_worker.py checks they match)
+SMALL_SCENE_BELOW, LARGE_SCENE_FROM = 1024, 2**20
+
+
+def _specialisation(spec_json: Optional[str]) -> Optional[tuple]:
+    """What of a spec selects compiled code: backend, shape, precision, contact law, sizes (jobs/warm.py
+    Specialisation) and the scene's size class; None if it does not parse."""
+    if spec_json is None:
+        return None
+    from jobs.specs import parse_spec
+
+    try:
+        spec = parse_spec(json.loads(spec_json))
+    except Exception:  # noqa: BLE001  (an invalid spec fails in its process, with its reason)
+        return None
+    n = spec.n_particles
+    size = "small" if n < SMALL_SCENE_BELOW else "medium" if n < LARGE_SCENE_FROM else "large"
+    return (spec.backend, spec.shape, spec.precision, spec.e_t == -1.0, spec.friction is not None,
+            spec.species is not None, size)

@@ -21,15 +21,16 @@ from service import dashboard
 from service.deps import query_as_declared, require_token
 from service.errors import InvalidRequest, on_invalid_request, on_validation_error
 from service.limits import BodySizeLimit
+from service.render import offered_renderers
 from service.routes import batches, health, jobs, results
 
 log = logging.getLogger("demq.service")
 
 DESCRIPTION = """Queue granular-gas DEM simulations, follow their progress, download the HDF5 results.
 
-A job's body is a simulation spec (see the SimulationSpec schema; missing keys take the defaults of
-paper 001). The schema states each field's type and allowed range; a spec outside them gets 422
-naming the field and the range. A schema-valid spec may still get 422 for a rule across fields (the
+A job's body is a simulation spec (see the SimulationSpec schema; missing keys take the defaults,
+the default scene of Hidalgo et al. 2013). The schema states each field's type and allowed range; a spec outside
+them gets 422 naming the field and the range. A schema-valid spec may still get 422 for a rule across fields (the
 box must hold the neighbour cutoff, dt must resolve a contact, ...) or when its estimated memory or
 particle-steps exceed the server's limits, always before it is queued.
 
@@ -48,6 +49,7 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
         worker, thread = None, None
         if embedded_worker:
             worker = Worker(store, settings)
+            worker.register()   # before the first answer: the admission check knows this host's backends
             app.state.wake_worker = worker.wake     # submits wake it (service/deps.py wake_worker)
             thread = threading.Thread(target=worker.run_forever, name="demq-embedded-worker", daemon=True)
             thread.start()
@@ -60,6 +62,7 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
 
     app = FastAPI(title="demq", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.settings, app.state.store = settings, store
+    app.state.renderers = offered_renderers()     # the snapshot's renderer values, in the document's enum too
     app.add_exception_handler(RequestValidationError, on_validation_error)
     app.add_exception_handler(InvalidRequest, on_invalid_request)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
@@ -79,7 +82,7 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
 def _openapi(app: FastAPI) -> dict:
     """FastAPI's document, with the spec fields' range keywords written again from engine/spec.py:
     FastAPI's OpenAPI models hold minimum/maximum as floats, which rounds 2**63-1 (the largest seed) up
-    to 2**63, a value the validator refuses."""
+    to 2**63, a value the validator refuses; and with the snapshot's renderer enum of this server."""
     if app.openapi_schema is None:
         document = get_openapi(title=app.title, version=app.version, description=app.description,
                                routes=app.routes)
@@ -87,5 +90,6 @@ def _openapi(app: FastAPI) -> dict:
         for name, sweep in (("SimulationSpecIn", False), ("SpecKeys", False), ("SweepValues", True)):
             write_field_keywords(components[name]["properties"], field_schema_keywords(FIELD_RANGES), items=sweep)
         write_field_keywords(components["SpeciesIn"]["properties"], field_schema_keywords(SPECIES_RANGES))
+        results.offer_renderers(document, app.state.renderers)
         app.openapi_schema = document
     return app.openapi_schema

@@ -168,6 +168,13 @@ def ovito_available() -> bool:
     return ctypes.util.find_library("vulkan") is not None
 
 
+def offered_renderers() -> list[str]:
+    """The ``renderer`` values this host serves, in the order of the OpenAPI enum: 'auto', 'ovito' where OVITO can
+    render (:func:`ovito_available`), 'matplotlib' (without the plots extra it answers 501 naming the extra, as
+    every figure route does)."""
+    return ["auto", *(["ovito"] if ovito_available() else []), "matplotlib"]
+
+
 def render_ovito(fr: Frame, title: str = "", size=(640, 560)) -> bytes:
     """PNG of the frame rendered by OVITO's Tachyon ray tracer, with a colour legend and the cell."""
     from ovito.data import DataCollection

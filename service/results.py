@@ -48,8 +48,8 @@ def read_spec(path: Path) -> dict:
 def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
     """Scaled time and the mean-field cooling curves for a spec from T(0) = t0 (J) and R(0)/T(0).
 
-    Spheres: tau of paper 001 and Luding's ODE with the effective tangential restitution (engine.params)
-    -> {"x", "xlabel", "T", "R", "name"}. Ellipsoids: Haff's law with Gamma_0(xi) of paper 003 Eq. 28
+    Spheres: tau of Hidalgo et al. (2013) and Luding's ODE with the effective tangential restitution (engine.params)
+    -> {"x", "xlabel", "T", "R", "name"}. Ellipsoids: Haff's law with Gamma_0(xi) of Rubio-Largo et al. (2015) Eq. 28
     (engine/validation/hcs_ellipsoids.py) and D_f = 5 -> x = t/t0, R is None. Rough ellipsoids: no theory
     (T and R None, x = t).
     """
@@ -123,7 +123,7 @@ def batch_plot_png(path: Path, title: str) -> bytes:
 
 
 def cooling_plot_png(path: Path, title: str) -> bytes:
-    """T/T0 and R/T0 against tau (paper 001 scaled time), log-log, with Luding's ODE for spheres
+    """T/T0 and R/T0 against tau (the scaled time of Hidalgo et al. 2013), log-log, with Luding's ODE for spheres
     (Haff's law against t/t0 for ellipsoids; :func:`theory_curves`).
 
     T0 is the translational temperature at the first record (start of the cooling run); the theory

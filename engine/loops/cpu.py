@@ -14,9 +14,9 @@ neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` p
 slot of contact history per list entry (tangential spring, previous overlap and dashpot force), so every
 thread writes only its own particle (no atomics) and the spring of (j, i) is exactly minus the spring of
 (i, j). The list is built from linked cells of edge >= 2 a_max + L_v (or, when the radii span more than one
-level, from the multigrid cells of paper 004 Algorithm 1, engine/multigrid.py) and rebuilt when any particle
-has moved more than L_v/2 since the last build (paper 004); the history of surviving pairs is carried into
-the new list. No allocation in the time loop: the scratch list is preallocated and grown (rarely) from
+level, from the multigrid cells of Skorych & Dosta (2022) Algorithm 1, engine/multigrid.py) and rebuilt when any
+particle has moved more than L_v/2 since the last build (Skorych & Dosta 2022); the history of surviving pairs is
+carried into the new list. No allocation in the time loop: the scratch list is preallocated and grown (rarely) from
 Python when a build overflows it.
 
 Dilute scenes: most particles have an empty list (the default job: 0.06 entries per particle). Every build indexes
@@ -387,7 +387,7 @@ def make_run_steps(shape, parallel: bool = True):
     current step have been drifted but its forces not computed: the caller grows the list, rebuilds,
     computes the forces and closes the step. On BAD_VALUE / OVERLAP the state is left as it is.
 
-    The L_v/2 rule (paper 004): with ``shape.EXACT_DISPLACEMENT`` the step measures the exact largest
+    The L_v/2 rule (Skorych & Dosta 2022): with ``shape.EXACT_DISPLACEMENT`` the step measures the exact largest
     displacement since the build; otherwise disp_bound[0] accumulates max|v| dt, an upper bound of any
     particle's displacement since the build, and only when it passes L_v/2 is the exact largest displacement
     computed, and the list rebuilt if that passes too.
@@ -521,7 +521,7 @@ class CpuLoop(Backend):
     # ---- set-up -----------------------------------------------------------------------------------
 
     def _setup_cells(self, rmax: float, skin: float, rmin: float) -> None:
-        """The single linked-cell grid, and the multigrid cells (paper 004 Algorithm 1, engine/multigrid.py)
+        """The single linked-cell grid, and the multigrid cells (Skorych & Dosta 2022, Algorithm 1, engine/multigrid.py)
         when the size distribution spans more than one grid level (``self.mg``; None otherwise)."""
         self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
         self.inv_cell = nc / self.box

@@ -381,16 +381,16 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
 
     def start_alone(self, contact: ContactParams) -> None:
         """This ensemble is one scene of its own (a lone job, :class:`CudaBackend`): its Verlet list is built where
-        ``contact.list_mode`` says (spheres; paper 004 §3), and a start that already fails at t = 0 (overlapping
-        particles) raises its InstabilityError now, as a CPU backend's constructor does."""
+        ``contact.list_mode`` says (spheres; Skorych & Dosta 2022, §3), and a start that already fails at t = 0
+        (overlapping particles) raises its InstabilityError now, as a CPU backend's constructor does."""
         if self.host_lists:
             self.set_list_mode(contact.list_mode)
         if self._pending:
             raise self._pending[0]
 
     def scene_info(self, k: int) -> dict:
-        """Where scene k's Verlet lists were built, when on the host (paper 004 §3: final mode, stages, restarts,
-        mean tau_CPU / tau_GPU / tau_exch per mode, q, G_max); {} for lists built on the GPU."""
+        """Where scene k's Verlet lists were built, when on the host (Skorych & Dosta 2022, §3: final mode, stages,
+        restarts, mean tau_CPU / tau_GPU / tau_exch per mode, q, G_max); {} for lists built on the GPU."""
         if self.lists is None:
             return {}
         summary = self.lists.summary()

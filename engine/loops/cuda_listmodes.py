@@ -1,13 +1,13 @@
-"""Verlet lists built on the CPU for the GPU time loop: the execution modes of paper 004 §3.
+"""Verlet lists built on the CPU for the GPU time loop: the execution modes of Skorych & Dosta (2022) §3.
 
 Three ways to get the GPU its neighbour list (``list_mode``):
 
 ``"gpu"``            the list is built on the GPU (sorted cells or multigrid levels; the default mode of
                      :mod:`engine.loops.cuda_ensemble`).
-``"cpu-sequential"`` paper 004 Fig. 1A: when a particle has moved L_v/2 the GPU stops, positions go to the
+``"cpu-sequential"`` Skorych & Dosta (2022) Fig. 1A: when a particle has moved L_v/2 the GPU stops, positions go to the
                      host (A5), the CPU builds the list with all its threads (A1, :mod:`engine.multigrid`),
                      it goes to the GPU (A2) and the GPU integrates until the next L_v/2 (A3, A4).
-``"cpu-pipelined"``  paper 004 Fig. 1B: when a particle has moved L_v/4 (B3) the positions are copied
+``"cpu-pipelined"``  Skorych & Dosta (2022) Fig. 1B: when a particle has moved L_v/4 (B3) the positions are copied
                      (B4) and a CPU thread builds the next list (B5) while the GPU keeps integrating
                      with the current one (B6, B7); at the L_v/2 limit the host waits for the thread
                      (B8), checks the new list a posteriori against Eq. 2 with the positions it was built
@@ -66,7 +66,7 @@ MIN_WALL_LEFT_S = 10.0
 
 
 def g_max(q: float) -> float:
-    """Largest gain of the pipelined over the sequential mode for q = tau_CPU/tau_GPU (paper 004 Eq. 9)."""
+    """Largest gain of the pipelined over the sequential mode for q = tau_CPU/tau_GPU (Skorych & Dosta 2022, Eq. 9)."""
     return q if q <= 0.5 else (1.0 - q) / (2.0 * q)
 
 
@@ -374,7 +374,7 @@ class HostLists:
 
     def summary(self) -> dict:
         """Means per mode of tau_GPU, tau_CPU, tau_exch per stage (s), and q = tau_CPU/tau_GPU of that
-        mode's stages with G_max(q) (paper 004 Eqs. 5, 9; the paper's q is the sequential mode's)."""
+        mode's stages with G_max(q) (Skorych & Dosta 2022, Eqs. 5, 9; the paper's q is the sequential mode's)."""
         out = {"requested": self.requested, "final_mode": self.mode, "stages": len(self.stages),
                "restarts": self.restarts, "decisions": self.decisions}
         for mode in ("gpu", "cpu-sequential", "cpu-pipelined"):

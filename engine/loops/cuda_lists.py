@@ -1,6 +1,6 @@
 """CUDA kernels for neighbour lists beyond the single-grid build of :mod:`engine.loops.cuda_kernels`.
 
-- Multigrid linked cells (paper 004 §2.2, Algorithm 1) for wide size distributions. Each scene has grid
+- Multigrid linked cells (Skorych & Dosta 2022, §2.2, Algorithm 1) for wide size distributions. Each scene has grid
   levels l = 0 (coarsest, cell >= 2 R_max + L_v) ... (see :mod:`engine.multigrid`); ``lvl[i]`` is the level
   where particle i is *main*; it is *secondary* at every coarser level. Bins: for scene s and level l,
   ``mgi[s, l] = (nc, first main bin, first secondary bin)``; the bin of a particle is that offset plus
@@ -9,9 +9,9 @@
   each grid): every pair once from each side, large-large at their level, large-small at the larger
   one's, each level's cell covering R_i + R_j + L_v (Eqs. 1, 3, 4). Rows are sorted by neighbour index,
   which makes the list independent of the atomic order of the binning.
-- ``attach``: history for a list built elsewhere (on the CPU, paper 004 §3): the kept history from the
+- ``attach``: history for a list built elsewhere (on the CPU, Skorych & Dosta 2022, §3): the kept history from the
   compact store, fresh slots otherwise (the same rule as the GPU build, :func:`cuda_kernels.init_slot`).
-- ``check_snapshot``: the a-posteriori test of a list built from earlier positions (paper 004 §3, B10):
+- ``check_snapshot``: the a-posteriori test of a list built from earlier positions (Skorych & Dosta 2022, §3, B10):
   max over particles of (|x - x_snapshot| / (L_v/2))^2 into status[S_CHECK].
 
 The row start and the candidate test are the single-grid build's (:func:`cuda_kernels.list_origin`,
@@ -157,7 +157,7 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
 
     @cuda.jit
     def check_snapshot(n, pos, snap, sc, spd, spf, spi, status):
-        """status[S_CHECK] = max (|x - x_snap| / (L_v/2))^2 over the active particles (paper 004 Eq. 2)."""
+        """status[S_CHECK] = max (|x - x_snap| / (L_v/2))^2 over the active particles (Skorych & Dosta 2022, Eq. 2)."""
         sh = cuda.shared.array(SH2, ct.float64)
         md = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):

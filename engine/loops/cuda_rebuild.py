@@ -4,8 +4,8 @@
 A rebuild keeps the contact history that must survive in a compact store, counts particles per cell (scene-major
 cell ids), scans, scatters, sorts each cell by id, permutes the particle arrays into that order and builds the full
 Verlet list, taking the kept history back; the stride grows when a particle has more neighbours. Scenes whose size
-spread needs more than one grid level use the multigrid cells (paper 004 Algorithm 1); one scene may have its list
-built on the host instead (engine/loops/cuda_listmodes.py, paper 004 §3).
+spread needs more than one grid level use the multigrid cells (Skorych & Dosta 2022, Algorithm 1); one scene may have
+its list built on the host instead (engine/loops/cuda_listmodes.py, Skorych & Dosta 2022, §3).
 """
 
 from __future__ import annotations
@@ -65,8 +65,8 @@ class ListBuilds:
         self.chist = cuda.device_array((self.hist_words, cap), self.dtype, stream=self.stream)
 
     def set_list_mode(self, mode: str) -> None:
-        """Where the Verlet list is built: 'gpu', 'cpu-sequential', 'cpu-pipelined' or 'auto' (paper 004
-        §3, :mod:`engine.loops.cuda_listmodes`); the CPU modes need one scene. 'auto' on an ensemble of
+        """Where the Verlet list is built: 'gpu', 'cpu-sequential', 'cpu-pipelined' or 'auto' (Skorych & Dosta
+        2022, §3, :mod:`engine.loops.cuda_listmodes`); the CPU modes need one scene. 'auto' on an ensemble of
         several scenes is the GPU list."""
         from engine.loops.cuda_listmodes import MODES, HostLists
         if mode not in MODES:
@@ -133,7 +133,7 @@ class ListBuilds:
             self._alloc_store(int(total * 1.25) + 1024)
 
     def _rebuild(self) -> None:
-        """A list rebuild: on the GPU, or by the CPU-built list modes when they are on (paper 004 §3)."""
+        """A list rebuild: on the GPU, or by the CPU-built list modes when they are on (Skorych & Dosta 2022, §3)."""
         if self.lists is not None:
             self.lists.rebuild()
         else:
@@ -165,7 +165,7 @@ class ListBuilds:
         self.builds += 1
 
     def _setup_multigrid(self, systems, contacts) -> None:
-        """Grid levels per scene (paper 004 Algorithm 1, :mod:`engine.multigrid`) when some scene's size
+        """Grid levels per scene (Skorych & Dosta 2022, Algorithm 1, :mod:`engine.multigrid`) when some scene's size
         spread needs more than one; monodisperse ensembles keep the single-grid build."""
         self.multigrid = False
         if self.uniform or not isinstance(systems[0], SphereSystem) or not MULTIGRID:

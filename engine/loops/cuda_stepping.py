@@ -378,7 +378,7 @@ class TimeLoop:
             if rebuild:
                 self._rebuild()
             elif self.lists is not None and self.lists.exit_threshold() < 1.0 and math.sqrt(d2) > 0.5:
-                self.lists.signal()  # L_v/4 passed (paper 004 B3): the pipelined CPU build starts
+                self.lists.signal()  # L_v/4 passed (Skorych & Dosta 2022, B3): the pipelined CPU build starts
             rebuilt_prev = rebuild
             if prof:
                 e3 = self._ev(); e3.record(s)

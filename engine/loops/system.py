@@ -56,7 +56,7 @@ class SphereSystem:
 
 @dataclass
 class EllipsoidSystem:
-    """Host-side state of N ellipsoids (paper 003), SI units, rows in particle-id order.
+    """Host-side state of N ellipsoids (Rubio-Largo et al. 2015), SI units, rows in particle-id order.
 
     As :class:`SphereSystem`, with semi_axes (N,3) m (a, b, c along the body axes x, y, z; prolate
     spheroids: a >= b = c) and inertia (N,3) kg m^2, the principal moments about the body axes.
@@ -99,7 +99,7 @@ class ContactParams:
     orientation: bool = True
     overlap_limit: float = 0.05
     #: where a CUDA backend builds the Verlet list: 'gpu', 'cpu-sequential', 'cpu-pipelined', 'auto'
-    #: (paper 004 §3; engine/loops/cuda_listmodes.py); the CPU backend always builds on the CPU
+    #: (Skorych & Dosta 2022, §3; engine/loops/cuda_listmodes.py); the CPU backend always builds on the CPU
     list_mode: str = "gpu"
 
     @property
@@ -111,7 +111,7 @@ class ContactParams:
 
 
 def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
-    """Cells per box edge for the neighbour build: edge >= 2 a_max + L_v (paper 004), at most ~(2N)^(1/3).
+    """Cells per box edge for the neighbour build: edge >= 2 a_max + L_v (Skorych & Dosta 2022), at most ~(2N)^(1/3).
 
     Very dilute scenes would otherwise spend memory and build time on empty cells; cells may be larger
     than the cutoff, never smaller. Every backend bins with this so they order neighbours alike.

@@ -1,16 +1,16 @@
-"""Sphere contact law of paper 001: linear spring-dashpot normal force, tangential spring with history.
+"""Sphere contact law of Hidalgo et al. (2013): linear spring-dashpot normal force, tangential spring with history.
 
 Conventions (forces on particle i from its partner j):
 - r = r_i - r_j (minimum image), d = |r|, n = r/d points from j to i, overlap delta = a_i + a_j - d.
-- Normal force F_n = k_n delta - gamma_n v_n along n (paper 001, "F^N = -k^N delta - gamma^N v^N_rel"
+- Normal force F_n = k_n delta - gamma_n v_n along n (Hidalgo et al. 2013, "F^N = -k^N delta - gamma^N v^N_rel"
   with the sign chosen so that positive is repulsive); v_n = (v_i - v_j).n < 0 while approaching.
   The contact ends when delta returns to 0 (docs/physics.md §1.2), so the late dashpot force can
-  be attractive; gamma_n from e_n by paper 001 is then exact.
+  be attractive; gamma_n from e_n by Hidalgo et al. (2013) is then exact.
 - Contact point at the middle of the overlap: lever arms l_i = (d + a_i - a_j)/2 and l_j = (d + a_j - a_i)/2
   (l_i + l_j = d), so the torques balance the orbital term and angular momentum is conserved (to rounding).
 - Tangential spring xi (m), d xi/dt = v_t (relative tangential velocity of the contact point, rotation
   included); each step the old spring is rotated into the current tangent plane keeping its length
-  (docs/physics.md §1.3), then integrated. F_t = -k_t xi (gamma_t = 0, paper 001).
+  (docs/physics.md §1.3), then integrated. F_t = -k_t xi (gamma_t = 0, Hidalgo et al. 2013).
 - Coulomb limit |F_t| <= mu |F_n| with the spring shortened to the cap on sliding. The cap uses |F_n|,
   not max(F_n, 0): the latter zeroes the spring in the attractive tail of the dashpot and silently
   lowers e_t (docs/physics.md §1.4). mu = None means no sliding limit (Luding's model).
@@ -62,7 +62,7 @@ def contact_begins(delta, delta_prev):
 
 @numba.njit
 def normal_force(delta, vn, k_n, gamma_n):
-    """Normal force magnitude in N along n: k_n delta - gamma_n v_n (repulsive > 0; paper 001)."""
+    """Normal force magnitude in N along n: k_n delta - gamma_n v_n (repulsive > 0; Hidalgo et al. 2013)."""
     return k_n * delta - gamma_n * vn
 
 
@@ -110,8 +110,8 @@ def coulomb_cap(fx, fy, fz, fn, mu, k_t):
 
 @numba.njit
 def tangential_spring_step(xix, xiy, xiz, nx, ny, nz, tx, ty, tz, h, k_t, fn, mu):
-    """One step of the tangential spring (paper 001; spheres and rough spheroids): the old spring xi (m) rotated
-    into the plane normal to n, loaded by the slip t (m/s) for h seconds, the force -k_t xi (N) capped at
+    """One step of the tangential spring (Hidalgo et al. 2013; spheres and rough spheroids): the old spring xi (m)
+    rotated into the plane normal to n, loaded by the slip t (m/s) for h seconds, the force -k_t xi (N) capped at
     mu |F_n| (fn, N; mu None: no cap) with the spring shortened on sliding. Returns (F (3), xi (3))."""
     px, py, pz = rotate_spring_into_plane(xix, xiy, xiz, nx, ny, nz)
     px += tx * h

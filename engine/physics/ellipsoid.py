@@ -1,4 +1,5 @@
-"""Ellipsoid contact geometry (paper 003 §2.1, §3.2; docs/physics.md §2.2-2.3), single source for every backend.
+"""Ellipsoid contact geometry (Rubio-Largo et al. 2015, §2.1, §3.2; docs/physics.md §2.2-2.3), single source for every
+backend.
 
 Plain ``@numba.njit`` functions on scalars and tuples: no allocation, no Python objects, and no numeric
 literal in any arithmetic (an int or float literal promotes float32 to float64 in Numba); constants are
@@ -10,17 +11,17 @@ Conventions
   its body axes x, y, z. Prolate spheroids of the engine have the long axis a along body x, b = c_.
 - Shape matrix M = R diag(a^-2, b^-2, c_^-2) R^T (inside: (p - c)^T M (p - c) <= 1) and its inverse
   M^-1 = R diag(a^2, b^2, c_^2) R^T, each as the 6 entries (m00, m01, m02, m11, m12, m22).
-- Quadric of paper 003 Eqs. 3-8 in homogeneous row vectors X = (x, y, z, 1): A = T R S R^T T^T with
+- Quadric of Rubio-Largo et al. (2015) Eqs. 3-8 in homogeneous row vectors X = (x, y, z, 1): A = T R S R^T T^T with
   S = diag(a^-2, b^-2, c_^-2, -W^2), i.e. A = [[M, -M c], [-c^T M, c^T M c - W^2]].
-  (Paper 003 prints R_00 = 1 - q_2^2 - 2 q_3^2; the rotation matrix of a unit quaternion has
+  (Rubio-Largo et al. (2015) print R_00 = 1 - q_2^2 - 2 q_3^2; the rotation matrix of a unit quaternion has
   1 - 2 q_2^2 - 2 q_3^2, used here.)
 - Pair functions take r = c_B - c_A (minimum image) and return the normal n pointing from A to B and
   points relative to c_A.
 
 What is computed, and how
 -------------------------
-- :func:`characteristic_quartic`: the coefficients of f(lambda) = det(lambda A + B) (paper 003 Eqs. 9-10),
-  in closed form by a Schur complement (A centred at the origin, which leaves the roots unchanged).
+- :func:`characteristic_quartic`: the coefficients of f(lambda) = det(lambda A + B) (Rubio-Largo et al. 2015,
+  Eqs. 9-10), in closed form by a Schur complement (A centred at the origin, which leaves the roots unchanged).
 - :func:`paper_disjoint`: the paper's test "Delta > 0 and P = 8ac - 3b^2 < 0 => disjoint" (Eq. 11).
   It is implemented as the paper states it and is NOT used by the engine: docs/physics.md §2.2 and
   tests/engine/test_ellipsoid_geometry.py show where it fails (Delta == 0 exactly for identical
@@ -41,7 +42,7 @@ What is computed, and how
   float64, for tests and documentation) builds V_0..V_3 and Eq. 22 literally; the tests check that it
   converges to C and n of this module as W -> W_0.
 - The overlap delta: the chord of the line through C along n (the limit of the line V_2 V_3) between
-  the two original surfaces, x_1 on A and x_2 on B, delta = |x_1 x_2| (paper 003 §3.2), written without
+  the two original surfaces, x_1 on A and x_2 on B, delta = |x_1 x_2| (Rubio-Largo et al. 2015, §3.2), written without
   cancellation: t_A = (1 - F)/(beta_A + sqrt(beta_A^2 + alpha_A (1 - F))) with alpha_A = n^T M_A n,
   beta_A = (1 - lambda*)|x*| (and the same for B), delta = t_A - t_B. Negative delta is the gap of a
   separated pair along that line.
@@ -122,12 +123,12 @@ def sym_trace_prod(a00, a01, a02, a11, a12, a22, b00, b01, b02, b11, b12, b22):
             + (a01 * b01 + a02 * b02 + a12 * b12) + (a01 * b01 + a02 * b02 + a12 * b12))
 
 
-# ---- the quadric and the characteristic quartic (paper 003 Eqs. 3-11) -------------------------------
+# ---- the quadric and the characteristic quartic (Rubio-Largo et al. 2015, Eqs. 3-11) -----------------
 
 
 @numba.njit
 def quadric_matrix(x, y, z, q0, q1, q2, q3, a, b, c, w, half):
-    """A = T R S R^T T^T of paper 003 Eq. 7 with S = diag(a^-2, b^-2, c^-2, -W^2).
+    """A = T R S R^T T^T of Rubio-Largo et al. (2015) Eq. 7 with S = diag(a^-2, b^-2, c^-2, -W^2).
 
     Returns the 10 entries (A00, A01, A02, A03, A11, A12, A13, A22, A23, A33) of the symmetric 4x4
     matrix (row-vector convention X A X^T = 0, X = (x, y, z, 1)).
@@ -172,7 +173,7 @@ def characteristic_quartic(ma00, ma01, ma02, ma11, ma12, ma22, mb00, mb01, mb02,
 
 @numba.njit
 def quartic_discriminant(a, b, c, d, e, half):
-    """(Delta, P) of a x^4 + b x^3 + c x^2 + d x + e (paper 003 Eq. 11 and P = 8ac - 3b^2).
+    """(Delta, P) of a x^4 + b x^3 + c x^2 + d x + e (Rubio-Largo et al. 2015, Eq. 11 and P = 8ac - 3b^2).
 
     The coefficients are first divided by the largest |coefficient| (Delta is homogeneous of degree 6,
     P of degree 2, so the signs are unchanged and float32 does not overflow).
@@ -223,7 +224,8 @@ def paper_quartic(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3
 
 @numba.njit
 def paper_disjoint(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb, half):
-    """Paper 003's overlap test as stated: disjoint iff Delta > 0 and P < 0 (UNSAFE, see module doc)."""
+    """The overlap test of Rubio-Largo et al. (2015) as stated: disjoint iff Delta > 0 and P < 0
+    (UNSAFE, see module doc)."""
     c4, c3, c2, c1, c0 = paper_quartic(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca,
                                        qb0, qb1, qb2, qb3, ab, bb, cb, half + half, half)
     delta, p = quartic_discriminant(c4, c3, c2, c1, c0, half)
@@ -367,7 +369,7 @@ def ellipsoid_contact(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2,
     Returns (F, lambda*, delta, n_x, n_y, n_z, C_x, C_y, C_z):
     F = W_0^2 (< 1 overlapping), lambda* the Perram-Wertheim maximiser, delta the overlap along the
     normal through C (m; negative: gap of a separated pair), n the unit normal from A to B, C the
-    touching point of the ellipsoids shrunk by W_0 (paper 003's contact point), relative to c_A (m).
+    touching point of the ellipsoids shrunk by W_0 (the contact point of Rubio-Largo et al. 2015), relative to c_A (m).
     """
     ia = shape_matrix_inverse(qa0, qa1, qa2, qa3, aa, ba, ca, half)
     ib = shape_matrix_inverse(qb0, qb1, qb2, qb3, ab, bb, cb, half)
@@ -432,7 +434,7 @@ def ellipsoid_contact_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, 
     return False, g[0], g[1], g[2], g[3], g[4], g[5], g[6], g[7], g[8]
 
 
-# ---- contact force (paper 003 Eqs. 23-24) ----------------------------------------------------------
+# ---- contact force (Rubio-Largo et al. 2015, Eqs. 23-24) ---------------------------------------------
 
 
 @numba.njit
@@ -457,13 +459,14 @@ def ellipsoid_normal_force(delta, un, delta_prev, fd_prev, m12, k_n, gamma_n, dt
     return k_n * delta + w * fd, fd
 
 
-# ---- paper 003's tetrahedron, literally (numpy, float64; reference for tests and documentation) ----
+# ---- the tetrahedron of Rubio-Largo et al. (2015), literally (numpy, float64; reference for tests and
+# documentation) ----
 
 
 def paper_tetrahedron(c_a, q_a, axes_a, c_b, q_b, axes_b, w):
     """V_0..V_3 (eigenvectors of -A_s^-1 B_s, dehomogenised), C = (V_2 + V_3)/2 and n of Eq. 22.
 
-    A_s, B_s are the quadrics scaled by w (paper 003 Eq. 2; w slightly below W_0 keeps the positive
+    A_s, B_s are the quadrics scaled by w (Rubio-Largo et al. 2015, Eq. 2; w slightly below W_0 keeps the positive
     roots distinct). V_2, V_3 belong to the two positive roots of det(lambda A_s + B_s), V_0, V_1 to the
     others; n is oriented from A to B. Not used by the engine (see the module docstring).
     """
@@ -550,7 +553,7 @@ def ellipsoid_pair_geometry_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca,
 def ellipsoid_pair_screened(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb2, qb3, ab, bb, cb,
                             ux, uy, uz, wax, way, waz, wbx, wby, wbz, delta_prev, fd_prev, m12, k_n, gamma_n, dt,
                             tol, margin, screened_gap, half):
-    """Frictionless contact of ellipsoids A and B (paper 003 Eqs. 23-24); r = c_B - c_A (minimum image).
+    """Frictionless contact of ellipsoids A and B (Rubio-Largo et al. 2015, Eqs. 23-24); r = c_B - c_A (minimum image).
 
     u = u_B - u_A (predicted end-of-step translational velocities, m/s), w_A, w_B predicted space-frame
     angular velocities (rad/s); delta_prev, fd_prev: overlap (m) and dashpot force (N) of the pair at the

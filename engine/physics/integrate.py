@@ -1,10 +1,10 @@
-"""Translational velocity Verlet (paper 001), one particle and one component at a time.
+"""Translational velocity Verlet (Hidalgo et al. 2013), one particle and one component at a time.
 
 A step is kick(dt/2) - drift(dt) - forces - kick(dt/2); backends fuse the closing half kick with the
 next opening one into a single full kick and split it again only where synchronous velocities are
 needed (output, checkpoints). The angular velocity of a sphere obeys the same kick (torque / I); its
 orientation turns by the exact rotation of the mid-step spin (:func:`engine.physics.rotation.sphere_quat_turn`,
-applied lazily by the backends), which is at least as accurate as paper 001's Fincham leap-frog
+applied lazily by the backends), which is at least as accurate as the Fincham leap-frog of Hidalgo et al. (2013)
 (:func:`engine.physics.rotation.fincham_quat_step_space`).
 """
 

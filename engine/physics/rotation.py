@@ -1,4 +1,5 @@
-"""Quaternion algebra and the rotational integrators (Fincham 1992 leap-frog; paper 001, paper 003).
+"""Quaternion algebra and the rotational integrators (Fincham 1992 leap-frog; Hidalgo et al. 2013,
+Rubio-Largo et al. 2015).
 
 Quaternions are scalar-first (w, x, y, z) and map body to space: v_space = q v_body q*.
 """
@@ -60,8 +61,9 @@ def quat_rate_space(q0, q1, q2, q3, wx, wy, wz, half):
 
 @numba.njit
 def fincham_quat_step_space(q0, q1, q2, q3, wx, wy, wz, dt, half):
-    """Advance the orientation by dt given the mid-step space-frame angular velocity w(t + dt/2): paper 001's
-    per-step scheme for spheres, kept as the reference the tests measure :func:`sphere_quat_turn` against.
+    """Advance the orientation by dt given the mid-step space-frame angular velocity w(t + dt/2): the
+    per-step scheme of Hidalgo et al. (2013) for spheres, kept as the reference the tests measure
+    :func:`sphere_quat_turn` against.
 
     Fincham's leap-frog (Mol. Sim. 8, 165 (1992)): estimate q(t + dt/2) = q(t) + dt/2 q'(t), then
     q(t + dt) = q(t) + dt q'(t + dt/2) with q'(t + dt/2) from w(t + dt/2) and q(t + dt/2);
@@ -82,11 +84,12 @@ def sphere_quat_turn(q0, q1, q2, q3, wx, wy, wz, dt, k, half):
     Between two changes of its spin a sphere turns about a fixed axis at a fixed rate, so
     q(t0 + k dt) = exp(k dt/2 (0, w)) q(t0) = cos(a) q + sin(a) (0, w/|w|) q with a = k dt |w| / 2
     (dq/dt = 1/2 (0, w) q), renormalised against rounding. This is the sphere's orientation step:
-    the time loops call it with the spin each step had (the mid-step w of the leap-frog, as paper 001's Fincham
-    update uses), for all the steps since the orientation was last brought up to date, when a torque is about
-    to change the spin and when the loop returns. A free sphere is thus exact to rounding over any number of
-    steps (Fincham's per-step scheme, :func:`fincham_quat_step_space`, turns by atan2(h |w|, 1 - h^2 |w|^2 / 2)
-    with h = dt/2, a phase error of (h |w|)^3 / 6 per step); in contact both are second order in dt.
+    the time loops call it with the spin each step had (the mid-step w of the leap-frog, as the Fincham
+    update of Hidalgo et al. (2013) uses), for all the steps since the orientation was last brought up to date, when
+    a torque is about to change the spin and when the loop returns. A free sphere is thus exact to rounding over any
+    number of steps (Fincham's per-step scheme, :func:`fincham_quat_step_space`, turns by
+    atan2(h |w|, 1 - h^2 |w|^2 / 2) with h = dt/2, a phase error of (h |w|)^3 / 6 per step); in contact both are
+    second order in dt.
     k = 0 returns q unchanged.
     """
     if k == 0:
@@ -102,13 +105,13 @@ def sphere_quat_turn(q0, q1, q2, q3, wx, wy, wz, dt, k, half):
     return quat_normalize(ca * q0 + sa * d0, ca * q1 + sa * d1, ca * q2 + sa * d2, ca * q3 + sa * d3)
 
 
-# ---- rigid bodies with principal moments (ellipsoids; paper 003 Eqs. 13-21) ---------------------
+# ---- rigid bodies with principal moments (ellipsoids; Rubio-Largo et al. 2015, Eqs. 13-21) -------
 #
 # Float32-safe (constants from `half`). The state is the space-frame angular momentum L and the
 # quaternion q. Euler's equations I w_b' = M_b - w_b x (I w_b) in the body frame are the body-frame form
 # of dL/dt = tau (space frame); Fincham's leap-frog (Mol. Sim. 8, 165 (1992)) kicks L with the torque
 # (exact for the gyroscopic terms, which never have to be written out) and turns L into the body-frame
-# angular velocity w_b = I^-1 R^T L whenever q' = Q(q) w_b / 2 (paper 003 Eq. 16) is needed.
+# angular velocity w_b = I^-1 R^T L whenever q' = Q(q) w_b / 2 (Rubio-Largo et al. 2015, Eq. 16) is needed.
 
 
 @numba.njit
@@ -123,7 +126,8 @@ def quat_matrix(q0, q1, q2, q3, half):
 
 @numba.njit
 def quat_rate_body(q0, q1, q2, q3, wx, wy, wz, half):
-    """dq/dt = 1/2 q (0, w_b) = Q(q) w_b / 2 for the body-frame angular velocity w_b (paper 003 Eq. 16)."""
+    """dq/dt = 1/2 q (0, w_b) = Q(q) w_b / 2 for the body-frame angular velocity w_b (Rubio-Largo et al. 2015,
+    Eq. 16)."""
     d0, d1, d2, d3 = quat_mul(q0, q1, q2, q3, half - half, wx, wy, wz)
     return d0 * half, d1 * half, d2 * half, d3 * half
 
@@ -155,7 +159,7 @@ def angular_momentum(q0, q1, q2, q3, wx, wy, wz, i1, i2, i3, half):
 
 @numba.njit
 def fincham_quat_step_body(q0, q1, q2, q3, ltx, lty, ltz, lhx, lhy, lhz, inv_i1, inv_i2, inv_i3, dt, half):
-    """Advance q by dt (Fincham's leap-frog, paper 003 Eqs. 17-21) for a body with principal moments.
+    """Advance q by dt (Fincham's leap-frog, Rubio-Largo et al. 2015, Eqs. 17-21) for a body with principal moments.
 
     L_t = L(t), L_h = L(t + dt/2) (space frame). q(t + dt/2) = q + dt/2 Q(q) w_b(t)/2 with
     w_b(t) = I^-1 R(q)^T L_t; q(t + dt) = q + dt Q(q_h) w_b(t + dt/2)/2 with w_b(t + dt/2) from

@@ -8,12 +8,12 @@ Conventions (those of engine.physics.ellipsoid.ellipsoid_pair_screened): body A 
 r = c_B - c_A, the contact point C, lever arms r_A = C - c_A and r_B = C - c_B, the unit normal n from A to B.
 The spring xi (m) is the tangential displacement of B's material point at C relative to A's, carried in the
 tangent plane (rotated with the normal, as the sphere code does: engine.physics.contact.
-rotate_spring_into_plane); the tangential force on B is F_t = -k_t xi (gamma_t = 0, paper 001), on A -F_t,
+rotate_spring_into_plane); the tangential force on B is F_t = -k_t xi (gamma_t = 0, Hidalgo et al. 2013), on A -F_t,
 capped at mu |F_n| when mu is given (the cap of the sphere code, on |F_n|: docs/physics.md §1.4).
 Torques r_B x F_t on B and r_A x (-F_t) on A: with the common point C, angular momentum about any fixed point
 is conserved to rounding.
 
-Stiffness (paper 001 Eq. 4 with the pair's effective tangential mass at C). The impulse response of the
+Stiffness (Hidalgo et al. 2013, Eq. 4 with the pair's effective tangential mass at C). The impulse response of the
 relative velocity g = (u_B + w_B x r_B) - (u_A + w_A x r_A) of the two material points at C to an impulse J on
 B (-J on A) is dg = K J with the symmetric positive-definite
 
@@ -26,7 +26,7 @@ effective tangential mass is taken as the inverse of K's mean over the tangent p
     1/m_t = (tr K - n.K n)/2
           = 1/m12 + sum_{X = A, B} (|r_X|^2 tr S_X - r_X.S_X r_X - (r_X x n).S_X (r_X x n))/2,
 
-and k_t = k_n (m_t/m12) (arccos(-e_t)/pi)^2, paper 001 Eq. 4 (which is this with m_t/m12 = q/(1 + q) for
+and k_t = k_n (m_t/m12) (arccos(-e_t)/pi)^2, Hidalgo et al. (2013) Eq. 4 (which is this with m_t/m12 = q/(1 + q) for
 identical spheres: the same formula in the sphere limit). Exact (the sticking slip is one harmonic
 oscillator and e_t is e_t) only when K's tangential block is isotropic and uncoupled from the normal: spheres,
 and the ξ -> 1 limit. For a spheroid the tangential block has two eigenvalues (two slip frequencies) and an
@@ -86,13 +86,13 @@ def normal_inverse_mass(inv_m12, sa, ra_x, ra_y, ra_z, sb, rb_x, rb_y, rb_z, nx,
 
 @numba.njit
 def tangential_stiffness(k_n, m12, inv_mt, tangential_factor):
-    """k_t = k_n (m_t/m12) f (N/m), f = (arccos(-e_t)/pi)^2 (paper 001 Eq. 4; engine.params computes f)."""
+    """k_t = k_n (m_t/m12) f (N/m), f = (arccos(-e_t)/pi)^2 (Hidalgo et al. 2013, Eq. 4; engine.params computes f)."""
     return k_n * tangential_factor / (m12 * inv_mt)
 
 
 @numba.njit
 def tangential_factor(e_t):
-    """(arccos(-e_t)/pi)^2 of paper 001 Eq. 4 (-1 <= e_t <= 1)."""
+    """(arccos(-e_t)/pi)^2 of Hidalgo et al. (2013) Eq. 4 (-1 <= e_t <= 1)."""
     return (math.acos(-e_t) / math.pi) ** 2
 
 
@@ -152,8 +152,9 @@ def rough_spheroid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb
                         ia1, ia2, ia3, ib1, ib2, ib3,
                         delta_prev, fd_prev, xix, xiy, xiz, kt_prev,
                         m12, k_n, gamma_n, f_t, mu, dt, tol, margin, screened_gap, half):
-    """The rough spheroid pair law: paper 003's normal contact plus paper 001's tangential spring at
-    the contact point C. The one source both backends call (through engine/shapes/spheroid/law.py).
+    """The rough spheroid pair law: the normal contact of Rubio-Largo et al. (2015) plus the tangential spring of
+    Hidalgo et al. (2013) at the contact point C. The one source both backends call (through
+    engine/shapes/spheroid/law.py).
 
     Geometry and normal force are :func:`engine.physics.ellipsoid.ellipsoid_pair_geometry_screened` (same
     arguments, same screens and contact start/end rules), so the normal part is bit for bit the smooth law's.
@@ -162,8 +163,9 @@ def rough_spheroid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb
     sphere code, engine.physics.contact.sphere_contact). ia, ib: principal 1/I of A and B (1/(kg m^2)).
     History: delta_prev, fd_prev (overlap m, dashpot force N), the spring xi (m) and the contact's k_t (N/m; 0
     before its first step: then k_t = k_n f_t m_t/m12, :func:`tangential_stiffness`, with the tangential mass of
-    the undeformed contact, lever arms to the surface points C -+ (delta/2) n, which makes k_t paper 001's value
-    for spheres; kept for the contact's lifetime). f_t = (arccos(-e_t)/pi)^2; mu the Coulomb coefficient or None (no cap).
+    the undeformed contact, lever arms to the surface points C -+ (delta/2) n, which makes k_t the value of
+    Hidalgo et al. (2013) for spheres; kept for the contact's lifetime). f_t = (arccos(-e_t)/pi)^2; mu the Coulomb
+    coefficient or None (no cap).
 
     In contact: the spring is rotated into the new tangent plane, loaded by the contact-point slip for the step
     (for the part of the step since the contact began at its first step), F_t = -k_t xi on B (capped at
@@ -195,7 +197,7 @@ def rough_spheroid_pair(rx, ry, rz, qa0, qa1, qa2, qa3, aa, ba, ca, qb0, qb1, qb
     k_t = kt_prev
     if not (k_t > zero):
         # the tangential mass of the undeformed contact: lever arms to the two surface points C -+ (delta/2) n
-        # (for spheres |r| = a, so k_t is paper 001's k_n f q/(1 + q) to rounding); the forces act at C
+        # (for spheres |r| = a, so k_t is the k_n f q/(1 + q) of Hidalgo et al. (2013) to rounding); the forces act at C
         hd = half * delta
         sa = inverse_inertia_space(qa0, qa1, qa2, qa3, ia1, ia2, ia3, half)
         sb = inverse_inertia_space(qb0, qb1, qb2, qb3, ib1, ib2, ib3, half)

@@ -39,7 +39,7 @@ E + ball((W0 - 1) b), so the surfaces are at least 2 (W0 - 1) b apart, and they 
 |v_B - v_A| + (|w_A| + |w_B|) a. The DEM integrates free flight with the same step as contacts (Fincham,
 error ~ (w dt)^3 per step, w dt ~ 1e-4 here); everything with a force acting uses the engine step.
 
-Units: SI (m, kg, s) in the encounter functions (the DEM constants of the paper-003 scene); the DSMC gas
+Units: SI (m, kg, s) in the encounter functions (the DEM constants of the Rubio-Largo et al. (2015) scene); the DSMC gas
 velocities are m/s and spins rad/s. The gas is rescaled after each sweep to a fixed translational
 temperature (T_tr = T_ref, J), as in dsmc_ratio; the rescaling keeps T_tr/T_rot and fixes the contact
 softness (overlap / b) at that temperature.
@@ -597,8 +597,8 @@ def weight_bound(a: float, b: float) -> float:
 
 
 def dem_constants(xi: float, e_n: float, kn_factor: float = 1.0) -> dict:
-    """Contact constants of the paper-003 DEM scene (hcs_ellipsoids.full_spec, engine.params.derive), SI:
-    semi-axes a, b (m), mass m (kg), I_perp (kg m^2), k_n (N/m), pair gamma_n (kg/s), dt = t_c/50 (s),
+    """Contact constants of the Rubio-Largo et al. (2015) DEM scene (hcs_ellipsoids.full_spec, engine.params.derive),
+    SI: semi-axes a, b (m), mass m (kg), I_perp (kg m^2), k_n (N/m), pair gamma_n (kg/s), dt = t_c/50 (s),
     T0 = m v_rms^2/3 (J). kn_factor scales k_n (and dt with t_c, gamma_n with sqrt(k_n): same e_n)."""
     from engine.params import derive
     from engine.validation.hcs_ellipsoids import full_spec

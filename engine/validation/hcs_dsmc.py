@@ -1,7 +1,7 @@
 """The Boltzmann reference of the long-time HCS (docs/physics.md §7.3): what of the DEM's deviation from Luding's
 ODE is the velocity distribution, and what is not.
 
-Luding's ODE (paper 001 Eqs. 1-2; engine/theory.py) is the Maxwellian (mean-field) closure of the Boltzmann
+Luding's ODE (Hidalgo et al. 2013, Eqs. 1-2; engine/theory.py) is the Maxwellian (mean-field) closure of the Boltzmann
 equation for rough spheres with constant restitution (e_n, beta). In the HCS the one-particle distribution
 f(v, omega) is not Maxwellian: the Sonine cumulants a20, a02, a11 and the correlation of v and omega
 (Brilliantov, Pöschel, Kranz & Zippelius, PRL 98, 128001 (2007); Kranz et al., EPJ ST 179, 91 (2009))
@@ -13,8 +13,8 @@ spatial correlations, no soft contacts), so
 
 The DSMC is engine.validation.sonine._dsmc (m = 1, hard spheres, q = 2/5, beta = e_t,eff of the DEM's
 tangential spring, engine.params.e_t_effective), started Maxwellian at the DEM's measured R(0)/T(0), with the
-time axis in paper 001's tau: the pair rate is calibrated so that the Maxwellian collision frequency per
-particle is (3/4) (T/T0)^(1/2) per unit tau, as for the DEM's G (tests/validation/test_hcs_dsmc.py checks
+time axis in the tau of Hidalgo et al. (2013): the pair rate is calibrated so that the Maxwellian collision frequency
+per particle is (3/4) (T/T0)^(1/2) per unit tau, as for the DEM's G (tests/validation/test_hcs_dsmc.py checks
 s = (3/4) tau in an elastic gas).
 
 The soft-contact part (:func:`soft_contact_correction`) runs the DEM contact itself on binary collisions:

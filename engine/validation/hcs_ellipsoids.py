@@ -1,4 +1,4 @@
-"""Homogeneous cooling of smooth prolate spheroids (paper 003 §4; docs/physics.md §7.5).
+"""Homogeneous cooling of smooth prolate spheroids (Rubio-Largo et al. 2015, §4; docs/physics.md §7.5).
 
 For each cell (elongation xi = a/b, normal restitution e_n) a frictionless ellipsoid gas is thermalised
 without dissipation (T_rot = T_tr) and then cooled. Measured, per cell:
@@ -9,7 +9,7 @@ without dissipation (T_rot = T_tr) and then cooled. Measured, per cell:
   is given twice: with the nominal e_n and with the collision average <1 - e_eff(D)^2> of the restitution
   the linear dashpot actually produces at each contact geometry (docs/physics.md §2.4, "Effective
   restitution": the dashpot acts on m12/(1 + D) while gamma_n is set from m12).
-- **Gamma_0.** Paper 003 Eq. 28 with Eq. 29's S and R-bar: Gamma_0 = 4 sqrt(pi T(0)/m) n g_c S_c <D>_c.
+- **Gamma_0.** Rubio-Largo et al. (2015) Eq. 28 with Eq. 29's S and R-bar: Gamma_0 = 4 sqrt(pi T(0)/m) n g_c S_c <D>_c.
   V&T's <D>_c values (supplied privately to the paper's authors) could not be obtained; the exact
   Maxwellian replacement <sqrt(1 + D)>_S (docs/physics.md §6.2) is used, computed here by Monte Carlo over
   isotropic orientations and the excluded-surface weight; n is the number density, g_c the Song-Mason
@@ -58,7 +58,7 @@ TOLERANCE = 0.03
 # ---- geometry and kinetic theory (docs/physics.md §2.1, §6.2) ----------------------------------------
 
 def spheroid_surface_mean_radius(a: float, b: float) -> tuple[float, float]:
-    """(S, R-bar) of a prolate spheroid (a >= b; paper 003 Eq. 29)."""
+    """(S, R-bar) of a prolate spheroid (a >= b; Rubio-Largo et al. 2015, Eq. 29)."""
     if a <= b * (1 + 1e-12):
         return 4 * math.pi * b * b, b
     xi = a / b
@@ -144,7 +144,7 @@ def orientation_averages(xi: float, e_n: float, samples: int = 400_000, seed: in
 
 def gamma0(xi: float, e_n: float, r_eq: float, number_density: float, mass: float, phi: float,
            temperature: float) -> dict:
-    """Gamma_0 of paper 003 Eq. 28 with <D>_c -> <sqrt(1+D)>_S (exact Maxwellian), SI units."""
+    """Gamma_0 of Rubio-Largo et al. (2015) Eq. 28 with <D>_c -> <sqrt(1+D)>_S (exact Maxwellian), SI units."""
     b = r_eq / xi ** (1 / 3)
     a = xi * b
     s, rbar = spheroid_surface_mean_radius(a, b)
@@ -232,7 +232,7 @@ def dsmc_ratio(xi: float, e_n: float, dem: bool, n: int = 20000, coll_per_partic
 
 def _spec(xi: float, e_n: float, seed: int, backend: str, n: int, collisions: float, velocity_rms: float,
           thermalization: float) -> SimulationSpec:
-    """phi = 0.058 at the paper-001 particle size (L scaled with N^(1/3)); t_end = collisions / Gamma_0."""
+    """phi = 0.058 at the Hidalgo et al. (2013) particle size (L scaled with N^(1/3)); t_end = collisions / Gamma_0."""
     base = SimulationSpec(shape="ellipsoid", elongation=xi, n_particles=n, volume_fraction=0.058,
                           box_length=2.0 * (n / 4096) ** (1 / 3), e_n=e_n, e_t=-1.0, velocity_rms=velocity_rms,
                           seed=seed, backend=backend, snapshots=0, thermalization=thermalization)
@@ -243,7 +243,7 @@ def _spec(xi: float, e_n: float, seed: int, backend: str, n: int, collisions: fl
 
 
 def full_spec(xi: float, e_n: float, seed: int, backend: str = "cpu") -> SimulationSpec:
-    """Paper 003 §4: N = 4096, phi = 0.058; 40 initial collision times (Gamma_0 t_end = 40).
+    """Rubio-Largo et al. (2015) §4: N = 4096, phi = 0.058; 40 initial collision times (Gamma_0 t_end = 40).
 
     velocity_rms = 3.5 m/s keeps the typical overlap near 0.5 % of r_eq (largest < 3 % of b); the
     thermalisation (3 sphere-rate collisions per particle, elastic) randomises the lattice start.
@@ -451,9 +451,9 @@ def main(out_dir="reports/hcs-ellipsoids", seeds: int = 1, quick: bool = False, 
     pct = lambda x: "–" if x is None else f"{100 * x:+.2f} %"  # noqa: E731
     num = lambda x, f="{:.4f}": "–" if x is None else f.format(x)  # noqa: E731
     lines = [
-        "# Homogeneous cooling of smooth spheroids (paper 003 §4)", "",
+        "# Homogeneous cooling of smooth spheroids (Rubio-Largo et al. 2015, §4)", "",
         f"Backend {any_c['backend'] if any_c else backend} ({any_c['device'] if any_c else '-'}), "
-        f"{seeds} seed(s) per cell, {'reduced CI scene' if quick else 'paper 003 scene'}: "
+        f"{seeds} seed(s) per cell, {'reduced CI scene' if quick else 'Rubio-Largo et al. (2015) scene'}: "
         f"N = {spec0.n_particles}, phi = {spec0.volume_fraction}, velocity_rms = {spec0.velocity_rms} m/s, "
         f"k_n = {spec0.stiffness:g} N/m, dt = t_c/50, frictionless (e_t = -1), thermalisation "
         f"{spec0.thermalization} (sphere-rate) collisions per particle without dissipation, then "
@@ -470,11 +470,11 @@ def main(out_dir="reports/hcs-ellipsoids", seeds: int = 1, quick: bool = False, 
                      f"{c['gamma_fit_nominal']:.2f} | {c['gamma_fit_eff']:.2f} | "
                      f"{c['gamma_fit_nominal'] / c['gamma0']:.3f}, {c['gamma_fit_eff'] / c['gamma0']:.3f} | "
                      f"{c['max_overlap_b']:.4f} |")
-    lines += ["", "Gamma_0 = 4 sqrt(pi T(0)/m) n g_c S_c <sqrt(1+D)>_S (paper 003 Eq. 28 with n the number "
-              "density, Eq. 29's S and R-bar, Song-Mason g_c). Computed: S, R-bar, S_c, alpha, g_c, "
+    lines += ["", "Gamma_0 = 4 sqrt(pi T(0)/m) n g_c S_c <sqrt(1+D)>_S (Rubio-Largo et al. 2015, Eq. 28 with n the "
+              "number density, Eq. 29's S and R-bar, Song-Mason g_c). Computed: S, R-bar, S_c, alpha, g_c, "
               "<sqrt(1+D)>_S (Monte Carlo, 4e5 pair geometries). Not obtained: Villemot & Talbot's <D>_c "
-              "(private data of paper 003); <sqrt(1+D)>_S, the exact Maxwellian factor with equipartition, "
-              "replaces it. Gamma_fit = 10 r/(1 - e^2), r the fitted Haff rate 1/t0 of E_tr.", "",
+              "(private data of Rubio-Largo et al. 2015); <sqrt(1+D)>_S, the exact Maxwellian factor with "
+              "equipartition, replaces it. Gamma_fit = 10 r/(1 - e^2), r the fitted Haff rate 1/t0 of E_tr.", "",
               "| xi | g_c | S_c/b^2 | <sqrt(1+D)>_S | <D>_S | Gamma_0 r_eq^2 / (4 sqrt(pi T/m) n g_c) | "
               "<1 - e_eff^2> / (1 - e_n^2) |", "|---|---|---|---|---|---|---|"]
     seen = set()

@@ -2,7 +2,7 @@
 
 docs/physics.md §7.3. Scenes (rough spheres, e_n = e_t = e, e = 0.8 and 0.6, k_n = 1e8 N/m, rho = 2000 kg/m^3):
 
-- ``paper001``: the paper-001 scene (N = 4096, L = 2 m, phi = 0.008), linearly STABLE against the shear
+- ``hidalgo2013``: the Hidalgo et al. (2013) scene (N = 4096, L = 2 m, phi = 0.008), linearly STABLE against the shear
   mode (L/L_c = 0.23 at e = 0.8, 0.29 at e = 0.6; engine/shear_instability.py). Its T/T0 must follow
   the ODE (with e_t,eff) within 1 % for as long as the shear mode has not grown.
 - ``unstable``: a denser, larger box (N = 32768, L = 4 m, phi = 0.1: L/L_c = 2.6 and 3.4) where the
@@ -10,7 +10,7 @@ docs/physics.md §7.3. Scenes (rough spheres, e_n = e_t = e, e = 0.8 and 0.6, k_
   can be shown.
 
 Cost. tau = (4/3) omega_E(T0) t grows linearly in t, and dt = t_c/50 is fixed by the contact, so the
-steps to tau are tau/(tau_factor dt) ~ 1/velocity_rms: for the paper-001 scene 1.86e5 steps per unit tau
+steps to tau are tau/(tau_factor dt) ~ 1/velocity_rms: for the Hidalgo et al. (2013) scene 1.86e5 steps per unit tau
 at v_rms = 2.5 m/s (the hcs-spheres value), i.e. 1.9e7 steps and 8.0e10 particle-steps per seed to
 tau = 100. At ~3e9 particle-steps/s (H200, CUDA ensemble) 2 x 32 seeds would take ~28 min, so the full
 run uses v_rms = 10 m/s (4x fewer steps: 4.9e6 steps and 2.0e10 particle-steps per seed; the linear
@@ -23,7 +23,7 @@ scene (v_rms = 5 m/s, 4 seeds per e): 4.0e5 steps, 1.3e10 particle-steps per see
 S(k_min) and the fcc start. The start lattice (engine/scene.py) has almost no density fluctuation at
 k_min, while the velocities are Maxwellian: the k_min sound mode starts with its kinetic half only, and
 the ensemble mean of S(k_min) of a homogeneous gas then rises as S_eq sin^2(omega_s t) (omega_s the sound
-frequency; period L/c ~ 5 collision times in the paper-001 box, ~60 in the unstable one) and settles
+frequency; period L/c ~ 5 collision times in the Hidalgo et al. (2013) box, ~60 in the unstable one) and settles
 at or below S_eq as the sound damps. So S(k_min) BELOW the equilibrium value S_CS(phi) is the start's
 memory, and S(k_min) ABOVE S_CS (at 2 SE) signals density growth (HCS density correlations, then
 clustering; the linear heat mode is not modelled here). The transverse
@@ -63,7 +63,7 @@ SCENES = {
     # ~1 in this dilute box
     # every scene keeps the protocol its figures in docs/physics.md §7.3 were measured with: the lattice start
     # melted by elastic collisions
-    "paper001": (dict(n_particles=4096, volume_fraction=0.008, box_length=2.0, velocity_rms=10.0,
+    "hidalgo2013": (dict(n_particles=4096, volume_fraction=0.008, box_length=2.0, velocity_rms=10.0,
                       start="lattice", thermalization=4.0), 100.0, 12, 4000, 101),
     "unstable": (dict(n_particles=32768, volume_fraction=0.1, box_length=4.0, velocity_rms=5.0,
                       start="lattice", thermalization=4.0), 100.0, 4, 400, 101),
@@ -77,7 +77,7 @@ TABLE_TAU = (1, 2, 5, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100)
 
 REFERENCES = [
     "S. Luding, M. Huthmann, S. McNamara, A. Zippelius, PRE 58, 3416 (1998) — the mean-field ODE "
-    "(paper 001 Eqs. 1-2; engine/theory.py)",
+    "(Hidalgo et al. 2013, Eqs. 1-2; engine/theory.py)",
     "I. Goldhirsch, G. Zanetti, PRL 70, 1619 (1993) — clustering/shear instability of the HCS",
     "J. J. Brey, M. J. Ruiz-Montero, D. Cubero, PRE 60, 3150 (1999) — origin of density clustering; "
     "the transverse shear mode drives the instability, critical size checked by DSMC",
@@ -209,8 +209,8 @@ def collision_rate_ratio(run: dict) -> np.ndarray:
     the rate is its time derivative: collisions per particle per second = 2 dC/dt / N (each collision involves
     two particles), taken between the records around each one. Otherwise, from the contacts C open at the
     record: a collision lasts t_contact whatever its speed, so the rate is 2 C / (N t_contact). Per unit tau
-    both are divided by k = tau/t. Enskog's (with the Carnahan-Starling g(2a) of paper 001's tau, as Luding's
-    ODE assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.theory.collisions_per_particle). Ratio 1: the gas
+    both are divided by k = tau/t. Enskog's (with the Carnahan-Starling g(2a) of the tau of Hidalgo et al. (2013), as
+    Luding's ODE assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.theory.collisions_per_particle). Ratio 1: the gas
     collides as often as the ODE assumes; below 1: velocity or position correlations (or a distribution other
     than Maxwell's, a ~ a2/16 effect) make collisions rarer.
     """
@@ -516,8 +516,8 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
               "noise). 'ODE at the measured rate': Luding's ODE with both rates scaled by the smoothed ratio "
               "(as a function of T); its deviation from the plain ODE is what the rarer (or more frequent) "
               "collisions alone do to T. Where the ratio's SE is more than a few % (files without the counter: "
-              "few contacts open per record, the paper-001 box has ~1), the smoothed ratio is count noise and so "
-              "is the ODE run with it.", "",
+              "few contacts open per record, the box of Hidalgo et al. (2013) has ~1), the smoothed ratio is count "
+              "noise and so is the ODE run with it.", "",
               "| case | tau | rate / Enskog (± SE) | DEM T dev % (± SE) | ODE at the measured rate: T dev % | "
               "DEM R dev % | ODE at the measured rate: R dev % |", "|---|---|---|---|---|---|---|"]
     from engine.validation.hcs_dsmc import window_mean
@@ -574,7 +574,7 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
          dsmc: bool = True, command: str = "demq validate hcs-long") -> int:
     """Run every (scene, e, seed) as one ensemble, analyse, write the report to out_dir.
 
-    scenes: default ('paper001', 'unstable'), quick: ('quick',). seeds: per e of the paper001 and quick
+    scenes: default ('hidalgo2013', 'unstable'), quick: ('quick',). seeds: per e of the hidalgo2013 and quick
     scenes, unstable_seeds of the unstable scene (default: the scene's, SCENES).
     scratch: folder for the result files (default out_dir/runs); they are deleted after the analysis
     unless ``keep``; their reduced series stay in out_dir/runs.npz (:func:`save_runs`), so that runs with other
@@ -586,7 +586,7 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    scenes = tuple(scenes or (("quick",) if quick else ("paper001", "unstable")))
+    scenes = tuple(scenes or (("quick",) if quick else ("hidalgo2013", "unstable")))
     work = Path(scratch) if scratch else out / "runs"
     work.mkdir(parents=True, exist_ok=True)
     tasks = []
@@ -760,7 +760,7 @@ def _cli(argv=None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run", help="run the scenes as one ensemble and write the report")
     r.add_argument("--out-dir", default="reports/hcs-long")
-    r.add_argument("--seeds", type=int, default=None, help="seeds per e of paper001/quick (default 12/4)")
+    r.add_argument("--seeds", type=int, default=None, help="seeds per e of hidalgo2013/quick (default 12/4)")
     r.add_argument("--unstable-seeds", type=int, default=None, help="seeds per e of the unstable scene (default 4)")
     r.add_argument("--scenes", nargs="+", choices=sorted(SCENES), default=None)
     r.add_argument("--quick", action="store_true")

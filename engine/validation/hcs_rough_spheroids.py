@@ -4,18 +4,19 @@ Two parts, run as ensembles (`demq validate hcs-rough-spheroids`; on the GPU all
 ensemble):
 
 - **Limit xi -> 1.** A rough-spheroid gas at xi = 1.0001 and the rough-sphere gas of the same spec and seeds
-  (e_n = e_t = 0.8; the paper-001 scene, or the reduced CI scene of engine.validation.hcs_spheres) against
+  (e_n = e_t = 0.8; the Hidalgo et al. (2013) scene, or the reduced CI scene of engine.validation.hcs_spheres) against
   Luding's ODE with e_t,eff (engine.theory.luding_ode, as engine/validation/hcs_spheres.py), and against each
   other. Pass: the spheroid mean within 3 % of the ODE (the sphere check's bound) and within 3 SE + 0.5 % of the
   sphere mean at every record (the seed scatter, plus the O(xi - 1) and contact-time differences).
 - **The map.** T_tr/T_rot late in the HCS (mean over the records with at least half the final number of
   collisions per particle; T_rot over the three rotational dof) for xi in {1.5, 2, 3} and e_t in {-0.5, 0, 0.5,
-  0.9} at e_n = 0.9, N = 4096, phi = 0.058 (the paper-003 scene of engine/validation/hcs_ellipsoids.py, 20
-  initial collision times), with the seed scatter. For reference, the rough-sphere value of Luding's theory at e_t,eff (the asymptotic R/T of
-  engine.theory.r_infinity). No kinetic theory of rough spheroids was found (searched: homogeneous cooling of
-  rough inelastic ellipsoids / spheroids, translational-rotational temperature ratio; the theories found are for
-  rough spheres: Huthmann & Zippelius 1997, Luding et al. 1998, Santos, Kremer & dos Santos 2011), so the map
-  is reported with its scatter and the sphere value beside it.
+  0.9} at e_n = 0.9, N = 4096, phi = 0.058 (the Rubio-Largo et al. (2015) scene
+  of engine/validation/hcs_ellipsoids.py, 20 initial collision times), with the seed scatter. For reference,
+  the rough-sphere value of Luding's theory at e_t,eff (the asymptotic R/T of engine.theory.r_infinity). No kinetic
+  theory of rough spheroids was found (searched: homogeneous cooling of rough inelastic ellipsoids / spheroids,
+  translational-rotational temperature ratio; the theories found are for rough spheres: Huthmann & Zippelius 1997,
+  Luding et al. 1998, Santos, Kremer & dos Santos 2011), so the map is reported with its scatter and the sphere value
+  beside it.
 
 Outputs: REPORT.md, summary.json, rough_spheroids.png.
 """
@@ -53,7 +54,7 @@ def limit_spec(shape: str, seed: int, backend: str, quick: bool) -> SimulationSp
 
 
 def map_spec(xi: float, e_t: float, seed: int, backend: str, quick: bool) -> SimulationSpec:
-    """The paper-003 HCS scene (engine.validation.hcs_ellipsoids._spec) with rough contacts: N = 4096,
+    """The Rubio-Largo et al. (2015) HCS scene (engine.validation.hcs_ellipsoids._spec) with rough contacts: N = 4096,
     phi = 0.058, v_rms = 3.5 m/s, 20 initial collision times (the late window then spans ~5 collisions per
     particle, after T_tr/T_rot has settled; CI: N = 256, 9)."""
     if quick:
@@ -178,7 +179,7 @@ def main(out_dir="reports/hcs-rough-spheroids", seeds: int = 8, quick: bool = Fa
              f"Backend {probe['backend']} ({probe['device']}); wall time {wall:.0f} s for "
              f"{len(sp_paths) + len(el_paths)} runs.", "",
              f"## Limit xi -> 1 (xi = {LIMIT_XI}, e_n = e_t = {LIMIT_E}, {limit_seeds} seeds, "
-             f"{'reduced CI scene' if quick else 'paper-001 scene'})", "",
+             f"{'reduced CI scene' if quick else 'Hidalgo et al. (2013) scene'})", "",
              "| gas | max dev T/T0 from the ODE | max dev R/T0 | tau range |", "|---|---|---|---|"]
     for key in ("spheres", "spheroids"):
         c = limit[key]
@@ -197,14 +198,15 @@ def main(out_dir="reports/hcs-rough-spheroids", seeds: int = 8, quick: bool = Fa
                      f"{c['collisions']:.1f} | {c['max_overlap_b']:.4f} |")
     lines += ["", "![rough spheroids](rough_spheroids.png)", "",
               "T_rot counts the three rotational dof (rough contacts exchange energy with the spin about the "
-              "symmetry axis too). e_t sets k_t through paper 001's Eq. 4 with the pair's tangential mass at the "
-              "contact point (docs/physics.md §2.5); for a spheroid it is the tangential restitution of the "
-              "equivalent isotropic contact, exact only in the sphere limit. No kinetic theory of rough spheroids "
+              "symmetry axis too). e_t sets k_t through Eq. 4 of Hidalgo et al. (2013) with the pair's tangential "
+              "mass at the contact point (docs/physics.md §2.5); for a spheroid it is the tangential restitution of "
+              "the equivalent isotropic contact, exact only in the sphere limit. No kinetic theory of rough spheroids "
               "was found (module docstring); the sphere column is Luding's mean-field value for rough spheres "
               f"with the same e_n and e_t,eff. Time step dt = {p0.dt:.3g} s (t_c/50).",
               "", "References: S. Luding, M. Huthmann, S. McNamara, A. Zippelius, PRE 58, 3416 (1998); M. Huthmann, "
               "A. Zippelius, PRE 56, R6275 (1997); A. Santos, G. M. Kremer, M. dos Santos, Phys. Fluids 23, 030604 "
-              "(2011); paper 003 (smooth spheroids)."]
+              "(2011); S. M. Rubio-Largo, P. G. Lind, D. Maza, R. C. Hidalgo, Comput. Part. Mech. (2015) (smooth "
+              "spheroids)."]
     (out / "REPORT.md").write_text("\n".join(lines) + "\n")
     summary = {"limit": {k: limit[k] for k in ("max_diff_T", "max_diff_R", "pair_within_scatter", "spheroid_max_dev",
                                                 "sphere_max_dev")},

@@ -1,6 +1,6 @@
-"""Homogeneous cooling of rough spheres against Luding's mean-field ODE (paper 001 Fig. 2).
+"""Homogeneous cooling of rough spheres against Luding's mean-field ODE (Hidalgo et al. 2013, Fig. 2).
 
-For each restitution pair (e_n = e_t = 0.8 and 0.6) an ensemble of seeds is run from the paper 001
+For each restitution pair (e_n = e_t = 0.8 and 0.6) an ensemble of seeds is run from the Hidalgo et al. (2013)
 setup (N = 4096, L = 2 m, phi = 0.008, k_n = 1e8 N/m, rho = 2000 kg/m^3). The measured T/T0 and
 R/T0 (T0 = translational temperature at t = 0, after the elastic thermalisation) are compared on the
 scaled time tau = (2/3) G T0^(1/2) t with the ODE solved from the measured R(0)/T(0), using the
@@ -31,8 +31,8 @@ CASES = ((0.8, 0.8), (0.6, 0.6))
 
 
 def full_spec(e: float, seed: int, backend: str) -> SimulationSpec:
-    """Paper 001 scene from the default start (random, no thermalisation at phi = 0.008); velocity_rms raised to
-    2.5 m/s (largest overlap stays below 1 % of a)."""
+    """The Hidalgo et al. (2013) scene from the default start (random, no thermalisation at phi = 0.008); velocity_rms
+    raised to 2.5 m/s (largest overlap stays below 1 % of a)."""
     base = SimulationSpec(e_n=e, e_t=e, velocity_rms=2.5, seed=seed, backend=backend, snapshots=0)
     p = derive(base)
     t_end = 10.0 / tau_factor(p.radius, p.number_density, p.mass, base.volume_fraction, p.temperature0)
@@ -199,9 +199,9 @@ def main(out_dir="reports/hcs-spheres", seeds: int = 4, quick: bool = False, bac
         rows.append(c)
     plot(results, out / "hcs_spheres.png")
     lines = [
-        "# Homogeneous cooling of rough spheres against Luding's ODE (paper 001)", "",
+        "# Homogeneous cooling of rough spheres against Luding's ODE (Hidalgo et al. 2013)", "",
         f"Backend {meta['backend']} ({meta['device']}), {seeds} seeds per case, "
-        f"{'reduced CI scene' if quick else 'paper 001 scene'}: "
+        f"{'reduced CI scene' if quick else 'Hidalgo et al. (2013) scene'}: "
         f"N = {meta['spec']['n_particles']}, phi = {meta['spec']['volume_fraction']}, "
         f"velocity_rms = {meta['spec']['velocity_rms']} m/s, the default start ({derive(make(CASES[0][0], 0, backend)).start}, "
         f"{derive(make(CASES[0][0], 0, backend)).thermalization:g} collisions/particle of thermalisation).", "",

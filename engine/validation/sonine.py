@@ -8,8 +8,8 @@ engine/physics/sonine.py at every record:
     a2  (translation, d = 3),  a2,rot (= a02 of the rough-sphere literature),  a11 (cross cumulant).
 
 **Scaling state.** The time axis is the number of collisions per particle s(t) = (3/4) tau_factor
-int_0^t sqrt(T(t')/T0) dt' (the Enskog collision frequency of paper 001's G, tau = (2/3) G T0^1/2 t, with
-the *measured* T(t)). The Maxwellian start relaxes to the HCS in a few collisions; a2 is averaged over
+int_0^t sqrt(T(t')/T0) dt' (the Enskog collision frequency of the G of Hidalgo et al. (2013), tau = (2/3) G T0^1/2 t,
+with the *measured* T(t)). The Maxwellian start relaxes to the HCS in a few collisions; a2 is averaged over
 s in [S_SKIP, S_END] per run, then over the seeds (mean and standard error s/sqrt(K)).
 
 **References (smooth spheres).**
@@ -41,12 +41,17 @@ standard error; 0.005 is the allowance for the finite-density and soft-contact d
 (about 5 % of a2 at e = 0.4, a third of |a2| at e = 0.9). Quick (CI) run: e_n = 0.4 only, where a2 is large;
 it passes when a2,DEM > 0 by more than 3 sigma and |a2,DEM - a2,DSMC| <= 3 sigma + 0.01 (fewer particles,
 shorter window: the allowance doubles).
+
+**Report.** README.md and summary.json hold the numbers, and the tables are printed; the picture sonine.png
+(a2 against e_n, and its relaxation from the start) is drawn where matplotlib (the ``plots`` extra) is
+installed, and skipped with one line on stderr where it is not (the light install).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -55,6 +60,7 @@ import numpy as np
 
 from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.h5md import read_parameters, read_series
+from engine.optional import MissingExtra
 from engine.params import Q_SPHERE, derive, e_t_effective
 from engine.physics.sonine import a2_van_noije_ernst, a11_sampling_sigma, a2_sampling_sigma, sonine_a2
 from engine.spec import SimulationSpec
@@ -165,7 +171,7 @@ def collision_normal(ux, uy, uz, ct, ph):
 def constant_restitution_impulse(gx, gy, gz, sx, sy, sz, nx, ny, nz, a, alpha, beta, q):
     """Velocity change of sphere 1 (sphere 2 gets minus it) in a collision of two equal rough spheres with
     constant normal and tangential restitution (alpha, beta; q = I/(m a^2)): the collision rule of the DSMC and
-    of Luding's ODE (paper 001; Huthmann & Zippelius 1997). g = v1 - v2, s = w1 + w2, n the unit normal from 1
+    of Luding's ODE (Hidalgo et al. 2013; Huthmann & Zippelius 1997). g = v1 - v2, s = w1 + w2, n the unit normal from 1
     to 2 (1's contact point at +a n), a the radius; J/m = -(1 + alpha)/2 g_n n - (1 + beta) q/(2 (1 + q)) c_t
     with c = g + a s x n the contact-point relative velocity. Both spins change by (n x J/m)/(q a)."""
     kn = (1.0 + alpha) / 2.0
@@ -186,7 +192,7 @@ def _dsmc(n, alpha, beta, q, s_end, samples_per_collision, seed, r0=1.0):
     (g.n)_+ is sampled as a pair accepted with probability |g| / (2 vmax), then n with density (g_hat.n)_+.
     Velocities are rescaled to T_tr = 1 every n/2 collisions (the cumulants and T_rot/T_tr do not change
     under a common scale); T_unit is the physical temperature of that unit, so T_tr(tau)/T0 =
-    T_unit (2/3) sum e_tr / n (T0 the start's T_tr; likewise T_rot). tau is paper 001's scaled time, in
+    T_unit (2/3) sum e_tr / n (T0 the start's T_tr; likewise T_rot). tau is the scaled time of Hidalgo et al. (2013), in
     which the Maxwellian collision frequency per particle is (3/4) (T/T0)^(1/2) (engine/validation/hcs_long.py):
     each candidate pair, accepted or not, advances it by 16 / (3 sqrt(pi) n vmax sqrt(T_unit)) (the pair
     rate K |g| with K (n - 1) <|g|>_Maxwell(T0) = 3/4). Start: Maxwellian, T_rot/T_tr = r0."""
@@ -312,7 +318,7 @@ def dsmc_hcs(alpha: float, beta: float = -1.0, *, n: int = 100_000, s_skip: floa
 
 def maxwellian_temperature_ratio(e_n: float, beta: float) -> float:
     """HCS T_rot/T_tr of constant (e_n, beta) rough spheres in the Maxwellian approximation: the fixed point
-    r of Luding's ODE (paper 001 Eqs. 1-2; Huthmann & Zippelius 1997), B r^2 + (C - A) r - B = 0."""
+    r of Luding's ODE (Hidalgo et al. 2013, Eqs. 1-2; Huthmann & Zippelius 1997), B r^2 + (C - A) r - B = 0."""
     a, b, c = luding_coefficients(e_n, beta)
     return (a - c + math.sqrt((c - a) ** 2 + 4.0 * b * b)) / (2.0 * b)
 
@@ -394,7 +400,8 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
          threads: int = 0, ensemble: bool = False, dsmc_n: int = 0, cases=None, n_particles: int = 0,
          box_length: float = 0.0) -> int:
     """Run the DEM cases (one ensemble with ``ensemble``), the DSMC references, and write README.md,
-    summary.json and sonine.png into ``out_dir``; 0 when the pass criteria of the module docstring hold.
+    summary.json and (with matplotlib) sonine.png into ``out_dir``, printing the report's tables; 0 when the pass
+    criteria of the module docstring hold.
     ``cases``: [(e_n, e_t), ...] instead of the default set; ``n_particles``/``box_length``: see case_spec."""
     if threads:
         numba.set_num_threads(threads)
@@ -443,7 +450,12 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
             row["pass"] = row["pass"] and row["a2"] > 3 * row["a2_err"]
         rows.append(row)
     t_dsmc = time.time() - t1
-    plot(rows, out / "sonine.png")
+    try:
+        plot(rows, out / "sonine.png")
+        no_picture = None
+    except MissingExtra as exc:      # the light install: the tables hold the numbers the picture shows
+        no_picture = (f"demq validate sonine: no picture (sonine.png): {exc.package} is not installed; the tables "
+                      f"above and {out / 'README.md'} hold the numbers; pip install 'demq[{exc.extra}]' draws it")
     meta = rows[0]["runs"][0]
     spec0 = case_spec(rows[0]["e_n"], rows[0]["e_t"], 0, backend, quick, *size)
     cmd = (f"demq validate sonine{' --quick' if quick else ''}{' --ensemble' if ensemble else ''} --backend "
@@ -484,7 +496,9 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
                 f"{d['a2_rot']:+.4f} ± {d['a2_rot_err']:.4f} | {r['a11']:+.4f} ± {r['a11_err']:.4f} | "
                 f"{d['a11']:+.4f} ± {d['a11_err']:.4f} | {r['T_ratio']:.4f} ± {r['T_ratio_err']:.4f} | "
                 f"{d['T_ratio']:.4f} ± {d['T_ratio_err']:.4f} | {maxwellian_temperature_ratio(r['e_n'], r['beta_dsmc']):.4f} |")
-    lines += ["", "![a2](sonine.png)", "",
+    tables_end = len(lines)
+    lines += ["", "![a2](sonine.png)" if no_picture is None else
+              "(No picture: matplotlib was not installed; `pip install 'demq[plots]'` draws sonine.png.)", "",
               "## References", "",
               "- van Noije & Ernst, Granular Matter 1, 57 (1998): a2 = 16(1-e)(1-2e^2)/(81-17e+30e^2(1-e)) "
               "(first Sonine approximation, linear in a2).",
@@ -498,7 +512,7 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
               "Megías & Santos (arXiv 2303.00057) define a20, a02, a11 as here (a11 = <e_tr e_rot>/(<e_tr><e_rot>) "
               "- 1); Vega Reyes, Santos & Kremer (arXiv 1309.2369) compute them in the HCS with a Grad-like theory, "
               "DSMC and MD (tables not reachable here). Maxwellian T_rot/T_tr: the fixed point of Luding's ODE "
-              "(paper 001; Huthmann & Zippelius 1997).", "",
+              "(Hidalgo et al. 2013; Huthmann & Zippelius 1997).", "",
               f"Pass: |DEM - DSMC| <= 3 sigma + {allow} (sigma: combined standard error; {allow}: allowance for "
               "finite density phi = 0.05, soft contacts and finite N)" +
               ("; quick: also a2 > 3 sigma." if quick else "."),
@@ -509,7 +523,9 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
     summary = [{k: ({kk: vv for kk, vv in v.items() if kk not in ("s", "a2_curve")} if k == "dsmc" else v)
                 for k, v in r.items() if k != "runs"} for r in rows]
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    print("\n".join(lines[:12 + len(rows)]), flush=True)
+    print("\n".join(lines[:tables_end]), flush=True)
+    if no_picture:
+        print(no_picture, file=sys.stderr, flush=True)
     smooth = [r for r in rows if r["e_t"] <= -1]
     return 0 if all(r["pass"] for r in smooth) else 1
 

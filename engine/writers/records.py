@@ -21,7 +21,7 @@ def record(obs: dict, n: int) -> dict:
     """Observables written every record (temperatures per degree of freedom, J).
 
     Ellipsoids: T_rot counts the two rotational degrees of freedom that exchange energy (about the
-    axes perpendicular to the symmetry axis), T_rot = E_rot,perp / N (paper 003 Eq. 25b as corrected in
+    axes perpendicular to the symmetry axis), T_rot = E_rot,perp / N (Rubio-Largo et al. 2015, Eq. 25b as corrected in
     docs/physics.md §2.7); kinetic_energy_rotational stays the total.
 
     Velocity-distribution shape (docs/physics.md §6.5), dimensionless, where the backend reports the energy moments:

@@ -8,7 +8,7 @@ import tempfile
 from pathlib import Path
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, HTTPException, Query
+from fastapi import APIRouter, HTTPException, Query, Request
 from fastapi.responses import FileResponse, PlainTextResponse, Response
 from starlette.background import BackgroundTask
 
@@ -108,24 +108,38 @@ def get_gsd(job: JobDep) -> FileResponse:
                     background=BackgroundTask(os.unlink, tmp))
 
 
-@router.get("/{job_id}/snapshot.png", response_class=Response, responses={
+SNAPSHOT_ROUTE = "/{job_id}/snapshot.png"
+
+
+def offer_renderers(document: dict, offered: list[str]) -> None:
+    """Write ``offered`` (the app's renderers, service.render.offered_renderers) as the enum of the snapshot's
+    ``renderer`` in the OpenAPI ``document``: the route declares every renderer the code knows, the document
+    only those this server runs."""
+    for param in document["paths"][router.prefix + SNAPSHOT_ROUTE]["get"]["parameters"]:
+        if param["name"] == "renderer":
+            param["schema"]["enum"] = list(offered)
+
+
+@router.get(SNAPSHOT_ROUTE, response_class=Response, responses={
     **SNAPSHOT_RESPONSES, **NEEDS_PLOTS,
-    422: {"description": "frame index out of range, or an unknown colour/renderer"},
+    422: {"description": "frame index out of range, an unknown colour, or a renderer this server does not run"},
     200: {"content": {"image/png": {}}, "description": "PNG"}})
-def get_snapshot(job: JobDep,
+def get_snapshot(job: JobDep, request: Request,
                  frame: Annotated[int, Query(description="snapshot frame, Python-style: 0 = first, -1 = last")] = -1,
                  color: Annotated[Literal["speed", "omega"], Query(
                      description="colour by the speed |v| (m/s) or the angular speed |omega| (1/s)")] = "speed",
                  renderer: Annotated[Literal["auto", "ovito", "matplotlib"], Query(
-                     description="auto: OVITO's Tachyon when installed, else matplotlib")] = "auto") -> Response:
+                     description="auto: OVITO's Tachyon when installed, else matplotlib; the enum lists the "
+                                 "renderers this server runs")] = "auto") -> Response:
     """A picture of one snapshot frame: spheres or oriented spheroids, coloured with a colour bar, box outline."""
-    from service.render import FrameOutOfRange, NoSnapshot, ovito_available, snapshot_png
+    from service.render import FrameOutOfRange, NoSnapshot, snapshot_png
 
-    path = _result_file(job)
-    if renderer == "ovito" and not ovito_available():
+    offered = request.app.state.renderers
+    if renderer not in offered:     # 'ovito' where OVITO cannot render: outside the document's enum
         raise InvalidRequest([{"loc": ["query", "renderer"], "type": "value_error",
-                               "msg": "OVITO is not installed on this server (pip install ovito, and a Vulkan "
-                                      "loader): use renderer=auto or matplotlib"}])
+                               "msg": f"renderer = {renderer!r}: OVITO is not installed on this server (pip install "
+                                      f"ovito, and a Vulkan loader); use " + " or ".join(map(repr, offered))}])
+    path = _result_file(job)
     try:
         with needs_extra():
             png = snapshot_png(path, frame, color, renderer, label=f"job {job.id[:8]}: ")

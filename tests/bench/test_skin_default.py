@@ -118,7 +118,8 @@ def test_box_check_uses_the_default_at_the_spec_density():
 # ---- the density-dependent rule ----------------------------------------------------------------------
 
 def test_mean_free_path():
-    # lambda/a = 1/(3 sqrt(2) phi g), Carnahan-Starling g: 28.9 at the paper-001 phi, 1.81 at 0.1, 0.317 at 0.3
+    # lambda/a = 1/(3 sqrt(2) phi g), Carnahan-Starling g: 28.9 at the phi of Hidalgo et al. (2013), 1.81 at 0.1,
+    # 0.317 at 0.3
     assert mean_free_path(0.008) == pytest.approx(28.877, rel=1e-4)
     assert mean_free_path(0.1) == pytest.approx(1.8087, rel=1e-4)
     assert mean_free_path(0.3) == pytest.approx(0.31704, rel=1e-4)

@@ -29,7 +29,7 @@ def test_lammps_input_matches_demq_parameters(n, phi):
     style, kn, kt, gn, gt, xmu, damp = _pair_style(text)
     assert style == "gran/hooke/history"
     assert kn == 1.0e8 == p.k_n
-    # paper 001 Eq. 4, written out independently of params.py
+    # Hidalgo et al. (2013) Eq. 4, written out independently of params.py
     assert kt == pytest.approx(1.0e8 * (2.0 / 7.0) * (math.acos(-0.8) / math.pi) ** 2, rel=1e-14)
     # LAMMPS damps with m_eff * gamma_n: m_eff = m/2 for equal spheres of the data file's density and size
     mass = 2000.0 * 4.0 / 3.0 * math.pi * p.radius**3

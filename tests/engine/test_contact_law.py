@@ -1,4 +1,4 @@
-"""Two-sphere collisions against the analytic restitution of the spring-dashpot model (paper 001)."""
+"""Two-sphere collisions against the analytic restitution of the spring-dashpot model (Hidalgo et al. 2013)."""
 
 import math
 
@@ -27,7 +27,7 @@ def test_head_on_normal_restitution(e_n):
 def test_oblique_sticking_tangential_restitution(e_t):
     """Tangential restitution of the contact point for a sticking contact (no Coulomb limit).
 
-    Analytic value of the spring model with k_t from paper 001 Eq. 4: the tangential oscillator
+    Analytic value of the spring model with k_t from Hidalgo et al. (2013) Eq. 4: the tangential oscillator
     turns through arccos(-e_t) sqrt(1 + (ln e_n/pi)^2) during the damped contact, so
     e_t,eff = -cos(arccos(-e_t) sqrt(1 + (ln e_n/pi)^2)) (docs/physics.md §1.3). Eq. 4 is exact
     (e_t,eff = e_t) only for e_n = 1, i.e. gamma_n = 0.

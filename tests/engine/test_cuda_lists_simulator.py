@@ -1,4 +1,4 @@
-"""Paper 004 on the CUDA backend under the Numba CUDA simulator (CI has no GPU).
+"""The list methods of Skorych & Dosta (2022) on the CUDA backend under the Numba CUDA simulator (CI has no GPU).
 
 - The multigrid build on the GPU gives the brute-force contact set for size ratios 1, 2, 5, 10.
 - The three list modes (GPU list, CPU list sequential, CPU list pipelined) give the same trajectory to

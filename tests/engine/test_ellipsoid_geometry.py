@@ -3,7 +3,7 @@
 The oracle (tests/engine/test_ellipsoid_oracle.py) is a different method in higher precision:
 bisection on the primal tangency curve in 80-bit longdouble. The full 10^4-sample error table is
 written by bench/ellipsoid_geometry_accuracy.py; here a CI-sized sample of 2000 asserts the bounds.
-Also: hand-made cases with closed forms (docs/physics.md §2.6), the quadric and quartic of paper 003,
+Also: hand-made cases with closed forms (docs/physics.md §2.6), the quadric and quartic of Rubio-Largo et al. (2015),
 its tetrahedron construction, and the cases where its Delta/P overlap test fails (docs/physics.md §2.2).
 """
 
@@ -160,10 +160,10 @@ def test_parallel_at_angle_closed_form():
         assert abs(f - 1.0) < 2e-15
 
 
-# ---- paper 003's algebra ---------------------------------------------------------------------------
+# ---- the algebra of Rubio-Largo et al. (2015) -------------------------------------------------------
 
 def paper_r(q):
-    """Paper 003's rotation matrix with its typo corrected (R_00 = 1 - 2 q2^2 - 2 q3^2)."""
+    """The rotation matrix of Rubio-Largo et al. (2015) with its typo corrected (R_00 = 1 - 2 q2^2 - 2 q3^2)."""
     q0, q1, q2, q3 = q
     return np.array([[1 - 2 * q2**2 - 2 * q3**2, 2 * q1 * q2 - 2 * q0 * q3, 2 * q1 * q3 + 2 * q0 * q2, 0],
                      [2 * q1 * q2 + 2 * q0 * q3, 1 - 2 * q1**2 - 2 * q3**2, 2 * q2 * q3 - 2 * q0 * q1, 0],
@@ -188,7 +188,7 @@ def test_quadric_is_trsrt_tt_and_quartic_is_det():
         t[3, :3] = -c
         s = np.diag([axes[0] ** -2, axes[1] ** -2, axes[2] ** -2, -w * w])
         r = paper_r(q)
-        a_lit = t @ r @ s @ r.T @ t.T                                      # paper 003 Eq. 7
+        a_lit = t @ r @ s @ r.T @ t.T                                      # Rubio-Largo et al. (2015) Eq. 7
         a_eng = full(quadric_matrix(*c, *q, *axes, w, H))
         assert np.allclose(a_eng, a_lit, rtol=1e-12, atol=1e-12)
         p = rng.normal(size=3) * 0.5

@@ -169,7 +169,7 @@ def test_critical_wavenumber_matches_the_dimensional_balance():
     assert st.box_over_Lc == pytest.approx(box / st.L_c)
 
 
-def test_paper001_box_is_stable_and_a_dense_large_box_is_not():
+def test_hidalgo_2013_box_is_stable_and_a_dense_large_box_is_not():
     for e in (0.8, 0.6):
         st = shear_stability(e, e, 0.008, 4096, 2.0)
         assert st.box_over_Lc < 0.35 and st.lambda_kmin < 0 and st.unstable_pairs == 0

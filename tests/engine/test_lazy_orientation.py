@@ -2,7 +2,8 @@
 (engine.physics.rotation.sphere_quat_turn), lazily: only when a torque is about to change that spin, and when the
 time loop returns (engine/shapes/sphere/kernels.py ``rotate``, ``settle``; the GPU's twin is checked against the
 CPU in test_cuda_simulator.py). Free spheres are exact to rounding over any number of steps; in a colliding gas the
-orientations are closer to a t_c/1000 reference than paper 001's per-step Fincham update."""
+orientations are closer to a t_c/1000 reference than the per-step Fincham update of
+Hidalgo et al. (2013)."""
 
 import numba
 import numpy as np
@@ -36,9 +37,9 @@ def exact(q, w, t):
 
 @numba.njit
 def fincham_path(q, wmid, dt, sub):
-    """Paper 001's per-step Fincham update through a spin history wmid (steps, N, 3) of mid-step spins: one step
-    per step (sub = 1), or sub steps of dt/sub through the piecewise-linear spin joining the mid-step values (the
-    reference: the same spin history, integrated at dt/sub)."""
+    """The per-step Fincham update of Hidalgo et al. (2013) through a spin history wmid (steps, N, 3) of mid-step spins:
+    one step per step (sub = 1), or sub steps of dt/sub through the piecewise-linear spin joining the mid-step values
+    (the reference: the same spin history, integrated at dt/sub)."""
     n = wmid.shape[0]
     out = q.copy()
     for i in range(q.shape[0]):
@@ -80,7 +81,8 @@ def test_turn_is_the_exact_rotation():
 @pytest.mark.parametrize("rough", [True, False])
 def test_free_spheres_are_exact_after_a_million_steps(rough):
     """No contact ever: the loop defers every turn to its four returns (chunks of 250 000 steps); the result is
-    the exact rotation to rounding, where paper 001's per-step Fincham update has drifted by its phase error."""
+    the exact rotation to rounding, where the per-step Fincham update of Hidalgo et al. (2013) has drifted by its
+    phase error."""
     system = lattice_gas(speed=0.0, spin=30.0)
     be = CpuBackend(system, contact(k_t=None if not rough else K_N / 7))
     for _ in range(4):

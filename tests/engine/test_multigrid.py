@@ -1,4 +1,4 @@
-"""Multigrid linked cells (paper 004 §2.2, Algorithm 1; engine/multigrid.py) against brute force."""
+"""Multigrid linked cells (Skorych & Dosta 2022, §2.2, Algorithm 1; engine/multigrid.py) against brute force."""
 
 import math
 
@@ -91,7 +91,7 @@ def test_levels_follow_eqs_3_and_4():
 
 
 def test_main_level_includes_band_edges():
-    """Paper 004's strict U_min < R < U_max would drop R = R_max and R = U_max^j; ours keeps both."""
+    """The strict U_min < R < U_max of Skorych & Dosta (2022) would drop R = R_max and R = U_max^j; ours keeps both."""
     r_max, skin = 0.02, 0.001
     lv = grid_levels(BOX, 1000, r_max / 10, r_max, skin)
     edges = np.concatenate([[r_max, r_max / 10], lv.u_min[:-1], np.nextafter(lv.u_min[:-1], 1.0)])

@@ -1,4 +1,4 @@
-"""Verlet lists (paper 004): complete, rebuilt on the L_v/2 rule, tangential springs carried over."""
+"""Verlet lists (Skorych & Dosta 2022): complete, rebuilt on the L_v/2 rule, tangential springs carried over."""
 
 import numpy as np
 

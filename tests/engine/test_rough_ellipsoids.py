@@ -1,5 +1,6 @@
-"""Rough (frictionless -> frictional) spheroids on the CPU (docs/physics.md §2.5): paper 001's tangential spring at the
-spheroid contact point (engine.physics.rough_spheroid.rough_spheroid_pair, wired by engine/shapes/spheroid/).
+"""Rough (frictionless -> frictional) spheroids on the CPU (docs/physics.md §2.5): the tangential spring of
+Hidalgo et al. (2013) at the spheroid contact point (engine.physics.rough_spheroid.rough_spheroid_pair, wired by
+engine/shapes/spheroid/).
 
 - xi = 1: the rough spheroid gas is the rough sphere gas (same law, same arithmetic up to rounding);
 - binary collisions at any xi: linear and angular momentum conserved to rounding (F_A = -F_B, torques about the
@@ -33,8 +34,8 @@ def test_xi_one_rough_spheroids_are_rough_spheres():
     oa, ob = a.observe(), b.observe()
     assert oa["kinetic_energy_translational"] < 0.95 * 0.32          # collisions happened
     assert ob["rotational_dof"] == 3
-    # k_t from the tangential mass at C equals paper 001's q/(1+q) k_n f to rounding, so the two runs differ
-    # only by rounding, amplified by the collisions of 1000 steps
+    # k_t from the tangential mass at C equals the q/(1+q) k_n f of Hidalgo et al. (2013) to rounding, so the two runs
+    # differ only by rounding, amplified by the collisions of 1000 steps
     assert np.abs(a.pos - b.pos).max() < 1e-9 * RADIUS
     assert np.abs(a.omega - b.omega()).max() < 1e-6 * np.abs(a.omega).max()
     assert math.isclose(oa["kinetic_energy_rotational"], ob["kinetic_energy_rotational"], rel_tol=1e-8)

@@ -68,9 +68,9 @@ def test_the_impulse_response_matrix_is_k_and_its_means_are_the_masses():
         assert inv_mt > inv_m12
 
 
-def test_the_sphere_limit_gives_paper_001_eq_4():
+def test_the_sphere_limit_gives_hidalgo_2013_eq_4():
     """Identical spheres (a = b = c), contact point on the line of centres: m_t/m12 = q/(1+q), q = 2/5, so k_t is
-    paper 001's k_n q/(1+q) (arccos(-e_t)/pi)^2."""
+    the k_n q/(1+q) (arccos(-e_t)/pi)^2 of Hidalgo et al. (2013)."""
     rng = np.random.default_rng(2)
     a = 1e-3
     ma, _, _, sa = _body(rng, a, a, a)

@@ -1,4 +1,4 @@
-"""Spec validation messages and derived parameters of paper 001."""
+"""Spec validation messages and derived parameters of Hidalgo et al. (2013)."""
 
 import math
 
@@ -9,11 +9,12 @@ from engine.params import derive, e_t_effective, gamma_n_from_restitution, k_t_p
 from engine.spec import SimulationSpec
 
 
-def test_defaults_are_paper_001():
+def test_defaults_are_hidalgo_2013():
     s = SimulationSpec()
     assert (s.n_particles, s.box_length, s.volume_fraction, s.stiffness, s.density) == (4096, 2.0, 0.008, 1e8, 2000.0)
     p = derive(s)
-    # paper-001 scene (docs/physics.md §3.4): a = 0.015509 m, m = 1/32 kg, n = 512 m^-3, undamped t_c = 3.93e-5 s
+    # Hidalgo et al. (2013) scene (docs/physics.md §3.4): a = 0.015509 m, m = 1/32 kg, n = 512 m^-3, undamped
+    # t_c = 3.93e-5 s
     assert p.radius == pytest.approx(0.015509, rel=1e-4)
     assert p.mass == pytest.approx(1 / 32, rel=1e-12)
     assert p.number_density == pytest.approx(512.0)

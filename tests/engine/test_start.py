@@ -41,7 +41,7 @@ def test_null_start_is_random_where_cheap_and_lattice_elsewhere():
 
 
 def test_null_thermalization_is_what_the_start_needs_and_an_explicit_one_is_honoured():
-    assert thermalization_collisions(SimulationSpec()) == 0.0           # paper-001 density: already equilibrium
+    assert thermalization_collisions(SimulationSpec()) == 0.0           # Hidalgo et al. (2013) density: equilibrium
     assert derive(SimulationSpec()).n_thermalization_steps == 0
     assert thermalization_collisions(SimulationSpec(volume_fraction=0.1)) > 0.0
     assert thermalization_collisions(SimulationSpec(start="lattice")) == 1.0

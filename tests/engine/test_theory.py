@@ -29,8 +29,9 @@ def test_ode_oracle(e, tvals, rvals):
     assert r == pytest.approx(rvals, rel=2e-6)
 
 
-def test_collision_frequency_paper_001():
-    # docs/physics.md §6.3, paper-001 scene: G = 40.313 s^-1 J^-1/2 for a = 0.015509 m, n = 512, m = 1/32, phi = 0.008
+def test_collision_frequency_hidalgo_2013():
+    # docs/physics.md §6.3, Hidalgo et al. (2013) scene: G = 40.313 s^-1 J^-1/2 for a = 0.015509 m, n = 512, m = 1/32,
+    # phi = 0.008
     from engine.params import derive
     from engine.spec import SimulationSpec
 
@@ -41,7 +42,8 @@ def test_collision_frequency_paper_001():
 def test_per_collision_change_of_smooth_spheres():
     # smooth equal spheres: a collision loses (1 - e^2) m (g.n)^2 / 4, and Maxwellian colliding pairs have
     # <(g.n)^2> = 4 T / m, so each collision takes (1 - e^2) T from E_tr = 3 N T / 2 shared by 2 particles:
-    # dT per collision and particle = -(1 - e^2) T / 3, and R is untouched (exact; independent of paper 001's A, B, C)
+    # dT per collision and particle = -(1 - e^2) T / 3, and R is untouched (exact; independent of the A, B, C
+    # of Hidalgo et al. (2013))
     from engine.theory import luding_per_collision
 
     for e in (0.9, 0.6):

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 
 
 def _gas(n=4096, xi=2.0, phi=0.058, precision="float64", seed=3, e_n=0.9):
-    """Spec-built paper-003 start (bounding spheres on an fcc lattice, random orientations)."""
+    """Spec-built Rubio-Largo et al. (2015) start (bounding spheres on an fcc lattice, random orientations)."""
     from engine.params import derive
     from engine.scene import initial_ellipsoids
     from engine.simulate import contact_params

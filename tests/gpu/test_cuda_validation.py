@@ -1,4 +1,4 @@
-"""Homogeneous cooling of rough spheres on the GPU backend against Luding's mean-field ODE (paper 001)."""
+"""Homogeneous cooling of rough spheres on the GPU backend against Luding's mean-field ODE (Hidalgo et al. 2013)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,5 @@
-"""Real-GPU checks of paper 004 (skipped without a GPU): multigrid contact set and the three list modes.
+"""Real-GPU checks of the list methods of Skorych & Dosta (2022) (skipped without a GPU): multigrid contact set and
+the three list modes.
 
 Run on the GPU machine: ``python -m pytest tests/gpu -q -s``.
 """

@@ -331,3 +331,38 @@ def test_settings_of_claims_cancels_and_warm_up():
                          ({"DEMQ_CANCEL_KILL_SECONDS": "-1"}, r"DEMQ_CANCEL_KILL_SECONDS = -1.0 must be >= 0")]:
         with pytest.raises(ValueError, match=message):
             Settings.from_env(environ=env)
+
+
+def test_lanes_run_several_cpu_claims_at_once_each_with_its_share_of_the_cores(tmp_path, caplog, monkeypatch):
+    """DEMQ_WORKER_LANES: a CPU worker runs several claims at once (its lanes, each registered so that the fair share
+    divides the queue among them), each job reported done as its own run ends, every job done once; the lanes'
+    simulation processes get cores / lanes Numba threads; stopping the worker ends every lane."""
+    monkeypatch.setattr(os, "cpu_count", lambda: 6)
+    settings = make_settings(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET, lanes="3", standby="off")
+    store = open_store(settings.database_url)
+    worker = Worker(store, settings)
+    jobs = _enqueue(store, *({"t_end": 0.6, "seed": s} for s in range(9)))
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        worker.run_forever(exit_when_idle=True)
+    got = [store.get(j.id) for j in jobs]
+    assert [g.state for g in got] == [DONE] * 9 and all(g.attempts == 1 for g in got)
+    assert "3 lanes (claims at once), 2 Numba threads each" in caplog.text
+    assert len(worker._lanes) == 2 and all(lane.threads == 2 for lane, _ in worker._lanes) and worker.threads == 2
+    spans = sorted((g.started_at, g.finished_at) for g in got)
+    at_once = max(sum(a <= t < b for a, b in spans) for t, _ in spans)
+    assert at_once >= 2, spans                       # claims of different lanes overlapped in time
+    assert store.live_workers(settings.lease_s) == []   # every lane left the worker table
+    store.close()
+
+
+def test_lanes_setting():
+    from jobs.settings import Settings
+
+    assert Settings.from_env(environ={}).lanes == "auto"
+    assert Settings.from_env(environ={"DEMQ_WORKER_LANES": "4"}).lane_count(("cpu",)) == 4
+    with pytest.raises(ValueError, match="DEMQ_WORKER_LANES = 'many' must be 'auto' or a whole number >= 1"):
+        Settings.from_env(environ={"DEMQ_WORKER_LANES": "many"})
+    auto = Settings.from_env(environ={})
+    assert auto.lane_count(("cpu", "cuda")) == 1             # a GPU worker: its claims share the GPU
+    cores = os.cpu_count() or 1
+    assert auto.lane_count(("cpu",)) == (1 if cores <= 3 else cores // 2)

@@ -162,7 +162,7 @@ def test_pack_selection_rules(packing):
     cheap = dataclasses.replace(jobs[7], spec={**jobs[7].spec, "t_end": jobs[7].spec["t_end"] / 5})
     near = dataclasses.replace(jobs[7], id="near", spec={**jobs[7].spec, "t_end": 3 * jobs[7].spec["t_end"]})
     assert [j.id for j in packer.select(first, [costly, cheap, near])] == [near.id]
-    # a job that asks for a CPU-built Verlet list (paper 004 modes serve one scene) is never packed
+    # a job that asks for a CPU-built Verlet list (a list mode of Skorych & Dosta 2022: one scene) is never packed
     cpu_list = dataclasses.replace(jobs[6], spec={**jobs[6].spec, "list_mode": "cpu-pipelined"})
     assert packer.key(cpu_list) is None and cpu_list.id not in [j.id for j in packer.select(first, [cpu_list])]
     assert packer.key(dataclasses.replace(jobs[6], spec={**jobs[6].spec, "list_mode": "auto"})) is not None
@@ -192,6 +192,48 @@ def test_compatible_jobs_run_as_one_pack_each_with_its_own_result(packing, caplo
         assert not settings.checkpoint_dir(job.id).exists()
     assert store.get(other.id).state == QUEUED  # float32: not in this pack
     assert [j.id for j in worker._next(None)] == [other.id]
+
+
+def test_a_pack_is_supervised_with_one_cancel_read_per_poll(tmp_path):
+    """The supervisor's work does not grow with the pack's jobs per poll: one read of the cancel requests for the
+    whole pack every DEMQ_CANCEL_POLL_SECONDS (a query per job per poll had kept a 256-job pack waiting on its
+    pipe for 40 s on a GPU host)."""
+    settings = make_settings(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET, cpu_packs="ensemble",
+                             cancel_poll_s=0.05, heartbeat_s=2.0, lease_s=20.0)
+    store = open_store(settings.database_url)
+    worker = Worker(store, settings)
+    jobs = _enqueue(store, *({"t_end": 1.0, "seed": s} for s in range(12)))
+    reads = []
+    cancel_requests = store.cancel_requests
+    store.cancel_requests = lambda ids: reads.append(len(ids)) or cancel_requests(ids)
+    claim = worker._next(None)
+    assert len(claim) == 12
+    assert worker.execute_pack(claim) == {j.id: DONE for j in jobs}
+    assert reads and set(reads) == {12}
+    assert len(reads) <= 2 + 1.5 / settings.cancel_poll_s    # about a second of supervision, one read per poll
+    store.close()
+
+
+def test_the_jobs_whose_ends_arrive_together_are_written_in_one_transaction(packing):
+    from jobs.worker import _Slot
+
+    store, worker, settings = packing
+    _enqueue(store, {"seed": 1}, {"seed": 2}, {"seed": 3})
+    claim = worker._next(None)
+    slots = [_Slot(j, settings.result_path(j.id), settings.checkpoint_dir(j.id)) for j in claim]
+    summary = {"loop_s": 0.5, "job_wall_s": 0.6, "cundall": 1e6, "backend": "fake", "device": "cpu",
+               "resumed_from_step": None}
+    for slot in slots:
+        slot.final = ("done", summary)
+    slots[2].final = ("error", "InstabilityError: overlap of particle 7")
+    calls, finish_many = [], store.finish_many
+    store.finish_many = lambda owner, ends: calls.append([e[0] for e in ends]) or finish_many(owner, ends)
+    worker._conclude_all(slots)
+    assert calls == [[claim[0].id, claim[1].id]]
+    got = [store.get(j.id) for j in claim]
+    assert [g.state for g in got] == [DONE, DONE, FAILED] and [x.outcome for x in slots] == [DONE, DONE, FAILED]
+    assert got[0].loop_s == 0.5 and got[0].result_path == str(settings.result_path(claim[0].id))
+    assert got[2].error == "InstabilityError: overlap of particle 7"
 
 
 def test_cancel_one_job_the_rest_of_the_pack_finishes(packing):

@@ -44,3 +44,27 @@ def test_progress_goes_out_again_after_the_interval(monkeypatch):
     for f in range(5):
         progress(0, _p("cooling", f / 10))
     assert len(conn.sent) == 5
+
+
+def test_a_packs_progress_goes_out_as_one_message_for_all_its_jobs(monkeypatch):
+    """A pack of 256 jobs reporting at each of 200 records: one ``progress_many`` message per interval with the
+    latest report of each job (not one message per job: the pipe had filled and held the pack up), and whatever is
+    gathered goes out before a job's final message."""
+    clock = [0.0]
+    monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
+    conn = Pipe()
+    gathered = runner._PackProgress({k: SimpleNamespace(seed=k) for k in range(256)}, conn)
+    for record in range(200):
+        clock[0] = record * 0.01                   # a record every 10 ms of wall time
+        for k in range(256):
+            gathered.report(k, _p("cooling", record / 200))
+    assert {m[0] for m in conn.sent} == {"progress_many"}
+    assert runner.PROGRESS_SEND_S == 0.05
+    assert 30 <= len(conn.sent) <= 41              # 2 s of records, at most one message per PROGRESS_SEND_S
+    assert sum(len(m[2]) for m in conn.sent) <= 41 * 256
+    last_sent = conn.sent[-1][2]
+    gathered.report(7, _p("cooling", 1.0))         # within the interval: kept
+    assert conn.sent[-1][2] is last_sent
+    gathered.flush()                               # on_result's flush, before job 7's "done"
+    assert conn.sent[-1][0] == "progress_many" and conn.sent[-1][2][7]["fraction"] == 1.0
+    assert gathered.latest == {}

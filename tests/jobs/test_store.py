@@ -90,6 +90,24 @@ def test_finish_done_records_result(store):
         store.finish(job.id, "w", RUNNING)
 
 
+def test_finish_many_ends_a_packs_jobs_in_one_call_and_only_those_leased_to_the_owner(store):
+    jobs = _submit(store, 4)
+    mine = store.claim_ids("w1", 10, [j.id for j in jobs[:3]])
+    store.claim("w2", 10, job_id=jobs[3].id)
+    ends = [(j.id, DONE, {"result_path": f"/r/{j.id}.h5", "progress": 1.0, "loop_s": 0.5}) for j in mine]
+    ends.append((jobs[3].id, DONE, {"result_path": "/r/other.h5"}))       # not w1's: left as it is
+    ends[1] = (mine[1].id, FAILED, {"error": "InstabilityError: overlap"})
+    assert store.finish_many("w1", ends) == {mine[0].id: True, mine[1].id: True, mine[2].id: True,
+                                             jobs[3].id: False}
+    got = [store.get(j.id) for j in jobs]
+    assert [g.state for g in got] == [DONE, FAILED, DONE, RUNNING]
+    assert got[0].result_path == f"/r/{mine[0].id}.h5" and got[0].loop_s == 0.5 and got[0].lease_owner is None
+    assert got[1].error == "InstabilityError: overlap" and got[3].lease_owner == "w2"
+    assert store.finish_many("w1", ends[:1]) == {mine[0].id: False}      # already ended
+    with pytest.raises(ValueError):
+        store.finish_many("w1", [(jobs[3].id, QUEUED, {})])
+
+
 def test_reaper_requeues_then_fails_with_reason(store):
     (job,) = store.submit([NewJob("{}")], max_attempts=2)
     store.claim("w1", 0.01)

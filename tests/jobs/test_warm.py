@@ -122,3 +122,45 @@ def test_the_warm_up_runs_in_one_process_on_a_small_machine(monkeypatch):
     assert w.warm_processes(48) == 1
     monkeypatch.setattr(w.os, "cpu_count", lambda: 16)
     assert w.warm_processes(48) == 8 and w.warm_processes(3) == 3
+
+
+def _state(pid: int) -> str:
+    """The process state letter of ``pid`` (R running, S sleeping, T stopped, ...), from /proc."""
+    text = Path(f"/proc/{pid}/stat").read_text()
+    return text[text.rindex(")") + 2]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc (Linux)")
+def test_a_background_warm_up_leads_its_own_low_priority_group_that_pauses_resumes_and_closes(tmp_path):
+    """The worker's form (jobs/worker.py): the warm-up beside the claims, in a process group of its own at nice 19,
+    stopped (SIGSTOP) while a claim runs, let go again after it, killed with its group when the worker stops."""
+    import time
+
+    from jobs.warm import BackgroundWarmUp
+
+    warm_up = BackgroundWarmUp(["cpu"], shapes=["sphere"], precisions=["float32"])
+    pid = warm_up._proc.pid
+    try:
+        deadline = time.monotonic() + 30
+        while os.getpgid(pid) != pid or os.getpriority(os.PRIO_PROCESS, pid) != 19:
+            assert time.monotonic() < deadline, "the warm-up process formed no group of its own at nice 19"
+            time.sleep(0.05)
+        assert os.getpgid(pid) != os.getpgid(0)   # a worker's signals to its group never reach the worker
+        warm_up.pause()
+        assert warm_up.paused
+        deadline = time.monotonic() + 10
+        while _state(pid) != "T":
+            assert time.monotonic() < deadline, "the paused warm-up did not stop"
+            time.sleep(0.05)
+        time.sleep(0.3)
+        assert _state(pid) == "T" and warm_up.running and warm_up.poll(0) is None
+        warm_up.resume()
+        assert not warm_up.paused
+        deadline = time.monotonic() + 10
+        while _state(pid) == "T":
+            assert time.monotonic() < deadline, "the resumed warm-up stayed stopped"
+            time.sleep(0.05)
+    finally:
+        warm_up.pause()
+        warm_up.close()   # from the paused state: SIGKILL to the group ends it too
+    assert not warm_up.running and not warm_up._proc.is_alive()

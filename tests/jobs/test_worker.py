@@ -181,6 +181,44 @@ def test_the_first_standby_starts_up_while_the_warm_up_runs(tmp_path):
     store.close()
 
 
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc (Linux)")
+def test_a_worker_claims_at_once_and_its_warm_up_waits_while_the_claim_runs(tmp_path, monkeypatch):
+    """The first job does not wait for the warm-up of every kernel specialisation: the worker claims while the
+    warm-up (the real one, jobs/warm.py, compiling into numba's cache at nice 19) still runs, stops it for the
+    claim, lets it go on after, and ends it when the worker stops."""
+    import time
+
+    from jobs.settings import Settings
+    from tests.jobs.conftest import make_settings
+    from tests.jobs.test_warm import _state
+
+    monkeypatch.setattr(Settings, "warm_enabled", property(lambda self: True))   # with the fake engine's jobs
+    settings = make_settings(tmp_path, standby="off", ensemble_max_jobs=1)
+    store = open_store(settings.database_url)
+    worker = Worker(store, settings)
+    job = _enqueue(store)
+    during, execute_pack = [], worker.execute_pack
+
+    def observed(jobs):
+        warm_up = worker._warm_up
+        assert warm_up is not None and warm_up.running, "the warm-up had ended before the first claim"
+        deadline = time.monotonic() + 10
+        while _state(warm_up._proc.pid) != "T" and time.monotonic() < deadline:
+            time.sleep(0.02)
+        during.append((warm_up.paused, _state(warm_up._proc.pid)))
+        outcome = execute_pack(jobs)
+        during.append(warm_up)
+        return outcome
+
+    worker.execute_pack = observed
+    worker.run_forever(exit_when_idle=True)
+    assert store.get(job.id).state == DONE
+    (paused, state), warm_up = during
+    assert (paused, state) == (True, "T")
+    assert not warm_up.paused and worker._warm_up is None and not warm_up._proc.is_alive()
+    store.close()
+
+
 def test_cancel_and_stop_reach_a_job_in_a_standby_process(tmp_path):
     settings, store, worker = _standby_worker(tmp_path)
     cancel, stop = _enqueue(store, t_end=30.0, seed=5), None
@@ -273,3 +311,52 @@ def test_a_last_message_sent_just_before_the_process_exits_is_read(local, settin
     slot = _Slot(job, settings.result_path(job.id), settings.checkpoint_dir(job.id))
     assert worker._supervise([slot], DeadProcess(), Receiver(), [0]) is None
     assert slot.final == ("done", done) and store.get(job.id).state == DONE
+
+
+def test_the_size_classes_of_a_standbys_specialisation_are_the_engines():
+    from engine.loops.cpu import SERIAL_LOOP_BELOW
+    from engine.start_kind import PARALLEL_START_MIN
+    from jobs.worker import LARGE_SCENE_FROM, SMALL_SCENE_BELOW, _specialisation
+
+    assert (SMALL_SCENE_BELOW, LARGE_SCENE_FROM) == (SERIAL_LOOP_BELOW, PARALLEL_START_MIN)
+    default = _specialisation("{}")
+    assert default == _specialisation('{"seed": 3, "e_n": 0.5}')          # run-time values: the same code
+    assert default != _specialisation('{"n_particles": 2097152}')         # a large start
+    assert default != _specialisation('{"n_particles": 512}')             # the CPU loop without regions
+    assert default != _specialisation('{"e_t": -1}') != _specialisation('{"precision": "float32"}')
+    assert _specialisation('{"n_particles": "many"}') is None
+
+
+def test_a_claim_of_another_specialisation_does_not_wait_for_a_compiling_standby(tmp_path, caplog):
+    """A standby that said it is compiling (an empty kernel cache) the default spec's kernels is ended when a claim
+    of another specialisation comes, and the claim gets a process of its own; a claim of its own specialisation is
+    handed to it (it compiles what that claim needs anyway)."""
+    import logging
+
+    from jobs.worker import _specialisation
+
+    settings, store, worker = _standby_worker(tmp_path, ensemble_max_jobs=1)
+    worker._keep_standby = True
+    standby = worker._spawn_standby(None)   # the fake engine's: it warms nothing
+    # as if it started up for 4096 spheres and had said it compiles (the real compile is the engine's: tests/gpu)
+    standby.warm_key, standby.compiling = _specialisation('{"n_particles": 4096}'), True
+    standby.read_start_up = lambda: None     # and had not said "ready" yet
+    worker._standby = standby
+    other = _enqueue(store, n_particles=512, seed=1)
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        assert worker.execute_pack(worker._next(None)) == {other.id: DONE}
+    assert "still compiling another specialisation's kernels" in caplog.text
+    assert not standby.proc.is_alive()
+    mine = worker._spawn_standby(None)
+    mine.warm_key, mine.compiling = _specialisation('{"n_particles": 4096}'), True
+    mine.read_start_up = lambda: None
+    worker._standby = mine
+    same = _enqueue(store, n_particles=4096, box_length=2.0, seed=2)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        assert worker.execute_pack(worker._next(None)) == {same.id: DONE}
+    assert "handed to the standby" in caplog.text
+    worker._keep_standby = False
+    worker._standby.close()
+    worker._reap(wait=True)
+    store.close()

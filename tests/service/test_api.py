@@ -63,6 +63,21 @@ def test_json_types_are_taken_as_the_schema_states_them(client):
     assert r.status_code == 201 and r.json()["spec"]["snapshots"] == 2
 
 
+def test_species_are_relative_and_stored_in_their_normal_form(client):
+    """A species list the schema allows is accepted whatever its largest radius_ratio, its fraction sum or its
+    repeated sizes, and the job holds (and its worker runs) the normal form of engine.spec.normal_species."""
+    species = [{"radius_ratio": 0.5, "number_fraction": 0.3}, {"radius_ratio": 0.25, "number_fraction": 0.6},
+               {"radius_ratio": 0.5, "number_fraction": 0.3}]
+    r = client.post("/jobs", json={**TINY, "species": species})
+    assert r.status_code == 201, r.text
+    normal = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
+    assert r.json()["spec"]["species"] == normal
+    r = client.post("/batches", json={"base": TINY, "sweep": {"species": [species, normal]}})
+    assert r.status_code == 201, r.text
+    listed = client.get("/jobs", params={"batch_id": r.json()["batch_id"]}).json()["items"]
+    assert [j["spec"]["species"] for j in listed] == [normal, normal]
+
+
 def test_step_count_that_cannot_be_computed_is_a_limit_error_not_a_crash(client):
     """dt = 5e-324 makes t_end/dt overflow; a huge stiffness makes dt underflow to 0."""
     for body in ({**TINY, "dt": 5e-324},
@@ -249,6 +264,26 @@ def test_cuda_refused_without_a_live_cuda_worker(client, settings):
     for backend in ("auto", "cpu"):                                       # these run on any worker
         assert client.post("/jobs", json={**TINY, "backend": backend}).status_code == 201
     assert client.get("/jobs").json()["total"] == 2
+
+
+def test_an_embedded_workers_backends_are_known_from_the_first_answer(settings, monkeypatch):
+    """`demq serve` on a GPU host: a cuda job sent as soon as the server answers is accepted, however long the
+    worker takes to find its GPU (here 1 s, stood in for: this machine has none), because the service registers its
+    embedded worker before it answers (service/app.py)."""
+    import time
+
+    from jobs.worker import Worker
+
+    def finds_a_gpu_slowly(self):
+        time.sleep(1.0)
+        return ("cpu", "cuda")
+
+    monkeypatch.setattr(Worker, "_backends", finds_a_gpu_slowly)
+    monkeypatch.setattr(Worker, "run_forever", lambda self, exit_when_idle=False: self.register())
+    with TestClient(create_app(settings, embedded_worker=True)) as c:
+        r = c.post("/jobs", json={**TINY, "backend": "cuda"})
+        assert r.status_code == 201, r.json()
+        assert [w.backends for w in c.app.state.store.live_workers(settings.lease_s)] == [("cpu", "cuda")]
 
 
 def test_cuda_accepted_while_a_cuda_worker_is_alive(client, settings):

@@ -6,10 +6,12 @@ requests accepted, missing or ignored auth, ...) on schema-valid and schema-viol
 (:func:`negative_data_rejection_as_sent`: an added query parameter whose value is None is not sent; on the
 token server this test sets the Authorization header itself), and that the built-in "schema-valid request
 rejected" is replaced by :func:`schema_predicts_every_422`: a
-spec may be refused for a rule that no JSON schema can state (the box must hold the neighbour cutoff,
-dt must resolve a contact, species fractions must sum to 1, the run's cost must be within the server's
-limits, a 'cuda' spec needs a live worker that runs CUDA: none runs here), so a 422 on a schema-valid request is allowed only with errors of those kinds, never with a
-one-field error the schema should have predicted.
+spec may be refused for a rule across its fields that no JSON schema can state (the box must hold the
+neighbour cutoff, dt must resolve a contact, every species must get a particle, the run's cost must be within
+the server's limits, a 'cuda' spec needs a live worker that runs CUDA: none runs here), so a 422 on a
+schema-valid request is allowed only with errors of those kinds, never with an error of one field or of the
+entries of one list (a species list has none: engine.spec.normal_species), which the schema should have
+predicted.
 
 Bounded for CI: a few examples per operation and mode, no worker, no engine. Set
 DEMQ_SCHEMATHESIS_REPORT=path.json to write the statuses seen per operation.
@@ -55,13 +57,10 @@ def _report():
 
 def _beyond_the_schema(path: str, error: dict) -> bool:
     """Whether a 422 error is of a kind no JSON schema states: a cost limit, no live worker for the spec's
-    backend (a state of the server, not of the request), a spec's cross-field rule
-    (reported at the spec's root: the body of POST /jobs, one spec or sweep combination of a batch), or a
-    rule across the species entries (fractions sum to 1, the largest radius_ratio is 1, no repeats)."""
+    backend (a state of the server, not of the request), or a spec's cross-field rule (reported at the spec's
+    root: the body of POST /jobs, one spec or sweep combination of a batch)."""
     loc, kind = error["loc"], error["type"]
     if kind.startswith("limit_") or kind == "backend_unavailable":
-        return True
-    if loc and loc[-1] == "species" and kind == "value_error":
         return True
     if path == "/jobs":
         return loc == ["body"]
@@ -156,6 +155,19 @@ def test_spec_ranges_are_in_the_schema(tmp_path):
     assert props["backend"]["enum"] == ["auto", "cpu", "cuda"]
     assert props["precision"]["enum"] == ["float64", "float32", "mixed"]
     assert {"minimum": 0} .items() <= props["friction"]["anyOf"][0].items()
+
+
+@pytest.mark.parametrize("ovito", [False, True])
+def test_renderer_enum_is_what_the_server_runs(tmp_path, monkeypatch, ovito):
+    """The snapshot's renderer choices are those of the server, decided when the app is created: 'ovito' only where
+    OVITO can render."""
+    from service import render
+
+    monkeypatch.setattr(render, "ovito_available", lambda: ovito)
+    operation = create_app(make_settings(tmp_path)).openapi()["paths"]["/jobs/{job_id}/snapshot.png"]["get"]
+    (renderer,) = [p["schema"] for p in operation["parameters"] if p["name"] == "renderer"]
+    assert renderer["enum"] == (["auto", "ovito", "matplotlib"] if ovito else ["auto", "matplotlib"])
+    assert renderer["default"] == "auto"
 
 
 def test_empty_batch_is_invalid_by_the_schema_too(tmp_path):

@@ -111,6 +111,22 @@ def test_not_done_failed_and_snapshotless_jobs_are_409(client, settings):
         assert client.get(f"/jobs/missing/{route}").status_code == 404
 
 
+def test_a_renderer_the_server_does_not_offer_is_422_like_any_value_outside_the_enum(tmp_path, monkeypatch):
+    """Without OVITO, 'ovito' is outside the document's enum: refused naming the parameter, whatever the job's
+    state (as 'color=temperature' is), and with the renderers the server does offer."""
+    from service import render
+
+    monkeypatch.setattr(render, "ovito_available", lambda: False)
+    with TestClient(create_app(make_settings(tmp_path))) as c:
+        queued = c.post("/jobs", json=TINY).json()["id"]
+        r = c.get(f"/jobs/{queued}/snapshot.png", params={"renderer": "ovito"})
+        assert r.status_code == 422, r.text
+        (err,) = r.json()["detail"]
+        assert err["loc"] == ["query", "renderer"]
+        assert "OVITO is not installed" in err["msg"] and "'auto' or 'matplotlib'" in err["msg"]
+        assert c.get(f"/jobs/{queued}/snapshot.png", params={"renderer": "matplotlib"}).status_code == 409
+
+
 def test_visualisation_routes_need_the_token(tmp_path):
     with TestClient(create_app(make_settings(tmp_path, token="s3cret"))) as c:
         for route in ("snapshot.png", "result.xmf", "export.gsd"):

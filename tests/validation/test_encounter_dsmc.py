@@ -1,6 +1,7 @@
 """Encounter DSMC of smooth spheroids (docs/physics.md §6.4): the two-body DEM integrator used as a collision rule
 (engine/validation/encounter_dsmc.py) against conservation laws, the sphere restitution, the hard-impulse rule
-in the stiff limit, and the energy of the elastic gas. The DEM constants are those of the paper-003 scene."""
+in the stiff limit, and the energy of the elastic gas. The DEM constants are those of the scene of
+Rubio-Largo et al. (2015)."""
 
 import math
 

@@ -67,7 +67,7 @@ def test_soft_contact_loss_vanishes_at_low_speed_and_grows_with_it():
     # turn during the contact; e_t,eff is the spring's exact sticking restitution): at v = 0.1 m/s the excess
     # is below 0.3 % (e_t,eff itself matches a binary collision to 2e-4, docs/physics.md §1.3; 300 paired
     # samples), and at v_rms = 10 m/s it is positive by many standard errors (measured +2 %).
-    spec = scene_spec("paper001", 0.8, 0, "cpu")
+    spec = scene_spec("hidalgo2013", 0.8, 0, "cpu")
     slow = soft_contact_loss(spec, 1e-4, 1.0, 300, seed=2)
     fast = soft_contact_loss(spec, 1.0, 1.0, 300, seed=2)
     assert abs(slow["eps_tr"]) < 0.003 and abs(slow["eps_rot"]) < 0.003, slow

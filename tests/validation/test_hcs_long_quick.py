@@ -1,6 +1,6 @@
 """Reduced long-time HCS validation (`demq validate hcs-long --quick`): runs in CI (~20 s on one core).
 
-The full run (paper-001 scene to tau = 100 and the shear-unstable box, on the GPU) is
+The full run (the scene of Hidalgo et al. (2013) to tau = 100 and the shear-unstable box, on the GPU) is
 `demq validate hcs-long` on a GPU."""
 
 import json

@@ -1,4 +1,4 @@
-"""Reduced homogeneous-cooling validation against Luding's ODE (runs in CI; the full paper-001 scene
+"""Reduced homogeneous-cooling validation against Luding's ODE (runs in CI; the full Hidalgo et al. (2013) scene
 is `demq validate hcs-spheres`; docs/physics.md §7.2)."""
 
 import json

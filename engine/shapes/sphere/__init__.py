@@ -1,4 +1,4 @@
-"""The sphere plug-in (paper 001: rough spheres with tangential springs, Coulomb friction, species): traits.
+"""The sphere plug-in (Hidalgo et al. 2013: rough spheres with tangential springs, Coulomb friction, species): traits.
 
 What the spec and the scales ask of a shape, in plain Python (no engine imports: engine/spec.py and
 engine/scales.py import this). The time-loop parts are kernels.py (CPU) and device.py (CUDA), the run-time
@@ -8,7 +8,7 @@ hooks host.py; engine/shapes/__init__.py describes the plug-in interface.
 from __future__ import annotations
 
 #: what the spec's shape field documents
-SUMMARY = "rough spheres, paper 001"
+SUMMARY = "rough spheres, Hidalgo et al. (2013)"
 NAME = "sphere"
 #: accepts elongation != 1
 ELONGATED = False

@@ -6,7 +6,8 @@ The machinery (tables, lists, time loop, records, state copies) is the shared
 arrays (space-frame angular velocity, scalar radius, mass and inertia; per particle only when a scene's spheres
 differ, else in the scene's constants), a large start drawn on the device (engine/loops/cuda_start.py), the lazy
 orientations' marks and the collision counter (engine/shapes/sphere/device.py), the orientation switch of the
-specialisation, and the observables. Its Verlet list may be built on the host for a lone scene (paper 004 §3).
+specialisation, and the observables. Its Verlet list may be built on the host for a lone scene (Skorych & Dosta 2022,
+§3).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The sphere shape's CUDA parts (papers 001, 002, 004): what a sphere adds to the one CUDA time loop.
+"""The sphere shape's CUDA parts (Hidalgo et al. 2013; Skorych & Dosta 2022): what a sphere adds to the one CUDA
+time loop.
 
 engine/loops/cuda_loop.py builds the GPU time loop (kick-drift, forces, closing half kick, the many-steps
 cooperative kernel, observe) once for every shape; a shape package's ``device.py`` (this file for the sphere,

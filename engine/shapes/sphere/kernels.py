@@ -1,4 +1,4 @@
-"""The sphere shape plug-in (papers 001, 002, 004): what a sphere adds to the shared CPU time loop.
+"""The sphere shape plug-in (Hidalgo et al. 2013; Skorych & Dosta 2022): what a sphere adds to the shared CPU time loop.
 
 A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/loops/cpu.py's one time loop
 (``make_run_steps``, built from the shared kick-drift ``make_step`` and force loop ``make_forces``), plain

@@ -3,8 +3,8 @@
 :func:`sphere_pair` is a plain ``@numba.njit`` function of scalars. The CPU time loop (kernels.py ``pair``, rows per
 particle) and the CUDA time loop (device.py ``pair``, particle index fastest) both call it; each of them only gathers
 its inputs from its own layout and scatters its results into it. The equations are engine/physics/contact.py's
-(paper 001's linear spring-dashpot with the tangential spring and Coulomb cap, and the impulse corrections of a
-contact that starts or ends inside a step): docs/physics.md §1.
+(the linear spring-dashpot of Hidalgo et al. (2013) with the tangential spring and Coulomb cap, and the impulse
+corrections of a contact that starts or ends inside a step): docs/physics.md §1.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The spheroid plug-in (paper 003: prolate ellipsoids; frictionless, or rough with paper 001's tangential law at
-the contact point): traits.
+"""The spheroid plug-in (Rubio-Largo et al. 2015: prolate ellipsoids; frictionless, or rough with the
+tangential law of Hidalgo et al. (2013) at the contact point): traits.
 
 What the spec and the scales ask of a shape, in plain Python (no engine imports: engine/spec.py and
 engine/scales.py import this). The time-loop parts are kernels.py (CPU) and device.py (CUDA), the run-time
@@ -10,7 +10,7 @@ plug-in interface.
 from __future__ import annotations
 
 #: what the spec's shape field documents
-SUMMARY = "prolate spheroid, paper 003; rough or frictionless contacts"
+SUMMARY = "prolate spheroid, Rubio-Largo et al. (2015); rough or frictionless contacts"
 NAME = "ellipsoid"
 #: accepts elongation != 1 (the aspect ratio xi = a/b of the prolate spheroid)
 ELONGATED = True
@@ -26,7 +26,7 @@ SKIN_BY_VOLUME_FRACTION = False
 
 def body(r_eq: float, elongation: float, mass: float) -> tuple:
     """(semi-axes (a, b, b) (m), principal moments (kg m^2)) of a solid prolate spheroid with a/b = elongation
-    and a b^2 = r_eq^3 (paper 003 Table 1 keeps the volume of the sphere of radius r_eq)."""
+    and a b^2 = r_eq^3 (Table 1 of Rubio-Largo et al. 2015 keeps the volume of the sphere of radius r_eq)."""
     b = r_eq / elongation ** (1.0 / 3.0)
     a = elongation * b
     i_perp = mass * (a * a + b * b) / 5.0
@@ -34,6 +34,6 @@ def body(r_eq: float, elongation: float, mass: float) -> tuple:
 
 
 def spec_error(spec) -> str | None:
-    """Why a spheroid cannot run this (validated) spec, or None: frictionless (e_t = -1, paper 003) and rough
-    contacts (any e_t, friction; paper 001's tangential law at the contact point) both run."""
+    """Why a spheroid cannot run this (validated) spec, or None: frictionless (e_t = -1, Rubio-Largo et al. 2015) and
+    rough contacts (any e_t, friction; the tangential law of Hidalgo et al. (2013) at the contact point) both run."""
     return None

@@ -1,6 +1,6 @@
-"""CPU backend for ellipsoids (paper 003; frictionless, or rough with the tangential law of docs/physics.md §2.5): the spheroid plug-in (engine/shapes/spheroid/kernels.py) in
-the shared CPU machinery (engine/loops/cpu.py: CpuLoop, make_run_steps), with the same interface as
-CpuBackend.
+"""CPU backend for ellipsoids (Rubio-Largo et al. 2015; frictionless, or rough with the tangential law
+of docs/physics.md §2.5): the spheroid plug-in (engine/shapes/spheroid/kernels.py) in the shared CPU machinery
+(engine/loops/cpu.py: CpuLoop, make_run_steps), with the same interface as CpuBackend.
 
 This module holds only what is the ellipsoid's own on the host side: the state it keeps (angular momentum L
 instead of the angular velocity, semi-axes, bounding radii, the state before the step for the screens), the
@@ -36,7 +36,8 @@ def rotational_dof(rough: bool) -> int:
 
 
 def tangential_factor_of(k_t: float, k_n: float) -> float:
-    """f = (arccos(-e_t)/pi)^2 of paper 001 Eq. 4 from the sphere-convention k_t = k_n f q/(1 + q) (q = 2/5)."""
+    """f = (arccos(-e_t)/pi)^2 of Hidalgo et al. (2013) Eq. 4
+    from the sphere-convention k_t = k_n f q/(1 + q) (q = 2/5)."""
     return k_t * (1.0 + Q_SPHERE) / (Q_SPHERE * k_n)
 
 
@@ -132,9 +133,9 @@ class CpuEllipsoidBackend(CpuLoop):
         """Switch contact constants (thermalisation -> cooling); keeps lists and contact history.
 
         Rough contacts (k_t given): the spheroid's own k_t of each contact follows from the factor
-        f = (arccos(-e_t)/pi)^2 of paper 001 Eq. 4, recovered from the sphere-convention k_t of ContactParams
-        (k_t = k_n f q/(1 + q), engine.params.k_t_paper), and the pair's tangential mass at the contact point
-        (engine/physics/rough_spheroid.py)."""
+        f = (arccos(-e_t)/pi)^2 of Hidalgo et al. (2013) Eq. 4, recovered from the sphere-convention k_t
+        of ContactParams (k_t = k_n f q/(1 + q), engine.params.k_t_paper), and the pair's tangential mass at the contact
+        point (engine/physics/rough_spheroid.py)."""
         if contact.rough != self.rough:
             raise ValueError("an ellipsoid backend keeps its contact model: rough (k_t given) or smooth throughout")
         self._set_common(contact)

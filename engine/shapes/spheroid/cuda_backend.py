@@ -1,4 +1,5 @@
-"""CUDA backend for ellipsoids (paper 003; frictionless or rough, docs/physics.md §2.5): the CPU ellipsoid backend's step on the GPU.
+"""CUDA backend for ellipsoids (Rubio-Largo et al. 2015; frictionless or rough, docs/physics.md §2.5): the CPU ellipsoid
+backend's step on the GPU.
 
 :class:`CudaEllipsoidEnsemble` advances K independent ellipsoid scenes stored back to back on the device,
 built exactly as the sphere's (both are subclasses of :class:`engine.loops.cuda_ensemble.CudaEnsembleBase`: per-scene
@@ -7,8 +8,8 @@ cooperative many-steps-per-launch loop for small scenes and the per-phase loop f
 blows up stops alone) and runs the same kernels: the one CUDA time loop (:mod:`engine.loops.cuda_loop`)
 specialised by the spheroid's device functions (engine/shapes/spheroid/device.py, which call the njit physics
 of the CPU plug-in engine/shapes/spheroid/kernels.py: Perram-Wertheim contact, Fincham's leap-frog on the
-body-frame angular velocity, paper 003 Eqs. 13-24). This module owns only the spheroid's host side: its state
-and per-scene constants on the device, the arrays it hands to the kernels and its observables.
+body-frame angular velocity, Rubio-Largo et al. (2015) Eqs. 13-24). This module owns only the spheroid's host side: its
+state and per-scene constants on the device, the arrays it hands to the kernels and its observables.
 :class:`CudaEllipsoidBackend` is the one-scene case (K = 1) with the interface of
 :class:`engine.shapes.spheroid.cpu_backend.CpuEllipsoidBackend`.
 

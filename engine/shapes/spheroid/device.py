@@ -1,5 +1,6 @@
-"""The spheroid shape's CUDA parts (prolate ellipsoids, paper 003; frictionless or rough): what an ellipsoid adds to the
-one CUDA time loop (engine/loops/cuda_loop.py; the interface is in engine/shapes/sphere/device.py).
+"""The spheroid shape's CUDA parts (prolate ellipsoids, Rubio-Largo et al. 2015; frictionless or rough): what
+an ellipsoid adds to the one CUDA time loop (engine/loops/cuda_loop.py; the interface is in
+engine/shapes/sphere/device.py).
 
 The device functions call the same ``@numba.njit`` functions as the CPU plug-in (engine/shapes/spheroid/kernels.py)
 and keep only the gather from and scatter into this backend's layout: the spheroid's pair evaluator
@@ -8,8 +9,8 @@ contact point and normal, overlap, normal force with the contact start/end corre
 spring, torques), :func:`~engine.shapes.spheroid.law.spheroid_gap` for the previous step's gap of a contact that
 starts right after a screened step, :func:`~engine.shapes.spheroid.law.mid_step_omega` (the rough spring's
 mid-step spins) and :func:`~engine.shapes.spheroid.law.spheroid_rotation` (Euler's equations in the body frame
-through the space-frame angular momentum L, Fincham's leap-frog for the quaternion, paper 003 Eqs. 13-21,
-renormalised every step); observe reads :func:`engine.physics.rotation.body_omega`.
+through the space-frame angular momentum L, Fincham's leap-frog for the quaternion, Rubio-Largo et al. (2015)
+Eqs. 13-21, renormalised every step); observe reads :func:`engine.physics.rotation.body_omega`.
 
 Layout (device, particle index fastest; engine/shapes/spheroid/cuda_backend.py allocates it):
     ``spin`` = angm (3, N): space-frame angular momentum L (kg m^2/s), kicked by the torque with unit factor;
@@ -248,8 +249,8 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
     def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
         """Particle i's share of the sums of engine.shapes.spheroid.kernels.observe (``inertia`` is 1/I here): E_tr = m v^2/2;
         E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
-        perpendicular to body x (the 2 active dof of paper 003 Eq. 25b as corrected in docs/physics.md §2.7);
-        contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
+        perpendicular to body x (the 2 active dof of Rubio-Largo et al. 2015, Eq. 25b as corrected in docs/physics.md
+        §2.7); contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
         slot); momentum; largest delta; the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp."""
         angm = spin
         if UNIFORM:

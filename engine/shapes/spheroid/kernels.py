@@ -1,5 +1,5 @@
-"""The spheroid shape plug-in (prolate ellipsoids, paper 003; frictionless or rough): what an ellipsoid adds to
-the shared CPU time loop (engine/loops/cpu.py ``make_run_steps``, ``make_forces``; the interface is in
+"""The spheroid shape plug-in (prolate ellipsoids, Rubio-Largo et al. 2015; frictionless or rough): what an ellipsoid
+adds to the shared CPU time loop (engine/loops/cpu.py ``make_run_steps``, ``make_forces``; the interface is in
 engine/shapes/sphere/kernels.py). The contact law and the rotation step are law.py's (``spheroid_pair``,
 ``spheroid_gap``, ``spheroid_rotation``, the functions the CUDA loop's device.py calls too); this module gathers
 their inputs from the CPU backend's rows and scatters their results into them.
@@ -120,7 +120,7 @@ def pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, 
     for the shared force loop: the gather from and scatter into this backend's rows of the spheroid's one pair
     evaluator (law.spheroid_pair), behind the bounding-sphere test.
 
-    law = (tol, margin, screened_gap, f_t, mu): f_t None for frictionless contacts (paper 003), else
+    law = (tol, margin, screened_gap, f_t, mu): f_t None for frictionless contacts (Rubio-Largo et al. 2015), else
     (arccos(-e_t)/pi)^2 of the rough law; mu None: no Coulomb cap. ext = (inv_i, axes, omega_p, pos_prev,
     quat_prev). Both partners evaluate the pair as (a, b) = (lower id, higher id): their slots hold the same
     (a, b) spring, bit for bit. A contact that starts right after a screened step gets the previous gap

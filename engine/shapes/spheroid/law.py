@@ -56,8 +56,8 @@ def spheroid_pair(rx, ry, rz, qa, qb, sa, sb, u, wa, wb, d_prev, fd_prev, m12, l
     reduced mass (kg); law = (k_n (N/m), gn_coef (kg^1/2 / s: gamma_n = gn_coef sqrt(m12)), tol (Perram-Wertheim
     Newton tolerance), margin (relative margin of the exact screens; < 0: no screens), screened_gap (the gap a
     screened pair stores: -inf)); dt (s).
-    ``rough``: None for frictionless spheroids (paper 003; pruned at compile time), else the tangential inputs
-    (v, ma, mb, ia, ib, spring, f_t, mu): v = v_B - v_A the mid-step relative velocity (m/s) and ma, mb the
+    ``rough``: None for frictionless spheroids (Rubio-Largo et al. 2015; pruned at compile time), else the tangential
+    inputs (v, ma, mb, ia, ib, spring, f_t, mu): v = v_B - v_A the mid-step relative velocity (m/s) and ma, mb the
     mid-step space-frame spins of A and B (rad/s; :func:`mid_step_omega`), which load the spring; ia, ib the
     principal 1/I of A and B (1/(kg m^2)); spring = (xi_x, xi_y, xi_z, k_t) the slot's spring (m) and the
     contact's k_t (N/m; 0 before its first step);
