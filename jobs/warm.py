@@ -232,7 +232,7 @@ def _lead_low_priority_group() -> None:
         pass
     try:
         os.nice(19)
-    except OSError:   # lowering the priority needs no privilege; a platform without nice keeps its own
+    except OSError:   # (lowering one's own priority needs no privilege; this only guards odd platforms)
         pass
     _die_with_parent()
 
@@ -293,7 +293,6 @@ class BackgroundWarmUp:
                 pass
         self._paused = False
         self.report: Optional[WarmReport] = None
-        self.t_start = time.monotonic()
 
     @property
     def running(self) -> bool:
@@ -331,7 +330,10 @@ class BackgroundWarmUp:
     def close(self) -> None:
         """End the warm-up now (its processes killed if still running) and reap its process."""
         if self._proc.is_alive():
-            self._signal(signal.SIGKILL) if self._group else self._proc.kill()
+            if self._group:
+                self._signal(signal.SIGKILL)
+            else:
+                self._proc.kill()
         self._proc.join(timeout=5)
         if self._proc.is_alive():
             self._proc.kill()
