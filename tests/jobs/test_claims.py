@@ -20,7 +20,7 @@ import uuid
 import pytest
 
 from jobs.packing import Packer, fair_share, particle_steps, sequence_order
-from jobs.schema import CANCELLED, DONE, QUEUED, RUNNING
+from jobs.schema import CANCELLED, DONE, FAILED, QUEUED, RUNNING
 from jobs.specs import parse_spec
 from jobs.store import NewJob
 from jobs.stores import open_store
@@ -366,3 +366,39 @@ def test_lanes_setting():
     assert auto.lane_count(("cpu", "cuda")) == 1             # a GPU worker: its claims share the GPU
     cores = os.cpu_count() or 1
     assert auto.lane_count(("cpu",)) == (1 if cores <= 3 else cores // 2)
+
+
+def test_a_sigkilled_worker_with_lanes_leaves_every_job_done_exactly_once(tmp_path):
+    """kill -9 of a `demq worker` whose two lanes each run a claim: every lease expires, the next worker resumes the
+    jobs that ran from their checkpoints and runs the rest, and each of the four jobs ends done once."""
+    import signal
+
+    from tests.service.test_durability import _checkpointed_past_start, start_worker, stop
+
+    settings = make_settings(tmp_path, lease_s=2.0, heartbeat_s=0.3)
+    store = open_store(settings.database_url)
+    jobs = _enqueue(store, *({"t_end": 1.5, "seed": s} for s in range(4)))
+
+    def mid_run():
+        rows = [store.get(j.id) for j in jobs]
+        return [r for r, j in zip(rows, jobs)
+                if 0 < (r.progress or 0) < 1 and _checkpointed_past_start(settings.checkpoint_dir(j.id))]
+
+    first = start_worker(settings, TARGET, DEMQ_WORKER_LANES="2", DEMQ_WORKER_STANDBY="off")
+    try:
+        _wait(lambda: len(mid_run()) >= 2, what="two jobs mid-run at once, one in each lane")
+    finally:
+        os.kill(first.pid, signal.SIGKILL)
+        first.wait(10)
+    claimed = [store.get(j.id).state == RUNNING for j in jobs]     # the lanes' fair shares: 2 and 1 of the 4
+    assert sum(claimed) >= 2 and all(store.get(j.id).state in (RUNNING, QUEUED) for j in jobs)
+    second = start_worker(settings, TARGET, DEMQ_WORKER_LANES="1")
+    try:
+        _wait(lambda: all(store.get(j.id).state in (DONE, FAILED, CANCELLED) for j in jobs), what="all four ended")
+    finally:
+        assert stop(second) == 0
+    got = [store.get(j.id) for j in jobs]
+    assert [g.state for g in got] == [DONE] * 4, [g.error for g in got]
+    assert [g.attempts for g in got] == [2 if c else 1 for c in claimed]   # a killed claim counts its attempt
+    assert sum((g.resumed_from_step or 0) > 0 for g in got) >= 2   # the two that ran resumed from checkpoints
+    store.close()
