@@ -5,9 +5,9 @@ Each round starts `demq serve` (SQLite, its embedded worker) on a fresh data dir
 explicitly (``cuda`` on a GPU host: the admission check must already know the host's backends), then waits for
 it and downloads its result; then a second job (the next seed) on the same server, a warm job. Printed per round:
 start to the first answer, the first answer to the first job's result downloaded, the warm job's submission to its
-download, and the ratios the queue is held to: first / warm with a warm cache, (first - own compile) / warm with an empty
-one, where "own compile" is what the same job run alone through engine.run in a fresh process takes longer on an
-empty cache than on the one it filled (:func:`own_compile`).
+download, and the ratios the queue is held to: first / warm with a warm cache, (first - own compile) / warm with an
+empty one, where "own compile" is what the same job run alone through engine.run in a fresh process takes longer
+on an empty cache than on the one it filled (:func:`own_compile`).
 
 ``--cache empty`` uses a new, empty ``NUMBA_CACHE_DIR`` (a fresh host); ``warm`` the one an empty round has just
 filled (a restarted worker); ``both`` (default) the two in that order. ``--job``: ``2M`` (bench/e2e.py's

@@ -12,8 +12,8 @@ Up to three scenes, each on a fresh server and data directory:
 3. ten default jobs (4096 spheres) and one of 512 spheres, submitted together as one batch of specs, the small
    one last; printed: when the small one was done against the first of the ten.
 
-``--lanes L ...`` runs only this instead: a CPU worker (it sees no GPU) with L lanes (DEMQ_WORKER_LANES, jobs/worker.py),
-for each L, ``--lane-jobs`` jobs of 512 spheres as one batch; printed: the time from the batch's submission until
+``--lanes L ...`` runs only this instead: a CPU worker (it sees no GPU) with L lanes (DEMQ_WORKER_LANES,
+jobs/worker.py), for each L, ``--lane-jobs`` jobs of 512 spheres as one batch; printed: the time from the batch's submission until
 its last job is done, against the first L's, and the jobs' distinct end times.
 
 Times are the server's own (the job rows' created_at and finished_at). Nothing is asserted here: the figures go
@@ -223,9 +223,10 @@ def main(argv=None) -> int:
     if args.lanes:
         rows = lanes(args.out, args.lanes, args.lane_jobs)
         for row in rows:
-            print(f"{row['lanes']} lane(s), {os.cpu_count()} cores: {row['jobs']} jobs of {row['n_particles']} spheres "
-                  f"done {row['span_s']:.2f} s after the batch's submission (x{row['speed_up']:.2f} of {rows[0]['lanes']} "
-                  f"lane(s)); {row['distinct_end_times']} distinct end times; states {row['states']}", flush=True)
+            print(f"{row['lanes']} lane(s), {os.cpu_count()} cores: {row['jobs']} jobs of {row['n_particles']} "
+                  f"spheres done {row['span_s']:.2f} s after the batch's submission (x{row['speed_up']:.2f} of "
+                  f"{rows[0]['lanes']} lane(s)); {row['distinct_end_times']} distinct end times; states "
+                  f"{row['states']}", flush=True)
         (args.out / "lanes.json").write_text(json.dumps(rows, indent=2))
         return 0
     report = {"cpus": os.cpu_count(), "many_small": many_small(args.out, args.jobs, args.clients)}

@@ -42,7 +42,6 @@ import sys
 import threading
 import time
 import traceback
-from contextlib import contextmanager
 from dataclasses import asdict
 from typing import Callable, Optional
 
@@ -143,33 +142,29 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
                parent_pid, mode)
 
 
-@contextmanager
 def _tell_when_compiling(conn):
-    """Send ("compiling", None, None) once when numba starts compiling inside the block (the kernel cache lacked
-    something): a standby that compiles will not be ready soon, and the worker does not hold a claim of another
-    specialisation for it (jobs/worker.py ``_hand_to_standby``)."""
-    from numba.core import event
+    """A context in which the first numba compilation sends ("compiling", None, None): a standby whose start-up
+    compiles (the kernel cache lacked something) will not be ready soon, and the worker does not hold a claim of
+    another specialisation for it (jobs/worker.py ``_hand_to_standby``)."""
+    from jobs.warm import numba_compiles
 
     told = threading.Event()
 
-    class _Listener(event.Listener):
-        def on_start(self, ev) -> None:
-            if not told.is_set():
-                told.set()
-                try:
-                    conn.send(("compiling", None, None))
-                except OSError:
-                    pass
+    def tell() -> None:
+        if not told.is_set():
+            told.set()
+            try:
+                conn.send(("compiling", None, None))
+            except OSError:
+                pass
 
-        def on_end(self, ev) -> None:
-            pass
+    return numba_compiles(tell)
 
-    listener = _Listener()
-    event.register("numba:compile", listener)
-    try:
-        yield
-    finally:
-        event.unregister("numba:compile", listener)
+
+def _crash_if_test_seed(crash_seed: Optional[str], spec) -> None:
+    """TEST HOOK (:data:`TEST_CRASH_ENV`): SIGSEGV this process if ``spec``'s seed is the one named."""
+    if crash_seed is not None and crash_seed == str(spec.seed):
+        os.kill(os.getpid(), signal.SIGSEGV)
 
 
 def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):
@@ -182,8 +177,7 @@ def _hooks(specs: dict, conn, cancel_flags, parent_pid: int):
     sent: dict = {}   # k -> (monotonic time, phase) of the job's last message
 
     def progress(k: int, p) -> None:
-        if crash_seed is not None and crash_seed == str(specs[k].seed):  # TEST HOOK, see TEST_CRASH_ENV
-            os.kill(os.getpid(), signal.SIGSEGV)
+        _crash_if_test_seed(crash_seed, specs[k])
         now = time.monotonic()
         last = sent.get(k)
         if last is not None and last[1] == p.phase and now - last[0] < PROGRESS_SEND_S and p.fraction < 1.0:
@@ -210,8 +204,7 @@ class _PackProgress:
         self.specs = specs
 
     def report(self, k: int, p) -> None:
-        if self.crash_seed is not None and self.crash_seed == str(self.specs[k].seed):  # TEST HOOK (TEST_CRASH_ENV)
-            os.kill(os.getpid(), signal.SIGSEGV)
+        _crash_if_test_seed(self.crash_seed, self.specs[k])
         self.latest[k] = p
         if time.monotonic() - self.sent_at >= PROGRESS_SEND_S:
             self.flush()

@@ -202,9 +202,7 @@ class SqlJobStore(JobStore):
         return out
 
     def finish(self, job_id: str, owner: str, state: str, **fields: Any) -> bool:
-        stmt = self._finish_stmt(job_id, owner, state, fields, time.time())
-        with self._write() as conn:
-            return conn.execute(stmt).rowcount == 1
+        return self.finish_many(owner, [(job_id, state, fields)])[job_id]
 
     def finish_many(self, owner: str, ends: Sequence[tuple[str, str, dict[str, Any]]]) -> dict[str, bool]:
         """One transaction for all of them (one commit: a pack's 256 jobs that end in the same second)."""

@@ -31,9 +31,10 @@ import tempfile
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Iterator, Optional, Sequence
 
 log = logging.getLogger("demq.warm")
 
@@ -153,10 +154,29 @@ def warm_processes(count: int) -> int:
     return max(1, min(count, 8, (os.cpu_count() or 1) // 2)) if (os.cpu_count() or 1) > 3 else 1
 
 
-def _warm_list(todo: list) -> WarmReport:
-    """Run a tiny scene of each specialisation in ``todo`` in this process (compiling or loading its kernels)."""
+@contextmanager
+def numba_compiles(on_start: Callable[[], None]) -> Iterator[None]:
+    """Call ``on_start()`` as each numba compilation inside the block begins (numba's "numba:compile" events): what
+    a warm-up or a standby start-up had to compile rather than load from the disk cache."""
     from numba.core import event
 
+    class _Listener(event.Listener):
+        def on_start(self, ev) -> None:
+            on_start()
+
+        def on_end(self, ev) -> None:
+            pass
+
+    listener = _Listener()
+    event.register("numba:compile", listener)
+    try:
+        yield
+    finally:
+        event.unregister("numba:compile", listener)
+
+
+def _warm_list(todo: list) -> WarmReport:
+    """Run a tiny scene of each specialisation in ``todo`` in this process (compiling or loading its kernels)."""
     from engine.ensemble import run_ensemble
     from engine.loops.cpu import SERIAL_LOOP_BELOW
     from engine.params import derive
@@ -165,19 +185,12 @@ def _warm_list(todo: list) -> WarmReport:
     from engine.spec import SimulationSpec
 
     report = WarmReport()
-    compiled = [0]
-
-    class _Count(event.Listener):
-        def on_start(self, ev) -> None:
-            compiled[0] += 1
-
-        def on_end(self, ev) -> None:
-            pass
-
-    listener = _Count()
-    event.register("numba:compile", listener)
     t0 = time.perf_counter()
-    try:
+
+    def count() -> None:
+        report.compiled += 1
+
+    with numba_compiles(count):
         with tempfile.TemporaryDirectory(prefix="demq-warm-") as tmp:
             for k, sp in enumerate(todo):
                 spec = SimulationSpec.model_validate(sp.spec_dict())
@@ -194,9 +207,6 @@ def _warm_list(todo: list) -> WarmReport:
                     report.kernels += 1
                 except Exception as exc:  # noqa: BLE001  (reported; that specialisation's jobs compile it)
                     report.failed.append((sp.name(), f"{type(exc).__name__}: {exc}"))
-    finally:
-        event.unregister("numba:compile", listener)
-    report.compiled = compiled[0]
     report.seconds = time.perf_counter() - t0
     return report
 

@@ -597,13 +597,10 @@ class Worker:
         """Conclude the jobs whose final messages just arrived: those done in one transaction (a pack's jobs end
         together), each other one as :meth:`_conclude` says."""
         done = [x for x in slots if x.final[0] == "done" and x.stop_reason != "lease lost"]
-        if len(done) > 1:
-            ends = [(x.job.id, DONE, self._done_columns(x)) for x in done]
-            self.store.finish_many(self.owner, ends)
+        if done:
+            self.store.finish_many(self.owner, [(x.job.id, DONE, self._done_columns(x)) for x in done])
             for x in done:
-                shutil.rmtree(x.checkpoints, ignore_errors=True)
-                log.info("job %s: %s", x.job.id, DONE)
-                x.outcome = DONE
+                self._ended(x, DONE)
         for x in slots:
             if x.outcome is None:
                 self._conclude(x)
@@ -648,11 +645,16 @@ class Worker:
             self.store.finish(job.id, self.owner, FAILED, error=describe_exit(exitcode), **progress)
         else:
             return None
+        self._ended(slot, state)
+        return state
+
+    @staticmethod
+    def _ended(slot: "_Slot", state: str) -> None:
+        """What follows a job's end written to the table: its checkpoints removed, the log line, its outcome."""
         if not slot.abandoned:  # an abandoned scene may still write there: cleaned when the process ends
             shutil.rmtree(slot.checkpoints, ignore_errors=True)
-        log.info("job %s: %s", job.id, state)
+        log.info("job %s: %s", slot.job.id, state)
         slot.outcome = state
-        return state
 
     def _conclude_rest(self, slots: list["_Slot"], exitcode, pack_error: Optional[str], mode: str = ONE) -> None:
         """After the process has ended: conclude the jobs that have no outcome yet, and remove what the
@@ -817,10 +819,10 @@ def _spec_json(job: Job) -> str:
     return json.dumps(job.spec)
 
 
-#: engine/loops/cpu.py SERIAL_LOOP_BELOW (the CPU's time loop without parallel regions below it) and the size from
-#: which a sphere scene starts on the lattice (engine/start_kind.py): sizes that compile other code (the worker
-#: process imports no numba to read them; tests/jobs/test_worker.py checks they match)
-SMALL_SCENE_BELOW, LARGE_SCENE_FROM = 1024, 2**20
+#: engine/loops/cpu.py SERIAL_LOOP_BELOW, the size below which a CPU scene's time loop is compiled without parallel
+#: regions (that module imports numba, which the worker process does not: tests/jobs/test_worker.py checks the two
+#: match). From engine/start_kind.py PARALLEL_START_MIN on, a sphere scene's start compiles other code too.
+SMALL_SCENE_BELOW = 1024
 
 
 def _specialisation(spec_json: Optional[str]) -> Optional[tuple]:
@@ -828,6 +830,7 @@ def _specialisation(spec_json: Optional[str]) -> Optional[tuple]:
     Specialisation) and the scene's size class; None if it does not parse."""
     if spec_json is None:
         return None
+    from engine.start_kind import PARALLEL_START_MIN
     from jobs.specs import parse_spec
 
     try:
@@ -835,6 +838,6 @@ def _specialisation(spec_json: Optional[str]) -> Optional[tuple]:
     except Exception:  # noqa: BLE001  (an invalid spec fails in its process, with its reason)
         return None
     n = spec.n_particles
-    size = "small" if n < SMALL_SCENE_BELOW else "medium" if n < LARGE_SCENE_FROM else "large"
+    size = "small" if n < SMALL_SCENE_BELOW else "medium" if n < PARALLEL_START_MIN else "large"
     return (spec.backend, spec.shape, spec.precision, spec.e_t == -1.0, spec.friction is not None,
             spec.species is not None, size)

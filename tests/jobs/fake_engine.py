@@ -85,7 +85,9 @@ def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
                               resumed_from_step=start or None))
     write_result(output, spec)
     wall = max(time.monotonic() - t0, 1e-9)
-    return RunSummary(output=Path(output), backend="fake", device="test double", n_particles=spec.n_particles,
+    # the device names the Numba threads the worker gave this process (a lane's share: DEMQ_WORKER_LANES)
+    device = f"test double, NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'unset')}"
+    return RunSummary(output=Path(output), backend="fake", device=device, n_particles=spec.n_particles,
                       steps=N_STEPS - start, loop_s=wall, job_wall_s=wall, cundall=spec.n_particles * (N_STEPS - start) / wall,
                       resumed_from_step=start or None)
 

@@ -315,10 +315,9 @@ def test_a_last_message_sent_just_before_the_process_exits_is_read(local, settin
 
 def test_the_size_classes_of_a_standbys_specialisation_are_the_engines():
     from engine.loops.cpu import SERIAL_LOOP_BELOW
-    from engine.start_kind import PARALLEL_START_MIN
-    from jobs.worker import LARGE_SCENE_FROM, SMALL_SCENE_BELOW, _specialisation
+    from jobs.worker import SMALL_SCENE_BELOW, _specialisation
 
-    assert (SMALL_SCENE_BELOW, LARGE_SCENE_FROM) == (SERIAL_LOOP_BELOW, PARALLEL_START_MIN)
+    assert SMALL_SCENE_BELOW == SERIAL_LOOP_BELOW
     default = _specialisation("{}")
     assert default == _specialisation('{"seed": 3, "e_n": 0.5}')          # run-time values: the same code
     assert default != _specialisation('{"n_particles": 2097152}')         # a large start
