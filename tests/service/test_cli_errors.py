@@ -1,4 +1,4 @@
-"""Issue 51's newcomer cases of the command line, in process (``main(argv)``): every error is one line on stderr
+"""A newcomer's cases of the command line, in process (``main(argv)``): every error is one line on stderr
 naming the problem and the fix, no traceback, exit status 2 for a usage error (a bad key, a backend this machine
 cannot run, a missing file or extra) and 1 for work that failed (no server or database answers).
 
