@@ -174,6 +174,11 @@ class SceneRun:
         self.verlet_skin = spec.verlet_skin if spec.verlet_skin is not None else \
             default_verlet_skin(self.backend, spec.shape, spec.volume_fraction)
         self.p = p = derive(spec.model_copy(update={"verlet_skin": self.verlet_skin}))
+        if self.backend == "cuda" and spec.shape == "sphere":   # before the GPU holds anything of this job
+            from engine.loops.cuda_memory import refuse_oversize
+
+            refuse_oversize(spec.model_copy(update={"verlet_skin": self.verlet_skin}), p,
+                            reads_state=spec.snapshots > 0 or checkpoint_dir is not None)
         phase, step_done = "thermalization", 0
         # a cooling checkpoint was written after its own record at step_done, which the file already holds
         self.resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"

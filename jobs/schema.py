@@ -6,7 +6,7 @@ several hosts therefore need synchronised clocks (NTP) for leases to mean the sa
 
 from __future__ import annotations
 
-from sqlalchemy import Boolean, Column, Float, Index, Integer, MetaData, String, Table, Text
+from sqlalchemy import BigInteger, Boolean, Column, Float, Index, Integer, MetaData, String, Table, Text
 
 #: Job states. ``queued`` and ``running`` are live; the other three are final.
 QUEUED, RUNNING, DONE, FAILED, CANCELLED = "queued", "running", "done", "failed", "cancelled"
@@ -60,7 +60,8 @@ def worker_table(metadata: MetaData, prefix: str = "") -> Table:
 
     A worker registers when it starts, refreshes ``seen_at`` while it runs and removes its row when
     it stops; a worker that died without unregistering is recognised by an old ``seen_at``.
-    ``backends`` is a comma-separated list of the backends it can run ("cpu" or "cpu,cuda").
+    ``backends`` is a comma-separated list of the backends it can run ("cpu" or "cpu,cuda");
+    ``device_memory`` the total memory (bytes) of its GPU, null when it has none or it is not known.
     """
     return Table(
         f"{prefix}workers", metadata,
@@ -70,4 +71,5 @@ def worker_table(metadata: MetaData, prefix: str = "") -> Table:
         Column("backends", String(200), nullable=False),
         Column("started_at", Float, nullable=False),
         Column("seen_at", Float, nullable=False),
+        Column("device_memory", BigInteger, nullable=True),
     )

@@ -254,9 +254,11 @@ class SqlJobStore(JobStore):
         return list(requeued), list(failed)
 
     # ---- the worker registry ----------------------------------------------------------------------
-    def register_worker(self, worker_id: str, host: str, pid: int, backends: Sequence[str]) -> None:
+    def register_worker(self, worker_id: str, host: str, pid: int, backends: Sequence[str],
+                        device_memory: Optional[int] = None) -> None:
         w, now = self.workers, time.time()
-        row = dict(host=host, pid=int(pid), backends=",".join(backends), started_at=now, seen_at=now)
+        row = dict(host=host, pid=int(pid), backends=",".join(backends), started_at=now, seen_at=now,
+                   device_memory=None if device_memory is None else int(device_memory))
         with self._write() as conn:  # portable upsert: the write transaction serialises it
             if conn.execute(update(w).where(w.c.worker_id == worker_id).values(**row)).rowcount == 0:
                 conn.execute(w.insert().values(worker_id=worker_id, **row))

@@ -78,6 +78,7 @@ class WorkerInfo:
     backends: tuple[str, ...]
     started_at: float
     seen_at: float
+    device_memory: Optional[int] = None   # bytes of its GPU's memory; None: no GPU, or not known
 
     @classmethod
     def from_row(cls, row) -> "WorkerInfo":
@@ -203,8 +204,10 @@ class JobStore(ABC):
 
     # ---- the worker registry ----------------------------------------------------------------------
     @abstractmethod
-    def register_worker(self, worker_id: str, host: str, pid: int, backends: Sequence[str]) -> None:
-        """Insert or replace the worker's row; ``started_at`` and ``seen_at`` become now."""
+    def register_worker(self, worker_id: str, host: str, pid: int, backends: Sequence[str],
+                        device_memory: Optional[int] = None) -> None:
+        """Insert or replace the worker's row; ``started_at`` and ``seen_at`` become now; ``device_memory``: the
+        bytes of its GPU's memory, where known."""
 
     @abstractmethod
     def worker_seen(self, worker_id: str) -> None:

@@ -113,6 +113,7 @@ class Worker:
         self._keep_standby = False
         self._exiting: list[_SimProcess] = []         # processes whose jobs all ended done, still exiting
         self._registered: Optional[tuple[str, ...]] = None   # the backends entered in the worker table
+        self._device_memory: Optional[int] = None   # bytes of the GPU's memory (registered beside the backends)
         self._warm_up = None                          # the background warm-up (jobs/warm.py), while it runs
         self._gate = _ClaimGate()                     # claims running in this worker's lanes (pauses the warm-up)
         self._lanes: list[tuple["Worker", threading.Thread]] = []   # the other lanes (run_forever)
@@ -219,6 +220,10 @@ class Worker:
         (service/backends.py) knows from then on what the embedded worker's host can run."""
         if self._registered is None:
             self._registered = backends if backends is not None else self._backends()
+            if "cuda" in self._registered:
+                from engine.backends.base import gpu_total_memory
+
+                self._device_memory = gpu_total_memory()
             self._register(self._registered)
         return self._registered
 
@@ -232,7 +237,8 @@ class Worker:
 
     def _register(self, backends: tuple[str, ...]) -> None:
         try:
-            self.store.register_worker(self.owner, socket.gethostname(), os.getpid(), list(backends))
+            self.store.register_worker(self.owner, socket.gethostname(), os.getpid(), list(backends),
+                                       device_memory=self._device_memory)
             self._last_seen = time.monotonic()
         except SQLAlchemyError as exc:  # the claims retry the database; the fair share counts this worker later
             log.error("cannot register worker %s, going on: %s", self.owner, exc)

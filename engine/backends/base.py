@@ -40,6 +40,20 @@ def no_nvidia_driver() -> bool:
     return sys.platform.startswith("linux") and not nvidia_driver()
 
 
+def gpu_total_memory() -> Optional[int]:
+    """Bytes of memory of the first GPU this process sees (CUDA_VISIBLE_DEVICES' first entry, else GPU 0), read
+    with nvidia-smi so that no CUDA context is made; None when it cannot be read."""
+    import subprocess
+
+    first = os.environ.get("CUDA_VISIBLE_DEVICES", "0").split(",")[0].strip() or "0"
+    try:
+        out = subprocess.run(["nvidia-smi", f"--id={first}", "--query-gpu=memory.total", "--format=csv,noheader,nounits"],
+                             capture_output=True, text=True, timeout=10, check=True).stdout
+        return int(float(out.split()[0]) * 2**20)    # MiB
+    except (OSError, subprocess.SubprocessError, ValueError, IndexError):
+        return None
+
+
 def cuda_available() -> bool:
     """True when a real CUDA GPU can be used (the simulator does not count).
 

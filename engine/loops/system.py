@@ -122,3 +122,11 @@ def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
     while nc > 1 and box / nc < cutoff:
         nc -= 1
     return nc
+
+
+#: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together), the
+#: per-phase loop above: measured on an H200 (bench/gpu_ensemble.py) 10x faster at 4096 and 2x at 2^18 (64 packed
+#: scenes); at 2^20 the per-phase loop is the faster one on an H100 (bench/loop_ab.py --variants default
+#: multistep, docs/performance.md "Packed ensembles": one scene x1.4 rough, x1.75 elastic, x1.3 rough spheroids;
+#: 256 packed scenes x1.7 rough, x2.2 elastic): a grid of co-resident blocks loops over many particles per thread
+MULTISTEP_MAX_PARTICLES = (1 << 20) - 1

@@ -159,10 +159,10 @@ def test_two_claimers_take_each_of_50_jobs_exactly_once(store, store_url):
 def test_worker_registry_register_seen_unregister(store):
     before = time.time()
     store.register_worker("w-cpu", "host-a", 101, ["cpu"])
-    store.register_worker("w-gpu", "host-b", 202, ("cpu", "cuda"))
+    store.register_worker("w-gpu", "host-b", 202, ("cpu", "cuda"), device_memory=150_000_000_000)
     live = store.live_workers(max_age_s=60)
-    assert [(w.worker_id, w.host, w.pid, w.backends) for w in live] == [
-        ("w-cpu", "host-a", 101, ("cpu",)), ("w-gpu", "host-b", 202, ("cpu", "cuda"))]
+    assert [(w.worker_id, w.host, w.pid, w.backends, w.device_memory) for w in live] == [
+        ("w-cpu", "host-a", 101, ("cpu",), None), ("w-gpu", "host-b", 202, ("cpu", "cuda"), 150_000_000_000)]
     assert all(before <= w.started_at <= w.seen_at <= time.time() for w in live)
 
     first_seen = live[0].seen_at

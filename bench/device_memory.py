@@ -1,0 +1,170 @@
+"""Device memory of a sphere scene through ``engine.run``: the prediction (engine/loops/cuda_memory.py) against the
+allocator, and the up-front refusal of a scene that does not fit.
+
+    python -m bench device_memory --n 8388608 134217728 1000000000 --precision float32 float64 --steps 1000
+
+Per case (rough spheres, e_n = e_t = 0.8, phi = 0.058 unless ``--phi``, no snapshots, records every t_end/200,
+``--steps`` cooling steps, no thermalisation): the predicted peak (B per particle; the list stride it assumes); the
+allocator's peak of live device bytes during the run (a Numba memory-manager plugin that counts what is allocated
+and released; pending deallocations are flushed at once, NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT = 1); the process's
+peak as nvidia-smi sees it (context included); the arrays the ensemble holds at the end (the account's names,
+engine/loops/cuda_memory.py ``device_allocations``) and the stride reached; the loop's Cundall number. A spec the
+prediction refuses is reported with the refusal's text and how long it took.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import weakref
+
+os.environ.setdefault("NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT", "1")
+
+
+class _Peak:
+    live = 0
+    peak = 0
+    lock = threading.Lock()
+
+    @classmethod
+    def add(cls, n: int) -> None:
+        with cls.lock:
+            cls.live += n
+            cls.peak = max(cls.peak, cls.live)
+
+    @classmethod
+    def reset(cls) -> None:
+        with cls.lock:
+            cls.peak = cls.live
+
+
+def _install_counter() -> bool:
+    """A memory-manager plugin that counts live device bytes (allocations minus released ones)."""
+    from numba import cuda
+    from numba.cuda.cudadrv.driver import NumbaCUDAMemoryManager
+
+    class Counting(NumbaCUDAMemoryManager):
+        def memalloc(self, size):
+            ptr = super().memalloc(size)
+            _Peak.add(int(size))
+            weakref.finalize(ptr, _Peak.add, -int(size))
+            return ptr
+
+    try:
+        cuda.set_memory_manager(Counting)
+        return True
+    except Exception as exc:  # noqa: BLE001
+        print(f"no counting memory manager: {exc}", file=sys.stderr)
+        return False
+
+
+class _SmiPeak:
+    """This process's peak device memory as nvidia-smi reports it (polled every 50 ms)."""
+
+    def __init__(self):
+        self.peak = 0
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._poll, daemon=True)
+        self._t.start()
+
+    def _poll(self):
+        pid = str(os.getpid())
+        while not self._stop.is_set():
+            try:
+                out = subprocess.run(["nvidia-smi", "--query-compute-apps=pid,used_memory",
+                                      "--format=csv,noheader,nounits"], capture_output=True, text=True,
+                                     timeout=5).stdout
+                for line in out.splitlines():
+                    p, mib = [x.strip() for x in line.split(",")]
+                    if p == pid:
+                        self.peak = max(self.peak, int(mib) * 2**20)
+            except Exception:  # noqa: BLE001
+                pass
+            self._stop.wait(0.05)
+
+    def stop(self) -> int:
+        self._stop.set()
+        self._t.join()
+        return self.peak
+
+
+def case(n: int, precision: str, phi: float, steps: int) -> dict:
+    import engine
+    from engine.errors import SpecError
+    from engine.loops import cuda_ensemble
+    from engine.loops.cuda_memory import device_allocations, predict_sphere_device
+    from engine.params import derive
+    from engine.spec import SimulationSpec
+
+    spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.8, precision=precision,
+                          backend="cuda", snapshots=0, thermalization=0)
+    spec = spec.model_copy(update={"t_end": steps * derive(spec).dt})
+    pred = predict_sphere_device(spec, derive(spec))
+    kept = []
+    init = cuda_ensemble.CudaEnsembleBase.__init__
+
+    def keep(self, *a, **k):
+        kept.append(self)
+        init(self, *a, **k)
+
+    row = dict(n=n, precision=precision, phi=phi, steps=steps, predicted_B_per_particle=pred.peak_bytes / n,
+               predicted_loop_B=pred.loop_bytes / n, predicted_start_B=pred.start_bytes / n,
+               predicted_stride=pred.stride)
+    cuda_ensemble.CudaEnsembleBase.__init__ = keep
+    _Peak.reset()
+    base = _Peak.live
+    smi = _SmiPeak()
+    t0 = time.perf_counter()
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            s = engine.run(spec, os.path.join(tmp, "out.h5"))
+        row.update(loop_cundall=s.cundall, loop_s=s.loop_s, job_s=s.job_wall_s)
+    except SpecError as exc:
+        row.update(refused=str(exc), refused_after_s=time.perf_counter() - t0)
+    finally:
+        cuda_ensemble.CudaEnsembleBase.__init__ = init
+    row["smi_peak_B_per_particle"] = smi.stop() / n
+    row["allocator_peak_B_per_particle"] = (_Peak.peak - base) / n
+    if kept:
+        e = kept[-1]
+        found = device_allocations(e)
+        row.update(stride=e.max_nb, held_B_per_particle=sum(found.values()) / n,
+                   held_by_array={k: round(v / n, 2) for k, v in sorted(found.items(), key=lambda kv: -kv[1])[:16]},
+                   predicted_by_array={k: round(v / n, 2) for k, v in sorted(pred.table.items(),
+                                                                              key=lambda kv: -kv[1])[:16]})
+        kept.clear()
+    if "allocator_peak_B_per_particle" in row and not row.get("refused"):
+        row["predicted_over_allocator_peak"] = row["predicted_B_per_particle"] / row["allocator_peak_B_per_particle"]
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n", type=int, nargs="+", default=[8388608])
+    ap.add_argument("--precision", nargs="+", default=["float32"])
+    ap.add_argument("--phi", type=float, default=0.058)
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    counting = _install_counter()
+    rows = []
+    for prec in args.precision:
+        for n in args.n:
+            r = case(n, prec, args.phi, args.steps)
+            r["allocator_counted"] = counting
+            rows.append(r)
+            print(json.dumps(r), flush=True)
+    if args.out:
+        with open(os.path.join(args.out, "device_memory.json"), "w") as f:
+            json.dump(rows, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

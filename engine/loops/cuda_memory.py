@@ -1,0 +1,296 @@
+"""Device memory of a CUDA ensemble: what it holds (:func:`device_allocations`, read off a live ensemble) and what
+a sphere scene will hold (:func:`sphere_account`, the same arrays predicted from the spec before anything is
+allocated). The test suite checks the two against each other array by array (CUDA simulator), and
+bench/device_memory.py checks the prediction against the allocator's peak on a GPU.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+
+
+def _allocation(a):
+    """(key, bytes) of the allocation that device array ``a`` lives in (a view counts as its base), or None
+    when ``a`` is not a device array."""
+    ary = getattr(a, "_ary", None)       # the CUDA simulator's FakeCUDAArray wraps a NumPy array
+    if ary is not None and type(a).__name__ == "FakeCUDAArray":
+        base = ary
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        return id(base), int(base.nbytes)
+    data = getattr(a, "gpu_data", None)  # numba.cuda DeviceNDArray: a MemoryPointer, views own a parent
+    if data is None or not hasattr(a, "copy_to_host"):
+        return None
+    owner = getattr(data, "owner", data)
+    return id(owner), int(getattr(owner, "size", a.nbytes))
+
+
+def device_allocations(root, prefix: str = "") -> dict[str, int]:
+    """{attribute path: bytes} of every distinct device allocation reachable from ``root``'s attributes (views
+    and aliases counted once, under the first path met in attribute order)."""
+    found: dict[str, int] = {}
+    seen_alloc: set = set()
+    seen_obj: set = set()
+
+    def walk(obj, path: str) -> None:
+        alloc = _allocation(obj)
+        if alloc is not None:
+            if alloc[0] not in seen_alloc:
+                seen_alloc.add(alloc[0])
+                found[path] = alloc[1]
+            return
+        if id(obj) in seen_obj or isinstance(obj, (str, bytes, int, float, np.ndarray, np.generic)):
+            return
+        seen_obj.add(id(obj))
+        if isinstance(obj, dict):
+            for k, v in obj.items():
+                walk(v, f"{path}[{k!r}]")
+        elif isinstance(obj, (list, tuple)):
+            for k, v in enumerate(obj):
+                walk(v, f"{path}[{k}]")
+        elif isinstance(obj, SimpleNamespace) or type(obj).__module__.startswith("engine."):
+            for k, v in vars(obj).items():
+                walk(v, f"{path}.{k}" if path else k)
+
+    walk(root, prefix)
+    return found
+
+
+#: list slots a CUDA ensemble starts with (engine/loops/cuda_ensemble.py); a build that finds more grows the stride
+#: to ceil((need + 2) / 4) * 4 (engine/loops/cuda_rebuild.py)
+FIRST_STRIDE = 8
+#: the chance, over a run, that some particle's list outgrows the predicted stride (the stride is then regrown, a
+#: few per cent above the prediction)
+STRIDE_MISS = 1.0e-3
+
+
+def grown_stride(need: int) -> int:
+    """The list stride after a build that found ``need`` neighbours in one particle's row."""
+    return max(FIRST_STRIDE, int(math.ceil((need + 2) / 4.0)) * 4) if need > FIRST_STRIDE else FIRST_STRIDE
+
+
+def mean_list_neighbours(volume_fraction: float, reach_over_diameter: float) -> float:
+    """Mean count of neighbours within the list's reach r_c = sigma (1 + L_v / sigma) of a sphere in an equilibrium
+    gas of equal spheres: n g(sigma) (4 pi / 3)(r_c^3 - sigma^3) = 8 phi g(sigma) ((r_c / sigma)^3 - 1), with the
+    Carnahan-Starling contact value g(sigma) = (1 - phi / 2) / (1 - phi)^3 over the whole shell (an upper bound: g
+    falls towards 1 across it)."""
+    phi = volume_fraction
+    g = (1.0 - 0.5 * phi) / (1.0 - phi) ** 3
+    return 8.0 * phi * g * (reach_over_diameter ** 3 - 1.0)
+
+
+def predicted_list_need(n: int, mean: float, miss: float = STRIDE_MISS) -> int:
+    """The largest row a build is expected to find among n particles whose neighbour counts are Poisson(mean): the
+    smallest k with n P(X > k) < miss (Poisson overestimates the tail of a gas, whose excluded volume narrows the
+    count's spread)."""
+    if n <= 0 or mean <= 0.0:
+        return 0
+    term = math.exp(-mean)       # P(X = 0)
+    below = term
+    k = 0
+    while n * max(0.0, 1.0 - below) >= miss and k < 10_000:
+        k += 1
+        term *= mean / k
+        below += term
+    return k
+
+
+@dataclass(frozen=True)
+class SphereLayout:
+    """What sizes a sphere ensemble's device arrays (engine/shapes/sphere/cuda_backend.py, engine/loops/): N in all,
+    the state and position word (bytes), rough or smooth, equal spheres or not, the list stride, the compact
+    store's capacity, the cells, the scenes, the threads per block, whether the many-steps loop and the state
+    staging of snapshots are used, and the per-scene tables' sizes."""
+
+    n: int
+    word: int
+    pos_word: int
+    rough: bool
+    uniform: bool
+    stride: int
+    store_cap: int
+    ncell: int
+    n_scenes: int = 1
+    tpb: int = 256
+    multistep: bool = False
+    reads_state: bool = False
+    hist_words: int = 5
+    nobs: int = 12
+    record_rows: int = 256
+    #: words per scene of the constant tables spd, spf, spi and of the status array (engine/loops/cuda_kernels.py
+    #: ND, NF, NI, status_len): an upper bound by default, exact where the kernels module is at hand
+    scene_words: tuple = (64, 64, 64, 64)
+
+
+def sphere_account(L: SphereLayout) -> dict[str, int]:
+    """{array: bytes} of a sphere ensemble on the device, named as :func:`device_allocations` finds them: the state,
+    forces, the permutation's scratch, the Verlet list with its contact history, the cells, the compact store, the
+    records' accumulators and (when used) the double buffers and the state staging."""
+    n, w, pw = L.n, L.word, L.pos_word
+    a = {
+        "x_ref": 3 * n * pw, "ids": 4 * n, "sc": 4 * n,
+        "pos": 3 * n * pw, "vel": 3 * n * w, "omega": 3 * n * w, "quat": 4 * n * w,
+        "f_cur": 3 * n * w, "f_nxt": 3 * n * w, "torque": 3 * n * w,
+        "q_last": 8 * n, "begun": 8 * n,
+        "scratch": 4 * n * w, "scratch_i": 4 * n, "scratch_l": 8 * n, "order": 4 * n, "inv_old": 4 * n,
+        "c_off": 4 * n, "c_cnt": 4 * n,
+        "cj": 4 * L.store_cap, "chist": L.hist_words * L.store_cap * w,
+        "nbr": 4 * L.stride * n, "nn": 4 * n, "hist": L.hist_words * L.stride * n * w,
+        "count": 4 * (L.ncell + 1), "cell_start": 4 * (L.ncell + 1),
+        "_sums.acc": 8 * L.n_scenes * L.nobs, "_rows.acc": 8 * L.record_rows * L.nobs,
+    }
+    nd, nf, ni, status = L.scene_words
+    a.update({"spd": L.n_scenes * nd * w, "spf": L.n_scenes * nf * 8, "spi": L.n_scenes * ni * 4, "status": 8 * status})
+    tile = L.tpb * 16
+    blocks = max(1, (L.ncell + 1 + tile - 1) // tile)
+    a.update({"_scan_cells.bsum": 4 * blocks, "_scan_cells.bsum_scan": 4 * blocks, "_scan_cells.bsum_tot": 4})
+    if pw != w:
+        a["scratch_x"] = 3 * n * pw
+    if L.uniform:
+        a["radius"] = w
+    else:
+        a.update({k: n * w for k in ("radius", "mass", "inertia", "inv_m", "inv_i")})
+    if L.multistep or not L.rough:     # the fused step's (smooth) and the many-steps loop's double buffers
+        a["_alt[0]"], a["_alt[1]"] = 3 * n * pw, 3 * n * w
+    if L.multistep:
+        a["_alt_spin"] = 3 * n * w
+    if L.reads_state:
+        for word in sorted({w, pw}):
+            a[f"_stage['<f{word}']"] = 4 * n * word
+    return a
+
+
+#: rows of a device-drawn sphere start's float64 staging array (velocity 3, spin 3, orientation 4:
+#: engine/loops/cuda_start.py ``draw_start``)
+START_ROWS = 10
+#: part of the free device memory a run may plan to use: the CUDA context, the kernels' local memory and the
+#: allocator's rounding take the rest
+USABLE_FRACTION = 0.95
+
+
+@dataclass(frozen=True)
+class DevicePrediction:
+    """A sphere spec's predicted device memory: the per-array table of the running loop (bytes), the start's
+    transient arrays, the peak (the larger of the loop and the start) and the list stride assumed."""
+
+    table: dict
+    start_bytes: int
+    stride: int
+
+    @property
+    def loop_bytes(self) -> int:
+        return sum(self.table.values())
+
+    @property
+    def peak_bytes(self) -> int:
+        return max(self.loop_bytes, self.start_bytes)
+
+
+def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256) -> DevicePrediction:
+    """The device memory of a sphere spec run as one scene on the GPU (:func:`sphere_account` with the list stride
+    a run is expected to reach, :func:`predicted_list_need`), from the spec and its derived parameters ``p``
+    (engine.params.derive, with the run's skin). ``reads_state``: snapshots or checkpoints copy the state out."""
+    from engine.loops.system import MULTISTEP_MAX_PARTICLES, cell_grid
+    from engine.precision import position_dtype, state_dtype
+    from engine.start_kind import device_start
+
+    n = int(spec.n_particles)
+    word = np.dtype(state_dtype(spec.precision)).itemsize
+    pos_word = np.dtype(position_dtype(spec.precision)).itemsize
+    uniform = len(p.species_radius) <= 1
+    reach = (2.0 * p.radius_max + p.skin) / (2.0 * p.radius_max)
+    need = predicted_list_need(n, mean_list_neighbours(spec.volume_fraction, reach))
+    stride = grown_stride(need)
+    layout = SphereLayout(
+        n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, stride=stride,
+        store_cap=max(1024, n // 8), ncell=cell_grid(spec.box_length, n, p.radius_max, p.skin) ** 3, tpb=tpb,
+        multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state)
+    table = sphere_account(layout)
+    start = sum(table[k] for k in ("x_ref", "ids", "sc", "pos", "vel", "omega", "quat"))
+    if device_start(spec):
+        start += 8 * START_ROWS * n
+    return DevicePrediction(table=table, start_bytes=start, stride=stride)
+
+
+def largest_fitting(spec, p_of, budget: float, **kw) -> int:
+    """The largest n_particles (same volume fraction and everything else) whose predicted peak fits ``budget``
+    bytes; ``p_of(spec)`` derives a spec's parameters. 0 when not even one particle fits."""
+    def peak(n: int) -> int:
+        s = spec.model_copy(update={"n_particles": n})
+        return predict_sphere_device(s, p_of(s), **kw).peak_bytes
+
+    lo, hi = 0, max(1, int(spec.n_particles))
+    while peak(hi) <= budget:
+        lo, hi = hi, hi * 2
+    while hi - lo > max(1, lo // 1000):
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if peak(mid) <= budget else (lo, mid)
+    return lo
+
+
+def device_memory() -> tuple[int, int, str]:
+    """(free bytes, total bytes, device name) of the current CUDA device (the CUDA simulator: the host's memory)."""
+    from numba import cuda
+
+    from engine.loops.cuda_cache import SIM
+
+    if SIM:
+        import os
+
+        pages, size = os.sysconf("SC_AVPHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
+        return pages * size, os.sysconf("SC_PHYS_PAGES") * size, "CUDA simulator"
+    free, total = cuda.current_context().get_memory_info()
+    name = cuda.get_current_device().name
+    return int(free), int(total), name.decode() if isinstance(name, bytes) else str(name)
+
+
+def _gb(b: float) -> str:
+    return f"{b / 1e9:.3g} GB"
+
+
+def memory_refusal(spec, p, free_bytes: float, device: str, p_of, *, reads_state: bool = False) -> str | None:
+    """Why a sphere spec will not fit ``free_bytes`` of device memory (None when it does): the predicted peak
+    (:func:`predict_sphere_device`), the device's free memory and the largest n_particles that fits (``p_of(spec)``
+    derives a spec's parameters)."""
+    budget = USABLE_FRACTION * free_bytes
+    pred = predict_sphere_device(spec, p, reads_state=reads_state)
+    if pred.peak_bytes <= budget:
+        return None
+    fits = largest_fitting(spec, p_of, budget, reads_state=reads_state)
+    return (f"n_particles = {spec.n_particles}: the run needs about {_gb(pred.peak_bytes)} of device memory "
+            f"({pred.peak_bytes / spec.n_particles:.0f} B per particle, {spec.precision}, list stride {pred.stride}); "
+            f"{device} has {_gb(free_bytes)} free, of which {USABLE_FRACTION:.0%} may be planned; "
+            f"the largest n_particles that fits is about {fits:.3g}")
+
+
+def refuse_oversize(spec, p, *, reads_state: bool = False) -> None:
+    """Raise :class:`engine.errors.SpecError` before anything is allocated when a sphere spec's predicted device
+    memory exceeds what the current device has free (:func:`memory_refusal`)."""
+    from engine.errors import SpecError
+    from engine.params import derive
+
+    free, _total, device = device_memory()
+    why = memory_refusal(spec, p, free, device, derive, reads_state=reads_state)
+    if why is not None:      # an earlier run's arrays in this process may only await collection: free them, ask again
+        _release_unreferenced()
+        free, _total, device = device_memory()
+        why = memory_refusal(spec, p, free, device, derive, reads_state=reads_state)
+    if why is not None:
+        raise SpecError(why)
+
+
+def _release_unreferenced() -> None:
+    """Collect unreachable Python objects and free the device memory Numba still holds for released arrays."""
+    import gc
+
+    from numba import cuda
+
+    from engine.loops.cuda_cache import SIM
+
+    gc.collect()
+    if not SIM and cuda.is_available():
+        cuda.current_context().deallocations.clear()

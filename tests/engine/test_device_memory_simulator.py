@@ -1,0 +1,140 @@
+"""The device-memory account of a sphere scene (engine/loops/cuda_memory.py) against what a CUDA ensemble really
+allocates (CUDA simulator, child processes: tests/cudasim.py), the list-stride prediction, and the up-front
+refusal of a spec that does not fit the device."""
+
+import json
+import sys
+
+import pytest
+
+from tests.cudasim import run_children
+
+CASES = {
+    # name: spec fields (n = 216: the many-steps loop; the account's flags are read off the ensemble)
+    "rough-f32": dict(precision="float32", e_t=0.8, snapshots=0),
+    "smooth-f64-snapshots": dict(precision="float64", e_t=-1.0, snapshots=2),
+    "rough-mixed-snapshots": dict(precision="mixed", e_t=0.8, snapshots=1),
+}
+
+
+def _child(case: str) -> None:
+    """Run the case's spec through engine.run, keep its ensemble, and print the allocations found on it and the
+    account of the same layout."""
+    import os
+    import tempfile
+
+    from tests.cudasim import fast_block_polling
+
+    fast_block_polling()
+    import engine
+    from engine.loops import cuda_ensemble
+    from engine.loops import cuda_kernels as K
+    from engine.loops.cuda_memory import SphereLayout, device_allocations, sphere_account
+    from engine.params import derive
+    from engine.precision import position_dtype, state_dtype
+    from engine.spec import SimulationSpec
+
+    kept = []
+    init = cuda_ensemble.CudaEnsembleBase.__init__
+
+    def keep(self, *a, **k):
+        kept.append(self)
+        init(self, *a, **k)
+
+    cuda_ensemble.CudaEnsembleBase.__init__ = keep
+    spec = SimulationSpec(n_particles=216, volume_fraction=0.058, e_n=0.8, backend="cuda", thermalization=0,
+                          **CASES[case])
+    spec = spec.model_copy(update={"t_end": 40 * derive(spec).dt})
+    with tempfile.TemporaryDirectory() as tmp:
+        engine.run(spec, os.path.join(tmp, "out.h5"))
+    (e,) = kept
+    import numpy as np
+
+    layout = SphereLayout(n=e.n, word=np.dtype(state_dtype(spec.precision)).itemsize,
+                          pos_word=np.dtype(position_dtype(spec.precision)).itemsize, rough=not spec.smooth,
+                          uniform=e.uniform, stride=e.max_nb, store_cap=e.store_cap, ncell=e.ncell, tpb=e.tpb,
+                          multistep=e.multistep, reads_state=e._stage is not None,
+                          scene_words=(K.ND, K.NF, K.NI, K.status_len(e.n_scenes)))
+    import dataclasses
+
+    account = sphere_account(layout)
+    doubled = sphere_account(dataclasses.replace(layout, n=2 * e.n))
+    print(json.dumps({"found": device_allocations(e), "account": account, "reads_state": e._stage is not None,
+                      "per_particle": sorted(k for k in account if doubled[k] != account[k])}))
+
+
+def test_account_lists_every_device_array_of_a_sphere_ensemble():
+    """Every allocation the ensemble holds is in the account under its name, and every per-particle array (the
+    memory that scales with N) has exactly the account's size (the cases side by side, one child each)."""
+    for case, (rc, out, err) in run_children({c: [__file__, c] for c in CASES}, timeout=600).items():
+        assert rc == 0, err[-3000:]
+        got = json.loads(out.strip().splitlines()[-1])
+        found, account, per_particle = got["found"], got["account"], set(got["per_particle"])
+        missing = sorted(set(found) - set(account))
+        assert not missing, f"{case}: arrays missing from the account: {missing}"
+        assert all(found[k] == account[k] for k in ("spd", "spf", "spi", "status")), case
+        assert {k: found[k] for k in per_particle if k in found} == \
+            {k: account[k] for k in per_particle if k in found}, case
+        # a per-particle array of the account that the run did not make is one of the lazily made double buffers
+        assert per_particle - set(found) <= {"_alt[0]", "_alt[1]", "_alt_spin"}, (case, per_particle - set(found))
+        assert got["reads_state"] == (CASES[case]["snapshots"] > 0), case
+
+
+def test_list_need_follows_the_poisson_tail():
+    """The predicted largest row grows with N and with the mean, and is the smallest k with N P(X > k) < miss."""
+    import math
+
+    from engine.loops.cuda_memory import grown_stride, mean_list_neighbours, predicted_list_need
+
+    mean = mean_list_neighbours(0.058, 1.4)        # the CUDA default skin 0.8 a at phi = 0.058: reach 2.8 a
+    assert 0.85 < mean < 1.0                        # 8 phi g ((1.4)^3 - 1) with g(sigma) = 1.1 (Carnahan-Starling)
+    needs = [predicted_list_need(n, mean) for n in (10**3, 10**6, 10**9)]
+    assert needs == sorted(needs) and needs[0] < needs[-1]
+    k = needs[-1]
+
+    def tail(k):      # P(X > k) of Poisson(mean)
+        return 1.0 - sum(math.exp(-mean) * mean**j / math.factorial(j) for j in range(k + 1))
+
+    assert 1e9 * tail(k) < 1e-3 <= 1e9 * tail(k - 1)
+    assert grown_stride(0) == grown_stride(8) == 8 and grown_stride(9) == 12 and grown_stride(14) == 16
+
+
+def test_refusal_names_the_estimate_and_the_largest_n_that_fits():
+    from engine.loops.cuda_memory import USABLE_FRACTION, memory_refusal, predict_sphere_device
+    from engine.params import derive
+    from engine.spec import SimulationSpec
+
+    spec = SimulationSpec(n_particles=10**9, volume_fraction=0.058, precision="float32", backend="cuda")
+    free = 141e9
+    why = memory_refusal(spec, derive(spec), free, "NVIDIA H200", derive)
+    assert why is not None and why.startswith("n_particles = 1000000000: the run needs about")
+    assert "NVIDIA H200 has 141 GB free" in why
+    fits = int(float(why.rsplit("about ", 1)[1]))
+    budget = USABLE_FRACTION * free
+    at = lambda n: predict_sphere_device(spec.model_copy(update={"n_particles": n}),  # noqa: E731
+                                         derive(spec.model_copy(update={"n_particles": n}))).peak_bytes
+    assert at(int(fits * 0.99)) <= budget < at(int(fits * 1.02))
+    assert memory_refusal(spec.model_copy(update={"n_particles": int(fits * 0.99)}),
+                          derive(spec.model_copy(update={"n_particles": int(fits * 0.99)})), free, "x", derive) is None
+
+
+def test_engine_run_refuses_before_the_device_holds_anything(tmp_path, monkeypatch):
+    """engine.run of a CUDA sphere spec larger than the device's free memory raises SpecError with the estimate,
+    before any ensemble is made and without a result file."""
+    from engine.errors import SpecError
+    from engine.loops import cuda_memory
+    from engine.spec import SimulationSpec
+
+    monkeypatch.setattr(cuda_memory, "device_memory", lambda: (10**6, 10**6, "a 1 MB test device"))
+    monkeypatch.setattr("engine.simulate.resolve_backend", lambda name, shape="sphere": "cuda")
+    monkeypatch.setattr("engine.simulate.make_ensemble", lambda *a, **k: pytest.fail("an ensemble was made"))
+    spec = SimulationSpec(n_particles=4096, volume_fraction=0.058, t_end=1e-4, backend="cuda", thermalization=0)
+    import engine
+
+    with pytest.raises(SpecError, match=r"n_particles = 4096: the run needs about .* a 1 MB test device has"):
+        engine.run(spec, tmp_path / "out.h5")
+    assert not list(tmp_path.iterdir())
+
+
+if __name__ == "__main__":
+    _child(sys.argv[1])
