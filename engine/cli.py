@@ -224,7 +224,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_run(args) -> int:
-    from engine.errors import EngineError
+    from engine.errors import EngineError, SpecError
     from engine.limits import DEFAULT_MAX_MEMORY_BYTES, DEFAULT_MAX_PARTICLE_STEPS
     from engine.progress import progress_for
 
@@ -246,6 +246,9 @@ def cmd_run(args) -> int:
     progress = None if args.quiet else progress_for(spec.n_particles, desc="demq run ")
     try:
         s = run(spec, args.output, progress=progress)
+    except SpecError as exc:        # e.g. more device memory than the GPU has free: refused before it started
+        print(f"demq run: refused: {exc}", file=sys.stderr)
+        return 2
     except EngineError as exc:
         print(f"demq run: run failed: {exc}", file=sys.stderr)
         return 1

@@ -136,5 +136,22 @@ def test_engine_run_refuses_before_the_device_holds_anything(tmp_path, monkeypat
     assert not list(tmp_path.iterdir())
 
 
+def test_demq_run_refuses_in_one_line_with_exit_2(tmp_path, monkeypatch, capsys):
+    """`demq run` of a spec the device cannot hold: one line naming the estimate, exit 2, no result file."""
+    from engine.loops import cuda_memory
+    from service import cli
+
+    monkeypatch.setattr(cuda_memory, "device_memory", lambda: (10**6, 10**6, "a 1 MB test device"))
+    monkeypatch.setattr("engine.simulate.resolve_backend", lambda name, shape="sphere": "cuda")
+    out = tmp_path / "out.h5"
+    with pytest.raises(SystemExit) as ended:
+        cli.main(["run", "--set", "n_particles=4096", "--set", "t_end=1e-4", "--set", "thermalization=0",
+                  "--quiet", "-o", str(out)])
+    rc = ended.value.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("demq run: refused: n_particles = 4096: the run needs")
+    assert not out.exists()
+
+
 if __name__ == "__main__":
     _child(sys.argv[1])
