@@ -121,8 +121,12 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
             from engine.simulate import warm_process
             from engine.spec import SimulationSpec
 
-            with _tell_when_compiling(conn):
-                warm_process(SimulationSpec.model_validate_json(warm_spec_json))
+            # a claim already waiting gets its own kernels compiled (or loaded) by its run, not the warm spec's
+            # first: with an empty kernel cache the default spec's would cost a first job of another
+            # specialisation a whole compile
+            if not claims.poll(0):
+                with _tell_when_compiling(conn):
+                    warm_process(SimulationSpec.model_validate_json(warm_spec_json))
         except BrokenPipeError:
             pass
         except Exception:  # noqa: BLE001  (a start-up that fails here is paid again, and reported, by the job)

@@ -359,3 +359,34 @@ def test_a_claim_of_another_specialisation_does_not_wait_for_a_compiling_standby
     worker._standby.close()
     worker._reap(wait=True)
     store.close()
+
+
+@pytest.mark.parametrize("claim_waiting", [True, False])
+def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monkeypatch, claim_waiting):
+    """A claim handed to a standby while it still imported is run at once: the standby does not first compile (or
+    load) the warm spec's kernels, which with an empty cache would cost a first job of another specialisation a whole
+    compile; without a waiting claim it warms up as before and then runs the claim that comes."""
+    import multiprocessing
+
+    import engine.simulate
+    from jobs import runner
+
+    warmed, ran = [], []
+    claims_in, claims_out = multiprocessing.Pipe(duplex=False)
+    receiver, sender = multiprocessing.Pipe(duplex=False)
+    claim = ("engine.simulate:run", ['{"n_particles": 512}'], ["out.h5"], ["ck"], 60.0, "one")
+
+    def warm_process(spec):
+        warmed.append(spec.n_particles)
+        claims_out.send(claim)           # the claim comes while the standby warms up
+
+    monkeypatch.setattr(engine.simulate, "warm_process", warm_process)
+    monkeypatch.setattr(runner, "child_main", lambda *args: ran.append(args[:2]))
+    monkeypatch.setattr(runner, "_die_with_parent", lambda: None)
+    monkeypatch.setattr(runner.signal, "signal", lambda *a: None)
+    if claim_waiting:
+        claims_out.send(claim)
+    runner.standby_main(claims_in, sender, None, 0, '{"n_particles": 4096}')
+    assert warmed == ([] if claim_waiting else [4096])
+    assert ran == [("engine.simulate:run", ['{"n_particles": 512}'])]
+    assert receiver.recv()[0] == "ready"
