@@ -4,7 +4,7 @@ allocator, and the up-front refusal of a scene that does not fit.
     python -m bench device_memory --n 8388608 134217728 1000000000 --precision float32 float64 --steps 1000
 
 Per case (rough spheres, e_n = e_t = 0.8, phi = 0.058 unless ``--phi``, no snapshots, records every t_end/200,
-``--steps`` cooling steps, no thermalisation): the predicted peak (B per particle; the list stride it assumes); the
+``--steps`` cooling steps, no thermalisation, the spec's start or ``--start``): the predicted peak (B per particle; the list stride it assumes); the
 allocator's peak of live device bytes during the run (a Numba memory-manager plugin that counts what is allocated
 and released; pending deallocations are flushed at once, NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT = 1); the process's
 peak as nvidia-smi sees it (context included); the arrays the ensemble holds at the end (the account's names,
@@ -94,7 +94,7 @@ class _SmiPeak:
         return self.peak
 
 
-def case(n: int, precision: str, phi: float, steps: int) -> dict:
+def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     import engine
     from engine.errors import SpecError
     from engine.loops import cuda_ensemble
@@ -103,7 +103,7 @@ def case(n: int, precision: str, phi: float, steps: int) -> dict:
     from engine.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.8, precision=precision,
-                          backend="cuda", snapshots=0, thermalization=0)
+                          backend="cuda", snapshots=0, thermalization=0, start=start)
     spec = spec.model_copy(update={"t_end": steps * derive(spec).dt})
     pred = predict_sphere_device(spec, derive(spec))
     kept = []
@@ -113,7 +113,7 @@ def case(n: int, precision: str, phi: float, steps: int) -> dict:
         kept.append(self)
         init(self, *a, **k)
 
-    row = dict(n=n, precision=precision, phi=phi, steps=steps, predicted_B_per_particle=pred.peak_bytes / n,
+    row = dict(n=n, precision=precision, phi=phi, steps=steps, start=start or "default", predicted_B_per_particle=pred.peak_bytes / n,
                predicted_loop_B=pred.loop_bytes / n, predicted_start_B=pred.start_bytes / n,
                predicted_stride=pred.stride)
     cuda_ensemble.CudaEnsembleBase.__init__ = keep
@@ -150,13 +150,15 @@ def main(argv=None) -> int:
     ap.add_argument("--precision", nargs="+", default=["float32"])
     ap.add_argument("--phi", type=float, default=0.058)
     ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--start", choices=["random", "lattice"], default=None,
+                    help="the spec's start (default: the spec's own, a lattice above 2^20 spheres)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     counting = _install_counter()
     rows = []
     for prec in args.precision:
         for n in args.n:
-            r = case(n, prec, args.phi, args.steps)
+            r = case(n, prec, args.phi, args.steps, args.start)
             r["allocator_counted"] = counting
             rows.append(r)
             print(json.dumps(r), flush=True)

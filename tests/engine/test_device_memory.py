@@ -80,22 +80,53 @@ def test_account_lists_every_device_array_of_a_sphere_ensemble():
         assert got["reads_state"] == (CASES[case]["snapshots"] > 0), case
 
 
-def test_list_need_follows_the_poisson_tail():
-    """The predicted largest row grows with N and with the mean, and is the smallest k with N P(X > k) < miss."""
-    import math
+def test_list_count_model_matches_an_equilibrium_gas_and_bounds_its_fullest_row():
+    """The neighbour counts within the CUDA list's reach (2.8 a at phi = 0.058) of a random (RSA) start of 131 072
+    spheres follow the pairwise-interaction count model (engine/loops/cuda_memory.py) where Poisson overestimates the
+    tail, and the predicted largest row is at least the largest counted."""
+    import numpy as np
 
-    from engine.loops.cuda_memory import grown_stride, mean_list_neighbours, predicted_list_need
+    from engine.loops.cuda_memory import (list_count_distribution, mean_list_neighbours, predicted_list_need,
+                                          shell_pair_apart)
+    from engine.pairs import periodic_pairs
+    from engine.params import derive
+    from engine.scene import initial_spheres
+    from engine.spec import SimulationSpec
 
-    mean = mean_list_neighbours(0.058, 1.4)        # the CUDA default skin 0.8 a at phi = 0.058: reach 2.8 a
-    assert 0.85 < mean < 1.0                        # 8 phi g ((1.4)^3 - 1) with g(sigma) = 1.1 (Carnahan-Starling)
-    needs = [predicted_list_need(n, mean) for n in (10**3, 10**6, 10**9)]
+    spec = SimulationSpec(n_particles=131072, volume_fraction=0.058, start="random", backend="cuda", seed=3)
+    p = derive(spec)
+    reach = (2.0 * p.radius + p.skin) / (2.0 * p.radius)
+    assert abs(reach - 1.4) < 1e-12                 # the CUDA default skin, 0.8 a, at this volume fraction
+    pairs = periodic_pairs(initial_spheres(spec, p).position, spec.box_length, 2.0 * p.radius + p.skin)
+    counts = np.bincount(pairs.ravel(), minlength=spec.n_particles)
+    hist = np.bincount(counts)
+    mean = counts.mean()
+    # the Carnahan-Starling contact value over the whole shell bounds the mean from above (g falls across it)
+    assert mean < mean_list_neighbours(0.058, 1.4) < 1.15 * mean
+    q = shell_pair_apart(1.4)
+    assert 0.80 < q < 0.87          # Monte Carlo of two uniform points in the shell 1 < r < 1.4: 0.834
+    model = list_count_distribution(mean, q)[:len(hist)] * spec.n_particles
+    poisson = list_count_distribution(mean, 1.0)[:len(hist)] * spec.n_particles
+    for k in range(5):              # bins with >= 300 particles: within 5 counting standard deviations
+        assert abs(hist[k] - model[k]) < 5.0 * np.sqrt(model[k]) + 0.02 * model[k], (k, hist[k], model[k])
+    assert abs(hist[4] - poisson[4]) > 10.0 * np.sqrt(poisson[4])      # Poisson misses the tail by far
+    need = predicted_list_need(spec.n_particles, mean_list_neighbours(0.058, 1.4), q)
+    assert counts.max() <= need <= counts.max() + 3
+
+
+def test_predicted_need_grows_with_n_and_is_the_first_k_below_the_miss_chance():
+    import numpy as np
+
+    from engine.loops.cuda_memory import (STRIDE_MISS, grown_stride, list_count_distribution, predicted_list_need,
+                                          shell_pair_apart)
+
+    q = shell_pair_apart(1.4)
+    needs = [predicted_list_need(n, 0.94, q) for n in (10**3, 10**6, 10**9)]
     assert needs == sorted(needs) and needs[0] < needs[-1]
+    above = 1.0 - np.cumsum(list_count_distribution(0.94, q))
     k = needs[-1]
-
-    def tail(k):      # P(X > k) of Poisson(mean)
-        return 1.0 - sum(math.exp(-mean) * mean**j / math.factorial(j) for j in range(k + 1))
-
-    assert 1e9 * tail(k) < 1e-3 <= 1e9 * tail(k - 1)
+    assert 1e9 * above[k] < STRIDE_MISS <= 1e9 * above[k - 1]
+    assert predicted_list_need(10**9, 0.94, 1.0) > k          # Poisson's tail is longer
     assert grown_stride(0) == grown_stride(8) == 8 and grown_stride(9) == 12 and grown_stride(14) == 16
 
 
