@@ -28,7 +28,7 @@ def _hash_sources() -> str:
             h.update(str(f.relative_to(_ENGINE)).encode())
             h.update(f.read_bytes())
     # kernels the backends compile in from engine/ itself
-    for name in ("multigrid.py", "cells.py", "scene.py"):
+    for name in ("multigrid.py", "cells.py", "scene.py", "cell_rsa.py"):
         h.update(name.encode())
         h.update((_ENGINE / name).read_bytes())
     return h.hexdigest()[:16]

@@ -47,8 +47,8 @@ from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_c
 from engine.errors import SpecError
 from engine.params import Derived, species_table
 from engine.physics.rotation import quat_unit
-from engine.start_kind import (PARALLEL_GENERATOR, PARALLEL_START_MIN, RANDOM, SEQUENTIAL_GENERATOR,  # noqa: F401
-                               device_start, start_generator, start_protocol)
+from engine.start_kind import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, RANDOM,  # noqa: F401
+                               SEQUENTIAL_GENERATOR, device_start, start_generator, start_protocol)
 
 
 def fcc_sites(n: int, box: float) -> tuple[np.ndarray, float]:
@@ -256,16 +256,16 @@ def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
         return initial_species(spec, p)
     n = spec.n_particles
     w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
-    if start_generator(spec) == PARALLEL_GENERATOR:
+    if start_generator(spec) in (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR):
         streams, radius = parallel_start_streams(spec, p)
+        draw = StartDraw.of(n, spec.seed, streams, spec.box_length, radius, start_protocol(spec))
         if on_device:    # drawn by the GPU job's backend (engine/loops/cuda_start.py)
             # one size: the constants as broadcast views (the backend keeps them per scene; no N-long host arrays)
             return SphereSystem(
                 box_length=spec.box_length, position=None, velocity=None, angular_velocity=None, orientation=None,
                 radius=np.broadcast_to(np.float64(p.radius), (n,)), mass=np.broadcast_to(np.float64(p.mass), (n,)),
-                inertia=np.broadcast_to(np.float64(p.inertia[0]), (n,)),
-                draw=StartDraw.of(n, spec.seed, streams, spec.box_length, radius))
-        pos, (vel, omega, quat) = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, radius))
+                inertia=np.broadcast_to(np.float64(p.inertia[0]), (n,)), draw=draw)
+        pos, (vel, omega, quat) = draw.on_host()
         return SphereSystem(
             box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
             radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]))
@@ -371,6 +371,8 @@ def load_parallel_start(spec, p: Derived) -> bool:
     streams, _ = parallel_start_streams(spec, p)
     # unplaced: the same compiled calls with the same argument types (a site count of 0 selects no site)
     _, drawn = _parallel_draws(n, spec.seed, streams)
+    if spec.shape == "sphere" and start_protocol(spec) == RANDOM:     # the random start's rounds (engine/cell_rsa.py)
+        StartDraw.of(n, spec.seed, streams, 20.0, 1.0, RANDOM).on_host()
     if spec.shape == "ellipsoid":
         w_a = drawn[3] if not spec.smooth else np.zeros((n, 1))
         _space_spins_parallel(drawn[1], drawn[2], w_a, not spec.smooth, np.empty((n, 3)))
@@ -401,6 +403,8 @@ def parallel_start_streams(spec, p: Derived) -> tuple:
 # ---- large lattice starts in parallel ------------------------------------------------------------------
 
 STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION, STREAM_SPIN_AXIS = range(6)
+#: the random start's draws (engine/cell_rsa.py): candidate centres, attempt counts, the last round's removal order
+STREAM_RSA_CENTRES, STREAM_RSA_ATTEMPTS, STREAM_RSA_REMOVAL = range(6, 9)
 _DRAWS = 8           # counter values reserved per particle and stream
 _BLOCK = 1 << 14     # particles per block of the deterministic sums
 
@@ -738,21 +742,39 @@ class StartDraw:
     a: float
     n_sites: int
     half_gap: float
+    #: None: the lattice protocol; else the random start's cells (engine/cell_rsa.py ``CellRsa``)
+    rsa: object = None
 
     @classmethod
-    def of(cls, n: int, seed: int, streams, box: float, radius: float) -> "StartDraw":
+    def of(cls, n: int, seed: int, streams, box: float, radius: float, protocol: str = "lattice") -> "StartDraw":
         """Checked on the host at once (SpecError when the spheres do not fit), drawn later on the device."""
         _check_streams(streams)
-        return cls(n, seed, tuple(tuple(s) for s in streams), float(box), float(radius), *lattice_of(n, box, radius))
+        rsa = None
+        if protocol == RANDOM:
+            from engine.cell_rsa import CellRsa
+
+            rsa = CellRsa.of(n, box, radius)
+        return cls(n, seed, tuple(tuple(s) for s in streams), float(box), float(radius), *lattice_of(n, box, radius),
+                   rsa=rsa)
 
     def keys(self) -> tuple:
         """(sites' key, displacements' key, [each stream's key]) as numpy uint64."""
         return (_stream_key(self.seed, STREAM_SITES), _stream_key(self.seed, STREAM_DISPLACEMENT),
                 [_stream_key(self.seed, stream) for stream, _, _ in self.streams])
 
+    def rsa_keys(self) -> tuple:
+        """The random start's keys: candidate centres, attempt counts, removal order (numpy uint64)."""
+        return tuple(_stream_key(self.seed, s) for s in (STREAM_RSA_CENTRES, STREAM_RSA_ATTEMPTS, STREAM_RSA_REMOVAL))
+
     def on_host(self) -> tuple:
-        """The same start drawn on the host (positions, [arrays]): _parallel_draws."""
-        return _parallel_draws(self.n, self.seed, list(self.streams), place=(self.box, self.radius))
+        """The same start drawn on the host (positions, [arrays]): _parallel_draws, and for a random start the
+        centres of engine/cell_rsa.py ``place_random``."""
+        if self.rsa is None:
+            return _parallel_draws(self.n, self.seed, list(self.streams), place=(self.box, self.radius))
+        from engine.cell_rsa import place_random
+
+        _, drawn = _parallel_draws(self.n, self.seed, list(self.streams))
+        return place_random(self.rsa, self.rsa_keys()), drawn
 
 
 def drawn_on_host(system):

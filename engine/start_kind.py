@@ -11,8 +11,9 @@ Two protocols place the particles (``spec.start``):
   cooling papers), which must be melted by ``thermalization`` collisions per particle of elastic dynamics.
 
 ``spec.start = null`` picks ``"random"`` wherever RSA is cheap (one-size particles of a shape whose trait
-``RANDOM_START`` says so, the sphere's, up to PARALLEL_START_MIN particles and RANDOM_MAX_VOLUME_FRACTION; every
-species spec), ``"lattice"`` otherwise (ellipsoids, larger sphere starts, denser gases).
+``RANDOM_START`` says so, the sphere's, up to RANDOM_MAX_VOLUME_FRACTION, at any N: from PARALLEL_START_MIN spheres
+on it is placed in parallel, engine/cell_rsa.py; every species spec), ``"lattice"`` otherwise (ellipsoids, denser
+gases).
 ``spec.thermalization = null`` is what that start needs (:func:`thermalization_collisions`).
 """
 
@@ -22,10 +23,13 @@ from __future__ import annotations
 from engine.scales import species_table
 from engine.shapes import traits
 
-#: one-size lattice starts of at least this many particles are drawn in parallel (engine/scene.py's docstring)
+#: one-size starts of at least this many particles are drawn in parallel (engine/scene.py's docstring)
 PARALLEL_START_MIN = 1 << 20
 SEQUENTIAL_GENERATOR = "numpy-pcg64"
 PARALLEL_GENERATOR = "splitmix64-counter"
+#: a random start of at least PARALLEL_START_MIN one-size spheres: random sequential addition in cell rounds from
+#: the same counter-based draws (engine/cell_rsa.py), on the host or the GPU alike
+PARALLEL_RSA_GENERATOR = "splitmix64-cell-rsa"
 #: False: large starts are drawn on the host even for a GPU job (bench/e2e.py ``--off device_start`` sets it, for
 #: A/B timings)
 DEVICE_START = True
@@ -52,8 +56,7 @@ def start_protocol(spec) -> str:
         return spec.start
     if species_table(spec) is not None:
         return RANDOM
-    if traits(spec.shape).RANDOM_START and spec.n_particles < PARALLEL_START_MIN \
-            and spec.volume_fraction <= RANDOM_MAX_VOLUME_FRACTION:
+    if traits(spec.shape).RANDOM_START and spec.volume_fraction <= RANDOM_MAX_VOLUME_FRACTION:
         return RANDOM
     return LATTICE
 
@@ -70,15 +73,18 @@ def thermalization_collisions(spec) -> float:
 
 
 def start_generator(spec) -> str:
-    """Which generator draws a spec's start: the sequential NumPy one, or the parallel counter-based one
-    for lattice starts of N >= PARALLEL_START_MIN one-size particles (random starts are sequential RSA)."""
-    if start_protocol(spec) == LATTICE and species_table(spec) is None \
-            and spec.n_particles >= PARALLEL_START_MIN:
+    """Which generator draws a spec's start: the sequential NumPy one, or for N >= PARALLEL_START_MIN one-size
+    particles the parallel counter-based one: the lattice protocol's, or a random start's random sequential addition
+    in cell rounds (spheres; species starts are sequential RSA at any N)."""
+    if species_table(spec) is not None or spec.n_particles < PARALLEL_START_MIN:
+        return SEQUENTIAL_GENERATOR
+    if start_protocol(spec) == LATTICE:
         return PARALLEL_GENERATOR
-    return SEQUENTIAL_GENERATOR
+    return PARALLEL_RSA_GENERATOR if spec.shape == "sphere" else SEQUENTIAL_GENERATOR
 
 
 def device_start(spec) -> bool:
     """Whether a GPU job of ``spec`` draws its start on the device (engine/loops/cuda_start.py): a large
     one-size sphere lattice start (the parallel generator), unless :data:`DEVICE_START` is False."""
-    return DEVICE_START and spec.shape == "sphere" and start_generator(spec) == PARALLEL_GENERATOR
+    return DEVICE_START and spec.shape == "sphere" and start_generator(spec) in (PARALLEL_GENERATOR,
+                                                                                PARALLEL_RSA_GENERATOR)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from types import SimpleNamespace
+from typing import Optional
 
 import numpy as np
 
@@ -265,8 +266,9 @@ def largest_fitting(spec, p_of, budget: float, **kw) -> int:
     return lo
 
 
-def device_memory() -> tuple[int, int, str]:
-    """(free bytes, total bytes, device name) of the current CUDA device (the CUDA simulator: the host's memory)."""
+def device_memory() -> Optional[tuple[int, int, str]]:
+    """(free bytes, total bytes, device name) of the current CUDA device (the CUDA simulator: the host's memory);
+    None when no CUDA device can be used here (the run then fails where the device is first needed)."""
     from numba import cuda
 
     from engine.loops.cuda_cache import SIM
@@ -276,6 +278,8 @@ def device_memory() -> tuple[int, int, str]:
 
         pages, size = os.sysconf("SC_AVPHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
         return pages * size, os.sysconf("SC_PHYS_PAGES") * size, "CUDA simulator"
+    if not cuda.is_available():
+        return None
     free, total = cuda.current_context().get_memory_info()
     name = cuda.get_current_device().name
     return int(free), int(total), name.decode() if isinstance(name, bytes) else str(name)
@@ -306,7 +310,10 @@ def refuse_oversize(spec, p, *, reads_state: bool = False) -> None:
     from engine.errors import SpecError
     from engine.params import derive
 
-    free, _total, device = device_memory()
+    got = device_memory()
+    if got is None:
+        return
+    free, _total, device = got
     why = memory_refusal(spec, p, free, device, derive, reads_state=reads_state)
     if why is not None:      # an earlier run's arrays in this process may only await collection: free them, ask again
         _release_unreferenced()

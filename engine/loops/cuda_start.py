@@ -17,6 +17,12 @@ upload it: the sphere's CUDA ensemble (engine/shapes/sphere/cuda_backend.py) dra
 4. :func:`scale_into`: each stream, scaled, into its state array in the working precision (the cast an upload
    would make on the device, K.scatter_rows).
 
+A random start (``StartDraw.rsa``) replaces steps 1 and 2 by the rounds of engine/cell_rsa.py: :func:`rsa_pass`
+per pass and colour, a count per round (:func:`rsa_total`), the last round's surplus removed by a histogram of its
+removal keys (:func:`rsa_last_hist`, :func:`rsa_last_gather`, a host sort of one bucket), and one thread per cell
+placing its spheres and their stream rows (:func:`rsa_kept_counts`, a host scan, :func:`rsa_place`); the centres
+are the host's exactly (integer tests, one rounding each).
+
 The formulas are engine.scene's ``@numba.njit`` functions, called by these kernels and by the host's draws alike.
 Sites, blocks and host arithmetic are identical; the values are equal to rounding (libdevice's log, cos, sin and
 pow against the host's libm, and fused multiply-adds). The host pays no draw, no 0.2 GB upload and no load of the
@@ -29,6 +35,7 @@ from __future__ import annotations
 import numpy as np
 from numba import cuda
 
+from engine.cell_rsa import RSA_Q, cell_pass, cut_of, final_key, kept, pass_key, run_rounds, slot_index
 from engine.loops.cuda_cache import SIM, cache_kernels
 from engine.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw, _bits,
                           _site_position, _stream_values, stream_mean, stream_scale)
@@ -160,8 +167,105 @@ def scale_into(out, r0, dim, scale, dst, col0):
             dst[r, col0 + i] = out[r0 + r, i] * scale
 
 
+# ---- a random start: random sequential addition in cell rounds (engine/cell_rsa.py) ------------------------
+
+if SIM:
+    def _raw(a):
+        """The simulator's device arrays wrap NumPy arrays: engine.cell_rsa's compiled functions take those."""
+        return a._ary
+else:
+    @cuda.jit(device=True, inline=True)
+    def _raw(a):
+        """The array itself (on a GPU the kernels call engine.cell_rsa's functions compiled for the device)."""
+        return a
+
+
+@cuda.jit
+def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spass, full):
+    """Pass p (its cells: the m of colour ``colour``) of a random start: engine.cell_rsa.cell_pass per cell; full[0]
+    counts the cells that lacked a slot."""
+    for t in range(cuda.grid(1), m, cuda.gridsize(1)):
+        if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, _raw(counts), _raw(slots), _raw(spass)):
+            cuda.atomic.add(full, 0, 1)
+
+
+@cuda.jit
+def rsa_total(counts, total):
+    """total[0] += the spheres kept in every cell (one atomic per thread)."""
+    acc = 0
+    for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
+        acc += counts[c]
+    cuda.atomic.add(total, 0, acc)
+
+
+@cuda.jit
+def rsa_last_hist(first_pass, trim_key, counts, spass, hist):
+    """hist[b] += the spheres of the last round whose removal key's leading _SELECT_BITS bits are b."""
+    for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
+        for k in range(counts[c]):
+            if spass[c, k] >= first_pass:
+                key = final_key(trim_key, c, k, spass[c, k] - first_pass)
+                cuda.atomic.add(hist, np.int64(key >> _SHIFT), 1)
+
+
+@cuda.jit
+def rsa_last_gather(first_pass, trim_key, bucket, counts, spass, cand_key, cand_index, cand_n):
+    """The (removal key, slot number) of the last round's spheres in ``bucket`` (any order: the host sorts them)."""
+    for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
+        for k in range(counts[c]):
+            if spass[c, k] >= first_pass:
+                key = final_key(trim_key, c, k, spass[c, k] - first_pass)
+                if np.int64(key >> _SHIFT) == bucket:
+                    at = cuda.atomic.add(cand_n, 0, 1)
+                    cand_key[at] = key
+                    cand_index[at] = slot_index(c, k)
+
+
+@cuda.jit
+def rsa_kept_counts(first_pass, trim_key, cut_key, cut_index, counts, spass, kept_n):
+    """kept_n[c] = the spheres of cell c in the start (engine.cell_rsa.kept)."""
+    for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
+        s = 0
+        for k in range(counts[c]):
+            if kept(c, k, _raw(counts), _raw(spass), first_pass, trim_key, cut_key, cut_index):
+                s += 1
+        kept_n[c] = s
+
+
+@cuda.jit
+def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, first, keys, dims, unit_rows,
+              row0, pos, col0, out):
+    """One thread per cell: its kept spheres, numbered from first[c] in slot order, get their centre in pos[:, col0 +
+    i] (cast to pos's precision) and their stream rows in out (as :func:`place_draw`)."""
+    q = np.int64(RSA_Q)
+    for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
+        i = first[c]
+        cx = c // (nc * nc)
+        cy = (c // nc) % nc
+        cz = c % nc
+        for k in range(counts[c]):
+            if kept(c, k, _raw(counts), _raw(spass), first_pass, trim_key, cut_key, cut_index):
+                pos[0, col0 + i] = (cx * q + np.int64(slots[c, k, 0]) + 0.5) * unit
+                pos[1, col0 + i] = (cy * q + np.int64(slots[c, k, 1]) + 0.5) * unit
+                pos[2, col0 + i] = (cz * q + np.int64(slots[c, k, 2]) + 0.5) * unit
+                for s in range(keys.shape[0]):
+                    dim = dims[s]
+                    r = row0[s]
+                    v0, v1, v2, v3 = _stream_values(keys[s], i, dim, unit_rows[s])
+                    out[r, i] = v0
+                    if dim > 1:
+                        out[r + 1, i] = v1
+                    if dim > 2:
+                        out[r + 2, i] = v2
+                    if dim > 3:
+                        out[r + 3, i] = v3
+                i += 1
+
+
 cache_kernels({"site_hist": site_hist, "site_gather": site_gather, "place_draw": place_draw,
-               "block_moments": block_moments, "scale_into": scale_into}, ("start",))
+               "block_moments": block_moments, "scale_into": scale_into, "rsa_pass": rsa_pass, "rsa_total": rsa_total,
+               "rsa_last_hist": rsa_last_hist, "rsa_last_gather": rsa_last_gather, "rsa_kept_counts": rsa_kept_counts,
+               "rsa_place": rsa_place}, ("start",))
 
 
 def _blocks(work: int, tpb: int, cap: int) -> int:
@@ -198,6 +302,68 @@ def _cut(d: StartDraw, site_key, stream, cap: int) -> tuple:
     return cut, counts
 
 
+def _random_centres(d: StartDraw, col0: int, pos, keys, dims, unit, row0, out, stream, cap: int) -> None:
+    """A random start's centres into pos[:, col0:col0 + n] and its stream rows into out: the rounds of
+    engine/cell_rsa.py on the device, the last round's cut by a histogram of its removal keys and a host sort of one
+    bucket (as :func:`_cut`), then one thread per cell places its spheres."""
+    g = d.rsa
+    pos_key, count_key, trim_key = (np.uint64(k) for k in d.rsa_keys())
+    cdf = cuda.to_device(np.array(g.cdf, np.uint64), stream=stream)
+    ncell = g.nc ** 3
+    m = (g.nc // 2) ** 3
+    grid_cells, grid_colour = _blocks(ncell, _WIDE, cap), _blocks(m, _WIDE, cap)
+    full = cuda.device_array(1, np.int64, stream=stream)
+    total = cuda.device_array(1, np.int64, stream=stream)
+    zero = np.zeros(1, np.int64)
+
+    def new_arrays(per_cell: int) -> tuple:
+        counts = cuda.to_device(np.zeros(ncell, np.int32), stream=stream)
+        return (counts, cuda.device_array((ncell, per_cell, 3), np.int16, stream=stream),
+                cuda.device_array((ncell, per_cell), np.int32, stream=stream))
+
+    def one_round(r: int, arrays: tuple) -> tuple:
+        counts, slots, spass = arrays
+        full.copy_to_device(zero, stream=stream)
+        total.copy_to_device(zero, stream=stream)
+        for colour in range(8):
+            p = 8 * r + colour
+            rsa_pass[grid_colour, _WIDE, stream](m, colour, p, g.nc, g.thr, cdf, np.uint64(pass_key(pos_key, p)),
+                                                 np.uint64(pass_key(count_key, p)), counts, slots, spass, full)
+        rsa_total[grid_cells, _WIDE, stream](counts, total)
+        f, t = full.copy_to_host(stream=stream), total.copy_to_host(stream=stream)
+        stream.synchronize()
+        return int(f[0]), int(t[0])
+
+    (counts, slots, spass), rounds, prev = run_rounds(g, one_round, new_arrays)
+    first_pass = 8 * (rounds - 1)
+    keep = d.n - prev
+    hist = cuda.to_device(np.zeros(_NB, np.int32), stream=stream)
+    rsa_last_hist[grid_cells, _WIDE, stream](first_pass, trim_key, counts, spass, hist)
+    h = hist.copy_to_host(stream=stream)
+    stream.synchronize()
+    cum = np.cumsum(h.astype(np.int64))
+    bucket = int(np.searchsorted(cum, keep))
+    below = int(cum[bucket - 1]) if bucket else 0
+    in_bucket = int(h[bucket])
+    cand_key = cuda.device_array(in_bucket, np.uint64, stream=stream)
+    cand_index = cuda.device_array(in_bucket, np.int64, stream=stream)
+    cand_n = cuda.to_device(np.zeros(1, np.int32), stream=stream)
+    rsa_last_gather[grid_cells, _WIDE, stream](first_pass, trim_key, np.int64(bucket), counts, spass, cand_key,
+                                               cand_index, cand_n)
+    cut_key, cut_index = cut_of(cand_key.copy_to_host(stream=stream), cand_index.copy_to_host(stream=stream),
+                                keep - below)
+    kept_n = cuda.device_array(ncell, np.int32, stream=stream)
+    rsa_kept_counts[grid_cells, _WIDE, stream](first_pass, trim_key, cut_key, cut_index, counts, spass, kept_n)
+    per = kept_n.copy_to_host(stream=stream)
+    stream.synchronize()
+    if int(per.sum(dtype=np.int64)) != d.n:
+        raise RuntimeError(f"device random start: {int(per.sum(dtype=np.int64))} spheres kept for {d.n}")
+    first = np.concatenate([[0], np.cumsum(per, dtype=np.int64)[:-1]])
+    rsa_place[grid_cells, _WIDE, stream](
+        g.nc, g.unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass,
+        cuda.to_device(first, stream=stream), keys, dims, unit, row0, pos, np.int64(col0), out)
+
+
 def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 << 14) -> None:
     """Draw ``d`` into columns [col0, col0 + n) of the device arrays ``pos`` (3, N) and ``dsts`` (stream number ->
     (dim, N) array), in their precisions; see the module docstring. ``cap``: most blocks of a grid-stride launch."""
@@ -207,15 +373,19 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
     unit = np.array([rms is None for _, _, rms in d.streams], np.bool_)
     row0 = np.concatenate([[0], np.cumsum(dims)[:-1]]).astype(np.int64)
     rows = int(dims.sum())
-    cut, counts = _cut(d, site_key, stream, cap)
-    if int(counts.sum()) != n:
-        raise RuntimeError(f"device start: {int(counts.sum())} sites chosen for {n} particles")
-    first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     out = cuda.device_array((rows, n), np.float64, stream=stream)
-    place_draw[len(first), TPB, stream](
-        site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream), d.m, d.a, d.half_gap, d.box,
-        place_key, cuda.to_device(np.array(keys, np.uint64), stream=stream), cuda.to_device(dims, stream=stream),
-        cuda.to_device(unit, stream=stream), cuda.to_device(row0, stream=stream), pos, np.int64(col0), out)
+    keys_d, dims_d, unit_d, row0_d = (cuda.to_device(a, stream=stream) for a in (np.array(keys, np.uint64), dims,
+                                                                                 unit, row0))
+    if d.rsa is not None:
+        _random_centres(d, col0, pos, keys_d, dims_d, unit_d, row0_d, out, stream, cap)
+    else:
+        cut, counts = _cut(d, site_key, stream, cap)
+        if int(counts.sum()) != n:
+            raise RuntimeError(f"device start: {int(counts.sum())} sites chosen for {n} particles")
+        first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        place_draw[len(first), TPB, stream](
+            site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream), d.m, d.a, d.half_gap, d.box,
+            place_key, keys_d, dims_d, unit_d, row0_d, pos, np.int64(col0), out)
     # the streams' means and scales, from block sums taken as the host's are (engine.scene.stream_mean, stream_scale)
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     skip = np.repeat(unit, dims)
@@ -245,16 +415,17 @@ SPHERE_TARGETS = {STREAM_VELOCITY: "vel", STREAM_SPIN: "omega", STREAM_QUATERNIO
 
 def load(pos_dtype, dtype) -> None:
     """Load (or compile) every kernel of a device start into device arrays of these precisions, for the argument
-    types a job's start calls them with: a start of 64 spheres on a lattice of 108 sites, discarded (the GPU
-    start-up thread, engine/startup.py)."""
+    types a job's start calls them with: a start of 64 spheres on a lattice of 108 sites and a random one,
+    discarded (the GPU start-up thread, engine/startup.py)."""
     from engine.params import derive
     from engine.scene import parallel_start_streams
     from engine.spec import SimulationSpec
 
     sphere = SimulationSpec()
-    d = StartDraw.of(64, 0, parallel_start_streams(sphere, derive(sphere))[0], 20.0, 1.0)
     stream = cuda.stream()
-    pos = cuda.device_array((3, d.n), pos_dtype, stream=stream)
-    dsts = {k: cuda.device_array((dim, d.n), dtype, stream=stream) for k, dim, _ in d.streams}
-    draw_start(d, 0, pos, dsts, stream)
+    for protocol in ("lattice", "random"):
+        d = StartDraw.of(64, 0, parallel_start_streams(sphere, derive(sphere))[0], 20.0, 1.0, protocol)
+        pos = cuda.device_array((3, d.n), pos_dtype, stream=stream)
+        dsts = {k: cuda.device_array((dim, d.n), dtype, stream=stream) for k, dim, _ in d.streams}
+        draw_start(d, 0, pos, dsts, stream)
     stream.synchronize()

@@ -52,6 +52,17 @@ def _draws() -> None:
             for a, h in zip(arrays, arrays_h):
                 assert np.array_equal(a[:, 3:3 + n], h.T.astype(dtype)), (n, dtype)
                 assert np.all(a[:, :3] == -1.0) and np.all(a[:, 3 + n:] == -1.0)
+    # random starts (engine/cell_rsa.py): the same centres (exact integer tests, one rounding each), a dilute one
+    # and one at phi = 0.29 that takes many rounds
+    for n, box, radius in ((150, 1.0, 0.05), (200, 1.0, 0.07)):
+        d = StartDraw.of(n, 23, _streams(), box, radius, "random")
+        pos_h, arrays_h = d.on_host()
+        for pos_dtype, dtype in ((np.float64, np.float64), (np.float32, np.float32)):
+            pos, arrays = _device_arrays(d, pos_dtype, dtype, extra_cols=2, col0=1)
+            assert np.array_equal(pos[:, 1:1 + n], pos_h.T.astype(pos_dtype)), (n, pos_dtype)
+            assert np.all(pos[:, :1] == -1.0) and np.all(pos[:, 1 + n:] == -1.0)
+            for a, h in zip(arrays, arrays_h):
+                assert np.array_equal(a[:, 1:1 + n], h.T.astype(dtype)), (n, dtype)
     print("draws ok")
 
 

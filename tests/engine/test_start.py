@@ -12,7 +12,8 @@ from engine.errors import SpecError
 from engine.pairs import periodic_pairs
 from engine.params import derive
 from engine.scene import initial_spheres
-from engine.start_kind import (LATTICE, PARALLEL_START_MIN, RANDOM, RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION,
+from engine.start_kind import (LATTICE, PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, RANDOM,
+                               RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION, SEQUENTIAL_GENERATOR, start_generator,
                                start_protocol, thermalization_collisions)
 
 
@@ -33,7 +34,11 @@ def test_null_start_is_random_where_cheap_and_lattice_elsewhere():
     assert start_protocol(SimulationSpec()) == RANDOM
     assert start_protocol(SimulationSpec(volume_fraction=0.3)) == RANDOM
     assert start_protocol(SimulationSpec(volume_fraction=0.35)) == LATTICE
-    assert start_protocol(SimulationSpec(n_particles=PARALLEL_START_MIN, volume_fraction=0.05)) == LATTICE
+    # a large one is random too, placed in parallel (engine/cell_rsa.py)
+    large = SimulationSpec(n_particles=PARALLEL_START_MIN, volume_fraction=0.05)
+    assert start_protocol(large) == RANDOM and start_generator(large) == PARALLEL_RSA_GENERATOR
+    assert start_generator(SimulationSpec(n_particles=PARALLEL_START_MIN - 1)) == SEQUENTIAL_GENERATOR
+    assert start_generator(SimulationSpec(n_particles=PARALLEL_START_MIN, start="lattice")) == PARALLEL_GENERATOR
     assert start_protocol(SimulationSpec(shape="ellipsoid", elongation=2.0, volume_fraction=0.02)) == LATTICE
     assert start_protocol(SimulationSpec(start="lattice")) == LATTICE
     assert start_protocol(SimulationSpec(start="random", n_particles=PARALLEL_START_MIN, volume_fraction=0.01)) \

@@ -18,24 +18,27 @@ from engine.errors import InstabilityError
 from engine.loops.system import rows_equal
 from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.params import derive
-from engine.scene import (PARALLEL_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
+from engine.scene import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
                           STREAM_SITES, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY, _bits, _parallel_draws,
                           _smallest_sites, _stream_key, device_start, initial_ellipsoids, initial_spheres,
                           start_generator)
 from engine.spec import SimulationSpec
 
 
-def _big(n=PARALLEL_START_MIN, **kw):
+def _big(n=PARALLEL_START_MIN, start="lattice", **kw):
+    """A large start (the lattice protocol unless ``start`` says otherwise: engine/cell_rsa.py's random one is
+    tested in tests/engine/test_cell_rsa.py)."""
     return SimulationSpec(n_particles=n, volume_fraction=0.058, box_length=2.0 * (n / 4096) ** (1.0 / 3.0),
-                          thermalization=0, **kw)
+                          thermalization=0, start=start, **kw)
 
 
 def test_which_starts_are_drawn_in_parallel():
     assert start_generator(_big(PARALLEL_START_MIN - 1)) == SEQUENTIAL_GENERATOR
     assert start_generator(_big()) == PARALLEL_GENERATOR
+    assert start_generator(_big(start=None)) == PARALLEL_RSA_GENERATOR                # the default: random
     assert start_generator(SimulationSpec()) == SEQUENTIAL_GENERATOR
     species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
-    assert start_generator(_big(species=species)) == SEQUENTIAL_GENERATOR  # RSA placement stays sequential
+    assert start_generator(_big(species=species, start=None)) == SEQUENTIAL_GENERATOR  # RSA placement stays sequential
 
 
 def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_host_if_the_job_runs_on_the_cpu(
@@ -116,24 +119,26 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
     assert not np.array_equal(other.velocity, v)
 
 
-@pytest.mark.parametrize("kw", [{}, {"shape": "ellipsoid", "elongation": 2.0, "e_t": -1.0},
+@pytest.mark.parametrize("kw", [{}, {"start": None}, {"shape": "ellipsoid", "elongation": 2.0, "e_t": -1.0},
                                 {"shape": "ellipsoid", "elongation": 2.0}])
 def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(monkeypatch, kw):
     """engine.scene.load_parallel_start (the worker's standby, warm_process) calls every compiled function of a
     large start of the spec's kind (spheres; smooth and rough ellipsoids, 3 and 4 streams) with the argument types
     the start calls it with, so the start loads nothing more."""
+    import engine.cell_rsa as rsa
     import engine.scene as sc
     from engine.shapes import host
 
     calls = {}
-    for name in ("_draw_start", "_centre_and_square", "_scale_streams", "_space_spins_parallel"):
-        f = getattr(sc, name)
+    for module, name in ((sc, "_draw_start"), (sc, "_centre_and_square"), (sc, "_scale_streams"),
+                         (sc, "_space_spins_parallel"), (rsa, "_round"), (rsa, "_last_round"), (rsa, "_gather")):
+        f = getattr(module, name)
 
         def spy(*args, _f=f, _name=name):
             calls.setdefault(_name, []).append(tuple(numba.typeof(a) for a in args))
             return _f(*args)
 
-        monkeypatch.setattr(sc, name, spy)
+        monkeypatch.setattr(module, name, spy)
     spec = _big(**kw)
     p = derive(spec)
     assert sc.load_parallel_start(spec.model_copy(update={"n_particles": 1000}), p)   # N is not read
@@ -142,7 +147,7 @@ def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(mon
     host(spec.shape).initial_system(spec, p)
     assert set(calls) == set(loaded) and all(set(v) <= loaded[k] for k, v in calls.items())
     species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
-    assert not sc.load_parallel_start(_big(species=species), p)      # species starts are NumPy's
+    assert not sc.load_parallel_start(_big(species=species, start=None), p)      # species starts are NumPy's
 
 
 def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypatch):
@@ -622,7 +627,7 @@ def test_cuda_kernel_cache_loads_without_refreshing_the_target():
 
 # ---- the CPU kernels' disk-cache loads ---------------------------------------------------------------------
 
-_ENGINE_JIT_MODULES = ("engine.scene", "engine.multigrid", "engine.loops.cpu", "engine.loops.cpu_shared",
+_ENGINE_JIT_MODULES = ("engine.scene", "engine.cell_rsa", "engine.multigrid", "engine.loops.cpu", "engine.loops.cpu_shared",
                        "engine.shapes.sphere.kernels",
                        "engine.shapes.spheroid.kernels", "engine.shapes.spheroid.cpu_backend",
                        "engine.validation.encounter_dsmc", "engine.validation.sonine")
