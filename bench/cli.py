@@ -22,7 +22,7 @@ BENCHMARKS: dict[str, bool] = {
     # speed (Cundall numbers) and time to result
     "gpu_scaling": True, "gpu_ensemble": True, "gpu_ellipsoid_scaling": True, "cpu_scaling": True,
     "ellipsoid_cpu_speed": True, "vs_lammps": True, "e2e": True, "e2e_profile": True, "list_modes": True,
-    "multigrid_cost": True, "specialisation": True, "auto_trial": True, "vs_jaxmd": True, "device_memory": True,
+    "multigrid_cost": True, "specialisation": True, "auto_trial": True, "vs_jaxmd": True, "large_scenes": True,
     "loop_ab": False, "step_phases": False, "batch_where": False, "driver_overhead": False, "host_memory": False,
     "setup_timeline": False, "start_draw": False, "writer_processes": False, "download_speed": False,
     "cpu_default_job": False, "cpu_small_scenes": False,

@@ -1,7 +1,7 @@
 """Device memory of a CUDA ensemble: what it holds (:func:`device_allocations`, read off a live ensemble) and what
 a sphere scene will hold (:func:`sphere_account`, the same arrays predicted from the spec before anything is
 allocated). The test suite checks the two against each other array by array (CUDA simulator), and
-bench/device_memory.py checks the prediction against the allocator's peak on a GPU.
+bench/large_scenes.py checks the prediction against the allocator's peak on a GPU.
 """
 
 from __future__ import annotations

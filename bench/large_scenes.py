@@ -1,15 +1,20 @@
-"""Device memory of a sphere scene through ``engine.run``: the prediction (engine/loops/cuda_memory.py) against the
-allocator, and the up-front refusal of a scene that does not fit.
+"""Large sphere scenes on one GPU: their device memory against the prediction, and their start drawn on the device.
 
-    python -m bench device_memory --n 8388608 134217728 1000000000 --precision float32 float64 --steps 1000
+    python -m bench large_scenes memory --n 8388608 134217728 1000000000 --precision float32 float64 --steps 1000
+    python -m bench large_scenes start --n 2097152 8388608 --phi 0.008 0.058 0.2
 
-Per case (rough spheres, e_n = e_t = 0.8, phi = 0.058 unless ``--phi``, no snapshots, records every t_end/200,
-``--steps`` cooling steps, no thermalisation, the spec's start or ``--start``): the predicted peak (B per particle; the list stride it assumes); the
-allocator's peak of live device bytes during the run (a Numba memory-manager plugin that counts what is allocated
-and released; pending deallocations are flushed at once, NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT = 1); the process's
-peak as nvidia-smi sees it (context included); the arrays the ensemble holds at the end (the account's names,
-engine/loops/cuda_memory.py ``device_allocations``) and the stride reached; the loop's Cundall number. A spec the
-prediction refuses is reported with the refusal's text and how long it took.
+``memory``: per case (rough spheres, e_n = e_t = 0.8, phi = 0.058 unless ``--phi``, no snapshots, records every
+t_end/200, ``--steps`` cooling steps, no thermalisation, the spec's start or ``--start``) the predicted peak (B per
+particle; the list stride it assumes, engine/loops/cuda_memory.py); the allocator's peak of live device bytes during
+the run (a Numba memory-manager plugin that counts what is allocated and released; pending deallocations are
+flushed at once, NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT = 1); the process's peak as nvidia-smi sees it (context
+included); the arrays the ensemble holds at the end (``device_allocations``) and the stride reached; the loop's
+Cundall number. A spec the prediction refuses is reported with the refusal's text and how long it took.
+
+``start``: the random start (engine/cell_rsa.py) drawn on the device (engine/loops/cuda_start.py ``draw_start``,
+float64 positions, the sphere's three streams) for each N and phi, best of ``--reps`` after one untimed draw (the
+kernels' load), with the rounds it took; for N <= ``--check-max`` the host's draw of the same start and whether the
+centres are equal bit for bit (the streams equal to rounding), and the smallest centre distance over sigma.
 """
 
 from __future__ import annotations
@@ -144,26 +149,76 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     return row
 
 
+def start_case(n: int, phi: float, reps: int, check_max: int) -> dict:
+    import numpy as np
+    from numba import cuda
+
+    from engine.loops.cuda_start import draw_start
+    from engine.pairs import periodic_pairs
+    from engine.params import derive
+    from engine.scene import StartDraw, parallel_start_streams
+    from engine.spec import SimulationSpec
+
+    spec = SimulationSpec(n_particles=n, volume_fraction=phi, backend="cuda", seed=1)
+    p = derive(spec)
+    streams, radius = parallel_start_streams(spec, p)
+    d = StartDraw.of(n, spec.seed, streams, spec.box_length, radius, "random")
+    stream = cuda.stream()
+    pos = cuda.device_array((3, n), np.float64, stream=stream)
+    dsts = {k: cuda.device_array((dim, n), np.float64, stream=stream) for k, dim, _ in d.streams}
+    times = []
+    for _ in range(reps + 1):
+        stream.synchronize()
+        t0 = time.perf_counter()
+        draw_start(d, 0, pos, dsts, stream)
+        stream.synchronize()
+        times.append(time.perf_counter() - t0)
+    row = dict(n=n, phi=phi, cells=d.rsa.nc ** 3, first_s=times[0], best_s=min(times[1:]))
+    if n <= check_max:
+        t0 = time.perf_counter()
+        pos_h, arrays_h = d.on_host()
+        row["host_s"] = time.perf_counter() - t0
+        pos_d = pos.copy_to_host().T
+        row["centres_equal"] = bool(np.array_equal(pos_d, pos_h))
+        row["streams_max_rel_diff"] = max(float(np.max(np.abs(dsts[k].copy_to_host().T - a))) / max(
+            1e-300, float(np.max(np.abs(a)))) for (k, _, _), a in zip(d.streams, arrays_h))
+        close = periodic_pairs(pos_h, spec.box_length, 2.0 * radius * 1.001)
+        r = pos_h[close[:, 1]] - pos_h[close[:, 0]]
+        r -= spec.box_length * np.round(r / spec.box_length)
+        row["min_distance_over_sigma"] = float(np.sqrt((r * r).sum(1)).min() / (2 * radius)) if len(r) else None
+    return row
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["memory", "start"])
     ap.add_argument("--n", type=int, nargs="+", default=[8388608])
     ap.add_argument("--precision", nargs="+", default=["float32"])
-    ap.add_argument("--phi", type=float, default=0.058)
+    ap.add_argument("--phi", type=float, nargs="+", default=[0.058])
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--start", choices=["random", "lattice"], default=None,
-                    help="the spec's start (default: the spec's own, a lattice above 2^20 spheres)")
+                    help="memory: the spec's start (default: the spec's own)")
+    ap.add_argument("--reps", type=int, default=3, help="start: timed draws after the first")
+    ap.add_argument("--check-max", type=int, default=2097152, help="start: largest N drawn on the host too")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    counting = _install_counter()
     rows = []
-    for prec in args.precision:
-        for n in args.n:
-            r = case(n, prec, args.phi, args.steps, args.start)
-            r["allocator_counted"] = counting
-            rows.append(r)
-            print(json.dumps(r), flush=True)
+    if args.what == "memory":
+        counting = _install_counter()
+        for prec in args.precision:
+            for n in args.n:
+                r = case(n, prec, args.phi[0], args.steps, args.start)
+                r["allocator_counted"] = counting
+                rows.append(r)
+                print(json.dumps(r), flush=True)
+    else:
+        for phi in args.phi:
+            for n in args.n:
+                r = start_case(n, phi, args.reps, args.check_max)
+                rows.append(r)
+                print(json.dumps(r), flush=True)
     if args.out:
-        with open(os.path.join(args.out, "device_memory.json"), "w") as f:
+        with open(os.path.join(args.out, f"large_scenes_{args.what}.json"), "w") as f:
             json.dump(rows, f, indent=1)
     return 0
 
