@@ -1,7 +1,7 @@
 """Side-by-side loop variants of one case (JAX-MD scenes, 1M scene, 256 packed scenes, 1M rough spheroids).
 
 In one warm process (kernels compiled by a 20-step run of each variant first), each repetition runs every variant
-once, in turn, on the same case of bench/vs_jaxmd.py (its scene, its spec: no thermalisation, no snapshots), and
+once, in turn, on the same case (bench/vs_jaxmd.py's scene and spec: no thermalisation, no snapshots), and
 prints one JSON line per run: the loop and end-to-end Cundall numbers and the neighbour-list builds. A variant is
 ``default`` or a ``+``-joined list of: bench/e2e.py ``--off`` switch names (e.g. ``launch_cache``,
 ``displacement_bound``), ``multistep_on`` (the many-steps-per-launch loop forced for a large scene), ``blocks=B``
@@ -14,11 +14,11 @@ of one piece of machinery inside the loop, without the fresh-process noise of be
     python -m bench loop_ab --cases rough-2M-f64 --variants default blocks=2 blocks=3
     python -m bench loop_ab --cases elastic-1M-f64 packed-256x4096-f64 --variants default gc_off --start random
 
-Cases: those of bench/vs_jaxmd.py and :data:`EXTRA` (one 1M-sphere scene and 256 packed scenes of 4096 at the
-same sphere size; 1M rough spheroids). For several scenes the loop figure is N x steps over the ensemble's loop
-seconds. Compare one scene with packed scenes at the same ``--start``: by default a scene of 2^20 particles or more
-starts on the lattice, whose list stays nearly empty over a short run, and a 4096-sphere scene from the random
-start.
+Cases: :data:`JAXMD_CASES` (bench/vs_jaxmd.py's gas at phi = 0.058) and :data:`EXTRA` (one 1M-sphere scene and 256
+packed scenes of 4096 at the same sphere size; 1M rough spheroids). For several scenes the loop figure is N x steps
+over the ensemble's loop seconds. Compare one scene with packed scenes at the same ``--start``: by default a scene of
+2^20 particles or more starts on the lattice, whose list stays nearly empty over a short run, and a 4096-sphere scene
+from the random start.
 """
 
 from __future__ import annotations
@@ -67,7 +67,14 @@ def apply(variant: str, default_blocks) -> None:
     switch_off(off)
 
 
-#: cases beyond bench/vs_jaxmd.py's: name -> (scenes, N per scene, precision, steps, contact); the JAX-MD scene
+#: the JAX-MD scene's cases (bench/vs_jaxmd.py's gas at phi = 0.058, its start left to the engine unless --start):
+#: name -> (N, precision, steps, contact)
+JAXMD_CASES = {"elastic-2M-f64": (2_097_152, "float64", 2000, "elastic"),
+               "elastic-8M-f32": (8_388_608, "float32", 1000, "elastic"),
+               "elastic-8M-f64": (8_388_608, "float64", 1000, "elastic"),
+               "rough-2M-f64": (2_097_152, "float64", 2000, "rough"),
+               "rough-8M-f32": (8_388_608, "float32", 1000, "rough")}
+#: cases beyond those: name -> (scenes, N per scene, precision, steps, contact); the JAX-MD scene
 #: (phi = 0.058, k_n = 1e8, rho = 2000, v_rms = 2) at its sphere size (box 2 m x (N / 2^21)^(1/3)), elastic or
 #: rough (e_n = e_t = 0.8), and the rough spheroids of the spheroid papers (xi = 2, phi = 0.05, e_n = e_t = 0.8)
 EXTRA = {
@@ -87,7 +94,8 @@ def extra_specs(case: str, steps: int, backend: str, start=None) -> list:
     from engine.spec import SimulationSpec
 
     k, n, precision, _, contact = EXTRA[case]
-    base = dict(SCENE, n_particles=n, precision=precision, thermalization=0.0, snapshots=0, backend=backend,
+    base = dict(SCENE, volume_fraction=0.058, n_particles=n, precision=precision,
+                thermalization=0.0, snapshots=0, backend=backend,
                 box_length=SCENE["box_length"] * (n / 2**21) ** (1 / 3), start=start)
     if contact == "elastic":
         base.update(e_n=1.0, e_t=-1.0)
@@ -104,10 +112,10 @@ def extra_specs(case: str, steps: int, backend: str, start=None) -> list:
 
 
 def main(argv=None) -> int:
-    from bench.vs_jaxmd import CASES, case_spec
+    from bench.vs_jaxmd import Case, case_spec
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", nargs="+", choices=list(CASES) + list(EXTRA), default=["elastic-2M-f64"])
+    ap.add_argument("--cases", nargs="+", choices=list(JAXMD_CASES) + list(EXTRA), default=["elastic-2M-f64"])
     ap.add_argument("--variants", nargs="+", default=["launch_cache", "default"])
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda")
@@ -127,9 +135,9 @@ def main(argv=None) -> int:
     def specs_of(case: str, steps: int) -> list:
         if case in EXTRA:
             return extra_specs(case, steps, args.backend, args.start)
-        n, precision, _, rough = CASES[case]
-        spec = case_spec(n, precision, steps, rough, args.backend)
-        return [spec if args.start is None else type(spec)(**dict(spec.model_dump(), start=args.start))]
+        n, precision, _, contact = JAXMD_CASES[case]
+        spec = case_spec(Case(n, precision, steps, contact, 0.058), args.backend)
+        return [type(spec)(**dict(spec.model_dump(), start=args.start))]      # None: the engine's choice by size
 
     def run_case(specs: list, tmp: Path) -> tuple:
         """(summaries, wall s): one scene through engine.run, several through one run_ensemble."""
@@ -147,7 +155,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="loop_ab_") as tmp:
         tmp = Path(tmp)
         for case in args.cases:
-            steps = EXTRA[case][3] if case in EXTRA else CASES[case][2]
+            steps = EXTRA[case][3] if case in EXTRA else JAXMD_CASES[case][2]
             steps = max(1, int(steps * args.steps_scale))
             for v in args.variants:
                 apply(v, default_blocks)
