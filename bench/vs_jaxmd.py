@@ -239,7 +239,9 @@ class StartMemo:
         key = self.key(spec)
         if key not in self.starts:
             t0 = time.perf_counter()
-            self.starts[key] = self.draw(spec, p, on_device)
+            # drawn on the host even for a GPU job (whose large start would be drawn on the device: the same
+            # centres, engine/cell_rsa.py), so that it can be handed to JAX-MD and to the second run
+            self.starts[key] = self.draw(spec, p, False)
             self.draw_s[key] = time.perf_counter() - t0
         system = self.starts[key]
         return dataclasses.replace(system, **{f.name: np.array(v) for f in dataclasses.fields(system)
