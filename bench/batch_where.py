@@ -45,8 +45,8 @@ def _timed(owner, name: str, label: str) -> None:
 
 def main() -> None:
     import engine.backends.cuda as cb
-    import engine.ensemble as ens_mod
-    import engine.simulate as sim
+    import engine.driver.ensemble as ens_mod
+    import engine.driver.simulate as sim
     from bench.e2e import case_specs, to_spec
 
     for owner, name, label in ((sim.SceneRun, "at_stop", "at_stop"),

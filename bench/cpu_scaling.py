@@ -23,10 +23,10 @@ import numba
 
 from bench import out_dir
 from engine.shapes.sphere.cpu_backend import CpuBackend
-from engine.params import derive
-from engine.scene import initial_spheres
-from engine.simulate import contact_params
-from engine.spec import SimulationSpec
+from engine.setup.params import derive
+from engine.setup.scene import initial_spheres
+from engine.driver.simulate import contact_params
+from engine.setup.spec import SimulationSpec
 
 
 def scene(n: int, phi: float, precision: str):

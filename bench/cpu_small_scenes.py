@@ -24,8 +24,8 @@ from pathlib import Path
 
 def _loops(sizes, reps: int, t_end: float, folder: Path) -> None:
     import engine.loops.cpu as cpu
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     chosen = cpu.SERIAL_LOOP_BELOW
     try:
@@ -47,8 +47,8 @@ def _loops(sizes, reps: int, t_end: float, folder: Path) -> None:
 
 
 def _small_jobs(jobs: int, folder: Path) -> None:
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=64, backend="cpu")
     run(spec, folder / "job-warm.h5")

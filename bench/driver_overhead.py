@@ -1,6 +1,6 @@
 """The driver's host time per scene and round of a packed batch, without a GPU.
 
-engine.simulate.drive runs K small scenes (64 spheres, no snapshots, default records) on a fake ensemble that
+engine.driver.simulate.drive runs K small scenes (64 spheres, no snapshots, default records) on a fake ensemble that
 does nothing in its ``advance``. Printed: the host time between two advances (on a real ensemble the GPU is idle
 then: the stops' records, progress and checkpoint checks), per scene and round.
 
@@ -58,8 +58,8 @@ class _Nothing(Ensemble):
 
 
 def main() -> None:
-    import engine.simulate as sim
-    from engine.simulate import SceneRun, drive
+    import engine.driver.simulate as sim
+    from engine.driver.simulate import SceneRun, drive
 
     k = int(sys.argv[1]) if len(sys.argv) > 1 else 256
     out = tempfile.mkdtemp()

@@ -2,7 +2,7 @@
 
 Runs, each in a fresh Python process: two plain jobs (the first fills the kernel caches), two probes of the
 one-off start-up stage by stage (numba import, numba.cuda import, driver check, context creation, the first
-cached CPU kernel's load (numba's CPU target; engine/jitcache.py's fast loads skip its registries and scipy.linalg,
+cached CPU kernel's load (numba's CPU target; engine/numba_support/jitcache.py's fast loads skip its registries and scipy.linalg,
 which the probe reports as imported or not), the GPU start-up thread's stand-in scene: CUDA registries and kernel
 cache loads),
 one job under cProfile (written to OUT/profile.txt and OUT/run.prof, cumulative and internal time) and a
@@ -33,7 +33,7 @@ def child(mode: str) -> None:
     """One job (or probe) in this process; prints one JSON line."""
     t0 = time.perf_counter()
     from bench.e2e import case_specs, to_spec
-    import engine.simulate as simulate
+    import engine.driver.simulate as simulate
 
     t1 = time.perf_counter()
     info = case_specs(CASE, False)
@@ -53,14 +53,14 @@ def child(mode: str) -> None:
         t.append(time.perf_counter())
         cuda.current_context()
         t.append(time.perf_counter())
-        import engine.scene as scene
+        import engine.setup.scene as scene
 
         scene._stream_key(1, 1)    # the first cached njit call: numba's CPU target
         t.append(time.perf_counter())
-        from engine.params import derive
+        from engine.setup.params import derive
         from engine.shapes import host
-        from engine.simulate import contact_params
-        from engine.startup import STANDIN_EDGE, GpuStartup
+        from engine.driver.simulate import contact_params
+        from engine.driver.startup import STANDIN_EDGE, GpuStartup
 
         p = derive(spec)
         s = GpuStartup("sphere", host("sphere").standin_system(p, STANDIN_EDGE),
@@ -83,7 +83,7 @@ def child(mode: str) -> None:
     if batch is None:
         summary = simulate.run(spec, f"/tmp/e2e_profile_{mode}.h5")
     else:
-        from engine.ensemble import run_ensemble
+        from engine.driver.ensemble import run_ensemble
 
         summary = run_ensemble(batch, [f"/tmp/e2e_profile_{mode}_{k}.h5" for k in range(len(batch))])[-1]
     tb = time.perf_counter()

@@ -2,7 +2,7 @@
 
 A 13-cell matrix (bench/hcs_ellipsoids_cuda.py, one seed per cell) gave a late T_tr/T_rot of
 1.0493 +- 0.0068 at xi = 2.5, e_n = 0.9, +4.0 % from the e_eff(D) DSMC value 1.0093. This script runs, as ONE
-CUDA ensemble (engine.ensemble.run_ensemble), the Rubio-Largo et al. (2015) scene of engine/validation/hcs_ellipsoids.py
+CUDA ensemble (engine.driver.ensemble.run_ensemble), the Rubio-Largo et al. (2015) scene of engine/validation/hcs_ellipsoids.py
 (phi = 0.058, v_rms = 3.5 m/s, 3 elastic sphere-rate collisions of thermalisation, Gamma_0 t_end = 40; box edge
 2 m (N/4096)^(1/3)) for:
 
@@ -71,7 +71,7 @@ def scenes(groups, collisions, backend):
 
 
 def steps_of(spec):
-    from engine.params import derive
+    from engine.setup.params import derive
 
     p = derive(spec)
     return p.n_steps + p.n_thermalization_steps, p.n_steps // p.output_every + 1
@@ -137,7 +137,7 @@ def simulate(args) -> int:
     plan["scenes"] = {lab: dict(steps=steps_of(s)[0], n=s.n_particles, snapshots=s.snapshots) for lab, s, _ in runs}
     print(json.dumps(plan), flush=True)
     (out / "plan.json").write_text(json.dumps(plan, indent=1))
-    from engine.ensemble import run_ensemble
+    from engine.driver.ensemble import run_ensemble
 
     t = time.perf_counter()
     res = run_ensemble([s for _, s, _ in runs], [work / f for _, _, f in runs], backend=args.backend)
@@ -158,7 +158,7 @@ def flow_diagnostics(path, n_per_cell=64):
     """Per snapshot frame: time, excess flow-energy fraction and density fluctuation (see module doc)."""
     import h5py
 
-    from engine.h5md import read_parameters
+    from engine.output.h5md import read_parameters
 
     box = float(read_parameters(path)["spec"]["box_length"])
     with h5py.File(path, "r") as f:

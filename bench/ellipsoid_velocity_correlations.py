@@ -3,7 +3,7 @@
 The DSMC with the whole DEM encounter as its collision rule leaves the DEM's late T_tr/T_rot +0.8-0.9 % above it,
 at N = 4096 and 16 384 alike (bench/ellipsoid_cooling_seeds.py, 8 x 8 seeds on an H100). A two-body rule assumes
 molecular chaos. This measures how far the DEM gas is from it, in the snapshot frames of
-bench/ellipsoid_cooling_seeds.py's result files (engine/velocity_correlations.py): c_v = <v_i . v_j> / <|v|^2>
+bench/ellipsoid_cooling_seeds.py's result files (engine/analysis/velocity_correlations.py): c_v = <v_i . v_j> / <|v|^2>
 and the approaching pairs' normal relative speed, g_n_ratio = <(g . r_hat)^2> / (2 <|v|^2> / 3) - 1, for centre
 distances below r_cut = f x 2a (a: the long semi-axis, the bounding radius; f = 1: bounding spheres touch).
 
@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.velocity_correlations import file_correlations  # noqa: E402
+from engine.analysis.velocity_correlations import file_correlations  # noqa: E402
 
 FACTORS = (1.0, 1.5, 3.0)
 

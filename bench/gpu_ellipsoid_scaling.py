@@ -2,7 +2,7 @@
 must-show 5), plus the ensemble rows K x 4096 ellipsoids.
 
 Scene: the Rubio-Largo et al. (2015) gas -- frictionless prolate spheroids, elongation xi = 2, phi = 0.058, e_n = 0.9,
-the engine's contact constants for that spec (engine.params.derive: k_n, gamma_n, dt = t_c/50, skin), box edge
+the engine's contact constants for that spec (engine.setup.params.derive: k_n, gamma_n, dt = t_c/50, skin), box edge
 2 m x (N/4096)^(1/3) (the particle size of Hidalgo et al. 2013, as engine/validation/hcs_ellipsoids.py), v_rms = 3.5 m/s
 and spins about the two axes perpendicular to the symmetry axis at the same temperature. Placement: uniformly random
 centres and orientations, every overlapping ellipsoid (Perram-Wertheim W_0 < 1, the engine's own test) redrawn
@@ -157,9 +157,9 @@ def ellipsoid_gas(n, phi, precision, seed=1, xi=XI, e_n=0.9):
     """(EllipsoidSystem, ContactParams) of the Rubio-Largo et al. (2015) gas (module docstring); placement cached per
     (n, phi, seed, xi) so both precisions start from the same configuration."""
     from engine.backends.base import EllipsoidSystem
-    from engine.params import derive
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(shape="ellipsoid", elongation=xi, n_particles=n, volume_fraction=phi,
                           box_length=2.0 * (n / 4096) ** (1 / 3), e_n=e_n, e_t=-1.0, velocity_rms=3.5, seed=seed,

@@ -42,7 +42,7 @@ def parse_cells(items):
 
 
 def steps_of(cell, seed=0):
-    from engine.params import derive
+    from engine.setup.params import derive
 
     p = derive(H.full_spec(cell[0], cell[1], seed, "cuda"))
     return p.n_steps + p.n_thermalization_steps, p.n_steps // p.output_every + 1

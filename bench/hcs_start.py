@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.ensemble import run_ensemble
-from engine.params import derive, e_t_effective
-from engine.spec import SimulationSpec
-from engine.theory import luding_ode, tau_factor
+from engine.driver.ensemble import run_ensemble
+from engine.setup.params import derive, e_t_effective
+from engine.setup.spec import SimulationSpec
+from engine.analysis.theory import luding_ode, tau_factor
 from engine.validation.hcs_spheres import measure_run
 
 STARTS = {"random": {"start": None, "thermalization": None},

@@ -46,10 +46,10 @@ QUICK = [
 
 def make_scene(n: int, phi: float, species, precision: str = "float64", seed: int = 1):
     """(system, contact params, derived) of a cooling gas at the spec defaults, box scaled with N."""
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     kw = dict(n_particles=n, volume_fraction=phi, box_length=2.0 * (n / 4096) ** (1.0 / 3.0), e_n=0.8,
               e_t=0.8, precision=precision, seed=seed, backend="cuda")

@@ -83,8 +83,8 @@ def extra_specs(case: str, steps: int, backend: str, start=None) -> list:
     """The specs of an EXTRA case (one per scene, own seeds), t_end = steps x dt exactly; ``start``: the spec's start
     protocol (None: the engine's choice by size, which differs between one 1M scene and 4096-sphere scenes)."""
     from bench.vs_jaxmd import SCENE
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     k, n, precision, _, contact = EXTRA[case]
     base = dict(SCENE, n_particles=n, precision=precision, thermalization=0.0, snapshots=0, backend=backend,
@@ -120,7 +120,7 @@ def main(argv=None) -> int:
 
     import engine.loops.cuda_loop as loop
     from engine import run, run_ensemble
-    from engine.start_kind import start_protocol
+    from engine.setup.start_kind import start_protocol
 
     default_blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
 

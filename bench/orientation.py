@@ -58,11 +58,11 @@ def reference() -> None:
 
 
 def cost() -> None:
-    from engine.params import derive
-    from engine.scene import initial_spheres
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
     from engine.shapes.sphere.cpu_backend import CpuBackend
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     rates = {2: [], 0: []}
     for _ in range(3):

@@ -54,9 +54,9 @@ def _patch_loaded() -> None:
     groups = {
         "numba-cuda": ("numba.cuda.dispatcher", "CUDACache",
                        lambda m: _wrap(m.CUDACache, "_load_overload", "CUDA kernel cache load")),
-        "jitcache": ("engine.numba_internals", "FastLoadCache",
+        "jitcache": ("engine.numba_support.numba_internals", "FastLoadCache",
                      lambda m: _wrap(m.FastLoadCache, "load_overload", "CPU cache load")),
-        "scene": ("engine.scene", "_parallel_draws", lambda m: [
+        "scene": ("engine.setup.scene", "_parallel_draws", lambda m: [
             _wrap(m, n, n) for n in ("initial_spheres", "initial_ellipsoids", "_draw_start", "_centre_and_square",
                                      "_scale_streams")]),
         "cuda": ("engine.backends.cuda", "CudaBackend", lambda m: [
@@ -65,7 +65,7 @@ def _patch_loaded() -> None:
             _wrap(m.CudaEnsemble, n, n, 2) for n in ("_upload_particles", "_prime", "_scene_rows", "_host_slot")]),
         "cuda-start": ("engine.loops.cuda_start", "SPHERE_TARGETS", lambda m: [
             _wrap(m, "draw_start", "device start draw"), _wrap(m, "load", "device start load")]),
-        "h5md": ("engine.h5md", "H5MDWriter", lambda m: [
+        "h5md": ("engine.output.h5md", "H5MDWriter", lambda m: [
             _wrap(m.H5MDWriter, n, "h5md." + n) for n in ("_create", "_write_frame", "_write_block", "finish",
                                                           "_wait")] + [
             _wrap(m, n, "h5md." + n) for n in ("xdmf_text", "replace_file", "write_xdmf")]),
@@ -95,8 +95,8 @@ def _import(name, globals=None, locals=None, fromlist=(), level=0, _real=builtin
 def child(case: str, show_all: bool) -> None:
     sys.path.insert(0, str(ROOT))
     builtins.__import__ = _import
-    import engine.simulate as sim
-    import engine.startup as st
+    import engine.driver.simulate as sim
+    import engine.driver.startup as st
 
     _wrap(st.GpuStartup, "_work", "GPU start-up thread")
     _wrap(st.DriverStart, "_work", "driver start-up thread")

@@ -1,7 +1,7 @@
-"""How long a large start takes to draw (set-up): engine.scene's initial_spheres / initial_ellipsoids in
+"""How long a large start takes to draw (set-up): engine.setup.scene's initial_spheres / initial_ellipsoids in
 fresh Python processes, the first call (the compiled draws' disk-cache loads and numba's thread pool included) and
 two more in the same process. numba and numba.cuda are imported before the clock, as in a GPU job, where they are
-imported before the start is drawn (engine/startup.py).
+imported before the start is drawn (engine/driver/startup.py).
 
     python -m bench start_draw [--n 2097152] [--shape sphere|ellipsoid] [--procs 3]
 
@@ -29,9 +29,9 @@ def child(n: int, shape: str) -> dict:
     except ImportError:
         pass
     sys.path.insert(0, ROOT)
-    from engine.params import derive
-    from engine.scene import initial_ellipsoids, initial_spheres
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_ellipsoids, initial_spheres
+    from engine.setup.spec import SimulationSpec
 
     kw = dict(shape="ellipsoid", elongation=2.0) if shape == "ellipsoid" else {}
     spec = SimulationSpec(n_particles=n, volume_fraction=0.058, box_length=2.0 * (n / 4096) ** (1.0 / 3.0),

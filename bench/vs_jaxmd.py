@@ -5,10 +5,10 @@
     python -m bench.vs_jaxmd --quick --backend cpu             # smoke run: N = 4096, 3000 steps, on the CPU
 
 The scene: phi = 0.058 in a periodic 2 m cube, k_n = 1e8 N/m, density 2000 kg/m^3, velocity_rms = 2 m/s,
-dt = t_c/50; the radius a, the mass m = rho (4/3) pi a^3 and dt come from demq's own ``engine.params.derive``.
+dt = t_c/50; the radius a, the mass m = rho (4/3) pi a^3 and dt come from demq's own ``engine.setup.params.derive``.
 dt is rounded to the nearest float32 (relative change < 6e-8) and given to both codes as the spec's ``dt``:
 ``jax_md.simulate.velocity_verlet`` casts its dt to float32 even with x64 enabled, so only such a dt is the same
-step on both sides. Both start from demq's start of the spec (``engine.scene.initial_spheres``, drawn on the host
+step on both sides. Both start from demq's start of the spec (``engine.setup.scene.initial_spheres``, drawn on the host
 for JAX-MD; a GPU job of demq draws the same start on the device, equal to rounding): JAX-MD gets its positions,
 wrapped into [0, L), and the momenta m v. At the cases' N (2^21 and more) demq's default start is the fcc lattice
 with random displacements, whose first contacts come late; --quick (N = 4096) starts from the random equilibrium
@@ -70,8 +70,8 @@ if __name__ == "__main__":
 
 import numpy as np  # noqa: E402
 
-from engine.params import derive  # noqa: E402  (does not import numba)
-from engine.spec import SimulationSpec  # noqa: E402
+from engine.setup.params import derive  # noqa: E402  (does not import numba)
+from engine.setup.spec import SimulationSpec  # noqa: E402
 
 SCENE = dict(volume_fraction=0.058, box_length=2.0, stiffness=1.0e8, density=2000.0, velocity_rms=2.0)
 #: name -> (N, precision, steps, rough); a rough case is compared with the elastic JAX-MD run of its N and precision
@@ -153,7 +153,7 @@ def run_jaxmd(job: dict) -> dict:
     from jax import lax
     from jax_md import energy, partition, simulate, space
 
-    from engine.scene import initial_spheres
+    from engine.setup.scene import initial_spheres
 
     spec = SimulationSpec(**job["spec"])
     c = jaxmd_constants(spec)

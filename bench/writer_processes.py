@@ -1,5 +1,5 @@
 """A packed batch's last round of files (a diagnostic): 256 small result files (4096 spheres, 201
-records of the 11 observables, no frames) written through the writer processes of engine/h5md_pool.py, and one
+records of the 11 observables, no frames) written through the writer processes of engine/output/h5md_pool.py, and one
 written in this process.
 
     python -m bench writer_processes
@@ -22,9 +22,9 @@ OBSERVABLES = ("kinetic_energy_translational", "kinetic_energy_rotational", "tem
 
 
 def main() -> None:
-    from engine import h5md, h5md_pool
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.output import h5md, h5md_pool
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=4096)
     n = spec.n_particles

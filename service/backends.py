@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Iterable, Sequence
 
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 from jobs.settings import Settings
 from jobs.specs import SpecRejected
 from jobs.store import JobStore

@@ -128,12 +128,12 @@ def test_walker_sees_function_level_relative_and_dynamic_imports():
            "def f():\n"
            "    from . import base\n"
            "    from ..physics.contact import min_image\n"
-           "    from .. import spec\n"
+           "    from .. import errors\n"
            "    importlib.import_module(f'bench.{x}')\n"
            "    __import__('jobs.store')\n")
-    mods = {"engine.backends.base", "engine.physics.contact", "engine.spec"}
+    mods = {"engine.backends.base", "engine.physics.contact", "engine.errors"}
     assert imports_of(src, "engine.backends", mods) == {
-        "importlib", "engine.backends.base", "engine.physics.contact", "engine.spec", "bench", "jobs.store"}
+        "importlib", "engine.backends.base", "engine.physics.contact", "engine.errors", "bench", "jobs.store"}
 
 
 def test_no_import_cycle_in_engine_jobs_service():

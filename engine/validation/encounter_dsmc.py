@@ -53,7 +53,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.physics.ellipsoid import ellipsoid_contact, ellipsoid_pair
 from engine.physics.integrate import kick
 from engine.physics.rotation import (body_omega, fincham_quat_step_body, quat_matrix, quat_mul, quat_normalize,
@@ -597,10 +597,10 @@ def weight_bound(a: float, b: float) -> float:
 
 
 def dem_constants(xi: float, e_n: float, kn_factor: float = 1.0) -> dict:
-    """Contact constants of the Rubio-Largo et al. (2015) DEM scene (hcs_ellipsoids.full_spec, engine.params.derive),
+    """Contact constants of the Rubio-Largo et al. (2015) DEM scene (hcs_ellipsoids.full_spec, engine.setup.params.derive),
     SI: semi-axes a, b (m), mass m (kg), I_perp (kg m^2), k_n (N/m), pair gamma_n (kg/s), dt = t_c/50 (s),
     T0 = m v_rms^2/3 (J). kn_factor scales k_n (and dt with t_c, gamma_n with sqrt(k_n): same e_n)."""
-    from engine.params import derive
+    from engine.setup.params import derive
     from engine.validation.hcs_ellipsoids import full_spec
 
     spec = full_spec(xi, e_n, 0)
@@ -713,4 +713,4 @@ def run_dsmc(xi: float, e_n: float, rule: str = "soft", n: int = 20000, coll_per
             "constants": c, "wall_s": time.time() - t0}
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from engine import SimulationSpec
 from engine.errors import SpecError
-from engine.pairs import periodic_pairs
-from engine.params import derive
-from engine.scene import initial_spheres
-from engine.start_kind import (LATTICE, PARALLEL_START_MIN, RANDOM, RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION,
+from engine.analysis.pairs import periodic_pairs
+from engine.setup.params import derive
+from engine.setup.scene import initial_spheres
+from engine.setup.start_kind import (LATTICE, PARALLEL_START_MIN, RANDOM, RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION,
                                start_protocol, thermalization_collisions)
 
 

@@ -216,7 +216,7 @@ def test_a_cancelled_run_deaf_until_its_end_is_killed_its_partial_file_removed_t
 def test_real_engine_cancel_of_a_running_cpu_job_leaves_no_file(tmp_path):
     """A real CPU job of a few thousand spheres, cancelled while its time loop runs: cancelled, no result, no
     partial file, no checkpoints (bench/cancel_latency.py measures how soon, for 20 000 spheres)."""
-    settings = make_settings(tmp_path, engine_run="engine.simulate:run")
+    settings = make_settings(tmp_path, engine_run="engine.driver.simulate:run")
     store = open_store(settings.database_url)
     worker = Worker(store, settings)
     (job,) = _enqueue(store, {"n_particles": 3000, "volume_fraction": 0.05, "box_length": 1.0, "t_end": 5.0,

@@ -261,7 +261,7 @@ def test_a_standby_that_died_is_replaced_by_a_fresh_process(tmp_path):
 def test_a_standby_process_writes_the_same_file_as_engine_run(tmp_path):
     """The real engine through a started-up standby process (warmed for the default spec: imports, numba's CPU
     target, a parallel start) against engine.run in this process: the same result, bit for bit (CPU)."""
-    from engine.simulate import run
+    from engine.driver.simulate import run
     from jobs.settings import DEFAULT_ENGINE_RUN
 
     settings, store, worker = _standby_worker(tmp_path, engine_run=DEFAULT_ENGINE_RUN, ensemble_max_jobs=1)

@@ -15,15 +15,15 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.loops.system import ContactParams, EllipsoidSystem
 from engine.loops.cpu import CpuLoop
 from engine.loops.cpu_shared import SLOT, collect_springs, restore_springs
-from engine.params import Q_SPHERE
+from engine.setup.params import Q_SPHERE
 from engine.physics.rotation import angular_momentum, quat_unit, space_omega
 from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
-from engine.precision import check_shape, state_dtype
+from engine.setup.precision import check_shape, state_dtype
 from engine.shapes.spheroid import kernels as spheroid
 
 #: history words per list slot of a rough contact: spring (3), overlap, dashpot force, the contact's k_t
@@ -134,7 +134,7 @@ class CpuEllipsoidBackend(CpuLoop):
 
         Rough contacts (k_t given): the spheroid's own k_t of each contact follows from the factor
         f = (arccos(-e_t)/pi)^2 of Hidalgo et al. (2013) Eq. 4, recovered from the sphere-convention k_t
-        of ContactParams (k_t = k_n f q/(1 + q), engine.params.k_t_paper), and the pair's tangential mass at the contact
+        of ContactParams (k_t = k_n f q/(1 + q), engine.setup.params.k_t_paper), and the pair's tangential mass at the contact
         point (engine/physics/rough_spheroid.py)."""
         if contact.rough != self.rough:
             raise ValueError("an ellipsoid backend keeps its contact model: rough (k_t given) or smooth throughout")
@@ -186,4 +186,4 @@ class CpuEllipsoidBackend(CpuLoop):
                                self.inv_box, self.half)
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)
