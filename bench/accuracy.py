@@ -38,7 +38,7 @@ Scenes and errors (references in brackets):
   Luding's ODE with e_t,eff [engine/analysis/theory.py]. Chaos floor: the same reference at dt = t_c/180 and t_c/190
   (a 5-10 % change of an already converged dt) decorrelates the trajectory; deviations below it are noise.
 - ``ellipsoid``: contact geometry on random overlapping pairs against the longdouble oracle
-  (tests/engine/test_ellipsoid_oracle.py, the same sample as bench/ellipsoid_geometry_accuracy.py):
+  (tests/engine/test_ellipsoid_oracle.py, the sample of the one-off study bench/ellipsoid_geometry_accuracy.py):
   max |delta - delta_ref| and max normal error; the cost is the Cundall number of a small elastic
   ellipsoid gas at the same precision and tolerance, whose energy drift is a second error column.
 
@@ -63,6 +63,7 @@ Output: REPORT.md, accuracy.png, summary.json in --out DIR (default ./bench-out/
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -659,13 +660,31 @@ def _timed_batch(fn, reps=3):
     return statistics.median(best)
 
 
+@functools.cache
+def paper_batch_kernel():
+    """An njit loop of the Delta/P disjointness test of Rubio-Largo et al. (2015)
+    (engine.physics.ellipsoid.paper_disjoint) over a batch of pairs: (r, qa, aa, qb, ab, half, out)."""
+    import numba
+
+    from engine.physics.ellipsoid import paper_disjoint
+
+    @numba.njit
+    def paper_batch(r, qa, aa, qb, ab, half, out):
+        for k in range(r.shape[0]):
+            out[k] = paper_disjoint(r[k, 0], r[k, 1], r[k, 2], qa[k, 0], qa[k, 1], qa[k, 2], qa[k, 3],
+                                    aa[k, 0], aa[k, 1], aa[k, 2], qb[k, 0], qb[k, 1], qb[k, 2], qb[k, 3],
+                                    ab[k, 0], ab[k, 1], ab[k, 2], half)
+
+    return paper_batch
+
+
 def build_ellipsoid(size: Size, reps: int, tmp: Path, log) -> dict:
     """Geometry error against the oracle and ellipsoid-gas cost, per precision and PW tolerance (CPU)."""
-    from bench.ellipsoid_geometry_accuracy import paper_batch
     from engine.shapes.spheroid import cpu_backend as cpu_ellipsoid
     from tests.engine.test_ellipsoid_geometry import H, contact_batch, errors
     from tests.engine.test_ellipsoid_oracle import random_overlapping
 
+    paper_batch = paper_batch_kernel()
     data = random_overlapping(size.oracle, seed=2024)
     k = size.oracle
     tile = max(1, 20000 // k)              # time the kernel on >= 2e4 evaluations
@@ -1131,7 +1150,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
         L += ["", "## Ellipsoids (CPU backend)", "",
               f"Geometry: {size['oracle']} random overlapping pairs of the oracle sample (b = 1, xi in [1, 4], "
               f"overlap {ell['delta_range'][0]:.1e}-{ell['delta_range'][1]:.1e} b; seed 2024 as in "
-              "bench/ellipsoid_geometry_accuracy.py) against the longdouble oracle "
+              "the one-off study bench/ellipsoid_geometry_accuracy.py) against the longdouble oracle "
               "(tests/engine/test_ellipsoid_oracle.py). Error = the largest of max abs(delta - delta_ref) (b), "
               "max abs(n - n_ref) (rad) and max abs(C - C_ref) (b): overlap, force direction and lever arm. Cost: the "
               f"Cundall number of an elastic frictionless gas of N = {es['n_particles']} prolate spheroids, "

@@ -198,7 +198,7 @@ def index_active(nn, active, n_active, force, torque):
 #: (engine.backends.ensemble.ONE_THREAD_BELOW, the same size). Why: each ``parallel=True`` region enters Numba's
 #: thread pool and meets its threads at its end even on one thread, two regions a step (kick-drift, forces); for a
 #: small scene that was most of the step: 64 spheres took 73 ns a particle-step in regions, 28 ns without (2-core
-#: VM, one thread, 2026-11-28, bench/cpu_small_scenes.py). From about a thousand particles on, the regions' loops are
+#: VM, one thread, 2026-11-28, one-off study bench/cpu_small_scenes.py, in git history). From about a thousand particles on, the regions' loops are
 #: the faster ones (1024: 21.4 against 21.0 ns; 4096: 12.9 against 14.3 ns): numba compiles a region's body with
 #: its arrays marked as not aliased, which plain njit does not offer. The numbers are the same bits either way
 #: (tests/engine/test_threads.py).

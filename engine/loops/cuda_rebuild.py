@@ -21,8 +21,8 @@ from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
 from engine.loops.system import SphereSystem
 
-#: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (bench/list_modes.py sets it, for the cost
-#: comparison with the multigrid build)
+#: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
+#: history, set it for the cost comparison with the multigrid build)
 MULTIGRID = True
 
 

@@ -581,8 +581,8 @@ def impulse_batch(v, w2, I, J, Q, NV, XA, XB, m, i_perp, zeta):
 
 # ---- the DSMC ----------------------------------------------------------------------------------------------
 
-#: DEM late-window mean T_tr/T_tr(0) of the xi = 2.5, e = 0.9 cooling runs (bench/ellipsoid_cooling_seeds.py,
-#: its series.json: 0.364 at N = 4096 and 0.367 at N = 16384): the DSMC gas is held
+#: DEM late-window mean T_tr/T_tr(0) of the xi = 2.5, e = 0.9 cooling runs (one-off study
+#: bench/ellipsoid_cooling_seeds.py, in git history; its series.json: 0.364 at N = 4096 and 0.367 at N = 16384): the DSMC gas is held
 #: at this fraction of the DEM's initial temperature, so the contacts are as soft as in the DEM's late window.
 LATE_TEMPERATURE_FRACTION = 0.36
 
