@@ -6,7 +6,7 @@ Knobs (all through the public spec / backend parameters; nothing here changes an
 - precision float64 / float32 / mixed (spec ``precision``; mixed = float64 positions, float32 state,
   engine/setup/precision.py; sphere scenes only: the ellipsoid rows run float64 and float32);
 - Verlet skin L_v in radii (spec ``verlet_skin``; its default depends on the backend and the volume
-  fraction, engine.setup.spec.default_verlet_skin): cost only, in the cooling gas and in a sweep over volume
+  fraction, engine.setup.params.default_verlet_skin): cost only, in the cooling gas and in a sweep over volume
   fractions, where the default rule's skin at each phi is compared with the fastest;
 - rebuild policy: the engine has exactly one (rebuild when a particle has moved more than L_v/2,
   engine/loops/cpu.py run_steps); there is no switch, so no rows;
@@ -87,7 +87,7 @@ SKINS = (0.1, 0.2, 0.4, 0.8, 1.6)
 PW_TOLS = {"float64": (1e-15, 1e-13, 1e-12, 1e-10, 1e-8, 1e-6), "float32": (1e-7, 1e-6, 1e-5, 1e-4)}
 #: engine defaults (engine/setup/params.py: dt = t_c/50; engine/setup/spec.py: float64, verlet_skin = 0.4;
 #: engine/shapes/spheroid/cpu_backend.py: PW_TOL)
-#: "skin" is the backend's default at the gas scenes' phi (engine.setup.spec.default_verlet_skin), set by main() per
+#: "skin" is the backend's default at the gas scenes' phi (engine.setup.params.default_verlet_skin), set by main() per
 #: report; analyse() takes the skin the default rows ran at from summary.json ("default_skin").
 DEFAULT = {"dt_fraction": 50, "precision": "float64", "skin": 0.4}
 DEFAULT_PW_TOL = {"float64": 1e-15, "float32": 1e-7}
@@ -594,7 +594,7 @@ def build_skin_sweep(size: Size, backend: str, reps: int, tmp: Path, log) -> dic
     from engine.setup.params import derive
     from engine.setup.scene import initial_spheres
     from engine.driver.simulate import contact_params
-    from engine.setup.spec import default_verlet_skin
+    from engine.setup.params import default_verlet_skin
 
     rows = []
     for phi in size.sweep_phis:
@@ -638,8 +638,8 @@ def sweep_flags(rows: list) -> None:
 
 def sweep_default_row(rows: list, phi: float, backend: str):
     """(rule's skin, the row compared, exact?) at ``phi``: the row at the default rule's own skin
-    (engine.setup.spec.default_verlet_skin), else the nearest swept skin (in log L_v)."""
-    from engine.setup.spec import default_verlet_skin
+    (engine.setup.params.default_verlet_skin), else the nearest swept skin (in log L_v)."""
+    from engine.setup.params import default_verlet_skin
 
     want = default_verlet_skin(backend, "sphere", phi)
     sub = [r for r in rows if r["phi"] == phi]
@@ -925,7 +925,7 @@ def skin_verdict(sweep: dict, backend: str) -> str:
     head = ("is on the cost front (within the timing noise of the fastest skin) at every swept volume fraction"
             if ok else "is **not** on the cost front (within the timing noise of the fastest skin) at every swept "
             "volume fraction")
-    return (f"- **skin** (cost only): the default, which depends on phi (engine.setup.spec.default_verlet_skin), {head} "
+    return (f"- **skin** (cost only): the default, which depends on phi (engine.setup.params.default_verlet_skin), {head} "
             f"({'; '.join(parts)}).")
 
 
@@ -1032,7 +1032,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
          f"gas scenes' phi = {size['phi']:g}; PW tolerance 1e-15)", ""]
     if res.get("rule_skin") is not None and not math.isclose(res["rule_skin"], DEFAULT["skin"], rel_tol=1e-9):
         L += [f"Note: the gas scenes ran at L_v = {DEFAULT['skin']:g} a, the default when they were measured; the "
-              f"default at phi = {size['phi']:g} is now {res['rule_skin']:.3g} a (engine.setup.spec.default_verlet_skin). "
+              f"default at phi = {size['phi']:g} is now {res['rule_skin']:.3g} a (engine.setup.params.default_verlet_skin). "
               "The skin moves no trajectory, so their errors are the default's; its cost: the cooling rows' skins.",
               ""]
     for name in sc:
@@ -1114,7 +1114,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
     if sw:
         r0 = sw["rows"][0]
         skins = sorted({r["skin"] for r in sw["rows"]})
-        from engine.setup.spec import DEFAULT_SKIN_FLOOR, DEFAULT_SKIN_MEAN_FREE_PATH, DEFAULT_VERLET_SKIN
+        from engine.setup.params import DEFAULT_SKIN_FLOOR, DEFAULT_SKIN_MEAN_FREE_PATH, DEFAULT_VERLET_SKIN
         rule = (DEFAULT_VERLET_SKIN["cpu"], DEFAULT_VERLET_SKIN["cuda"], DEFAULT_SKIN_MEAN_FREE_PATH,
                 DEFAULT_SKIN_FLOOR)
         L += ["", "## Verlet skin: cost against volume fraction", "",
@@ -1123,7 +1123,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
               f"N = {r0['n']}, typical overlap {OVERLAP:g} a, orientation off, {r0['steps']} steps from the same "
               f"lattice start at every skin (a list is rebuilt when a particle has moved L_v/2), median of "
               f"{res['reps']} timed run(s) of the time loop. Cells: Cundall number (x the fastest skin's at the "
-              "same phi; list builds in one run); **bold**: the default at that phi, engine.setup.spec.default_verlet_skin "
+              "same phi; list builds in one run); **bold**: the default at that phi, engine.setup.params.default_verlet_skin "
               f"(L_max = {rule[0]:g} a CPU, {rule[1]:g} a CUDA while the mean free path lambda = a/(3 sqrt(2) phi "
               f"g(phi)), g the Carnahan-Starling contact value, is at least {rule[2]:g} a; then L_max lambda/"
               f"{rule[2]:g} a, at least {rule[3]:g} a); where the rule's value is "
@@ -1255,8 +1255,8 @@ def _json_default(o):
 
 def set_default_skin(backend: str, phi: float) -> None:
     """The default rows of this report use the backend's default Verlet skin at the gas scenes' phi
-    (engine.setup.spec.default_verlet_skin)."""
-    from engine.setup.spec import default_verlet_skin
+    (engine.setup.params.default_verlet_skin)."""
+    from engine.setup.params import default_verlet_skin
 
     DEFAULT["skin"] = default_verlet_skin(backend, "sphere", phi)
 
@@ -1304,7 +1304,7 @@ def analyse(res: dict, out: Path, log=print) -> None:
     """Fronts, verdicts, plot, REPORT.md and summary.json from the measured rows in `res`.
 
     The default rows are those at the skin they ran at (``default_skin``); the skin sweep's default at each
-    phi is the current rule (engine.setup.spec.default_verlet_skin), so a re-analysis judges the rule of the code
+    phi is the current rule (engine.setup.params.default_verlet_skin), so a re-analysis judges the rule of the code
     it runs with against the stored timings."""
     backend = res["machine"]["backend"]
     set_default_skin(backend, res["size"]["phi"])

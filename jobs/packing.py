@@ -16,7 +16,7 @@ jobs/worker.py). How a claim of several jobs runs depends on the backend its job
   ones — an estimated cost within a factor DEMQ_ENSEMBLE_COST_RATIO (default :data:`COST_RATIO`) of the first
   job's. Any mix of N, φ, e_n, e_t, ξ,
   dt, t_end, seeds and Verlet skins packs together (a null ``verlet_skin`` is the default of the pack's one
-  resolved backend, engine.setup.spec.default_verlet_skin, the same as the job run alone there). A scene that ends
+  resolved backend, engine.setup.params.default_verlet_skin, the same as the job run alone there). A scene that ends
   leaves the pack at once; its job ends then.
 
 A job whose queued row carries the :data:`SOLO` note runs alone: its previous pack's simulation process

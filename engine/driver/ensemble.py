@@ -17,7 +17,7 @@ Rules:
 - All specs share ``shape`` and ``precision`` and resolve to one backend (``backend`` overrides every
   spec's own); otherwise SpecError naming the field, the scene and the values. Everything else (N, φ,
   e_n, e_t, ξ, box, dt, skin, output schedule, t_end, seed) may differ per scene; a null ``verlet_skin``
-  is that one backend's default for every scene (engine.setup.spec.default_verlet_skin), as in a lone run.
+  is that one backend's default for every scene (engine.setup.params.default_verlet_skin), as in a lone run.
 - The scenes advance together by the steps to the nearest next stop of any scene (on a
   ``SerialEnsemble`` each to its own next stop); each scene handles its own records and snapshots.
 - A scene that finishes drops out; the others go on. ``should_cancel(k)`` → True drops scene k with

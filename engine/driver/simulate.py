@@ -45,9 +45,9 @@ from engine.backends.base import ContactParams
 from engine.backends.ensemble import check_backend_name, make_ensemble, resolve_backend
 from engine.errors import Cancelled, SpecError
 from engine.output.h5md import H5MDWriter, partial_path, writer_process_ready
-from engine.setup.params import Q_SPHERE, Derived, derive
+from engine.setup.params import Q_SPHERE, Derived, derive, verlet_skin_radii, with_backend
 from engine.setup.precision import output_dtype
-from engine.setup.spec import SimulationSpec, default_verlet_skin, load_spec
+from engine.setup.spec import SimulationSpec, load_spec
 from engine.setup.start_kind import device_start
 from engine.driver.startup import begin as begin_gpu_startup
 from engine.output.writers.checkpoints import Checkpointer
@@ -156,13 +156,14 @@ class SceneRun:
         # the start does not depend on the Verlet skin, so the particles are placed before the backend is
         # resolved: meanwhile the GPU starts up on its own thread (engine/driver/startup.py)
         check_backend_name(backend or spec.backend)
-        p0 = derive(spec)
-        self.startup = begin_gpu_startup(spec, backend or spec.backend, run_contacts(spec, p0), p0)
+        # every derived parameter, once; the skin (and the cutoff) follow the backend once it is resolved, below
+        p = derive(spec)
+        self.startup = begin_gpu_startup(spec, backend or spec.backend, run_contacts(spec, p), p)
         # a GPU job's large sphere start is drawn by its backend on the device (engine/loops/cuda_start.py)
         if self.startup is not None and resume is None and device_start(spec):
-            system = self.shape.initial_system(spec, p0, on_device=True)
+            system = self.shape.initial_system(spec, p, on_device=True)
         else:
-            system = self.shape.initial_system(spec, p0)
+            system = self.shape.initial_system(spec, p)
         # the backend ('cpu' or 'cuda') this scene runs on: `backend` overrides the spec's, 'auto' resolved here
         self.backend = resolve_backend(backend or spec.backend, spec.shape)
         if self.backend != "cuda":
@@ -171,9 +172,8 @@ class SceneRun:
             system = drawn_on_host(system)
         # a null verlet_skin is the resolved backend's default at this volume fraction (species: the total
         # phi; the stored spec keeps null; /parameters say verlet_skin and skin); an explicit value always wins
-        self.verlet_skin = spec.verlet_skin if spec.verlet_skin is not None else \
-            default_verlet_skin(self.backend, spec.shape, spec.volume_fraction)
-        self.p = p = derive(spec.model_copy(update={"verlet_skin": self.verlet_skin}))
+        self.verlet_skin = verlet_skin_radii(spec, self.backend)
+        self.p = p = with_backend(p, spec, self.backend)
         phase, step_done = "thermalization", 0
         # a cooling checkpoint was written after its own record at step_done, which the file already holds
         self.resumed_in_cooling = resume is not None and str(resume["phase"]) == "cooling"
@@ -803,7 +803,7 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     """Run a spec to completion and write its H5MD result to ``output`` (atomically).
 
     ``backend`` overrides the spec's own; a null ``verlet_skin`` is the resolved backend's default
-    (engine.setup.spec.default_verlet_skin), recorded with the skin in m in the file's ``/parameters``.
+    (engine.setup.params.default_verlet_skin), recorded with the skin in m in the file's ``/parameters``.
 
     Raises SpecError / pydantic ValidationError for specs that cannot run, InstabilityError when the
     run blows up (the message names the step, the particle and the likely cause; no result file is

@@ -2,7 +2,9 @@
 
 Owns :func:`derive` (every derived number of a validated spec) and the cost estimate. The sizes, masses
 and the contact time that the spec's own checks also need come from engine/setup/scales.py (which imports
-neither this module nor engine/setup/spec.py); this module imports the spec only for the default Verlet skin.
+neither this module nor engine/setup/spec.py). The default Verlet skin of each backend is here too
+(:func:`default_verlet_skin`): :func:`derive` gives the skin of the spec's backend, :func:`with_backend` the
+skin of the backend a run resolved ('auto' is resolved by the driver, after the start is placed).
 
 Hidalgo et al. (2013) and docs/physics.md §1:
 - normal spring-dashpot m12 d''+ gamma_n d' + k_n d = 0, contact ending when the overlap returns to
@@ -31,15 +33,16 @@ speed sqrt(sum m|v|^2 / sum m)). The Verlet skin ``verlet_skin`` is in units of 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
+from typing import Optional
 
 import numpy as np
 
 from engine.setup.precision import position_dtype, state_dtype
 from engine.setup.scales import (Q_SPHERE, SpeciesTable, radius_from_volume_fraction, scales, species_counts,  # noqa: F401
                            species_table)
-from engine.setup.spec import default_verlet_skin
 from engine.setup.start_kind import start_protocol, thermalization_collisions
+from engine.shapes import traits
 
 
 def gamma_n_from_restitution(e_n: float, k_n: float, m12: float) -> float:
@@ -197,11 +200,7 @@ def derive(spec) -> Derived:
     collisions = thermalization_collisions(spec)
     t_th = collisions / rate0 if collisions > 0 else 0.0
     n_th = int(math.ceil(t_th / dt)) if t_th > 0 else 0
-    # null skin: the default of spec.backend (resolved by the driver)
-    skin = (spec.verlet_skin if spec.verlet_skin is not None else default_verlet_skin(spec.backend, spec.shape, spec.volume_fraction)) \
-        * min(semi)                       # in units of the smallest semi-axis (the radius of a sphere)
-    if sp is not None:
-        skin *= min(sp.radius) / r_eq     # species: L_v in units of the smallest radius (module doc)
+    skin = _skin_length(spec, spec.backend, min(semi), None if sp is None else min(sp.radius) / r_eq)
     one = sp is None
     return Derived(
         radius=r_eq, semi_axes=semi, radius_max=max(semi), radius_min=min(semi) if one else min(sp.radius),
@@ -215,6 +214,97 @@ def derive(spec) -> Derived:
         species_radius=(r_eq,) if one else sp.radius, species_count=(n,) if one else sp.count,
         species_mass=(mass,) if one else sp.mass, species_inertia=(inertia[0],) if one else sp.inertia,
         start=start_protocol(spec))
+
+
+#: Largest Verlet skin L_v (radii) a null ``verlet_skin`` resolves to, per resolved backend: the fastest
+#: skin of dilute gases in `python -m bench accuracy` (docs/performance.md, the skin tables). Ellipsoids keep the
+#: CPU value on both backends (their skin is not measured on a GPU).
+DEFAULT_VERLET_SKIN = {"cpu": 0.4, "cuda": 0.8}
+#: Mean free path (radii) below which the default skin falls in proportion to it (phi above 0.1099) ...
+DEFAULT_SKIN_MEAN_FREE_PATH = 1.6
+#: ... down to this skin (radii): the fastest skin of dense gases on both backends.
+DEFAULT_SKIN_FLOOR = 0.2
+
+
+def mean_free_path(volume_fraction: float) -> float:
+    """Enskog mean free path of equal spheres in radii: 1 / (3 sqrt(2) phi g(phi)), with the
+    Carnahan-Starling contact value g(phi) = (1 - phi/2)/(1 - phi)^3 (docs/physics.md §6.1)."""
+    phi = volume_fraction
+    return 1.0 / (3.0 * math.sqrt(2.0) * phi * (1.0 - 0.5 * phi) / (1.0 - phi) ** 3)
+
+
+def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Optional[float] = None) -> float:
+    """The skin (radii) a null ``verlet_skin`` means on ``backend`` ('cpu' or 'cuda', already resolved)
+    at volume fraction ``volume_fraction`` (a species spec: the total phi; the skin then counts in radii
+    of the smallest species, engine.setup.params).
+
+    Rule (spheres): L_v = clamp(L_max lambda / lambda_0, 0.2, L_max), with lambda = mean_free_path(phi),
+    lambda_0 = DEFAULT_SKIN_MEAN_FREE_PATH = 1.6 radii and L_max = DEFAULT_VERLET_SKIN[backend] (0.4 CPU,
+    0.8 CUDA). That is L_max up to phi = 0.1099 (lambda >= 1.6 a: every paper scene, so the CPU default is
+    exactly 0.4 there, bit for bit as before), then L_v/lambda fixed at L_max/1.6 (0.25 CPU, 0.5 CUDA), down
+    to 0.2 from phi = 0.179 (CPU) / 0.267 (CUDA). Values: phi = 0.008, 0.1 -> L_max; 0.15 -> 0.26 / 0.52;
+    0.2 -> 0.2 / 0.34; 0.3 -> 0.2.
+
+    Why: the skin changes the cost only. The neighbours a skin adds to each particle's list, about
+    2 sqrt(2) L_v / lambda, make the list cost grow as the skin counted in mean free paths,
+    while the rebuilds it saves (one per L_v/2 of flight) do not depend on the density; so the fastest skin
+    falls with lambda. Data (skin sweep of `python -m bench accuracy`, rough gas, skins 0.2, 0.4, 0.8, 1.2 a;
+    within 15 % of the fastest = on the cost front): CPU, N = 4096 — phi = 0.008: 0.4 a x0.92 of the fastest
+    (1.2 a), phi = 0.1: 0.4 a fastest (also in the N = 2048 cooling gas, where 0.2 a and 0.8 a are x0.80 and
+    x0.75), phi = 0.3: 0.2 a fastest (0.4 a x0.78); NVIDIA H200, N = 262144 — phi = 0.008: 0.8 a fastest
+    (0.4 a x0.83), phi = 0.1: 0.8 a x0.91 (0.4 a fastest; in the N = 16384 cooling gas 0.8 a is x0.96 of the
+    fastest and 0.4 a x0.72), phi = 0.3: 0.2 a fastest (0.8 a x0.71). So a GPU rule giving the sweep's
+    fastest 0.4 a at phi = 0.1 would be off the smaller gas's front, while 0.8 a is on both. The data bound
+    lambda_0 to about 1.4-1.8 a (a CPU spot check at phi = 0.13-0.25 put the fastest at 0.2-0.3 a, as the
+    rule does); the rule's value at each swept phi is a swept skin on both backends.
+
+    Ellipsoids keep DEFAULT_VERLET_SKIN['cpu'] (not measured over phi or on a GPU). An unresolved 'auto'
+    gives the CPU value: the driver (engine.driver.simulate.SceneRun) resolves the backend and gives it to
+    :func:`with_backend`, so this fallback serves only callers of :func:`derive` that run no backend. ``volume_fraction=None`` (a caller
+    that does not know phi) gives L_max, the dilute value.
+    """
+    if not traits(shape).SKIN_BY_VOLUME_FRACTION:
+        return DEFAULT_VERLET_SKIN["cpu"]
+    top = DEFAULT_VERLET_SKIN.get(backend, DEFAULT_VERLET_SKIN["cpu"])
+    if volume_fraction is None:
+        return top
+    lam = mean_free_path(volume_fraction)
+    if lam >= DEFAULT_SKIN_MEAN_FREE_PATH:
+        return top                      # exactly L_max (bit-identical dilute runs)
+    return max(DEFAULT_SKIN_FLOOR, top * lam / DEFAULT_SKIN_MEAN_FREE_PATH)
+
+
+def largest_default_verlet_skin(backend: str, shape: str = "sphere",
+                                volume_fraction: Optional[float] = None) -> float:
+    """The largest skin a null ``verlet_skin`` can resolve to for a spec's ``backend`` ('auto': any backend)
+    at ``volume_fraction``."""
+    if backend in DEFAULT_VERLET_SKIN:
+        return default_verlet_skin(backend, shape, volume_fraction)
+    return max(default_verlet_skin(b, shape, volume_fraction) for b in DEFAULT_VERLET_SKIN)
+
+
+def verlet_skin_radii(spec, backend: str) -> float:
+    """The Verlet skin L_v (radii) a run of ``spec`` on ``backend`` uses: the spec's, or the backend's default."""
+    if spec.verlet_skin is not None:
+        return spec.verlet_skin
+    return default_verlet_skin(backend, spec.shape, spec.volume_fraction)
+
+
+def _skin_length(spec, backend: str, semi_min: float, smallest_over_radius: Optional[float]) -> float:
+    """The skin in m: L_v radii (:func:`verlet_skin_radii`) of the smallest semi-axis ``semi_min`` (the radius of a
+    sphere); species (``smallest_over_radius`` = R_min / R_max): of the smallest radius (module doc)."""
+    skin = verlet_skin_radii(spec, backend) * semi_min
+    if smallest_over_radius is not None:
+        skin *= smallest_over_radius
+    return skin
+
+
+def with_backend(p: Derived, spec, backend: str) -> Derived:
+    """``p = derive(spec)`` with the skin and the cutoff of the resolved ``backend`` ('cpu' or 'cuda'): the only
+    derived numbers that depend on it (a null ``verlet_skin`` is that backend's default)."""
+    species = species_table(spec) is not None
+    skin = _skin_length(spec, backend, min(p.semi_axes), min(p.species_radius) / p.radius if species else None)
+    return replace(p, skin=skin, cutoff=2.0 * max(p.semi_axes) + skin)
 
 
 #: Rough upper bound of device/host memory per particle in bytes (state, lists, history), used to

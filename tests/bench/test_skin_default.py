@@ -20,8 +20,8 @@ from engine.backends.ensemble import resolve_backend
 from engine.driver.ensemble import run_ensemble
 from engine.setup.params import derive
 from engine.driver.simulate import SceneRun, run
-from engine.setup.spec import (DEFAULT_VERLET_SKIN, SimulationSpec, Species, default_verlet_skin,
-                         largest_default_verlet_skin, mean_free_path)
+from engine.setup.spec import SimulationSpec, Species
+from engine.setup.params import DEFAULT_VERLET_SKIN, default_verlet_skin, largest_default_verlet_skin, mean_free_path
 
 ROOT = Path(__file__).resolve().parents[2]
 

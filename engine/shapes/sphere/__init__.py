@@ -19,7 +19,7 @@ MIXED = True
 #: a null ``start`` may place it by random sequential addition (engine/setup/start_kind.py: cheap for small, dilute,
 #: one-size scenes of spheres)
 RANDOM_START = True
-#: a null verlet_skin follows the volume-fraction rule of engine.setup.spec.default_verlet_skin (else its CPU value)
+#: a null verlet_skin follows the volume-fraction rule of engine.setup.params.default_verlet_skin (else its CPU value)
 SKIN_BY_VOLUME_FRACTION = True
 #: moment of inertia of a solid sphere in units of m a^2
 Q_SPHERE = 0.4
