@@ -925,7 +925,8 @@ def skin_verdict(sweep: dict, backend: str) -> str:
     head = ("is on the cost front (within the timing noise of the fastest skin) at every swept volume fraction"
             if ok else "is **not** on the cost front (within the timing noise of the fastest skin) at every swept "
             "volume fraction")
-    return (f"- **skin** (cost only): the default, which depends on phi (engine.setup.params.default_verlet_skin), {head} "
+    return ("- **skin** (cost only): the default, which depends on phi (engine.setup.params.default_verlet_skin), "
+            f"{head} "
             f"({'; '.join(parts)}).")
 
 
@@ -1032,7 +1033,8 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
          f"gas scenes' phi = {size['phi']:g}; PW tolerance 1e-15)", ""]
     if res.get("rule_skin") is not None and not math.isclose(res["rule_skin"], DEFAULT["skin"], rel_tol=1e-9):
         L += [f"Note: the gas scenes ran at L_v = {DEFAULT['skin']:g} a, the default when they were measured; the "
-              f"default at phi = {size['phi']:g} is now {res['rule_skin']:.3g} a (engine.setup.params.default_verlet_skin). "
+              f"default at phi = {size['phi']:g} is now {res['rule_skin']:.3g} a "
+              "(engine.setup.params.default_verlet_skin). "
               "The skin moves no trajectory, so their errors are the default's; its cost: the cooling rows' skins.",
               ""]
     for name in sc:
@@ -1123,7 +1125,8 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
               f"N = {r0['n']}, typical overlap {OVERLAP:g} a, orientation off, {r0['steps']} steps from the same "
               f"lattice start at every skin (a list is rebuilt when a particle has moved L_v/2), median of "
               f"{res['reps']} timed run(s) of the time loop. Cells: Cundall number (x the fastest skin's at the "
-              "same phi; list builds in one run); **bold**: the default at that phi, engine.setup.params.default_verlet_skin "
+              "same phi; list builds in one run); **bold**: the default at that phi, "
+              "engine.setup.params.default_verlet_skin "
               f"(L_max = {rule[0]:g} a CPU, {rule[1]:g} a CUDA while the mean free path lambda = a/(3 sqrt(2) phi "
               f"g(phi)), g the Carnahan-Starling contact value, is at least {rule[2]:g} a; then L_max lambda/"
               f"{rule[2]:g} a, at least {rule[3]:g} a); where the rule's value is "

@@ -13,9 +13,9 @@ multigrid builds alternate, so a shared machine's load hits both alike), at 1 Nu
 threads:
 - single grid: engine/loops/cpu.py ``bin_particles`` + ``build_list`` (cells of edge >= 2 R_max + L_v,
   nc <= (2N)^(1/3) + 1 per edge: today's CPU build, with the spring carry-over from the previous list);
-- multigrid: engine/neighbours/multigrid.py ``bin_levels`` + ``build_levels_carry`` (Skorych & Dosta 2022, Algorithm 1 with the
-  search rule of engine/neighbours/multigrid.py; what the CPU backend runs when the radii span more than one level,
-  with the same carry-over).
+- multigrid: engine/neighbours/multigrid.py ``bin_levels`` + ``build_levels_carry`` (Skorych & Dosta 2022,
+  Algorithm 1 with the search rule of engine/neighbours/multigrid.py; what the CPU backend runs when the radii span
+  more than one level, with the same carry-over).
 Both start from the list of the same positions as the "previous" list, so the carry-over does the full
 work of matching every pair. Candidates = distance tests per particle (the particles in the cells
 searched); neighbours = list entries per particle (|r_ij| < R_i + R_j + L_v).

@@ -37,13 +37,15 @@ DEMQ_CANCEL_KILL_SECONDS       ``0.3``                             Time a cancel
 DEMQ_CANCEL_POLL_SECONDS       ``0.2``                             Interval of the worker's reads of cancel requests
                                                                    of its running jobs.
 DEMQ_CHECKPOINT_INTERVAL       ``60``                              Wall seconds between engine checkpoints.
-DEMQ_ENGINE_RUN                ``engine.driver.simulate:run``             ``module:function`` the simulation process calls
-                                                                   (same signature as engine.driver.simulate.run); tests and
-                                                                   the load bench point it at a fake engine.
+DEMQ_ENGINE_RUN                ``engine.driver.simulate:run``      ``module:function`` the simulation process calls
+                                                                   (same signature as engine.driver.simulate.run);
+                                                                   tests and the load bench point it at a fake
+                                                                   engine.
 DEMQ_ENGINE_RUN_ENSEMBLE       (auto)                              ``module:function`` that runs a pack of jobs (same
-                                                                   signature as engine.driver.ensemble.run_ensemble). Auto:
-                                                                   ``engine.driver.ensemble:run_ensemble`` with the default
-                                                                   DEMQ_ENGINE_RUN, none (no packing) with another.
+                                                                   signature as engine.driver.ensemble.run_ensemble).
+                                                                   Auto: ``engine.driver.ensemble:run_ensemble``
+                                                                   with the default DEMQ_ENGINE_RUN, none (no
+                                                                   packing) with another.
 DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued jobs a worker claims at once (one
                                                                    ensemble on the GPU, one sequence on the CPU:
                                                                    jobs/packing.py); also capped at the worker's fair

@@ -12,8 +12,8 @@ combinations the engine accepts (a shape refuses some: spheroids run neither spe
 point a job uses (engine.driver.simulate.run, plus a two-scene engine.driver.ensemble.run_ensemble on the
 GPU for the packed kernels), and draws a large start's kernels (engine.setup.scene.load_parallel_start; on the GPU also
 the device start's, engine.loops.cuda_start.load). Compiled code
-goes to numba's disk cache (engine/numba_support/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of later
-jobs load it from. Nothing of a warm-up's scenes is kept.
+goes to numba's disk cache (engine/numba_support/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of
+later jobs load it from. Nothing of a warm-up's scenes is kept.
 
 Used by the worker before its first claim (jobs/worker.py, in a process of its own: the worker process itself
 never holds a GPU context) and by ``demq warm`` (service/cli.py; the worker image runs it at build time, so a fresh

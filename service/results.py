@@ -48,10 +48,10 @@ def read_spec(path: Path) -> dict:
 def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
     """Scaled time and the mean-field cooling curves for a spec from T(0) = t0 (J) and R(0)/T(0).
 
-    Spheres: tau of Hidalgo et al. (2013) and Luding's ODE with the effective tangential restitution (engine.setup.params)
-    -> {"x", "xlabel", "T", "R", "name"}. Ellipsoids: Haff's law with Gamma_0(xi) of Rubio-Largo et al. (2015) Eq. 28
-    (engine/validation/hcs_ellipsoids.py) and D_f = 5 -> x = t/t0, R is None. Rough ellipsoids: no theory
-    (T and R None, x = t).
+    Spheres: tau of Hidalgo et al. (2013) and Luding's ODE with the effective tangential restitution
+    (engine.setup.params) -> {"x", "xlabel", "T", "R", "name"}. Ellipsoids: Haff's law with Gamma_0(xi) of Rubio-Largo
+    et al. (2015) Eq. 28 (engine/validation/hcs_ellipsoids.py) and D_f = 5 -> x = t/t0, R is None. Rough ellipsoids: no
+    theory (T and R None, x = t).
     """
     from engine.setup.params import derive
     from engine.setup.spec import SimulationSpec

@@ -1,4 +1,5 @@
-"""A small explicit ODE integrator for the mean-field references (engine/analysis/theory.py, engine/analysis/shear_instability.py).
+"""A small explicit ODE integrator for the mean-field references (engine/analysis/theory.py,
+engine/analysis/shear_instability.py).
 
 Dormand & Prince's embedded Runge-Kutta pair of orders 5 and 4 (J. Comput. Appl. Math. 6, 19 (1980); the pair
 of Hairer, Norsett & Wanner, Solving ODEs I, §II.5), with the usual step-size control: the step is accepted

@@ -1,6 +1,6 @@
-"""The two interfaces the driver (engine/driver/simulate.py) talks to: :class:`Backend` (one scene) and :class:`Ensemble`
-(K scenes advanced together). Every concrete class implements its interface in full: what a class cannot do
-(hand out reused state buffers, build lists on the host) it gets as the explicit default of
+"""The two interfaces the driver (engine/driver/simulate.py) talks to: :class:`Backend` (one scene) and
+:class:`Ensemble` (K scenes advanced together). Every concrete class implements its interface in full: what a class
+cannot do (hand out reused state buffers, build lists on the host) it gets as the explicit default of
 the base class below, never by the driver probing for a method. tests/engine/test_protocol.py checks every
 concrete class against these bases (no abstract method left, the same parameters).
 

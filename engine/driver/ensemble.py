@@ -5,10 +5,10 @@
     run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=None,
                  checkpoint_dirs=None, checkpoint_interval=60.0) -> list[RunSummary | BaseException]
 
-Every scene follows the protocol of :func:`engine.driver.simulate.run` — the same :class:`~engine.driver.simulate.SceneRun`
-object runs it (thermalisation, switch to the cooling contact, records, energy-rise check, snapshots,
-result writer, progress, cancel) — and writes its own H5MD file, the same datasets as ``run`` writes for
-that spec; its ``/parameters`` also say ``ensemble_size`` (scenes that started together) and
+Every scene follows the protocol of :func:`engine.driver.simulate.run` — the same
+:class:`~engine.driver.simulate.SceneRun` object runs it (thermalisation, switch to the cooling contact, records,
+energy-rise check, snapshots, result writer, progress, cancel) — and writes its own H5MD file, the same datasets as
+``run`` writes for that spec; its ``/parameters`` also say ``ensemble_size`` (scenes that started together) and
 ``ensemble_index``. On the CPU (a :class:`~engine.backends.ensemble.SerialEnsemble`) each file is
 bit-identical to the lone run's; on the GPU (packed ``CudaEnsemble``) equal to rounding.
 
@@ -130,9 +130,9 @@ SETUP_THREADS_MIN_SCENES = 8
 
 def _setup_threads(specs) -> int:
     """Threads for setting up the scenes of an ensemble (256 small scenes took 0.8 s on one): up to 8,
-    for 8 or more scenes whose starts are all drawn sequentially (engine.setup.scene: each scene its own NumPy Generator,
-    so a start does not depend on the thread; NumPy's array loops and the random sequential addition, compiled
-    with nogil, release the GIL).
+    for 8 or more scenes whose starts are all drawn sequentially (engine.setup.scene: each scene its own NumPy
+    Generator, so a start does not depend on the thread; NumPy's array loops and the random sequential addition,
+    compiled with nogil, release the GIL).
     One thread otherwise: the parallel generator's prange code must not be entered by two threads at once."""
     from engine.setup.scene import SEQUENTIAL_GENERATOR, start_generator
 

@@ -111,9 +111,9 @@ def fast_loads(namespace: dict) -> None:
     numba refreshes the target context before every cache load "to ensure it is initialized". On the CPU target
     that installs every lowering registry and imports scipy.linalg for numba's BLAS check: 0.25-0.4 s of Python,
     once per process, under the GIL (part of a fresh process's time to result). A load needs only the symbols
-    its linked machine code calls (engine/numba_support/numba_internals.py, FastLoadCache). Any compilation (a cache miss, a new
-    signature) still refreshes the context itself. A dispatcher whose cache is not numba's plain FunctionCache is
-    left alone.
+    its linked machine code calls (engine/numba_support/numba_internals.py, FastLoadCache). Any compilation (a cache
+    miss, a new signature) still refreshes the context itself. A dispatcher whose cache is not numba's plain
+    FunctionCache is left alone.
     """
     for obj in list(namespace.values()):
         make_fast_loading(obj)

@@ -39,8 +39,8 @@ from typing import Optional
 import numpy as np
 
 from engine.setup.precision import position_dtype, state_dtype
-from engine.setup.scales import (Q_SPHERE, SpeciesTable, radius_from_volume_fraction, scales, species_counts,  # noqa: F401
-                           species_table)
+from engine.setup.scales import (Q_SPHERE, SpeciesTable, radius_from_volume_fraction, scales,  # noqa: F401
+                                 species_counts, species_table)
 from engine.setup.start_kind import start_protocol, thermalization_collisions
 from engine.shapes import traits
 
@@ -260,8 +260,8 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
 
     Ellipsoids keep DEFAULT_VERLET_SKIN['cpu'] (not measured over phi or on a GPU). An unresolved 'auto'
     gives the CPU value: the driver (engine.driver.simulate.SceneRun) resolves the backend and gives it to
-    :func:`with_backend`, so this fallback serves only callers of :func:`derive` that run no backend. ``volume_fraction=None`` (a caller
-    that does not know phi) gives L_max, the dilute value.
+    :func:`with_backend`, so this fallback serves only callers of :func:`derive` that run no backend.
+    ``volume_fraction=None`` (a caller that does not know phi) gives L_max, the dilute value.
     """
     if not traits(shape).SKIN_BY_VOLUME_FRACTION:
         return DEFAULT_VERLET_SKIN["cpu"]

@@ -1,9 +1,9 @@
 """Particle sizes, masses and the contact time scale of a spec's fields: what engine.setup.spec's own checks need.
 
 Owns the first half of the derivation (engine.setup.params.derive does the rest from it): the radius from N, phi
-and L, the semi-axes and principal moments (the shape's ``body``: engine/shapes/), the species table of a polydisperse spec, the reduced mass and
-contact time of the shortest contact, the time step and the initial temperature (rules in the docstring of
-engine/setup/params.py). It reads the spec's fields only (a SimulationSpec or anything with its fields) and
+and L, the semi-axes and principal moments (the shape's ``body``: engine/shapes/), the species table of a polydisperse
+spec, the reduced mass and contact time of the shortest contact, the time step and the initial temperature (rules in the
+docstring of engine/setup/params.py). It reads the spec's fields only (a SimulationSpec or anything with its fields) and
 imports no other engine module but the shapes' traits, so engine/setup/spec.py can validate without importing
 engine/setup/params.py.
 SI units: m, kg, kg m^2, s, J.

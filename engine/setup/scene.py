@@ -363,8 +363,9 @@ def load_parallel_start(spec, p: Derived) -> bool:
     """Load every compiled function a large start of ``spec``'s kind calls (spec's shape and contact law; its
     n_particles is not read), for the argument types it calls them with, from numba's disk cache (or compile them):
     a start of a few particles is drawn through the same functions and discarded. False, and nothing loaded, for a
-    species spec (its starts are drawn by NumPy). For the worker's standby process (engine.driver.simulate.warm_process):
-    a later large start of this kind then loads nothing (tests/engine/test_time_to_result.py checks the types)."""
+    species spec (its starts are drawn by NumPy). For the worker's standby process
+    (engine.driver.simulate.warm_process): a later large start of this kind then loads nothing
+    (tests/engine/test_time_to_result.py checks the types)."""
     if species_table(spec) is not None:
         return False
     n = 64

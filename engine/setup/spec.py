@@ -296,7 +296,8 @@ class SimulationSpec(BaseModel):
         """The one-field ranges of :data:`FIELD_RANGES` (also written into the JSON schema)."""
         if v is None:      # the null of a nullable field (pydantic refuses null for the others first)
             return v
-        FIELD_RANGES[info.field_name].check(info.field_name, v, nullable=cls.model_fields[info.field_name].default is None)
+        nullable = cls.model_fields[info.field_name].default is None
+        FIELD_RANGES[info.field_name].check(info.field_name, v, nullable=nullable)
         return v
 
     @field_validator("species")

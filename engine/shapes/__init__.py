@@ -16,8 +16,8 @@ A shape is one package under engine/shapes/ (engine/shapes/README.md lists the s
 
 A package elsewhere on the path joins at run time through :func:`register` (the same as one more line in
 ``SHAPES``). Nothing outside engine/shapes/ names a shape package: engine/backends/registry.py,
-engine/backends/ensemble.py, engine/driver/simulate.py, engine/setup/spec.py, engine/setup/scales.py and engine/setup/start_kind.py reach a
-shape through these functions, at call time.
+engine/backends/ensemble.py, engine/driver/simulate.py, engine/setup/spec.py, engine/setup/scales.py and
+engine/setup/start_kind.py reach a shape through these functions, at call time.
 """
 
 from __future__ import annotations
@@ -74,7 +74,8 @@ def register(name: str, package: str) -> None:
                              f"{importlib.import_module(package + part).NAME!r}, expected {name!r}")
     root = _outside_root(package)
     if root is not None:
-        from engine.numba_support.jitcache import include_sources   # a package outside engine/shapes/ joins the cache key
+        # a package outside engine/shapes/ joins the cache key
+        from engine.numba_support.jitcache import include_sources
 
         include_sources(root)
     SHAPES[name] = package
@@ -95,7 +96,8 @@ def unregister(name: str) -> None:
 
 
 def _outside_root(package: str):
-    """The folder of ``package`` if it lies outside engine/shapes/ (not hashed by engine.numba_support.jitcache), else None."""
+    """The folder of ``package`` if it lies outside engine/shapes/ (not hashed by engine.numba_support.jitcache),
+    else None."""
     root = Path(importlib.import_module(package).__file__).resolve().parent
     return None if Path(__file__).resolve().parent in root.parents else root
 

@@ -582,8 +582,9 @@ def impulse_batch(v, w2, I, J, Q, NV, XA, XB, m, i_perp, zeta):
 # ---- the DSMC ----------------------------------------------------------------------------------------------
 
 #: DEM late-window mean T_tr/T_tr(0) of the xi = 2.5, e = 0.9 cooling runs (one-off study
-#: bench/ellipsoid_cooling_seeds.py, in git history; its series.json: 0.364 at N = 4096 and 0.367 at N = 16384): the DSMC gas is held
-#: at this fraction of the DEM's initial temperature, so the contacts are as soft as in the DEM's late window.
+#: bench/ellipsoid_cooling_seeds.py, in git history; its series.json: 0.364 at N = 4096 and 0.367 at N = 16384): the
+#: DSMC gas is held at this fraction of the DEM's initial temperature, so the contacts are as soft as in the DEM's late
+#: window.
 LATE_TEMPERATURE_FRACTION = 0.36
 
 
@@ -597,9 +598,9 @@ def weight_bound(a: float, b: float) -> float:
 
 
 def dem_constants(xi: float, e_n: float, kn_factor: float = 1.0) -> dict:
-    """Contact constants of the Rubio-Largo et al. (2015) DEM scene (hcs_ellipsoids.full_spec, engine.setup.params.derive),
-    SI: semi-axes a, b (m), mass m (kg), I_perp (kg m^2), k_n (N/m), pair gamma_n (kg/s), dt = t_c/50 (s),
-    T0 = m v_rms^2/3 (J). kn_factor scales k_n (and dt with t_c, gamma_n with sqrt(k_n): same e_n)."""
+    """Contact constants of the Rubio-Largo et al. (2015) DEM scene (hcs_ellipsoids.full_spec,
+    engine.setup.params.derive), SI: semi-axes a, b (m), mass m (kg), I_perp (kg m^2), k_n (N/m), pair gamma_n (kg/s),
+    dt = t_c/50 (s), T0 = m v_rms^2/3 (J). kn_factor scales k_n (and dt with t_c, gamma_n with sqrt(k_n): same e_n)."""
     from engine.setup.params import derive
     from engine.validation.hcs_ellipsoids import full_spec
 

@@ -2,9 +2,9 @@
 summary, table and plot, and `demq validate encounter-dsmc`.
 
 The physics is engine/validation/encounter_dsmc.py; the full study (--xi 1.5 2 2.5 --seeds 4 --n 20000 --coll 60)
-was the one-off bench/ellipsoid_encounter_dsmc.py, in the git history before the bench/ pruning. :func:`run_cells` runs (xi, rule, seed)
-cells in parallel processes (one Numba thread each), :func:`write` writes runs.json, summary.json, summary.md
-and encounter_dsmc.png.
+was the one-off bench/ellipsoid_encounter_dsmc.py, in the git history before the bench/ pruning. :func:`run_cells` runs
+(xi, rule, seed) cells in parallel processes (one Numba thread each), :func:`write` writes runs.json, summary.json,
+summary.md and encounter_dsmc.png.
 
 `demq validate encounter-dsmc` (:func:`main`): the report's decisive comparison at xi = 2.5, e = 0.9: the
 encounter DSMC ('soft': the DEM pair integrated through the whole encounter) against the one-impulse DSMC
@@ -228,7 +228,7 @@ def main(out_dir, seeds: int = 4, quick: bool = False, jobs: int = 1) -> int:
     (out / "README.md").write_text(
         "# Encounter DSMC against one-impulse DSMC (docs/physics.md §7.5)\n\n"
         f"`demq validate encounter-dsmc{' --quick' if quick else ''} --seeds {seeds}`\n\n{verdict}\n\n"
-        + table(summ) + "\n\nThe full study (docs/physics.md §7.5) was a one-off run of bench/ellipsoid_encounter_dsmc.py, "
-        "in the git history before the bench/ pruning.\n")
+        + table(summ) + "\n\nThe full study (docs/physics.md §7.5) was a one-off run of "
+        "bench/ellipsoid_encounter_dsmc.py, in the git history before the bench/ pruning.\n")
     print(verdict)
     return 0 if ok else 1

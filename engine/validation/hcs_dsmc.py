@@ -1,8 +1,8 @@
 """The Boltzmann reference of the long-time HCS (docs/physics.md §7.3): what of the DEM's deviation from Luding's
 ODE is the velocity distribution, and what is not.
 
-Luding's ODE (Hidalgo et al. 2013, Eqs. 1-2; engine/analysis/theory.py) is the Maxwellian (mean-field) closure of the Boltzmann
-equation for rough spheres with constant restitution (e_n, beta). In the HCS the one-particle distribution
+Luding's ODE (Hidalgo et al. 2013, Eqs. 1-2; engine/analysis/theory.py) is the Maxwellian (mean-field) closure of the
+Boltzmann equation for rough spheres with constant restitution (e_n, beta). In the HCS the one-particle distribution
 f(v, omega) is not Maxwellian: the Sonine cumulants a20, a02, a11 and the correlation of v and omega
 (Brilliantov, Pöschel, Kranz & Zippelius, PRL 98, 128001 (2007); Kranz et al., EPJ ST 179, 91 (2009))
 change the cooling rates of T and R by O(1 %) (Santos, Kremer & Garzó, Prog. Theor. Phys. Suppl. 184, 31

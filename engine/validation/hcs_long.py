@@ -210,8 +210,8 @@ def collision_rate_ratio(run: dict) -> np.ndarray:
     two particles), taken between the records around each one. Otherwise, from the contacts C open at the
     record: a collision lasts t_contact whatever its speed, so the rate is 2 C / (N t_contact). Per unit tau
     both are divided by k = tau/t. Enskog's (with the Carnahan-Starling g(2a) of the tau of Hidalgo et al. (2013), as
-    Luding's ODE assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.analysis.theory.collisions_per_particle). Ratio 1: the gas
-    collides as often as the ODE assumes; below 1: velocity or position correlations (or a distribution other
+    Luding's ODE assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.analysis.theory.collisions_per_particle). Ratio 1:
+    the gas collides as often as the ODE assumes; below 1: velocity or position correlations (or a distribution other
     than Maxwell's, a ~ a2/16 effect) make collisions rarer.
     """
     n = run["spec"]["n_particles"]
@@ -538,7 +538,8 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
     lines += ["![deviation](deviation.png)", "", "![modes](modes.png)", "",
               "Definitions: tau = (2/3) G T0^(1/2) t; T0 = T_tr at t = 0 of each seed; deviation = seed mean / "
               "ODE - 1 (ODE from the measured R(0)/T(0), e_t,eff of the contact model); x = mean over the six "
-              "k_min shear modes of M |u_perp(k)|^2 / T (1 = thermal noise of a Maxwellian; engine/analysis/hydro_modes.py); "
+              "k_min shear modes of M |u_perp(k)|^2 / T (1 = thermal noise of a Maxwellian; "
+              "engine/analysis/hydro_modes.py); "
               "S(k_min) mean over x, y, z (1 = ideal gas; S_CS = equilibrium hard spheres). The fcc start leaves "
               "S(k_min) below S_CS until the k_min sound mode has equilibrated (engine/validation/hcs_long.py "
               "docstring), so only S above S_CS signals density growth. SE = std over seeds / sqrt(seeds).", "",

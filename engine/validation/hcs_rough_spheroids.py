@@ -12,8 +12,8 @@ ensemble):
   collisions per particle; T_rot over the three rotational dof) for xi in {1.5, 2, 3} and e_t in {-0.5, 0, 0.5,
   0.9} at e_n = 0.9, N = 4096, phi = 0.058 (the Rubio-Largo et al. (2015) scene
   of engine/validation/hcs_ellipsoids.py, 20 initial collision times), with the seed scatter. For reference,
-  the rough-sphere value of Luding's theory at e_t,eff (the asymptotic R/T of engine.analysis.theory.r_infinity). No kinetic
-  theory of rough spheroids was found (searched: homogeneous cooling of rough inelastic ellipsoids / spheroids,
+  the rough-sphere value of Luding's theory at e_t,eff (the asymptotic R/T of engine.analysis.theory.r_infinity). No
+  kinetic theory of rough spheroids was found (searched: homogeneous cooling of rough inelastic ellipsoids / spheroids,
   translational-rotational temperature ratio; the theories found are for rough spheres: Huthmann & Zippelius 1997,
   Luding et al. 1998, Santos, Kremer & dos Santos 2011), so the map is reported with its scatter and the sphere value
   beside it.

@@ -10,6 +10,6 @@ fires acts on the scene's state:
 - :mod:`engine.output.writers.checkpoints`: state and partial file for a resume (trigger: wall-clock interval);
 - :mod:`engine.output.writers.progress`: the progress callback (every stop).
 
-:mod:`engine.output.writers.triggers` holds the triggers. The driver (engine.driver.simulate.drive) only advances scenes to their
-next stops and calls them there.
+:mod:`engine.output.writers.triggers` holds the triggers. The driver (engine.driver.simulate.drive) only advances scenes
+to their next stops and calls them there.
 """

@@ -91,8 +91,8 @@ class CudaEnsemble(CudaEnsembleBase):
         return {"position": self.pos, "velocity": self.vel, "angular_velocity": self.omega, "orientation": self.quat}
 
     def _draw_starts(self, systems) -> None:
-        """pos, vel, omega, quat of scenes of which some hold a start to draw on the device (engine.setup.scene.StartDraw:
-        engine/loops/cuda_start.py); the others' host arrays go up into their columns."""
+        """pos, vel, omega, quat of scenes of which some hold a start to draw on the device
+        (engine.setup.scene.StartDraw: engine/loops/cuda_start.py); the others' host arrays go up into their columns."""
         from engine.loops.cuda_start import SPHERE_TARGETS, draw_start
 
         n, st = self.n, self.stream

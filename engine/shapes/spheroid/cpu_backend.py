@@ -4,9 +4,9 @@ of docs/physics.md §2.5): the spheroid plug-in (engine/shapes/spheroid/kernels.
 
 This module holds only what is the ellipsoid's own on the host side: the state it keeps (angular momentum L
 instead of the angular velocity, semi-axes, bounding radii, the state before the step for the screens), the
-Perram-Wertheim tolerances, the observables (engine.shapes.spheroid.kernels.observe) and the conversions between L and the angular
-velocity. Cells, the Verlet list of bounding spheres, its slot store, the time loop and its error handling are
-the shared ones; the contact, force law and rotation step are the plug-in's (its docstring has the details:
+Perram-Wertheim tolerances, the observables (engine.shapes.spheroid.kernels.observe) and the conversions between L and
+the angular velocity. Cells, the Verlet list of bounding spheres, its slot store, the time loop and its error handling
+are the shared ones; the contact, force law and rotation step are the plug-in's (its docstring has the details:
 broad phase, exact screens, lower id as "A", Fincham's leap-frog on L).
 """
 
@@ -134,8 +134,8 @@ class CpuEllipsoidBackend(CpuLoop):
 
         Rough contacts (k_t given): the spheroid's own k_t of each contact follows from the factor
         f = (arccos(-e_t)/pi)^2 of Hidalgo et al. (2013) Eq. 4, recovered from the sphere-convention k_t
-        of ContactParams (k_t = k_n f q/(1 + q), engine.setup.params.k_t_paper), and the pair's tangential mass at the contact
-        point (engine/physics/rough_spheroid.py)."""
+        of ContactParams (k_t = k_n f q/(1 + q), engine.setup.params.k_t_paper), and the pair's tangential mass at the
+        contact point (engine/physics/rough_spheroid.py)."""
         if contact.rough != self.rough:
             raise ValueError("an ellipsoid backend keeps its contact model: rough (k_t given) or smooth throughout")
         self._set_common(contact)
