@@ -4,9 +4,9 @@ Knobs (all through the public spec / backend parameters; nothing here changes an
 
 - time step dt = t_c/k, k in DT_FRACTIONS (spec field ``dt``, in seconds; the spec refuses dt > t_c/10);
 - precision float64 / float32 / mixed (spec ``precision``; mixed = float64 positions, float32 state,
-  engine/precision.py; sphere scenes only: the ellipsoid rows run float64 and float32);
+  engine/setup/precision.py; sphere scenes only: the ellipsoid rows run float64 and float32);
 - Verlet skin L_v in radii (spec ``verlet_skin``; its default depends on the backend and the volume
-  fraction, engine.spec.default_verlet_skin): cost only, in the cooling gas and in a sweep over volume
+  fraction, engine.setup.params.default_verlet_skin): cost only, in the cooling gas and in a sweep over volume
   fractions, where the default rule's skin at each phi is compared with the fastest;
 - rebuild policy: the engine has exactly one (rebuild when a particle has moved more than L_v/2,
   engine/loops/cpu.py run_steps); there is no switch, so no rows;
@@ -35,14 +35,14 @@ Scenes and errors (references in brackets):
   sample predicts (mean C <eps>, spread sqrt(2 C / N) sd(eps) after C collisions per particle).
 - ``cooling``: rough gas e_n = e_t = 0.8 after an elastic thermalisation, max over t of |T/T0 / ref - 1|
   and the same for R/T0 [float64, dt = t_c/200 run of the same seed]; and the largest deviation from
-  Luding's ODE with e_t,eff [engine/theory.py]. Chaos floor: the same reference at dt = t_c/180 and t_c/190
+  Luding's ODE with e_t,eff [engine/analysis/theory.py]. Chaos floor: the same reference at dt = t_c/180 and t_c/190
   (a 5-10 % change of an already converged dt) decorrelates the trajectory; deviations below it are noise.
 - ``ellipsoid``: contact geometry on random overlapping pairs against the longdouble oracle
-  (tests/engine/test_ellipsoid_oracle.py, the same sample as bench/ellipsoid_geometry_accuracy.py):
+  (tests/engine/test_ellipsoid_oracle.py, the sample of the one-off study bench/ellipsoid_geometry_accuracy.py):
   max |delta - delta_ref| and max normal error; the cost is the Cundall number of a small elastic
   ellipsoid gas at the same precision and tolerance, whose energy drift is a second error column.
 
-Cost: the Cundall number N x steps / wall s of the time loop (engine/simulate.py; compilation excluded,
+Cost: the Cundall number N x steps / wall s of the time loop (engine/driver/simulate.py; compilation excluded,
 median of ``reps`` runs). A step costs about the same at every dt, but a coarser dt covers more
 simulated time per step, so the Pareto fronts use the throughput Cundall x dt / t_c (particle-contact-
 times simulated per wall second); the tables give both.
@@ -63,6 +63,7 @@ Output: REPORT.md, accuracy.png, summary.json in --out DIR (default ./bench-out/
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -80,13 +81,13 @@ from bench import out_dir as bench_out
 
 DT_FRACTIONS = (10, 20, 35, 50, 100, 200)
 PRECISIONS = ("float64", "float32", "mixed")
-#: the ellipsoid contact solver's precisions (no mixed variant: engine/precision.py)
+#: the ellipsoid contact solver's precisions (no mixed variant: engine/setup/precision.py)
 ELLIPSOID_PRECISIONS = ("float64", "float32")
 SKINS = (0.1, 0.2, 0.4, 0.8, 1.6)
 PW_TOLS = {"float64": (1e-15, 1e-13, 1e-12, 1e-10, 1e-8, 1e-6), "float32": (1e-7, 1e-6, 1e-5, 1e-4)}
-#: engine defaults (engine/params.py: dt = t_c/50; engine/spec.py: float64, verlet_skin = 0.4;
+#: engine defaults (engine/setup/params.py: dt = t_c/50; engine/setup/spec.py: float64, verlet_skin = 0.4;
 #: engine/shapes/spheroid/cpu_backend.py: PW_TOL)
-#: "skin" is the backend's default at the gas scenes' phi (engine.spec.default_verlet_skin), set by main() per
+#: "skin" is the backend's default at the gas scenes' phi (engine.setup.params.default_verlet_skin), set by main() per
 #: report; analyse() takes the skin the default rows ran at from summary.json ("default_skin").
 DEFAULT = {"dt_fraction": 50, "precision": "float64", "skin": 0.4}
 DEFAULT_PW_TOL = {"float64": 1e-15, "float32": 1e-7}
@@ -179,8 +180,8 @@ def gas_spec(size: Size, *, dt_fraction, precision, skin, e_n, e_t, collisions, 
              seed=0, shape="sphere", n=None, records=60, steps=None):
     """A periodic gas with typical head-on overlap OVERLAP radii running `collisions` per particle
     (or `steps` time steps)."""
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     n = n or (size.ell_n if shape == "ellipsoid" else size.gas_n)
     xi = size.ell_xi if shape == "ellipsoid" else 1.0
@@ -202,8 +203,8 @@ def gas_spec(size: Size, *, dt_fraction, precision, skin, e_n, e_t, collisions, 
 
 def run_gas(spec, backend: str, reps: int, tmp: Path) -> dict:
     """Run a spec `reps` times; series of the first run, median Cundall number."""
-    from engine.h5md import read_parameters, read_series
-    from engine.simulate import run
+    from engine.output.h5md import read_parameters, read_series
+    from engine.driver.simulate import run
 
     path = tmp / "gas.h5"
     cund, device, out = [], None, None
@@ -239,7 +240,7 @@ def throughput(cundall: float, dt_fraction: float) -> float:
 
 def collision_scene(size: Size, seed: int = 7):
     """Pairs on a lattice (spacing 8 a): positions, velocities, and per-pair (angle, v_rel)."""
-    from engine.params import Q_SPHERE
+    from engine.setup.params import Q_SPHERE
 
     rng = np.random.default_rng(seed)
     k = size.pairs
@@ -273,7 +274,7 @@ def run_pairs(scene: dict, *, dt_fraction: int, precision: str, backend: str, re
     """Run a pair scene (positions, velocities, optional spins) for its ``duration``: final state, Cundall."""
     from engine.backends.base import ContactParams, SphereSystem
     from engine.backends.registry import make_backend
-    from engine.params import gamma_n_from_restitution, k_t_paper
+    from engine.setup.params import gamma_n_from_restitution, k_t_paper
 
     k2 = scene["pos"].shape[0]
     m12 = 0.5 * scene["mass"]
@@ -333,7 +334,7 @@ def gas_pair_scene(size: Size, seed: int = 11) -> dict:
     t_c/10 step, so every dt meets every contact phase. Pairs sit on a lattice of spacing 6 a (box
     comparable to the gas's), their centres of mass at rest.
     """
-    from engine.params import Q_SPHERE
+    from engine.setup.params import Q_SPHERE
 
     rng = np.random.default_rng(seed)
     k = size.gas_pairs
@@ -379,7 +380,7 @@ def pair_energy(scene: dict, *, dt_fraction: int, precision: str, backend: str, 
 
 
 def build_collisions(size: Size, backend: str, reps: int, log) -> dict:
-    from engine.params import e_t_effective
+    from engine.setup.params import e_t_effective
 
     scene = collision_scene(size)
     head = scene["angle"] == 0.0
@@ -507,7 +508,7 @@ def _dev_from(g: dict, ref: dict) -> float:
 
 def _tau_curves(g: dict, spec):
     """tau, T/T0, R/T0 of one run (tau = (2/3) G T0^1/2 t with its own measured T0)."""
-    from engine.theory import tau_factor
+    from engine.analysis.theory import tau_factor
 
     t, T, R = _curves(g)
     par = g["parameters"]
@@ -518,8 +519,8 @@ def _tau_curves(g: dict, spec):
 
 def _dev_ode(runs: list, spec) -> tuple[float, float, float]:
     """max |T/T_ODE - 1|, |R/R_ODE - 1| of the seed-mean curves (Luding's ODE with e_t,eff from R(0)/T(0))."""
-    from engine.params import e_t_effective
-    from engine.theory import luding_ode
+    from engine.setup.params import e_t_effective
+    from engine.analysis.theory import luding_ode
 
     curves = [_tau_curves(g, spec) for g in runs]
     tau = curves[0][0]
@@ -590,10 +591,10 @@ def build_skin_sweep(size: Size, backend: str, reps: int, tmp: Path, log) -> dic
     median of ``reps`` timed ``advance`` calls (compilation and the first list build excluded, one
     observables reduction at the end, as bench/specialisation.py times)."""
     from engine.backends.registry import make_backend
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.simulate import contact_params
-    from engine.spec import default_verlet_skin
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.driver.simulate import contact_params
+    from engine.setup.params import default_verlet_skin
 
     rows = []
     for phi in size.sweep_phis:
@@ -637,8 +638,8 @@ def sweep_flags(rows: list) -> None:
 
 def sweep_default_row(rows: list, phi: float, backend: str):
     """(rule's skin, the row compared, exact?) at ``phi``: the row at the default rule's own skin
-    (engine.spec.default_verlet_skin), else the nearest swept skin (in log L_v)."""
-    from engine.spec import default_verlet_skin
+    (engine.setup.params.default_verlet_skin), else the nearest swept skin (in log L_v)."""
+    from engine.setup.params import default_verlet_skin
 
     want = default_verlet_skin(backend, "sphere", phi)
     sub = [r for r in rows if r["phi"] == phi]
@@ -659,13 +660,31 @@ def _timed_batch(fn, reps=3):
     return statistics.median(best)
 
 
+@functools.cache
+def paper_batch_kernel():
+    """An njit loop of the Delta/P disjointness test of Rubio-Largo et al. (2015)
+    (engine.physics.ellipsoid.paper_disjoint) over a batch of pairs: (r, qa, aa, qb, ab, half, out)."""
+    import numba
+
+    from engine.physics.ellipsoid import paper_disjoint
+
+    @numba.njit
+    def paper_batch(r, qa, aa, qb, ab, half, out):
+        for k in range(r.shape[0]):
+            out[k] = paper_disjoint(r[k, 0], r[k, 1], r[k, 2], qa[k, 0], qa[k, 1], qa[k, 2], qa[k, 3],
+                                    aa[k, 0], aa[k, 1], aa[k, 2], qb[k, 0], qb[k, 1], qb[k, 2], qb[k, 3],
+                                    ab[k, 0], ab[k, 1], ab[k, 2], half)
+
+    return paper_batch
+
+
 def build_ellipsoid(size: Size, reps: int, tmp: Path, log) -> dict:
     """Geometry error against the oracle and ellipsoid-gas cost, per precision and PW tolerance (CPU)."""
-    from bench.ellipsoid_geometry_accuracy import paper_batch
     from engine.shapes.spheroid import cpu_backend as cpu_ellipsoid
     from tests.engine.test_ellipsoid_geometry import H, contact_batch, errors
     from tests.engine.test_ellipsoid_oracle import random_overlapping
 
+    paper_batch = paper_batch_kernel()
     data = random_overlapping(size.oracle, seed=2024)
     k = size.oracle
     tile = max(1, 20000 // k)              # time the kernel on >= 2e4 evaluations
@@ -906,7 +925,8 @@ def skin_verdict(sweep: dict, backend: str) -> str:
     head = ("is on the cost front (within the timing noise of the fastest skin) at every swept volume fraction"
             if ok else "is **not** on the cost front (within the timing noise of the fastest skin) at every swept "
             "volume fraction")
-    return (f"- **skin** (cost only): the default, which depends on phi (engine.spec.default_verlet_skin), {head} "
+    return ("- **skin** (cost only): the default, which depends on phi (engine.setup.params.default_verlet_skin), "
+            f"{head} "
             f"({'; '.join(parts)}).")
 
 
@@ -1013,7 +1033,8 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
          f"gas scenes' phi = {size['phi']:g}; PW tolerance 1e-15)", ""]
     if res.get("rule_skin") is not None and not math.isclose(res["rule_skin"], DEFAULT["skin"], rel_tol=1e-9):
         L += [f"Note: the gas scenes ran at L_v = {DEFAULT['skin']:g} a, the default when they were measured; the "
-              f"default at phi = {size['phi']:g} is now {res['rule_skin']:.3g} a (engine.spec.default_verlet_skin). "
+              f"default at phi = {size['phi']:g} is now {res['rule_skin']:.3g} a "
+              "(engine.setup.params.default_verlet_skin). "
               "The skin moves no trajectory, so their errors are the default's; its cost: the cooling rows' skins.",
               ""]
     for name in sc:
@@ -1095,7 +1116,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
     if sw:
         r0 = sw["rows"][0]
         skins = sorted({r["skin"] for r in sw["rows"]})
-        from engine.spec import DEFAULT_SKIN_FLOOR, DEFAULT_SKIN_MEAN_FREE_PATH, DEFAULT_VERLET_SKIN
+        from engine.setup.params import DEFAULT_SKIN_FLOOR, DEFAULT_SKIN_MEAN_FREE_PATH, DEFAULT_VERLET_SKIN
         rule = (DEFAULT_VERLET_SKIN["cpu"], DEFAULT_VERLET_SKIN["cuda"], DEFAULT_SKIN_MEAN_FREE_PATH,
                 DEFAULT_SKIN_FLOOR)
         L += ["", "## Verlet skin: cost against volume fraction", "",
@@ -1104,7 +1125,8 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
               f"N = {r0['n']}, typical overlap {OVERLAP:g} a, orientation off, {r0['steps']} steps from the same "
               f"lattice start at every skin (a list is rebuilt when a particle has moved L_v/2), median of "
               f"{res['reps']} timed run(s) of the time loop. Cells: Cundall number (x the fastest skin's at the "
-              "same phi; list builds in one run); **bold**: the default at that phi, engine.spec.default_verlet_skin "
+              "same phi; list builds in one run); **bold**: the default at that phi, "
+              "engine.setup.params.default_verlet_skin "
               f"(L_max = {rule[0]:g} a CPU, {rule[1]:g} a CUDA while the mean free path lambda = a/(3 sqrt(2) phi "
               f"g(phi)), g the Carnahan-Starling contact value, is at least {rule[2]:g} a; then L_max lambda/"
               f"{rule[2]:g} a, at least {rule[3]:g} a); where the rule's value is "
@@ -1131,7 +1153,7 @@ def write_report(out: Path, res: dict, cmd: str, wall: float) -> str:
         L += ["", "## Ellipsoids (CPU backend)", "",
               f"Geometry: {size['oracle']} random overlapping pairs of the oracle sample (b = 1, xi in [1, 4], "
               f"overlap {ell['delta_range'][0]:.1e}-{ell['delta_range'][1]:.1e} b; seed 2024 as in "
-              "bench/ellipsoid_geometry_accuracy.py) against the longdouble oracle "
+              "the one-off study bench/ellipsoid_geometry_accuracy.py) against the longdouble oracle "
               "(tests/engine/test_ellipsoid_oracle.py). Error = the largest of max abs(delta - delta_ref) (b), "
               "max abs(n - n_ref) (rad) and max abs(C - C_ref) (b): overlap, force direction and lever arm. Cost: the "
               f"Cundall number of an elastic frictionless gas of N = {es['n_particles']} prolate spheroids, "
@@ -1236,8 +1258,8 @@ def _json_default(o):
 
 def set_default_skin(backend: str, phi: float) -> None:
     """The default rows of this report use the backend's default Verlet skin at the gas scenes' phi
-    (engine.spec.default_verlet_skin)."""
-    from engine.spec import default_verlet_skin
+    (engine.setup.params.default_verlet_skin)."""
+    from engine.setup.params import default_verlet_skin
 
     DEFAULT["skin"] = default_verlet_skin(backend, "sphere", phi)
 
@@ -1285,7 +1307,7 @@ def analyse(res: dict, out: Path, log=print) -> None:
     """Fronts, verdicts, plot, REPORT.md and summary.json from the measured rows in `res`.
 
     The default rows are those at the skin they ran at (``default_skin``); the skin sweep's default at each
-    phi is the current rule (engine.spec.default_verlet_skin), so a re-analysis judges the rule of the code
+    phi is the current rule (engine.setup.params.default_verlet_skin), so a re-analysis judges the rule of the code
     it runs with against the stored timings."""
     backend = res["machine"]["backend"]
     set_default_skin(backend, res["size"]["phi"])

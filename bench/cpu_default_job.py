@@ -29,7 +29,7 @@ _CHILD = r"""
 import json, sys, time
 t0 = time.perf_counter()
 import engine
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 t1 = time.perf_counter()
 r = engine.run(SimulationSpec(backend="cpu"), sys.argv[1])
 t2 = time.perf_counter()

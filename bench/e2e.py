@@ -4,11 +4,11 @@
 compilation or its disk-cache load is part of the figure, as for a user who starts a job) and prints:
 
 * the end-to-end Cundall number: N x steps / wall seconds of the whole call (``engine.run``,
-  ``engine.ensemble.run_ensemble``, or, for the worker, from the HTTP submission of the batch until the
+  ``engine.driver.ensemble.run_ensemble``, or, for the worker, from the HTTP submission of the batch until the
   last result is downloadable);
 * the loop Cundall number: N x steps / wall seconds of the time loop (thermalisation and cooling steps,
   rebuilds, no output) — a diagnostic, printed beside the end-to-end figure;
-* where the rest went (RunSummary.extra["timings"], engine/simulate.py TIMINGS): setup (spec, placement,
+* where the rest went (RunSummary.extra["timings"], engine/driver/simulate.py TIMINGS): setup (spec, placement,
   velocities), build (device upload, first list), compile (or cache load), loop, records, snapshots,
   checkpoints, open and close of the file, and "other" (imports excluded: the clock starts at the call);
 * the process's seconds (``process_s``): the fresh process from its start to its exit, the interpreter, every
@@ -16,8 +16,8 @@ compilation or its disk-cache load is part of the figure, as for a user who star
   their modules before the call's clock starts, the fair figure to compare).
 
 ``--off NAME ...`` turns latency machinery of the GPU path off in the process that runs each case, before the case
-starts, for side-by-side A/B timings (see SWITCHES): ``startup`` (the start-up thread, engine/startup.py),
-``device_start`` (large starts drawn on the GPU, engine/start_kind.py), ``kernel_cache`` (the kernels' disk cache,
+starts, for side-by-side A/B timings (see SWITCHES): ``startup`` (the start-up thread, engine/driver/startup.py),
+``device_start`` (large starts drawn on the GPU, engine/setup/start_kind.py), ``kernel_cache`` (the kernels' disk cache,
 engine/loops/cuda_cache.py), ``multigrid`` (the multigrid list build), ``multistep`` (the many-steps-per-launch
 loop: the per-phase loop at every size), ``launch_cache`` (engine/loops/cuda_launch.py), ``displacement_bound`` (every
 kick-drift measures displacements against x_ref, engine/loops/cuda_stepping.py), ``fused`` (two launches a step
@@ -72,8 +72,8 @@ CPU_CASES = ("quickstart", "cpu-16x512")
 
 #: --off name -> (module, setting, value when off): module-level settings of the engine, on by default
 SWITCHES = {
-    "startup": ("engine.startup", "ENABLED", False),
-    "device_start": ("engine.start_kind", "DEVICE_START", False),
+    "startup": ("engine.driver.startup", "ENABLED", False),
+    "device_start": ("engine.setup.start_kind", "DEVICE_START", False),
     "kernel_cache": ("engine.loops.cuda_cache", "ENABLED", False),
     "multigrid": ("engine.loops.cuda_rebuild", "MULTIGRID", False),
     "multistep": ("engine.loops.cuda_ensemble", "MULTISTEP", False),
@@ -131,8 +131,8 @@ def case_specs(case: str, quick: bool) -> dict:
 
 def to_spec(d: dict):
     """A SimulationSpec from a case dict; ``_steps`` sets t_end to exactly that many time steps."""
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     d = dict(d)
     steps = d.pop("_steps", None)
@@ -155,7 +155,7 @@ def _row(label: str, n_total: int, steps: int, wall: float, loop: float, timings
 def _sum_timings(summaries) -> dict:
     """Ensemble breakdown: scene-own phases summed over the scenes, shared ones (build, compile) once, the
     loop as the longest scene's (the scenes advance together)."""
-    from engine.simulate import SHARED_TIMINGS
+    from engine.driver.simulate import SHARED_TIMINGS
 
     out = dict.fromkeys(BREAKDOWN, 0.0)
     for s in summaries:
@@ -185,8 +185,8 @@ def run_case(case: str, quick: bool, workdir: Path, off=(), start=None) -> dict:
         return _run_worker(case, raw, workdir)
     if path == "cpu-ratio":
         return _run_cpu_ratio(case, raw, workdir)
-    from engine.ensemble import run_ensemble
-    from engine.simulate import run
+    from engine.driver.ensemble import run_ensemble
+    from engine.driver.simulate import run
 
     specs = [to_spec(d) for d in raw]   # the bench's own step arithmetic: not the user's time
     t0 = time.perf_counter()
@@ -199,7 +199,7 @@ def run_case(case: str, quick: bool, workdir: Path, off=(), start=None) -> dict:
                     "records": int(specs[0].t_end / (specs[0].output_interval or specs[0].t_end / 200)) + 1,
                     "precision": specs[0].precision, "shape": specs[0].shape,
                     "list_mode": summary.extra.get("list_mode"),
-                    # engine/startup.py's thread (None: off, --off startup, or no GPU)
+                    # engine/driver/startup.py's thread (None: off, --off startup, or no GPU)
                     "gpu_startup": summary.extra.get("gpu_startup")})
         return row
     outs = [workdir / f"s{k}.h5" for k in range(len(specs))]
@@ -223,8 +223,8 @@ def run_case(case: str, quick: bool, workdir: Path, off=(), start=None) -> dict:
 def _run_cpu_ratio(case: str, raw: list, workdir: Path) -> dict:
     """16 x 512 spheres with default records through run_ensemble against one such scene with 4 records
     (both end to end, after a warm-up run that compiles)."""
-    from engine.ensemble import run_ensemble
-    from engine.simulate import run
+    from engine.driver.ensemble import run_ensemble
+    from engine.driver.simulate import run
 
     specs = [to_spec(d) for d in raw]
     run(specs[0].model_copy(update={"t_end": specs[0].t_end / 10}), workdir / "warm.h5")  # compile

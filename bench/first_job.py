@@ -71,7 +71,7 @@ def own_compile(job: str) -> float:
     """Seconds the job's own kernels cost when the cache lacks them: the job through engine.run in a fresh process on
     an empty kernel cache, less the same in a fresh process on the cache it filled (bench/e2e.py's case; its wall
     seconds from the call to the closed file). On a GPU the kernels compile on the start-up thread beside the set-up
-    (engine/startup.py), so the job's own ``compile`` timing does not show them."""
+    (engine/driver/startup.py), so the job's own ``compile`` timing does not show them."""
     from bench.e2e import fresh_process
 
     case = "spheres-2M-f64" if job == "2M" else "quickstart"
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("bench-out/first_job"), help="report folder")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    from engine.startup import nvidia_driver
+    from engine.driver.startup import nvidia_driver
 
     backend = "cuda" if nvidia_driver() else "cpu"
     cache = Path(os.environ.get("NUMBA_CACHE_DIR") or Path.home() / ".cache" / "demq-numba")

@@ -36,10 +36,10 @@ def scenes(k, n, phi, precision):
 
 
 def _place(k0, k, n, phi, precision):
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     systems, contacts = [], []
     for s in range(k0, k):

@@ -24,10 +24,10 @@ from bench import out_dir
 
 
 def scene(n, phi, precision, seed=1):
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, precision=precision, seed=seed, snapshots=1,
                           **{**dict(e_n=0.8, e_t=0.5, friction=0.5), **contact})
@@ -41,9 +41,9 @@ def lattice_scene(n, phi, precision, seed=1, **contact):
     """A fast start for very large N: jittered simple-cubic lattice (no fcc placement); ``contact`` overrides the
     rough contact of Hidalgo et al. (2013) (e_n = 0.8, e_t = 0.5, friction 0.5)."""
     from engine.backends.base import SphereSystem
-    from engine.params import derive
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, precision=precision, seed=seed, snapshots=1,
                           **{**dict(e_n=0.8, e_t=0.5, friction=0.5), **contact})

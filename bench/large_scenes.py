@@ -11,7 +11,7 @@ flushed at once, NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT = 1); the process's peak 
 included); the arrays the ensemble holds at the end (``device_allocations``) and the stride reached; the loop's
 Cundall number. A spec the prediction refuses is reported with the refusal's text and how long it took.
 
-``start``: the random start (engine/cell_rsa.py) drawn on the device (engine/loops/cuda_start.py ``draw_start``,
+``start``: the random start (engine/setup/cell_rsa.py) drawn on the device (engine/loops/cuda_start.py ``draw_start``,
 float64 positions, the sphere's three streams) for each N and phi, best of ``--reps`` after one untimed draw (the
 kernels' load), with the rounds it took; for N <= ``--check-max`` the host's draw of the same start and whether the
 centres are equal bit for bit (the streams equal to rounding), and the smallest centre distance over sigma.
@@ -104,8 +104,8 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     from engine.errors import SpecError
     from engine.loops import cuda_ensemble
     from engine.loops.cuda_memory import device_allocations, predict_sphere_device
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.8, precision=precision,
                           backend="cuda", snapshots=0, thermalization=0, start=start)
@@ -154,10 +154,10 @@ def start_case(n: int, phi: float, reps: int, check_max: int) -> dict:
     from numba import cuda
 
     from engine.loops.cuda_start import draw_start
-    from engine.pairs import periodic_pairs
-    from engine.params import derive
-    from engine.scene import StartDraw, parallel_start_streams
-    from engine.spec import SimulationSpec
+    from engine.analysis.pairs import periodic_pairs
+    from engine.setup.params import derive
+    from engine.setup.scene import StartDraw, parallel_start_streams
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, backend="cuda", seed=1)
     p = derive(spec)

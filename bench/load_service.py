@@ -36,7 +36,7 @@ SPEC = {"n_particles": 64, "volume_fraction": 0.05, "box_length": 0.5, "t_end": 
 
 def instant_run(spec, output, **_):
     """The instant engine: an empty result file, written atomically; no physics. Returns the fields
-    of engine.simulate.RunSummary the worker reads (without importing the engine's numerics)."""
+    of engine.driver.simulate.RunSummary the worker reads (without importing the engine's numerics)."""
     tmp = Path(f"{output}.part")
     tmp.write_bytes(b"")
     os.replace(tmp, output)

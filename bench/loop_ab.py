@@ -90,8 +90,8 @@ def extra_specs(case: str, steps: int, backend: str, start=None) -> list:
     """The specs of an EXTRA case (one per scene, own seeds), t_end = steps x dt exactly; ``start``: the spec's start
     protocol (None: the engine's choice by size, which differs between one 1M scene and 4096-sphere scenes)."""
     from bench.vs_jaxmd import SCENE
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     k, n, precision, _, contact = EXTRA[case]
     base = dict(SCENE, volume_fraction=0.058, n_particles=n, precision=precision,
@@ -128,7 +128,7 @@ def main(argv=None) -> int:
 
     import engine.loops.cuda_loop as loop
     from engine import run, run_ensemble
-    from engine.start_kind import start_protocol
+    from engine.setup.start_kind import start_protocol
 
     default_blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
 

@@ -5,7 +5,7 @@
 
 Scenes: two sphere species of radius ratio R_L/R_s (ratio 1: one size), number fractions chosen so both
 species hold the same solid volume (N_L R_L^3 = N_s R_s^3), N spheres at volume fraction phi in a unit
-periodic box, placed without overlap by the engine's random sequential addition (engine/scene.py);
+periodic box, placed without overlap by the engine's random sequential addition (engine/setup/scene.py);
 skin L_v = 0.4 R_s (the CPU default, in units of the smallest radius).
 
 What is timed, per build (median and fastest of --reps builds after a JIT warm-up; single-grid and
@@ -13,9 +13,9 @@ multigrid builds alternate, so a shared machine's load hits both alike), at 1 Nu
 threads:
 - single grid: engine/loops/cpu.py ``bin_particles`` + ``build_list`` (cells of edge >= 2 R_max + L_v,
   nc <= (2N)^(1/3) + 1 per edge: today's CPU build, with the spring carry-over from the previous list);
-- multigrid: engine/multigrid.py ``bin_levels`` + ``build_levels_carry`` (Skorych & Dosta 2022, Algorithm 1 with the
-  search rule of engine/multigrid.py; what the CPU backend runs when the radii span more than one level,
-  with the same carry-over).
+- multigrid: engine/neighbours/multigrid.py ``bin_levels`` + ``build_levels_carry`` (Skorych & Dosta 2022,
+  Algorithm 1 with the search rule of engine/neighbours/multigrid.py; what the CPU backend runs when the radii span
+  more than one level, with the same carry-over).
 Both start from the list of the same positions as the "previous" list, so the carry-over does the full
 work of matching every pair. Candidates = distance tests per particle (the particles in the cells
 searched); neighbours = list entries per particle (|r_ij| < R_i + R_j + L_v).
@@ -38,10 +38,10 @@ from bench import out_dir
 from engine.backends.base import cell_grid
 from engine.loops.cpu import bin_particles, build_list
 from engine.loops.cpu_shared import SLOT
-from engine.cells import cell_coords, neighbour_cell, neighbour_cell_count
-from engine.multigrid import (bin_levels, build_levels_carry, count_candidates, grid_levels, level_arrays,
+from engine.neighbours.cells import cell_coords, neighbour_cell, neighbour_cell_count
+from engine.neighbours.multigrid import (bin_levels, build_levels_carry, count_candidates, grid_levels, level_arrays,
                               main_level)
-from engine.scene import place_species
+from engine.setup.scene import place_species
 
 
 @numba.njit(parallel=True, cache=True)

@@ -66,7 +66,7 @@ SPEEDUP = {"smooth": ("smooth instead of rough", True),
 
 
 def _scenes(cfg: dict, backend: str) -> dict:
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     # L_v = 0.4 a on both backends (the CPU default; CUDA's is 0.8 a): speed-ups are ratios at one skin
     dilute = SimulationSpec(n_particles=cfg["n"], box_length=2.0 * (cfg["n"] / 4096) ** (1 / 3), snapshots=0,
@@ -81,9 +81,9 @@ def _scenes(cfg: dict, backend: str) -> dict:
 def _state(spec, backend: str, therm_steps: int, thermalise: bool):
     """The spec's start, optionally advanced `therm_steps` with the elastic rough law (contacts formed)."""
     from engine.backends.registry import make_backend
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.simulate import contact_params
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.driver.simulate import contact_params
 
     p = derive(spec)
     system = initial_spheres(spec, p)
@@ -135,9 +135,9 @@ def build_spheres(cfg: dict, backend: str, log) -> list:
 
 def build_output(cfg: dict, backend: str, log) -> list:
     """Snapshot output through the driver: snapshots = 2 (first and last frame) vs one frame per record."""
-    from engine.params import derive
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     n = cfg["n"]
     base = SimulationSpec(n_particles=n, box_length=2.0 * (n / 4096) ** (1 / 3), backend=backend, seed=1,
@@ -168,9 +168,9 @@ def build_output(cfg: dict, backend: str, log) -> list:
 def build_ellipsoids(cfg: dict, log) -> dict:
     """Ellipsoid float64/float32 Cundall (CPU) and the estimated saving of the bounding-sphere broad phase."""
     from engine.backends.registry import make_backend
-    from engine.params import derive
-    from engine.scene import initial_ellipsoids
-    from engine.simulate import contact_params
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_ellipsoids
+    from engine.driver.simulate import contact_params
     from tests.engine.test_ellipsoid_geometry import H, contact_batch
 
     size = replace(ACC_SIZES["full"], ell_n=cfg["ell_n"])

@@ -49,8 +49,8 @@ BASE = dict(n_particles=256, volume_fraction=0.1, box_length=0.2, snapshots=2, t
 def gas(overlap=0.01, collisions=2.0, max_steps=MAX_STEPS, **kw) -> dict:
     """Spec fields of a small gas whose typical head-on overlap is `overlap` radii (sqrt(2) v_rms/omega_0);
     t_end covers `collisions` collisions per particle, at most max_steps steps (thermalisation too)."""
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     fields = dict(BASE)
     fields.update(kw)
@@ -68,8 +68,8 @@ def gas(overlap=0.01, collisions=2.0, max_steps=MAX_STEPS, **kw) -> dict:
 
 
 def _tc(**kw) -> float:
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     fields = {**SimulationSpec.model_construct().__dict__, **BASE, **kw, "dt": None}
     return derive(SimulationSpec.model_construct(**fields)).contact_time
@@ -183,8 +183,8 @@ def _run_spec(cell: dict) -> dict:
     from pydantic import ValidationError
 
     from engine.errors import InstabilityError, SpecError
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     try:
         spec = SimulationSpec.model_validate(cell["spec"])
@@ -218,7 +218,7 @@ def _run_pair(cell: dict) -> dict:
     from engine.backends.base import ContactParams, SphereSystem
     from engine.shapes.sphere.cpu_backend import CpuBackend
     from engine.errors import InstabilityError
-    from engine.params import Q_SPHERE
+    from engine.setup.params import Q_SPHERE
 
     a, m, k = 0.01, 1e-2, 1e5
     n = cell.get("n", 2)

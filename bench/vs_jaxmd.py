@@ -14,10 +14,10 @@ groups run 2M before 8M):
     cp /tmp/vs_jaxmd/results.json /tmp/vs_jaxmd/results.md $OUT/; tar czf $OUT/logs.tgz -C /tmp/vs_jaxmd logs
 
 The gas: phi = 0.058 and 0.2 in a periodic 2 m cube, k_n = 1e8 N/m, density 2000 kg/m^3, velocity_rms = 2 m/s,
-dt = t_c/50 (demq's ``engine.params.derive``), rounded to the nearest float32 (relative change < 6e-8) and given to
+dt = t_c/50 (demq's ``engine.setup.params.derive``), rounded to the nearest float32 (relative change < 6e-8) and given to
 both codes as the spec's ``dt``: ``jax_md.simulate.velocity_verlet`` casts its dt to float32 even with x64. Both
 codes start from demq's random start (``start = "random"``: random sequential addition, RSA, with Maxwellian
-velocities and spins; engine/start_kind.py) at every N, with no thermalisation: a homogeneous gas at equilibrium
+velocities and spins; engine/setup/start_kind.py) at every N, with no thermalisation: a homogeneous gas at equilibrium
 speeds whose pair correlation at contact is RSA's, 1 + (5/3) phi against Carnahan-Starling's 1 + (5/2) phi + O(phi^2)
 (at phi = 0.2 the collision rate starts about a quarter below Enskog's and relaxes within about one collision; the
 table's Enskog figure says what a relaxed gas would give). demq draws it inside ``engine.run`` (on the host: RSA is
@@ -99,8 +99,8 @@ if __name__ == "__main__":
 
 import numpy as np  # noqa: E402
 
-from engine.params import derive  # noqa: E402  (does not import numba)
-from engine.spec import SimulationSpec  # noqa: E402
+from engine.setup.params import derive  # noqa: E402  (does not import numba)
+from engine.setup.spec import SimulationSpec  # noqa: E402
 
 SCENE = dict(box_length=2.0, stiffness=1.0e8, density=2000.0, velocity_rms=2.0)
 VOLUME_FRACTIONS = (0.058, 0.2)
@@ -219,12 +219,12 @@ def search_plan(formats, skins, capacities, trial) -> tuple:
 # ---- demq ---------------------------------------------------------------------------------------------------------
 
 class StartMemo:
-    """Keeps the starts a process draws (engine.scene.initial_spheres) and hands out copies: the second run of a
-    case then takes the start of the first (module doc). Installed by patching engine.scene.initial_spheres, which
+    """Keeps the starts a process draws (engine.setup.scene.initial_spheres) and hands out copies: the second run of a
+    case then takes the start of the first (module doc). Installed by patching engine.setup.scene.initial_spheres, which
     the sphere plug-in looks up at each call."""
 
     def __init__(self):
-        import engine.scene as scene
+        import engine.setup.scene as scene
 
         self.scene, self.draw = scene, scene.initial_spheres
         self.starts, self.draw_s = {}, {}
@@ -240,7 +240,7 @@ class StartMemo:
         if key not in self.starts:
             t0 = time.perf_counter()
             # drawn on the host even for a GPU job (whose large start would be drawn on the device: the same
-            # centres, engine/cell_rsa.py), so that it can be handed to JAX-MD and to the second run
+            # centres, engine/setup/cell_rsa.py), so that it can be handed to JAX-MD and to the second run
             self.starts[key] = self.draw(spec, p, False)
             self.draw_s[key] = time.perf_counter() - t0
         system = self.starts[key]

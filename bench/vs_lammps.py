@@ -2,11 +2,11 @@
 
     python -m bench vs_lammps --n 4096 32768 262144 --steps 10000 10000 3000 --threads 1 --out DIR
 
-The scene: the Hidalgo et al. (2013) radius of the default spec (a = 1.55 cm, engine/params.py ``derive``),
+The scene: the Hidalgo et al. (2013) radius of the default spec (a = 1.55 cm, engine/setup/params.py ``derive``),
 velocity_rms = 3 m/s, e_n = e_t = 0.8, k_n = 1e8 N/m, density 2000 kg/m^3, no Coulomb limit
 (friction = null); phi = 0.008 at N = 4096 and 0.058 above (``--phi`` overrides); the box grows with N so that
 the radius stays the default one. No thermalisation (``thermalization = 0``), so both codes start from the
-SAME state: demq's own start (engine/scene.py ``initial_spheres``: positions, velocities, spins) is written
+SAME state: demq's own start (engine/setup/scene.py ``initial_spheres``: positions, velocities, spins) is written
 into the LAMMPS data file, and both integrate the dissipative gas from there for the same number of steps.
 
 LAMMPS, with its units (``units si``; pair_gran docs: F_n = k_n delta n - m_eff gamma_n v_n,
@@ -53,8 +53,8 @@ if __name__ == "__main__":   # Numba reads NUMBA_NUM_THREADS once, at import: se
         os.environ.setdefault("NUMBA_NUM_THREADS", "1")
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.params import derive  # noqa: E402  (does not import numba)
-from engine.spec import SimulationSpec  # noqa: E402
+from engine.setup.params import derive  # noqa: E402  (does not import numba)
+from engine.setup.spec import SimulationSpec  # noqa: E402
 
 #: LAMMPS refuses xmu > 1e4 (pair_gran settings); with it the Coulomb limit never bites in this gas.
 LAMMPS_XMU = 1.0e4
@@ -209,7 +209,7 @@ def run_demq(spec: SimulationSpec, threads: int, workdir: Path) -> dict:
 def compare(n: int, phi: float, steps: int, threads: int, skin_radii: float, out_dir, seed: int = 1,
             demq_skin: float | None = None) -> dict:
     """One side-by-side comparison: write the LAMMPS input from demq's start, run both, return a row."""
-    from engine.scene import initial_spheres
+    from engine.setup.scene import initial_spheres
 
     spec = scene_spec(n, phi, steps, seed, demq_skin)
     prm = lammps_params(spec, skin_radii)

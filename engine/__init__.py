@@ -7,20 +7,20 @@ Usable alone::
 """
 
 from engine.errors import BackendUnavailable, Cancelled, EngineError, InstabilityError, SpecError
-from engine.spec import SimulationSpec, load_spec
+from engine.setup.spec import SimulationSpec, load_spec
 from engine.version import __version__
 
 
 def run(*args, **kwargs):
-    """Run a spec and write its HDF5 result; see :func:`engine.simulate.run`."""
-    from engine.simulate import run as _run
+    """Run a spec and write its HDF5 result; see :func:`engine.driver.simulate.run`."""
+    from engine.driver.simulate import run as _run
 
     return _run(*args, **kwargs)
 
 
 def run_ensemble(*args, **kwargs):
-    """Run several specs as one ensemble, one HDF5 result each; see :func:`engine.ensemble.run_ensemble`."""
-    from engine.ensemble import run_ensemble as _run_ensemble
+    """Run several specs as one ensemble, one HDF5 result each; see :func:`engine.driver.ensemble.run_ensemble`."""
+    from engine.driver.ensemble import run_ensemble as _run_ensemble
 
     return _run_ensemble(*args, **kwargs)
 

@@ -6,7 +6,7 @@ The console script itself lives in service/cli.py (it also offers the queue comm
 Bad input ends in one line per problem on stderr and exit status 2, before anything is written: a spec
 file that is missing or not a JSON object, a ``--set`` that is not KEY=VALUE, an invalid value (the line
 names the field and the value), a misspelt key (the line suggests the spec key it is closest to), a run beyond
-the cost limits (engine/limits.py, the service's defaults; ``--allow-large`` runs it anyway), a backend this
+the cost limits (engine/setup/limits.py, the service's defaults; ``--allow-large`` runs it anyway), a backend this
 machine cannot run (``cuda`` without a GPU: asked of the engine's GPU probe, nothing compiled), a missing
 extra (``demq validate``'s figures need matplotlib, except sonine's, which prints them as a table). The
 helpers here are shared with ``demq submit`` and ``demq warm`` (service/cli.py).
@@ -100,9 +100,9 @@ def did_you_mean(model, loc) -> str:
 
 
 def spec_error_lines(errors: list[dict], model=None) -> list[str]:
-    """Pydantic errors of a spec (of ``model``, default :class:`engine.spec.SimulationSpec`) as lines that name
+    """Pydantic errors of a spec (of ``model``, default :class:`engine.setup.spec.SimulationSpec`) as lines that name
     the field and the value; an unknown key gets the closest field name as a suggestion."""
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     lines = []
     for err in errors:
@@ -123,11 +123,11 @@ def spec_error_lines(errors: list[dict], model=None) -> list[str]:
 
 
 def validate_spec(data: dict, model=None):
-    """``model`` (default :class:`engine.spec.SimulationSpec`) validated from ``data``; raises
+    """``model`` (default :class:`engine.setup.spec.SimulationSpec`) validated from ``data``; raises
     :class:`SpecInputError` with :func:`spec_error_lines`."""
     from pydantic import ValidationError
 
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     model = model or SimulationSpec
     try:
@@ -141,16 +141,16 @@ def validate_spec(data: dict, model=None):
 
 def cost_refusals(spec, max_particle_steps: float, max_memory_bytes: float) -> list[str]:
     """Lines refusing a spec beyond the cost limits (empty when within), each naming the estimate."""
-    from engine.limits import cost_excesses
+    from engine.setup.limits import cost_excesses
 
     return [f"refused: {e.message}; pass --allow-large to run it anyway"
             for e in cost_excesses(spec, max_particle_steps, max_memory_bytes)]
 
 
 def estimate_line(spec) -> str:
-    """'N = 4096, 5.12e+03 steps, 2.1e+07 particle-steps, about 12 MB of memory' (engine.params)."""
-    from engine.limits import sci
-    from engine.params import estimate_cost
+    """'N = 4096, 5.12e+03 steps, 2.1e+07 particle-steps, about 12 MB of memory' (engine.setup.params)."""
+    from engine.setup.limits import sci
+    from engine.setup.params import estimate_cost
 
     cost = estimate_cost(spec)
     return (f"N = {spec.n_particles}, {sci(cost['steps'])} steps, {sci(cost['particle_steps'])} particle-steps, "
@@ -225,8 +225,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_run(args) -> int:
     from engine.errors import EngineError, SpecError
-    from engine.limits import DEFAULT_MAX_MEMORY_BYTES, DEFAULT_MAX_PARTICLE_STEPS
-    from engine.progress import progress_for
+    from engine.setup.limits import DEFAULT_MAX_MEMORY_BYTES, DEFAULT_MAX_PARTICLE_STEPS
+    from engine.driver.progress import progress_for
 
     try:
         data = read_spec_data(args.spec, args.set)
@@ -261,8 +261,8 @@ def cmd_run(args) -> int:
 
 
 def run(spec, output, progress=None):
-    """engine.simulate.run (imported here: a refused or invalid spec costs no Numba import)."""
-    from engine.simulate import run as simulate
+    """engine.driver.simulate.run (imported here: a refused or invalid spec costs no Numba import)."""
+    from engine.driver.simulate import run as simulate
 
     return simulate(spec, output, progress=progress)
 
@@ -283,7 +283,7 @@ def cmd_export(args) -> int:
         return 2
     try:
         if args.format == "xdmf":
-            from engine.xdmf import write_xdmf
+            from engine.output.xdmf import write_xdmf
 
             out = write_xdmf(src)
             if out is None:
@@ -292,7 +292,7 @@ def cmd_export(args) -> int:
                 print("demq export: the xdmf sidecar is always <stem>.xmf next to the result (it names the "
                       "HDF5 file relatively); -o is ignored", file=sys.stderr)
         else:
-            from engine.export_gsd import export_gsd
+            from engine.output.export_gsd import export_gsd
 
             out = export_gsd(src, args.output or src.with_suffix(".gsd"))
     except (OSError, KeyError, ValueError) as exc:

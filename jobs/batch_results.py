@@ -1,4 +1,4 @@
-"""The batch-level result: seed statistics over a batch's finished jobs (engine/ensemble_stats.py).
+"""The batch-level result: seed statistics over a batch's finished jobs (engine/analysis/ensemble_stats.py).
 
 :func:`batch_result` collects the jobs of a batch from the table, groups the done ones by spec apart
 from the seed, and writes ``<data_dir>/batches/<batch_id>.h5`` (mean cooling curves with standard
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from engine.ensemble_stats import Run, aggregate, write_batch_result
+from engine.analysis.ensemble_stats import Run, aggregate, write_batch_result
 from jobs.schema import DONE, FINAL_STATES
 from jobs.settings import Settings
 from jobs.store import Job, JobStore

@@ -11,12 +11,12 @@ jobs/worker.py). How a claim of several jobs runs depends on the backend its job
   plus the runs of the cheaper jobs before it. Any CPU job goes with any other (shape, precision and memory do
   not matter: one scene is in memory at a time).
 - ``ensemble`` (the GPU; the CPU with DEMQ_CPU_PACKS=ensemble): the jobs run as one ensemble
-  (engine.ensemble.run_ensemble), which needs the same ``shape``, ``precision`` and resolved backend, at most
+  (engine.driver.ensemble.run_ensemble), which needs the same ``shape``, ``precision`` and resolved backend, at most
   ``DEMQ_ENSEMBLE_MAX_PARTICLES`` particles together, and — so that a small job does not wait in a pack of large
   ones — an estimated cost within a factor DEMQ_ENSEMBLE_COST_RATIO (default :data:`COST_RATIO`) of the first
   job's. Any mix of N, φ, e_n, e_t, ξ,
   dt, t_end, seeds and Verlet skins packs together (a null ``verlet_skin`` is the default of the pack's one
-  resolved backend, engine.spec.default_verlet_skin, the same as the job run alone there). A scene that ends
+  resolved backend, engine.setup.params.default_verlet_skin, the same as the job run alone there). A scene that ends
   leaves the pack at once; its job ends then.
 
 A job whose queued row carries the :data:`SOLO` note runs alone: its previous pack's simulation process
@@ -49,10 +49,10 @@ def is_solo(job: Job) -> bool:
 
 
 def particle_steps(job: Job) -> float:
-    """Estimated particle-steps N x (thermalisation + cooling steps) of a job (engine.params.estimate_cost): the
+    """Estimated particle-steps N x (thermalisation + cooling steps) of a job (engine.setup.params.estimate_cost): the
     measure of its run time at a given Cundall number. 0 for a spec the engine refuses (it fails at once)."""
-    from engine.params import estimate_cost
-    from engine.spec import SimulationSpec
+    from engine.setup.params import estimate_cost
+    from engine.setup.spec import SimulationSpec
 
     try:
         return float(estimate_cost(SimulationSpec.model_validate(job.spec))["particle_steps"])

@@ -4,8 +4,8 @@ run as one ensemble (jobs/packing.py) — started by the worker with the ``spawn
 the previous claim, then handed its claim over a pipe).
 
 It validates the specs, calls the engine with a progress callback and a cancel check per job (one job, and each
-job of a sequence in turn, in this one warm process: ``DEMQ_ENGINE_RUN``, engine.simulate.run; a pack:
-``DEMQ_ENGINE_RUN_ENSEMBLE``, engine.ensemble.run_ensemble), and reports to the worker over a pipe; every
+job of a sequence in turn, in this one warm process: ``DEMQ_ENGINE_RUN``, engine.driver.simulate.run; a pack:
+``DEMQ_ENGINE_RUN_ENSEMBLE``, engine.driver.ensemble.run_ensemble), and reports to the worker over a pipe; every
 message names the job by its index k in the claim::
 
     ("started", k, None)                  a sequence's job k starts (the jobs before it have ended)
@@ -106,7 +106,7 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
                  threads: Optional[int] = None) -> None:
     """Entry point of a standby simulation process: started by the worker before its claim, it pays the
     process's one-off start-up (the engine's imports, numba's targets, on a GPU the driver, the context and
-    the kernels of ``warm_spec_json``'s specialisation: engine.simulate.warm_process) while the worker waits
+    the kernels of ``warm_spec_json``'s specialisation: engine.driver.simulate.warm_process) while the worker waits
     for work or runs the previous claim, then runs the one claim it receives on ``claims`` as
     :func:`child_main` would, and exits. ``None`` instead of a claim (or a closed pipe): exit at once.
     ``warm_spec_json`` None: nothing is warmed (a non-default engine: its module is imported with the claim).
@@ -117,9 +117,9 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
     _die_with_parent()
     if warm_spec_json is not None:
         try:
-            import engine.ensemble  # noqa: F401  (the pack entry point's imports)
-            from engine.simulate import warm_process
-            from engine.spec import SimulationSpec
+            import engine.driver.ensemble  # noqa: F401  (the pack entry point's imports)
+            from engine.driver.simulate import warm_process
+            from engine.setup.spec import SimulationSpec
 
             # a claim already waiting gets its own kernels compiled (or loaded) by its run, not the warm spec's
             # first: with an empty kernel cache the default spec's would cost a first job of another
@@ -244,7 +244,7 @@ def _final(k: Optional[int], outcome) -> tuple:
 def _parse(spec_json: str):
     from pydantic import ValidationError
 
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     try:
         return SimulationSpec.model_validate_json(spec_json)
@@ -254,7 +254,7 @@ def _parse(spec_json: str):
 
 def _run(engine_run, k, spec_json, output, checkpoint_dir, checkpoint_interval, conn, cancel_flags,
          parent_pid) -> tuple:
-    """Job k of the claim through ``engine_run`` (engine.simulate.run's signature); its final message."""
+    """Job k of the claim through ``engine_run`` (engine.driver.simulate.run's signature); its final message."""
     spec = _parse(spec_json)
     if isinstance(spec, tuple):
         return (spec[0], k, spec[1])
@@ -284,7 +284,7 @@ def _run_sequence(engine_run, spec_jsons, outputs, checkpoint_dirs, checkpoint_i
 
 def _run_pack(engine_run_ensemble, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
               parent_pid) -> None:
-    """A pack through ``engine_run_ensemble`` (engine.ensemble.run_ensemble's signature); each job's final
+    """A pack through ``engine_run_ensemble`` (engine.driver.ensemble.run_ensemble's signature); each job's final
     message is sent as soon as its scene ends."""
     specs, index = {}, []
     for k, text in enumerate(spec_jsons):

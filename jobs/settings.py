@@ -37,13 +37,15 @@ DEMQ_CANCEL_KILL_SECONDS       ``0.3``                             Time a cancel
 DEMQ_CANCEL_POLL_SECONDS       ``0.2``                             Interval of the worker's reads of cancel requests
                                                                    of its running jobs.
 DEMQ_CHECKPOINT_INTERVAL       ``60``                              Wall seconds between engine checkpoints.
-DEMQ_ENGINE_RUN                ``engine.simulate:run``             ``module:function`` the simulation process calls
-                                                                   (same signature as engine.simulate.run); tests and
-                                                                   the load bench point it at a fake engine.
+DEMQ_ENGINE_RUN                ``engine.driver.simulate:run``      ``module:function`` the simulation process calls
+                                                                   (same signature as engine.driver.simulate.run);
+                                                                   tests and the load bench point it at a fake
+                                                                   engine.
 DEMQ_ENGINE_RUN_ENSEMBLE       (auto)                              ``module:function`` that runs a pack of jobs (same
-                                                                   signature as engine.ensemble.run_ensemble). Auto:
-                                                                   ``engine.ensemble:run_ensemble`` with the default
-                                                                   DEMQ_ENGINE_RUN, none (no packing) with another.
+                                                                   signature as engine.driver.ensemble.run_ensemble).
+                                                                   Auto: ``engine.driver.ensemble:run_ensemble``
+                                                                   with the default DEMQ_ENGINE_RUN, none (no
+                                                                   packing) with another.
 DEMQ_ENSEMBLE_MAX_JOBS         ``256``                             Most queued jobs a worker claims at once (one
                                                                    ensemble on the GPU, one sequence on the CPU:
                                                                    jobs/packing.py); also capped at the worker's fair
@@ -93,7 +95,7 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Optional
 
-from engine.limits import DEFAULT_MAX_MEMORY_BYTES, DEFAULT_MAX_PARTICLE_STEPS
+from engine.setup.limits import DEFAULT_MAX_MEMORY_BYTES, DEFAULT_MAX_PARTICLE_STEPS
 
 _ENV = {
     "data_dir": "DEMQ_DATA_DIR",
@@ -129,11 +131,11 @@ _ENV = {
 }
 
 
-DEFAULT_ENGINE_RUN = "engine.simulate:run"
+DEFAULT_ENGINE_RUN = "engine.driver.simulate:run"
 STANDBY_VALUES = ("auto", "on", "off", "1", "0")
 SWITCH_VALUES = ("on", "off", "1", "0")
 CPU_PACK_VALUES = ("sequence", "ensemble")
-DEFAULT_ENGINE_RUN_ENSEMBLE = "engine.ensemble:run_ensemble"
+DEFAULT_ENGINE_RUN_ENSEMBLE = "engine.driver.ensemble:run_ensemble"
 
 
 def _default_worker_id() -> str:
@@ -233,7 +235,7 @@ class Settings:
         submission with a standby against 0.72-0.99 s without (2-core VM, 2026-11-28, bench/small_jobs.py
         ``--lone``); a CPU standby holds about 160 MB of memory while it waits."""
         if self.standby == "auto":
-            from engine.startup import nvidia_driver
+            from engine.driver.startup import nvidia_driver
 
             return nvidia_driver() or (os.cpu_count() or 1) > 1
         return self.standby in ("on", "1")

@@ -1,6 +1,6 @@
 """Admission of specs into the queue: validation with readable errors, cost limits, sweeps.
 
-The engine's :class:`~engine.spec.SimulationSpec` names field, value and allowed range in each
+The engine's :class:`~engine.setup.spec.SimulationSpec` names field, value and allowed range in each
 message. :class:`QueueSpec` adds one guard: a spec whose numbers overflow the derived-parameter
 arithmetic (say ``box_length = 1e300``) is reported as invalid instead of crashing the caller.
 """
@@ -13,8 +13,8 @@ from typing import Any, Iterable, Optional
 
 from pydantic import ConfigDict, ValidationError, model_validator
 
-from engine.limits import cost_excesses
-from engine.spec import SimulationSpec
+from engine.setup.limits import cost_excesses
+from engine.setup.spec import SimulationSpec
 
 
 class SpecRejected(ValueError):

@@ -9,11 +9,11 @@ without parallel regions, the larger ones' in regions: engine/loops/cpu.py SERIA
 spec (N, phi, e_n, dt, seeds, ...) is a run-time value of the same compiled code. :func:`specialisations` lists the
 combinations the engine accepts (a shape refuses some: spheroids run neither species nor mixed precision);
 :func:`warm` runs a tiny scene of each (on the CPU also one of SERIAL_LOOP_BELOW particles) through the same entry
-point a job uses (engine.simulate.run, plus a two-scene engine.ensemble.run_ensemble on the
-GPU for the packed kernels), and draws a large start's kernels (engine.scene.load_parallel_start; on the GPU also
+point a job uses (engine.driver.simulate.run, plus a two-scene engine.driver.ensemble.run_ensemble on the
+GPU for the packed kernels), and draws a large start's kernels (engine.setup.scene.load_parallel_start; on the GPU also
 the device start's, engine.loops.cuda_start.load). Compiled code
-goes to numba's disk cache (engine/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of later
-jobs load it from. Nothing of a warm-up's scenes is kept.
+goes to numba's disk cache (engine/numba_support/jitcache.py; NUMBA_CACHE_DIR if set), where the simulation processes of
+later jobs load it from. Nothing of a warm-up's scenes is kept.
 
 Used by the worker before its first claim (jobs/worker.py, in a process of its own: the worker process itself
 never holds a GPU context) and by ``demq warm`` (service/cli.py; the worker image runs it at build time, so a fresh
@@ -93,7 +93,7 @@ def specialisations(backends: Sequence[str], shapes: Optional[Sequence[str]] = N
     from pydantic import ValidationError
 
     from engine.shapes import SHAPES, traits
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     out = []
     for backend in backends:
@@ -177,12 +177,12 @@ def numba_compiles(on_start: Callable[[], None]) -> Iterator[None]:
 
 def _warm_list(todo: list) -> WarmReport:
     """Run a tiny scene of each specialisation in ``todo`` in this process (compiling or loading its kernels)."""
-    from engine.ensemble import run_ensemble
+    from engine.driver.ensemble import run_ensemble
     from engine.loops.cpu import SERIAL_LOOP_BELOW
-    from engine.params import derive
-    from engine.scene import load_parallel_start
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import load_parallel_start
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     report = WarmReport()
     t0 = time.perf_counter()
@@ -214,7 +214,7 @@ def _warm_list(todo: list) -> WarmReport:
 def _load_device_start(precision: str) -> None:
     """The kernels of a large sphere start drawn on the GPU (engine/loops/cuda_start.py) in ``precision``."""
     from engine.loops.cuda_start import load
-    from engine.precision import position_dtype, state_dtype
+    from engine.setup.precision import position_dtype, state_dtype
 
     load(position_dtype(precision), state_dtype(precision))
 

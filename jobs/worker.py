@@ -59,7 +59,7 @@ from typing import Callable, Optional
 
 from sqlalchemy.exc import SQLAlchemyError
 
-from engine.h5md import partial_path
+from engine.output.h5md import partial_path
 from jobs.packing import ENSEMBLE, ONE, SEQUENCE, SOLO, Packer, fair_share, particle_steps, sequence_order
 from jobs.runner import child_main, standby_main
 from jobs.schema import CANCELLED, DONE, FAILED, FINAL_STATES, QUEUED, RUNNING
@@ -827,7 +827,7 @@ def _spec_json(job: Job) -> str:
 
 #: engine/loops/cpu.py SERIAL_LOOP_BELOW, the size below which a CPU scene's time loop is compiled without parallel
 #: regions (that module imports numba, which the worker process does not: tests/jobs/test_worker.py checks the two
-#: match). From engine/start_kind.py PARALLEL_START_MIN on, a sphere scene's start compiles other code too.
+#: match). From engine/setup/start_kind.py PARALLEL_START_MIN on, a sphere scene's start compiles other code too.
 SMALL_SCENE_BELOW = 1024
 
 
@@ -836,7 +836,7 @@ def _specialisation(spec_json: Optional[str]) -> Optional[tuple]:
     Specialisation) and the scene's size class; None if it does not parse."""
     if spec_json is None:
         return None
-    from engine.start_kind import PARALLEL_START_MIN
+    from engine.setup.start_kind import PARALLEL_START_MIN
     from jobs.specs import parse_spec
 
     try:

@@ -11,7 +11,7 @@ from fastapi import Depends, FastAPI
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 
-from engine.spec import FIELD_RANGES, SPECIES_RANGES, field_schema_keywords, write_field_keywords
+from engine.setup.spec import FIELD_RANGES, SPECIES_RANGES, field_schema_keywords, write_field_keywords
 
 from jobs.settings import Settings
 from jobs.store import JobStore
@@ -80,7 +80,7 @@ def create_app(settings: Settings, store: Optional[JobStore] = None, embedded_wo
 
 
 def _openapi(app: FastAPI) -> dict:
-    """FastAPI's document, with the spec fields' range keywords written again from engine/spec.py:
+    """FastAPI's document, with the spec fields' range keywords written again from engine/setup/spec.py:
     FastAPI's OpenAPI models hold minimum/maximum as floats, which rounds 2**63-1 (the largest seed) up
     to 2**63, a value the validator refuses; and with the snapshot's renderer enum of this server."""
     if app.openapi_schema is None:

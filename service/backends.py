@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import Iterable, Optional, Sequence
 
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 from jobs.settings import Settings
 from jobs.specs import SpecRejected
 from jobs.store import JobStore
@@ -51,7 +51,7 @@ def _device_memory_refusal(spec: SimulationSpec, live) -> Optional[str]:
     if spec.shape != "sphere" or not sizes or any(b is None for b in sizes):
         return None
     from engine.loops.cuda_memory import memory_refusal
-    from engine.params import derive      # a null verlet_skin is CUDA's default: spec.backend is 'cuda'
+    from engine.setup.params import derive      # a null verlet_skin is CUDA's default: spec.backend is 'cuda'
 
     why = memory_refusal(spec, derive(spec), max(sizes), "the largest GPU of the live workers", derive,
                          reads_state=True)

@@ -188,8 +188,8 @@ def cmd_warm(args) -> int:
 
 # ---- client commands ----------------------------------------------------------------------------------
 def _job_progress(job_id: str, n_particles):
-    """The job's progress on stderr: a tqdm bar on a terminal, plain lines elsewhere (engine/progress.py)."""
-    from engine.progress import progress_for
+    """The job's progress on stderr: a tqdm bar on a terminal, plain lines elsewhere (engine/driver/progress.py)."""
+    from engine.driver.progress import progress_for
 
     return progress_for(n_particles, desc=f"job {job_id[:8]} ")
 
@@ -197,7 +197,7 @@ def _job_progress(job_id: str, n_particles):
 def _with_sidecar(output) -> None:
     """Write the ParaView sidecar ``<stem>.xmf`` beside a result copied or downloaded to ``output`` (it names
     the HDF5 file by its name, so a copy needs its own); a result without snapshot frames has none."""
-    from engine.xdmf import write_xdmf
+    from engine.output.xdmf import write_xdmf
 
     sidecar = write_xdmf(output)
     print(f"wrote {output}" + (f" and {sidecar}" if sidecar else ""))

@@ -48,14 +48,14 @@ def read_spec(path: Path) -> dict:
 def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
     """Scaled time and the mean-field cooling curves for a spec from T(0) = t0 (J) and R(0)/T(0).
 
-    Spheres: tau of Hidalgo et al. (2013) and Luding's ODE with the effective tangential restitution (engine.params)
-    -> {"x", "xlabel", "T", "R", "name"}. Ellipsoids: Haff's law with Gamma_0(xi) of Rubio-Largo et al. (2015) Eq. 28
-    (engine/validation/hcs_ellipsoids.py) and D_f = 5 -> x = t/t0, R is None. Rough ellipsoids: no theory
-    (T and R None, x = t).
+    Spheres: tau of Hidalgo et al. (2013) and Luding's ODE with the effective tangential restitution
+    (engine.setup.params) -> {"x", "xlabel", "T", "R", "name"}. Ellipsoids: Haff's law with Gamma_0(xi) of Rubio-Largo
+    et al. (2015) Eq. 28 (engine/validation/hcs_ellipsoids.py) and D_f = 5 -> x = t/t0, R is None. Rough ellipsoids: no
+    theory (T and R None, x = t).
     """
-    from engine.params import derive
-    from engine.spec import SimulationSpec
-    from engine.theory import DOF_SMOOTH_SPHEROID, haff, haff_rate, luding_ode, tau_factor
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
+    from engine.analysis.theory import DOF_SMOOTH_SPHEROID, haff, haff_rate, luding_ode, tau_factor
 
     spec = SimulationSpec.model_validate(spec)
     p = derive(spec)
@@ -78,7 +78,7 @@ def theory_curves(spec: dict, t, t0: float, r0_over_t0: float) -> dict:
 def batch_plot_png(path: Path, title: str) -> bytes:
     """Mean T/T0 and R/T0 over the seeds of each group of a batch file, with +-1 standard-error bands,
     against Luding's ODE (spheres) or Haff's law (ellipsoids); T0 is the group's mean T(0)."""
-    from engine.ensemble_stats import read_batch_result
+    from engine.analysis.ensemble_stats import read_batch_result
     from engine.optional import require
 
     Figure = require("matplotlib.figure", "plots", "the batch plot").Figure
@@ -127,7 +127,7 @@ def cooling_plot_png(path: Path, title: str) -> bytes:
     (Haff's law against t/t0 for ellipsoids; :func:`theory_curves`).
 
     T0 is the translational temperature at the first record (start of the cooling run); the theory
-    starts from the measured R(0)/T(0) and uses the effective tangential restitution (engine.params).
+    starts from the measured R(0)/T(0) and uses the effective tangential restitution (engine.setup.params).
     """
     from engine.optional import require
 

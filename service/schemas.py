@@ -7,7 +7,7 @@ from typing import Any, List, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, create_model, model_validator
 
-from engine.spec import FIELD_RANGES, SimulationSpec, Species, field_schema_keywords, write_field_keywords
+from engine.setup.spec import FIELD_RANGES, SimulationSpec, Species, field_schema_keywords, write_field_keywords
 
 from jobs.schema import STATES
 from jobs.specs import QueueSpec

@@ -128,12 +128,12 @@ def test_walker_sees_function_level_relative_and_dynamic_imports():
            "def f():\n"
            "    from . import base\n"
            "    from ..physics.contact import min_image\n"
-           "    from .. import spec\n"
+           "    from .. import errors\n"
            "    importlib.import_module(f'bench.{x}')\n"
            "    __import__('jobs.store')\n")
-    mods = {"engine.backends.base", "engine.physics.contact", "engine.spec"}
+    mods = {"engine.backends.base", "engine.physics.contact", "engine.errors"}
     assert imports_of(src, "engine.backends", mods) == {
-        "importlib", "engine.backends.base", "engine.physics.contact", "engine.spec", "bench", "jobs.store"}
+        "importlib", "engine.backends.base", "engine.physics.contact", "engine.errors", "bench", "jobs.store"}
 
 
 def test_no_import_cycle_in_engine_jobs_service():
@@ -150,19 +150,32 @@ def test_dependencies_flow_service_jobs_engine():
     assert not bad, "imports against the flow service -> jobs -> engine: " + ", ".join(bad)
 
 
-# ---- engine layers: shapes and backends meet only through the shape registry --------------------------------
+# ---- engine layers (engine/README.md) -----------------------------------------------------------------------
 #
-# engine/shapes/<pkg>/   a shape plug-in: imports the shared machinery of engine/loops/ and neutral engine modules,
-#                        never an engine.backends module
-# engine/loops/          the shared machinery a shape's host classes subclass and call (CPU loop, CUDA ensemble
-#                        base, kernels, list builds): imports no shape package (the registry engine.shapes only) and,
-#                        of engine.backends, only the interfaces (engine.backends.protocol) and the types module
-#                        (engine.backends.base)
-# engine/backends/       the interfaces, the factories and the ensembles: imports no shape package (the registry
-#                        engine.shapes only)
+# top      engine (the public entry points), engine.cli, engine.driver (runs specs: simulate, ensemble, startup),
+#          engine.validation (`demq validate`: runs the driver): may import anything below
+# shapes   engine.shapes.<pkg>: a shape plug-in; builds on engine.loops, never imports engine.backends
+# backends engine.backends: the interfaces, the factories and the ensembles; reaches a shape only through the
+#          registry engine.shapes, never a shape package
+# loops    engine.loops: the generic time loops a shape's classes subclass and call; imports neither a shape package
+#          nor the registry engine.shapes (a shape passes its kernels in), and of engine.backends only the
+#          interfaces (protocol) and the types (base)
+# physics  engine.physics: single-source njit functions; imports no other engine layer
+# beside   engine.setup (spec -> derived parameters -> start), engine.output (result files, writers),
+#          engine.analysis (theory and the analysis of results), engine.neighbours (cell arithmetic),
+#          engine.numba_support: none of them imports the top layer; output and analysis import no loop, backend
+#          or shape; neighbours only physics and numba_support; numba_support no other engine module
 
+TOP = ("engine.driver", "engine.validation", "engine.cli")
 #: the engine.backends modules engine/loops/ may import: the interfaces and the types
 LOOPS_MAY_IMPORT = ("engine.backends.base", "engine.backends.protocol")
+#: engine modules physics may import besides itself
+PHYSICS_MAY_IMPORT = ("engine.physics", "engine.numba_support")
+
+
+def _in(module: str, *packages: str) -> bool:
+    """``module`` is one of ``packages`` or below one of them."""
+    return any(module == p or module.startswith(p + ".") for p in packages)
 
 
 def _shape_package(module: str) -> bool:
@@ -171,18 +184,36 @@ def _shape_package(module: str) -> bool:
 
 
 def layer_violations(graph: dict[str, set[str]]) -> list[str]:
-    """The imports against the layer rules above, as 'importer -> imported'."""
+    """The imports against the layer rules above, as 'importer -> imported (rule)'."""
     bad = []
     for mod, targets in graph.items():
+        if not _in(mod, "engine"):
+            continue
         for t in targets:
-            if mod.startswith("engine.backends") and _shape_package(t):
-                bad.append(f"{mod} -> {t} (a backend names a shape package: use the registry engine.shapes)")
-            elif _shape_package(mod) and (t == "engine.backends" or t.startswith("engine.backends.")):
-                bad.append(f"{mod} -> {t} (a shape package imports a backend: use engine.loops)")
-            elif mod.startswith("engine.loops") and (
-                    _shape_package(t) or (t.startswith("engine.backends") and t not in LOOPS_MAY_IMPORT)):
-                bad.append(f"{mod} -> {t} (engine.loops imports a shape package or a backend beyond "
-                           f"{', '.join(LOOPS_MAY_IMPORT)})")
+            if not _in(t, "engine") or t == mod:
+                continue
+            why = None
+            if _in(t, *TOP) and not _in(mod, *TOP) and mod != "engine":
+                why = "only the driver, engine.cli, engine.validation and engine/__init__ import the top layer"
+            elif _in(mod, "engine.backends") and _shape_package(t):
+                why = "a backend names a shape package: use the registry engine.shapes"
+            elif _shape_package(mod) and _in(t, "engine.backends"):
+                why = "a shape package imports a backend: use engine.loops"
+            elif _in(mod, "engine.loops") and (_in(t, "engine.shapes")
+                                               or (_in(t, "engine.backends") and t not in LOOPS_MAY_IMPORT)):
+                why = (f"engine.loops imports a shape or the shape registry, or a backend beyond "
+                       f"{', '.join(LOOPS_MAY_IMPORT)}")
+            elif _in(mod, "engine.physics") and not _in(t, *PHYSICS_MAY_IMPORT):
+                why = "engine.physics imports another engine layer"
+            elif _in(mod, "engine.output", "engine.analysis") and _in(t, "engine.loops", "engine.backends",
+                                                                       "engine.shapes"):
+                why = "result files and analysis import no loop, backend or shape"
+            elif _in(mod, "engine.neighbours") and not _in(t, "engine.neighbours", *PHYSICS_MAY_IMPORT):
+                why = "engine.neighbours imports only physics and numba_support"
+            elif _in(mod, "engine.numba_support") and not _in(t, "engine.numba_support"):
+                why = "engine.numba_support imports no other engine module"
+            if why:
+                bad.append(f"{mod} -> {t} ({why})")
     return sorted(bad)
 
 
@@ -190,15 +221,31 @@ def test_layer_rule_sees_each_kind_of_violation():
     g = {"engine.backends.cuda": {"engine.shapes.sphere.device", "engine.shapes", "engine.loops.cuda_kernels"},
          "engine.shapes.sphere.cpu_backend": {"engine.backends.cpu", "engine.loops.cpu"},
          "engine.shapes.spheroid.host": {"engine.backends"},
-         "engine.loops.cpu": {"engine.backends.protocol", "engine.backends.registry", "engine.shapes"},
-         "engine.loops.cuda_loop": {"engine.shapes.sphere"}}
+         "engine.loops.cpu": {"engine.backends.protocol", "engine.backends.registry", "engine.physics.contact"},
+         "engine.loops.cuda_loop": {"engine.shapes.sphere", "engine.shapes"},
+         "engine.setup.scene": {"engine.driver.simulate", "engine.setup.params"},
+         "engine.physics.contact": {"engine.setup.params", "engine.numba_support.jitcache"},
+         "engine.output.h5md": {"engine.loops.system", "engine.errors"},
+         "engine.neighbours.cells": {"engine.setup.scene"},
+         "engine.numba_support.jitcache": {"engine.errors"},
+         "engine.driver.simulate": {"engine.shapes", "engine.loops.cpu", "engine.validation.sonine"},
+         "engine": {"engine.driver.simulate"}}
     bad = layer_violations(g)
     assert [b.split(" (")[0] for b in bad] == [
         "engine.backends.cuda -> engine.shapes.sphere.device", "engine.loops.cpu -> engine.backends.registry",
-        "engine.loops.cuda_loop -> engine.shapes.sphere", "engine.shapes.sphere.cpu_backend -> engine.backends.cpu",
+        "engine.loops.cuda_loop -> engine.shapes", "engine.loops.cuda_loop -> engine.shapes.sphere",
+        "engine.neighbours.cells -> engine.setup.scene", "engine.numba_support.jitcache -> engine.errors",
+        "engine.output.h5md -> engine.loops.system", "engine.physics.contact -> engine.setup.params",
+        "engine.setup.scene -> engine.driver.simulate", "engine.shapes.sphere.cpu_backend -> engine.backends.cpu",
         "engine.shapes.spheroid.host -> engine.backends"]
 
 
-def test_shapes_and_backends_meet_only_through_the_registry():
+def test_the_engine_keeps_its_layers():
     bad = layer_violations(import_graph())
     assert not bad, "imports across the engine layers: " + "; ".join(bad)
+
+
+def test_engine_top_level_stays_small():
+    """engine/ holds its entry points and the modules every layer shares; the rest lives in role subpackages."""
+    top = sorted(p.name for p in (ROOT / "engine").glob("*.py"))
+    assert len(top) <= 12, top

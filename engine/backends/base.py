@@ -58,7 +58,7 @@ def cuda_available() -> bool:
     """True when a real CUDA GPU can be used (the simulator does not count).
 
     Asked once per process: the first call imports numba.cuda and starts the CUDA driver; a call from a
-    second thread while the first is under way waits for its answer (engine/startup.py asks from a
+    second thread while the first is under way waits for its answer (engine/driver/startup.py asks from a
     background thread while the job's host thread places particles).
     """
     global _cuda_answer
@@ -67,7 +67,7 @@ def cuda_available() -> bool:
     with _cuda_lock:
         if _cuda_answer is None:
             try:
-                from engine.numba_import import coverage_hidden
+                from engine.numba_support.numba_import import coverage_hidden
 
                 with coverage_hidden():
                     from numba import cuda

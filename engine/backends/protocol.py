@@ -1,6 +1,6 @@
-"""The two interfaces the driver (engine/simulate.py) talks to: :class:`Backend` (one scene) and :class:`Ensemble`
-(K scenes advanced together). Every concrete class implements its interface in full: what a class cannot do
-(hand out reused state buffers, build lists on the host) it gets as the explicit default of
+"""The two interfaces the driver (engine/driver/simulate.py) talks to: :class:`Backend` (one scene) and
+:class:`Ensemble` (K scenes advanced together). Every concrete class implements its interface in full: what a class
+cannot do (hand out reused state buffers, build lists on the host) it gets as the explicit default of
 the base class below, never by the driver probing for a method. tests/engine/test_protocol.py checks every
 concrete class against these bases (no abstract method left, the same parameters).
 
@@ -140,7 +140,7 @@ class Ensemble(abc.ABC):
     def observes_in_loop(self) -> bool:
         """True where :meth:`advance_observing` sums the observables inside the time loop, so that advancing through
         several records in one call saves the host's stops (one-scene CUDA ensembles of smooth spheres); the driver
-        then does (engine/simulate.py). Default: False."""
+        then does (engine/driver/simulate.py). Default: False."""
         return False
 
     def deactivate_many(self, ks) -> None:

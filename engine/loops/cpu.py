@@ -1,8 +1,8 @@
 """CPU backend: Numba ``parallel=True`` loops over particles, the whole time loop compiled; one machinery for
 every particle shape.
 
-What lives here, shared by every shape: the cells and the Verlet list build (engine/cells.py,
-engine/multigrid.py), the list-slot history store (engine/loops/cpu_shared.py), the time loop
+What lives here, shared by every shape: the cells and the Verlet list build (engine/neighbours/cells.py,
+engine/neighbours/multigrid.py), the list-slot history store (engine/loops/cpu_shared.py), the time loop
 (:func:`make_run_steps`, specialised at compile time by a shape plug-in of engine/shapes/: its kick-drift
 ``step`` and its ``forces``), the closing half kick, and the host class :class:`CpuLoop` (list growth,
 overflow recovery, instability errors). Each shape's host class (a :class:`CpuLoop` subclass holding its state
@@ -14,7 +14,7 @@ neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` p
 slot of contact history per list entry (tangential spring, previous overlap and dashpot force), so every
 thread writes only its own particle (no atomics) and the spring of (j, i) is exactly minus the spring of
 (i, j). The list is built from linked cells of edge >= 2 a_max + L_v (or, when the radii span more than one
-level, from the multigrid cells of Skorych & Dosta (2022) Algorithm 1, engine/multigrid.py) and rebuilt when any
+level, from the multigrid cells of Skorych & Dosta (2022) Algorithm 1, engine/neighbours/multigrid.py) and rebuilt when any
 particle has moved more than L_v/2 since the last build (Skorych & Dosta 2022); the history of surviving pairs is
 carried into the new list. No allocation in the time loop: the scratch list is preallocated and grown (rarely) from
 Python when a build overflows it.
@@ -26,7 +26,7 @@ the bit (+0.0 forces and torques), so the trajectories are those of the full loo
 (tests/engine/test_cpu_fast_paths.py).
 
 Compile-time specialisation: the shape (one loop per shape, closures over its njit functions, cached on
-disk per shape by engine.jitcache.cache_closure); for spheres ``k_t``/``torque`` = None (smooth spheres: no
+disk per shape by engine.numba_support.jitcache.cache_closure); for spheres ``k_t``/``torque`` = None (smooth spheres: no
 spring, no torque, no spin update), ``mu`` = None (no Coulomb limit) and ``quat`` = None (orientation not
 needed) are pruned by Numba when the functions are compiled for those argument types. Everything is cached
 on disk, so a new process (a job's child, a test run) loads the compiled code.
@@ -40,15 +40,15 @@ import numba
 import numpy as np
 from numba import prange
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
-from engine.jitcache import cache_closure
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import cache_closure
 
 from engine.loops.system import ContactParams, cell_grid
 from engine.loops.cpu_shared import SLOT, cpu_name, worst_overlap
 from engine.backends.protocol import Backend
 from engine.loops.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
-from engine.cells import cell_coords_of, cell_index_of, distance2, offset_low, offset_span, wrap_cell
-from engine.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
+from engine.neighbours.cells import cell_coords_of, cell_index_of, distance2, offset_low, offset_span, wrap_cell
+from engine.neighbours.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
 
@@ -115,7 +115,7 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
     nn[i] receives the true neighbour count even when it exceeds the stride (the caller then grows
     the list and builds again); slots beyond the stride are not written.
 
-    The neighbour cells are those of engine.cells.neighbour_cell, in its order k (offsets ox outermost, oy, oz
+    The neighbour cells are those of engine.neighbours.cells.neighbour_cell, in its order k (offsets ox outermost, oy, oz
     innermost, each ascending; 3, 2 or 1 per axis), so the candidates and the list come in the same order; they
     are walked as three nested offset loops whose wrap is a comparison, not a ``%``: neighbour_cell's three
     integer divisions and modulos by nc per cell (81 per particle) took most of a build (2.6 ms of the default
@@ -198,7 +198,7 @@ def index_active(nn, active, n_active, force, torque):
 #: (engine.backends.ensemble.ONE_THREAD_BELOW, the same size). Why: each ``parallel=True`` region enters Numba's
 #: thread pool and meets its threads at its end even on one thread, two regions a step (kick-drift, forces); for a
 #: small scene that was most of the step: 64 spheres took 73 ns a particle-step in regions, 28 ns without (2-core
-#: VM, one thread, 2026-11-28, bench/cpu_small_scenes.py). From about a thousand particles on, the regions' loops are
+#: VM, one thread, 2026-11-28, one-off study bench/cpu_small_scenes.py, in git history). From about a thousand particles on, the regions' loops are
 #: the faster ones (1024: 21.4 against 21.0 ns; 4096: 12.9 against 14.3 ns): numba compiles a region's body with
 #: its arrays marked as not aliased, which plain njit does not offer. The numbers are the same bits either way
 #: (tests/engine/test_threads.py).
@@ -371,7 +371,7 @@ def make_forces(shape, parallel: bool = True):
 
 def make_run_steps(shape, parallel: bool = True):
     """The compiled time loop of a shape plug-in (engine/shapes/): one loop for every shape, specialised by the
-    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.jitcache). With
+    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.numba_support.jitcache). With
     ``parallel`` False every kernel it calls is its :func:`serial_twin`: the loop of the scenes below
     :data:`SERIAL_LOOP_BELOW` particles.
 
@@ -393,7 +393,7 @@ def make_run_steps(shape, parallel: bool = True):
     computed, and the list rebuilt if that passes too.
 
     mg = None: the single linked-cell grid; else the multigrid arrays (level, nc, inv_cell, start_off,
-    list_off, cell_start, cell_list) of engine/multigrid.py (scenes with more than one grid level).
+    list_off, cell_start, cell_list) of engine/neighbours/multigrid.py (scenes with more than one grid level).
     """
     if (shape.NAME, parallel) in _loops:
         return _loops[shape.NAME, parallel]
@@ -521,7 +521,7 @@ class CpuLoop(Backend):
     # ---- set-up -----------------------------------------------------------------------------------
 
     def _setup_cells(self, rmax: float, skin: float, rmin: float) -> None:
-        """The single linked-cell grid, and the multigrid cells (Skorych & Dosta 2022, Algorithm 1, engine/multigrid.py)
+        """The single linked-cell grid, and the multigrid cells (Skorych & Dosta 2022, Algorithm 1, engine/neighbours/multigrid.py)
         when the size distribution spans more than one grid level (``self.mg``; None otherwise)."""
         self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
         self.inv_cell = nc / self.box
@@ -637,4 +637,4 @@ class CpuLoop(Backend):
             raise instability_error(status, step, int(who), value, self)
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

@@ -2,7 +2,7 @@
 worst-overlap reduction and the device name.
 
 Used by engine/loops/cpu.py (spheres) and engine/shapes/spheroid/cpu_backend.py (ellipsoids), so neither
-imports the other's private helpers. Everything ``cache=True`` (see engine/jitcache.py).
+imports the other's private helpers. Everything ``cache=True`` (see engine/numba_support/jitcache.py).
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 #: Per list slot: tangential spring (3, m), overlap (m) and dashpot force (N) at the previous step.
 SLOT = 5
@@ -73,4 +73,4 @@ def cpu_name() -> str:
     return f"{platform.processor() or 'cpu'} x{numba.get_num_threads()} threads"
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

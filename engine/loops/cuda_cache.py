@@ -5,9 +5,9 @@ by factories in cuda_kernels.py, cuda_loop.py (with a shape's engine/shapes/<sha
 numba-cuda can cache closures, but it keys them by a pickle of the closure's cell contents, which here holds
 other dispatchers whose pickles are not stable across processes, so a fresh process would compile again.
 :func:`cache_kernels` gives every kernel of a set a cache keyed instead by (the hash of every engine source the
-kernels compile in, engine.jitcache.source_digest; the factory's specialisation key; the kernel's name), stored in
-Numba's cache folder (engine/jitcache.py). An edit to any engine source changes the key, so stale machine code is
-never loaded. The cache class and its contact with numba-cuda's internals live in engine/numba_internals.py. Under
+kernels compile in, engine.numba_support.jitcache.source_digest; the factory's specialisation key; the kernel's name), stored in
+Numba's cache folder (engine/numba_support/jitcache.py). An edit to any engine source changes the key, so stale machine code is
+never loaded. The cache class and its contact with numba-cuda's internals live in engine/numba_support/numba_internals.py. Under
 the CUDA simulator nothing is cached.
 """
 
@@ -24,8 +24,8 @@ def cache_kernels(kernels: dict, key: tuple) -> dict:
     """Attach the stable-key disk cache to every (non-device) kernel dispatcher of ``kernels``; returns it."""
     if SIM or not ENABLED:
         return kernels
-    from engine.jitcache import source_digest
-    from engine.numba_internals import cuda_stable_key_cache, cuda_stable_key_cache_class
+    from engine.numba_support.jitcache import source_digest
+    from engine.numba_support.numba_internals import cuda_stable_key_cache, cuda_stable_key_cache_class
 
     if cuda_stable_key_cache_class() is None:  # another numba-cuda layout: compile in every process, as before
         return kernels

@@ -49,8 +49,8 @@ from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
 from engine.loops.system import MULTISTEP_MAX_PARTICLES, ContactParams, cell_grid
-from engine.numba_internals import device_memset
-from engine.precision import check_shape, position_dtype, state_dtype
+from engine.numba_support.numba_internals import device_memset
+from engine.setup.precision import check_shape, position_dtype, state_dtype
 
 #: None: the loop by size (MULTISTEP_MAX_PARTICLES); True / False forces the many-steps or the per-phase loop (tests
 #: and bench set it, for comparisons)
@@ -112,7 +112,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     def _init_host(self, systems: list, contacts: list) -> None:
         """Sizes, launch geometry, counters and the host-side state of the run."""
         self.dtype = state_dtype(contacts[0].precision)
-        self.pos_dtype = position_dtype(contacts[0].precision)  # float64 in 'mixed' (engine/precision.py)
+        self.pos_dtype = position_dtype(contacts[0].precision)  # float64 in 'mixed' (engine/setup/precision.py)
         self.n_scenes = nk = len(systems)
         self.sizes = np.array([s.n for s in systems], np.int64)
         self.starts = np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)

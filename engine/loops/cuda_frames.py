@@ -17,8 +17,8 @@ from numba import cuda
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
-from engine.numba_internals import page_lock
-from engine.pieces import map_pieces
+from engine.numba_support.numba_internals import page_lock
+from engine.output.pieces import map_pieces
 
 #: a snapshot buffer slot (all state arrays of the largest scene) larger than this is pageable memory, page-locked in
 #: place (StateFrames._host_slot)
@@ -145,7 +145,7 @@ def _big_slot(shapes: dict) -> bool:
 
 
 def _page_locked(arrays) -> Optional[list]:
-    """Page-lock host arrays in place (engine.numba_internals.page_lock: cuMemHostRegister): copies to and from
+    """Page-lock host arrays in place (engine.numba_support.numba_internals.page_lock: cuMemHostRegister): copies to and from
     them run at pinned speed and asynchronously. The returned handles keep the registration until they are
     collected, and keep their arrays alive. None under the simulator or when the driver refuses (the arrays stay
     pageable)."""
@@ -158,7 +158,7 @@ def _page_locked(arrays) -> Optional[list]:
 
 
 def _touched_empty(shape, dtype) -> np.ndarray:
-    """np.empty(shape, dtype) with every page already faulted in, in pieces on up to 8 threads (engine/pieces.py):
+    """np.empty(shape, dtype) with every page already faulted in, in pieces on up to 8 threads (engine/output/pieces.py):
     a device copy into fresh pageable memory takes its page faults one at a time (218 MB: 0.06-0.08 s on the H200
     host, 0.02 s into touched memory)."""
     a = np.empty(shape, dtype)

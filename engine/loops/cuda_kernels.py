@@ -4,7 +4,7 @@ one run), for every particle shape.
 This module owns the device layout (below), the per-scene tables and status words, the block reductions and
 the blow-up record shared by every kernel (:func:`device_helpers`, :func:`observe_reducer`), and the
 single-grid neighbour-list kernels (:func:`grid_kernels`: cells, scan, scatter, per-cell id sort, permutation,
-compact history store, full Verlet list build; the cell arithmetic is engine/cells.py's). The time loop is
+compact history store, full Verlet list build; the cell arithmetic is engine/neighbours/cells.py's). The time loop is
 engine/loops/cuda_loop.py's, specialised by a shape's device functions (engine/shapes/<shape>/device.py);
 the multigrid and CPU-built lists are engine/loops/cuda_lists.py's. Kernels are built by factories keyed on
 what the scenes need (docs/design.md §1) and call the same ``@numba.njit`` functions as the CPU backend.
@@ -41,7 +41,7 @@ from numba import cuda
 from numba.cuda import types as ct
 
 from engine.loops.cuda_cache import SIM, cache_kernels
-from engine.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.neighbours.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
 # per-scene constants: spd (working precision)
@@ -456,7 +456,7 @@ def list_origin(i, pos, x_ref, nn, sc, spd, spi):
 
 @cuda.jit(device=True)
 def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, nbr):
-    """The candidate test of every CUDA list build (engine/cells.distance2): j (!= i) joins i's row at slot cnt
+    """The candidate test of every CUDA list build (engine/neighbours/cells.distance2): j (!= i) joins i's row at slot cnt
     when |r_ij| < R_i + R_j + L_v (a row longer than the stride is only counted). Returns (the new count, the
     squared distance; 0 for j = i)."""
     if j == i:

@@ -10,7 +10,7 @@ launch builds, made once for the first launch with those arrays. A later launch 
 Python objects, so the same device pointers) only replaces the scalar arguments (n, step, ...) and hands the list to
 cuda.core's ``launch``, as numba-cuda's own ``_Kernel.launch`` does. Same kernel, same argument values, same stream: the
 results are bit-identical (tests/gpu/test_cuda_gpu.py runs both ways). The numba-cuda internals it needs are
-engine/numba_internals.py's (:func:`engine.numba_internals.prepare_launch`).
+engine/numba_support/numba_internals.py's (:func:`engine.numba_support.numba_internals.prepare_launch`).
 
 Not used (every launch goes through numba-cuda) under the CUDA simulator, with ``ENABLED`` False (bench/e2e.py
 ``--off launch_cache``), for a kernel that is launch-config sensitive, compiled with debug, or has pre-launch
@@ -156,8 +156,8 @@ class LaunchCache:
 
     @staticmethod
     def _prepare(dispatcher, config: tuple, args: tuple):
-        """The cache entry of one launch (engine.numba_internals.prepare_launch), or None where the cache must not be
+        """The cache entry of one launch (engine.numba_support.numba_internals.prepare_launch), or None where the cache must not be
         used for this kernel."""
-        from engine.numba_internals import prepare_launch
+        from engine.numba_support.numba_internals import prepare_launch
 
         return prepare_launch(dispatcher, config, args, _SCALAR)

@@ -5,7 +5,7 @@ Three ways to get the GPU its neighbour list (``list_mode``):
 ``"gpu"``            the list is built on the GPU (sorted cells or multigrid levels; the default mode of
                      :mod:`engine.loops.cuda_ensemble`).
 ``"cpu-sequential"`` Skorych & Dosta (2022) Fig. 1A: when a particle has moved L_v/2 the GPU stops, positions go to the
-                     host (A5), the CPU builds the list with all its threads (A1, :mod:`engine.multigrid`),
+                     host (A5), the CPU builds the list with all its threads (A1, :mod:`engine.neighbours.multigrid`),
                      it goes to the GPU (A2) and the GPU integrates until the next L_v/2 (A3, A4).
 ``"cpu-pipelined"``  Skorych & Dosta (2022) Fig. 1B: when a particle has moved L_v/4 (B3) the positions are copied
                      (B4) and a CPU thread builds the next list (B5) while the GPU keeps integrating
@@ -113,7 +113,7 @@ class HostLists:
 
     def _prepare(self) -> None:
         """Builder (radii in the current slot order), pinned host buffers and the device snapshot."""
-        from engine.multigrid import MultigridBuilder, grid_levels
+        from engine.neighbours.multigrid import MultigridBuilder, grid_levels
 
         ens = self.ens
         st = ens.stream

@@ -1,7 +1,7 @@
 """CUDA kernels for neighbour lists beyond the single-grid build of :mod:`engine.loops.cuda_kernels`.
 
 - Multigrid linked cells (Skorych & Dosta 2022, §2.2, Algorithm 1) for wide size distributions. Each scene has grid
-  levels l = 0 (coarsest, cell >= 2 R_max + L_v) ... (see :mod:`engine.multigrid`); ``lvl[i]`` is the level
+  levels l = 0 (coarsest, cell >= 2 R_max + L_v) ... (see :mod:`engine.neighbours.multigrid`); ``lvl[i]`` is the level
   where particle i is *main*; it is *secondary* at every coarser level. Bins: for scene s and level l,
   ``mgi[s, l] = (nc, first main bin, first secondary bin)``; the bin of a particle is that offset plus
   its cell in the level's grid. A particle i finds its neighbours j among the main particles of every
@@ -15,7 +15,7 @@
   max over particles of (|x - x_snapshot| / (L_v/2))^2 into status[S_CHECK].
 
 The row start and the candidate test are the single-grid build's (:func:`cuda_kernels.list_origin`,
-:func:`cuda_kernels.add_candidate`); the cell arithmetic is engine/cells.py's.
+:func:`cuda_kernels.add_candidate`); the cell arithmetic is engine/neighbours/cells.py's.
 
 Layout and per-scene tables as in :mod:`engine.loops.cuda_kernels`.
 """
@@ -31,7 +31,7 @@ from numba.cuda import types as ct
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import cache_kernels
 from engine.loops.cuda_kernels import add_candidate, init_slot, list_origin
-from engine.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
+from engine.neighbours.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
 _cache: dict = {}

@@ -1,6 +1,7 @@
 """The one CUDA time loop: kick-drift, forces, closing half kick, the many-steps cooperative kernel and the
 observe reduction, built once for every particle shape and specialised at compile time by the shape's device
-functions (engine/shapes/<shape>/device.py, ``make_cuda``; the interface is in engine/shapes/sphere/device.py).
+functions (engine/shapes/<shape>/device.py, ``make_cuda``; the interface is in engine/shapes/sphere/device.py),
+which the shape's backend passes to :func:`kernels`.
 
 This module owns the step skeleton (which phase runs when, the shared translation v += F/m hk, x += v dt
 wrapped, the displacement and speed maxima that decide a list rebuild, the per-particle force accumulation
@@ -50,7 +51,6 @@ from engine.loops.cuda_kernels import (D_BOX, D_DT, D_HP, D_IM0, D_INVBOX, F_LIM
                                           S_V2B, SS0, SS_BAD_ID, SS_OVL, SS_OVL_ID)
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
-from engine.shapes import device as shape_device
 
 _cache: dict = {}
 
@@ -79,16 +79,17 @@ OBSERVE_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 
                                       ("sphere", "<f4", (False, False, True)): 3}
 
 
-def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int) -> dict:
+def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int, device) -> dict:
     """The kernel set of one shape and specialisation (cached): the neighbour-list kernels of
     cuda_kernels.grid_kernels, the time loop of this module and the shape's own kernels. ``flags``: the shape's
-    compile-time switches in the order of its ``FLAGS``."""
+    compile-time switches in the order of its ``FLAGS``; ``device``: the shape's device module (its
+    ``make_cuda``), which the caller passes in: this module names no shape and no shape registry."""
     flags = tuple(bool(f) for f in flags)
     key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags),
            observe_blocks(shape, dtype, flags))
     if key not in _cache:
         dt = np.dtype(dtype).type
-        parts = shape_device(shape).make_cuda(L, dt, uniform, tpb, *key[2])
+        parts = device.make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
         k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6]),
                                ("loop",) + key[:2] + tuple(map(str, key[2:]))))

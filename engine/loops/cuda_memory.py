@@ -227,10 +227,10 @@ class DevicePrediction:
 def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256) -> DevicePrediction:
     """The device memory of a sphere spec run as one scene on the GPU (:func:`sphere_account` with the list stride
     a run is expected to reach, :func:`predicted_list_need`), from the spec and its derived parameters ``p``
-    (engine.params.derive, with the run's skin). ``reads_state``: snapshots or checkpoints copy the state out."""
+    (engine.setup.params.derive, with the run's skin). ``reads_state``: snapshots or checkpoints copy the state out."""
     from engine.loops.system import MULTISTEP_MAX_PARTICLES, cell_grid
-    from engine.precision import position_dtype, state_dtype
-    from engine.start_kind import device_start
+    from engine.setup.precision import position_dtype, state_dtype
+    from engine.setup.start_kind import device_start
 
     n = int(spec.n_particles)
     word = np.dtype(state_dtype(spec.precision)).itemsize
@@ -308,7 +308,7 @@ def refuse_oversize(spec, p, *, reads_state: bool = False) -> None:
     """Raise :class:`engine.errors.SpecError` before anything is allocated when a sphere spec's predicted device
     memory exceeds what the current device has free (:func:`memory_refusal`)."""
     from engine.errors import SpecError
-    from engine.params import derive
+    from engine.setup.params import derive
 
     got = device_memory()
     if got is None:

@@ -21,8 +21,8 @@ from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
 from engine.loops.system import SphereSystem
 
-#: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (bench/list_modes.py sets it, for the cost
-#: comparison with the multigrid build)
+#: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
+#: history, set it for the cost comparison with the multigrid build)
 MULTIGRID = True
 
 
@@ -165,12 +165,12 @@ class ListBuilds:
         self.builds += 1
 
     def _setup_multigrid(self, systems, contacts) -> None:
-        """Grid levels per scene (Skorych & Dosta 2022, Algorithm 1, :mod:`engine.multigrid`) when some scene's size
+        """Grid levels per scene (Skorych & Dosta 2022, Algorithm 1, :mod:`engine.neighbours.multigrid`) when some scene's size
         spread needs more than one; monodisperse ensembles keep the single-grid build."""
         self.multigrid = False
         if self.uniform or not isinstance(systems[0], SphereSystem) or not MULTIGRID:
             return
-        from engine.multigrid import grid_levels, main_level
+        from engine.neighbours.multigrid import grid_levels, main_level
         levels = [grid_levels(self.box[s], sy.n, float(np.min(sy.radius)), float(np.max(sy.radius)),
                               contacts[s].skin) if sy.n else None for s, sy in enumerate(systems)]
         nl = max((lv.n_levels for lv in levels if lv is not None), default=1)

@@ -14,7 +14,7 @@ import numpy as np
 from numba import cuda
 
 from engine.loops.cuda_cache import SIM
-from engine.numba_internals import device_memset
+from engine.numba_support.numba_internals import device_memset
 
 #: records one advance call of a lone scene can sum in its force passes (:meth:`ObserveSums._observe_in_forces`;
 #: a longer run of records takes several calls)
@@ -112,12 +112,12 @@ class _ObserveSlot:
 
     def copy_to_host(self) -> None:
         """Queue the accumulator's copy into the pinned host buffer (straight to the driver on a GPU:
-        engine.numba_internals.async_copy_and_record)."""
+        engine.numba_support.numba_internals.async_copy_and_record)."""
         if SIM:
             self.acc.copy_to_host(self.host, stream=self._stream)
             return
         if self._copier is None:
-            from engine.numba_internals import async_copy_and_record
+            from engine.numba_support.numba_internals import async_copy_and_record
 
             self._event = cuda.event(timing=False)
             self._copier = async_copy_and_record(self.acc, self.host, self._stream, self._event)

@@ -1,32 +1,32 @@
 """Large starts drawn on the GPU (a job's time to result).
 
-A GPU job of a large one-size sphere start (engine.scene.device_start) does not draw its start on the host and
+A GPU job of a large one-size sphere start (engine.setup.scene.device_start) does not draw its start on the host and
 upload it: the sphere's CUDA ensemble (engine/shapes/sphere/cuda_backend.py) draws it into its own state arrays when it is built, from an
-``engine.scene.StartDraw``. The draws are the host's (engine.scene._draw_start), in the same order:
+``engine.setup.scene.StartDraw``. The draws are the host's (engine.setup.scene._draw_start), in the same order:
 
 1. the site selection (the n of the n_sites fcc sites whose 64-bit key is smallest): a histogram of the keys'
    leading bits (:func:`site_hist`), the keys of the bucket that holds the n-th smallest gathered with each
    block's count below it (:func:`site_gather`); the host sorts that bucket (a few hundred keys), finds the cut
    and each block's first particle;
 2. :func:`place_draw`: one thread per site; a block scan gives each chosen site its particle i (sites in
-   order, as the host's), whose position (engine.scene._site_position) and stream rows
-   (engine.scene._stream_values) it draws into a float64 scratch (rows, n);
-3. :func:`block_moments`: each stream row's sums over the same fixed blocks of engine.scene._BLOCK particles,
-   summed in the same order; the host turns them into means (engine.scene.stream_mean), the kernel centres the
-   rows and sums their squares, the host takes the scales (engine.scene.stream_scale);
+   order, as the host's), whose position (engine.setup.scene._site_position) and stream rows
+   (engine.setup.scene._stream_values) it draws into a float64 scratch (rows, n);
+3. :func:`block_moments`: each stream row's sums over the same fixed blocks of engine.setup.scene._BLOCK particles,
+   summed in the same order; the host turns them into means (engine.setup.scene.stream_mean), the kernel centres the
+   rows and sums their squares, the host takes the scales (engine.setup.scene.stream_scale);
 4. :func:`scale_into`: each stream, scaled, into its state array in the working precision (the cast an upload
    would make on the device, K.scatter_rows).
 
-A random start (``StartDraw.rsa``) replaces steps 1 and 2 by the rounds of engine/cell_rsa.py: :func:`rsa_pass`
+A random start (``StartDraw.rsa``) replaces steps 1 and 2 by the rounds of engine/setup/cell_rsa.py: :func:`rsa_pass`
 per pass and colour, a count per round (:func:`rsa_total`), the last round's surplus removed by a histogram of its
 removal keys (:func:`rsa_last_hist`, :func:`rsa_last_gather`, a host sort of one bucket), and one thread per cell
 placing its spheres and their stream rows (:func:`rsa_kept_counts`, a host scan, :func:`rsa_place`); the centres
 are the host's exactly (integer tests, one rounding each).
 
-The formulas are engine.scene's ``@numba.njit`` functions, called by these kernels and by the host's draws alike.
+The formulas are engine.setup.scene's ``@numba.njit`` functions, called by these kernels and by the host's draws alike.
 Sites, blocks and host arithmetic are identical; the values are equal to rounding (libdevice's log, cos, sin and
 pow against the host's libm, and fused multiply-adds). The host pays no draw, no 0.2 GB upload and no load of the
-draws' compiled code; the GPU start-up thread (engine/startup.py) loads these kernels (:func:`load`) beside
+draws' compiled code; the GPU start-up thread (engine/driver/startup.py) loads these kernels (:func:`load`) beside
 the job's own.
 """
 
@@ -35,9 +35,9 @@ from __future__ import annotations
 import numpy as np
 from numba import cuda
 
-from engine.cell_rsa import RSA_Q, cell_pass, cut_of, final_key, kept, pass_key, run_rounds, slot_index
+from engine.setup.cell_rsa import RSA_Q, cell_pass, cut_of, final_key, kept, pass_key, run_rounds, slot_index
 from engine.loops.cuda_cache import SIM, cache_kernels
-from engine.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw, _bits,
+from engine.setup.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw, _bits,
                           _site_position, _stream_values, stream_mean, stream_scale)
 
 #: sites per block of the selection and placement kernels (a compile-time size of their shared arrays)
@@ -134,8 +134,8 @@ def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, ke
 @cuda.jit
 def block_moments(out, means, skip, square, sums):
     """One thread per (row r, block of _BLOCK particles), rows with skip[r] left alone. square = 0: sums[r, block]
-    = the sum of out[r, i] over the block, in particle order (as engine.scene._draw_start's); square = 1: the row
-    is centred, out[r, i] -= means[r], and sums[r, block] = the sum of the squares (engine.scene._centre_and_square)."""
+    = the sum of out[r, i] over the block, in particle order (as engine.setup.scene._draw_start's); square = 1: the row
+    is centred, out[r, i] -= means[r], and sums[r, block] = the sum of the squares (engine.setup.scene._centre_and_square)."""
     g = cuda.grid(1)
     nb = sums.shape[1]
     n = out.shape[1]
@@ -167,22 +167,22 @@ def scale_into(out, r0, dim, scale, dst, col0):
             dst[r, col0 + i] = out[r0 + r, i] * scale
 
 
-# ---- a random start: random sequential addition in cell rounds (engine/cell_rsa.py) ------------------------
+# ---- a random start: random sequential addition in cell rounds (engine/setup/cell_rsa.py) ------------------------
 
 if SIM:
     def _raw(a):
-        """The simulator's device arrays wrap NumPy arrays: engine.cell_rsa's compiled functions take those."""
+        """The simulator's device arrays wrap NumPy arrays: engine.setup.cell_rsa's compiled functions take those."""
         return a._ary
 else:
     @cuda.jit(device=True, inline=True)
     def _raw(a):
-        """The array itself (on a GPU the kernels call engine.cell_rsa's functions compiled for the device)."""
+        """The array itself (on a GPU the kernels call engine.setup.cell_rsa's functions compiled for the device)."""
         return a
 
 
 @cuda.jit
 def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spass, full):
-    """Pass p (its cells: the m of colour ``colour``) of a random start: engine.cell_rsa.cell_pass per cell; full[0]
+    """Pass p (its cells: the m of colour ``colour``) of a random start: engine.setup.cell_rsa.cell_pass per cell; full[0]
     counts the cells that lacked a slot."""
     for t in range(cuda.grid(1), m, cuda.gridsize(1)):
         if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, _raw(counts), _raw(slots), _raw(spass)):
@@ -223,7 +223,7 @@ def rsa_last_gather(first_pass, trim_key, bucket, counts, spass, cand_key, cand_
 
 @cuda.jit
 def rsa_kept_counts(first_pass, trim_key, cut_key, cut_index, counts, spass, kept_n):
-    """kept_n[c] = the spheres of cell c in the start (engine.cell_rsa.kept)."""
+    """kept_n[c] = the spheres of cell c in the start (engine.setup.cell_rsa.kept)."""
     for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
         s = 0
         for k in range(counts[c]):
@@ -304,7 +304,7 @@ def _cut(d: StartDraw, site_key, stream, cap: int) -> tuple:
 
 def _random_centres(d: StartDraw, col0: int, pos, keys, dims, unit, row0, out, stream, cap: int) -> None:
     """A random start's centres into pos[:, col0:col0 + n] and its stream rows into out: the rounds of
-    engine/cell_rsa.py on the device, the last round's cut by a histogram of its removal keys and a host sort of one
+    engine/setup/cell_rsa.py on the device, the last round's cut by a histogram of its removal keys and a host sort of one
     bucket (as :func:`_cut`), then one thread per cell places its spheres."""
     g = d.rsa
     pos_key, count_key, trim_key = (np.uint64(k) for k in d.rsa_keys())
@@ -386,7 +386,7 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
         place_draw[len(first), TPB, stream](
             site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream), d.m, d.a, d.half_gap, d.box,
             place_key, keys_d, dims_d, unit_d, row0_d, pos, np.int64(col0), out)
-    # the streams' means and scales, from block sums taken as the host's are (engine.scene.stream_mean, stream_scale)
+    # the streams' means and scales, from block sums taken as the host's are (engine.setup.scene.stream_mean, stream_scale)
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     skip = np.repeat(unit, dims)
     skip_d = cuda.to_device(skip, stream=stream)
@@ -409,17 +409,17 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
                                                           dsts[stream_no], np.int64(col0))
 
 
-#: the sphere state array each stream of a sphere start goes to (engine.scene.parallel_start_streams)
+#: the sphere state array each stream of a sphere start goes to (engine.setup.scene.parallel_start_streams)
 SPHERE_TARGETS = {STREAM_VELOCITY: "vel", STREAM_SPIN: "omega", STREAM_QUATERNION: "quat"}
 
 
 def load(pos_dtype, dtype) -> None:
     """Load (or compile) every kernel of a device start into device arrays of these precisions, for the argument
     types a job's start calls them with: a start of 64 spheres on a lattice of 108 sites and a random one,
-    discarded (the GPU start-up thread, engine/startup.py)."""
-    from engine.params import derive
-    from engine.scene import parallel_start_streams
-    from engine.spec import SimulationSpec
+    discarded (the GPU start-up thread, engine/driver/startup.py)."""
+    from engine.setup.params import derive
+    from engine.setup.scene import parallel_start_streams
+    from engine.setup.spec import SimulationSpec
 
     sphere = SimulationSpec()
     stream = cuda.stream()

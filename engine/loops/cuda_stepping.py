@@ -435,7 +435,7 @@ class TimeLoop:
 
     def _status_copy(self, slot: int) -> None:
         """The status words to pinned slot ``slot`` after what the stream holds, and the slot's event (through
-        engine.numba_internals.async_copy_and_record on a GPU: numba-cuda's copy and record cost about as much host
+        engine.numba_support.numba_internals.async_copy_and_record on a GPU: numba-cuda's copy and record cost about as much host
         time as a step of 2M spheres takes on an H100). Slots 0 and 1: the per-phase loop's steps; 2: a wait-now
         read (:meth:`_read_status_now`)."""
         if self._status_copiers is None:
@@ -444,7 +444,7 @@ class TimeLoop:
                     (lambda k=k: (self.status.copy_to_host(self.status_h[k], stream=self.stream),
                                   self.events[k].record(self.stream))) for k in range(3)]
             else:
-                from engine.numba_internals import async_copy_and_record
+                from engine.numba_support.numba_internals import async_copy_and_record
 
                 self._status_copiers = [async_copy_and_record(self.status, self.status_h[k], self.stream,
                                                               self.events[k]) for k in range(3)]
@@ -467,7 +467,7 @@ class TimeLoop:
     @staticmethod
     def _poll(event) -> None:
         """Wait for ``event`` by polling it with short sleeps, which release the GIL, so that the result files' I/O
-        thread (engine/h5md.py) works while the GPU does (a blocking synchronize may hold it)."""
+        thread (engine/output/h5md.py) works while the GPU does (a blocking synchronize may hold it)."""
         if SIM:
             event.synchronize()
             return

@@ -30,9 +30,9 @@ class SphereSystem:
     scanning).
     contact_pairs (M,2) int64 ids (i, j) and contact_springs (M,3) m: tangential springs of contacts
     carried over from a checkpoint (both orderings present); empty for a fresh start.
-    draw: a large start still to be drawn on the GPU (engine.scene.StartDraw; the GPU backend draws it when it is
+    draw: a large start still to be drawn on the GPU (engine.setup.scene.StartDraw; the GPU backend draws it when it is
     built, engine/loops/cuda_start.py); position, velocity, angular_velocity and orientation are then None.
-    Only the CUDA backend takes such a system (engine.scene.drawn_on_host gives the arrays).
+    Only the CUDA backend takes such a system (engine.setup.scene.drawn_on_host gives the arrays).
     """
 
     #: the shape (engine/shapes/ registry key) whose plug-in runs this system

@@ -45,7 +45,7 @@ def sphere_separation(rx, ry, rz, rs, half):
     delta = a_i + a_j - d (rs = a_i + a_j, m) formed in the position precision, then rounded once.
 
     With one precision for both (float64, float32) the rounding is no operation. In 'mixed' (float64 positions,
-    engine/precision.py) d and delta are taken in float64 before they are rounded to float32, so delta keeps
+    engine/setup/precision.py) d and delta are taken in float64 before they are rounded to float32, so delta keeps
     float32's relative precision of delta itself (not of the box edge) and the force law that follows runs in
     float32."""
     c = type(half)

@@ -21,7 +21,7 @@ def quat_mul(a0, a1, a2, a3, b0, b1, b2, b3):
 @numba.njit
 def quat_unit(q0, q1, q2, q3):
     """q / |q| by division, |q|^2 summed in component order: NumPy's ``q / np.linalg.norm(q)`` bit for bit (the
-    normalisation of a start's quaternions, engine/scene.py and both ellipsoid backends; quat_normalize's product
+    normalisation of a start's quaternions, engine/setup/scene.py and both ellipsoid backends; quat_normalize's product
     with 1/|q| can differ in the last bit)."""
     n = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
     return q0 / n, q1 / n, q2 / n, q3 / n

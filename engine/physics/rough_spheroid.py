@@ -86,7 +86,8 @@ def normal_inverse_mass(inv_m12, sa, ra_x, ra_y, ra_z, sb, rb_x, rb_y, rb_z, nx,
 
 @numba.njit
 def tangential_stiffness(k_n, m12, inv_mt, tangential_factor):
-    """k_t = k_n (m_t/m12) f (N/m), f = (arccos(-e_t)/pi)^2 (Hidalgo et al. 2013, Eq. 4; engine.params computes f)."""
+    """k_t = k_n (m_t/m12) f (N/m), f = (arccos(-e_t)/pi)^2 (Hidalgo et al. 2013, Eq. 4; engine.setup.params
+    computes f)."""
     return k_n * tangential_factor / (m12 * inv_mt)
 
 

@@ -35,7 +35,7 @@ equals the a11 of Santos, Kremer & dos Santos (Phys. Fluids 23, 030604 (2011), a
 <c^2 w^2> = (d_t d_r / 4)(1 + a11) with c^2 = m v^2 / 2T_tr and w^2 = I omega^2 / 2T_rot.
 
 **Frame.** Velocities are taken in the lab frame, not about the centre-of-mass velocity: the engine's scenes
-start with zero total momentum (engine/scene.py removes the mean) and pair forces conserve it, so the lab
+start with zero total momentum (engine/setup/scene.py removes the mean) and pair forces conserve it, so the lab
 frame is the centre-of-mass frame to round-off (the result file carries ``momentum`` to check it). A drift u
 would add O(m u^2 / T) to (1).
 
@@ -114,7 +114,7 @@ def shell_a2(dof: int) -> float:
 #: the observe dict's key of the raw moments (S_tr2, S_rot2, X) in J^2, and of the rotational dof they count
 MOMENTS_KEY = "energy_moments"
 ROT_DOF_KEY = "sonine_rotational_dof"
-#: result-file observables (dimensionless) written by engine/simulate.record()
+#: result-file observables (dimensionless) written by engine/driver/simulate.record()
 OBSERVABLES = ("sonine_a2_translational", "sonine_a2_rotational", "sonine_a11")
 
 

@@ -16,8 +16,8 @@ A shape is one package under engine/shapes/ (engine/shapes/README.md lists the s
 
 A package elsewhere on the path joins at run time through :func:`register` (the same as one more line in
 ``SHAPES``). Nothing outside engine/shapes/ names a shape package: engine/backends/registry.py,
-engine/backends/ensemble.py, engine/simulate.py, engine/spec.py, engine/scales.py and engine/start_kind.py reach a
-shape through these functions, at call time.
+engine/backends/ensemble.py, engine/driver/simulate.py, engine/setup/spec.py, engine/setup/scales.py and
+engine/setup/start_kind.py reach a shape through these functions, at call time.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def register(name: str, package: str) -> None:
     ``shape = name`` and every layer reaches the package through the lookups below.
 
     A package outside engine/shapes/ has its sources added to the compiled code's disk-cache key
-    (engine.jitcache.include_sources), as the engine's own are.
+    (engine.numba_support.jitcache.include_sources), as the engine's own are.
 
     Raises ValueError when the name is taken, or when the package (or one of its parts) cannot be imported or
     lacks a required name (:data:`REQUIRED`); nothing is registered then.
@@ -74,7 +74,8 @@ def register(name: str, package: str) -> None:
                              f"{importlib.import_module(package + part).NAME!r}, expected {name!r}")
     root = _outside_root(package)
     if root is not None:
-        from engine.jitcache import include_sources   # a package outside engine/shapes/ joins the cache key
+        # a package outside engine/shapes/ joins the cache key
+        from engine.numba_support.jitcache import include_sources
 
         include_sources(root)
     SHAPES[name] = package
@@ -89,13 +90,14 @@ def unregister(name: str) -> None:
         raise ValueError(f"shape name = {name!r} is not registered; registered: {sorted(SHAPES)}")
     root = _outside_root(SHAPES.pop(name))
     if root is not None:
-        from engine.jitcache import exclude_sources
+        from engine.numba_support.jitcache import exclude_sources
 
         exclude_sources(root)
 
 
 def _outside_root(package: str):
-    """The folder of ``package`` if it lies outside engine/shapes/ (not hashed by engine.jitcache), else None."""
+    """The folder of ``package`` if it lies outside engine/shapes/ (not hashed by engine.numba_support.jitcache),
+    else None."""
     root = Path(importlib.import_module(package).__file__).resolve().parent
     return None if Path(__file__).resolve().parent in root.parents else root
 

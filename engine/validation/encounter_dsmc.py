@@ -53,7 +53,7 @@ import numba
 import numpy as np
 from numba import prange
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.physics.ellipsoid import ellipsoid_contact, ellipsoid_pair
 from engine.physics.integrate import kick
 from engine.physics.rotation import (body_omega, fincham_quat_step_body, quat_matrix, quat_mul, quat_normalize,
@@ -581,9 +581,10 @@ def impulse_batch(v, w2, I, J, Q, NV, XA, XB, m, i_perp, zeta):
 
 # ---- the DSMC ----------------------------------------------------------------------------------------------
 
-#: DEM late-window mean T_tr/T_tr(0) of the xi = 2.5, e = 0.9 cooling runs (bench/ellipsoid_cooling_seeds.py,
-#: its series.json: 0.364 at N = 4096 and 0.367 at N = 16384): the DSMC gas is held
-#: at this fraction of the DEM's initial temperature, so the contacts are as soft as in the DEM's late window.
+#: DEM late-window mean T_tr/T_tr(0) of the xi = 2.5, e = 0.9 cooling runs (one-off study
+#: bench/ellipsoid_cooling_seeds.py, in git history; its series.json: 0.364 at N = 4096 and 0.367 at N = 16384): the
+#: DSMC gas is held at this fraction of the DEM's initial temperature, so the contacts are as soft as in the DEM's late
+#: window.
 LATE_TEMPERATURE_FRACTION = 0.36
 
 
@@ -597,10 +598,10 @@ def weight_bound(a: float, b: float) -> float:
 
 
 def dem_constants(xi: float, e_n: float, kn_factor: float = 1.0) -> dict:
-    """Contact constants of the Rubio-Largo et al. (2015) DEM scene (hcs_ellipsoids.full_spec, engine.params.derive),
-    SI: semi-axes a, b (m), mass m (kg), I_perp (kg m^2), k_n (N/m), pair gamma_n (kg/s), dt = t_c/50 (s),
-    T0 = m v_rms^2/3 (J). kn_factor scales k_n (and dt with t_c, gamma_n with sqrt(k_n): same e_n)."""
-    from engine.params import derive
+    """Contact constants of the Rubio-Largo et al. (2015) DEM scene (hcs_ellipsoids.full_spec,
+    engine.setup.params.derive), SI: semi-axes a, b (m), mass m (kg), I_perp (kg m^2), k_n (N/m), pair gamma_n (kg/s),
+    dt = t_c/50 (s), T0 = m v_rms^2/3 (J). kn_factor scales k_n (and dt with t_c, gamma_n with sqrt(k_n): same e_n)."""
+    from engine.setup.params import derive
     from engine.validation.hcs_ellipsoids import full_spec
 
     spec = full_spec(xi, e_n, 0)
@@ -713,4 +714,4 @@ def run_dsmc(xi: float, e_n: float, rule: str = "soft", n: int = 20000, coll_per
             "constants": c, "wall_s": time.time() - t0}
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

@@ -1,10 +1,10 @@
 """The ellipsoid excess (docs/physics.md §7.5): DSMC runs with the whole DEM encounter as the collision rule, their
 summary, table and plot, and `demq validate encounter-dsmc`.
 
-The physics is engine/validation/encounter_dsmc.py; bench/ellipsoid_encounter_dsmc.py is the command line of
-the full study (`python -m bench ellipsoid_encounter_dsmc`). :func:`run_cells` runs (xi, rule, seed)
-cells in parallel processes (one Numba thread each), :func:`write` writes runs.json, summary.json, summary.md
-and encounter_dsmc.png.
+The physics is engine/validation/encounter_dsmc.py; the full study (--xi 1.5 2 2.5 --seeds 4 --n 20000 --coll 60)
+was the one-off bench/ellipsoid_encounter_dsmc.py, in the git history before the bench/ pruning. :func:`run_cells` runs
+(xi, rule, seed) cells in parallel processes (one Numba thread each), :func:`write` writes runs.json, summary.json,
+summary.md and encounter_dsmc.png.
 
 `demq validate encounter-dsmc` (:func:`main`): the report's decisive comparison at xi = 2.5, e = 0.9: the
 encounter DSMC ('soft': the DEM pair integrated through the whole encounter) against the one-impulse DSMC
@@ -23,12 +23,13 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
-#: DEM late T_tr/T_rot at e = 0.9 (mean ± SE; N, seeds): bench/hcs_ellipsoids_cuda.py (xi 1.5, 2: one
-#: seed, block SE) and bench/ellipsoid_cooling_seeds.py (xi 2.5: SE over seeds), NVIDIA H200
+#: DEM late T_tr/T_rot at e = 0.9 (mean ± SE; N, seeds): the one-off studies (in git history)
+#: bench/hcs_ellipsoids_cuda.py (xi 1.5, 2: one seed, block SE) and bench/ellipsoid_cooling_seeds.py (xi 2.5: SE over
+#: seeds), NVIDIA H200
 DEM = {1.5: [(0.9148, 0.0050, "N=4096, 1 seed")], 2.0: [(0.9901, 0.0048, "N=4096, 1 seed")],
        2.5: [(1.0233, 0.0036, "N=4096, 8 seeds"), (1.0333, 0.0014, "N=16384, 2 seeds")]}
 #: earlier DSMC references at e = 0.9: hcs_ellipsoids.DSMC_NOTES (nominal e; xi 1.5, 2) and
-#: bench/ellipsoid_dsmc_refs.py (e_eff(D), xi 2.5, 4 seeds)
+#: the one-off study bench/ellipsoid_dsmc_refs.py (e_eff(D), xi 2.5, 4 seeds; in git history)
 DSMC_OLD = {1.5: (0.909, None, "nominal e, N=5e4"), 2.0: (0.984, None, "nominal e, N=5e4"),
             2.5: (1.0093, 0.0007, "e_eff(D), 4 seeds")}
 RULE_ORDER = ("impulse", "first", "hard", "soft")
@@ -227,6 +228,7 @@ def main(out_dir, seeds: int = 4, quick: bool = False, jobs: int = 1) -> int:
     (out / "README.md").write_text(
         "# Encounter DSMC against one-impulse DSMC (docs/physics.md §7.5)\n\n"
         f"`demq validate encounter-dsmc{' --quick' if quick else ''} --seeds {seeds}`\n\n{verdict}\n\n"
-        + table(summ) + "\n\nThe full study: `python -m bench ellipsoid_encounter_dsmc`.\n")
+        + table(summ) + "\n\nThe full study (docs/physics.md §7.5) was a one-off run of "
+        "bench/ellipsoid_encounter_dsmc.py, in the git history before the bench/ pruning.\n")
     print(verdict)
     return 0 if ok else 1

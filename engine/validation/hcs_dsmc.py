@@ -1,8 +1,8 @@
 """The Boltzmann reference of the long-time HCS (docs/physics.md §7.3): what of the DEM's deviation from Luding's
 ODE is the velocity distribution, and what is not.
 
-Luding's ODE (Hidalgo et al. 2013, Eqs. 1-2; engine/theory.py) is the Maxwellian (mean-field) closure of the Boltzmann
-equation for rough spheres with constant restitution (e_n, beta). In the HCS the one-particle distribution
+Luding's ODE (Hidalgo et al. 2013, Eqs. 1-2; engine/analysis/theory.py) is the Maxwellian (mean-field) closure of the
+Boltzmann equation for rough spheres with constant restitution (e_n, beta). In the HCS the one-particle distribution
 f(v, omega) is not Maxwellian: the Sonine cumulants a20, a02, a11 and the correlation of v and omega
 (Brilliantov, Pöschel, Kranz & Zippelius, PRL 98, 128001 (2007); Kranz et al., EPJ ST 179, 91 (2009))
 change the cooling rates of T and R by O(1 %) (Santos, Kremer & Garzó, Prog. Theor. Phys. Suppl. 184, 31
@@ -12,7 +12,7 @@ spatial correlations, no soft contacts), so
     DEM / ODE - 1  =  (DSMC / ODE - 1)  [the distribution]  +  residual  [everything beyond Boltzmann + constant beta].
 
 The DSMC is engine.validation.sonine._dsmc (m = 1, hard spheres, q = 2/5, beta = e_t,eff of the DEM's
-tangential spring, engine.params.e_t_effective), started Maxwellian at the DEM's measured R(0)/T(0), with the
+tangential spring, engine.setup.params.e_t_effective), started Maxwellian at the DEM's measured R(0)/T(0), with the
 time axis in the tau of Hidalgo et al. (2013): the pair rate is calibrated so that the Maxwellian collision frequency
 per particle is (3/4) (T/T0)^(1/2) per unit tau, as for the DEM's G (tests/validation/test_hcs_dsmc.py checks
 s = (3/4) tau in an elastic gas).
@@ -36,8 +36,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from engine.params import Q_SPHERE
-from engine.theory import collisions_per_particle, luding_coefficients, luding_ode, luding_per_collision
+from engine.setup.params import Q_SPHERE
+from engine.analysis.theory import collisions_per_particle, luding_coefficients, luding_ode, luding_per_collision
 from engine.validation.sonine import _dsmc, collision_normal, constant_restitution_impulse
 
 #: tau values of the comparison table
@@ -160,8 +160,8 @@ def collision_change_windows(tau, t, r, s, coeffs, grid, width: float = WINDOW):
     [g (1 - width), g (1 + width)]: the measured changes dT and dR, and the Maxwellian closure's changes for the
     collisions that happened there at the measured state, sum of (4/3) (-a T + b R) ds and (4/3) (b T - c R) ds
     over the record intervals (T and R at the interval's midpoint). Per collision and particle these are Luding's
-    right-hand sides over Enskog's rate (engine.theory.luding_per_collision, ``coeffs`` = (a, b, c) of
-    engine.theory.luding_coefficients), so the ratio measured / closure is the
+    right-hand sides over Enskog's rate (engine.analysis.theory.luding_per_collision, ``coeffs`` = (a, b, c) of
+    engine.analysis.theory.luding_coefficients), so the ratio measured / closure is the
     energy change per collision relative to uncorrelated Maxwellian pairs, whatever the rate. Returns
     (dT, dT_closure, dR, dR_closure), arrays like grid; NaN where a window holds fewer than two records.
     """
@@ -372,7 +372,7 @@ def soft_contact_loss(spec, t_over_t0: float, r_over_t: float, samples: int, see
     the rotational energy), each with its standard error (paired samples)."""
     from engine.backends.base import ContactParams, SphereSystem
     from engine.shapes.sphere.cpu_backend import CpuBackend
-    from engine.params import derive, e_t_effective
+    from engine.setup.params import derive, e_t_effective
 
     p = derive(spec)
     a, m = p.radius, p.mass

@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.h5md import read_parameters, read_series
-from engine.params import derive
-from engine.simulate import run
-from engine.spec import SimulationSpec
+from engine.output.h5md import read_parameters, read_series
+from engine.setup.params import derive
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
 from engine.validation import run_tasks
 
 XIS = (1.15, 1.5, 2.0, 2.5, 3.0)
@@ -382,7 +382,7 @@ def _as_ensemble(tasks, backend: str) -> None:
     """All runs as one ensemble (one process; on the GPU the scenes are advanced by the same launches).
 
     A run that fails is reported and left out; the analysis lists it as not run (as a killed process run)."""
-    from engine.ensemble import run_ensemble
+    from engine.driver.ensemble import run_ensemble
 
     specs = [(quick_spec if quick else full_spec)(xi, e_n, seed, backend) for xi, e_n, seed, _, quick, _, _ in tasks]
     t0 = time.time()

@@ -3,7 +3,7 @@
 docs/physics.md §7.3. Scenes (rough spheres, e_n = e_t = e, e = 0.8 and 0.6, k_n = 1e8 N/m, rho = 2000 kg/m^3):
 
 - ``hidalgo2013``: the Hidalgo et al. (2013) scene (N = 4096, L = 2 m, phi = 0.008), linearly STABLE against the shear
-  mode (L/L_c = 0.23 at e = 0.8, 0.29 at e = 0.6; engine/shear_instability.py). Its T/T0 must follow
+  mode (L/L_c = 0.23 at e = 0.8, 0.29 at e = 0.6; engine/analysis/shear_instability.py). Its T/T0 must follow
   the ODE (with e_t,eff) within 1 % for as long as the shear mode has not grown.
 - ``unstable``: a denser, larger box (N = 32768, L = 4 m, phi = 0.1: L/L_c = 2.6 and 3.4) where the
   linear theory predicts growing shear modes, so their onset and the deviation from the ODE they cause
@@ -20,7 +20,7 @@ scene (v_rms = 5 m/s, 4 seeds per e): 4.0e5 steps, 1.3e10 particle-steps per see
 5.9e11 particle-steps: ~200 s at 3e9/s, ~300 s at 2e9/s, which leaves room for start-up, snapshot I/O
 (~3.8 GB of frames) and the analysis inside one 7-minute device command.
 
-S(k_min) and the fcc start. The start lattice (engine/scene.py) has almost no density fluctuation at
+S(k_min) and the fcc start. The start lattice (engine/setup/scene.py) has almost no density fluctuation at
 k_min, while the velocities are Maxwellian: the k_min sound mode starts with its kinetic half only, and
 the ensemble mean of S(k_min) of a homogeneous gas then rises as S_eq sin^2(omega_s t) (omega_s the sound
 frequency; period L/c ~ 5 collision times in the Hidalgo et al. (2013) box, ~60 in the unstable one) and settles
@@ -31,7 +31,7 @@ modes do not couple to density in linear order and start at their noise level.
 
 Observables: T/T0 and R/T0 from the records (T0 = T_tr at t = 0 after the elastic thermalisation;
 tau = (2/3) G T0^(1/2) t), and from the snapshot frames (101 over the run) the six k_min shear-mode
-energies in units of T (x = 1: thermal noise), the longitudinal ones and S(k_min) (engine/hydro_modes.py).
+energies in units of T (x = 1: thermal noise), the longitudinal ones and S(k_min) (engine/analysis/hydro_modes.py).
 Ensemble means over seeds with standard errors (std/sqrt(seeds)); each run is interpolated onto the
 tau grid of the seed-mean T0.
 """
@@ -46,13 +46,13 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.h5md import read_series
-from engine.hydro_modes import file_mode_series, structure_factor_cs
-from engine.params import derive, e_t_effective
-from engine.shear_instability import (onset_tau, predicted_mode_energy, predicted_unstable_excess,
+from engine.output.h5md import read_series
+from engine.analysis.hydro_modes import file_mode_series, structure_factor_cs
+from engine.setup.params import derive, e_t_effective
+from engine.analysis.shear_instability import (onset_tau, predicted_mode_energy, predicted_unstable_excess,
                                       shear_stability)
-from engine.spec import SimulationSpec
-from engine.theory import luding_coefficients, luding_ode, tau_factor
+from engine.setup.spec import SimulationSpec
+from engine.analysis.theory import luding_coefficients, luding_ode, tau_factor
 from engine.validation.hcs_spheres import measure_run
 
 CASES = (0.8, 0.6)
@@ -77,7 +77,7 @@ TABLE_TAU = (1, 2, 5, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100)
 
 REFERENCES = [
     "S. Luding, M. Huthmann, S. McNamara, A. Zippelius, PRE 58, 3416 (1998) — the mean-field ODE "
-    "(Hidalgo et al. 2013, Eqs. 1-2; engine/theory.py)",
+    "(Hidalgo et al. 2013, Eqs. 1-2; engine/analysis/theory.py)",
     "I. Goldhirsch, G. Zanetti, PRL 70, 1619 (1993) — clustering/shear instability of the HCS",
     "J. J. Brey, M. J. Ruiz-Montero, D. Cubero, PRE 60, 3150 (1999) — origin of density clustering; "
     "the transverse shear mode drives the instability, critical size checked by DSMC",
@@ -139,7 +139,7 @@ def contact_duration(p) -> float:
     """How long two spheres overlap in a collision (s): pi / omega with omega^2 = omega0^2 - (gamma_n / 2 m12)^2,
     the damped spring's half period (the contact ends when the overlap returns to 0, rule (a) of
     engine/physics/contact.py), the same for every impact speed and angle (the normal motion is linear). p: the
-    engine.params.Derived of a monodisperse spec (its m12 and gamma_n are those of the smallest pair)."""
+    engine.setup.params.Derived of a monodisperse spec (its m12 and gamma_n are those of the smallest pair)."""
     eta = p.gamma_n / (2.0 * p.m12)
     return math.pi / math.sqrt(p.omega0 ** 2 - eta ** 2)
 
@@ -210,8 +210,8 @@ def collision_rate_ratio(run: dict) -> np.ndarray:
     two particles), taken between the records around each one. Otherwise, from the contacts C open at the
     record: a collision lasts t_contact whatever its speed, so the rate is 2 C / (N t_contact). Per unit tau
     both are divided by k = tau/t. Enskog's (with the Carnahan-Starling g(2a) of the tau of Hidalgo et al. (2013), as
-    Luding's ODE assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.theory.collisions_per_particle). Ratio 1: the gas
-    collides as often as the ODE assumes; below 1: velocity or position correlations (or a distribution other
+    Luding's ODE assumes) is (3/4) (T/T0)^(1/2) per unit tau (engine.analysis.theory.collisions_per_particle). Ratio 1:
+    the gas collides as often as the ODE assumes; below 1: velocity or position correlations (or a distribution other
     than Maxwell's, a ~ a2/16 effect) make collisions rarer.
     """
     n = run["spec"]["n_particles"]
@@ -450,7 +450,7 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
              f"Command: `{command}`", "",
              f"Backend {meta.get('backend')} ({meta.get('device')}); wall time {meta.get('wall_s', 0):.0f} s for "
              f"{meta.get('runs')} runs, {meta.get('particle_steps', 0):.3g} particle-steps.", "",
-             "## Linear theory (engine/shear_instability.py)", "",
+             "## Linear theory (engine/analysis/shear_instability.py)", "",
              "Transverse mode k, scaled by the thermal speed: d u*/dt = (zeta/2 - nu k^2) u*, nu = eta/(n m); "
              "unstable for k < k_c, k_c^2 = zeta n m/(2 eta) = (zeta*/(2 eta*)) (256 pi/25) n^2 sigma^4 "
              "(Goldhirsch & Zanetti 1993; Brey, Ruiz-Montero & Cubero 1999; Garzó 2005). zeta from Luding's "
@@ -538,7 +538,8 @@ def write_report(results: dict, out: Path, command: str, meta: dict) -> None:
     lines += ["![deviation](deviation.png)", "", "![modes](modes.png)", "",
               "Definitions: tau = (2/3) G T0^(1/2) t; T0 = T_tr at t = 0 of each seed; deviation = seed mean / "
               "ODE - 1 (ODE from the measured R(0)/T(0), e_t,eff of the contact model); x = mean over the six "
-              "k_min shear modes of M |u_perp(k)|^2 / T (1 = thermal noise of a Maxwellian; engine/hydro_modes.py); "
+              "k_min shear modes of M |u_perp(k)|^2 / T (1 = thermal noise of a Maxwellian; "
+              "engine/analysis/hydro_modes.py); "
               "S(k_min) mean over x, y, z (1 = ideal gas; S_CS = equilibrium hard spheres). The fcc start leaves "
               "S(k_min) below S_CS until the k_min sound mode has equilibrated (engine/validation/hcs_long.py "
               "docstring), so only S above S_CS signals density growth. SE = std over seeds / sqrt(seeds).", "",
@@ -582,7 +583,7 @@ def main(out_dir="reports/hcs-long", seeds: int | None = None, quick: bool = Fal
     with them (``merge``). Returns 0 when the goal (:func:`criterion`) holds for every case (quick: the CI checks, see
     :func:`quick_checks`), else 1.
     """
-    from engine.ensemble import run_ensemble
+    from engine.driver.ensemble import run_ensemble
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

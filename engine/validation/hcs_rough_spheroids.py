@@ -5,15 +5,15 @@ ensemble):
 
 - **Limit xi -> 1.** A rough-spheroid gas at xi = 1.0001 and the rough-sphere gas of the same spec and seeds
   (e_n = e_t = 0.8; the Hidalgo et al. (2013) scene, or the reduced CI scene of engine.validation.hcs_spheres) against
-  Luding's ODE with e_t,eff (engine.theory.luding_ode, as engine/validation/hcs_spheres.py), and against each
+  Luding's ODE with e_t,eff (engine.analysis.theory.luding_ode, as engine/validation/hcs_spheres.py), and against each
   other. Pass: the spheroid mean within 3 % of the ODE (the sphere check's bound) and within 3 SE + 0.5 % of the
   sphere mean at every record (the seed scatter, plus the O(xi - 1) and contact-time differences).
 - **The map.** T_tr/T_rot late in the HCS (mean over the records with at least half the final number of
   collisions per particle; T_rot over the three rotational dof) for xi in {1.5, 2, 3} and e_t in {-0.5, 0, 0.5,
   0.9} at e_n = 0.9, N = 4096, phi = 0.058 (the Rubio-Largo et al. (2015) scene
   of engine/validation/hcs_ellipsoids.py, 20 initial collision times), with the seed scatter. For reference,
-  the rough-sphere value of Luding's theory at e_t,eff (the asymptotic R/T of engine.theory.r_infinity). No kinetic
-  theory of rough spheroids was found (searched: homogeneous cooling of rough inelastic ellipsoids / spheroids,
+  the rough-sphere value of Luding's theory at e_t,eff (the asymptotic R/T of engine.analysis.theory.r_infinity). No
+  kinetic theory of rough spheroids was found (searched: homogeneous cooling of rough inelastic ellipsoids / spheroids,
   translational-rotational temperature ratio; the theories found are for rough spheres: Huthmann & Zippelius 1997,
   Luding et al. 1998, Santos, Kremer & dos Santos 2011), so the map is reported with its scatter and the sphere value
   beside it.
@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.params import derive, e_t_effective
-from engine.spec import SimulationSpec
-from engine.theory import r_infinity
+from engine.setup.params import derive, e_t_effective
+from engine.setup.spec import SimulationSpec
+from engine.analysis.theory import r_infinity
 from engine.validation import hcs_ellipsoids, hcs_spheres
 
 XIS = (1.5, 2.0, 3.0)
@@ -65,7 +65,7 @@ def map_spec(xi: float, e_t: float, seed: int, backend: str, quick: bool) -> Sim
 
 
 def _ensemble(specs: list, paths: list, backend: str) -> None:
-    from engine.ensemble import run_ensemble
+    from engine.driver.ensemble import run_ensemble
 
     t0 = time.time()
     for spec, path, s in zip(specs, paths, run_ensemble(specs, paths, backend=backend)):

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.h5md import read_parameters, read_series
-from engine.params import derive, e_t_effective
-from engine.simulate import run
-from engine.spec import SimulationSpec
+from engine.output.h5md import read_parameters, read_series
+from engine.setup.params import derive, e_t_effective
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
 from engine.validation import run_tasks
-from engine.theory import luding_ode, tau_factor
+from engine.analysis.theory import luding_ode, tau_factor
 
 CASES = ((0.8, 0.8), (0.6, 0.6))
 
@@ -95,7 +95,7 @@ def measured_restitution(spec: SimulationSpec) -> tuple[float, float]:
     """e_n (head-on) and e_t (10 degrees, sticking) of two spheres with the spec's contact law."""
     from engine.backends.base import ContactParams, SphereSystem
     from engine.shapes.sphere.cpu_backend import CpuBackend
-    from engine.params import Q_SPHERE
+    from engine.setup.params import Q_SPHERE
 
     p = derive(spec)
     a, m = p.radius, p.mass
@@ -162,7 +162,7 @@ def _one(args) -> str:
 
 def _as_ensemble(tasks, backend: str) -> None:
     """All runs as one ensemble (one process; on the GPU the scenes are advanced by the same launches)."""
-    from engine.ensemble import run_ensemble
+    from engine.driver.ensemble import run_ensemble
 
     specs = [(quick_spec if quick else full_spec)(e_n, seed, backend) for e_n, seed, _, quick, _, _ in tasks]
     t0 = time.time()

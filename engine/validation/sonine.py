@@ -27,7 +27,7 @@ s in [S_SKIP, S_END] per run, then over the seeds (mean and standard error s/sqr
    density (phi = 0.05: Enskog factor g = 1.14, which cancels from a2 in Enskog theory, and weak velocity
    correlations), its soft finite-duration contacts (contact time << free time here) and finite N.
 **Rough spheres.** The DSMC also runs constant (alpha, beta) rough spheres (beta = e_t,eff of the DEM
-spring, engine.params.e_t_effective; moment of inertia q = 2/5) and gives a20, a02, a11 of that model:
+spring, engine.setup.params.e_t_effective; moment of inertia q = 2/5) and gives a20, a02, a11 of that model:
 a model reference (the DEM tangential spring is not exactly a constant-beta collision), reported next to
 the DEM values; the Sonine theory of Santos, Kremer & dos Santos, Phys. Fluids 23, 030604 (2011), arXiv
 1009.6180, Vega Reyes, Santos & Kremer, arXiv 1309.2369 (Grad-like theory, DSMC and MD of the HCS), and
@@ -58,13 +58,13 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
-from engine.h5md import read_parameters, read_series
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.output.h5md import read_parameters, read_series
 from engine.optional import MissingExtra
-from engine.params import Q_SPHERE, derive, e_t_effective
+from engine.setup.params import Q_SPHERE, derive, e_t_effective
 from engine.physics.sonine import a2_van_noije_ernst, a11_sampling_sigma, a2_sampling_sigma, sonine_a2
-from engine.spec import SimulationSpec
-from engine.theory import collisions_per_particle, luding_coefficients, luding_ode, tau_factor
+from engine.setup.spec import SimulationSpec
+from engine.analysis.theory import collisions_per_particle, luding_coefficients, luding_ode, tau_factor
 
 SMOOTH = (0.9, 0.8, 0.6, 0.4)
 ROUGH = ((0.8, 0.8), (0.8, 0.4))
@@ -85,7 +85,7 @@ def case_spec(e_n: float, e_t: float, seed: int, backend: str, quick: bool, n_pa
     enough for S_END collisions per particle by Luding's ODE (s(tau) = (3/4) int sqrt(T) dtau), +5 %.
     Full: N = 1000, phi = 0.05 (Enskog g = 1.14) in L = 1.26 m (L / mean free path = 10.6); quick: N = 800,
     phi = 0.08 (g = 1.24) in L = 1 m, radius 0.0288 m in both. Both boxes are below the shear-mode threshold
-    for every case (engine/shear_instability.py: L/L_c <= 0.74 full, <= 0.98 quick): in a larger box (N = 4000,
+    for every case (engine/analysis/shear_instability.py: L/L_c <= 0.74 full, <= 0.98 quick): in a larger box (N = 4000,
     L = 2 m: L/L_c = 1.07 and 1.17 at e_n = 0.6 and 0.4) the growing modes make the gas inhomogeneous and raise
     the lab-frame a2 above the homogeneous Boltzmann value (+11 sigma at e_n = 0.4; docs/physics.md).
     ``n_particles``, ``box_length`` (both or neither) replace N and L at the same phi (a box-size check)."""
@@ -349,7 +349,7 @@ def _tasks(seeds: int, backend: str, quick: bool, out: Path, cases=None, size=(0
 
 
 def _one(task) -> str:
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     e_n, e_t, seed, backend, quick, path, size = task
     t0 = time.time()
@@ -411,7 +411,7 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
     tasks = _tasks(seeds, backend, quick, out, cases, size)
     t_start = time.time()
     if ensemble:
-        from engine.ensemble import run_ensemble
+        from engine.driver.ensemble import run_ensemble
 
         specs = [case_spec(e_n, e_t, seed, be, q, *sz) for e_n, e_t, seed, be, q, _, sz in tasks]
         results = run_ensemble(specs, [t[5] for t in tasks], backend=backend)
@@ -530,4 +530,4 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
     return 0 if all(r["pass"] for r in smooth) else 1
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

@@ -101,7 +101,7 @@ class FormField:
 
 def form_fields() -> list[FormField]:
     """The spec form, one field per key of the engine's SimulationSpec, defaults filled in."""
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     out = []
     for name, info in SimulationSpec.model_fields.items():
@@ -138,7 +138,7 @@ def spec_from_form(form: dict[str, str]) -> tuple[dict, dict[str, str]]:
 
 def errors_by_field(errors: list[dict]) -> tuple[dict[str, str], list[str]]:
     """Split :class:`jobs.specs.SpecRejected` errors into messages per spec field and spec-wide ones."""
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     per_field: dict[str, str] = {}
     general: list[str] = []

@@ -74,7 +74,7 @@ def _batch_file(store, settings, batch_id: str, partial: bool) -> Path:
 def get_batch_result(batch_id: BatchId, store: StoreDep, settings: SettingsDep, partial: Partial = False):
     """Seed statistics of the batch as HDF5: its done jobs grouped by spec apart from the seed; per group
     the mean of T_tr, T_rot and E_tr/E_tr(0) over the seeds with its standard error, the number of seeds,
-    the seeds and the job ids (layout: engine/ensemble_stats.py). Failed or cancelled jobs are left out
+    the seeds and the job ids (layout: engine/analysis/ensemble_stats.py). Failed or cancelled jobs are left out
     and listed in the file's ``excluded`` attribute."""
     path = _batch_file(store, settings, batch_id, partial)
     return Download(path, media_type="application/x-hdf5", filename=f"demq-batch-{batch_id}.h5")

@@ -78,7 +78,7 @@ def _no_snapshot(job: Job) -> HTTPException:
 def get_xdmf(job: JobDep) -> Response:
     """The XDMF sidecar of the result for ParaView / VisIt, naming the download name ``demq-{id}.h5``:
     save it next to the file from ``GET /jobs/{id}/result`` and open the ``.xmf``."""
-    from engine.xdmf import xdmf_text
+    from engine.output.xdmf import xdmf_text
 
     text = xdmf_text(_result_file(job), h5_ref=f"demq-{job.id}.h5")
     if text is None:
@@ -90,8 +90,8 @@ def get_xdmf(job: JobDep) -> Response:
 @router.get("/{job_id}/export.gsd", response_class=FileResponse, responses={**SNAPSHOT_RESPONSES, 200: {
     "content": {"application/octet-stream": {}}, "description": "GSD trajectory (HOOMD schema, SI units)"}})
 def get_gsd(job: JobDep) -> FileResponse:
-    """Every snapshot frame as a GSD file (OVITO, HOOMD-blue, freud); engine/export_gsd.py lists the fields."""
-    from engine.export_gsd import export_gsd
+    """Every snapshot frame as a GSD file (OVITO, HOOMD-blue, freud); engine/output/export_gsd.py lists the fields."""
+    from engine.output.export_gsd import export_gsd
     from service.render import frame_count
 
     path = _result_file(job)

@@ -8,7 +8,7 @@ import gc
 import pytest
 
 from bench import loop_ab
-from engine.start_kind import start_protocol
+from engine.setup.start_kind import start_protocol
 
 
 def test_by_default_one_large_scene_and_packed_small_scenes_start_differently_and_start_makes_them_alike():

@@ -1,7 +1,7 @@
 """The backend- and density-dependent default Verlet skin: a null ``verlet_skin`` is
 L_max = 0.4 a on the CPU and 0.8 a on CUDA while the mean free path is at least 1.6 a (phi <= 0.1099), then
 L_max lambda/1.6 a, at least 0.2 a (spheres; species: the total phi; ellipsoids 0.4 a), resolved where the
-backend is known (engine.simulate.SceneRun), recorded in the result file's /parameters, the same in
+backend is known (engine.driver.simulate.SceneRun), recorded in the result file's /parameters, the same in
 ensembles; an explicit value always wins; the CPU default of dilute scenes is unchanged bit for bit; the
 rule sits on the measured cost fronts of both backends' skin sweeps (docs/performance.md).
 """
@@ -17,11 +17,11 @@ import pytest
 from pydantic import ValidationError
 
 from engine.backends.ensemble import resolve_backend
-from engine.ensemble import run_ensemble
-from engine.params import derive
-from engine.simulate import SceneRun, run
-from engine.spec import (DEFAULT_VERLET_SKIN, SimulationSpec, Species, default_verlet_skin,
-                         largest_default_verlet_skin, mean_free_path)
+from engine.driver.ensemble import run_ensemble
+from engine.setup.params import derive
+from engine.driver.simulate import SceneRun, run
+from engine.setup.spec import SimulationSpec, Species
+from engine.setup.params import DEFAULT_VERLET_SKIN, default_verlet_skin, largest_default_verlet_skin, mean_free_path
 
 ROOT = Path(__file__).resolve().parents[2]
 

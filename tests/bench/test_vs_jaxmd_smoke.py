@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench import vs_jaxmd
-from engine.params import derive
+from engine.setup.params import derive
 
 
 def test_case_spec_is_the_issue_scene():

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from bench import vs_lammps
-from engine.params import derive
-from engine.scene import initial_spheres
+from engine.setup.params import derive
+from engine.setup.scene import initial_spheres
 
 
 def _pair_style(text):

@@ -123,8 +123,8 @@ def warm_jit(tmp_path_factory) -> None:
     and cached on disk before the workers' simulation processes need them."""
     import numba
 
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec.model_validate({**SPEC, "t_end": 0.002})
     previous = numba.get_num_threads()

@@ -13,7 +13,7 @@ import httpx
 import numpy as np
 import pytest
 
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 from jobs.schema import DONE, QUEUED, RUNNING
 from jobs.specs import parse_spec
 from jobs.store import NewJob

@@ -17,7 +17,7 @@ import h5py
 import httpx
 import pytest
 
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 from jobs.schema import DONE, QUEUED, RUNNING
 from tests.deploy.conftest import SPEC, free_port, process_env, wait_for
 from tests.deploy.deployfiles import SBATCH, compose, compose_workers, sbatch_exec

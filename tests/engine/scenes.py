@@ -7,8 +7,8 @@ import math
 import numpy as np
 
 from engine.backends.base import ContactParams, SphereSystem
-from engine.params import Q_SPHERE, gamma_n_from_restitution, k_t_paper
-from engine.scene import maxwellian, place_spheres
+from engine.setup.params import Q_SPHERE, gamma_n_from_restitution, k_t_paper
+from engine.setup.scene import maxwellian, place_spheres
 
 RADIUS, MASS, K_N = 0.01, 1.0e-2, 1.0e5
 

@@ -30,7 +30,7 @@ SPEC = dict(shape="hertz", n_particles=27, volume_fraction=0.35, box_length=0.5,
 
 @pytest.fixture
 def hertz():
-    from engine.jitcache import source_digest
+    from engine.numba_support.jitcache import source_digest
 
     engine_digest = source_digest()
     register("hertz", PACKAGE)
@@ -64,7 +64,7 @@ def test_register_checks_the_package_and_refuses_a_taken_name(hertz):
 def test_a_registered_shape_is_a_valid_spec_value_and_its_refusals_hold(hertz):
     from pydantic import ValidationError
 
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     assert SimulationSpec(**SPEC).shape == "hertz"
     assert SimulationSpec.model_json_schema()["properties"]["shape"]["enum"] == list(SHAPES)
@@ -75,7 +75,7 @@ def test_a_registered_shape_is_a_valid_spec_value_and_its_refusals_hold(hertz):
 def test_a_spec_the_shape_does_not_run_is_refused_before_anything_is_written(hertz, tmp_path):
     from engine import run
     from engine.errors import SpecError
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     with pytest.raises(SpecError, match="e_n = 0.9 but shape 'hertz' is elastic"):
         run(SimulationSpec(**{**SPEC, "e_n": 0.9}), tmp_path / "refused.h5")
@@ -84,7 +84,7 @@ def test_a_spec_the_shape_does_not_run_is_refused_before_anything_is_written(her
 
 def test_the_new_shape_runs_on_the_cpu_and_under_the_cuda_simulator(hertz, tmp_path):
     from engine import run
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
     from tests.cudasim import run_children
 
     cpu_file, sim_file = tmp_path / "cpu.h5", tmp_path / "sim.h5"
@@ -121,7 +121,7 @@ def _child(out: str) -> None:
     fast_block_polling()
     register("hertz", PACKAGE)
     from engine import run
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     summary = run(SimulationSpec(**SPEC, backend="cuda"), out)
     assert summary.backend == "cuda", summary

@@ -21,10 +21,10 @@ import numpy as np
 import engine.loops.cuda_stepping as st
 from engine.loops import cuda_kernels as K
 from engine.backends.cuda import CudaEnsemble
-from engine.params import derive
-from engine.scene import initial_spheres
-from engine.simulate import contact_params
-from engine.spec import SimulationSpec
+from engine.setup.params import derive
+from engine.setup.scene import initial_spheres
+from engine.driver.simulate import contact_params
+from engine.setup.spec import SimulationSpec
 
 def scene(seed, e_t):
     spec = SimulationSpec(n_particles=32, volume_fraction=0.1, e_n=0.8, e_t=e_t, velocity_rms=12.0,

@@ -1,4 +1,4 @@
-"""The parallel random start (engine/cell_rsa.py, random sequential addition in cell rounds): exactly N spheres, none
+"""The parallel random start (engine/setup/cell_rsa.py, random sequential addition in cell rounds): exactly N spheres, none
 overlapping, deterministic from the seed and independent of the slots per cell, and the structure of the sequential
 random start (tests/engine/test_start.py checks that one against Carnahan-Starling)."""
 
@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from engine.cell_rsa import CellRsa, place_random
-from engine.pairs import periodic_pairs
-from engine.scene import _stream_key, place_species
+from engine.setup.cell_rsa import CellRsa, place_random
+from engine.analysis.pairs import periodic_pairs
+from engine.setup.scene import _stream_key, place_species
 
 BOX = 1.0
 
@@ -51,7 +51,7 @@ def test_exactly_n_spheres_none_overlapping_deterministic(phi):
 @pytest.mark.parametrize("phi", [0.058, 0.2])
 def test_pair_structure_is_the_sequential_random_starts(phi):
     """g(r) over sigma <= r < 1.5 sigma (ten shells) and the neighbour counts within 1.4 sigma of the parallel start
-    against the sequential start (engine/scene.py place_species) of the same N: equal within their counting
+    against the sequential start (engine/setup/scene.py place_species) of the same N: equal within their counting
     errors (each shell's pair count is Poisson: 4 standard errors of the difference)."""
     n = 60_000
     radius = _radius(n, phi)
@@ -64,12 +64,12 @@ def test_pair_structure_is_the_sequential_random_starts(phi):
 
 def test_a_spec_above_the_parallel_size_gets_the_parallel_random_start(monkeypatch):
     """initial_spheres of a one-size sphere spec of at least PARALLEL_START_MIN spheres (lowered here) places them
-    with engine/cell_rsa.py, Maxwellian and at equal rotational temperature as every start; a lattice asked for
+    with engine/setup/cell_rsa.py, Maxwellian and at equal rotational temperature as every start; a lattice asked for
     stays a lattice."""
-    from engine import start_kind
-    from engine.params import derive
-    from engine.scene import StartDraw, initial_spheres
-    from engine.spec import SimulationSpec
+    from engine.setup import start_kind
+    from engine.setup.params import derive
+    from engine.setup.scene import StartDraw, initial_spheres
+    from engine.setup.spec import SimulationSpec
 
     monkeypatch.setattr(start_kind, "PARALLEL_START_MIN", 4096)
     spec = SimulationSpec(n_particles=8192, volume_fraction=0.1, seed=4)

@@ -22,8 +22,8 @@ def test_one_head_on_collision_counts_once_however_many_steps_it_lasts():
 
 
 def test_the_result_file_counts_every_collision(tmp_path):
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     out = tmp_path / "c.h5"
     run(SimulationSpec(n_particles=256, volume_fraction=0.1, t_end=0.01, thermalization=0.5, snapshots=0,

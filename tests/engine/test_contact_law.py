@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from engine.params import e_t_effective
+from engine.setup.params import e_t_effective
 from tests.engine.twobody import collide, contact_point_velocity
 
 N_HAT = np.array([-1.0, 0.0, 0.0])   # from sphere 2 (+x) to sphere 1 (-x)

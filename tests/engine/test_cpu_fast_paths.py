@@ -7,7 +7,7 @@
   as the kick-drift that loads its stored zeros (spheres smooth and rough, orientations tracked, float64 and mixed
   precision, spheroids), -0.0 components included;
 - the list build walks the neighbour cells with nested offset loops: the same list, entry for entry, as the walk by
-  engine.cells.neighbour_cell, on grids of 1, 2, 3 and more cells per side;
+  engine.neighbours.cells.neighbour_cell, on grids of 1, 2, 3 and more cells per side;
 - through the whole time loop (list builds inside it, and the growth of a list that overflows): the active set is
   the particles with list entries and their forces and torques are +0.0 after every advance;
 - engine/backends/ensemble.py ``ThreadChoice``: all threads while they are faster, one thread when it is faster.
@@ -24,15 +24,15 @@ import numpy as np
 import pytest
 
 from engine.backends.ensemble import ONE_THREAD_BELOW, ThreadChoice
-from engine.cells import cell_coords_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.neighbours.cells import cell_coords_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.loops.cpu import bin_particles, build_list, index_active, make_forces, make_step
-from engine.multigrid import carry_slot
-from engine.params import derive
-from engine.scene import initial_ellipsoids
+from engine.neighbours.multigrid import carry_slot
+from engine.setup.params import derive
+from engine.setup.scene import initial_ellipsoids
 from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
-from engine.simulate import contact_params
-from engine.spec import SimulationSpec
+from engine.driver.simulate import contact_params
+from engine.setup.spec import SimulationSpec
 from tests.engine.scenes import gas
 
 
@@ -139,7 +139,7 @@ def test_kick_drift_of_a_particle_with_an_empty_list_is_the_stored_zero_kick(bac
 @numba.njit
 def _reference_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list, cell_of, nbr_old, nn_old,
                     hist_old, nbr, nn, hist):
-    """The list build as it was: neighbour cells by engine.cells.neighbour_cell (serial)."""
+    """The list build as it was: neighbour cells by engine.neighbours.cells.neighbour_cell (serial)."""
     max_nb = nbr.shape[1]
     for i in range(pos.shape[0]):
         cx, cy, cz = cell_coords_of(cell_of[i], nc)

@@ -107,7 +107,7 @@ def cpu_rough(be) -> bool:
 
 
 def _rough(e_t=0.5, **kw):
-    from engine.params import k_t_paper
+    from engine.setup.params import k_t_paper
 
     return contact(k_t=k_t_paper(e_t, 1.0e5), **kw)
 

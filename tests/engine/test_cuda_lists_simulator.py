@@ -103,7 +103,7 @@ def _sets() -> dict:
 def _modes(multistep: bool, precision: str = "float64"):
     """The list modes of one time loop (multistep: all three; per-phase: GPU list and CPU list pipelined) on
     one scene; returns {loop: their comparison} and the GPU-list run's final positions. ``precision`` 'mixed':
-    the CPU-built lists read float64 positions (engine/precision.py)."""
+    the CPU-built lists read float64 positions (engine/setup/precision.py)."""
     from engine.backends.cuda import CudaBackend
 
     modes = ("gpu", "cpu-sequential", "cpu-pipelined") if multistep else ("gpu", "cpu-pipelined")

@@ -30,9 +30,9 @@ def _child(case: str) -> None:
     from engine.loops import cuda_ensemble
     from engine.loops import cuda_kernels as K
     from engine.loops.cuda_memory import SphereLayout, device_allocations, sphere_account
-    from engine.params import derive
-    from engine.precision import position_dtype, state_dtype
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.precision import position_dtype, state_dtype
+    from engine.setup.spec import SimulationSpec
 
     kept = []
     init = cuda_ensemble.CudaEnsembleBase.__init__
@@ -88,10 +88,10 @@ def test_list_count_model_matches_an_equilibrium_gas_and_bounds_its_fullest_row(
 
     from engine.loops.cuda_memory import (list_count_distribution, mean_list_neighbours, predicted_list_need,
                                           shell_pair_apart)
-    from engine.pairs import periodic_pairs
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.spec import SimulationSpec
+    from engine.analysis.pairs import periodic_pairs
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=131072, volume_fraction=0.058, start="random", backend="cuda", seed=3)
     p = derive(spec)
@@ -132,8 +132,8 @@ def test_predicted_need_grows_with_n_and_is_the_first_k_below_the_miss_chance():
 
 def test_refusal_names_the_estimate_and_the_largest_n_that_fits():
     from engine.loops.cuda_memory import USABLE_FRACTION, memory_refusal, predict_sphere_device
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=10**9, volume_fraction=0.058, precision="float32", backend="cuda")
     free = 141e9
@@ -154,11 +154,11 @@ def test_engine_run_refuses_before_the_device_holds_anything(tmp_path, monkeypat
     before any ensemble is made and without a result file."""
     from engine.errors import SpecError
     from engine.loops import cuda_memory
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     monkeypatch.setattr(cuda_memory, "device_memory", lambda: (10**6, 10**6, "a 1 MB test device"))
-    monkeypatch.setattr("engine.simulate.resolve_backend", lambda name, shape="sphere": "cuda")
-    monkeypatch.setattr("engine.simulate.make_ensemble", lambda *a, **k: pytest.fail("an ensemble was made"))
+    monkeypatch.setattr("engine.driver.simulate.resolve_backend", lambda name, shape="sphere": "cuda")
+    monkeypatch.setattr("engine.driver.simulate.make_ensemble", lambda *a, **k: pytest.fail("an ensemble was made"))
     spec = SimulationSpec(n_particles=4096, volume_fraction=0.058, t_end=1e-4, backend="cuda", thermalization=0)
     import engine
 
@@ -173,7 +173,7 @@ def test_demq_run_refuses_in_one_line_with_exit_2(tmp_path, monkeypatch, capsys)
     from service import cli
 
     monkeypatch.setattr(cuda_memory, "device_memory", lambda: (10**6, 10**6, "a 1 MB test device"))
-    monkeypatch.setattr("engine.simulate.resolve_backend", lambda name, shape="sphere": "cuda")
+    monkeypatch.setattr("engine.driver.simulate.resolve_backend", lambda name, shape="sphere": "cuda")
     out = tmp_path / "out.h5"
     with pytest.raises(SystemExit) as ended:
         cli.main(["run", "--set", "n_particles=4096", "--set", "t_end=1e-4", "--set", "thermalization=0",

@@ -1,7 +1,7 @@
 """Large starts drawn on the GPU (engine/loops/cuda_start.py) under the Numba CUDA simulator: the same start as the
-host's draws (engine.scene._parallel_draws).
+host's draws (engine.setup.scene._parallel_draws).
 
-Under the simulator the kernels call the same compiled engine.scene functions as the host and add in Python's
+Under the simulator the kernels call the same compiled engine.setup.scene functions as the host and add in Python's
 float64, in the same order, so the device start must equal the host's bit for bit here; on a GPU it is equal to
 rounding (tests/gpu/test_device_start_gpu.py). Runs in a simulator child (tests/cudasim.py).
 """
@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _streams():
-    from engine.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY
+    from engine.setup.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY
 
     return [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 40.0), (STREAM_QUATERNION, 4, None)]
 
@@ -39,7 +39,7 @@ def _device_arrays(d, pos_dtype, dtype, extra_cols=0, col0=0):
 def _draws() -> None:
     """draw_start against the host's draws: with a site selection (n < n_sites) and without (n = n_sites), into
     columns from col0 of wider arrays (the others untouched), in float64, float32 and mixed precision."""
-    from engine.scene import StartDraw
+    from engine.setup.scene import StartDraw
 
     for n, box, radius in ((100, 3.0, 0.05), (256, 3.0, 0.05), (40, 1.0, 0.1)):
         d = StartDraw.of(n, 17, _streams(), box, radius)
@@ -52,7 +52,7 @@ def _draws() -> None:
             for a, h in zip(arrays, arrays_h):
                 assert np.array_equal(a[:, 3:3 + n], h.T.astype(dtype)), (n, dtype)
                 assert np.all(a[:, :3] == -1.0) and np.all(a[:, 3 + n:] == -1.0)
-    # random starts (engine/cell_rsa.py): the same centres (exact integer tests, one rounding each), a dilute one
+    # random starts (engine/setup/cell_rsa.py): the same centres (exact integer tests, one rounding each), a dilute one
     # and one at phi = 0.29 that takes many rounds
     for n, box, radius in ((150, 1.0, 0.05), (200, 1.0, 0.07)):
         d = StartDraw.of(n, 23, _streams(), box, radius, "random")
@@ -73,7 +73,7 @@ def _ensemble() -> None:
 
     from engine.backends.base import SphereSystem
     from engine.backends.cuda import CudaEnsemble
-    from engine.scene import StartDraw, drawn_on_host
+    from engine.setup.scene import StartDraw, drawn_on_host
     from tests.engine.test_cuda_simulator import contact, tiny_system
 
     n, box, r = 60, 2.0, 0.05

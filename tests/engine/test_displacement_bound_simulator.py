@@ -22,7 +22,7 @@ import h5py, numpy as np
 import engine.loops.cuda_ensemble as ens
 import engine.loops.cuda_stepping as st
 from engine import run
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 
 ens.MULTISTEP = False                      # the one-launch-per-phase loop at this small N
 exact_flags = []

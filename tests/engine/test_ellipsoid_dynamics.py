@@ -10,9 +10,9 @@ import numpy as np
 from engine.backends.base import ContactParams, EllipsoidSystem
 from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
-from engine.params import gamma_n_from_restitution
+from engine.setup.params import gamma_n_from_restitution
 from engine.physics.rotation import body_omega, fincham_quat_step_body
-from engine.scene import maxwellian, place_spheres, random_quaternions
+from engine.setup.scene import maxwellian, place_spheres, random_quaternions
 from tests.engine.scenes import K_N, MASS, RADIUS, gas
 
 
@@ -143,7 +143,7 @@ def test_central_collision_restitution():
 def test_end_to_end_ellipsoid_run_writes_h5md(tmp_path):
     import h5py
 
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     spec = {"shape": "ellipsoid", "elongation": 2.0, "n_particles": 32, "volume_fraction": 0.05, "e_n": 0.9,
             "e_t": -1.0, "t_end": 0.01, "thermalization": 0.1, "snapshots": 2, "backend": "cpu", "seed": 3}

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from engine.backends.ensemble import SerialEnsemble, make_ensemble, resolve_backend
-from engine.ensemble import run_ensemble
+from engine.driver.ensemble import run_ensemble
 from engine.errors import BackendUnavailable, Cancelled, InstabilityError, SpecError
-from engine.h5md import partial_path
-from engine.simulate import TIMINGS, RunSummary, SceneRun, drive, run
-from engine.spec import SimulationSpec
+from engine.output.h5md import partial_path
+from engine.driver.simulate import TIMINGS, RunSummary, SceneRun, drive, run
+from engine.setup.spec import SimulationSpec
 
 # tests/engine/test_simulate.py's tiny scene, shortened
 TINY = dict(n_particles=64, volume_fraction=0.05, box_length=0.5, t_end=0.03, thermalization=0.5,
@@ -229,9 +229,9 @@ def test_checkpointed_ensemble_resumes_per_scene(tmp_path, alone):
 
 
 def test_scenes_set_up_on_threads_write_the_same_files(tmp_path, monkeypatch):
-    """An ensemble of >= 8 small scenes is set up on several threads (engine.ensemble._setup_threads); each
+    """An ensemble of >= 8 small scenes is set up on several threads (engine.driver.ensemble._setup_threads); each
     scene's start comes from its own Generator, so every file equals the one-thread set-up's, bit for bit."""
-    import engine.ensemble as ens_mod
+    import engine.driver.ensemble as ens_mod
 
     specs = [dict(TINY, seed=s, thermalization=0.0, t_end=0.005, snapshots=1,
                   n_particles=64 + 8 * (s % 3)) for s in range(9)]
@@ -246,7 +246,7 @@ def test_scenes_set_up_on_threads_write_the_same_files(tmp_path, monkeypatch):
 
 
 def test_which_ensembles_are_set_up_on_threads():
-    import engine.ensemble as ens_mod
+    import engine.driver.ensemble as ens_mod
 
     small = [SimulationSpec(**dict(TINY, seed=s)) for s in range(8)]
     assert ens_mod._setup_threads(small[:7]) == 1                      # too few scenes
@@ -256,9 +256,9 @@ def test_which_ensembles_are_set_up_on_threads():
 
 
 def _two_cpu_scenes():
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.simulate import contact_params
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.driver.simulate import contact_params
 
     out = []
     for seed in (1, 2):

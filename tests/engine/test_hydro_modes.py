@@ -1,13 +1,13 @@
-"""Hydrodynamic-mode observables (engine/hydro_modes.py) and the linear shear-stability theory
-(engine/shear_instability.py): exact cases, sampling-error bounds, and the theory's limits."""
+"""Hydrodynamic-mode observables (engine/analysis/hydro_modes.py) and the linear shear-stability theory
+(engine/analysis/shear_instability.py): exact cases, sampling-error bounds, and the theory's limits."""
 
 import math
 
 import numpy as np
 import pytest
 
-from engine.hydro_modes import SHEAR_MODES, file_mode_series, frame_modes, mode_amplitudes, structure_factor_cs
-from engine.shear_instability import (effective_restitution, eta_star, predicted_mode_energy,
+from engine.analysis.hydro_modes import SHEAR_MODES, file_mode_series, frame_modes, mode_amplitudes, structure_factor_cs
+from engine.analysis.shear_instability import (effective_restitution, eta_star, predicted_mode_energy,
                                       predicted_unstable_excess, shear_stability, zeta_star)
 
 L = 2.0
@@ -115,7 +115,7 @@ def test_bad_frames_are_refused_with_the_field_named():
 
 
 def test_file_mode_series_reads_the_snapshot_frames(tmp_path):
-    from engine.h5md import H5MDWriter
+    from engine.output.h5md import H5MDWriter
 
     rng = np.random.default_rng(6)
     n = 50

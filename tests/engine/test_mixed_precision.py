@@ -1,4 +1,4 @@
-"""Precision 'mixed' (engine/precision.py): positions in float64, every other array in float32.
+"""Precision 'mixed' (engine/setup/precision.py): positions in float64, every other array in float32.
 
 The scene that separates the precisions: a head-on collision of two 1 cm spheres at 1 m/s in the middle of the
 spec's default 2 m box (100 diameters). float32 positions there are spaced 6e-8 m apart, 1 % of the peak overlap
@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import pytest
 
-from engine.precision import output_dtype, position_dtype, state_dtype
+from engine.setup.precision import output_dtype, position_dtype, state_dtype
 
 RADIUS = 0.01      # m
 DENSITY = 2000.0   # kg/m^3
@@ -24,7 +24,7 @@ def _pair(precision: str, e_n: float, box: float, speed: float = 1.0):
     """Two spheres approaching head-on along x near the middle of a box of edge ``box``; returns (backend,
     contact time)."""
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.params import gamma_n_from_restitution
+    from engine.setup.params import gamma_n_from_restitution
     from engine.shapes.sphere.cpu_backend import CpuBackend
 
     m = DENSITY * 4.0 / 3.0 * math.pi * RADIUS**3
@@ -57,7 +57,7 @@ def test_dtypes_per_precision():
                                                                                       np.float64)
     with pytest.raises(ValueError, match="precision must be one of"):
         state_dtype("float16")
-    from engine.params import estimate_bytes_per_particle
+    from engine.setup.params import estimate_bytes_per_particle
 
     assert (estimate_bytes_per_particle("float32") < estimate_bytes_per_particle("mixed")
             < estimate_bytes_per_particle("float64"))
@@ -89,7 +89,7 @@ def test_mixed_backend_keeps_float64_positions_and_float32_state():
 
 
 def test_mixed_is_refused_for_ellipsoids_naming_the_field():
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     with pytest.raises(Exception, match="precision = 'mixed' is implemented for shape 'sphere' only"):
         SimulationSpec(shape="ellipsoid", elongation=2.0, precision="mixed")
@@ -104,8 +104,8 @@ def test_mixed_is_refused_for_ellipsoids_naming_the_field():
 def test_a_mixed_run_tracks_float64_and_writes_float64_positions(tmp_path):
     """A whole job through engine.run: 'mixed' follows the float64 cooling curve far more closely than float32
     (the same spec and seed; few collisions per particle, so chaos has not yet amplified the rounding)."""
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     base = dict(n_particles=256, volume_fraction=0.05, t_end=0.01, thermalization=0.2, snapshots=2,
                 backend="cpu", velocity_rms=1.0, seed=4)

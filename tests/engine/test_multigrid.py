@@ -1,11 +1,11 @@
-"""Multigrid linked cells (Skorych & Dosta 2022, §2.2, Algorithm 1; engine/multigrid.py) against brute force."""
+"""Multigrid linked cells (Skorych & Dosta 2022, §2.2, Algorithm 1; engine/neighbours/multigrid.py) against brute force."""
 
 import math
 
 import numpy as np
 import pytest
 
-from engine.multigrid import MultigridBuilder, grid_levels, main_level
+from engine.neighbours.multigrid import MultigridBuilder, grid_levels, main_level
 
 BOX = 1.0
 
@@ -193,8 +193,8 @@ def test_cpu_backend_uses_multigrid_and_keeps_springs():
     the same scene with a thin skin (many rebuilds) and a thick one (few) gives the same trajectory."""
     from engine.backends.base import ContactParams, SphereSystem
     from engine.shapes.sphere.cpu_backend import CpuBackend
-    from engine.params import gamma_n_from_restitution, k_t_paper
-    from engine.scene import place_species
+    from engine.setup.params import gamma_n_from_restitution, k_t_paper
+    from engine.setup.scene import place_species
 
     rng = np.random.default_rng(2)
     counts, radii = (24, 150), (0.01, 0.0025)

@@ -19,7 +19,7 @@ import h5py, numpy as np
 import engine.loops.cuda_stepping as st
 from engine import run
 from engine.shapes.sphere.cuda_backend import CudaEnsemble
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 
 swaps = []
 orig = CudaEnsemble._swap_multistep

@@ -25,10 +25,10 @@ import engine.loops.cuda_stepping as st
 from engine.loops.cuda_records import ObserveSums
 from engine import run
 from engine.backends.cuda import CudaBackend
-from engine.params import derive
-from engine.scene import initial_spheres
-from engine.simulate import contact_params
-from engine.spec import SimulationSpec
+from engine.setup.params import derive
+from engine.setup.scene import initial_spheres
+from engine.driver.simulate import contact_params
+from engine.setup.spec import SimulationSpec
 
 ens_mod.MULTISTEP = False          # the per-phase loop at this small N
 launches = []
@@ -112,7 +112,7 @@ print("OBSERVE-OK", len(launches))
 '''
 
 RUNS = r'''
-import engine.simulate as simulate
+import engine.driver.simulate as simulate
 simulate.RECORDS_CALL_S = 1e9      # the simulator's steps are slow: let one call run through every record ahead
 batches = []
 orig_ao = st.TimeLoop.advance_observing

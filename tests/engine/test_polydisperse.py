@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from engine.params import (carnahan_starling_g, derive, enskog_rate_mixture, estimate_bytes_per_particle,
+from engine.setup.params import (carnahan_starling_g, derive, enskog_rate_mixture, estimate_bytes_per_particle,
                            estimate_cost, gamma_n_from_restitution, species_counts)
-from engine.scene import initial_spheres, species_index
-from engine.spec import SPECIES_MAX_VOLUME_FRACTION, SimulationSpec
+from engine.setup.scene import initial_spheres, species_index
+from engine.setup.spec import SPECIES_MAX_VOLUME_FRACTION, SimulationSpec
 
 TWO = [{"radius_ratio": 1.0, "number_fraction": 0.3}, {"radius_ratio": 0.4, "number_fraction": 0.7}]
 # 60 spheres, ratio 2.5, soft contacts: ~4000 steps in all (thermalisation + cooling)
@@ -75,7 +75,7 @@ def test_species_list_takes_its_normal_form():
 def test_scaled_species_lists_are_one_simulation(tmp_path):
     """Ratios [1, 0.4] with fractions [0.3, 0.7] and the same halved ([0.5, 0.2], [0.15, 0.35]) are one spec: the
     same stored spec and derived parameters, and bit-identical CPU runs for the same seed."""
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     tiny = {**SMALL, "t_end": 0.004, "thermalization": 0.0}
     given = SimulationSpec(**tiny)
@@ -144,7 +144,7 @@ def test_cost_estimate_grows_with_the_size_ratio():
         frac = 0.5 if ratio == 1 else 1.0 / (1.0 + ratio**-3)      # equal solid volume of both species
         if sp is not None:
             sp = _sp((1.0, frac), (ratio, 1.0 - frac))
-        # a fixed skin (0.8 smallest radii): the null default shrinks with density (engine.spec)
+        # a fixed skin (0.8 smallest radii): the null default shrinks with density (engine.setup.spec)
         s = SimulationSpec(n_particles=100_000, volume_fraction=0.25, box_length=1.0, velocity_rms=0.1,
                            species=sp, verlet_skin=0.8)
         slots.append(estimate_cost(s)["list_slots"])
@@ -230,7 +230,7 @@ def test_head_on_collision_of_unequal_spheres(e_n):
 
 
 def test_polydisperse_run_writes_species_and_radii(tmp_path):
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     out = tmp_path / "poly.h5"
     summary = run(SimulationSpec(**SMALL), out)

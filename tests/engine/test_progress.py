@@ -12,7 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from engine.progress import ProgressBar
+from engine.driver.progress import ProgressBar
 
 ROOT = Path(__file__).resolve().parents[2]
 RUN = [sys.executable, "-m", "service.cli", "run", "--backend", "cpu", "--set", "n_particles=64",

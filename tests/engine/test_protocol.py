@@ -1,6 +1,6 @@
 """Every concrete backend and ensemble class implements its interface (engine/backends/protocol.py) in full.
 
-The driver (engine/simulate.py) calls the interface's methods without probing for them, so a class that left an
+The driver (engine/driver/simulate.py) calls the interface's methods without probing for them, so a class that left an
 abstract method, or took other parameters than the interface names, would fail in a run. Checked here on the
 classes themselves (no instance: the CUDA ones import numba.cuda, which needs no GPU, but are not built).
 """
@@ -147,8 +147,8 @@ def test_a_lone_gpu_job_is_its_ensemble_itself():
 
 def test_a_scene_reads_its_state_only_for_snapshots_or_checkpoints(tmp_path):
     """SceneRun.reads_state, which make_ensemble passes on (a CUDA ensemble prepares host frame buffers only then)."""
-    from engine.simulate import SceneRun
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import SceneRun
+    from engine.setup.spec import SimulationSpec
 
     def scene(snapshots, checkpoint_dir=None):
         spec = SimulationSpec(n_particles=64, volume_fraction=0.05, t_end=0.001, thermalization=0.0,

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from engine.backends.base import ContactParams, EllipsoidSystem
-from engine.params import gamma_n_from_restitution, k_t_paper
-from engine.scene import random_quaternions
+from engine.setup.params import gamma_n_from_restitution, k_t_paper
+from engine.setup.scene import random_quaternions
 from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
 from tests.engine.scenes import K_N, MASS, RADIUS, gas
@@ -178,7 +178,7 @@ def test_coulomb_limit_holds_at_every_step_of_a_sliding_contact():
 
 def test_default_ellipsoid_spec_runs(tmp_path):
     from engine import run
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(shape="ellipsoid", n_particles=32, volume_fraction=0.05, box_length=0.4, t_end=0.05,
                           thermalization=0.1, snapshots=1, backend="cpu", velocity_rms=1.0)

@@ -29,7 +29,7 @@ def _child() -> None:
             missing = [p for p in PARTS if not hasattr(parts, p)]
             assert not missing, (name, missing)
             assert 0 <= parts.OBS_MAX < parts.NOBS, name
-            k = cuda_loop.kernels(name, np.float32, flags, False, 32)
+            k = cuda_loop.kernels(name, np.float32, flags, False, 32, mod)
             for kernel in ("kick_drift", "forces", "half_kick", "run_steps", "observe", "build", "compact"):
                 assert kernel in k, (name, kernel)
             assert set(parts.kernels) <= set(k), name

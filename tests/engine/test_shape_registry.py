@@ -89,8 +89,8 @@ def _series(path):
 def test_a_registered_package_runs_through_every_public_path(ball, tmp_path):
     from engine import run
     from engine.backends.registry import make_backend
-    from engine.ensemble import run_ensemble
-    from engine.spec import SimulationSpec
+    from engine.driver.ensemble import run_ensemble
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(shape="ball", **TINY)
     assert spec.shape == "ball"
@@ -105,7 +105,7 @@ def test_a_registered_package_runs_through_every_public_path(ball, tmp_path):
     assert all(not isinstance(r, BaseException) for r in results), results
     assert np.array_equal(_series(tmp_path / "e0.h5")["position"], a["position"])
 
-    from engine.params import derive
+    from engine.setup.params import derive
     from engine.shapes import host
 
     system = host("ball").initial_system(spec, derive(spec))
@@ -115,7 +115,7 @@ def test_a_registered_package_runs_through_every_public_path(ball, tmp_path):
 
 def _contact(spec):
     from engine.backends.base import ContactParams
-    from engine.params import derive
+    from engine.setup.params import derive
 
     p = derive(spec)
     return ContactParams(k_n=p.k_n, gamma_n_coef=p.gamma_n_coef, k_t=p.k_t or None, friction=None, dt=p.dt,
@@ -125,7 +125,7 @@ def _contact(spec):
 def test_an_unregistered_shape_is_refused_with_the_registered_names():
     from pydantic import ValidationError
 
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     with pytest.raises(ValidationError) as e:
         SimulationSpec(shape="ball", **TINY)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from engine.errors import Cancelled, InstabilityError
-from engine.h5md import partial_path
-from engine.simulate import run
-from engine.spec import SimulationSpec
+from engine.output.h5md import partial_path
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
 
 # 64 spheres of radius 2.9 cm, ~8 collisions per particle per second at 1 m/s: ~1 collision each
 TINY = dict(n_particles=64, volume_fraction=0.05, box_length=0.5, t_end=0.1, thermalization=0.5,
@@ -131,9 +131,9 @@ def test_checkpoint_resume_matches_uninterrupted_run(tmp_path, precision):
 
 
 def test_a_cpu_scene_writes_its_file_in_place(tmp_path, monkeypatch):
-    """A CPU scene's file work runs in the calling thread (engine.simulate._file_thread): it never asks for the I/O
+    """A CPU scene's file work runs in the calling thread (engine.driver.simulate._file_thread): it never asks for the I/O
     thread, and its file is whole."""
-    import engine.h5md as h5md
+    import engine.output.h5md as h5md
 
     def no_thread():
         raise AssertionError("a CPU scene handed its file work to the I/O thread")

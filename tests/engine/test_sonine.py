@@ -155,7 +155,7 @@ def test_cpu_observe_moments_equal_numpy():
     s_tr2, s_rot2, s_x = obs["energy_moments"]
     for got, want in ((s_tr2, (et * et).sum()), (s_rot2, (er * er).sum()), (s_x, (et * er).sum())):
         assert got == pytest.approx(want, rel=1e-12)
-    from engine.simulate import record
+    from engine.driver.simulate import record
 
     rec = record(obs, len(et))
     assert rec["sonine_a2_translational"] == pytest.approx(a2_of(et, 3), rel=1e-10)
@@ -187,10 +187,10 @@ def test_cpu_ellipsoid_observe_moments_use_the_active_rotational_energy():
 
 
 def test_result_and_batch_files_carry_the_cumulants(tmp_path):
-    from engine.ensemble_stats import Run, aggregate, read_batch_result, write_batch_result
-    from engine.h5md import read_series
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.analysis.ensemble_stats import Run, aggregate, read_batch_result, write_batch_result
+    from engine.output.h5md import read_series
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     paths = []
     for seed in (1, 2):

@@ -5,8 +5,8 @@ import math
 import pytest
 from pydantic import ValidationError
 
-from engine.params import derive, e_t_effective, gamma_n_from_restitution, k_t_paper
-from engine.spec import SimulationSpec
+from engine.setup.params import derive, e_t_effective, gamma_n_from_restitution, k_t_paper
+from engine.setup.spec import SimulationSpec
 
 
 def test_defaults_are_hidalgo_2013():

@@ -1,4 +1,4 @@
-"""The spec's one-field ranges (engine.spec.FIELD_RANGES): the validator enforces exactly the table that
+"""The spec's one-field ranges (engine.setup.spec.FIELD_RANGES): the validator enforces exactly the table that
 the JSON schema publishes, ends open or closed as stated."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 import pytest
 from pydantic import ValidationError
 
-from engine.spec import FIELD_RANGES, SPECIES_RANGES, SimulationSpec, Species
+from engine.setup.spec import FIELD_RANGES, SPECIES_RANGES, SimulationSpec, Species
 
 
 def _field_errors(model, data: dict, field: str) -> list[str]:

@@ -12,8 +12,8 @@ from bench.stability import cells, run_cell_inprocess
 from engine.backends.base import ContactParams, SphereSystem
 from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.errors import InstabilityError
-from engine.params import Q_SPHERE
-from engine.spec import SimulationSpec
+from engine.setup.params import Q_SPHERE
+from engine.setup.spec import SimulationSpec
 
 A, M, K = 0.01, 1e-2, 1e5
 

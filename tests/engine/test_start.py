@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from engine import SimulationSpec
 from engine.errors import SpecError
-from engine.pairs import periodic_pairs
-from engine.params import derive
-from engine.scene import initial_spheres
-from engine.start_kind import (LATTICE, PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, RANDOM,
+from engine.analysis.pairs import periodic_pairs
+from engine.setup.params import derive
+from engine.setup.scene import initial_spheres
+from engine.setup.start_kind import (LATTICE, PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, RANDOM,
                                RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION, SEQUENTIAL_GENERATOR, start_generator,
                                start_protocol, thermalization_collisions)
 
@@ -34,7 +34,7 @@ def test_null_start_is_random_where_cheap_and_lattice_elsewhere():
     assert start_protocol(SimulationSpec()) == RANDOM
     assert start_protocol(SimulationSpec(volume_fraction=0.3)) == RANDOM
     assert start_protocol(SimulationSpec(volume_fraction=0.35)) == LATTICE
-    # a large one is random too, placed in parallel (engine/cell_rsa.py)
+    # a large one is random too, placed in parallel (engine/setup/cell_rsa.py)
     large = SimulationSpec(n_particles=PARALLEL_START_MIN, volume_fraction=0.05)
     assert start_protocol(large) == RANDOM and start_generator(large) == PARALLEL_RSA_GENERATOR
     assert start_generator(SimulationSpec(n_particles=PARALLEL_START_MIN - 1)) == SEQUENTIAL_GENERATOR

@@ -1,4 +1,4 @@
-"""The GPU start-up thread (engine/startup.py) and the reordered set-up it overlaps with.
+"""The GPU start-up thread (engine/driver/startup.py) and the reordered set-up it overlaps with.
 
 The time it saves is measured by bench/e2e.py on a GPU (``--off startup`` against the default); that a run with it writes
 the same file as one without is tests/gpu/test_startup_gpu.py. Here: when it starts, that its stand-in scenes
@@ -16,12 +16,12 @@ import sys
 import numpy as np
 import pytest
 
-import engine.start_kind as start_kind
-import engine.startup as startup
-from engine.params import derive
+import engine.setup.start_kind as start_kind
+import engine.driver.startup as startup
+from engine.setup.params import derive
 from engine.shapes import host
-from engine.simulate import run_contacts
-from engine.spec import SimulationSpec
+from engine.driver.simulate import run_contacts
+from engine.setup.spec import SimulationSpec
 from tests.cudasim import ROOT, child_env
 
 
@@ -155,11 +155,11 @@ import sys
 from tests.cudasim import fast_block_polling
 fast_block_polling()
 import engine.backends.base as base
-import engine.startup as startup
-from engine.params import derive
-from engine.simulate import run_contacts
+import engine.driver.startup as startup
+from engine.setup.params import derive
+from engine.driver.simulate import run_contacts
 from engine.shapes import host
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 base.cuda_available = lambda: True          # the simulator stands in for the GPU
 shape = sys.argv[1]
 kw = {"elongation": 2.0} if shape == "ellipsoid" else {}
@@ -198,7 +198,7 @@ def test_the_start_does_not_depend_on_the_skin(kw):
 def test_an_unknown_backend_is_refused_before_the_placement(tmp_path, monkeypatch):
     """The set-up now places before it resolves the backend; a misspelt backend still costs nothing."""
     from engine.errors import BackendUnavailable
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     placed = []
     monkeypatch.setattr(host("sphere"), "initial_system", lambda *a: placed.append(a))
@@ -241,14 +241,14 @@ def test_without_an_nvidia_driver_the_gpu_probe_does_not_import_numba_cuda(monke
 
 @pytest.mark.parametrize("jit_coverage", ["", "1"])
 def test_numba_is_imported_without_coverage_unless_it_measures_coverage(tmp_path, jit_coverage):
-    """engine.numba_import.coverage_hidden: numba's first import does not import ``coverage`` (70 ms of a GPU job's
+    """engine.numba_support.numba_import.coverage_hidden: numba's first import does not import ``coverage`` (70 ms of a GPU job's
     start-up) unless NUMBA_JIT_COVERAGE=1, and ``coverage`` stays importable afterwards. A stand-in ``coverage``
     package on the path records its import."""
     fake = tmp_path / "coverage"
     fake.mkdir()
     (fake / "__init__.py").write_text("from . import types\n")
     (fake / "types.py").write_text("def __getattr__(name):\n    return object\n")
-    code = ("import sys, engine.scene; during = 'coverage' in sys.modules; import coverage; "
+    code = ("import sys, engine.setup.scene; during = 'coverage' in sys.modules; import coverage; "
             "print('RESULT', during, 'coverage' in sys.modules)")
     path = [str(tmp_path), str(ROOT)] + [x for x in [os.environ.get("PYTHONPATH")] if x]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(path), "NUMBA_JIT_COVERAGE": jit_coverage}

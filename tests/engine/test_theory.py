@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from engine.theory import collision_g, luding_coefficients, luding_ode, r_infinity
+from engine.analysis.theory import collision_g, luding_coefficients, luding_ode, r_infinity
 
 
 @pytest.mark.parametrize("e_n,e_t,a,b,c,rinf", [
@@ -32,8 +32,8 @@ def test_ode_oracle(e, tvals, rvals):
 def test_collision_frequency_hidalgo_2013():
     # docs/physics.md §6.3, Hidalgo et al. (2013) scene: G = 40.313 s^-1 J^-1/2 for a = 0.015509 m, n = 512, m = 1/32,
     # phi = 0.008
-    from engine.params import derive
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
 
     p = derive(SimulationSpec())
     assert collision_g(p.radius, p.number_density, p.mass, 0.008) == pytest.approx(40.313, rel=1e-4)
@@ -44,7 +44,7 @@ def test_per_collision_change_of_smooth_spheres():
     # <(g.n)^2> = 4 T / m, so each collision takes (1 - e^2) T from E_tr = 3 N T / 2 shared by 2 particles:
     # dT per collision and particle = -(1 - e^2) T / 3, and R is untouched (exact; independent of the A, B, C
     # of Hidalgo et al. (2013))
-    from engine.theory import luding_per_collision
+    from engine.analysis.theory import luding_per_collision
 
     for e in (0.9, 0.6):
         d_t, d_r = luding_per_collision(0.7, 0.4, luding_coefficients(e, -1.0))

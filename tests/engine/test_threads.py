@@ -22,7 +22,7 @@ import json, sys
 import numba
 import engine.backends.ensemble as ensemble
 import engine.loops.cpu as cpu
-from engine.simulate import run
+from engine.driver.simulate import run
 assert numba.get_num_threads() == 2, numba.get_num_threads()
 cpu.SERIAL_LOOP_BELOW = 0                                      # every scene in the parallel loop ...
 ensemble.ONE_THREAD_BELOW = 0
@@ -51,7 +51,7 @@ def test_one_and_two_threads_write_the_same_numbers(tmp_path, spec):
     import numba
 
     from engine.loops import cpu
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     assert numba.get_num_threads() == 1
     run(spec, tmp_path / "one.h5")      # compiles or loads the kernels, which the child then loads from disk

@@ -13,20 +13,20 @@ import numba
 import numpy as np
 import pytest
 
-import engine.start_kind as start_kind
+import engine.setup.start_kind as start_kind
 from engine.errors import InstabilityError
 from engine.loops.system import rows_equal
-from engine.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
-from engine.params import derive
-from engine.scene import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
+from engine.output.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
+from engine.setup.params import derive
+from engine.setup.scene import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
                           STREAM_SITES, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY, _bits, _parallel_draws,
                           _smallest_sites, _stream_key, device_start, initial_ellipsoids, initial_spheres,
                           start_generator)
-from engine.spec import SimulationSpec
+from engine.setup.spec import SimulationSpec
 
 
 def _big(n=PARALLEL_START_MIN, start="lattice", **kw):
-    """A large start (the lattice protocol unless ``start`` says otherwise: engine/cell_rsa.py's random one is
+    """A large start (the lattice protocol unless ``start`` says otherwise: engine/setup/cell_rsa.py's random one is
     tested in tests/engine/test_cell_rsa.py)."""
     return SimulationSpec(n_particles=n, volume_fraction=0.058, box_length=2.0 * (n / 4096) ** (1.0 / 3.0),
                           thermalization=0, start=start, **kw)
@@ -43,10 +43,10 @@ def test_which_starts_are_drawn_in_parallel():
 
 def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_host_if_the_job_runs_on_the_cpu(
         monkeypatch, tmp_path):
-    """engine.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
+    """engine.setup.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
     host arrays: engine/loops/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
     host, the same start as always; with start_kind.DEVICE_START False and for other shapes the host draws."""
-    import engine.simulate as sim
+    import engine.driver.simulate as sim
 
     spec = _big(seed=9)
     p = derive(spec)
@@ -62,7 +62,7 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
     assert not rows_equal(np.array([1.0, 1.0, 2.0])) and not rows_equal(np.array([[1.0, 2.0], [1.0, 3.0]]))
     assert initial_spheres(_big(PARALLEL_START_MIN - 1), p, on_device=True).draw is None     # a small start
 
-    class Started:                 # stands for a GPU start-up (engine/startup.py), as on a machine with a GPU
+    class Started:                 # stands for a GPU start-up (engine/driver/startup.py), as on a machine with a GPU
         def wait(self):
             pass
 
@@ -86,7 +86,7 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
 
 
 def test_parallel_start_is_a_valid_homogeneous_gas():
-    from engine.pairs import periodic_pairs
+    from engine.analysis.pairs import periodic_pairs
 
     spec = _big()
     p = derive(spec)
@@ -122,11 +122,11 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
 @pytest.mark.parametrize("kw", [{}, {"start": None}, {"shape": "ellipsoid", "elongation": 2.0, "e_t": -1.0},
                                 {"shape": "ellipsoid", "elongation": 2.0}])
 def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(monkeypatch, kw):
-    """engine.scene.load_parallel_start (the worker's standby, warm_process) calls every compiled function of a
+    """engine.setup.scene.load_parallel_start (the worker's standby, warm_process) calls every compiled function of a
     large start of the spec's kind (spheres; smooth and rough ellipsoids, 3 and 4 streams) with the argument types
     the start calls it with, so the start loads nothing more."""
-    import engine.cell_rsa as rsa
-    import engine.scene as sc
+    import engine.setup.cell_rsa as rsa
+    import engine.setup.scene as sc
     from engine.shapes import host
 
     calls = {}
@@ -151,10 +151,10 @@ def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(mon
 
 
 def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypatch):
-    import engine.scene as sc
-    from engine import simulate
+    import engine.setup.scene as sc
+    from engine.driver import simulate
 
-    monkeypatch.setattr(simulate, "begin_gpu_startup", lambda *a: None)     # the GPU part: engine/startup.py
+    monkeypatch.setattr(simulate, "begin_gpu_startup", lambda *a: None)     # the GPU part: engine/driver/startup.py
     loaded = []
     load = sc.load_parallel_start
     monkeypatch.setattr(sc, "load_parallel_start",
@@ -174,7 +174,7 @@ _DRAWS_ON_TWO_THREADS = """
 import sys
 import numba
 import numpy as np
-from engine.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, _parallel_draws
+from engine.setup.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, _parallel_draws
 assert numba.get_num_threads() == 2, numba.get_num_threads()
 pos, arrays = _parallel_draws(50_000, 7, [(STREAM_VELOCITY, 3, 2.0), (STREAM_SPIN, 3, 5.0), (STREAM_QUATERNION, 4, None)],
                               place=(4.6, 0.05))
@@ -231,7 +231,7 @@ def test_unit_quaternions_are_numpys_normalisation(dtype):
 
 @numba.njit(parallel=True)
 def _select_in_parallel(key, n_sites, n):
-    return _smallest_sites(key, n_sites, n)     # inlined, as in engine.scene._draw_start: its pranges run
+    return _smallest_sites(key, n_sites, n)     # inlined, as in engine.setup.scene._draw_start: its pranges run
 
 
 @numba.njit
@@ -325,7 +325,7 @@ def test_background_and_synchronous_writers_write_the_same_file(tmp_path):
 
 
 def test_a_deferred_file_written_by_a_writer_process_is_the_same_file(tmp_path):
-    """engine/h5md_pool.py: the whole file kept in memory and written at the end in another process."""
+    """engine/output/h5md_pool.py: the whole file kept in memory and written at the end in another process."""
     records, frames = 2 * OBSERVABLE_BLOCK + 5, (0, 300, 2 * OBSERVABLE_BLOCK + 4)
     _write(tmp_path / "bg.h5", True, records, frames=frames).finish({"wall_time": 1.0})
     w = _write(tmp_path / "def.h5", True, records, frames=frames, deferred=True)
@@ -372,7 +372,7 @@ def test_a_non_finite_frame_on_the_io_thread_never_reaches_a_result(tmp_path):
 
 
 def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp_path):
-    """A frame series (engine.h5md._FrameSeries.append) writes a C-ordered frame of the dataset's type as its chunk
+    """A frame series (engine.output.h5md._FrameSeries.append) writes a C-ordered frame of the dataset's type as its chunk
     (H5Dwrite_chunk); any other array (here Fortran-ordered copies, float32 into a float64 file) goes through HDF5's
     write. Same bytes."""
     rng = np.random.default_rng(5)
@@ -394,7 +394,7 @@ def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp
 
 def test_pieces_cover_the_array_and_write_through_to_it():
     from engine.backends.cuda import _touched_empty
-    from engine.pieces import map_pieces
+    from engine.output.pieces import map_pieces
 
     a = np.zeros((25, 4))
     sizes = map_pieces(a, lambda p: (p.__setitem__(slice(None), p.size), p.size)[1], piece=7)
@@ -405,9 +405,9 @@ def test_pieces_cover_the_array_and_write_through_to_it():
 
 
 def test_a_large_frame_is_checked_for_finite_values_in_pieces(monkeypatch):
-    from engine import h5md
+    from engine.output import h5md
 
-    monkeypatch.setattr(h5md, "_FINITE_SPLIT", 7)   # 10 x 3 values: five pieces, on engine/pieces.py's pool
+    monkeypatch.setattr(h5md, "_FINITE_SPLIT", 7)   # 10 x 3 values: five pieces, on engine/output/pieces.py's pool
     a = np.arange(30.0).reshape(10, 3)
     assert h5md._all_finite(a)
     for bad in (np.nan, np.inf, -np.inf):
@@ -423,7 +423,7 @@ def test_a_result_replaces_an_earlier_one_and_frees_it_off_the_callers_thread(tm
     import os
     import threading
 
-    from engine.h5md import replace_file
+    from engine.output.h5md import replace_file
 
     fds = lambda: len(os.listdir("/proc/self/fd"))  # noqa: E731
     base = fds()
@@ -441,7 +441,7 @@ def test_a_result_replaces_an_earlier_one_and_frees_it_off_the_callers_thread(tm
 def test_frame_slots_reuse_a_free_slot_and_else_wait_for_the_older_one():
     from concurrent.futures import Future
 
-    from engine.simulate import _FrameSlots
+    from engine.driver.simulate import _FrameSlots
 
     slots = _FrameSlots()
     assert slots.take() == 0
@@ -489,8 +489,8 @@ _SIM_HEAD = r"""
 from tests.cudasim import fast_block_polling
 fast_block_polling()
 import sys, h5py, numpy as np
-from engine.simulate import run
-from engine.ensemble import run_ensemble
+from engine.driver.simulate import run
+from engine.driver.ensemble import run_ensemble
 out = sys.argv[1]
 spec = dict(n_particles=27, volume_fraction=0.05, box_length=0.6, t_end=4e-4, output_interval=4e-5,
             snapshots=4, thermalization=0, seed=3)
@@ -523,16 +523,16 @@ print("PINNED-FRAMES", _pinned_used)
 cf.PINNED_SLOT_BYTES, cb.CudaEnsemble._host_slot = 32 << 20, _slot
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/e0.h5", f"{out}/e1.h5"],
              backend="cuda")                                       # packed CudaEnsemble
-import engine.simulate
-engine.simulate.DEFER_MIN_SCENES = 2                               # files written by writer processes
+import engine.driver.simulate
+engine.driver.simulate.DEFER_MIN_SCENES = 2                               # files written by writer processes
 run_ensemble([{**spec, "seed": 3}, {**spec, "seed": 4, "snapshots": 3}], [f"{out}/d0.h5", f"{out}/d1.h5"],
              backend="cuda")
 # frames of several scenes at the same steps while the I/O thread lags: the ensemble's shared buffer slots
 import time
-from engine.h5md import H5MDWriter
+from engine.output.h5md import H5MDWriter
 _write_frame = H5MDWriter._write_frame
 H5MDWriter._write_frame = lambda self, *a: (time.sleep(0.2), _write_frame(self, *a))[1]
-engine.simulate.DEFER_MIN_SCENES = 100
+engine.driver.simulate.DEFER_MIN_SCENES = 100
 run_ensemble([{**spec, "seed": s} for s in (3, 4, 5)], [f"{out}/s{s}.h5" for s in (3, 4, 5)], backend="cuda")
 """
 
@@ -627,20 +627,21 @@ def test_cuda_kernel_cache_loads_without_refreshing_the_target():
 
 # ---- the CPU kernels' disk-cache loads ---------------------------------------------------------------------
 
-_ENGINE_JIT_MODULES = ("engine.scene", "engine.cell_rsa", "engine.multigrid", "engine.loops.cpu", "engine.loops.cpu_shared",
-                       "engine.shapes.sphere.kernels",
-                       "engine.shapes.spheroid.kernels", "engine.shapes.spheroid.cpu_backend",
-                       "engine.validation.encounter_dsmc", "engine.validation.sonine")
+_ENGINE_JIT_MODULES = ("engine.setup.scene", "engine.setup.cell_rsa", "engine.setup.counter_rng",
+                       "engine.neighbours.multigrid", "engine.loops.cpu", "engine.loops.cpu_shared",
+                       "engine.shapes.sphere.kernels", "engine.shapes.spheroid.kernels",
+                       "engine.shapes.spheroid.cpu_backend", "engine.validation.encounter_dsmc",
+                       "engine.validation.sonine")
 
 
 def test_every_cached_engine_kernel_loads_without_the_target_refresh():
-    """Every ``cache=True`` njit function of the engine gets engine.jitcache's fast-load cache; a module that
+    """Every ``cache=True`` njit function of the engine gets engine.numba_support.jitcache's fast-load cache; a module that
     defines one without calling fast_loads(globals()) fails here."""
     import importlib
     import pkgutil
 
     import engine
-    from engine.numba_internals import FastLoadCache
+    from engine.numba_support.numba_internals import FastLoadCache
     from numba.core.caching import FunctionCache
 
     found = set()
@@ -659,7 +660,7 @@ def test_every_cached_engine_kernel_loads_without_the_target_refresh():
 def test_the_source_digest_is_the_sources_at_import_and_is_not_taken_again(monkeypatch):
     """Kernel cache keys name the code this process imported (a hash taken after an edit on disk would file old
     machine code under the new sources), and a kernel set's key costs no re-hash."""
-    import engine.jitcache as jc
+    import engine.numba_support.jitcache as jc
 
     assert jc.source_digest() == jc._hash_sources()     # the sources have not changed since the import
     monkeypatch.setattr(jc, "_hash_sources", lambda: pytest.fail("the sources were hashed again"))
@@ -668,8 +669,8 @@ def test_the_source_digest_is_the_sources_at_import_and_is_not_taken_again(monke
 
 _FRESH_JOB = """
 import sys
-from engine.simulate import run
-from engine.spec import SimulationSpec
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
 run(SimulationSpec(**{spec!r}), sys.argv[1])
 print(sorted(m for m in ("numba.np.arraymath", "scipy.linalg") if m in sys.modules))
 """
@@ -682,7 +683,7 @@ def test_a_fresh_process_loads_the_cpu_kernels_without_numbas_registries_and_wri
     import subprocess
     import sys
 
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     d = dict(n_particles=256, t_end=0.002, thermalization=0, snapshots=2, backend="cpu", seed=3)
     run(SimulationSpec(**d), tmp_path / "here.h5")       # compiles or loads, and leaves the kernels on disk

@@ -1,11 +1,11 @@
-"""engine/velocity_correlations.py: neighbour velocity correlations against exact cases."""
+"""engine/analysis/velocity_correlations.py: neighbour velocity correlations against exact cases."""
 
 import math
 
 import numpy as np
 import pytest
 
-from engine.velocity_correlations import neighbour_velocity_correlation
+from engine.analysis.velocity_correlations import neighbour_velocity_correlation
 
 
 def test_independent_velocities_show_no_correlation():
@@ -47,10 +47,10 @@ def test_r_cut_beyond_half_the_box_is_refused():
 
 
 def test_file_correlations_read_every_snapshot_frame(tmp_path):
-    from engine.h5md import read_frames
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
-    from engine.velocity_correlations import file_correlations
+    from engine.output.h5md import read_frames
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
+    from engine.analysis.velocity_correlations import file_correlations
 
     spec = SimulationSpec(n_particles=256, volume_fraction=0.05, t_end=2e-4, thermalization=0, snapshots=3,
                           backend="cpu")

@@ -10,9 +10,9 @@ import h5py
 import numpy as np
 import pytest
 
-from engine.export_gsd import body_inertia, export_gsd, rotate
-from engine.simulate import run
-from engine.xdmf import sidecar_path, xdmf_text
+from engine.output.export_gsd import body_inertia, export_gsd, rotate
+from engine.driver.simulate import run
+from engine.output.xdmf import sidecar_path, xdmf_text
 
 # 64 rough spheres (e_t = 0.5, so they spin) and 64 smooth spheroids xi = 2, three snapshots each
 SPHERES = dict(n_particles=64, volume_fraction=0.05, box_length=0.5, t_end=0.1, thermalization=0.5, snapshots=3,
@@ -158,7 +158,7 @@ def test_demq_export_cli(result, tmp_path, capsys):
 
 
 def test_gsd_export_refuses_a_result_without_snapshots(tmp_path):
-    from engine.h5md import H5MDWriter
+    from engine.output.h5md import H5MDWriter
 
     w = H5MDWriter(tmp_path / "none.h5", n=4, box_length=1.0, spec_json="{}", derived={}, radius=np.full(4, 0.1))
     path = w.finish({})

@@ -1,4 +1,4 @@
-"""The output writers' triggers and the records writer's energy check (engine/writers/)."""
+"""The output writers' triggers and the records writer's energy check (engine/output/writers/)."""
 
 import math
 from types import SimpleNamespace
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from engine.errors import InstabilityError
-from engine.writers.records import ENERGY_RISE_TOLERANCE, RecordWriter
-from engine.writers.snapshots import snapshot_steps
-from engine.writers.triggers import AtSteps, Periodic, WallClock
+from engine.output.writers.records import ENERGY_RISE_TOLERANCE, RecordWriter
+from engine.output.writers.snapshots import snapshot_steps
+from engine.output.writers.triggers import AtSteps, Periodic, WallClock
 
 
 def test_periodic_trigger_fires_every_period_and_at_the_last_step():

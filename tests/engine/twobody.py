@@ -8,7 +8,7 @@ import numpy as np
 
 from engine.backends.base import ContactParams, SphereSystem
 from engine.shapes.sphere.cpu_backend import CpuBackend
-from engine.params import Q_SPHERE, gamma_n_from_restitution, k_t_paper
+from engine.setup.params import Q_SPHERE, gamma_n_from_restitution, k_t_paper
 
 RADIUS = 0.01     # m
 MASS = 1.0e-2     # kg

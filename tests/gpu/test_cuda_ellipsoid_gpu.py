@@ -21,10 +21,10 @@ pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 
 def _gas(n=4096, xi=2.0, phi=0.058, precision="float64", seed=3, e_n=0.9):
     """Spec-built Rubio-Largo et al. (2015) start (bounding spheres on an fcc lattice, random orientations)."""
-    from engine.params import derive
-    from engine.scene import initial_ellipsoids
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_ellipsoids
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(shape="ellipsoid", elongation=xi, n_particles=n, volume_fraction=phi, e_n=e_n, e_t=-1.0,
                           precision=precision, seed=seed, velocity_rms=3.5,
@@ -220,7 +220,7 @@ def test_ensemble_scene_failure_stays_local():
 def test_rough_cpu_and_gpu_agree_float64_200_steps(friction, multistep):
     """Rough spheroids (e_t = 0.5; with and without a Coulomb limit), 4096 with contacts, 200 steps:
     positions within 1e-9 of L, the list slots' springs and k_t alike."""
-    from engine.params import k_t_paper
+    from engine.setup.params import k_t_paper
 
     system, c = _dense(xi=2.0)
     c = c.with_(k_t=k_t_paper(0.5, c.k_n), friction=friction)

@@ -15,11 +15,11 @@ pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 
 
 def _scene(n=4096, phi=0.25, precision="float64", seed=3, friction=0.5):
-    """Spec-built granular-gas start (placement and velocities of engine.scene)."""
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.simulate import contact_params
-    from engine.spec import SimulationSpec
+    """Spec-built granular-gas start (placement and velocities of engine.setup.scene)."""
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.driver.simulate import contact_params
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.5, friction=friction,
                           precision=precision, seed=seed, velocity_rms=2.0)
@@ -316,11 +316,11 @@ def test_fused_step_gives_the_two_launch_trajectory(monkeypatch):
 
 
 def test_the_status_copy_through_the_driver_bindings_copies_and_records():
-    """engine.numba_internals.async_copy_and_record: the device array's bytes arrive in the pinned buffer once the
+    """engine.numba_support.numba_internals.async_copy_and_record: the device array's bytes arrive in the pinned buffer once the
     event it records has completed."""
     from numba import cuda
 
-    from engine.numba_internals import async_copy_and_record
+    from engine.numba_support.numba_internals import async_copy_and_record
 
     stream = cuda.stream()
     src = np.arange(14, dtype=np.float64) * 1.5
@@ -339,11 +339,11 @@ def test_the_status_copy_through_the_driver_bindings_copies_and_records():
 
 
 def test_the_device_copy_through_the_driver_bindings_copies_in_stream_order():
-    """engine.numba_internals.async_copy_device: the source's bytes land in the destination in stream order (a
+    """engine.numba_support.numba_internals.async_copy_device: the source's bytes land in the destination in stream order (a
     kernel queued after the copy reads them), and a size or layout it does not handle is refused."""
     from numba import cuda
 
-    from engine.numba_internals import async_copy_device
+    from engine.numba_support.numba_internals import async_copy_device
 
     stream = cuda.stream()
     src = cuda.to_device(np.arange(24, dtype=np.float64).reshape(3, 8), stream=stream)

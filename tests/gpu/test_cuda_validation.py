@@ -12,10 +12,10 @@ pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 def test_cooling_matches_luding_ode_on_gpu(tmp_path, e_n, e_t):
     import h5py
 
-    from engine.params import Q_SPHERE, derive
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
-    from engine.theory import collision_g, luding_ode
+    from engine.setup.params import Q_SPHERE, derive
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
+    from engine.analysis.theory import collision_g, luding_ode
 
     spec = SimulationSpec(n_particles=32768, volume_fraction=0.05, e_n=e_n, e_t=e_t, t_end=1.0, seed=5,
                           snapshots=0, backend="cuda")

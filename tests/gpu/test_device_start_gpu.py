@@ -1,6 +1,6 @@
 """Real-GPU checks of the large starts drawn on the device (engine/loops/cuda_start.py): the same start as the
 host's draws to rounding, and a job that draws its start on the device writes the file of one that draws it on the
-host (engine.start_kind.DEVICE_START = False), to rounding. Skipped without a GPU."""
+host (engine.setup.start_kind.DEVICE_START = False), to rounding. Skipped without a GPU."""
 
 from __future__ import annotations
 
@@ -34,9 +34,9 @@ def _device(d, pos_dtype, dtype):
 
 
 def test_a_device_start_is_the_host_start_to_rounding():
-    from engine.params import derive
-    from engine.scene import StartDraw, parallel_start_streams
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import StartDraw, parallel_start_streams
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(**BIG)
     p = derive(spec)
@@ -59,10 +59,10 @@ def test_a_device_start_is_the_host_start_to_rounding():
 
 _CHILD = """
 import json, sys
-import engine.start_kind
-engine.start_kind.DEVICE_START = {on}
-from engine.simulate import run
-from engine.spec import SimulationSpec
+import engine.setup.start_kind
+engine.setup.start_kind.DEVICE_START = {on}
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
 s = run(SimulationSpec(**json.loads(sys.argv[1])), sys.argv[2])
 print("RUN " + json.dumps({"startup": s.extra.get("gpu_startup"), "steps": s.steps, "backend": s.backend}))
 """
@@ -77,9 +77,9 @@ def test_a_job_with_its_start_drawn_on_the_device_writes_the_host_starts_file_to
         files[on] = datasets(out)
     assert info["1"]["backend"] == "cuda" and info["1"]["startup"]["error"] is None, info
     assert info["1"]["steps"] == info["0"]["steps"] > 10
-    from engine.params import derive
-    from engine.scene import initial_spheres
-    from engine.spec import SimulationSpec
+    from engine.setup.params import derive
+    from engine.setup.scene import initial_spheres
+    from engine.setup.spec import SimulationSpec
 
     host = initial_spheres(SimulationSpec(**kw), derive(SimulationSpec(**kw)))   # drawn on the host
     first = files["1"]["particles/all/position/value"][0]

@@ -26,8 +26,8 @@ def _series(path):
 
 
 def test_each_scene_of_a_cuda_ensemble_is_the_scene_run_alone(tmp_path):
-    from engine.ensemble import run_ensemble
-    from engine.simulate import RunSummary, run
+    from engine.driver.ensemble import run_ensemble
+    from engine.driver.simulate import RunSummary, run
 
     outs = [tmp_path / f"e{k}.h5" for k in range(len(SCENES))]
     results = run_ensemble(SCENES, outs)
@@ -51,8 +51,8 @@ def test_each_scene_of_a_cuda_ensemble_is_the_scene_run_alone(tmp_path):
 
 def test_cancelled_and_unstable_scenes_drop_out_alone_on_the_gpu(tmp_path):
     from engine.errors import Cancelled, InstabilityError
-    from engine.ensemble import run_ensemble
-    from engine.simulate import RunSummary
+    from engine.driver.ensemble import run_ensemble
+    from engine.driver.simulate import RunSummary
 
     specs = [SCENES[0], UNSTABLE, SCENES[2]]
     outs = [tmp_path / f"u{k}.h5" for k in range(3)]

@@ -27,7 +27,7 @@ def test_one_scene_pins_its_large_frames_in_place_or_late(tmp_path, monkeypatch)
     the same file: the trajectories bit for bit, the observables to rounding."""
     from engine.loops import cuda_frames
     from engine.backends import cuda as cuda_mod
-    from engine.simulate import run
+    from engine.driver.simulate import run
 
     spec = dict(n_particles=4096, volume_fraction=0.1, e_n=0.8, e_t=0.5, t_end=0.02, snapshots=7, thermalization=1,
                 seed=2, backend="cuda")

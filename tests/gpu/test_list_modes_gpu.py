@@ -53,14 +53,14 @@ def test_three_modes_same_trajectory_and_auto():
 
 
 def test_run_with_cpu_pipelined_list_records_the_mode(tmp_path):
-    """A polydisperse spec through engine.simulate.run with the pipelined CPU list: the result file names
+    """A polydisperse spec through engine.driver.simulate.run with the pipelined CPU list: the result file names
     the mode and its measured stage times."""
     import json
 
     import h5py
 
-    from engine.simulate import run
-    from engine.spec import SimulationSpec
+    from engine.driver.simulate import run
+    from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=20000, volume_fraction=0.1, box_length=2.0 * (20000 / 4096) ** (1 / 3),
                           species=[{"radius_ratio": 1.0, "number_fraction": 0.1},

@@ -1,5 +1,5 @@
-"""Real-GPU check of the GPU start-up thread (engine/startup.py): a job in a fresh process writes the same result
-file with the thread as without it (engine.startup.ENABLED = False), for spheres and ellipsoids — the trajectory bit for
+"""Real-GPU check of the GPU start-up thread (engine/driver/startup.py): a job in a fresh process writes the same result
+file with the thread as without it (engine.driver.startup.ENABLED = False), for spheres and ellipsoids — the trajectory bit for
 bit, the observables to rounding as any two GPU runs — and the thread ran without error. Skipped without a
 GPU."""
 
@@ -16,10 +16,10 @@ pytestmark = pytest.mark.skipif(not cuda_available(), reason="needs a CUDA GPU")
 
 _CHILD = """
 import json, sys
-import engine.startup
-engine.startup.ENABLED = {on}
-from engine.simulate import run
-from engine.spec import SimulationSpec
+import engine.driver.startup
+engine.driver.startup.ENABLED = {on}
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
 kw = json.loads(sys.argv[1])
 s = run(SimulationSpec(**kw), sys.argv[2])
 print("STARTUP " + json.dumps(s.extra.get("gpu_startup")))

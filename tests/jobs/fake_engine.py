@@ -1,4 +1,4 @@
-"""A fake engine with the contract of ``engine.simulate.run``, for worker and API tests.
+"""A fake engine with the contract of ``engine.driver.simulate.run``, for worker and API tests.
 
 It takes wall time instead of computing physics, so tests can exercise the queue while the real
 engine is elsewhere (or too slow for a test): ``N_STEPS`` steps, each sleeping ``spec.t_end / N_STEPS``
@@ -21,8 +21,8 @@ import h5py
 import numpy as np
 
 from engine.errors import Cancelled, InstabilityError
-from engine.params import derive
-from engine.simulate import Progress, RunSummary
+from engine.setup.params import derive
+from engine.driver.simulate import Progress, RunSummary
 
 N_STEPS = 20
 FAIL_SEED = 13
@@ -99,7 +99,7 @@ def run_deaf(spec, output, *, progress=None, should_cancel=None, **kwargs) -> Ru
 
 def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=None, checkpoint_dirs=None,
                  checkpoint_interval=60.0, on_result=None) -> list:
-    """The contract of ``engine.ensemble.run_ensemble``: the scenes of :func:`run`, stepped together.
+    """The contract of ``engine.driver.ensemble.run_ensemble``: the scenes of :func:`run`, stepped together.
 
     Each round every active scene checks its cancel flag, takes one of its ``N_STEPS`` steps (the
     round sleeps the longest ``t_end / N_STEPS`` of the active scenes), reports progress and

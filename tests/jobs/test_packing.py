@@ -28,7 +28,7 @@ from tests.jobs.conftest import TINY, make_settings
 from tests.jobs.fake_engine import ENSEMBLE_TARGET, FAIL_SEED
 from tests.waiting import wait_for
 
-REAL, REAL_ENSEMBLE = "engine.simulate:run", "engine.ensemble:run_ensemble"
+REAL, REAL_ENSEMBLE = "engine.driver.simulate:run", "engine.driver.ensemble:run_ensemble"
 
 
 def _enqueue(store, *specs):
@@ -127,7 +127,7 @@ def test_settings_defaults_and_checks(tmp_path):
 
     s = Settings.from_env(environ={})
     assert (s.ensemble_max_jobs, s.ensemble_max_particles) == (256, 4 * 2**20) and s.packing
-    assert s.engine_run_ensemble == "engine.ensemble:run_ensemble"
+    assert s.engine_run_ensemble == "engine.driver.ensemble:run_ensemble"
     assert not make_settings(tmp_path).packing  # a custom engine without an ensemble engine: no packing
     assert not Settings.from_env(environ={"DEMQ_ENSEMBLE_MAX_JOBS": "1"}).packing
     with pytest.raises(ValueError, match=r"DEMQ_ENSEMBLE_MAX_JOBS = 0 must be >= 1 \(1 disables packing\)"):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-from engine.writers.progress import Progress
+from engine.output.writers.progress import Progress
 from jobs import runner
 
 

@@ -39,16 +39,16 @@ def test_bad_values_are_named():
 
 
 def test_worker_standby_setting(monkeypatch):
-    import engine.startup
+    import engine.driver.startup
 
     assert Settings.from_env(environ={"DEMQ_WORKER_STANDBY": "on"}).standby_enabled
     assert not Settings.from_env(environ={"DEMQ_WORKER_STANDBY": "0"}).standby_enabled
     import jobs.settings
 
     monkeypatch.setattr(jobs.settings.os, "cpu_count", lambda: 1)
-    monkeypatch.setattr(engine.startup, "nvidia_driver", lambda: True)
+    monkeypatch.setattr(engine.driver.startup, "nvidia_driver", lambda: True)
     assert Settings.from_env(environ={}).standby_enabled           # auto: where an NVIDIA driver is ...
-    monkeypatch.setattr(engine.startup, "nvidia_driver", lambda: False)
+    monkeypatch.setattr(engine.driver.startup, "nvidia_driver", lambda: False)
     assert not Settings.from_env(environ={}).standby_enabled
     monkeypatch.setattr(jobs.settings.os, "cpu_count", lambda: 2)
     assert Settings.from_env(environ={}).standby_enabled           # ... or more than one CPU core

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 #: a job unlike the warm-up's tiny scene in every run-time value (N, phi, e_n, friction, thermalisation, output),
 #: of a specialisation the warm-up covers (CPU, sphere, float64, rough with friction, one size); the probe also
-#: loads a large start's functions (engine.scene.load_parallel_start), as a job of 10^5 spheres would
+#: loads a large start's functions (engine.setup.scene.load_parallel_start), as a job of 10^5 spheres would
 JOB = {"n_particles": 300, "volume_fraction": 0.08, "box_length": 0.8, "e_n": 0.7, "e_t": 0.5, "friction": 0.3,
        "t_end": 0.003, "thermalization": 0.5, "snapshots": 2, "seed": 5, "backend": "cpu", "precision": "float64"}
 
@@ -31,10 +31,10 @@ class Listener(event.Listener):
     def on_end(self, ev):
         pass
 event.register("numba:compile", Listener())
-from engine.params import derive
-from engine.scene import load_parallel_start
-from engine.simulate import run
-from engine.spec import SimulationSpec
+from engine.setup.params import derive
+from engine.setup.scene import load_parallel_start
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
 spec = SimulationSpec.model_validate(json.loads(sys.argv[1]))
 summary = run(spec, tempfile.mkdtemp() + "/job.h5")
 load_parallel_start(spec, derive(spec))

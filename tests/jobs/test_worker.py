@@ -261,7 +261,7 @@ def test_a_standby_that_died_is_replaced_by_a_fresh_process(tmp_path):
 def test_a_standby_process_writes_the_same_file_as_engine_run(tmp_path):
     """The real engine through a started-up standby process (warmed for the default spec: imports, numba's CPU
     target, a parallel start) against engine.run in this process: the same result, bit for bit (CPU)."""
-    from engine.simulate import run
+    from engine.driver.simulate import run
     from jobs.settings import DEFAULT_ENGINE_RUN
 
     settings, store, worker = _standby_worker(tmp_path, engine_run=DEFAULT_ENGINE_RUN, ensemble_max_jobs=1)
@@ -368,19 +368,19 @@ def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monk
     compile; without a waiting claim it warms up as before and then runs the claim that comes."""
     import multiprocessing
 
-    import engine.simulate
+    import engine.driver.simulate
     from jobs import runner
 
     warmed, ran = [], []
     claims_in, claims_out = multiprocessing.Pipe(duplex=False)
     receiver, sender = multiprocessing.Pipe(duplex=False)
-    claim = ("engine.simulate:run", ['{"n_particles": 512}'], ["out.h5"], ["ck"], 60.0, "one")
+    claim = ("engine.driver.simulate:run", ['{"n_particles": 512}'], ["out.h5"], ["ck"], 60.0, "one")
 
     def warm_process(spec):
         warmed.append(spec.n_particles)
         claims_out.send(claim)           # the claim comes while the standby warms up
 
-    monkeypatch.setattr(engine.simulate, "warm_process", warm_process)
+    monkeypatch.setattr(engine.driver.simulate, "warm_process", warm_process)
     monkeypatch.setattr(runner, "child_main", lambda *args: ran.append(args[:2]))
     monkeypatch.setattr(runner, "_die_with_parent", lambda: None)
     monkeypatch.setattr(runner.signal, "signal", lambda *a: None)
@@ -388,5 +388,5 @@ def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monk
         claims_out.send(claim)
     runner.standby_main(claims_in, sender, None, 0, '{"n_particles": 4096}')
     assert warmed == ([] if claim_waiting else [4096])
-    assert ran == [("engine.simulate:run", ['{"n_particles": 512}'])]
+    assert ran == [("engine.driver.simulate:run", ['{"n_particles": 512}'])]
     assert receiver.recv()[0] == "ready"

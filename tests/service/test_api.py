@@ -65,7 +65,7 @@ def test_json_types_are_taken_as_the_schema_states_them(client):
 
 def test_species_are_relative_and_stored_in_their_normal_form(client):
     """A species list the schema allows is accepted whatever its largest radius_ratio, its fraction sum or its
-    repeated sizes, and the job holds (and its worker runs) the normal form of engine.spec.normal_species."""
+    repeated sizes, and the job holds (and its worker runs) the normal form of engine.setup.spec.normal_species."""
     species = [{"radius_ratio": 0.5, "number_fraction": 0.3}, {"radius_ratio": 0.25, "number_fraction": 0.6},
                {"radius_ratio": 0.5, "number_fraction": 0.3}]
     r = client.post("/jobs", json={**TINY, "species": species})

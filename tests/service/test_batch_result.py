@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from engine.ensemble_stats import Run, aggregate, mean_and_standard_error, read_batch_result, write_batch_result
-from engine.params import derive
-from engine.spec import SimulationSpec
-from engine.theory import DOF_SMOOTH_SPHERE, haff_rate, haff_rate_smooth_spheres
+from engine.analysis.ensemble_stats import Run, aggregate, mean_and_standard_error, read_batch_result, write_batch_result
+from engine.setup.params import derive
+from engine.setup.spec import SimulationSpec
+from engine.analysis.theory import DOF_SMOOTH_SPHERE, haff_rate, haff_rate_smooth_spheres
 from service.app import create_app
 from tests.extras import assert_figure
 from tests.jobs.conftest import TINY, make_settings
 from tests.service.conftest import finish_with_fake_result
 from tests.waiting import wait_for
 
-REAL = "engine.simulate:run"
+REAL = "engine.driver.simulate:run"
 
 
 # ---- the estimator ---------------------------------------------------------------------------------------
@@ -157,7 +157,7 @@ SWEEP_BASE = {**TINY, "volume_fraction": 0.1, "t_end": 0.1, "output_interval": 0
 
 def test_sweep_over_http_runs_as_one_ensemble_with_batch_statistics(tmp_path):
     # the CPU runs a claim as a sequence by default (jobs/packing.py): this case pins the ensemble mode
-    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble="engine.ensemble:run_ensemble",
+    settings = make_settings(tmp_path, engine_run=REAL, engine_run_ensemble="engine.driver.ensemble:run_ensemble",
                              cpu_packs="ensemble")
     with TestClient(create_app(settings, embedded_worker=True)) as c:
         r = c.post("/batches", json={"base": SWEEP_BASE, "sweep": {"e_n": [0.7, 0.9], "seed": [0, 1, 2, 3]}})

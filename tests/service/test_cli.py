@@ -11,7 +11,7 @@ import io
 
 import pytest
 
-from engine.progress import ProgressLines, progress_for
+from engine.driver.progress import ProgressLines, progress_for
 from service.cli import main
 
 

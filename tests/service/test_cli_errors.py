@@ -126,7 +126,7 @@ def test_every_option_of_every_subcommand_has_help():
 
 def _tiny_result(path) -> None:
     """A result with one snapshot frame of 4 spheres, written by the engine's writer (no simulation)."""
-    from engine.h5md import H5MDWriter
+    from engine.output.h5md import H5MDWriter
 
     w = H5MDWriter(path, n=4, box_length=1.0, spec_json="{}", derived={}, radius=np.full(4, 0.1))
     w.snapshot(0, 0.0, {"position": np.random.default_rng(1).random((4, 3)), "velocity": np.zeros((4, 3))})

@@ -174,7 +174,7 @@ def test_batch_page_shows_the_sweep_and_the_mean_curves(client, settings):
 
 # ---- the submit form --------------------------------------------------------------------------------------------
 def test_submit_form_has_the_defaults(client):
-    from engine.spec import SimulationSpec
+    from engine.setup.spec import SimulationSpec
 
     page = client.get("/ui/submit").text
     defaults = SimulationSpec()

@@ -93,7 +93,7 @@ def test_submit_watch_and_open_a_job_in_chromium(tmp_path):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
-    settings = make_settings(tmp_path, engine_run="engine.simulate:run", token=TOKEN, progress_s=0.1)
+    settings = make_settings(tmp_path, engine_run="engine.driver.simulate:run", token=TOKEN, progress_s=0.1)
     app = create_app(settings, embedded_worker=True)
     with LiveServer(app) as server:
         # without the token nothing leaks: the page is the token form, with a 401

@@ -28,7 +28,7 @@ from tests.extras import assert_figure
 from tests.jobs.conftest import ROOT, TINY, make_settings
 from tests.jobs.fake_engine import TARGET
 
-REAL = "engine.simulate:run"
+REAL = "engine.driver.simulate:run"
 #: A real-engine job of a few seconds on one CPU core (~5e5 steps of 64 particles): long enough to
 #: write several checkpoints at a 0.3 s interval before the worker is killed.
 REAL_LONG = {**TINY, "t_end": 1.0}

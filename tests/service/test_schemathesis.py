@@ -10,7 +10,7 @@ spec may be refused for a rule across its fields that no JSON schema can state (
 neighbour cutoff, dt must resolve a contact, every species must get a particle, the run's cost must be within
 the server's limits, a 'cuda' spec needs a live worker that runs CUDA: none runs here), so a 422 on a
 schema-valid request is allowed only with errors of those kinds, never with an error of one field or of the
-entries of one list (a species list has none: engine.spec.normal_species), which the schema should have
+entries of one list (a species list has none: engine.setup.spec.normal_species), which the schema should have
 predicted.
 
 Bounded for CI: a few examples per operation and mode, no worker, no engine. Set

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from engine.h5md import H5MDWriter
-from engine.simulate import run
+from engine.output.h5md import H5MDWriter
+from engine.driver.simulate import run
 from jobs.schema import DONE, FAILED
 from service.app import create_app
 from service.render import ovito_available

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from engine.params import Q_SPHERE
-from engine.theory import luding_ode
+from engine.setup.params import Q_SPHERE
+from engine.analysis.theory import luding_ode
 from engine.validation.hcs_dsmc import _hard_rule, cooling, soft_contact_loss
 from engine.validation.hcs_long import scene_spec
 from engine.validation.sonine import _dsmc
@@ -108,7 +108,7 @@ def test_collision_change_windows_recover_the_energy_change_per_collision():
     # Luding's ODE with its two right-hand sides scaled by (f_tr, f_rot) and collisions at Enskog's rate
     # (3/4) T^(1/2): per collision, T and R change f_tr and f_rot times what the Maxwellian closure says, so
     # the windows must return exactly those factors (to the midpoint rule's O(h^2) on this grid: < 1e-5).
-    from engine.theory import collisions_per_particle, luding_coefficients
+    from engine.analysis.theory import collisions_per_particle, luding_coefficients
     from engine.validation.hcs_dsmc import collision_change_windows, ratio_of_sums
 
     e_n, beta = 0.7, 0.5

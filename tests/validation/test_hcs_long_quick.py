@@ -79,7 +79,7 @@ def test_contact_duration_is_how_long_the_engine_keeps_two_spheres_in_contact():
     from types import SimpleNamespace
 
     from engine.backends.base import ContactParams, SphereSystem
-    from engine.params import gamma_n_from_restitution
+    from engine.setup.params import gamma_n_from_restitution
     from engine.shapes.sphere.cpu_backend import CpuBackend
 
     k_n, m, a, e_n = 1.0e5, 1.0e-2, 0.01, 0.6

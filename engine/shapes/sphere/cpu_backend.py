@@ -2,7 +2,7 @@
 shared CPU machinery (engine/loops/cpu.py: CpuLoop, make_run_steps).
 
 Owns only what is the sphere's own on the host: its state arrays in the working precision (positions in the
-position precision, engine/precision.py; space-frame angular
+position precision, engine/setup/precision.py; space-frame angular
 velocity, radius, scalar inertia), the smooth/rough/Coulomb/orientation specialisation of the pair law
 (``_law``, ``_torque_arg``, ``_quat_arg``: None switches a part off at compile time), the start-overlap error
 and the observables (engine.shapes.sphere.kernels.observe). Cells, lists, slot store, time loop and error
@@ -15,14 +15,14 @@ import math
 
 import numpy as np
 
-import engine.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
+import engine.numba_support.jitcache  # noqa: F401  (before any cache=True kernel: keys the disk cache by source)
 
 from engine.loops.system import ContactParams, SphereSystem
 from engine.loops.cpu import CpuLoop
 from engine.loops.cpu_shared import collect_springs, restore_springs, worst_overlap
 from engine.errors import InstabilityError
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
-from engine.precision import position_dtype, state_dtype
+from engine.setup.precision import position_dtype, state_dtype
 from engine.shapes.sphere import kernels as sphere
 
 

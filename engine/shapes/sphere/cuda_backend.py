@@ -20,6 +20,7 @@ from engine.loops import cuda_loop
 from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
 from engine.loops.system import rows_equal
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
+from engine.shapes import device as shape_device   # the device module of this class's shape (a subclass's own)
 from engine.shapes.sphere import device as SC
 
 
@@ -90,8 +91,8 @@ class CudaEnsemble(CudaEnsembleBase):
         return {"position": self.pos, "velocity": self.vel, "angular_velocity": self.omega, "orientation": self.quat}
 
     def _draw_starts(self, systems) -> None:
-        """pos, vel, omega, quat of scenes of which some hold a start to draw on the device (engine.scene.StartDraw:
-        engine/loops/cuda_start.py); the others' host arrays go up into their columns."""
+        """pos, vel, omega, quat of scenes of which some hold a start to draw on the device
+        (engine.setup.scene.StartDraw: engine/loops/cuda_start.py); the others' host arrays go up into their columns."""
         from engine.loops.cuda_start import SPHERE_TARGETS, draw_start
 
         n, st = self.n, self.stream
@@ -133,7 +134,8 @@ class CudaEnsemble(CudaEnsembleBase):
             # orientations tracked from now on: nothing is pending from the steps run without them
             self.q_last.copy_to_device(np.full(self.n, self.steps_done, np.int64), stream=self.stream)
         self._orient = orient
-        self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb, orient), self.uniform, self.tpb)
+        self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb, orient), self.uniform, self.tpb,
+                                   shape_device(self.shape))
         self._coop_blocks = None
 
     def _prime(self, systems) -> None:

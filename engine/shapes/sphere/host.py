@@ -13,16 +13,16 @@ SYSTEM = SphereSystem
 
 
 def initial_system(spec, p, on_device: bool = False) -> SphereSystem:
-    """The start of a sphere spec (engine.scene.initial_spheres: placement, Maxwellian velocities and spins);
+    """The start of a sphere spec (engine.setup.scene.initial_spheres: placement, Maxwellian velocities and spins);
     ``on_device``: a GPU job's large start is left to its backend to draw (``system.draw``)."""
-    from engine.scene import initial_spheres
+    from engine.setup.scene import initial_spheres
 
     return initial_spheres(spec, p, on_device)
 
 
 def standin_system(p, n_edge: int) -> SphereSystem:
     """n_edge^3 resting spheres of the spec's size on a simple cubic lattice of spacing 2.5 radii (no contact):
-    the small scene of the GPU start-up (engine/startup.py), made with NumPy only."""
+    the small scene of the GPU start-up (engine/driver/startup.py), made with NumPy only."""
     return SphereSystem(**_lattice(n_edge, 2.5 * p.radius), radius=np.full(n_edge ** 3, p.radius),
                         mass=np.full(n_edge ** 3, p.mass), inertia=np.full(n_edge ** 3, p.inertia[0]))
 
@@ -39,8 +39,8 @@ def _lattice(n_edge: int, spacing: float) -> dict:
 
 
 def writer_fields(system: SphereSystem, p) -> dict:
-    """The per-particle fields of the result file (engine.h5md.H5MDWriter): radius and species index."""
-    from engine.scene import species_index
+    """The per-particle fields of the result file (engine.output.h5md.H5MDWriter): radius and species index."""
+    from engine.setup.scene import species_index
 
     return {"radius": system.radius, "semi_axes": None, "species": species_index(system.radius, p)}
 

@@ -42,7 +42,7 @@ import math
 import numba
 from numba import prange
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.physics.contact import contact_elastic_energy, min_image, sphere_separation
 from engine.physics.integrate import kick
@@ -216,4 +216,4 @@ def observe(pos, vel, omega, radius, mass, inertia, nbr, nn, hist, box, inv_box,
     return e_tr, e_rot, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

@@ -1,8 +1,8 @@
 """The spheroid plug-in (Rubio-Largo et al. 2015: prolate ellipsoids; frictionless, or rough with the
 tangential law of Hidalgo et al. (2013) at the contact point): traits.
 
-What the spec and the scales ask of a shape, in plain Python (no engine imports: engine/spec.py and
-engine/scales.py import this). The time-loop parts are kernels.py (CPU) and device.py (CUDA), the run-time
+What the spec and the scales ask of a shape, in plain Python (no engine imports: engine/setup/spec.py and
+engine/setup/scales.py import this). The time-loop parts are kernels.py (CPU) and device.py (CUDA), the run-time
 hooks host.py, the host classes cpu_backend.py and cuda_backend.py; engine/shapes/__init__.py describes the
 plug-in interface.
 """
@@ -18,7 +18,7 @@ ELONGATED = True
 SPECIES = False
 #: runs precision "mixed": the contact solver has no mixed-precision variant
 MIXED = False
-#: a null ``start`` never places it by random sequential addition (engine/start_kind.py): always the lattice
+#: a null ``start`` never places it by random sequential addition (engine/setup/start_kind.py): always the lattice
 RANDOM_START = False
 #: a null verlet_skin is the CPU default (the skin rule over phi was measured for spheres only)
 SKIN_BY_VOLUME_FRACTION = False

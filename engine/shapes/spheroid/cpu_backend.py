@@ -4,9 +4,9 @@ of docs/physics.md §2.5): the spheroid plug-in (engine/shapes/spheroid/kernels.
 
 This module holds only what is the ellipsoid's own on the host side: the state it keeps (angular momentum L
 instead of the angular velocity, semi-axes, bounding radii, the state before the step for the screens), the
-Perram-Wertheim tolerances, the observables (engine.shapes.spheroid.kernels.observe) and the conversions between L and the angular
-velocity. Cells, the Verlet list of bounding spheres, its slot store, the time loop and its error handling are
-the shared ones; the contact, force law and rotation step are the plug-in's (its docstring has the details:
+Perram-Wertheim tolerances, the observables (engine.shapes.spheroid.kernels.observe) and the conversions between L and
+the angular velocity. Cells, the Verlet list of bounding spheres, its slot store, the time loop and its error handling
+are the shared ones; the contact, force law and rotation step are the plug-in's (its docstring has the details:
 broad phase, exact screens, lower id as "A", Fincham's leap-frog on L).
 """
 
@@ -15,15 +15,15 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.loops.system import ContactParams, EllipsoidSystem
 from engine.loops.cpu import CpuLoop
 from engine.loops.cpu_shared import SLOT, collect_springs, restore_springs
-from engine.params import Q_SPHERE
+from engine.setup.params import Q_SPHERE
 from engine.physics.rotation import angular_momentum, quat_unit, space_omega
 from engine.physics.sonine import DOF_ROTATION_SPHERE, DOF_ROTATION_SPHEROID, sonine_sums
-from engine.precision import check_shape, state_dtype
+from engine.setup.precision import check_shape, state_dtype
 from engine.shapes.spheroid import kernels as spheroid
 
 #: history words per list slot of a rough contact: spring (3), overlap, dashpot force, the contact's k_t
@@ -134,8 +134,8 @@ class CpuEllipsoidBackend(CpuLoop):
 
         Rough contacts (k_t given): the spheroid's own k_t of each contact follows from the factor
         f = (arccos(-e_t)/pi)^2 of Hidalgo et al. (2013) Eq. 4, recovered from the sphere-convention k_t
-        of ContactParams (k_t = k_n f q/(1 + q), engine.params.k_t_paper), and the pair's tangential mass at the contact
-        point (engine/physics/rough_spheroid.py)."""
+        of ContactParams (k_t = k_n f q/(1 + q), engine.setup.params.k_t_paper), and the pair's tangential mass at the
+        contact point (engine/physics/rough_spheroid.py)."""
         if contact.rough != self.rough:
             raise ValueError("an ellipsoid backend keeps its contact model: rough (k_t given) or smooth throughout")
         self._set_common(contact)
@@ -186,4 +186,4 @@ class CpuEllipsoidBackend(CpuLoop):
                                self.inv_box, self.half)
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

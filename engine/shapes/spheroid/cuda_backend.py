@@ -36,6 +36,7 @@ from engine.shapes.spheroid.cpu_backend import (PW_SCREEN, PW_TOL, SLOT_ROUGH, a
                                                 rotational_dof, tangential_factor_of, unit_quaternions)
 from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
 from engine.physics.sonine import sonine_sums
+from engine.shapes import device as shape_device   # the device module of this class's shape (a subclass's own)
 from engine.shapes.spheroid import device as CE
 
 #: the spheroid columns of spd (engine/shapes/spheroid/device.py: offsets from the common K.ND)
@@ -161,7 +162,8 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
         rough = self.hist_words >= SLOT_ROUGH and any(c.rough for c in act)
         coulomb = rough and any(c.friction is not None for c in act)
         self.rough = rough          # the observe sums count the active rotational dof of the compiled law
-        self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb), self.uniform, self.tpb)
+        self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb), self.uniform, self.tpb,
+                                   shape_device(self.shape))
         self._coop_blocks = None
 
     def _prime(self, systems) -> None:

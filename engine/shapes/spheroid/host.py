@@ -13,16 +13,16 @@ SYSTEM = EllipsoidSystem
 
 
 def initial_system(spec, p) -> EllipsoidSystem:
-    """The start of an ellipsoid spec (engine.scene.initial_ellipsoids: bounding spheres placed without
+    """The start of an ellipsoid spec (engine.setup.scene.initial_ellipsoids: bounding spheres placed without
     overlap, random orientations, Maxwellian velocities, spins about the two perpendicular axes)."""
-    from engine.scene import initial_ellipsoids
+    from engine.setup.scene import initial_ellipsoids
 
     return initial_ellipsoids(spec, p)
 
 
 def standin_system(p, n_edge: int) -> EllipsoidSystem:
     """n_edge^3 resting spheroids of the spec's size and one orientation on a simple cubic lattice of spacing
-    2.5 a (bounding spheres apart): the small scene of the GPU start-up (engine/startup.py), NumPy only."""
+    2.5 a (bounding spheres apart): the small scene of the GPU start-up (engine/driver/startup.py), NumPy only."""
     from engine.shapes.sphere.host import _lattice
 
     n = n_edge ** 3
@@ -32,7 +32,7 @@ def standin_system(p, n_edge: int) -> EllipsoidSystem:
 
 
 def writer_fields(system: EllipsoidSystem, p) -> dict:
-    """The per-particle fields of the result file (engine.h5md.H5MDWriter): the semi-axes (a, b, c)."""
+    """The per-particle fields of the result file (engine.output.h5md.H5MDWriter): the semi-axes (a, b, c)."""
     return {"radius": None, "semi_axes": system.semi_axes, "species": None}
 
 

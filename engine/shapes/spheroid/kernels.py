@@ -31,7 +31,7 @@ import math
 
 import numba
 
-from engine.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.physics.contact import contact_elastic_energy, min_image
 from engine.physics.ellipsoid import PAIR_DONE, PAIR_NEEDS_PREV
@@ -223,4 +223,4 @@ def observe(vel, angm, quat, mass, inv_i, nn, hist, half, k_n_val):
     return e_tr, e_rot, e_perp, contacts // 2, e_spring, worst, px, py, pz, s_tr2, s_rot2, s_x
 
 
-fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/jitcache.py)
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

@@ -18,7 +18,7 @@ ELONGATED = False
 SPECIES = False
 #: runs precision "mixed"
 MIXED = False
-#: a null ``start`` may be the sphere's random sequential addition (engine/start_kind.py)
+#: a null ``start`` may be the sphere's random sequential addition (engine/setup/start_kind.py)
 RANDOM_START = True
 #: a null verlet_skin follows the sphere's volume-fraction rule
 SKIN_BY_VOLUME_FRACTION = True

@@ -22,7 +22,7 @@ SYSTEM = HertzSystem
 
 def initial_system(spec, p, on_device: bool = False) -> HertzSystem:
     """The sphere's start of the spec, drawn on the host (``on_device`` is the sphere's large GPU start, which
-    engine.start_kind.device_start grants spheres only)."""
+    engine.setup.start_kind.device_start grants spheres only)."""
     s = sphere.initial_system(spec, p)
     return HertzSystem(**{f.name: getattr(s, f.name) for f in dataclasses.fields(s)})
 

@@ -1,0 +1,272 @@
+"""The one module of the engine that touches private internals of numba and numba-cuda.
+
+Everything here works with numba 0.68 and numba-cuda 0.30; tests/engine/test_numba_internals.py checks each
+internal against the installed versions and names the internal and the version when one has changed. Where a
+cache internal is missing at run time the engine compiles instead of loading a cached kernel, and where page-locking
+fails its frames stay in pageable memory: slower, never different.
+
+numba (the CPU kernels, engine/numba_support/jitcache.py):
+
+- ``numba.core.caching.FunctionCache``, the on-disk cache of a ``cache=True`` njit function. Its
+  ``load_overload(sig, target_context)`` refreshes the CPU target context before every load (every lowering
+  registry, and scipy.linalg for numba's BLAS check: 0.25-0.4 s of Python under the GIL, once per process).
+  :class:`FastLoadCache` loads without it, through the private ``_guard_against_spurious_io_errors()`` and
+  ``_load_overload(sig, target_context)``, after what a load of linked machine code does need: the NRT
+  (``numba.core.runtime.rtsys.initialize``) and the hash secret (``numba.cpython.hashing``).
+- the private ``_index_key(sig, codegen)`` of a cache: the key of one compiled signature, by default (signature,
+  ``codegen.magic_tuple()``, the source file's time stamp and size). :class:`StableKeyCache` replaces the stamp by
+  a key the caller gives (numba keys a cached closure by a pickle of its cells, which changes in every process).
+- a dispatcher's private ``_cache`` attribute, where it keeps its cache object (:func:`set_cache`).
+
+numba-cuda (the CUDA kernels, engine/loops/):
+
+- ``numba.cuda.dispatcher.CUDACache``: the same private methods as numba's cache, plus ``_launch_config_key``
+  (part of the key of a launch-configuration-sensitive kernel) and ``numba.cuda.utils.numba_target_override``
+  (the context manager its ``load_overload`` enters before the target refresh that :func:`cuda_stable_key_cache`
+  skips: a kernel is rebuilt from its linked code without the context).
+- ``CUDADispatcher.targetoptions["device"]`` (a device function has no cache of its own).
+- ``numba.cuda.cudadrv.driver.device_memset(dst, val, size, stream)``: a memset on a stream (no public API).
+- ``Context.mempin(owner, pointer, size, mapped)`` of ``numba.cuda.current_context()``: page-lock existing host
+  memory in place (cuMemHostRegister); the public API only allocates new pinned arrays.
+- a device array's ``device_ctypes_pointer`` and the ``handle`` of a numba-cuda ``Stream`` and ``Event``, given to
+  cuda-python's ``cuda.bindings.driver`` directly (:func:`async_copy_and_record`: the time loop's per-step status
+  copy, where numba-cuda's checked wrappers cost more host time than the step takes on the GPU).
+- a kernel launch without the dispatcher (:func:`prepare_launch`, used by engine/loops/cuda_launch.py): a compiled
+  kernel's ``argument_types``, its private ``_prepare_args`` (numba-cuda 0.30 flattens each array argument into
+  meminfo, parent, size, itemsize, pointer, shape and strides, and each scalar into one ctypes value), its
+  ``_codelibrary.get_cufunc()``, the dispatcher's ``configure`` (its ``griddim``, ``blockdim``, ``stream``,
+  ``pre_launch_callbacks`` and ``sharedmem``) and ``_launch_config_sensitive``, and the module-level
+  ``LaunchConfig``, ``launch`` and ``CUDA_CORE_GE_1_0`` of ``numba.cuda.dispatcher`` (cuda.core's).
+
+The CUDA parts import numba.cuda only when called (a CPU job never imports it).
+"""
+
+from __future__ import annotations
+
+from engine.numba_support.numba_import import coverage_hidden
+
+#: what the engine was written against (the test reports these beside the installed versions)
+NUMBA_VERSION = "0.68"
+NUMBA_CUDA_VERSION = "0.30"
+
+try:
+    with coverage_hidden():
+        from numba.core.caching import FunctionCache
+        from numba.core.runtime import rtsys as _rtsys
+
+    class FastLoadCache(FunctionCache):
+        """numba's FunctionCache, whose loads skip the target refresh (module docstring)."""
+
+        def load_overload(self, sig, target_context):
+            _rtsys.initialize(target_context)      # the parts of the refresh a load needs
+            import numba.cpython.hashing  # noqa: F401
+            with self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
+
+    class StableKeyCache(FastLoadCache):
+        """A :class:`FastLoadCache` keyed by (signature, codegen magic tuple, ``stable``) instead of the source
+        file's stamp."""
+
+        def __init__(self, py_func, stable: tuple):
+            self._stable = stable
+            super().__init__(py_func)
+
+        def _index_key(self, sig, codegen):
+            return (sig, codegen.magic_tuple(), self._stable)
+except ImportError:  # another numba layout: no fast loads, closures compile in every process
+    FunctionCache = FastLoadCache = StableKeyCache = None
+
+
+def get_cache(dispatcher):
+    """The cache object of a numba or numba-cuda dispatcher (None: not cached)."""
+    return getattr(dispatcher, "_cache", None)
+
+
+def set_cache(dispatcher, cache) -> None:
+    """Give a dispatcher ``cache`` as its on-disk cache (used by its next compile or load)."""
+    dispatcher._cache = cache
+
+
+def make_fast_loading(dispatcher) -> bool:
+    """Turn the plain FunctionCache of a ``cache=True`` njit dispatcher into a :class:`FastLoadCache` (same state, one
+    method different); False where it has another cache, none, or this numba lacks the internals."""
+    cache = get_cache(dispatcher)
+    if FastLoadCache is None or type(cache) is not FunctionCache:
+        return False
+    cache.__class__ = FastLoadCache
+    return True
+
+
+def stable_key_cache(dispatcher, stable: tuple) -> bool:
+    """Give an njit dispatcher a :class:`StableKeyCache` keyed by ``stable``; False where it cannot have one (this
+    numba lacks the internals, or no cache locator fits the function's file, e.g. a read-only install)."""
+    if StableKeyCache is None:
+        return False
+    try:
+        set_cache(dispatcher, StableKeyCache(dispatcher.py_func, stable))
+    except Exception:  # noqa: BLE001  (no cache locator: compile as numba does without a cache)
+        return False
+    return True
+
+
+_cuda_cache_class = None
+
+
+def cuda_stable_key_cache_class():
+    """numba-cuda's CUDACache keyed by (signature, codegen magic tuple, numba-cuda version, ``stable``[, launch
+    configuration]) instead of the source file's stamp, whose loads skip the CUDA target refresh; None where this
+    numba-cuda lacks the internals. Made once (it imports numba.cuda)."""
+    global _cuda_cache_class
+    if _cuda_cache_class is not None:
+        return _cuda_cache_class or None
+    try:
+        import numba_cuda
+        from numba.cuda.dispatcher import CUDACache
+        from numba.cuda.utils import numba_target_override
+    except ImportError:
+        _cuda_cache_class = False
+        return None
+
+    class CudaStableKeyCache(CUDACache):
+        def __init__(self, py_func, stable: tuple):
+            self._stable = stable
+            super().__init__(py_func)
+
+        def _index_key(self, sig, codegen):
+            k = (sig, codegen.magic_tuple(), numba_cuda.__version__, self._stable)
+            return k if self._launch_config_key is None else k + (("launch_config", self._launch_config_key),)
+
+        def load_overload(self, sig, target_context):
+            with numba_target_override(), self._guard_against_spurious_io_errors():
+                return self._load_overload(sig, target_context)
+
+    _cuda_cache_class = CudaStableKeyCache
+    return CudaStableKeyCache
+
+
+def cuda_stable_key_cache(dispatcher, stable: tuple) -> bool:
+    """Give a CUDA kernel dispatcher (not a device function) the cache of :func:`cuda_stable_key_cache_class`;
+    False where it is not one, this numba-cuda lacks the internals, or no cache locator fits its file."""
+    cls = cuda_stable_key_cache_class()
+    if cls is None:
+        return False
+    from numba.cuda.dispatcher import CUDADispatcher
+
+    if not isinstance(dispatcher, CUDADispatcher) or dispatcher.targetoptions.get("device", False):
+        return False
+    try:
+        set_cache(dispatcher, cls(dispatcher.py_func, stable))
+    except Exception:  # noqa: BLE001  (no cache locator for this file: compile as before)
+        return False
+    return True
+
+
+def device_memset(array, value: int, stream) -> None:
+    """Set every byte of a device array to ``value`` (0-255), queued on ``stream``."""
+    from numba.cuda.cudadrv.driver import device_memset as memset
+
+    memset(array, value, array.nbytes, stream=stream)
+
+
+def async_copy_device(dst, src, stream) -> None:
+    """Queue, on ``stream``, the copy of the whole contiguous device array ``src`` into the contiguous device array
+    ``dst`` of the same shape and type, straight through cuda-python's ``cuMemcpyDtoDAsync``. numba-cuda's
+    ``copy_to_device`` checks, views and converts both arrays at every call (about 0.2 ms of Python each): a list
+    rebuild copies every permuted particle array back from its scratch, which at a few thousand particles cost
+    more host time than the rebuild's kernels take on the GPU. Raises ValueError for a size or layout it does not
+    handle and RuntimeError naming the call where the driver refuses."""
+    from cuda.bindings import driver as cu
+
+    if dst.shape != src.shape or dst.dtype != src.dtype or not (dst.is_c_contiguous() and src.is_c_contiguous()):
+        raise ValueError(f"device copy of {src.shape} {src.dtype} into {dst.shape} {dst.dtype}: both must be "
+                         "contiguous, of one shape and one type")
+    if src.nbytes == 0:
+        return
+    err, = cu.cuMemcpyDtoDAsync(int(dst.device_ctypes_pointer.value), int(src.device_ctypes_pointer.value),
+                                int(src.nbytes), int(stream.handle))
+    if err != cu.CUresult.CUDA_SUCCESS:
+        raise RuntimeError(f"cuMemcpyDtoDAsync: {err}")
+
+
+def async_copy_and_record(device_array, host_array, stream, event):
+    """A function that queues, on ``stream``, the copy of the whole ``device_array`` into the pinned ``host_array``
+    (same size), then records ``event``: straight through cuda-python's driver bindings (``cuMemcpyDtoHAsync``,
+    ``cuEventRecord``) with the pointers and handles resolved once. numba-cuda's ``copy_to_host`` and
+    ``Event.record`` check and convert their arguments at every call (about 40 us of Python for a copy of 100
+    bytes): the per-step status copy of the GPU time loop then costs more host time than the step takes on the GPU.
+    The arrays, stream and event must outlive the function. Raises RuntimeError naming the call where the driver
+    refuses."""
+    from cuda.bindings import driver as cu
+
+    if device_array.nbytes != host_array.nbytes:
+        raise ValueError(f"copy of {device_array.nbytes} bytes into a buffer of {host_array.nbytes}")
+    src = int(device_array.device_ctypes_pointer.value)
+    dst = int(host_array.ctypes.data)
+    nbytes = int(host_array.nbytes)
+    hs = int(stream.handle)
+    he = int(event.handle)
+    copy, record, success = cu.cuMemcpyDtoHAsync, cu.cuEventRecord, cu.CUresult.CUDA_SUCCESS
+
+    def copy_and_record() -> None:
+        err, = copy(dst, src, nbytes, hs)
+        if err != success:
+            raise RuntimeError(f"cuMemcpyDtoHAsync: {err}")
+        err, = record(he, hs)
+        if err != success:
+            raise RuntimeError(f"cuEventRecord: {err}")
+
+    return copy_and_record
+
+
+def page_lock(arrays) -> list:
+    """Page-lock host arrays in place in the current CUDA context; the returned handles keep the registration (and
+    their arrays) alive until they are collected. Raises where the driver refuses."""
+    from numba import cuda
+
+    ctx = cuda.current_context()
+    return [ctx.mempin(a, a.ctypes.data, a.nbytes, mapped=False) for a in arrays]
+
+
+def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
+    """What numba-cuda's own launch of ``dispatcher[config](*args)`` hands to cuda.core, kept for later launches
+    with the same arrays: ``(launch, stream, launch_config, kernel, kargs, slots)``, where ``launch(stream,
+    launch_config, kernel, *kargs)`` launches and ``slots`` lists ``(position in args, index in kargs, ctypes type or
+    None)`` of each top-level scalar argument (its value is refilled per launch). None where such a launch would not
+    be numba-cuda's (a launch-configuration-sensitive or debug kernel, pre-launch callbacks, dynamic shared memory,
+    host arrays copied per launch, a scalar inside a tuple). A cooperative kernel keeps its cooperative launch. The
+    kernel must have been launched once in this process (numba-cuda then knows whether it is launch-configuration
+    sensitive); argument types it has not been launched with are compiled or loaded here."""
+    import ctypes
+
+    from numba.cuda import dispatcher as nd
+
+    if any(isinstance(a, tuple) and any(isinstance(x, scalar_types) for x in a) for a in args):
+        return None
+    griddim, blockdim, stream = config
+    if getattr(dispatcher, "_launch_config_sensitive", False):
+        return None
+    kernel = dispatcher.compile(tuple(dispatcher.typeof_pyval(a) for a in args))
+    if kernel.debug:
+        return None
+    lc = dispatcher.configure(griddim, blockdim, stream)    # normalised dimensions, cuda.core stream
+    if lc.pre_launch_callbacks or lc.sharedmem:
+        return None
+    stream = lc.stream
+    kargs, retr, slots = [], [], []
+    for pos, (t, v) in enumerate(zip(kernel.argument_types, args)):
+        start = len(kargs)
+        kernel._prepare_args(t, v, stream, retr, kargs)
+        if isinstance(v, scalar_types):
+            if len(kargs) != start + 1:
+                return None
+            first = kargs[start]
+            slots.append((pos, start, type(first) if isinstance(first, ctypes._SimpleCData) else None))
+    if retr:
+        return None
+    if nd.CUDA_CORE_GE_1_0:
+        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0,
+                                       is_cooperative=bool(kernel.cooperative))
+    else:
+        launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0,
+                                       cooperative_launch=bool(kernel.cooperative))
+    return (nd.launch, stream, launch_config, kernel._codelibrary.get_cufunc().kernel, kargs, slots)

@@ -1,0 +1,337 @@
+"""Random sequential addition in cell rounds: a large random (equilibrium-like) start placed in parallel, on the
+host (Numba prange) or on the GPU that runs the job (engine/loops/cuda_start.py), the same spheres on both.
+
+Random sequential addition (RSA) tries uniform random centres one after another and keeps each that overlaps no
+sphere kept before. Done in parallel: the box is cut into nc^3 cells (nc even, cell edge h >= the exclusion
+distance d = 2 R (1 + RSA_GAP), about RSA_CELL_MEAN spheres a cell), and the cells are coloured by the parities of
+their three indices. A pass takes one colour: each of its cells, one thread each, makes a Poisson(RSA_MEAN_ATTEMPTS)
+number of attempts, each a uniform centre in the cell kept when it overlaps no sphere in the 27 cells around (its
+own included). Two cells of one colour are at least one cell apart, so the attempts of a pass cannot overlap each
+other and the pass is RSA with its attempts in some order; the eight colours make a round, rounds go on until N
+spheres are kept, and the last round's surplus is removed, latest pass first, at random within a pass (the largest
+keys). Attempts arrive as a Poisson process in space and time, as in sequential RSA; what differs is only the order
+of the attempts within a pass of one colour and between colours (the result at phi <= 0.3 is checked against the
+sequential start in tests/engine/test_cell_rsa.py: the pair correlation at contact and the neighbour counts).
+
+Exactly the same spheres on the host and the device: every draw is a counter-based SplitMix64 value of (pass, cell,
+attempt) (engine/setup/counter_rng.py ``_bits``), the attempt counts come from integer thresholds, and a centre is an integer
+position on a grid of RSA_Q points a cell edge (box / (nc RSA_Q) apart), tested against the others in exact int64
+arithmetic: (dx^2 + dy^2 + dz^2) >= ceil((d / unit)^2). Particles are numbered in cell order, then in the order a
+cell kept them. Units: positions in the box's unit (m).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from engine.numba_support.numba_import import coverage_hidden
+
+with coverage_hidden():
+    import numba
+import numpy as np
+
+from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.errors import SpecError
+from engine.setup.counter_rng import _DRAWS, _GOLDEN, _M1, _U, _bits, _mix64
+
+#: Relative gap RSA keeps between accepted spheres: rounding can never make a start overlap (every random start:
+#: the sequential one of engine/setup/scene.py and this one)
+RSA_GAP = 1.0e-9
+#: mean spheres per cell the cells are sized for (cells are never smaller than the exclusion distance)
+RSA_CELL_MEAN = 2.0
+#: grid points per cell edge of the centres (15 bits a coordinate: one 64-bit draw places a candidate)
+RSA_Q = 1 << 15
+#: mean attempts per cell and pass (Poisson)
+RSA_MEAN_ATTEMPTS = 1.0
+#: rounds after which a start that has not placed its spheres gives up (RSA jams near phi = 0.38)
+RSA_MAX_ROUNDS = 20000
+_COLOURS = 8
+
+
+@dataclass(frozen=True)
+class CellRsa:
+    """The cells and integer grid of a random start of ``n`` spheres of ``radius`` in a box of edge ``box``: nc cells
+    an edge, slots per cell, the grid unit (box / (nc RSA_Q)), the squared exclusion distance in grid units (int)
+    and the attempt counts' cumulative thresholds (53-bit integers)."""
+
+    n: int
+    box: float
+    nc: int
+    slots: int
+    unit: float
+    thr: int
+    cdf: tuple
+
+    @classmethod
+    def of(cls, n: int, box: float, radius: float) -> "CellRsa":
+        d = 2.0 * radius * (1.0 + RSA_GAP)
+        fit = int(box / d) // 2 * 2                 # the most cells an edge: even, edge >= d
+        if fit < 2:
+            raise SpecError(f"a random start needs a box of at least 2 exclusion distances ({2 * d:.4g}); "
+                            f"box_length = {box:g}")
+        want = 2 * math.ceil(0.5 * (n / RSA_CELL_MEAN) ** (1.0 / 3.0))
+        nc = max(2, min(fit, want))
+        while nc > 2 and box / nc < d:             # rounding of box / d
+            nc -= 2
+        unit = box / (nc * RSA_Q)
+        thr = math.ceil((d / unit) ** 2)
+        mean = n / nc ** 3
+        return cls(n=int(n), box=float(box), nc=nc, slots=_slots_for(mean, nc ** 3), unit=unit, thr=thr,
+                   cdf=_attempt_thresholds(RSA_MEAN_ATTEMPTS))
+
+
+def _slots_for(mean: float, cells: int) -> int:
+    """Slots per cell: the Poisson(mean) count that no cell exceeds but with odds 1e-4 (a full cell is found and the
+    start is redone with twice the slots: the spheres do not depend on the slot count)."""
+    k, term = 0, math.exp(-mean)
+    below = term
+    while cells * (1.0 - below) > 1e-4 and k < 4096:
+        k += 1
+        term *= mean / k
+        below += term
+    return max(8, k + 1)
+
+
+def _attempt_thresholds(mean: float) -> tuple:
+    """floor(2^53 P(X <= k)), k < _DRAWS, of X ~ Poisson(mean): a 53-bit uniform u gives the attempt count
+    min(k : u < thr[k]), or _DRAWS (computed once, in Python, for the host's and the device's counts alike)."""
+    out, term, cum = [], math.exp(-mean), 0.0
+    for k in range(_DRAWS):
+        cum += term
+        out.append(min(int(cum * 2.0**53), 2**53))
+        term *= mean / (k + 1)
+    return tuple(out)
+
+
+@numba.njit(cache=True, inline="always")
+def pass_key(key, p):
+    """The key of pass p's draws in the stream of ``key``."""
+    return _mix64(key ^ ((_U(p) + _U(1)) * _M1))
+
+
+@numba.njit(cache=True, inline="always")
+def attempts_of(cdf, count_key, cell):
+    """The number of attempts a cell makes in a pass (count_key: the pass's): Poisson by integer thresholds."""
+    u = _bits(count_key, cell, 0) >> _U(11)
+    k = 0
+    while k < cdf.shape[0] and u >= cdf[k]:
+        k += 1
+    return k
+
+
+@numba.njit(cache=True, inline="always")
+def candidate(pos_key, cell, a):
+    """Attempt a's centre within its cell: three 15-bit grid offsets of one draw."""
+    b = _bits(pos_key, cell, a)
+    return (np.int64((b >> _U(49)) & _U(0x7FFF)), np.int64((b >> _U(34)) & _U(0x7FFF)),
+            np.int64((b >> _U(19)) & _U(0x7FFF)))
+
+
+@numba.njit(cache=True, inline="always")
+def _wrap(dx, span):
+    """dx (grid units) to the nearest image in a periodic span."""
+    if dx > span // 2:
+        return dx - span
+    if dx < -(span // 2):
+        return dx + span
+    return dx
+
+
+@numba.njit(cache=True, inline="always")
+def is_clear(gx, gy, gz, cx, cy, cz, nc, thr, counts, slots):
+    """Whether a centre at grid point (gx, gy, gz) of cell (cx, cy, cz) overlaps no sphere kept in the 27 cells
+    around: exact int64 squared distances against thr."""
+    q = np.int64(RSA_Q)
+    span = np.int64(nc) * q
+    for ox in range(-1, 2):
+        nx = (cx + ox + nc) % nc
+        for oy in range(-1, 2):
+            ny = (cy + oy + nc) % nc
+            for oz in range(-1, 2):
+                nz = (cz + oz + nc) % nc
+                c = (nx * nc + ny) * nc + nz
+                for k in range(counts[c]):
+                    dx = _wrap(nx * q + np.int64(slots[c, k, 0]) - gx, span)
+                    dy = _wrap(ny * q + np.int64(slots[c, k, 1]) - gy, span)
+                    dz = _wrap(nz * q + np.int64(slots[c, k, 2]) - gz, span)
+                    if dx * dx + dy * dy + dz * dz < thr:
+                        return False
+    return True
+
+
+@numba.njit(cache=True, inline="always")
+def cell_pass(t, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spass):
+    """The attempts of pass p in the t-th cell of colour ``colour``; returns 1 when the cell had no free slot for a
+    centre it kept (the start is then redone with more slots), else 0."""
+    h2 = nc // 2
+    cx = 2 * (t // (h2 * h2)) + ((colour >> 2) & 1)
+    cy = 2 * ((t // h2) % h2) + ((colour >> 1) & 1)
+    cz = 2 * (t % h2) + (colour & 1)
+    c = (cx * nc + cy) * nc + cz
+    q = np.int64(RSA_Q)
+    for a in range(attempts_of(cdf, count_key, c)):
+        qx, qy, qz = candidate(pos_key, c, a)
+        if is_clear(cx * q + qx, cy * q + qy, cz * q + qz, cx, cy, cz, nc, thr, counts, slots):
+            m = counts[c]
+            if m >= slots.shape[1]:
+                return 1
+            slots[c, m, 0] = qx
+            slots[c, m, 1] = qy
+            slots[c, m, 2] = qz
+            spass[c, m] = p
+            counts[c] = m + 1
+    return 0
+
+
+@numba.njit(cache=True, inline="always")
+def final_key(trim_key, cell, k, pass_in_round):
+    """The order in which the last round's spheres are removed (largest first): the pass within the round in the top
+    three bits, a draw of (cell, slot) below."""
+    r = _mix64(_mix64(trim_key + _U(cell) * _GOLDEN) + (_U(k) + _U(1)) * _GOLDEN)
+    return (_U(pass_in_round) << _U(61)) | (r >> _U(3))
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _round(r, nc, thr, cdf, pos_key, count_key, counts, slots, spass):
+    """Round r's eight passes on the host; returns the number of cells that lacked a slot."""
+    h2 = nc // 2
+    m = h2 * h2 * h2
+    full = 0
+    for colour in range(_COLOURS):
+        p = _COLOURS * r + colour
+        pk = pass_key(pos_key, p)
+        ck = pass_key(count_key, p)
+        flags = np.zeros(m, np.int64)
+        for t in numba.prange(m):
+            flags[t] = cell_pass(t, colour, p, nc, thr, cdf, pk, ck, counts, slots, spass)
+        full += flags.sum()
+    return full
+
+
+@numba.njit(cache=True, inline="always")
+def slot_index(c, k):
+    """A slot's number independent of the slots per cell: the tie-break of equal removal keys."""
+    return (np.int64(c) << np.int64(20)) | np.int64(k)
+
+
+@numba.njit(cache=True, inline="always")
+def kept(c, k, counts, spass, first_pass, trim_key, cut_key, cut_index):
+    """Whether slot k of cell c holds a sphere of the start: kept before the last round, or in it and at or below the
+    cut in the order (removal key, slot number)."""
+    if k >= counts[c]:
+        return False
+    if spass[c, k] < first_pass:
+        return True
+    key = final_key(trim_key, c, k, spass[c, k] - first_pass)
+    return key < cut_key or (key == cut_key and slot_index(c, k) <= cut_index)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _last_round(first_pass, trim_key, counts, spass, keys, index):
+    """The removal keys and slot numbers of the spheres kept in the last round (in cell order)."""
+    ncell = counts.shape[0]
+    per = np.zeros(ncell + 1, np.int64)
+    for c in numba.prange(ncell):
+        s = 0
+        for k in range(counts[c]):
+            if spass[c, k] >= first_pass:
+                s += 1
+        per[c + 1] = s
+    for c in range(ncell):
+        per[c + 1] += per[c]
+    for c in numba.prange(ncell):
+        at = per[c]
+        for k in range(counts[c]):
+            if spass[c, k] >= first_pass:
+                keys[at] = final_key(trim_key, c, k, spass[c, k] - first_pass)
+                index[at] = slot_index(c, k)
+                at += 1
+    return per[ncell]
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _gather(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, pos):
+    """The start's centres, numbered in cell order (then slot order), into pos (n x 3)."""
+    ncell = counts.shape[0]
+    per = np.zeros(ncell + 1, np.int64)
+    for c in numba.prange(ncell):
+        s = 0
+        for k in range(counts[c]):
+            if kept(c, k, counts, spass, first_pass, trim_key, cut_key, cut_index):
+                s += 1
+        per[c + 1] = s
+    for c in range(ncell):
+        per[c + 1] += per[c]
+    q = RSA_Q
+    for c in numba.prange(ncell):
+        i = per[c]
+        cx = c // (nc * nc)
+        cy = (c // nc) % nc
+        cz = c % nc
+        for k in range(counts[c]):
+            if kept(c, k, counts, spass, first_pass, trim_key, cut_key, cut_index):
+                pos[i, 0] = (cx * q + slots[c, k, 0] + 0.5) * unit
+                pos[i, 1] = (cy * q + slots[c, k, 1] + 0.5) * unit
+                pos[i, 2] = (cz * q + slots[c, k, 2] + 0.5) * unit
+                i += 1
+    return per[ncell]
+
+
+def cut_of(keys: np.ndarray, index: np.ndarray, keep: int) -> tuple:
+    """(key, slot number) of the keep-th smallest entry in the order (key, slot number): the last one kept."""
+    order = np.lexsort((index, keys))
+    j = order[keep - 1]
+    return np.uint64(keys[j]), np.int64(index[j])
+
+
+def run_rounds(g: CellRsa, round_fn, new_arrays) -> tuple:
+    """Rounds until n spheres are kept (redone with twice the slots when a cell lacked one): returns (counts, slots,
+    spass, rounds run, spheres kept before the last round). ``round_fn(r, arrays)`` runs round r and returns the
+    cells that lacked a slot and the spheres kept so far; ``new_arrays(slots_per_cell)`` makes empty arrays."""
+    slots_per_cell = g.slots
+    while True:
+        arrays = new_arrays(slots_per_cell)
+        total, prev, r, full = 0, 0, 0, 0
+        while total < g.n and not full:
+            if r >= RSA_MAX_ROUNDS:
+                raise SpecError(f"a random start of {g.n} spheres did not fit after {r} rounds of random sequential "
+                                f"addition ({total} placed): the volume fraction is too high for it")
+            prev = total
+            full, total = round_fn(r, arrays)
+            r += 1
+        if not full:
+            return arrays, r, prev
+        slots_per_cell *= 2
+
+
+def place_random(g: CellRsa, keys: tuple) -> np.ndarray:
+    """The n centres (n x 3, m) of a random start on the host (see the module docstring); ``keys``: the positions',
+    attempt counts' and removal keys (uint64)."""
+    pos_key, count_key, trim_key = (np.uint64(k) for k in keys)
+    cdf = np.array(g.cdf, np.uint64)
+    ncell = g.nc ** 3
+
+    def new_arrays(per_cell: int) -> tuple:
+        return (np.zeros(ncell, np.int32), np.empty((ncell, per_cell, 3), np.int16),
+                np.empty((ncell, per_cell), np.int32))
+
+    def one_round(r: int, arrays: tuple) -> tuple:
+        counts, slots, spass = arrays
+        full = _round(r, g.nc, g.thr, cdf, pos_key, count_key, counts, slots, spass)
+        return full, int(counts.sum())
+
+    (counts, slots, spass), rounds, prev = run_rounds(g, one_round, new_arrays)
+    first_pass = _COLOURS * (rounds - 1)
+    m = int(counts.sum()) - prev
+    keys_last, index_last = np.empty(m, np.uint64), np.empty(m, np.int64)
+    _last_round(first_pass, trim_key, counts, spass, keys_last, index_last)
+    cut_key, cut_index = cut_of(keys_last, index_last, g.n - prev)
+    pos = np.empty((g.n, 3))
+    placed = _gather(g.nc, g.unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, pos)
+    if placed != g.n:
+        raise RuntimeError(f"random start: {placed} spheres kept for {g.n}")
+    return pos
+
+
+fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)
