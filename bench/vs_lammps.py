@@ -1,13 +1,15 @@
 """demq (CPU) against LAMMPS ``gran/hooke/history`` on the same scene, side by side in one run.
 
-    python -m bench vs_lammps --n 4096 32768 262144 --steps 10000 10000 3000 --threads 1 --out DIR
+    python -m bench vs_lammps --n 4096 32768 --steps 20000 3000 --threads 1 --pairs 3 --out DIR
 
 The scene: the Hidalgo et al. (2013) radius of the default spec (a = 1.55 cm, engine/setup/params.py ``derive``),
 velocity_rms = 3 m/s, e_n = e_t = 0.8, k_n = 1e8 N/m, density 2000 kg/m^3, no Coulomb limit
 (friction = null); phi = 0.008 at N = 4096 and 0.058 above (``--phi`` overrides); the box grows with N so that
 the radius stays the default one. No thermalisation (``thermalization = 0``), so both codes start from the
-SAME state: demq's own start (engine/setup/scene.py ``initial_spheres``: positions, velocities, spins) is written
-into the LAMMPS data file, and both integrate the dissipative gas from there for the same number of steps.
+SAME state: demq's default start (``start = null``: the random, equilibrium-gas placement of engine/setup/start_kind.py
+at these sizes; ``--start`` overrides, recorded as ``start`` in each row), drawn by engine/setup/scene.py
+``initial_spheres`` (positions, velocities, spins), is written into the LAMMPS data file in id order, and both
+integrate the dissipative gas from there for the same number of steps.
 
 LAMMPS, with its units (``units si``; pair_gran docs: F_n = k_n delta n - m_eff gamma_n v_n,
 F_t = -(k_t Delta s_t + m_eff gamma_t v_t), m_eff = m_i m_j/(m_i + m_j)):
@@ -17,7 +19,8 @@ F_t = -(k_t Delta s_t + m_eff gamma_t v_t), m_eff = m_i m_j/(m_i + m_j)):
 - ``Kt`` = demq k_t (Hidalgo et al. 2013, Eq. 4, N/m), ``gamma_t`` = 0 with dampflag 0 (no tangential damping);
 - ``xmu`` = 1e4, the largest LAMMPS accepts (friction effectively off, as demq's default friction = null);
 - ``timestep`` = demq dt (t_c/50), ``neighbor`` skin of one radius (``--lammps-skin``, in radii),
-  ``neigh_modify delay 0 every 10 check yes``, ``fix nve/sphere``, no gravity, periodic cube.
+  ``neigh_modify delay 0 every 10 check yes``, ``fix nve/sphere``, no gravity, periodic cube; LAMMPS's own
+  default spatial sort of the atoms (``atom_modify sort``: every 1000 steps).
 demq runs its own default skin (``verlet_skin: null``, recorded in the JSON).
 
 What is timed: demq through the public path ``engine.run`` (default snapshots, records every t_end/200,
@@ -26,6 +29,10 @@ time loop); "end-to-end" is the wall clock around the whole ``engine.run`` call 
 compile or cache load, output file). A tiny warm-up run first fills the Numba cache (``--no-warmup`` skips
 it). LAMMPS runs ``lmp -in`` (``--threads 2``: ``mpirun -np 2``); "loop" is its "Loop time of X", and
 "end-to-end" the wall clock around the ``lmp`` process. Cundall number = N x steps / seconds.
+
+Each N runs ``--pairs`` side-by-side pairs (default 3: demq, then LAMMPS, on the same start). A row reports the
+median over the pairs of each code's loop Cundall number and of the pair ratio demq / LAMMPS, and the spread of
+each code's runs, max / min - 1 (identical runs: only the machine makes them differ).
 Without ``lmp`` on PATH the bench says so and runs demq alone.
 """
 
@@ -38,6 +45,7 @@ import os
 import platform
 import re
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -72,13 +80,15 @@ def default_phi(n: int) -> float:
     return 0.008 if n <= 4096 else 0.058
 
 
-def scene_spec(n: int, phi: float, steps: int, seed: int = 1, skin: float | None = None) -> SimulationSpec:
+def scene_spec(n: int, phi: float, steps: int, seed: int = 1, skin: float | None = None,
+               start: str | None = None) -> SimulationSpec:
     """The spec of the compared scene: default radius, box from N and phi, t_end = steps x dt; ``skin``: demq's
-    verlet_skin in radii (None: its default)."""
+    verlet_skin in radii (None: its default); ``start``: the placement (None: demq's default, module doc)."""
     a = default_radius()
     box = (n * 4.0 / 3.0 * math.pi * a**3 / phi) ** (1.0 / 3.0)
     base = dict(n_particles=n, volume_fraction=phi, box_length=box, velocity_rms=VELOCITY_RMS, e_n=0.8, e_t=0.8,
-                stiffness=1.0e8, density=2000.0, thermalization=0.0, backend="cpu", seed=seed, verlet_skin=skin)
+                stiffness=1.0e8, density=2000.0, thermalization=0.0, backend="cpu", seed=seed, verlet_skin=skin,
+                start=start)
     dt = derive(SimulationSpec(**base)).dt
     return SimulationSpec(**base, t_end=steps * dt)
 
@@ -198,51 +208,81 @@ def run_demq(spec: SimulationSpec, threads: int, workdir: Path) -> dict:
     with h5py.File(out, "r") as f:
         ket = float(f["observables/kinetic_energy_translational/value"][-1])
         ker = float(f["observables/kinetic_energy_rotational/value"][-1])
+        builds = int(f["parameters"].attrs["neighbour_builds"])
     out.unlink()
     n = spec.n_particles
     return {"threads": numba.get_num_threads(), "steps": s.steps, "loop_s": s.loop_s, "wall_s": wall,
             "cundall_loop": s.cundall, "cundall_end_to_end": n * s.steps / wall,
-            "timings": s.extra.get("timings"), "skin_m": derive(spec).skin,
+            "builds": builds, "timings": s.extra.get("timings"), "skin_m": derive(spec).skin,
             "ke_translational_end": ket, "ke_rotational_end": ker}
 
 
-def compare(n: int, phi: float, steps: int, threads: int, skin_radii: float, out_dir, seed: int = 1,
-            demq_skin: float | None = None) -> dict:
-    """One side-by-side comparison: write the LAMMPS input from demq's start, run both, return a row."""
-    from engine.setup.scene import initial_spheres
+def spread(values) -> float:
+    """max / min - 1 of a code's identical runs (0: all equal)."""
+    return max(values) / min(values) - 1.0
 
-    spec = scene_spec(n, phi, steps, seed, demq_skin)
+
+def compare(n: int, phi: float, steps: int, threads: int, skin_radii: float, out_dir, seed: int = 1,
+            demq_skin: float | None = None, pairs: int = 3, start: str | None = None) -> dict:
+    """``pairs`` side-by-side runs (demq, then LAMMPS, from demq's start written as the LAMMPS data file); a row
+    with the medians of the Cundall numbers and of the pair ratios, and each code's spread."""
+    from engine.setup.scene import initial_spheres
+    from engine.setup.start_kind import start_protocol
+
+    spec = scene_spec(n, phi, steps, seed, demq_skin, start)
     prm = lammps_params(spec, skin_radii)
+    demq_runs, lammps_runs = [], []
     with tempfile.TemporaryDirectory(prefix="vs_lammps_") as tmp:
         work = Path(tmp)
         write_data(work / "data.lmp", initial_spheres(spec, derive(spec)))
         (work / "in.lammps").write_text(lammps_input(prm, steps))
-        demq = run_demq(spec, threads, work)
-        if demq["steps"] != steps:
-            raise RuntimeError(f"demq ran {demq['steps']} steps, expected {steps}")
-        lmp = run_lammps(work, threads, n, steps)
+        for k in range(pairs):
+            demq = run_demq(spec, threads, work)
+            if demq["steps"] != steps:
+                raise RuntimeError(f"demq ran {demq['steps']} steps, expected {steps}")
+            lmp = run_lammps(work, threads, n, steps)
+            demq_runs.append(demq)
+            lammps_runs.append(lmp)
+            ratio = f", ratio x{demq['cundall_loop'] / lmp['cundall_loop']:.2f}" if lmp.get("available") else ""
+            lm_txt = f", LAMMPS loop {lmp['cundall_loop']:.3g}" if lmp.get("available") else ""
+            print(f"  N={n} pair {k + 1}/{pairs}: demq loop {demq['cundall_loop']:.3g} ({demq['builds']} builds)"
+                  f"{lm_txt}{ratio}", flush=True)
         if out_dir is not None:
             tag = f"n{n}_t{threads}"
             shutil.copy(work / "in.lammps", Path(out_dir) / f"in.{tag}.lammps")
             if (work / "log.lammps").exists():
                 shutil.copy(work / "log.lammps", Path(out_dir) / f"log.{tag}.lammps")
-    ratio = demq["cundall_loop"] / lmp["cundall_loop"] if lmp.get("available") else None
-    return {"n": n, "phi": phi, "steps": steps, "threads": threads, "spec": json.loads(spec.model_dump_json()),
-            "lammps_params": prm, "demq": demq, "lammps": lmp, "ratio_loop": ratio}
+    demq_loop = [d["cundall_loop"] for d in demq_runs]
+    row = {"n": n, "phi": phi, "steps": steps, "threads": threads, "start": start_protocol(spec), "pairs": pairs,
+           "spec": json.loads(spec.model_dump_json()), "lammps_params": prm, "demq_runs": demq_runs,
+           "lammps_runs": lammps_runs, "demq_loop_median": statistics.median(demq_loop),
+           "demq_end_to_end_median": statistics.median(d["cundall_end_to_end"] for d in demq_runs),
+           "demq_spread": spread(demq_loop), "lammps": {"available": lammps_runs[0].get("available", False)},
+           "ratio_loop": None}
+    if row["lammps"]["available"]:
+        lammps_loop = [m["cundall_loop"] for m in lammps_runs]
+        row.update(lammps_loop_median=statistics.median(lammps_loop), lammps_spread=spread(lammps_loop),
+                   lammps_end_to_end_median=statistics.median(m["cundall_end_to_end"] for m in lammps_runs),
+                   ratios_loop=[d / m for d, m in zip(demq_loop, lammps_loop)])
+        row["ratio_loop"] = statistics.median(row["ratios_loop"])
+    else:
+        row["lammps"]["reason"] = lammps_runs[0]["reason"]
+    return row
 
 
 def table(rows) -> str:
-    """Markdown table of the comparison rows."""
-    head = ("| N | φ | steps | threads | demq loop | demq end-to-end | LAMMPS loop | LAMMPS end-to-end | "
-            "demq / LAMMPS (loop) |\n|---|---|---|---|---|---|---|---|---|")
+    """Markdown table of the comparison rows (medians over the pairs; spread = max / min - 1)."""
+    head = ("| N | φ | start | steps | threads | demq loop | demq spread | demq end-to-end | LAMMPS loop | "
+            "LAMMPS spread | demq / LAMMPS (loop) |\n|---|---|---|---|---|---|---|---|---|---|---|")
     out = [head]
     for r in rows:
-        lm = r["lammps"]
-        lo = f"{lm['cundall_loop']:.3g}" if lm.get("available") else "—"
-        le = f"{lm['cundall_end_to_end']:.3g}" if lm.get("available") else "—"
-        ra = f"×{r['ratio_loop']:.2f}" if r["ratio_loop"] is not None else "—"
-        out.append(f"| {r['n']} | {r['phi']:g} | {r['steps']} | {r['threads']} | {r['demq']['cundall_loop']:.3g} | "
-                   f"{r['demq']['cundall_end_to_end']:.3g} | {lo} | {le} | {ra} |")
+        lmp = r["lammps"]["available"]
+        lo = f"{r['lammps_loop_median']:.3g}" if lmp else "—"
+        ls = f"{100 * r['lammps_spread']:.1f} %" if lmp else "—"
+        ra = f"×{r['ratio_loop']:.2f}" if lmp else "—"
+        out.append(f"| {r['n']} | {r['phi']:g} | {r['start']} | {r['steps']} | {r['threads']} | "
+                   f"{r['demq_loop_median']:.3g} | {100 * r['demq_spread']:.1f} % | "
+                   f"{r['demq_end_to_end_median']:.3g} | {lo} | {ls} | {ra} |")
     return "\n".join(out)
 
 
@@ -271,6 +311,9 @@ def main(argv=None):
     ap.add_argument("--demq-skin", type=float, default=None,
                     help="demq's verlet_skin in radii (default: the spec's default for the backend and density)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--pairs", type=int, default=3, help="side-by-side runs per N (medians and spreads over them)")
+    ap.add_argument("--start", choices=("random", "lattice"), default=None,
+                    help="demq's placement (default: the spec's default, the random gas at these sizes)")
     ap.add_argument("--no-warmup", action="store_true", help="skip the tiny run that fills the Numba cache")
     ap.add_argument("--out", default=None, help="folder for LAMMPS inputs and logs, results.json, results.md")
     a = ap.parse_args(argv)
@@ -287,13 +330,13 @@ def main(argv=None):
     rows = []
     for n, k in zip(a.n, steps):
         phi = a.phi if a.phi is not None else default_phi(n)
-        r = compare(n, phi, k, a.threads, a.lammps_skin, a.out, a.seed, a.demq_skin)
+        r = compare(n, phi, k, a.threads, a.lammps_skin, a.out, a.seed, a.demq_skin, a.pairs, a.start)
         rows.append(r)
-        lm = r["lammps"]
-        lmp_txt = (f"LAMMPS loop {lm['cundall_loop']:.3g}, demq/LAMMPS x{r['ratio_loop']:.2f}" if lm["available"]
-                   else f"LAMMPS not run ({lm['reason']})")
-        print(f"N={n} phi={phi:g} steps={k}: demq loop {r['demq']['cundall_loop']:.3g} "
-              f"(end-to-end {r['demq']['cundall_end_to_end']:.3g}), {lmp_txt}", flush=True)
+        lmp_txt = (f"LAMMPS loop {r['lammps_loop_median']:.3g}, demq/LAMMPS x{r['ratio_loop']:.2f}"
+                   if r["lammps"]["available"] else f"LAMMPS not run ({r['lammps']['reason']})")
+        print(f"N={n} phi={phi:g} start={r['start']} steps={k}, median of {a.pairs}: demq loop "
+              f"{r['demq_loop_median']:.3g} (spread {100 * r['demq_spread']:.1f} %, end-to-end "
+              f"{r['demq_end_to_end_median']:.3g}), {lmp_txt}", flush=True)
     md = table(rows)
     print(md)
     if a.out:

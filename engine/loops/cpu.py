@@ -236,7 +236,8 @@ def make_step(shape, parallel: bool = True):
     scenes' loop), specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
 
     ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-    chunk_a, chunk_b, s, nn)`` (s: the step's index in the loop's call): per particle, the shape's ``pre_step``,
+    chunk_a, chunk_b, s, nn)`` (s: the step's index counted from the last full ``settle`` of the orientations,
+    :func:`make_run_steps`): per particle, the shape's ``pre_step``,
     then the shared translation v += F/m hk, predicted end-of-step velocity v + F/m dt/2 (the normal
     dashpot's), x += v dt wrapped into the box, then the shape's ``rotate`` with the particle's torque, which
     returns the particle's displacement measure (module docstring of engine/shapes/sphere/kernels.py: |v|^2 or the
@@ -377,11 +378,21 @@ def make_run_steps(shape, parallel: bool = True):
 
     ``run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
     ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
-    inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg, active, n_active)`` advances up
-    to nsteps
-    velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and on exit, and the shape's
-    ``settle`` has left nothing pending in the orientations (spheres turn theirs lazily:
-    engine/shapes/sphere/kernels.py).
+    inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg, active, n_active, pending,
+    settle_all)`` advances up to nsteps velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and
+    on exit.
+
+    Orientations (``quat`` not None): the shape's ``settle`` brings them up to date. ``settle_all`` (or an exit other
+    than OK): every one, and nothing is left pending; otherwise only those the closing half kick is about to turn
+    differently (spheres: those under a torque), and the others' turns stay pending across the return:
+    ``pending[0]`` (int64) counts the kick-drifts since the last full settle, the origin of the steps the loop hands
+    the shape. Why: a full settle turns every sphere's orientation (engine.physics.rotation.sphere_quat_turn), ~55 ns
+    a sphere; the driver returns from the loop at every record (200 a run), and at N = 32 768 and a record every
+    15 steps that was a fifth of the loop's time. The host settles fully (``nsteps`` = 0, ``settle_all``) before it
+    reads or switches the orientations (:meth:`CpuLoop.settle_orientations`). Positions, velocities and spins are
+    the same bits either way; an orientation turned over a span that crosses a return is turned in one piece
+    instead of one per call (a difference at rounding level, and the turns no longer depend on the record
+    cadence).
 
     Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
     current step have been drifted but its forces not computed: the caller grows the list, rebuilds,
@@ -412,8 +423,9 @@ def make_run_steps(shape, parallel: bool = True):
     def steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
               ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
               cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg, active,
-              n_active):
-        # the steps themselves; run_steps settles the orientations and closes the last step, on every exit
+              n_active, base):
+        # the steps themselves (step s of the call is step base + s since the orientations' last full settle);
+        # run_steps settles the orientations as far as needed and closes the last step, on every exit
         builds = 0
         if nsteps <= 0:
             return OK, 0, -1, 0.0, builds
@@ -421,7 +433,7 @@ def make_run_steps(shape, parallel: bool = True):
         for s in range(nsteps):
             hk = dt * half if s == 0 else dt
             step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box,
-                 half, chunk_a, chunk_b, s, nn)
+                 half, chunk_a, chunk_b, base + s, nn)
             for c in range(chunk_b.shape[0]):
                 if chunk_b[c] >= 0:
                     return BAD_VALUE, s, chunk_b[c], 0.0, builds
@@ -469,17 +481,21 @@ def make_run_steps(shape, parallel: bool = True):
     def run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
                   ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,
                   cursor, box, inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg,
-                  active, n_active):
+                  active, n_active, pending, settle_all):
         status, done, who, value, builds = steps(
             nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound, ext, nbr,
             nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box, inv_box,
-            half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg, active, n_active)
-        if nsteps > 0:
-            if quat is not None:
-                # nothing left pending, whatever the exit (a step that stopped early had drifted already)
-                settle(spin, quat, ext, nsteps if status == OK else done + 1, dt, half)
-            if status == OK:
-                close_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
+            half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg, active, n_active, pending[0])
+        if quat is not None:
+            if nsteps > 0:
+                pending[0] += nsteps if status == OK else done + 1   # a step that stopped early had drifted
+            if settle_all or status != OK:
+                settle(spin, quat, torque, ext, pending[0], dt, half, True)
+                pending[0] = 0
+            elif nsteps > 0:     # only what the closing half kick is about to change
+                settle(spin, quat, torque, ext, pending[0], dt, half, False)
+        if nsteps > 0 and status == OK:
+            close_kick(vel, spin, force, torque, inv_m, spin_inv, dt * half)
         return status, done, who, value, builds
 
     loop = cache_closure(numba.njit(run_steps), ("cpu.run_steps", shape.NAME, parallel))
@@ -504,6 +520,8 @@ class CpuLoop(Backend):
 
     def _init_loop(self, n: int, rmax: float, rmin: float, skin: float) -> None:
         self.disp_bound = np.zeros(1)     # upper bound of the displacement since the last build (m)
+        # kick-drifts since the orientations were last settled in full (make_run_steps)
+        self.pending_turns = np.zeros(1, np.int64)
         self.parallel_loop = n >= SERIAL_LOOP_BELOW   # the time loop in parallel regions (SERIAL_LOOP_BELOW)
         self.device = cpu_name()
         self.steps_done = 0
@@ -607,17 +625,10 @@ class CpuLoop(Backend):
 
     def advance(self, nsteps: int, _compile_only: bool = False) -> None:
         """Advance nsteps steps; raises InstabilityError naming the step, the particle and the cause."""
-        run_steps = make_run_steps(self.shape, self.parallel_loop)
         left = int(nsteps)
         while left > 0 or _compile_only:
             _compile_only = False
-            status, done, who, value, builds = run_steps(
-                left, self.pos, self.vel, self._spin, self._quat_arg, self.force, self._torque_arg,
-                self.inv_m, self._spin_inv, self._rad_list, self.x_ref, self.vel_p, self.disp_bound, self._ext,
-                self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell,
-                self.cell_start, self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half,
-                self.dt, self.skin, self.k_n, self.gn_coef, self._law, self.overlap_limit,
-                self.chunk_a, self.chunk_b, self.mg, self.active, self.n_active)
+            status, done, who, value, builds = self._run_steps(left, False)
             self.builds += builds
             if status == OK:
                 self.steps_done += done
@@ -635,6 +646,23 @@ class CpuLoop(Backend):
                 continue
             self.steps_done = step
             raise instability_error(status, step, int(who), value, self)
+
+    def settle_orientations(self) -> None:
+        """Bring every orientation up to date (the time loop leaves a free sphere's turns pending across its
+        returns: make_run_steps); called before the orientations are read or switched."""
+        if self.pending_turns[0] > 0 and self._quat_arg is not None:
+            self._run_steps(0, True)
+
+    def _run_steps(self, nsteps: int, settle_all: bool) -> tuple:
+        """One call of the compiled time loop on this backend's arrays: (status, done, particle, value, builds)."""
+        run_steps = make_run_steps(self.shape, self.parallel_loop)
+        return run_steps(
+            nsteps, self.pos, self.vel, self._spin, self._quat_arg, self.force, self._torque_arg,
+            self.inv_m, self._spin_inv, self._rad_list, self.x_ref, self.vel_p, self.disp_bound, self._ext,
+            self.nbr, self.nn, self.hist, self.nbr_new, self.nn_new, self.hist_new, self.nc, self.inv_cell,
+            self.cell_start, self.cell_list, self.cell_of, self.cursor, self.box_c, self.inv_box, self.half,
+            self.dt, self.skin, self.k_n, self.gn_coef, self._law, self.overlap_limit,
+            self.chunk_a, self.chunk_b, self.mg, self.active, self.n_active, self.pending_turns, settle_all)
 
 
 fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

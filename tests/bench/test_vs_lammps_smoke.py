@@ -67,14 +67,21 @@ def test_data_file_is_demq_start(tmp_path):
 
 @pytest.mark.skipif(shutil.which("lmp") is None, reason="LAMMPS (lmp) not installed")
 def test_tiny_side_by_side(tmp_path):
-    row = vs_lammps.compare(n=400, phi=0.3, steps=3000, threads=1, skin_radii=1.0, out_dir=tmp_path)
-    assert row["demq"]["steps"] == 3000 and row["lammps"]["available"]
-    assert row["demq"]["cundall_loop"] > 0 and row["lammps"]["cundall_loop"] > 0
-    assert row["ratio_loop"] == pytest.approx(row["demq"]["cundall_loop"] / row["lammps"]["cundall_loop"])
+    row = vs_lammps.compare(n=400, phi=0.3, steps=3000, threads=1, skin_radii=1.0, out_dir=tmp_path, pairs=2)
+    assert row["start"] == "random" and row["lammps"]["available"] and row["pairs"] == 2
+    assert [d["steps"] for d in row["demq_runs"]] == [3000, 3000]
+    demq = [d["cundall_loop"] for d in row["demq_runs"]]
+    lmp = [m["cundall_loop"] for m in row["lammps_runs"]]
+    assert min(demq) > 0 and min(lmp) > 0
+    assert row["ratio_loop"] == pytest.approx((demq[0] / lmp[0] + demq[1] / lmp[1]) / 2)   # median of two
+    assert row["demq_spread"] == pytest.approx(max(demq) / min(demq) - 1)
     assert (tmp_path / "in.n400_t1.lammps").exists() and (tmp_path / "log.n400_t1.lammps").exists()
+    # the pairs repeat the same run: demq's end state is the same bits each time
+    d, d2 = row["demq_runs"]
+    assert d["ke_translational_end"] == d2["ke_translational_end"]
     # same start, same contact model: the dissipated energy agrees (different integrators and list
     # schedules move collisions by O(dt^2), so energies agree to far better than the 2 % asked here)
-    d, m = row["demq"], row["lammps"]
+    m = row["lammps_runs"][0]
     e0 = 400 * 0.5 * (2000.0 * 4.0 / 3.0 * math.pi * row["lammps_params"]["radius"] ** 3) * 9.0
     for key in ("ke_translational_end", "ke_rotational_end"):
         assert d[key] == pytest.approx(m[key], rel=0.02)

@@ -41,7 +41,7 @@ class CpuBackend(CpuLoop):
         self.pos = np.array(system.position, dtype=self.pos_dtype, order="C", copy=True)
         self.vel = np.array(system.velocity, dtype=dt_, order="C", copy=True)
         self.omega = np.array(system.angular_velocity, dtype=dt_, order="C", copy=True)
-        self.quat = np.array(system.orientation, dtype=dt_, order="C", copy=True)
+        self._quat = np.array(system.orientation, dtype=dt_, order="C", copy=True)
         self.radius = np.array(system.radius, dtype=dt_, order="C", copy=True)
         self.mass = np.array(system.mass, dtype=dt_, order="C", copy=True)
         self.inertia = np.array(system.inertia, dtype=dt_, order="C", copy=True)
@@ -52,8 +52,8 @@ class CpuBackend(CpuLoop):
         self.x_ref = self.pos.copy()
         self.vel_p = self.vel.copy()      # predicted end-of-step velocities (see shapes/sphere.kick_drift)
         self._rad_list = self.radius
-        # ext: the step of the loop's call from which each sphere's orientation turns are pending
-        # (shapes/sphere/kernels.py rotate/settle); zero whenever the time loop has returned
+        # ext: the step (counted from the last full settle, engine/loops/cpu.py make_run_steps) from which each
+        # sphere's orientation turns are pending (shapes/sphere/kernels.py rotate/settle)
         self._lag = np.zeros(n, np.int64)
         # ... and the contacts each sphere has begun (the collisions observable)
         self.begun = np.zeros(n, np.int64)
@@ -63,15 +63,23 @@ class CpuBackend(CpuLoop):
         self.set_contact(contact)
         self._prime(system)
 
+    @property
+    def quat(self) -> np.ndarray:
+        """The orientations (N, 4), brought up to date first (the time loop leaves free spheres' turns pending)."""
+        self.settle_orientations()
+        return self._quat
+
     def set_contact(self, contact: ContactParams) -> None:
         """Switch contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
+        if hasattr(self, "contact"):
+            self.settle_orientations()    # under the old switches: nothing left pending
         self._set_common(contact)
         c = self.dtype
         self.k_t = None if contact.k_t is None else c(contact.k_t)
         self.mu = None if contact.friction is None else c(contact.friction)
         self._law = (self.k_t, self.mu)
         self._torque_arg = self.torque if contact.rough else None
-        self._quat_arg = self.quat if contact.orientation else None
+        self._quat_arg = self._quat if contact.orientation else None
 
     def _prime(self, system: SphereSystem) -> None:
         """First list build (restoring checkpointed springs) and forces at t = 0."""

@@ -14,9 +14,11 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
   drift dt) in step s of the loop's call (0, 1, ...), with the torque on i ``tq`` = (tau_x, tau_y, tau_z) (the
   loop's own zeros for a particle whose list is empty; ``torque`` is the torque array, or None when torques are
   off, read only as that switch); returns (displacement measure, state finite);
-- ``settle(spin, quat, ext, drifted, dt, half)``: called by the loop before it returns, after ``drifted``
-  kick-drifts in the call: whatever the shape's ``rotate`` left pending is brought up to date (spheres: lazy
-  orientations; a shape that advances every step: nothing);
+- ``settle(spin, quat, torque, ext, drifted, dt, half, every)``: called by the loop before it returns, ``drifted``
+  kick-drifts after the last full settle: with ``every`` True whatever the shape's ``rotate`` left pending is
+  brought up to date and nothing stays pending (the step count restarts from 0); with ``every`` False only what the
+  loop's closing half kick (torque x hk) is about to make wrong (spheres: lazy orientations; a shape that advances
+  every step: nothing);
 - ``pair(i, kk, j, pos, vel, vel_p, spin, quat, rad, inv_m, hist, box, inv_box, half, k_n, gn_coef, law, dt,
   ext)``: the pair evaluator (contact geometry and force law) of list slot kk of particle i (neighbour j):
   returns (F_x, F_y, F_z, T_x, T_y, T_z, overlap relative to the pair's size or 0) on i and advances the slot's
@@ -66,7 +68,8 @@ def rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp
     orientation (when tracked) lazily, as the GPU does (engine/shapes/sphere/device.py): ``ext[0][i]`` is the step
     of the call from which sphere i's turns are pending, all with the spin it has now. Only a torque about to
     change that spin brings q up to date, here before the kick (the exact rotation over those steps,
-    engine.physics.rotation.sphere_quat_turn); :func:`settle` does it for every sphere when the loop returns. A
+    engine.physics.rotation.sphere_quat_turn); :func:`settle` does it when the loop returns (for the spheres
+    under a torque, or for every sphere before the host reads them). A
     free sphere does no orientation work at all. ``tq``: the torque on i, (tau_x, tau_y, tau_z) (N m); ``torque``
     None (smooth spheres): no torques, no spin update (pruned at compile time). Returns (|v|^2, finite).
 
@@ -97,8 +100,8 @@ def rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp
 
 @numba.njit
 def _catch_up(i, omega, quat, ext, s, dt, half):
-    """Bring sphere i's orientation up to step s of the call: the s - ext[0][i] steps pending, turned with its
-    present spin; then none pending."""
+    """Bring sphere i's orientation up to step s (counted from the last full settle): the s - ext[0][i] steps
+    pending, turned with its present spin; then none pending."""
     k = s - ext[0][i]
     if k > 0:
         q0, q1, q2, q3 = sphere_quat_turn(quat[i, 0], quat[i, 1], quat[i, 2], quat[i, 3],
@@ -111,14 +114,21 @@ def _catch_up(i, omega, quat, ext, s, dt, half):
 
 
 @numba.njit(parallel=True)
-def settle(spin, quat, ext, drifted, dt, half):
-    """Every sphere's orientation brought up to date after ``drifted`` kick-drifts of the call (the loop calls it
-    before it returns, so that the state the host sees and the closing half kick find nothing pending); the marks
-    start again from 0 in the next call."""
+def settle(spin, quat, torque, ext, drifted, dt, half, every):
+    """Sphere orientations brought up to date after ``drifted`` kick-drifts since the last full settle (the loop
+    calls it before it returns). ``every``: every sphere, and the marks start again from 0; otherwise only the
+    spheres under a torque, whose spin the closing half kick is about to change (the turns pending are those of
+    the spin they have now); a free sphere's turns then stay pending, to be done in one piece later
+    (engine/loops/cpu.py make_run_steps)."""
     if quat is not None:
-        for i in prange(quat.shape[0]):
-            _catch_up(i, spin, quat, ext, drifted, dt, half)
-            ext[0][i] = 0
+        if every:
+            for i in prange(quat.shape[0]):
+                _catch_up(i, spin, quat, ext, drifted, dt, half)
+                ext[0][i] = 0
+        elif torque is not None:   # without torques (smooth spheres) no spin ever changes
+            for i in prange(quat.shape[0]):
+                if torque[i, 0] != 0 or torque[i, 1] != 0 or torque[i, 2] != 0:
+                    _catch_up(i, spin, quat, ext, drifted, dt, half)
 
 
 @numba.njit(inline="always")  # inlined into the force loop: a call would pass and refcount ~12 arrays

@@ -87,7 +87,7 @@ def rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp
 
 
 @numba.njit
-def settle(spin, quat, ext, drifted, dt, half):
+def settle(spin, quat, torque, ext, drifted, dt, half, every):
     """Nothing pending when the loop returns: a spheroid's orientation is advanced at every step (its w changes
     between contacts)."""
     return
