@@ -1,7 +1,7 @@
-"""``python -m bench <name> [--out DIR] [args]``: see bench/cli.py."""
+"""``python -m bench <name> [--out DIR] [args]``: see bench/__init__.py."""
 
 import sys
 
-from bench.cli import main
+from bench import main
 
 sys.exit(main())
