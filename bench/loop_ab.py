@@ -16,9 +16,9 @@ of one piece of machinery inside the loop, without the fresh-process noise of be
 
 Cases: :data:`JAXMD_CASES` (bench/vs_jaxmd.py's gas at phi = 0.058) and :data:`EXTRA` (one 1M-sphere scene and 256
 packed scenes of 4096 at the same sphere size; 1M rough spheroids). For several scenes the loop figure is N x steps
-over the ensemble's loop seconds. Compare one scene with packed scenes at the same ``--start``: by default a scene of
-2^20 particles or more starts on the lattice, whose list stays nearly empty over a short run, and a 4096-sphere scene
-from the random start.
+over the ensemble's loop seconds. Compare one scene with packed scenes at the same ``--start`` (by default both start
+random: a sphere scene of 2^20 or more from the random start placed in parallel; spheroids on the lattice, whose list
+stays nearly empty over a short run).
 """
 
 from __future__ import annotations
@@ -121,8 +121,8 @@ def main(argv=None) -> int:
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda")
     ap.add_argument("--steps-scale", type=float, default=1.0)
     ap.add_argument("--start", choices=("lattice", "random"), default=None,
-                    help="every scene's start protocol (default: the engine's choice by size: the lattice for one "
-                         "scene of 2^20 or more, whose list is then nearly empty over a short run, RSA below)")
+                    help="every scene's start protocol (default: the engine's choice: random for spheres up to "
+                         "phi = 0.3, the lattice for spheroids)")
     args = ap.parse_args(argv)
     import h5py
 
