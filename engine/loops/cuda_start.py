@@ -90,6 +90,23 @@ def site_gather(site_key, n_sites, bucket, cand_key, cand_site, cand_n, below):
         below[cuda.blockIdx.x] = cnt[0]
 
 
+@cuda.jit(device=True)
+def _write_streams(i, keys, dims, unit, row0, out):
+    """Particle i's rows of every stream s into out[row0[s]:row0[s] + dims[s], i] (engine.setup.scene
+    ``_stream_values``, float64)."""
+    for s in range(keys.shape[0]):
+        dim = dims[s]
+        r = row0[s]
+        v0, v1, v2, v3 = _stream_values(keys[s], i, dim, unit[s])
+        out[r, i] = v0
+        if dim > 1:
+            out[r + 1, i] = v1
+        if dim > 2:
+            out[r + 2, i] = v2
+        if dim > 3:
+            out[r + 3, i] = v3
+
+
 @cuda.jit
 def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, keys, dims, unit, row0, pos, col0,
                out):
@@ -118,17 +135,7 @@ def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, ke
         pos[0, col0 + i] = x
         pos[1, col0 + i] = y
         pos[2, col0 + i] = z
-        for s in range(keys.shape[0]):
-            dim = dims[s]
-            r = row0[s]
-            v0, v1, v2, v3 = _stream_values(keys[s], i, dim, unit[s])
-            out[r, i] = v0
-            if dim > 1:
-                out[r + 1, i] = v1
-            if dim > 2:
-                out[r + 2, i] = v2
-            if dim > 3:
-                out[r + 3, i] = v3
+        _write_streams(i, keys, dims, unit, row0, out)
 
 
 @cuda.jit
@@ -248,17 +255,7 @@ def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots,
                 pos[0, col0 + i] = (cx * q + np.int64(slots[c, k, 0]) + 0.5) * unit
                 pos[1, col0 + i] = (cy * q + np.int64(slots[c, k, 1]) + 0.5) * unit
                 pos[2, col0 + i] = (cz * q + np.int64(slots[c, k, 2]) + 0.5) * unit
-                for s in range(keys.shape[0]):
-                    dim = dims[s]
-                    r = row0[s]
-                    v0, v1, v2, v3 = _stream_values(keys[s], i, dim, unit_rows[s])
-                    out[r, i] = v0
-                    if dim > 1:
-                        out[r + 1, i] = v1
-                    if dim > 2:
-                        out[r + 2, i] = v2
-                    if dim > 3:
-                        out[r + 3, i] = v3
+                _write_streams(i, keys, dims, unit_rows, row0, out)
                 i += 1
 
 

@@ -65,9 +65,16 @@ class CpuBackend(CpuLoop):
 
     @property
     def quat(self) -> np.ndarray:
-        """The orientations (N, 4), brought up to date first (the time loop leaves free spheres' turns pending)."""
+        """The orientations (N, 4) brought up to date, as a new array (the time loop leaves free spheres' turns
+        pending). The loop's own turns stay pending: a read — a snapshot, or a checkpoint taken on the wall clock —
+        never changes the bits of the trajectory that follows."""
+        if self.pending_turns[0] <= 0 or self._quat_arg is None:
+            return self._quat.copy()
+        kept = self._quat.copy(), self._lag.copy(), self.pending_turns.copy()
         self.settle_orientations()
-        return self._quat
+        settled = self._quat.copy()
+        self._quat[:], self._lag[:], self.pending_turns[:] = kept
+        return settled
 
     def set_contact(self, contact: ContactParams) -> None:
         """Switch contact constants (e.g. thermalisation -> cooling); keeps lists and springs."""
@@ -108,7 +115,7 @@ class CpuBackend(CpuLoop):
     def state(self, reuse=False) -> dict:
         """Copies of the state arrays in id order (``reuse`` is ignored: every call returns new arrays)."""
         return {"position": self.pos.copy(), "velocity": self.vel.copy(),
-                "angular_velocity": self.omega.copy(), "orientation": self.quat.copy()}
+                "angular_velocity": self.omega.copy(), "orientation": self.quat}
 
     def contacts(self):
         """(pairs (M,2) int64 ids, slots (M,5)) of the list slots in contact, for checkpoints.
