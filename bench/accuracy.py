@@ -473,8 +473,8 @@ def build_elastic(size: Size, backend: str, reps: int, tmp: Path, log, e_t: floa
                          "eps_mean": float(np.mean(eps)), "eps_sd": float(np.std(eps)),
                          "pred_drift": c * float(np.mean(eps)), "pred_sd": math.sqrt(2.0 * c / n) * float(np.std(eps)),
                          "pred_dt_drift": c * float(np.mean(d)), "pairs_apart": pe["apart"],
-                         "gas_end": end, "gas_end_se": end_se, "gas_end_seeds": ends, "gas_max": mx, "gas_max_se": mx_se,
-                         "steps": first["steps"], "device": first["device"],
+                         "gas_end": end, "gas_end_se": end_se, "gas_end_seeds": ends, "gas_max": mx,
+                         "gas_max_se": mx_se, "steps": first["steps"], "device": first["device"],
                          "max_overlap": float(np.max(first["max_overlap"]["value"]))})
             log(f"{name} dt=t_c/{frac} {prec}: per-collision error rms {rows[-1]['error']:.2e} (mean "
                 f"{rows[-1]['err_mean']:+.1e}); gas E_end/E0-1 {end:+.2e} +- {end_se:.1e}, max {mx:.2e}; "

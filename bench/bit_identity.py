@@ -72,7 +72,8 @@ def main(argv=None) -> int:
             out[name] = fingerprint(path)
             # the two halves apart: the trajectory (particles/) and the observable series (observables/),
             # whose sums a change of the device reduction order alone may change in the last bits
-            parts = [fingerprint(path, [d for d in DATASETS if d.startswith(g)]) for g in ("particles/", "observables/")]
+            parts = [fingerprint(path, [d for d in DATASETS if d.startswith(g)])
+                     for g in ("particles/", "observables/")]
             print(f"{name:20s} {out[name]}  trajectory {parts[0]}  observables {parts[1]}", flush=True)
     print(json.dumps(out))
     return 0

@@ -122,7 +122,8 @@ def case_specs(case: str, quick: bool) -> dict:
         e_t = 0.8 if "rough" in case else -1.0
         return {"path": "run", "specs": [sph(n2m, s2k, shape="ellipsoid", elongation=2.0, e_t=e_t)]}
     if case == "quickstart":
-        return {"path": "run", "specs": [{} if not quick else {"n_particles": 512, "t_end": 0.002, "thermalization": 0}]}
+        return {"path": "run",
+                "specs": [{} if not quick else {"n_particles": 512, "t_end": 0.002, "thermalization": 0}]}
     if case == "cpu-16x512":
         steps = 3000 if not quick else 60
         return {"path": "cpu-ratio", "specs": [sph(512, steps, snapshots=0, seed=i, backend="cpu") for i in range(16)]}

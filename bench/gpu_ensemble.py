@@ -81,7 +81,8 @@ def measure(k, n, phi, precision, multistep, reps, target_s):
     row = dict(k=k, n=n, phi=phi, precision=precision, loop="multistep" if multistep else "per-phase",
                steps=steps, reps=reps, cundall_aggregate=float(np.median(runs)), cundall_runs=runs,
                us_per_step=1e6 * k * n / float(np.median(runs)),
-               builds_per_step=(ens.builds - b0) / (reps * steps), launches_per_step=(ens.launches - l0) / (reps * steps),
+               builds_per_step=(ens.builds - b0) / (reps * steps),
+               launches_per_step=(ens.launches - l0) / (reps * steps),
                coop_blocks=ens._coop_blocks, bytes_per_particle_meminfo=(free0 - free1) / (k * n),
                contacts_per_particle=sum(o["contacts"] for o in obs) / (k * n), setup_s=setup)
     del ens

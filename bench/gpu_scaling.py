@@ -116,8 +116,8 @@ def measure(n, phi, precision, reps, target_s, make=scene, multistep=None, backe
     tot = sum(prof.values())
     frac = {k: v / tot for k, v in prof.items()}
     obs = be.observe()
-    row = dict(n=n, phi=phi, precision=precision, loop=loop, steps=steps, reps=reps, cundall_median=float(np.median(runs)),
-               cundall_runs=runs, frac=frac, kernel_ms_per_step=tot / psteps,
+    row = dict(n=n, phi=phi, precision=precision, loop=loop, steps=steps, reps=reps,
+               cundall_median=float(np.median(runs)), cundall_runs=runs, frac=frac, kernel_ms_per_step=tot / psteps,
                builds_per_step=builds_per_step, late_rebuilds=be.late_rebuilds, max_nb=be.max_nb,
                bytes_per_particle_arrays=be.device_bytes() / n, bytes_per_particle_meminfo=(free0 - free1) / n,
                contacts_per_particle=obs["contacts"] / n, setup_s=setup)

@@ -118,7 +118,8 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
         kept.append(self)
         init(self, *a, **k)
 
-    row = dict(n=n, precision=precision, phi=phi, steps=steps, start=start or "default", predicted_B_per_particle=pred.peak_bytes / n,
+    row = dict(n=n, precision=precision, phi=phi, steps=steps, start=start or "default",
+               predicted_B_per_particle=pred.peak_bytes / n,
                predicted_loop_B=pred.loop_bytes / n, predicted_start_B=pred.start_bytes / n,
                predicted_stride=pred.stride)
     cuda_ensemble.CudaEnsembleBase.__init__ = keep

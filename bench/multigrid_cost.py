@@ -40,7 +40,7 @@ from engine.loops.cpu import bin_particles, build_list
 from engine.loops.cpu_shared import SLOT
 from engine.neighbours.cells import cell_coords, neighbour_cell, neighbour_cell_count
 from engine.neighbours.multigrid import (bin_levels, build_levels_carry, count_candidates, grid_levels, level_arrays,
-                              main_level)
+                                         main_level)
 from engine.setup.scene import place_species
 
 

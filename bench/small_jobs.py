@@ -13,8 +13,8 @@ Up to three scenes, each on a fresh server and data directory:
    one last; printed: when the small one was done against the first of the ten.
 
 ``--lanes L ...`` runs only this instead: a CPU worker (it sees no GPU) with L lanes (DEMQ_WORKER_LANES,
-jobs/worker.py), for each L, ``--lane-jobs`` jobs of 512 spheres as one batch; printed: the time from the batch's submission until
-its last job is done, against the first L's, and the jobs' distinct end times.
+jobs/worker.py), for each L, ``--lane-jobs`` jobs of 512 spheres as one batch; printed: the time from the batch's
+submission until its last job is done, against the first L's, and the jobs' distinct end times.
 
 Times are the server's own (the job rows' created_at and finished_at). Nothing is asserted here: the figures go
 into docs/performance.md.
@@ -135,7 +135,8 @@ def many_small(out: Path, n_jobs: int, clients: int) -> dict:
     first = min(_t(j["created_at"]) for j in jobs)
     last = max(_t(j["finished_at"]) for j in jobs)
     submitted = max(_t(j["created_at"]) for j in jobs) - first
-    return {"submit_window_s": submitted, "jobs": n_jobs, "clients": clients, "states": sorted({j["state"] for j in jobs}),
+    return {"submit_window_s": submitted, "jobs": n_jobs, "clients": clients,
+            "states": sorted({j["state"] for j in jobs}),
             "median_latency_s": statistics.median(latency), "p90_latency_s": latency[int(0.9 * (len(latency) - 1))],
             "first_submit_to_last_done_s": last - first,
             "median_over_last": statistics.median(latency) / (last - first)}
@@ -174,7 +175,8 @@ def small_among_large(out: Path) -> dict:
     large_done = sorted(_t(by_id[i]["finished_at"]) for i in ids[:-1])
     t0 = min(_t(j["created_at"]) for j in jobs)
     return {"small_done_s": _t(small["finished_at"]) - t0, "first_large_done_s": large_done[0] - t0,
-            "last_large_done_s": large_done[-1] - t0, "small_before_all_large": _t(small["finished_at"]) < large_done[0],
+            "last_large_done_s": large_done[-1] - t0,
+            "small_before_all_large": _t(small["finished_at"]) < large_done[0],
             "states": sorted({j["state"] for j in jobs})}
 
 
@@ -231,19 +233,19 @@ def main(argv=None) -> int:
         return 0
     report = {"cpus": os.cpu_count(), "many_small": many_small(args.out, args.jobs, args.clients)}
     m = report["many_small"]
-    print(f"{args.jobs} jobs of 64 spheres from {args.clients} threads: median submit-to-done {m['median_latency_s']:.2f} s, "
-          f"90th percentile {m['p90_latency_s']:.2f} s; first submit to last done {m['first_submit_to_last_done_s']:.2f} s "
-          f"(median / last = {m['median_over_last']:.2f}); the submissions took {m['submit_window_s']:.2f} s; "
-          f"states {m['states']}")
+    print(f"{args.jobs} jobs of 64 spheres from {args.clients} threads: median submit-to-done "
+          f"{m['median_latency_s']:.2f} s, 90th percentile {m['p90_latency_s']:.2f} s; first submit to last done "
+          f"{m['first_submit_to_last_done_s']:.2f} s (median / last = {m['median_over_last']:.2f}); the submissions "
+          f"took {m['submit_window_s']:.2f} s; states {m['states']}")
     if args.lone:
         report["lone"] = lone = lone_jobs(args.out, args.lone)
         print(f"{args.lone} lone jobs of 64 spheres, one at a time: submit-to-done "
               f"{' '.join(f'{x:.2f}' for x in lone['latency_s'])} s (median {lone['median_latency_s']:.2f} s)")
     if not args.skip_large:
         report["small_among_large"] = s = small_among_large(args.out)
-        print(f"ten default jobs and one of 512 spheres in one batch: the small one done after {s['small_done_s']:.1f} s, "
-              f"the first default after {s['first_large_done_s']:.1f} s, the last after {s['last_large_done_s']:.1f} s; "
-              f"states {s['states']}")
+        print(f"ten default jobs and one of 512 spheres in one batch: the small one done after "
+              f"{s['small_done_s']:.1f} s, the first default after {s['first_large_done_s']:.1f} s, the last after "
+              f"{s['last_large_done_s']:.1f} s; states {s['states']}")
     (args.out / "small_jobs.json").write_text(json.dumps(report, indent=2))
     return 0
 

@@ -272,8 +272,9 @@ def write_report(out: Path, res: dict, cmd: str) -> str:
         for r in ell["rows"]:
             L.append(f"| {r['scene']} | {r['variant']} | {r['cundall']:.3g} | {r['vs_baseline']:.2f} |")
         e = ell["broad_phase_estimate"]
-        L += ["", "**Broad phase on/off: no switch exists** in engine/shapes/spheroid/cpu_backend.py (the bounding-sphere "
-              "test before the Perram-Wertheim solve is always on), so it cannot be measured off. Estimate, not "
+        L += ["", "**Broad phase on/off: no switch exists** in engine/shapes/spheroid/cpu_backend.py "
+              "(the bounding-sphere test before the Perram-Wertheim solve is always on), so it cannot be measured "
+              "off. Estimate, not "
               f"a measurement: the Verlet list holds {e['list_entries_per_step']} entries, of which the broad "
               f"phase rejects {e['rejected_per_step']} per step"]
         if "estimated_speedup" in e:

@@ -103,7 +103,8 @@ def cells() -> list[dict]:
     # dense starts
     spec("phi=0.3", gas(volume_fraction=0.3), "phi = 0.3")
     spec("phi=0.5", gas(volume_fraction=0.5, collisions=1.0), "phi = 0.5 (fcc start lattice, near its limit)")
-    spec("phi=0.6 N=256", gas(volume_fraction=0.6, collisions=1.0), "phi = 0.6 (fcc start lattice of 256 sites holds up to 0.74)")
+    spec("phi=0.6 N=256", gas(volume_fraction=0.6, collisions=1.0),
+         "phi = 0.6 (fcc start lattice of 256 sites holds up to 0.74)")
     # tiny systems
     spec("N=2", gas(n_particles=2, volume_fraction=0.008, box_length=2.0, collisions=0.5),
          "N = 2, phi = 0.008, L = 2 m")

@@ -14,8 +14,8 @@ groups run 2M before 8M):
     cp /tmp/vs_jaxmd/results.json /tmp/vs_jaxmd/results.md $OUT/; tar czf $OUT/logs.tgz -C /tmp/vs_jaxmd logs
 
 The gas: phi = 0.058 and 0.2 in a periodic 2 m cube, k_n = 1e8 N/m, density 2000 kg/m^3, velocity_rms = 2 m/s,
-dt = t_c/50 (demq's ``engine.setup.params.derive``), rounded to the nearest float32 (relative change < 6e-8) and given to
-both codes as the spec's ``dt``: ``jax_md.simulate.velocity_verlet`` casts its dt to float32 even with x64. Both
+dt = t_c/50 (demq's ``engine.setup.params.derive``), rounded to the nearest float32 (relative change < 6e-8) and given
+to both codes as the spec's ``dt``: ``jax_md.simulate.velocity_verlet`` casts its dt to float32 even with x64. Both
 codes start from demq's random start (``start = "random"``: random sequential addition, RSA, with Maxwellian
 velocities and spins; engine/setup/start_kind.py) at every N, with no thermalisation: a homogeneous gas at equilibrium
 speeds whose pair correlation at contact is RSA's, 1 + (5/3) phi against Carnahan-Starling's 1 + (5/2) phi + O(phi^2)

@@ -177,7 +177,8 @@ def run_lammps(workdir: Path, threads: int, n: int, steps: int) -> dict:
     log = (workdir / "log.lammps").read_text() if (workdir / "log.lammps").exists() else ""
     m = LOOP_RE.search(log)
     if proc.returncode != 0 or m is None:
-        raise RuntimeError(f"LAMMPS failed (rc {proc.returncode}): {(proc.stdout + proc.stderr)[-2000:]}\n{log[-2000:]}")
+        raise RuntimeError(f"LAMMPS failed (rc {proc.returncode}): {(proc.stdout + proc.stderr)[-2000:]}\n"
+                           f"{log[-2000:]}")
     loop, procs, lsteps, atoms = float(m.group(1)), int(m.group(2)), int(m.group(3)), int(m.group(4))
     if lsteps != steps or atoms != n:
         raise RuntimeError(f"LAMMPS ran {lsteps} steps with {atoms} atoms, expected {steps} and {n}")

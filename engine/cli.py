@@ -49,7 +49,8 @@ def read_spec_data(source: Optional[str], sets: Sequence[str]) -> dict:
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise SpecInputError(f"{where} is not valid JSON: {exc.msg} (line {exc.lineno}, column {exc.colno})") from None
+            raise SpecInputError(f"{where} is not valid JSON: {exc.msg} "
+                                 f"(line {exc.lineno}, column {exc.colno})") from None
         if not isinstance(data, dict):
             raise SpecInputError(f"{where} must hold a JSON object of spec keys, not a JSON {type(data).__name__}")
     for item in sets:

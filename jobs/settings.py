@@ -15,7 +15,8 @@ DEMQ_TABLE_PREFIX              (empty)                             Prefix of the
                                                                    several queues can share one database.
 DEMQ_TOKEN                     (unset: auth off)                   Bearer token required on every route but /healthz.
 DEMQ_MAX_PARTICLE_STEPS        ``1e12``                            Refuse (422) a spec whose N x steps exceeds this.
-DEMQ_MAX_MEMORY_BYTES          ``68719476736`` (64 GiB)            Refuse (422) a spec whose estimated memory exceeds this.
+DEMQ_MAX_MEMORY_BYTES          ``68719476736`` (64 GiB)            Refuse (422) a spec whose estimated memory
+                                                                   exceeds this.
 DEMQ_MAX_BODY_BYTES            ``1048576`` (1 MiB)                 Refuse (413) request bodies larger than this.
 DEMQ_MAX_BATCH_JOBS            ``1000``                            Refuse (422) a batch that expands to more jobs.
 DEMQ_MAX_ATTEMPTS              ``3``                               Claims of a job before a lost lease fails it.
@@ -202,7 +203,8 @@ class Settings:
         s = replace(self, data_dir=data_dir, database_url=url, worker_id=self.worker_id or _default_worker_id(),
                     token=self.token or None, engine_run_ensemble=ensemble)
         if not 0 < s.heartbeat_s < s.lease_s:
-            raise ValueError(f"heartbeat ({s.heartbeat_s} s) must be positive and shorter than the lease ({s.lease_s} s)")
+            raise ValueError(f"heartbeat ({s.heartbeat_s} s) must be positive and shorter than the lease "
+                             f"({s.lease_s} s)")
         if s.max_attempts < 1:
             raise ValueError(f"max_attempts = {s.max_attempts} must be >= 1")
         if s.standby not in STANDBY_VALUES:

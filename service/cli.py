@@ -62,7 +62,8 @@ def _add_worker_flags(p: argparse.ArgumentParser) -> None:
 def _add_client_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--url", help="service URL (DEMQ_URL, default http://127.0.0.1:8000)")
     p.add_argument("--token", help="bearer token (DEMQ_TOKEN)")
-    p.add_argument("--local", action="store_true", help="use the embedded SQLite queue in the data directory, no server")
+    p.add_argument("--local", action="store_true",
+                   help="use the embedded SQLite queue in the data directory, no server")
     _add_queue_flags(p)
 
 

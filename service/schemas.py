@@ -160,8 +160,8 @@ def _spec_keys_model(name: str, sweep: bool) -> type[BaseModel]:
         if sweep:
             schema["minProperties"] = 1
 
-    return create_model(name, __base__=KeyOrder, __config__=ConfigDict(extra="forbid", strict=True, json_schema_extra=schema_extra),
-                        **fields)
+    return create_model(name, __base__=KeyOrder,
+                        __config__=ConfigDict(extra="forbid", strict=True, json_schema_extra=schema_extra), **fields)
 
 
 SpecKeys = _spec_keys_model("SpecKeys", sweep=False)

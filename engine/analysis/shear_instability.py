@@ -55,8 +55,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from engine.setup.params import carnahan_starling_g, e_t_effective
 from engine.analysis.theory import collisions_per_particle, luding_coefficients, luding_ode, r_infinity
+from engine.setup.params import carnahan_starling_g, e_t_effective
 
 
 def effective_restitution(e_n: float, e_t: float) -> float:

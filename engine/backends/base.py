@@ -47,7 +47,8 @@ def gpu_total_memory() -> Optional[int]:
 
     first = os.environ.get("CUDA_VISIBLE_DEVICES", "0").split(",")[0].strip() or "0"
     try:
-        out = subprocess.run(["nvidia-smi", f"--id={first}", "--query-gpu=memory.total", "--format=csv,noheader,nounits"],
+        out = subprocess.run(["nvidia-smi", f"--id={first}", "--query-gpu=memory.total",
+                              "--format=csv,noheader,nounits"],
                              capture_output=True, text=True, timeout=10, check=True).stdout
         return int(float(out.split()[0]) * 2**20)    # MiB
     except (OSError, subprocess.SubprocessError, ValueError, IndexError):

@@ -26,9 +26,9 @@ Implementations:
   Its :meth:`SerialEnsemble.advance_each` takes a different number of steps per scene in one call
   (``independent_steps``), so the driver advances every scene in exactly the chunks a lone run would use
   (the velocity-Verlet half kicks at chunk ends make the last bits depend on the chunking).
-- ``engine.shapes.sphere.cuda_backend.CudaEnsemble`` (spheres) and ``engine.shapes.spheroid.cuda_backend.CudaEllipsoidEnsemble``
-  (ellipsoids) store the scenes back to back on the GPU and advance them with the same kernel launches
-  (packed ensemble).
+- ``engine.shapes.sphere.cuda_backend.CudaEnsemble`` (spheres) and
+  ``engine.shapes.spheroid.cuda_backend.CudaEllipsoidEnsemble`` (ellipsoids) store the scenes back to back on the GPU
+  and advance them with the same kernel launches (packed ensemble).
 
 :func:`make_ensemble` picks one by backend name, like :func:`engine.backends.base.make_backend` does for
 a single scene; :func:`resolve_backend` says which backend a name resolves to without building one.

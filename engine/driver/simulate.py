@@ -43,17 +43,17 @@ import numpy as np
 
 from engine.backends.base import ContactParams
 from engine.backends.ensemble import check_backend_name, make_ensemble, resolve_backend
+from engine.driver.startup import begin as begin_gpu_startup
 from engine.errors import Cancelled, SpecError
 from engine.output.h5md import H5MDWriter, partial_path, writer_process_ready
-from engine.setup.params import Q_SPHERE, Derived, derive, verlet_skin_radii, with_backend
-from engine.setup.precision import output_dtype
-from engine.setup.spec import SimulationSpec, load_spec
-from engine.setup.start_kind import device_start
-from engine.driver.startup import begin as begin_gpu_startup
 from engine.output.writers.checkpoints import Checkpointer
 from engine.output.writers.progress import Progress, ProgressWriter
 from engine.output.writers.records import ENERGY_RISE_TOLERANCE, RecordWriter, record
 from engine.output.writers.snapshots import FrameSlots, SnapshotWriter
+from engine.setup.params import Q_SPHERE, Derived, derive, verlet_skin_radii, with_backend
+from engine.setup.precision import output_dtype
+from engine.setup.spec import SimulationSpec, load_spec
+from engine.setup.start_kind import device_start
 
 #: the names this module has always offered (the writers moved to engine/output/writers/)
 __all__ = ["ENERGY_RISE_TOLERANCE", "Progress", "RunSummary", "SceneRun", "TIMINGS", "SHARED_TIMINGS", "contact_params",
@@ -206,7 +206,8 @@ class SceneRun:
         self.wall = 0.0       # wall seconds of this attempt's time loop (advances this scene took part in)
         self.steps_run = 0
         dissipative = spec.e_n < 1.0 or (not spec.smooth and spec.e_t < 1.0) or spec.friction is not None
-        # the output writers (engine/output/writers/): records with the energy check, snapshots, progress; checkpoints: ck
+        # the output writers (engine/output/writers/): records with the energy check, snapshots, progress;
+        # checkpoints: ck
         self.records = RecordWriter(p, self.n, dissipative,
                                     float(resume["prev_energy"]) if resume is not None else None)
         self.snapshots = SnapshotWriter(p.n_steps, spec.snapshots)
@@ -349,8 +350,8 @@ class SceneRun:
             self._target = min(self.step_done + self._chunk, p.n_thermalization_steps)
 
     def _record(self, step_done: int, t_sim: float, obs: dict) -> None:
-        """The records writer at a stop (engine/output/writers/records.py: the record when its trigger fires there, and the
-        energy check)."""
+        """The records writer at a stop (engine/output/writers/records.py: the record when its trigger fires there, and
+        the energy check)."""
         self.records.write(self.writer, step_done, t_sim, obs)
 
     def _counted(self, obs: dict) -> dict:
@@ -737,10 +738,10 @@ DEFER_MAX_BYTES = 64 << 20
 
 
 def _file_thread(ens) -> bool:
-    """Whether a scene's file work (frames, blocks of records, the close) goes to the I/O thread (engine/output/h5md.py),
-    overlapping the time loop: on the GPU, whose host thread mostly waits for the device. A CPU time loop holds
-    the core and the GIL; there the thread's work only waited for the GIL at every return to Python, and the
-    hand-overs cost more than the writes: a 64-sphere job took 66-83 ms writing in place against 94-109 ms through
+    """Whether a scene's file work (frames, blocks of records, the close) goes to the I/O thread
+    (engine/output/h5md.py), overlapping the time loop: on the GPU, whose host thread mostly waits for the device. A CPU
+    time loop holds the core and the GIL; there the thread's work only waited for the GIL at every return to Python, and
+    the hand-overs cost more than the writes: a 64-sphere job took 66-83 ms writing in place against 94-109 ms through
     the thread (2-core VM, 2026-11-28), and a CPU scene's frames are written in milliseconds beside its loop."""
     return ens.name == "cuda"
 

@@ -14,8 +14,8 @@ neighbour list (each pair stored for both partners) of fixed stride ``max_nb`` p
 slot of contact history per list entry (tangential spring, previous overlap and dashpot force), so every
 thread writes only its own particle (no atomics) and the spring of (j, i) is exactly minus the spring of
 (i, j). The list is built from linked cells of edge >= 2 a_max + L_v (or, when the radii span more than one
-level, from the multigrid cells of Skorych & Dosta (2022) Algorithm 1, engine/neighbours/multigrid.py) and rebuilt when any
-particle has moved more than L_v/2 since the last build (Skorych & Dosta 2022); the history of surviving pairs is
+level, from the multigrid cells of Skorych & Dosta (2022) Algorithm 1, engine/neighbours/multigrid.py) and rebuilt when
+any particle has moved more than L_v/2 since the last build (Skorych & Dosta 2022); the history of surviving pairs is
 carried into the new list. No allocation in the time loop: the scratch list is preallocated and grown (rarely) from
 Python when a build overflows it.
 
@@ -26,8 +26,8 @@ the bit (+0.0 forces and torques), so the trajectories are those of the full loo
 (tests/engine/test_cpu_fast_paths.py).
 
 Compile-time specialisation: the shape (one loop per shape, closures over its njit functions, cached on
-disk per shape by engine.numba_support.jitcache.cache_closure); for spheres ``k_t``/``torque`` = None (smooth spheres: no
-spring, no torque, no spin update), ``mu`` = None (no Coulomb limit) and ``quat`` = None (orientation not
+disk per shape by engine.numba_support.jitcache.cache_closure); for spheres ``k_t``/``torque`` = None (smooth spheres:
+no spring, no torque, no spin update), ``mu`` = None (no Coulomb limit) and ``quat`` = None (orientation not
 needed) are pruned by Numba when the functions are compiled for those argument types. Everything is cached
 on disk, so a new process (a job's child, a test run) loads the compiled code.
 """
@@ -48,7 +48,8 @@ from engine.loops.cpu_shared import SLOT, cpu_name, worst_overlap
 from engine.backends.protocol import Backend
 from engine.loops.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
 from engine.neighbours.cells import cell_coords_of, cell_index_of, distance2, offset_low, offset_span, wrap_cell
-from engine.neighbours.multigrid import bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays, main_level
+from engine.neighbours.multigrid import (bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays,
+                                         main_level)
 from engine.physics.contact import min_image
 from engine.physics.integrate import drift_wrap, kick
 
@@ -115,8 +116,8 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
     nn[i] receives the true neighbour count even when it exceeds the stride (the caller then grows
     the list and builds again); slots beyond the stride are not written.
 
-    The neighbour cells are those of engine.neighbours.cells.neighbour_cell, in its order k (offsets ox outermost, oy, oz
-    innermost, each ascending; 3, 2 or 1 per axis), so the candidates and the list come in the same order; they
+    The neighbour cells are those of engine.neighbours.cells.neighbour_cell, in its order k (offsets ox outermost, oy,
+    oz innermost, each ascending; 3, 2 or 1 per axis), so the candidates and the list come in the same order; they
     are walked as three nested offset loops whose wrap is a comparison, not a ``%``: neighbour_cell's three
     integer divisions and modulos by nc per cell (81 per particle) took most of a build (2.6 ms of the default
     job's 4096 spheres on one thread; about 200 builds per job).
@@ -198,10 +199,10 @@ def index_active(nn, active, n_active, force, torque):
 #: (engine.backends.ensemble.ONE_THREAD_BELOW, the same size). Why: each ``parallel=True`` region enters Numba's
 #: thread pool and meets its threads at its end even on one thread, two regions a step (kick-drift, forces); for a
 #: small scene that was most of the step: 64 spheres took 73 ns a particle-step in regions, 28 ns without (2-core
-#: VM, one thread, 2026-11-28, one-off study bench/cpu_small_scenes.py, in git history). From about a thousand particles on, the regions' loops are
-#: the faster ones (1024: 21.4 against 21.0 ns; 4096: 12.9 against 14.3 ns): numba compiles a region's body with
-#: its arrays marked as not aliased, which plain njit does not offer. The numbers are the same bits either way
-#: (tests/engine/test_threads.py).
+#: VM, one thread, 2026-11-28, one-off study bench/cpu_small_scenes.py, in git history). From about a thousand particles
+#: on, the regions' loops are the faster ones (1024: 21.4 against 21.0 ns; 4096: 12.9 against 14.3 ns): numba compiles a
+#: region's body with its arrays marked as not aliased, which plain njit does not offer. The numbers are the same bits
+#: either way (tests/engine/test_threads.py).
 SERIAL_LOOP_BELOW = 1024
 
 _loops: dict = {}
@@ -372,8 +373,8 @@ def make_forces(shape, parallel: bool = True):
 
 def make_run_steps(shape, parallel: bool = True):
     """The compiled time loop of a shape plug-in (engine/shapes/): one loop for every shape, specialised by the
-    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.numba_support.jitcache). With
-    ``parallel`` False every kernel it calls is its :func:`serial_twin`: the loop of the scenes below
+    shape's ``step`` and ``forces`` (closure constants) and cached on disk per shape (engine.numba_support.jitcache).
+    With ``parallel`` False every kernel it calls is its :func:`serial_twin`: the loop of the scenes below
     :data:`SERIAL_LOOP_BELOW` particles.
 
     ``run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
@@ -539,8 +540,9 @@ class CpuLoop(Backend):
     # ---- set-up -----------------------------------------------------------------------------------
 
     def _setup_cells(self, rmax: float, skin: float, rmin: float) -> None:
-        """The single linked-cell grid, and the multigrid cells (Skorych & Dosta 2022, Algorithm 1, engine/neighbours/multigrid.py)
-        when the size distribution spans more than one grid level (``self.mg``; None otherwise)."""
+        """The single linked-cell grid, and the multigrid cells (Skorych & Dosta 2022, Algorithm 1,
+        engine/neighbours/multigrid.py) when the size distribution spans more than one grid level (``self.mg``; None
+        otherwise)."""
         self.nc = nc = cell_grid(self.box, self.n, rmax, skin)
         self.inv_cell = nc / self.box
         self.mg = None

@@ -5,10 +5,10 @@ by factories in cuda_kernels.py, cuda_loop.py (with a shape's engine/shapes/<sha
 numba-cuda can cache closures, but it keys them by a pickle of the closure's cell contents, which here holds
 other dispatchers whose pickles are not stable across processes, so a fresh process would compile again.
 :func:`cache_kernels` gives every kernel of a set a cache keyed instead by (the hash of every engine source the
-kernels compile in, engine.numba_support.jitcache.source_digest; the factory's specialisation key; the kernel's name), stored in
-Numba's cache folder (engine/numba_support/jitcache.py). An edit to any engine source changes the key, so stale machine code is
-never loaded. The cache class and its contact with numba-cuda's internals live in engine/numba_support/numba_internals.py. Under
-the CUDA simulator nothing is cached.
+kernels compile in, engine.numba_support.jitcache.source_digest; the factory's specialisation key; the kernel's name),
+stored in Numba's cache folder (engine/numba_support/jitcache.py). An edit to any engine source changes the key, so
+stale machine code is never loaded. The cache class and its contact with numba-cuda's internals live in
+engine/numba_support/numba_internals.py. Under the CUDA simulator nothing is cached.
 """
 
 from __future__ import annotations

@@ -145,8 +145,8 @@ def _big_slot(shapes: dict) -> bool:
 
 
 def _page_locked(arrays) -> Optional[list]:
-    """Page-lock host arrays in place (engine.numba_support.numba_internals.page_lock: cuMemHostRegister): copies to and from
-    them run at pinned speed and asynchronously. The returned handles keep the registration until they are
+    """Page-lock host arrays in place (engine.numba_support.numba_internals.page_lock: cuMemHostRegister): copies to and
+    from them run at pinned speed and asynchronously. The returned handles keep the registration until they are
     collected, and keep their arrays alive. None under the simulator or when the driver refuses (the arrays stay
     pageable)."""
     if SIM:
@@ -158,9 +158,9 @@ def _page_locked(arrays) -> Optional[list]:
 
 
 def _touched_empty(shape, dtype) -> np.ndarray:
-    """np.empty(shape, dtype) with every page already faulted in, in pieces on up to 8 threads (engine/output/pieces.py):
-    a device copy into fresh pageable memory takes its page faults one at a time (218 MB: 0.06-0.08 s on the H200
-    host, 0.02 s into touched memory)."""
+    """np.empty(shape, dtype) with every page already faulted in, in pieces on up to 8 threads
+    (engine/output/pieces.py): a device copy into fresh pageable memory takes its page faults one at a time (218 MB:
+    0.06-0.08 s on the H200 host, 0.02 s into touched memory)."""
     a = np.empty(shape, dtype)
     page = max(1, 4096 // a.itemsize)
     map_pieces(a, lambda p: p.__setitem__(slice(None, None, page), 0))

@@ -23,7 +23,8 @@ sort never moves a particle into another scene's range); ``sc[i]`` is the scene 
     at the previous step or overlapping now) are copied to cj/chist before the list is rebuilt in place;
     every other slot restarts from zero history with the current gap as its previous overlap, which gives
     the same forces bit for bit (a pair apart at the previous step has zero spring, and its previous
-    dashpot force is never read). This keeps one list buffer instead of two (a smaller GPU memory footprint per particle).
+    dashpot force is never read). This keeps one list buffer instead of two (a smaller GPU memory footprint per
+    particle).
 Per-scene constants: spd (K, ND + the shape's columns) in the working precision, spf (K, NF) float64,
 spi (K, NI) int32; a scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or
 failed: a blow-up clears it on the device so a failing scene cannot disturb the others).
@@ -456,8 +457,8 @@ def list_origin(i, pos, x_ref, nn, sc, spd, spi):
 
 @cuda.jit(device=True)
 def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, nbr):
-    """The candidate test of every CUDA list build (engine/neighbours/cells.distance2): j (!= i) joins i's row at slot cnt
-    when |r_ij| < R_i + R_j + L_v (a row longer than the stride is only counted). Returns (the new count, the
+    """The candidate test of every CUDA list build (engine/neighbours/cells.distance2): j (!= i) joins i's row at slot
+    cnt when |r_ij| < R_i + R_j + L_v (a row longer than the stride is only counted). Returns (the new count, the
     squared distance; 0 for j = i)."""
     if j == i:
         return cnt, half - half

@@ -156,8 +156,8 @@ class LaunchCache:
 
     @staticmethod
     def _prepare(dispatcher, config: tuple, args: tuple):
-        """The cache entry of one launch (engine.numba_support.numba_internals.prepare_launch), or None where the cache must not be
-        used for this kernel."""
+        """The cache entry of one launch (engine.numba_support.numba_internals.prepare_launch), or None where the cache
+        must not be used for this kernel."""
         from engine.numba_support.numba_internals import prepare_launch
 
         return prepare_launch(dispatcher, config, args, _SCALAR)

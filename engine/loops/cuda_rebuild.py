@@ -165,8 +165,8 @@ class ListBuilds:
         self.builds += 1
 
     def _setup_multigrid(self, systems, contacts) -> None:
-        """Grid levels per scene (Skorych & Dosta 2022, Algorithm 1, :mod:`engine.neighbours.multigrid`) when some scene's size
-        spread needs more than one; monodisperse ensembles keep the single-grid build."""
+        """Grid levels per scene (Skorych & Dosta 2022, Algorithm 1, :mod:`engine.neighbours.multigrid`) when some
+        scene's size spread needs more than one; monodisperse ensembles keep the single-grid build."""
         self.multigrid = False
         if self.uniform or not isinstance(systems[0], SphereSystem) or not MULTIGRID:
             return

@@ -27,8 +27,8 @@ class ObserveSums:
     :meth:`_observables` and :meth:`_wait_stream`."""
 
     def _init_observe(self) -> None:
-        self._sums = None    # the observe kernel's accumulator and host buffer (_ObserveSlot), made at the first observe
-        self._rows = None    # the force passes' rows of sums (_ObserveSlot of RECORD_ROWS rows), made at first use
+        self._sums = None   # the observe kernel's accumulator and host buffer (_ObserveSlot), made at the first observe
+        self._rows = None   # the force passes' rows of sums (_ObserveSlot of RECORD_ROWS rows), made at first use
         self._observed_at = None    # the step whose sums the last force pass left in _last_row, or None
         self._last_row = None
 

@@ -1,8 +1,9 @@
 """Large starts drawn on the GPU (a job's time to result).
 
 A GPU job of a large one-size sphere start (engine.setup.scene.device_start) does not draw its start on the host and
-upload it: the sphere's CUDA ensemble (engine/shapes/sphere/cuda_backend.py) draws it into its own state arrays when it is built, from an
-``engine.setup.scene.StartDraw``. The draws are the host's (engine.setup.scene._draw_start), in the same order:
+upload it: the sphere's CUDA ensemble (engine/shapes/sphere/cuda_backend.py) draws it into its own state arrays when it
+is built, from an ``engine.setup.scene.StartDraw``. The draws are the host's (engine.setup.scene._draw_start), in the
+same order:
 
 1. the site selection (the n of the n_sites fcc sites whose 64-bit key is smallest): a histogram of the keys'
    leading bits (:func:`site_hist`), the keys of the bucket that holds the n-th smallest gathered with each
@@ -38,7 +39,7 @@ from numba import cuda
 from engine.setup.cell_rsa import RSA_Q, cell_pass, cut_of, final_key, kept, pass_key, run_rounds, slot_index
 from engine.loops.cuda_cache import SIM, cache_kernels
 from engine.setup.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw, _bits,
-                          _site_position, _stream_values, stream_mean, stream_scale)
+                                _site_position, _stream_values, stream_mean, stream_scale)
 
 #: sites per block of the selection and placement kernels (a compile-time size of their shared arrays)
 TPB = 32 if SIM else 128
@@ -142,7 +143,8 @@ def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, ke
 def block_moments(out, means, skip, square, sums):
     """One thread per (row r, block of _BLOCK particles), rows with skip[r] left alone. square = 0: sums[r, block]
     = the sum of out[r, i] over the block, in particle order (as engine.setup.scene._draw_start's); square = 1: the row
-    is centred, out[r, i] -= means[r], and sums[r, block] = the sum of the squares (engine.setup.scene._centre_and_square)."""
+    is centred, out[r, i] -= means[r], and sums[r, block] = the sum of the squares
+    (engine.setup.scene._centre_and_square)."""
     g = cuda.grid(1)
     nb = sums.shape[1]
     n = out.shape[1]
@@ -189,8 +191,8 @@ else:
 
 @cuda.jit
 def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spass, full):
-    """Pass p (its cells: the m of colour ``colour``) of a random start: engine.setup.cell_rsa.cell_pass per cell; full[0]
-    counts the cells that lacked a slot."""
+    """Pass p (its cells: the m of colour ``colour``) of a random start: engine.setup.cell_rsa.cell_pass per cell;
+    full[0] counts the cells that lacked a slot."""
     for t in range(cuda.grid(1), m, cuda.gridsize(1)):
         if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, _raw(counts), _raw(slots), _raw(spass)):
             cuda.atomic.add(full, 0, 1)
@@ -301,8 +303,8 @@ def _cut(d: StartDraw, site_key, stream, cap: int) -> tuple:
 
 def _random_centres(d: StartDraw, col0: int, pos, keys, dims, unit, row0, out, stream, cap: int) -> None:
     """A random start's centres into pos[:, col0:col0 + n] and its stream rows into out: the rounds of
-    engine/setup/cell_rsa.py on the device, the last round's cut by a histogram of its removal keys and a host sort of one
-    bucket (as :func:`_cut`), then one thread per cell places its spheres."""
+    engine/setup/cell_rsa.py on the device, the last round's cut by a histogram of its removal keys and a host sort of
+    one bucket (as :func:`_cut`), then one thread per cell places its spheres."""
     g = d.rsa
     pos_key, count_key, trim_key = (np.uint64(k) for k in d.rsa_keys())
     cdf = cuda.to_device(np.array(g.cdf, np.uint64), stream=stream)
@@ -383,7 +385,8 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
         place_draw[len(first), TPB, stream](
             site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream), d.m, d.a, d.half_gap, d.box,
             place_key, keys_d, dims_d, unit_d, row0_d, pos, np.int64(col0), out)
-    # the streams' means and scales, from block sums taken as the host's are (engine.setup.scene.stream_mean, stream_scale)
+    # the streams' means and scales, from block sums taken as the host's are (engine.setup.scene.stream_mean,
+    # stream_scale)
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     skip = np.repeat(unit, dims)
     skip_d = cuda.to_device(skip, stream=stream)

@@ -2,7 +2,8 @@
 
 Two loops, chosen by size (``multistep``): many steps per cooperative launch (small scenes and ensembles of them),
 returning to the host only at the end of the call or when a rebuild is due; or one launch per phase (large scenes),
-the rebuild decided from the previous step's status already copied to pinned memory. A scene that blows up is stopped on the device and reported alone.
+the rebuild decided from the previous step's status already copied to pinned memory. A scene that blows up is stopped on
+the device and reported alone.
 """
 
 from __future__ import annotations
@@ -435,9 +436,9 @@ class TimeLoop:
 
     def _status_copy(self, slot: int) -> None:
         """The status words to pinned slot ``slot`` after what the stream holds, and the slot's event (through
-        engine.numba_support.numba_internals.async_copy_and_record on a GPU: numba-cuda's copy and record cost about as much host
-        time as a step of 2M spheres takes on an H100). Slots 0 and 1: the per-phase loop's steps; 2: a wait-now
-        read (:meth:`_read_status_now`)."""
+        engine.numba_support.numba_internals.async_copy_and_record on a GPU: numba-cuda's copy and record cost about as
+        much host time as a step of 2M spheres takes on an H100). Slots 0 and 1: the per-phase loop's steps; 2: a
+        wait-now read (:meth:`_read_status_now`)."""
         if self._status_copiers is None:
             if SIM:
                 self._status_copiers = [

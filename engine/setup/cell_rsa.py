@@ -14,9 +14,9 @@ of the attempts within a pass of one colour and between colours (the result at p
 sequential start in tests/engine/test_cell_rsa.py: the pair correlation at contact and the neighbour counts).
 
 Exactly the same spheres on the host and the device: every draw is a counter-based SplitMix64 value of (pass, cell,
-attempt) (engine/setup/counter_rng.py ``_bits``), the attempt counts come from integer thresholds, and a centre is an integer
-position on a grid of RSA_Q points a cell edge (box / (nc RSA_Q) apart), tested against the others in exact int64
-arithmetic: (dx^2 + dy^2 + dz^2) >= ceil((d / unit)^2). Particles are numbered in cell order, then in the order a
+attempt) (engine/setup/counter_rng.py ``_bits``), the attempt counts come from integer thresholds, and a centre is an
+integer position on a grid of RSA_Q points a cell edge (box / (nc RSA_Q) apart), tested against the others in exact
+int64 arithmetic: (dx^2 + dy^2 + dz^2) >= ceil((d / unit)^2). Particles are numbered in cell order, then in the order a
 cell kept them. Units: positions in the box's unit (m).
 """
 

@@ -49,8 +49,8 @@ from engine.setup.cell_rsa import RSA_GAP, CellRsa, place_random
 from engine.setup.counter_rng import _DRAWS, _GOLDEN, _M1, _M2, _U, _bits, _mix64, _normal_pair, _uniform  # noqa: F401
 from engine.setup.params import Derived, species_table
 from engine.physics.rotation import quat_unit
-from engine.setup.start_kind import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, RANDOM,  # noqa: F401
-                               SEQUENTIAL_GENERATOR, device_start, start_generator, start_protocol)
+from engine.setup.start_kind import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN,  # noqa: F401
+                                     RANDOM, SEQUENTIAL_GENERATOR, device_start, start_generator, start_protocol)
 
 
 def fcc_sites(n: int, box: float) -> tuple[np.ndarray, float]:
@@ -372,7 +372,8 @@ def load_parallel_start(spec, p: Derived) -> bool:
     streams, _ = parallel_start_streams(spec, p)
     # unplaced: the same compiled calls with the same argument types (a site count of 0 selects no site)
     _, drawn = _parallel_draws(n, spec.seed, streams)
-    if spec.shape == "sphere" and start_protocol(spec) == RANDOM:     # the random start's rounds (engine/setup/cell_rsa.py)
+    if spec.shape == "sphere" and start_protocol(spec) == RANDOM:     # the random start's rounds
+                                                                      # (engine/setup/cell_rsa.py)
         StartDraw.of(n, spec.seed, streams, 20.0, 1.0, RANDOM).on_host()
     if spec.shape == "ellipsoid":
         w_a = drawn[3] if not spec.smooth else np.zeros((n, 1))
@@ -404,7 +405,8 @@ def parallel_start_streams(spec, p: Derived) -> tuple:
 # ---- large lattice starts in parallel ------------------------------------------------------------------
 
 STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION, STREAM_SPIN_AXIS = range(6)
-#: the random start's draws (engine/setup/cell_rsa.py): candidate centres, attempt counts, the last round's removal order
+#: the random start's draws (engine/setup/cell_rsa.py): candidate centres, attempt counts, the last round's removal
+#: order
 STREAM_RSA_CENTRES, STREAM_RSA_ATTEMPTS, STREAM_RSA_REMOVAL = range(6, 9)
 _BLOCK = 1 << 14     # particles per block of the deterministic sums
 

@@ -36,8 +36,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from engine.setup.params import Q_SPHERE
 from engine.analysis.theory import collisions_per_particle, luding_coefficients, luding_ode, luding_per_collision
+from engine.setup.params import Q_SPHERE
 from engine.validation.sonine import _dsmc, collision_normal, constant_restitution_impulse
 
 #: tau values of the comparison table

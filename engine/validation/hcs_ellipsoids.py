@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.driver.simulate import run
 from engine.output.h5md import read_parameters, read_series
 from engine.setup.params import derive
-from engine.driver.simulate import run
 from engine.setup.spec import SimulationSpec
 from engine.validation import run_tasks
 

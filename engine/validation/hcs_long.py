@@ -46,13 +46,13 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.output.h5md import read_series
 from engine.analysis.hydro_modes import file_mode_series, structure_factor_cs
-from engine.setup.params import derive, e_t_effective
 from engine.analysis.shear_instability import (onset_tau, predicted_mode_energy, predicted_unstable_excess,
-                                      shear_stability)
-from engine.setup.spec import SimulationSpec
+                                               shear_stability)
 from engine.analysis.theory import luding_coefficients, luding_ode, tau_factor
+from engine.output.h5md import read_series
+from engine.setup.params import derive, e_t_effective
+from engine.setup.spec import SimulationSpec
 from engine.validation.hcs_spheres import measure_run
 
 CASES = (0.8, 0.6)

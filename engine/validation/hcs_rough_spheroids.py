@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.analysis.theory import r_infinity
 from engine.setup.params import derive, e_t_effective
 from engine.setup.spec import SimulationSpec
-from engine.analysis.theory import r_infinity
 from engine.validation import hcs_ellipsoids, hcs_spheres
 
 XIS = (1.5, 2.0, 3.0)
@@ -183,8 +183,10 @@ def main(out_dir="reports/hcs-rough-spheroids", seeds: int = 8, quick: bool = Fa
              "| gas | max dev T/T0 from the ODE | max dev R/T0 | tau range |", "|---|---|---|---|"]
     for key in ("spheres", "spheroids"):
         c = limit[key]
-        lines.append(f"| {key} | {100 * c['max_dev_T']:.2f} % | {100 * c['max_dev_R']:.2f} % | 0 - {c['tau_end']:.2f} |")
-    lines += ["", f"Spheroids vs spheres, largest relative difference of the means: T {100 * limit['max_diff_T']:.2f} %, "
+        lines.append(f"| {key} | {100 * c['max_dev_T']:.2f} % | {100 * c['max_dev_R']:.2f} % | "
+                     f"0 - {c['tau_end']:.2f} |")
+    lines += ["", "Spheroids vs spheres, largest relative difference of the means: "
+              f"T {100 * limit['max_diff_T']:.2f} %, "
               f"R {100 * limit['max_diff_R']:.2f} %; within 3 SE + 0.5 % at every record: "
               f"**{'yes' if limit['pair_within_scatter'] else 'NO'}**. Pass (spheroids within 3 % of the ODE and of "
               f"the spheres within the scatter): **{'yes' if ok else 'NO'}**.", "",

@@ -203,7 +203,8 @@ def main(out_dir="reports/hcs-spheres", seeds: int = 4, quick: bool = False, bac
         f"Backend {meta['backend']} ({meta['device']}), {seeds} seeds per case, "
         f"{'reduced CI scene' if quick else 'Hidalgo et al. (2013) scene'}: "
         f"N = {meta['spec']['n_particles']}, phi = {meta['spec']['volume_fraction']}, "
-        f"velocity_rms = {meta['spec']['velocity_rms']} m/s, the default start ({derive(make(CASES[0][0], 0, backend)).start}, "
+        f"velocity_rms = {meta['spec']['velocity_rms']} m/s, "
+        f"the default start ({derive(make(CASES[0][0], 0, backend)).start}, "
         f"{derive(make(CASES[0][0], 0, backend)).thermalization:g} collisions/particle of thermalisation).", "",
         "| e_n | e_t | e_n measured | e_t,eff (Eq. 4 model) | e_t measured | tau range | max dev T/T0 | "
         "max dev R/T0 | vs nominal e_t: T, R | largest overlap / a |",

@@ -465,13 +465,15 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
         f"Command: `{cmd}`  ", f"Backend {meta['backend']} ({meta['device']}); DEM {t_dem:.0f} s, DSMC {t_dsmc:.0f} s.",
         "",
         f"Scene: N = {spec0.n_particles} spheres per run, phi = {spec0.volume_fraction}, L = {spec0.box_length} m, "
-        f"velocity_rms = {spec0.velocity_rms} m/s, k_n = {spec0.stiffness:g} N/m, dt = t_c/50, thermalisation 1 elastic "
+        f"velocity_rms = {spec0.velocity_rms} m/s, k_n = {spec0.stiffness:g} N/m, "
+        "dt = t_c/50, thermalisation 1 elastic "
         f"collision per particle (Maxwellian start), {seeds} seeds per case. a2 per run = mean over the records "
         f"with s in [{s_skip:g}, {s_end:g}] collisions per particle (s from the measured T(t) and the Enskog "
         f"collision frequency); table: mean over seeds ± standard error (s/sqrt(K)). Cumulants in the energy "
         f"form of engine/physics/sonine.py (lab frame = centre-of-mass frame: zero total momentum).", "",
         "## Smooth spheres (e_t = -1)", "",
-        "| e_n | a2 DEM | a2 DSMC (Boltzmann) | (DEM - DSMC) / sigma | a2 van Noije & Ernst | a2 at s = 0 (Maxwellian: 0 ± "
+        "| e_n | a2 DEM | a2 DSMC (Boltzmann) | (DEM - DSMC) / sigma | a2 van Noije & Ernst | "
+        "a2 at s = 0 (Maxwellian: 0 ± "
         f"{a2_sampling_sigma(rows[0]['n'], 3) / math.sqrt(seeds):.4f}) | largest overlap / a | pass |",
         "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -495,7 +497,8 @@ def main(out_dir="reports/sonine", seeds: int = 64, quick: bool = False, backend
                 f"{d['a2']:+.4f} ± {d['a2_err']:.4f} | {r['a2_rot']:+.4f} ± {r['a2_rot_err']:.4f} | "
                 f"{d['a2_rot']:+.4f} ± {d['a2_rot_err']:.4f} | {r['a11']:+.4f} ± {r['a11_err']:.4f} | "
                 f"{d['a11']:+.4f} ± {d['a11_err']:.4f} | {r['T_ratio']:.4f} ± {r['T_ratio_err']:.4f} | "
-                f"{d['T_ratio']:.4f} ± {d['T_ratio_err']:.4f} | {maxwellian_temperature_ratio(r['e_n'], r['beta_dsmc']):.4f} |")
+                f"{d['T_ratio']:.4f} ± {d['T_ratio_err']:.4f} | "
+                f"{maxwellian_temperature_ratio(r['e_n'], r['beta_dsmc']):.4f} |")
     tables_end = len(lines)
     lines += ["", "![a2](sonine.png)" if no_picture is None else
               "(No picture: matplotlib was not installed; `pip install 'demq[plots]'` draws sonine.png.)", "",

@@ -136,7 +136,8 @@ def _batch_context(store, batch_id: str) -> dict:
     keys = views.varying_keys([j.spec for j in jobs])
     done = sum(j.state == "done" for j in jobs)
     return {"batch_id": batch_id, "jobs": jobs, "keys": keys, "done": done,
-            "live_count": sum(views.live(j) for j in jobs), "base": {k: v for k, v in jobs[0].spec.items() if k not in keys}}
+            "live_count": sum(views.live(j) for j in jobs),
+            "base": {k: v for k, v in jobs[0].spec.items() if k not in keys}}
 
 
 @router.get("/ui/batches/{batch_id}", response_class=HTMLResponse)

@@ -130,7 +130,8 @@ def spec_from_form(form: dict[str, str]) -> tuple[dict, dict[str, str]]:
             try:
                 spec[f.name] = json.loads(raw)
             except ValueError as exc:
-                errors[f.name] = f"not valid JSON ({exc.msg} at character {exc.pos}); give a JSON list or leave it empty"
+                errors[f.name] = (f"not valid JSON ({exc.msg} at character {exc.pos}); "
+                                  "give a JSON list or leave it empty")
         else:
             spec[f.name] = raw
     return spec, errors

@@ -232,7 +232,8 @@ def test_docs_table_lists_every_setting_and_every_variable_deploy_uses():
     used = set()
     for path in [COMPOSE, SBATCH, UNIT_ENV, *UNITS, *DOCKERFILES]:
         used |= set(re.findall(r"\b((?:DEMQ|NUMBA|CUDA|XDG|SLURM)_[A-Z_]+)", path.read_text()))
-    used -= {"SLURM_ARRAY_JOB_ID", "SLURM_ARRAY_TASK_ID", "SLURM_JOB_ID", "SLURM_CPUS_PER_TASK", "CUDA_IMAGE", "NUMBA_CUDA_EXTRA"}  # build args, Slurm-set
+    used -= {"SLURM_ARRAY_JOB_ID", "SLURM_ARRAY_TASK_ID", "SLURM_JOB_ID", "SLURM_CPUS_PER_TASK", "CUDA_IMAGE",
+             "NUMBA_CUDA_EXTRA"}  # build args, Slurm-set
     assert not used - table, f"variables used in deploy/ but not in the table: {used - table}"
     for needle in ("Scaling out", "demq worker --exit-when-idle", "<data_dir>/results/<job_id>.h5",
                    "checkpoints/<job_id>/", "SIGTERM", "docker compose -f deploy/compose.yaml",

@@ -113,7 +113,8 @@ def test_workstation_serve_sigterm_releases_the_job_and_restart_resumes_it(tmp_p
     step = wait_for(lambda: _mid_run_with_checkpoint(store, job_id, ckpt), "a checkpoint past step 0",
                     {"serve-1": serve})
     t0 = time.monotonic()
-    assert procs.stop("serve-1", timeout_stop) in (0, -signal.SIGTERM)  # uvicorn re-raises SIGTERM after a clean shutdown
+    assert procs.stop("serve-1", timeout_stop) in (0, -signal.SIGTERM)  # uvicorn re-raises SIGTERM after a clean
+                                                                        # shutdown
     assert time.monotonic() - t0 < min(timeout_stop, 30)
     assert "Application shutdown complete." in procs.log("serve-1")
     released = store.get(job_id)

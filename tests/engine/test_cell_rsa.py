@@ -1,5 +1,5 @@
-"""The parallel random start (engine/setup/cell_rsa.py, random sequential addition in cell rounds): exactly N spheres, none
-overlapping, deterministic from the seed and independent of the slots per cell, and the structure of the sequential
+"""The parallel random start (engine/setup/cell_rsa.py, random sequential addition in cell rounds): exactly N spheres,
+none overlapping, deterministic from the seed and independent of the slots per cell, and the structure of the sequential
 random start (tests/engine/test_start.py checks that one against Carnahan-Starling)."""
 
 from __future__ import annotations

@@ -24,15 +24,15 @@ import numpy as np
 import pytest
 
 from engine.backends.ensemble import ONE_THREAD_BELOW, ThreadChoice
-from engine.neighbours.cells import cell_coords_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.driver.simulate import contact_params
 from engine.loops.cpu import bin_particles, build_list, index_active, make_forces, make_step
+from engine.neighbours.cells import cell_coords_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.neighbours.multigrid import carry_slot
 from engine.setup.params import derive
 from engine.setup.scene import initial_ellipsoids
+from engine.setup.spec import SimulationSpec
 from engine.shapes.sphere.cpu_backend import CpuBackend
 from engine.shapes.spheroid.cpu_backend import CpuEllipsoidBackend
-from engine.driver.simulate import contact_params
-from engine.setup.spec import SimulationSpec
 from tests.engine.scenes import gas
 
 

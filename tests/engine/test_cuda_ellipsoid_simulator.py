@@ -173,7 +173,8 @@ def _float32(worst: dict) -> None:
     a, b = cpu.state(), gpu.state()
     dx = float(np.max(np.abs(a["position"] - b["position"])) / system.box_length)
     ca, cb = cpu.observe(), gpu.observe()
-    print(f"float32 GPU vs float64 CPU after 40 steps: max |dx|/L {dx:.2e}, contacts {ca['contacts']} / {cb['contacts']}")
+    print(f"float32 GPU vs float64 CPU after 40 steps: max |dx|/L {dx:.2e}, "
+          f"contacts {ca['contacts']} / {cb['contacts']}")
     assert dx < 1e-5 and cb["contacts"] > 0
     assert abs(cb["kinetic_energy_translational"] / ca["kinetic_energy_translational"] - 1) < 1e-3
 
@@ -292,8 +293,8 @@ def _cpu_rotation_through_law(cpu) -> None:
         spy = _spy(kernels, "spheroid_rotation") if python else None
         try:
             (kernels.rotate.py_func if python else kernels.rotate)(
-                0, 0.0, cpu.pos, cpu.vel, spin, quat, torque, (torque[0, 0], torque[0, 1], torque[0, 2]), cpu._spin_inv, cpu.x_ref, ext, cpu.dt, cpu.dt * 0.5,
-                cpu.dt, cpu.box_c, cpu.inv_box, cpu.half, 0)
+                0, 0.0, cpu.pos, cpu.vel, spin, quat, torque, (torque[0, 0], torque[0, 1], torque[0, 2]),
+                cpu._spin_inv, cpu.x_ref, ext, cpu.dt, cpu.dt * 0.5, cpu.dt, cpu.box_c, cpu.inv_box, cpu.half, 0)
         finally:
             kernels.spheroid_rotation = law.spheroid_rotation
         out.append((spin, quat, ext[2]))

@@ -2,7 +2,8 @@
 
 The oracle (tests/engine/test_ellipsoid_oracle.py) is a different method in higher precision:
 bisection on the primal tangency curve in 80-bit longdouble. The full 10^4-sample error table is
-written by the one-off study bench/ellipsoid_geometry_accuracy.py (in the git history before the bench/ pruning); here a CI-sized sample of 2000 asserts the bounds.
+written by the one-off study bench/ellipsoid_geometry_accuracy.py (in the git history before the bench/ pruning); here a
+CI-sized sample of 2000 asserts the bounds.
 Also: hand-made cases with closed forms (docs/physics.md §2.6), the quadric and quartic of Rubio-Largo et al. (2015),
 its tetrahedron construction, and the cases where its Delta/P overlap test fails (docs/physics.md §2.2).
 """

@@ -109,5 +109,6 @@ def test_rotation_covariance(p, qc):
     # 1e-7 as for translations: the overlap comes from 1 - W0^2 and carries ~eps b/delta relative
     # rounding, which reaches a few 1e-9 for the smallest overlaps drawn here (seen: 3e-9)
     tol = 1e-7
-    assert close(h[:3], rm @ g[:3], f, tol) and close(h[3:6], rm @ g[3:6], f, tol) and close(h[6:9], rm @ g[6:9], f, tol)
+    assert (close(h[:3], rm @ g[:3], f, tol) and close(h[3:6], rm @ g[3:6], f, tol) and
+            close(h[6:9], rm @ g[6:9], f, tol))
     assert math.isclose(h[9], g[9], rel_tol=1e-8, abs_tol=1e-14)

@@ -8,9 +8,9 @@ import pytest
 
 from engine.backends.ensemble import SerialEnsemble, make_ensemble, resolve_backend
 from engine.driver.ensemble import run_ensemble
+from engine.driver.simulate import TIMINGS, RunSummary, SceneRun, drive, run
 from engine.errors import BackendUnavailable, Cancelled, InstabilityError, SpecError
 from engine.output.h5md import partial_path
-from engine.driver.simulate import TIMINGS, RunSummary, SceneRun, drive, run
 from engine.setup.spec import SimulationSpec
 
 # tests/engine/test_simulate.py's tiny scene, shortened

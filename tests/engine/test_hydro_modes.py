@@ -8,7 +8,7 @@ import pytest
 
 from engine.analysis.hydro_modes import SHEAR_MODES, file_mode_series, frame_modes, mode_amplitudes, structure_factor_cs
 from engine.analysis.shear_instability import (effective_restitution, eta_star, predicted_mode_energy,
-                                      predicted_unstable_excess, shear_stability, zeta_star)
+                                               predicted_unstable_excess, shear_stability, zeta_star)
 
 L = 2.0
 

@@ -1,4 +1,5 @@
-"""Multigrid linked cells (Skorych & Dosta 2022, §2.2, Algorithm 1; engine/neighbours/multigrid.py) against brute force."""
+"""Multigrid linked cells (Skorych & Dosta 2022, §2.2, Algorithm 1; engine/neighbours/multigrid.py) against brute
+force."""
 
 import math
 

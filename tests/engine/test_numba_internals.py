@@ -1,6 +1,6 @@
-"""engine/numba_support/numba_internals.py against the installed numba and numba-cuda: every private internal the engine relies on
-is still there, with the same parameters, and does what the engine assumes. A failure names the internal and the
-installed versions: the engine then silently compiles in every process (or worse), so this is where it must show.
+"""engine/numba_support/numba_internals.py against the installed numba and numba-cuda: every private internal the engine
+relies on is still there, with the same parameters, and does what the engine assumes. A failure names the internal and
+the installed versions: the engine then silently compiles in every process (or worse), so this is where it must show.
 
 The CPU parts run for real (a function compiled into a cache in tmp_path, loaded back by a second dispatcher). The
 CUDA cache's key and load need a device (codegen.magic_tuple() asks the driver), and the CUDA simulator caches
@@ -29,7 +29,8 @@ def _versions() -> str:
         cuda_version = numba_cuda.__version__
     except ImportError:
         cuda_version = "not installed"
-    return (f"installed numba {numba.__version__}, numba-cuda {cuda_version}; engine/numba_support/numba_internals.py was written "
+    return (f"installed numba {numba.__version__}, numba-cuda {cuda_version}; "
+            "engine/numba_support/numba_internals.py was written "
             f"for numba {ni.NUMBA_VERSION}, numba-cuda {ni.NUMBA_CUDA_VERSION}")
 
 
@@ -197,9 +198,9 @@ def test_a_kernel_gets_the_stable_key_cache_and_its_key_keeps_numba_cudas_layout
 
 @cuda_only
 def test_the_driver_bindings_of_the_status_copy_are_there():
-    """engine.numba_support.numba_internals.async_copy_and_record and async_copy_device call cuda-python's driver with the handles
-    of numba-cuda's stream and event and device arrays' pointers (the copies themselves are checked on a GPU,
-    tests/gpu/test_cuda_gpu.py)."""
+    """engine.numba_support.numba_internals.async_copy_and_record and async_copy_device call cuda-python's driver with
+    the handles of numba-cuda's stream and event and device arrays' pointers (the copies themselves are checked on a
+    GPU, tests/gpu/test_cuda_gpu.py)."""
     from cuda.bindings import driver as cu
     from numba.cuda.cudadrv import devicearray, driver
 
@@ -217,9 +218,9 @@ def test_the_driver_bindings_of_the_status_copy_are_there():
 
 @cuda_only
 def test_the_launch_internals_of_prepare_launch_have_the_expected_shape():
-    """engine.numba_support.numba_internals.prepare_launch replays numba-cuda's own kernel launch: the compiled kernel's argument
-    flattening and launch, the dispatcher's configuration and cuda.core's launch entry (the cached path's results
-    are checked bit for bit on a GPU, tests/gpu/test_cuda_gpu.py)."""
+    """engine.numba_support.numba_internals.prepare_launch replays numba-cuda's own kernel launch: the compiled kernel's
+    argument flattening and launch, the dispatcher's configuration and cuda.core's launch entry (the cached path's
+    results are checked bit for bit on a GPU, tests/gpu/test_cuda_gpu.py)."""
     from numba.cuda import dispatcher as nd
 
     for name in ("LaunchConfig", "launch", "CUDA_CORE_GE_1_0"):

@@ -1,5 +1,5 @@
-"""engine/analysis/ode.py (Dormand-Prince 5(4)) against closed forms, and Luding's ODE (engine/analysis/theory.py) solved by it
-against its exact solution in collision time."""
+"""engine/analysis/ode.py (Dormand-Prince 5(4)) against closed forms, and Luding's ODE (engine/analysis/theory.py)
+solved by it against its exact solution in collision time."""
 
 import math
 
@@ -78,7 +78,8 @@ def test_rough_spheres_match_the_exact_solution_in_collision_time(e_n, e_t, r0):
 @pytest.mark.heavy
 @pytest.mark.parametrize("e_n,e_t", [(0.9, 0.9), (0.5, -0.5), (0.99, 0.0), (0.7, 1.0)])
 def test_luding_ode_agrees_with_scipy_lsoda(e_n, e_t):
-    """Against scipy's LSODA at the same tolerances, which engine/analysis/theory.py used before (the reference extra)."""
+    """Against scipy's LSODA at the same tolerances, which engine/analysis/theory.py used before (the reference
+    extra)."""
     integrate = pytest.importorskip("scipy.integrate", reason="scipy (pip install '.[reference]')")
     coeffs = luding_coefficients(e_n, e_t)
     tau = np.concatenate([[0.0], np.geomspace(1e-3, 1e4, 300)])

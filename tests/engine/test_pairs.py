@@ -54,7 +54,8 @@ def test_r_cut_outside_zero_to_half_the_box_is_refused():
 
 @pytest.mark.heavy
 def test_the_same_pairs_as_scipy_ckdtree():
-    """Against scipy's periodic k-d tree, which engine/analysis/velocity_correlations.py used before (the reference extra)."""
+    """Against scipy's periodic k-d tree, which engine/analysis/velocity_correlations.py used before (the reference
+    extra)."""
     spatial = pytest.importorskip("scipy.spatial", reason="scipy (pip install '.[reference]')")
     rng = np.random.default_rng(11)
     for n, box, r_cut in ((20_000, 20.0, 1.0), (5000, 1.0, 0.03), (300, 1.0, 0.45)):

@@ -10,7 +10,7 @@ import pytest
 from pydantic import ValidationError
 
 from engine.setup.params import (carnahan_starling_g, derive, enskog_rate_mixture, estimate_bytes_per_particle,
-                           estimate_cost, gamma_n_from_restitution, species_counts)
+                                 estimate_cost, gamma_n_from_restitution, species_counts)
 from engine.setup.scene import initial_spheres, species_index
 from engine.setup.spec import SPECIES_MAX_VOLUME_FRACTION, SimulationSpec
 

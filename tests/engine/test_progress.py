@@ -1,4 +1,5 @@
-"""The progress of `demq run` / `demq submit --wait`: a tqdm bar with its fields on a terminal, plain lines elsewhere."""
+"""The progress of `demq run` / `demq submit --wait`: a tqdm bar with its fields on a terminal, plain lines
+elsewhere."""
 
 from __future__ import annotations
 

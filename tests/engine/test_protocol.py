@@ -142,7 +142,8 @@ def test_a_lone_gpu_job_is_its_ensemble_itself():
 
     (rc, out, err), = run_children({"one": ["-c", _ONE_GPU_JOB]}, timeout=600).values()
     assert rc == 0, err[-3000:]
-    assert "ONE-PATH-OK" in out and "WARM-ONCE-OK" in out and "RAISED" in out and "overlap" in out.split("RAISED", 1)[1].lower(), out
+    assert ("ONE-PATH-OK" in out and "WARM-ONCE-OK" in out and "RAISED" in out and
+            "overlap" in out.split("RAISED", 1)[1].lower()), out
 
 
 def test_a_scene_reads_its_state_only_for_snapshots_or_checkpoints(tmp_path):

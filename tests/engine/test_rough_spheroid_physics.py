@@ -52,7 +52,8 @@ def test_the_impulse_response_matrix_is_k_and_its_means_are_the_masses():
         ma, mb, sa, sb, ra, rb, n = _geometry(rng)
         inv_m12 = 1.0 / ma + 1.0 / mb
         K = np.column_stack([R.impulse_response(inv_m12, sa, *ra, sb, *rb, *e) for e in np.eye(3)])
-        ref = inv_m12 * np.eye(3) + sum(_cross_matrix(r).T @ _sym(s) @ _cross_matrix(r) for r, s in ((ra, sa), (rb, sb)))
+        ref = inv_m12 * np.eye(3) + sum(_cross_matrix(r).T @ _sym(s) @ _cross_matrix(r)
+                                        for r, s in ((ra, sa), (rb, sb)))
         assert np.allclose(K, ref, rtol=1e-12, atol=0) and np.allclose(K, K.T, rtol=1e-12)
         assert np.all(np.linalg.eigvalsh(K) > 0)
         # normal: n.K n (the D of docs/physics.md §2.4); tangential: the mean of t.K t over the tangent plane

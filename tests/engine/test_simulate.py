@@ -6,9 +6,9 @@ import h5py
 import numpy as np
 import pytest
 
+from engine.driver.simulate import run
 from engine.errors import Cancelled, InstabilityError
 from engine.output.h5md import partial_path
-from engine.driver.simulate import run
 from engine.setup.spec import SimulationSpec
 
 # 64 spheres of radius 2.9 cm, ~8 collisions per particle per second at 1 m/s: ~1 collision each
@@ -131,8 +131,8 @@ def test_checkpoint_resume_matches_uninterrupted_run(tmp_path, precision):
 
 
 def test_a_cpu_scene_writes_its_file_in_place(tmp_path, monkeypatch):
-    """A CPU scene's file work runs in the calling thread (engine.driver.simulate._file_thread): it never asks for the I/O
-    thread, and its file is whole."""
+    """A CPU scene's file work runs in the calling thread (engine.driver.simulate._file_thread): it never asks for the
+    I/O thread, and its file is whole."""
     import engine.output.h5md as h5md
 
     def no_thread():

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 from engine import SimulationSpec
-from engine.errors import SpecError
 from engine.analysis.pairs import periodic_pairs
+from engine.errors import SpecError
 from engine.setup.params import derive
 from engine.setup.scene import initial_spheres
 from engine.setup.start_kind import (LATTICE, PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, RANDOM,
-                               RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION, SEQUENTIAL_GENERATOR, start_generator,
-                               start_protocol, thermalization_collisions)
+                                     RANDOM_EQUILIBRIUM_MAX_VOLUME_FRACTION, SEQUENTIAL_GENERATOR, start_generator,
+                                     start_protocol, thermalization_collisions)
 
 
 def carnahan_starling(phi: float) -> float:

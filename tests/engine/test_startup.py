@@ -1,7 +1,7 @@
 """The GPU start-up thread (engine/driver/startup.py) and the reordered set-up it overlaps with.
 
-The time it saves is measured by bench/e2e.py on a GPU (``--off startup`` against the default); that a run with it writes
-the same file as one without is tests/gpu/test_startup_gpu.py. Here: when it starts, that its stand-in scenes
+The time it saves is measured by bench/e2e.py on a GPU (``--off startup`` against the default); that a run with it
+writes the same file as one without is tests/gpu/test_startup_gpu.py. Here: when it starts, that its stand-in scenes
 are valid starts of their shape, that its kernel warm-up runs through the CUDA simulator for every shape, and
 that the start of a spec does not depend on the Verlet skin (the driver places before it resolves the
 backend and the skin).
@@ -16,12 +16,12 @@ import sys
 import numpy as np
 import pytest
 
-import engine.setup.start_kind as start_kind
 import engine.driver.startup as startup
-from engine.setup.params import derive
-from engine.shapes import host
+import engine.setup.start_kind as start_kind
 from engine.driver.simulate import run_contacts
+from engine.setup.params import derive
 from engine.setup.spec import SimulationSpec
+from engine.shapes import host
 from tests.cudasim import ROOT, child_env
 
 
@@ -241,9 +241,9 @@ def test_without_an_nvidia_driver_the_gpu_probe_does_not_import_numba_cuda(monke
 
 @pytest.mark.parametrize("jit_coverage", ["", "1"])
 def test_numba_is_imported_without_coverage_unless_it_measures_coverage(tmp_path, jit_coverage):
-    """engine.numba_support.numba_import.coverage_hidden: numba's first import does not import ``coverage`` (70 ms of a GPU job's
-    start-up) unless NUMBA_JIT_COVERAGE=1, and ``coverage`` stays importable afterwards. A stand-in ``coverage``
-    package on the path records its import."""
+    """engine.numba_support.numba_import.coverage_hidden: numba's first import does not import ``coverage`` (70 ms of a
+    GPU job's start-up) unless NUMBA_JIT_COVERAGE=1, and ``coverage`` stays importable afterwards. A stand-in
+    ``coverage`` package on the path records its import."""
     fake = tmp_path / "coverage"
     fake.mkdir()
     (fake / "__init__.py").write_text("from . import types\n")

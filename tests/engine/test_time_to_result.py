@@ -18,10 +18,10 @@ from engine.errors import InstabilityError
 from engine.loops.system import rows_equal
 from engine.output.h5md import OBSERVABLE_BLOCK, H5MDWriter, partial_path
 from engine.setup.params import derive
-from engine.setup.scene import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR, STREAM_QUATERNION,
-                          STREAM_SITES, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY, _bits, _parallel_draws,
-                          _smallest_sites, _stream_key, device_start, initial_ellipsoids, initial_spheres,
-                          start_generator)
+from engine.setup.scene import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, SEQUENTIAL_GENERATOR,
+                                STREAM_QUATERNION, STREAM_SITES, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY, _bits,
+                                _parallel_draws, _smallest_sites, _stream_key, device_start, initial_ellipsoids,
+                                initial_spheres, start_generator)
 from engine.setup.spec import SimulationSpec
 
 
@@ -43,8 +43,8 @@ def test_which_starts_are_drawn_in_parallel():
 
 def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_host_if_the_job_runs_on_the_cpu(
         monkeypatch, tmp_path):
-    """engine.setup.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw, no
-    host arrays: engine/loops/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
+    """engine.setup.scene.initial_spheres(on_device=True) leaves a large sphere start to the GPU backend (a StartDraw,
+    no host arrays: engine/loops/cuda_start.py); a job whose backend resolves to the CPU after all draws it on the
     host, the same start as always; with start_kind.DEVICE_START False and for other shapes the host draws."""
     import engine.driver.simulate as sim
 
@@ -372,9 +372,9 @@ def test_a_non_finite_frame_on_the_io_thread_never_reaches_a_result(tmp_path):
 
 
 def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp_path):
-    """A frame series (engine.output.h5md._FrameSeries.append) writes a C-ordered frame of the dataset's type as its chunk
-    (H5Dwrite_chunk); any other array (here Fortran-ordered copies, float32 into a float64 file) goes through HDF5's
-    write. Same bytes."""
+    """A frame series (engine.output.h5md._FrameSeries.append) writes a C-ordered frame of the dataset's type as its
+    chunk (H5Dwrite_chunk); any other array (here Fortran-ordered copies, float32 into a float64 file) goes through
+    HDF5's write. Same bytes."""
     rng = np.random.default_rng(5)
     frames = [{"position": rng.random((40, 3)), "orientation": rng.random((40, 4)),
                "velocity": rng.random((40, 3)).astype(np.float32)} for _ in range(3)]
@@ -635,8 +635,8 @@ _ENGINE_JIT_MODULES = ("engine.setup.scene", "engine.setup.cell_rsa", "engine.se
 
 
 def test_every_cached_engine_kernel_loads_without_the_target_refresh():
-    """Every ``cache=True`` njit function of the engine gets engine.numba_support.jitcache's fast-load cache; a module that
-    defines one without calling fast_loads(globals()) fails here."""
+    """Every ``cache=True`` njit function of the engine gets engine.numba_support.jitcache's fast-load cache; a module
+    that defines one without calling fast_loads(globals()) fails here."""
     import importlib
     import pkgutil
 

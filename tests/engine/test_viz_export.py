@@ -10,8 +10,8 @@ import h5py
 import numpy as np
 import pytest
 
-from engine.output.export_gsd import body_inertia, export_gsd, rotate
 from engine.driver.simulate import run
+from engine.output.export_gsd import body_inertia, export_gsd, rotate
 from engine.output.xdmf import sidecar_path, xdmf_text
 
 # 64 rough spheres (e_t = 0.5, so they spin) and 64 smooth spheroids xi = 2, three snapshots each

@@ -23,8 +23,8 @@ def collide(v_rel, *, e_n=0.8, e_t=None, friction=None, omega1=(0.0, 0.0, 0.0), 
             dt_fraction=50, k_t=None, precision="float64", gap_fraction=0.01):
     """Shoot sphere 1 (at -x) at sphere 2 (at +x) with relative velocity v_rel; return both after.
 
-    The pair starts gap_fraction of a radius apart (1 % by default), so the contact begins inside the first step or two and
-    ends long before the returned state (3 contact times later).
+    The pair starts gap_fraction of a radius apart (1 % by default), so the contact begins inside the first step or two
+    and ends long before the returned state (3 contact times later).
     Returns a dict with velocities, angular velocities, positions and the backend.
     """
     m12 = 0.5 * MASS

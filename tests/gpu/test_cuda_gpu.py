@@ -316,8 +316,8 @@ def test_fused_step_gives_the_two_launch_trajectory(monkeypatch):
 
 
 def test_the_status_copy_through_the_driver_bindings_copies_and_records():
-    """engine.numba_support.numba_internals.async_copy_and_record: the device array's bytes arrive in the pinned buffer once the
-    event it records has completed."""
+    """engine.numba_support.numba_internals.async_copy_and_record: the device array's bytes arrive in the pinned buffer
+    once the event it records has completed."""
     from numba import cuda
 
     from engine.numba_support.numba_internals import async_copy_and_record
@@ -339,8 +339,8 @@ def test_the_status_copy_through_the_driver_bindings_copies_and_records():
 
 
 def test_the_device_copy_through_the_driver_bindings_copies_in_stream_order():
-    """engine.numba_support.numba_internals.async_copy_device: the source's bytes land in the destination in stream order (a
-    kernel queued after the copy reads them), and a size or layout it does not handle is refused."""
+    """engine.numba_support.numba_internals.async_copy_device: the source's bytes land in the destination in stream
+    order (a kernel queued after the copy reads them), and a size or layout it does not handle is refused."""
     from numba import cuda
 
     from engine.numba_support.numba_internals import async_copy_device

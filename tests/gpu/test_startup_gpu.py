@@ -1,6 +1,6 @@
 """Real-GPU check of the GPU start-up thread (engine/driver/startup.py): a job in a fresh process writes the same result
-file with the thread as without it (engine.driver.startup.ENABLED = False), for spheres and ellipsoids — the trajectory bit for
-bit, the observables to rounding as any two GPU runs — and the thread ran without error. Skipped without a
+file with the thread as without it (engine.driver.startup.ENABLED = False), for spheres and ellipsoids — the trajectory
+bit for bit, the observables to rounding as any two GPU runs — and the thread ran without error. Skipped without a
 GPU."""
 
 from __future__ import annotations

@@ -20,9 +20,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from engine.driver.simulate import Progress, RunSummary
 from engine.errors import Cancelled, InstabilityError
 from engine.setup.params import derive
-from engine.driver.simulate import Progress, RunSummary
 
 N_STEPS = 20
 FAIL_SEED = 13
@@ -81,15 +81,15 @@ def run(spec, output, *, progress=None, should_cancel=None, checkpoint_dir=None,
         wall = time.monotonic() - t0
         if progress is not None:
             progress(Progress(phase="cooling", fraction=(k + 1) / N_STEPS, step=k + 1,
-                              time=spec.t_end * (k + 1) / N_STEPS, eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1), cundall=1.0e6, loop_s=wall,
-                              resumed_from_step=start or None))
+                              time=spec.t_end * (k + 1) / N_STEPS, eta_s=wall / (k + 1 - start) * (N_STEPS - k - 1),
+                              cundall=1.0e6, loop_s=wall, resumed_from_step=start or None))
     write_result(output, spec)
     wall = max(time.monotonic() - t0, 1e-9)
     # the device names the Numba threads the worker gave this process (a lane's share: DEMQ_WORKER_LANES)
     device = f"test double, NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'unset')}"
     return RunSummary(output=Path(output), backend="fake", device=device, n_particles=spec.n_particles,
-                      steps=N_STEPS - start, loop_s=wall, job_wall_s=wall, cundall=spec.n_particles * (N_STEPS - start) / wall,
-                      resumed_from_step=start or None)
+                      steps=N_STEPS - start, loop_s=wall, job_wall_s=wall,
+                      cundall=spec.n_particles * (N_STEPS - start) / wall, resumed_from_step=start or None)
 
 
 def run_deaf(spec, output, *, progress=None, should_cancel=None, **kwargs) -> RunSummary:
@@ -152,8 +152,8 @@ def run_ensemble(specs, outputs, *, progress=None, should_cancel=None, backend=N
                 write_result(outputs[k], specs[k])
                 wall = max(time.monotonic() - t0, 1e-9)
                 settle(k, RunSummary(output=Path(outputs[k]), backend="fake", device="test double",
-                                     n_particles=specs[k].n_particles, steps=N_STEPS - start[k], loop_s=wall, job_wall_s=wall,
-                                     cundall=specs[k].n_particles * (N_STEPS - start[k]) / wall,
+                                     n_particles=specs[k].n_particles, steps=N_STEPS - start[k], loop_s=wall,
+                                     job_wall_s=wall, cundall=specs[k].n_particles * (N_STEPS - start[k]) / wall,
                                      resumed_from_step=start[k] or None, extra={"ensemble_size": len(specs)}))
     return results
 

@@ -3,7 +3,8 @@ with its own run), fair shares between workers, cancels that reach a running job
 the row while a resumed job runs.
 
 The fake engine (tests/jobs/fake_engine.py) runs in real spawned simulation processes; one case runs the real
-engine. Waits are for events, with ceilings that only catch hangs (timings belong to bench/; the cancel latency was the one-off study bench/cancel_latency.py, in git history).
+engine. Waits are for events, with ceilings that only catch hangs (timings belong to bench/; the cancel latency was the
+one-off study bench/cancel_latency.py, in git history).
 """
 
 from __future__ import annotations
@@ -215,7 +216,8 @@ def test_a_cancelled_run_deaf_until_its_end_is_killed_its_partial_file_removed_t
 
 def test_real_engine_cancel_of_a_running_cpu_job_leaves_no_file(tmp_path):
     """A real CPU job of a few thousand spheres, cancelled while its time loop runs: cancelled, no result, no
-    partial file, no checkpoints (how soon, for 20 000 spheres, was measured by the one-off study bench/cancel_latency.py)."""
+    partial file, no checkpoints (how soon, for 20 000 spheres, was measured by the one-off study
+    bench/cancel_latency.py)."""
     settings = make_settings(tmp_path, engine_run="engine.driver.simulate:run")
     store = open_store(settings.database_url)
     worker = Worker(store, settings)

@@ -51,7 +51,8 @@ def test_specialisations_are_every_variant_the_engine_accepts():
     assert {"cpu/sphere/mixed/friction/species", "cuda/ellipsoid/float32/smooth/uniform"} <= names
     assert not any(s.shape == "ellipsoid" and (s.sizes == "species" or s.precision == "mixed") for s in sp)
     assert [s.name() for s in specialisations(["cpu"], ["sphere"], ["float32"])] == [
-        f"cpu/sphere/float32/{law}/{sizes}" for law in ("rough", "smooth", "friction") for sizes in ("uniform", "species")]
+        f"cpu/sphere/float32/{law}/{sizes}" for law in ("rough", "smooth", "friction")
+        for sizes in ("uniform", "species")]
 
 
 def _env(cache: Path) -> dict:

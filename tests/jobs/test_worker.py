@@ -288,8 +288,8 @@ def test_a_last_message_sent_just_before_the_process_exits_is_read(local, settin
     store, worker = local
     _enqueue(store)
     job = store.claim(worker.owner, settings.lease_s)
-    done = {"backend": "fake", "device": "cpu", "loop_s": 0.1, "job_wall_s": 0.2, "cundall": 1.0, "steps": 1, "resumed_from_step": None,
-            "ensemble_size": 1}
+    done = {"backend": "fake", "device": "cpu", "loop_s": 0.1, "job_wall_s": 0.2, "cundall": 1.0, "steps": 1,
+            "resumed_from_step": None, "ensemble_size": 1}
 
     class Receiver:                 # nothing at the first poll; the message is there once the process is gone
         def __init__(self):

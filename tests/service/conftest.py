@@ -38,8 +38,8 @@ def finish_with_fake_result(store, settings, job_id: str) -> None:
     job = store.claim("test-worker", 30, job_id=job_id)
     settings.results_dir.mkdir(parents=True, exist_ok=True)
     path = write_result(settings.result_path(job_id), parse_spec(job.spec))
-    store.finish(job_id, "test-worker", DONE, result_path=str(path), loop_s=0.5, job_wall_s=0.6, cundall=1e6, error=None,
-                 progress=1.0)
+    store.finish(job_id, "test-worker", DONE, result_path=str(path), loop_s=0.5, job_wall_s=0.6, cundall=1e6,
+                 error=None, progress=1.0)
 
 
 __all__ = ["TINY", "finish_with_fake_result"]

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from engine.analysis.ensemble_stats import Run, aggregate, mean_and_standard_error, read_batch_result, write_batch_result
+from engine.analysis.ensemble_stats import (Run, aggregate, mean_and_standard_error, read_batch_result,
+                                            write_batch_result)
+from engine.analysis.theory import DOF_SMOOTH_SPHERE, haff_rate, haff_rate_smooth_spheres
 from engine.setup.params import derive
 from engine.setup.spec import SimulationSpec
-from engine.analysis.theory import DOF_SMOOTH_SPHERE, haff_rate, haff_rate_smooth_spheres
 from service.app import create_app
 from tests.extras import assert_figure
 from tests.jobs.conftest import TINY, make_settings

@@ -190,7 +190,8 @@ def _row(driver, job_id: str):
     return driver.execute_script(
         "const r = document.getElementById(arguments[0]); if (!r) return null;"
         "const b = r.querySelector('[role=progressbar]');"
-        "return {state: r.dataset.state, value: b.getAttribute('aria-valuenow'), width: b.firstElementChild.style.width,"
+        "return {state: r.dataset.state, value: b.getAttribute('aria-valuenow'), "
+        "width: b.firstElementChild.style.width,"
         "        cells: Array.from(r.cells, c => c.innerText.trim())};", f"job-{job_id}")
 
 

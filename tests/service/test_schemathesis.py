@@ -140,7 +140,8 @@ def test_bearer_auth_declared_exactly_when_a_token_is_set(tmp_path):
     assert set(_security(open_doc).values()) == {None}
     token_doc = token_app.openapi()
     assert token_doc["components"]["securitySchemes"]["HTTPBearer"] == {
-        "type": "http", "scheme": "bearer", "description": "The server's token (DEMQ_TOKEN); declared only when one is set."}
+        "type": "http", "scheme": "bearer",
+        "description": "The server's token (DEMQ_TOKEN); declared only when one is set."}
     declared = _security(token_doc)
     assert declared.pop("GET /healthz") is None            # the health check stays open
     assert declared and all(sec == [{"HTTPBearer": []}] for sec in declared.values()), declared

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from engine.output.h5md import H5MDWriter
 from engine.driver.simulate import run
+from engine.output.h5md import H5MDWriter
 from jobs.schema import DONE, FAILED
 from service.app import create_app
 from service.render import ovito_available
@@ -38,8 +38,8 @@ def _done_job(client, settings, spec: dict, result_file) -> str:
     settings.results_dir.mkdir(parents=True, exist_ok=True)
     path = settings.result_path(job_id)
     shutil.copyfile(result_file, path)
-    client.store.finish(job_id, "test-worker", DONE, result_path=str(path), loop_s=0.1, job_wall_s=0.2, cundall=1e6, error=None,
-                        progress=1.0)
+    client.store.finish(job_id, "test-worker", DONE, result_path=str(path), loop_s=0.1, job_wall_s=0.2, cundall=1e6,
+                        error=None, progress=1.0)
     return job_id
 
 

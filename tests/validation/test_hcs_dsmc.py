@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from engine.setup.params import Q_SPHERE
 from engine.analysis.theory import luding_ode
+from engine.setup.params import Q_SPHERE
 from engine.validation.hcs_dsmc import _hard_rule, cooling, soft_contact_loss
 from engine.validation.hcs_long import scene_spec
 from engine.validation.sonine import _dsmc

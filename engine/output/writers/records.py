@@ -9,8 +9,8 @@ from typing import Optional
 import numpy as np
 
 from engine.errors import InstabilityError
-from engine.physics.sonine import sonine_observables
 from engine.output.writers.triggers import Periodic
+from engine.physics.sonine import sonine_observables
 
 #: In a dissipative run the total mechanical energy may not rise between records by more than this
 #: fraction (integration error is O(dt^2) ~ 1e-4 at dt = t_c/50; a real rise means instability).

@@ -3,8 +3,8 @@ time loop.
 
 engine/loops/cuda_loop.py builds the GPU time loop (kick-drift, forces, closing half kick, the many-steps
 cooperative kernel, observe) once for every shape; a shape package's ``device.py`` (this file for the sphere,
-found by engine.shapes.device(name)) provides :func:`make_cuda`, which returns the device functions that specialise it at
-compile time (closures over the precision, uniform particles and the shape's own flags, as
+found by engine.shapes.device(name)) provides :func:`make_cuda`, which returns the device functions that specialise it
+at compile time (closures over the precision, uniform particles and the shape's own flags, as
 engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The interface, for any shape:
 
 - ``make_cuda(L, DT, UNIFORM, TPB, *flags)``: ``L`` is the layout module (engine/loops/cuda_kernels.py: the

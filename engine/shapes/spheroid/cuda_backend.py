@@ -60,7 +60,8 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
     def __init__(self, systems: list, contacts: list, reads_state: bool = True):
         for k, s in enumerate(systems):
             if not isinstance(s, EllipsoidSystem):
-                raise TypeError(f"scene {k}: CudaEllipsoidEnsemble needs EllipsoidSystem scenes, got {type(s).__name__}")
+                raise TypeError(f"scene {k}: CudaEllipsoidEnsemble needs EllipsoidSystem scenes, "
+                                f"got {type(s).__name__}")
         # rough contacts keep the spring and the contact's k_t: 6 history words (engine/shapes/spheroid/device.py)
         self.hist_words = SLOT_ROUGH if any(c.rough for c in contacts) else K.HW
         super().__init__(systems, contacts, reads_state)
@@ -87,8 +88,9 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
         inv_i = (1.0 / inertia_c).astype(dt_, copy=False)
         inv_m = (1.0 / mass.astype(dt_)).astype(dt_)
         angm = np.empty((n, 3), dt_)        # every row written by the loops below
-        angm_from_omega(quat, np.ascontiguousarray(cat([sy.angular_velocity for sy in systems]).astype(dt_, copy=False)), inertia_c, half,
-                        angm)
+        angm_from_omega(quat,
+                        np.ascontiguousarray(cat([sy.angular_velocity for sy in systems]).astype(dt_, copy=False)),
+                        inertia_c, half, angm)
         omega_p = np.empty((n, 3), dt_)
         omega_from_angm(quat, angm, inv_i, half, omega_p)
         self._inv_i_h = inv_i
@@ -195,9 +197,11 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
                 self.hist, self.spd, self.spf, self.spi, self._step_arrays()[3])
 
     def _observables(self, s: int, r: list) -> dict:
-        """Scene s's keys of CpuEllipsoidBackend.observe from its observe sums r (engine/shapes/spheroid/device.py: observe_one)."""
+        """Scene s's keys of CpuEllipsoidBackend.observe from its observe sums r (engine/shapes/spheroid/device.py:
+        observe_one)."""
         return {"kinetic_energy_translational": r[CE.A_TR], "kinetic_energy_rotational": r[CE.A_ROT],
-                "kinetic_energy_rotational_active": r[CE.A_PERP], "rotational_dof": rotational_dof(self._scene_rough(s)),
+                "kinetic_energy_rotational_active": r[CE.A_PERP],
+                "rotational_dof": rotational_dof(self._scene_rough(s)),
                 "contacts": int(round(r[CE.A_CON])) // 2, "elastic_energy": r[CE.A_EL],
                 "max_overlap": r[CE.A_OVL] / self._bmin[s], "momentum": (r[CE.A_PX], r[CE.A_PY], r[CE.A_PZ]),
                 **sonine_sums(r[CE.A_TR2], r[CE.A_ROT2], r[CE.A_X], rotational_dof(self._scene_rough(s)))}

@@ -247,11 +247,11 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
 
     @cuda.jit(device=True)
     def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
-        """Particle i's share of the sums of engine.shapes.spheroid.kernels.observe (``inertia`` is 1/I here): E_tr = m v^2/2;
-        E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the two axes
-        perpendicular to body x (the 2 active dof of Rubio-Largo et al. 2015, Eq. 25b as corrected in docs/physics.md
-        §2.7); contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2 (half per list
-        slot); momentum; largest delta; the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp."""
+        """Particle i's share of the sums of engine.shapes.spheroid.kernels.observe (``inertia`` is 1/I here):
+        E_tr = m v^2/2; E_rot = sum_k I_k w_b,k^2/2 with the body-frame w_b = I^-1 R^T L; E_rot,perp the part about the
+        two axes perpendicular to body x (the 2 active dof of Rubio-Largo et al. 2015, Eq. 25b as corrected in
+        docs/physics.md §2.7); contacts (each pair counted twice, previous overlap > 0); elastic energy k_n delta^2/2
+        (half per list slot); momentum; largest delta; the Sonine moments sum e_tr^2, sum e_perp^2, sum e_tr e_perp."""
         angm = spin
         if UNIFORM:
             m = f64(spd[s, D_M0])
