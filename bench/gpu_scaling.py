@@ -23,7 +23,9 @@ import numpy as np
 from bench import out_dir
 
 
-def scene(n, phi, precision, seed=1):
+def scene(n, phi, precision, seed=1, **contact):
+    """A random start of ``n`` rough spheres (Hidalgo et al. 2013: e_n = 0.8, e_t = 0.5, friction 0.5, which
+    ``contact`` overrides) and its contact constants."""
     from engine.setup.params import derive
     from engine.setup.scene import initial_spheres
     from engine.driver.simulate import contact_params
