@@ -235,7 +235,8 @@ class SimulationSpec(BaseModel):
                           "sequential addition, an equilibrium gas at low density; volume_fraction <= 0.30); "
                           "'lattice' = fcc lattice sites with a random displacement (the rough-sphere papers' "
                           "protocol; one-size spheres and ellipsoids); null = 'random' where it is cheap "
-                          "(species; one-size spheres below 2^20 particles), else 'lattice'.")
+                          "(species; one-size spheres up to volume_fraction 0.30, placed in parallel from 2^20 "
+                          "particles on), else 'lattice'.")
     thermalization: Optional[float] = Field(
         None, description="Collisions per particle run without dissipation before t = 0 (0 ... 10000); "
                           "null = what the start needs: a random start 0 up to volume_fraction 0.02, 0.25 up to "
