@@ -103,7 +103,7 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     import engine
     from engine.errors import SpecError
     from engine.loops import cuda_ensemble
-    from engine.loops.cuda_memory import device_allocations, predict_sphere_device
+    from engine.loops.cuda_memory import release_unreferenced, device_allocations, predict_sphere_device
     from engine.setup.params import derive
     from engine.setup.spec import SimulationSpec
 
@@ -123,6 +123,7 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
                predicted_loop_B=pred.loop_bytes / n, predicted_start_B=pred.start_bytes / n,
                predicted_stride=pred.stride)
     cuda_ensemble.CudaEnsembleBase.__init__ = keep
+    release_unreferenced()     # the earlier cases' arrays freed first: none may be released during this one
     _Peak.reset()
     base = _Peak.live
     smi = _SmiPeak()

@@ -390,10 +390,11 @@ def make_run_steps(shape, parallel: bool = True):
     the shape. Why: a full settle turns every sphere's orientation (engine.physics.rotation.sphere_quat_turn), ~55 ns
     a sphere; the driver returns from the loop at every record (200 a run), and at N = 32 768 and a record every
     15 steps that was a fifth of the loop's time. The host settles fully (``nsteps`` = 0, ``settle_all``) before it
-    reads or switches the orientations (:meth:`CpuLoop.settle_orientations`). Positions, velocities and spins are
-    the same bits either way; an orientation turned over a span that crosses a return is turned in one piece
-    instead of one per call (a difference at rounding level, and the turns no longer depend on the record
-    cadence).
+    switches the orientations (:meth:`CpuLoop.settle_orientations`); a read settles a copy and leaves the
+    turns pending (engine/shapes/sphere/cpu_backend.py ``quat``), so reads never change a trajectory. Positions,
+    velocities and spins are the same bits either way; an orientation turned over a span that crosses a return is
+    turned in one piece instead of one per call (a difference at rounding level, and the turns no longer depend on
+    the record cadence).
 
     Returns (status, steps_completed, particle, value, builds). On OVERFLOW the positions of the
     current step have been drifted but its forces not computed: the caller grows the list, rebuilds,

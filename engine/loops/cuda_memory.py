@@ -79,9 +79,9 @@ def mean_list_neighbours(volume_fraction: float, reach_over_diameter: float) -> 
     gas of equal spheres: n g(sigma) (4 pi / 3)(r_c^3 - sigma^3) = 8 phi g(sigma) ((r_c / sigma)^3 - 1), with the
     Carnahan-Starling contact value g(sigma) = (1 - phi / 2) / (1 - phi)^3 over the whole shell (an upper bound: g
     falls towards 1 across it)."""
-    phi = volume_fraction
-    g = (1.0 - 0.5 * phi) / (1.0 - phi) ** 3
-    return 8.0 * phi * g * (reach_over_diameter ** 3 - 1.0)
+    from engine.setup.params import carnahan_starling_g
+
+    return 8.0 * volume_fraction * carnahan_starling_g(volume_fraction) * (reach_over_diameter ** 3 - 1.0)
 
 
 def shell_pair_apart(reach_over_diameter: float, nodes: int = 64) -> float:
@@ -316,14 +316,14 @@ def refuse_oversize(spec, p, *, reads_state: bool = False) -> None:
     free, _total, device = got
     why = memory_refusal(spec, p, free, device, derive, reads_state=reads_state)
     if why is not None:      # an earlier run's arrays in this process may only await collection: free them, ask again
-        _release_unreferenced()
+        release_unreferenced()
         free, _total, device = device_memory()
         why = memory_refusal(spec, p, free, device, derive, reads_state=reads_state)
     if why is not None:
         raise SpecError(why)
 
 
-def _release_unreferenced() -> None:
+def release_unreferenced() -> None:
     """Collect unreachable Python objects and free the device memory Numba still holds for released arrays."""
     import gc
 

@@ -38,7 +38,8 @@ from numba import cuda
 
 from engine.setup.cell_rsa import RSA_Q, cell_pass, cut_of, final_key, kept, pass_key, run_rounds, slot_index
 from engine.loops.cuda_cache import SIM, cache_kernels
-from engine.setup.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw, _bits,
+from engine.setup.counter_rng import _bits
+from engine.setup.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw,
                                 _site_position, _stream_values, stream_mean, stream_scale)
 
 #: sites per block of the selection and placement kernels (a compile-time size of their shared arrays)

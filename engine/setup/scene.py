@@ -46,7 +46,7 @@ from engine.backends.base import EllipsoidSystem, SphereSystem
 from engine.neighbours.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.errors import SpecError
 from engine.setup.cell_rsa import RSA_GAP, CellRsa, place_random
-from engine.setup.counter_rng import _DRAWS, _GOLDEN, _M1, _M2, _U, _bits, _mix64, _normal_pair, _uniform  # noqa: F401
+from engine.setup.counter_rng import _GOLDEN, _M1, _M2, _U, _bits, _normal_pair, _uniform
 from engine.setup.params import Derived, species_table
 from engine.physics.rotation import quat_unit
 from engine.setup.start_kind import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN,  # noqa: F401

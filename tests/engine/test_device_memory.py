@@ -59,6 +59,11 @@ def _child(case: str) -> None:
 
     account = sphere_account(layout)
     doubled = sphere_account(dataclasses.replace(layout, n=2 * e.n))
+    from engine.loops.cuda_records import RECORD_ROWS
+
+    # the account's defaults (it is read where the CUDA modules are not imported) are the kernels' own sizes
+    assert (SphereLayout.hist_words, SphereLayout.nobs, SphereLayout.record_rows) == (e.hist_words, e._NOBS,
+                                                                                         RECORD_ROWS)
     print(json.dumps({"found": device_allocations(e), "account": account, "reads_state": e._stage is not None,
                       "per_particle": sorted(k for k in account if doubled[k] != account[k])}))
 
