@@ -40,6 +40,7 @@ that the step count is exact):
   quickstart                the README quick-start default spec, through engine.run       (c)
   ellipsoids-2M             2 097 152 ellipsoids, xi = 2 x 2000 steps, 2 snapshots    (d)
   ellipsoids-rough-2M       the same with rough contacts (e_t = 0.8, the spec default)
+  ellipsoids-rough-1M       1 048 576 rough ellipsoids, xi = 2 x 2000 steps, 2 snapshots
   cpu-16x512                CPU: 16 x 512 spheres x 3000 steps with default records through run_ensemble,
                             against one such scene with 4 records, in the same process (the issue's
                             must-show ratio)
@@ -66,7 +67,8 @@ if str(ROOT) not in sys.path:
 BREAKDOWN = ("setup", "build", "compile", "loop", "records", "snapshots", "checkpoints", "open", "close")
 GPU_CASES = ("spheres-2M-f64", "spheres-2M-f32", "spheres-2M-mixed", "spheres-8M-f64", "spheres-8M-f32",
              "spheres-8M-mixed", "batch-256x4096-2k",
-             "batch-256x4096-20k", "worker-256x4096-20k", "worker-2M-f64", "ellipsoids-2M", "ellipsoids-rough-2M")
+             "batch-256x4096-20k", "worker-256x4096-20k", "worker-2M-f64", "ellipsoids-2M", "ellipsoids-rough-2M",
+             "ellipsoids-rough-1M")
 CPU_CASES = ("quickstart", "cpu-16x512")
 
 
@@ -118,9 +120,10 @@ def case_specs(case: str, quick: bool) -> dict:
         steps = s20k if case.endswith("20k") else s2k
         return {"path": "worker" if case.startswith("worker") else "ensemble",
                 "specs": [sph(nk, steps, snapshots=0, seed=i, backend="auto") for i in range(k)]}
-    if case in ("ellipsoids-2M", "ellipsoids-rough-2M"):
+    if case.startswith("ellipsoids-"):
         e_t = 0.8 if "rough" in case else -1.0
-        return {"path": "run", "specs": [sph(n2m, s2k, shape="ellipsoid", elongation=2.0, e_t=e_t)]}
+        n = n2m if case.endswith("2M") else n2m // 2
+        return {"path": "run", "specs": [sph(n, s2k, shape="ellipsoid", elongation=2.0, e_t=e_t)]}
     if case == "quickstart":
         return {"path": "run",
                 "specs": [{} if not quick else {"n_particles": 512, "t_end": 0.002, "thermalization": 0}]}

@@ -191,11 +191,12 @@ else:
 
 
 @cuda.jit
-def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spass, full):
+def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit, full):
     """Pass p (its cells: the m of colour ``colour``) of a random start: engine.setup.cell_rsa.cell_pass per cell;
     full[0] counts the cells that lacked a slot."""
     for t in range(cuda.grid(1), m, cuda.gridsize(1)):
-        if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, _raw(counts), _raw(slots), _raw(spass)):
+        if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, quat_key, _raw(counts), _raw(slots),
+                     _raw(spass), _raw(quats), _raw(axes), unit):
             cuda.atomic.add(full, 0, 1)
 
 
@@ -243,10 +244,11 @@ def rsa_kept_counts(first_pass, trim_key, cut_key, cut_index, counts, spass, kep
 
 
 @cuda.jit
-def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, first, keys, dims, unit_rows,
-              row0, pos, col0, out):
-    """One thread per cell: its kept spheres, numbered from first[c] in slot order, get their centre in pos[:, col0 +
-    i] (cast to pos's precision) and their stream rows in out (as :func:`place_draw`)."""
+def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, quats, first, keys, dims,
+              unit_rows, row0, pos, quat, col0, out):
+    """One thread per cell: its kept particles, numbered from first[c] in slot order, get their centre in pos[:, col0 +
+    i] (cast to pos's precision), a spheroid its orientation in quat[:, col0 + i] (quat has no columns for spheres),
+    and their stream rows in out (as :func:`place_draw`)."""
     q = np.int64(RSA_Q)
     for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
         i = first[c]
@@ -258,6 +260,9 @@ def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots,
                 pos[0, col0 + i] = (cx * q + np.int64(slots[c, k, 0]) + 0.5) * unit
                 pos[1, col0 + i] = (cy * q + np.int64(slots[c, k, 1]) + 0.5) * unit
                 pos[2, col0 + i] = (cz * q + np.int64(slots[c, k, 2]) + 0.5) * unit
+                if quat.shape[1] != 0:
+                    for j in range(4):
+                        quat[j, col0 + i] = quats[c, k, j]
                 _write_streams(i, keys, dims, unit_rows, row0, out)
                 i += 1
 
@@ -302,13 +307,17 @@ def _cut(d: StartDraw, site_key, stream, cap: int) -> tuple:
     return cut, counts
 
 
-def _random_centres(d: StartDraw, col0: int, pos, keys, dims, unit, row0, out, stream, cap: int) -> None:
-    """A random start's centres into pos[:, col0:col0 + n] and its stream rows into out: the rounds of
-    engine/setup/cell_rsa.py on the device, the last round's cut by a histogram of its removal keys and a host sort of
-    one bucket (as :func:`_cut`), then one thread per cell places its spheres."""
+def _random_centres(d: StartDraw, col0: int, pos, quat, keys, dims, unit, row0, out, stream, cap: int) -> None:
+    """A random start's centres into pos[:, col0:col0 + n] (a spheroid start's orientations into quat[:, col0:col0 +
+    n]) and its stream rows into out: the rounds of engine/setup/cell_rsa.py on the device, the last round's cut by a
+    histogram of its removal keys and a host sort of one bucket (as :func:`_cut`), then one thread per cell places its
+    particles."""
     g = d.rsa
-    pos_key, count_key, trim_key = (np.uint64(k) for k in d.rsa_keys())
+    rsa_keys = d.rsa_keys()
+    pos_key, count_key, trim_key = (np.uint64(k) for k in rsa_keys[:3])
+    quat_key = np.uint64(rsa_keys[3]) if g.spheroid else np.uint64(0)
     cdf = cuda.to_device(np.array(g.cdf, np.uint64), stream=stream)
+    axes = cuda.to_device(np.array(g.axes, np.float64), stream=stream)
     ncell = g.nc ** 3
     m = (g.nc // 2) ** 3
     grid_cells, grid_colour = _blocks(ncell, _WIDE, cap), _blocks(m, _WIDE, cap)
@@ -319,22 +328,24 @@ def _random_centres(d: StartDraw, col0: int, pos, keys, dims, unit, row0, out, s
     def new_arrays(per_cell: int) -> tuple:
         counts = cuda.to_device(np.zeros(ncell, np.int32), stream=stream)
         return (counts, cuda.device_array((ncell, per_cell, 3), np.int16, stream=stream),
-                cuda.device_array((ncell, per_cell), np.int32, stream=stream))
+                cuda.device_array((ncell, per_cell), np.int32, stream=stream),
+                cuda.device_array((ncell, per_cell, 4) if g.spheroid else (1, 1, 4), np.float64, stream=stream))
 
     def one_round(r: int, arrays: tuple) -> tuple:
-        counts, slots, spass = arrays
+        counts, slots, spass, quats = arrays
         full.copy_to_device(zero, stream=stream)
         total.copy_to_device(zero, stream=stream)
         for colour in range(8):
             p = 8 * r + colour
             rsa_pass[grid_colour, _WIDE, stream](m, colour, p, g.nc, g.thr, cdf, np.uint64(pass_key(pos_key, p)),
-                                                 np.uint64(pass_key(count_key, p)), counts, slots, spass, full)
+                                                 np.uint64(pass_key(count_key, p)), np.uint64(pass_key(quat_key, p)),
+                                                 counts, slots, spass, quats, axes, g.unit, full)
         rsa_total[grid_cells, _WIDE, stream](counts, total)
         f, t = full.copy_to_host(stream=stream), total.copy_to_host(stream=stream)
         stream.synchronize()
         return int(f[0]), int(t[0])
 
-    (counts, slots, spass), rounds, prev = run_rounds(g, one_round, new_arrays)
+    (counts, slots, spass, quats), rounds, prev = run_rounds(g, one_round, new_arrays)
     first_pass = 8 * (rounds - 1)
     keep = d.n - prev
     hist = cuda.to_device(np.zeros(_NB, np.int32), stream=stream)
@@ -360,13 +371,14 @@ def _random_centres(d: StartDraw, col0: int, pos, keys, dims, unit, row0, out, s
         raise RuntimeError(f"device random start: {int(per.sum(dtype=np.int64))} spheres kept for {d.n}")
     first = np.concatenate([[0], np.cumsum(per, dtype=np.int64)[:-1]])
     rsa_place[grid_cells, _WIDE, stream](
-        g.nc, g.unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass,
-        cuda.to_device(first, stream=stream), keys, dims, unit, row0, pos, np.int64(col0), out)
+        g.nc, g.unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, quats,
+        cuda.to_device(first, stream=stream), keys, dims, unit, row0, pos, quat, np.int64(col0), out)
 
 
-def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 << 14) -> None:
+def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 << 14, quat=None) -> None:
     """Draw ``d`` into columns [col0, col0 + n) of the device arrays ``pos`` (3, N) and ``dsts`` (stream number ->
-    (dim, N) array), in their precisions; see the module docstring. ``cap``: most blocks of a grid-stride launch."""
+    (dim, N) array), in their precisions; see the module docstring. ``quat`` (4, N): a random spheroid start's
+    orientations (drawn with the centres). ``cap``: most blocks of a grid-stride launch."""
     n = d.n
     site_key, place_key, keys = d.keys()
     dims = np.array([dim for _, dim, _ in d.streams], np.int64)
@@ -377,7 +389,9 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
     keys_d, dims_d, unit_d, row0_d = (cuda.to_device(a, stream=stream) for a in (np.array(keys, np.uint64), dims,
                                                                                  unit, row0))
     if d.rsa is not None:
-        _random_centres(d, col0, pos, keys_d, dims_d, unit_d, row0_d, out, stream, cap)
+        if quat is None:
+            quat = cuda.device_array((4, 0), np.float64, stream=stream)
+        _random_centres(d, col0, pos, quat, keys_d, dims_d, unit_d, row0_d, out, stream, cap)
     else:
         cut, counts = _cut(d, site_key, stream, cap)
         if int(counts.sum()) != n:

@@ -1,5 +1,6 @@
 """Random sequential addition in cell rounds: a large random (equilibrium-like) start placed in parallel, on the
-host (Numba prange) or on the GPU that runs the job (engine/loops/cuda_start.py), the same spheres on both.
+host (Numba prange) or on the GPU that runs the job (engine/loops/cuda_start.py), the same spheres on both; and the
+random start of prolate spheroids at any N (their orientations drawn with their centres).
 
 Random sequential addition (RSA) tries uniform random centres one after another and keeps each that overlaps no
 sphere kept before. Done in parallel: the box is cut into nc^3 cells (nc even, cell edge h >= the exclusion
@@ -18,6 +19,16 @@ attempt) (engine/setup/counter_rng.py ``_bits``), the attempt counts come from i
 integer position on a grid of RSA_Q points a cell edge (box / (nc RSA_Q) apart), tested against the others in exact
 int64 arithmetic: (dx^2 + dy^2 + dz^2) >= ceil((d / unit)^2). Particles are numbered in cell order, then in the order a
 cell kept them. Units: positions in the box's unit (m).
+
+Spheroids (semi-axes a >= b = c): the cells and the integer test are those of their bounding spheres (radius a), and
+each attempt draws a uniform orientation too (a unit quaternion from four normals, :func:`candidate_orientation`). A
+candidate whose bounding sphere meets a kept one's is kept only when the two bodies, both scaled by 1 + RSA_GAP about
+their centres, are disjoint: the plane normal to the centre line separates them, or the Perram-Wertheim function has
+F_max >= (1 + RSA_GAP)^2 (engine/physics/ellipsoid.py; W_0 = sqrt(F_max) is the factor by which both can grow before
+they touch). These tests are floating-point: the host's and the device's placements agree unless a candidate lies
+within rounding of touching a kept body (never seen; the sphere test stays exact). A spheroid start below the
+parallel start's size runs the same rounds on one thread (:func:`_round_serial`), so that the scenes of an ensemble can
+be set up on several threads at once.
 """
 
 from __future__ import annotations
@@ -33,7 +44,9 @@ import numpy as np
 
 from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.errors import SpecError
-from engine.setup.counter_rng import _DRAWS, _GOLDEN, _M1, _U, _bits, _mix64
+from engine.physics.ellipsoid import plane_separated, pw_contact, shape_matrix_inverse
+from engine.physics.rotation import quat_unit
+from engine.setup.counter_rng import _DRAWS, _GOLDEN, _M1, _U, _bits, _mix64, _normal_pair
 
 #: Relative gap RSA keeps between accepted spheres: rounding can never make a start overlap (every random start:
 #: the sequential one of engine/setup/scene.py and this one)
@@ -47,13 +60,16 @@ RSA_MEAN_ATTEMPTS = 1.0
 #: rounds after which a start that has not placed its spheres gives up (RSA jams near phi = 0.38)
 RSA_MAX_ROUNDS = 20000
 _COLOURS = 8
+#: Newton tolerance in lambda of the spheroids' Perram-Wertheim test (float64; F is flat at its maximum)
+RSA_PW_TOL = 1.0e-13
 
 
 @dataclass(frozen=True)
 class CellRsa:
     """The cells and integer grid of a random start of ``n`` spheres of ``radius`` in a box of edge ``box``: nc cells
     an edge, slots per cell, the grid unit (box / (nc RSA_Q)), the squared exclusion distance in grid units (int)
-    and the attempt counts' cumulative thresholds (53-bit integers)."""
+    and the attempt counts' cumulative thresholds (53-bit integers). ``axes``: () for spheres, (a, b) (m) for prolate
+    spheroids, whose bounding spheres (``radius`` = a) size the cells."""
 
     n: int
     box: float
@@ -62,9 +78,14 @@ class CellRsa:
     unit: float
     thr: int
     cdf: tuple
+    axes: tuple = ()
+
+    @property
+    def spheroid(self) -> bool:
+        return len(self.axes) == 2
 
     @classmethod
-    def of(cls, n: int, box: float, radius: float) -> "CellRsa":
+    def of(cls, n: int, box: float, radius: float, axes: tuple = ()) -> "CellRsa":
         d = 2.0 * radius * (1.0 + RSA_GAP)
         fit = int(box / d) // 2 * 2                 # the most cells an edge: even, edge >= d
         if fit < 2:
@@ -78,7 +99,7 @@ class CellRsa:
         thr = math.ceil((d / unit) ** 2)
         mean = n / nc ** 3
         return cls(n=int(n), box=float(box), nc=nc, slots=_slots_for(mean, nc ** 3), unit=unit, thr=thr,
-                   cdf=_attempt_thresholds(RSA_MEAN_ATTEMPTS))
+                   cdf=_attempt_thresholds(RSA_MEAN_ATTEMPTS), axes=tuple(float(x) for x in axes))
 
 
 def _slots_for(mean: float, cells: int) -> int:
@@ -129,6 +150,32 @@ def candidate(pos_key, cell, a):
 
 
 @numba.njit(cache=True, inline="always")
+def candidate_orientation(quat_key, cell, a):
+    """Attempt a's orientation (a spheroid's): a uniform unit quaternion (w, x, y, z) from four normals, draws of
+    (cell, attempt) in the pass's orientation stream."""
+    i = np.int64(cell) * np.int64(_DRAWS) + np.int64(a)
+    g0, g1 = _normal_pair(quat_key, i, 0)
+    g2, g3 = _normal_pair(quat_key, i, 2)
+    return quat_unit(g0, g1, g2, g3)
+
+
+@numba.njit(cache=True, inline="always")
+def spheroids_clear(rx, ry, rz, qa0, qa1, qa2, qa3, qb0, qb1, qb2, qb3, a, b):
+    """Whether two prolate spheroids (semi-axes a, b, b; m) at centre offset r (m), orientations qa and qb, stay
+    disjoint when both are scaled by 1 + RSA_GAP about their centres (module docstring)."""
+    half = 0.5
+    grow = 1.0 + RSA_GAP
+    ia = shape_matrix_inverse(qa0, qa1, qa2, qa3, a, b, b, half)
+    ib = shape_matrix_inverse(qb0, qb1, qb2, qb3, a, b, b, half)
+    if plane_separated(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5], ib[0], ib[1], ib[2], ib[3], ib[4], ib[5],
+                       rx, ry, rz, RSA_GAP, half):
+        return True
+    f, _, _, _, _, _ = pw_contact(ia[0], ia[1], ia[2], ia[3], ia[4], ia[5], ib[0], ib[1], ib[2], ib[3], ib[4], ib[5],
+                                  rx, ry, rz, RSA_PW_TOL, grow * grow, half)
+    return f >= grow * grow
+
+
+@numba.njit(cache=True, inline="always")
 def _wrap(dx, span):
     """dx (grid units) to the nearest image in a periodic span."""
     if dx > span // 2:
@@ -139,9 +186,11 @@ def _wrap(dx, span):
 
 
 @numba.njit(cache=True, inline="always")
-def is_clear(gx, gy, gz, cx, cy, cz, nc, thr, counts, slots):
+def is_clear(gx, gy, gz, cx, cy, cz, nc, thr, counts, slots, cq, quats, axes, unit):
     """Whether a centre at grid point (gx, gy, gz) of cell (cx, cy, cz) overlaps no sphere kept in the 27 cells
-    around: exact int64 squared distances against thr."""
+    around: exact int64 squared distances against thr. Spheroids (``axes`` = (a, b)): a kept one within the bounding
+    distance is tested with the candidate's orientation ``cq`` and its own (quats[c, k]) by :func:`spheroids_clear`
+    (``unit``: the grid's, m)."""
     q = np.int64(RSA_Q)
     span = np.int64(nc) * q
     for ox in range(-1, 2):
@@ -156,14 +205,20 @@ def is_clear(gx, gy, gz, cx, cy, cz, nc, thr, counts, slots):
                     dy = _wrap(ny * q + np.int64(slots[c, k, 1]) - gy, span)
                     dz = _wrap(nz * q + np.int64(slots[c, k, 2]) - gz, span)
                     if dx * dx + dy * dy + dz * dz < thr:
-                        return False
+                        if axes.shape[0] == 0:
+                            return False
+                        if not spheroids_clear(dx * unit, dy * unit, dz * unit, cq[0], cq[1], cq[2], cq[3],
+                                               quats[c, k, 0], quats[c, k, 1], quats[c, k, 2], quats[c, k, 3],
+                                               axes[0], axes[1]):
+                            return False
     return True
 
 
 @numba.njit(cache=True, inline="always")
-def cell_pass(t, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spass):
+def cell_pass(t, colour, p, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit):
     """The attempts of pass p in the t-th cell of colour ``colour``; returns 1 when the cell had no free slot for a
-    centre it kept (the start is then redone with more slots), else 0."""
+    centre it kept (the start is then redone with more slots), else 0. Spheroids (``axes`` = (a, b)) draw an
+    orientation per attempt from ``quat_key`` and keep it in quats[c, slot]."""
     h2 = nc // 2
     cx = 2 * (t // (h2 * h2)) + ((colour >> 2) & 1)
     cy = 2 * ((t // h2) % h2) + ((colour >> 1) & 1)
@@ -172,7 +227,10 @@ def cell_pass(t, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spa
     q = np.int64(RSA_Q)
     for a in range(attempts_of(cdf, count_key, c)):
         qx, qy, qz = candidate(pos_key, c, a)
-        if is_clear(cx * q + qx, cy * q + qy, cz * q + qz, cx, cy, cz, nc, thr, counts, slots):
+        cq = (1.0, 0.0, 0.0, 0.0)
+        if axes.shape[0] != 0:
+            cq = candidate_orientation(quat_key, c, a)
+        if is_clear(cx * q + qx, cy * q + qy, cz * q + qz, cx, cy, cz, nc, thr, counts, slots, cq, quats, axes, unit):
             m = counts[c]
             if m >= slots.shape[1]:
                 return 1
@@ -180,6 +238,9 @@ def cell_pass(t, colour, p, nc, thr, cdf, pos_key, count_key, counts, slots, spa
             slots[c, m, 1] = qy
             slots[c, m, 2] = qz
             spass[c, m] = p
+            if axes.shape[0] != 0:
+                for j in range(4):
+                    quats[c, m, j] = cq[j]
             counts[c] = m + 1
     return 0
 
@@ -193,19 +254,32 @@ def final_key(trim_key, cell, k, pass_in_round):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _round(r, nc, thr, cdf, pos_key, count_key, counts, slots, spass):
-    """Round r's eight passes on the host; returns the number of cells that lacked a slot."""
+def _round(r, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit):
+    """Round r's eight passes on the host's threads; returns the number of cells that lacked a slot."""
     h2 = nc // 2
     m = h2 * h2 * h2
     full = 0
     for colour in range(_COLOURS):
         p = _COLOURS * r + colour
-        pk = pass_key(pos_key, p)
-        ck = pass_key(count_key, p)
+        pk, ck, qk = pass_key(pos_key, p), pass_key(count_key, p), pass_key(quat_key, p)
         flags = np.zeros(m, np.int64)
         for t in numba.prange(m):
-            flags[t] = cell_pass(t, colour, p, nc, thr, cdf, pk, ck, counts, slots, spass)
+            flags[t] = cell_pass(t, colour, p, nc, thr, cdf, pk, ck, qk, counts, slots, spass, quats, axes, unit)
         full += flags.sum()
+    return full
+
+
+@numba.njit(cache=True, nogil=True)
+def _round_serial(r, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit):
+    """:func:`_round` on the calling thread (the same passes in the same order: the same particles)."""
+    h2 = nc // 2
+    m = h2 * h2 * h2
+    full = 0
+    for colour in range(_COLOURS):
+        p = _COLOURS * r + colour
+        pk, ck, qk = pass_key(pos_key, p), pass_key(count_key, p), pass_key(quat_key, p)
+        for t in range(m):
+            full += cell_pass(t, colour, p, nc, thr, cdf, pk, ck, qk, counts, slots, spass, quats, axes, unit)
     return full
 
 
@@ -251,8 +325,9 @@ def _last_round(first_pass, trim_key, counts, spass, keys, index):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _gather(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, pos):
-    """The start's centres, numbered in cell order (then slot order), into pos (n x 3)."""
+def _gather(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, quats, pos, quat):
+    """The start's centres, numbered in cell order (then slot order), into pos (n x 3); a spheroid start's orientations
+    into quat (n x 4; spheres: quat has no rows)."""
     ncell = counts.shape[0]
     per = np.zeros(ncell + 1, np.int64)
     for c in numba.prange(ncell):
@@ -274,6 +349,9 @@ def _gather(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, s
                 pos[i, 0] = (cx * q + slots[c, k, 0] + 0.5) * unit
                 pos[i, 1] = (cy * q + slots[c, k, 1] + 0.5) * unit
                 pos[i, 2] = (cz * q + slots[c, k, 2] + 0.5) * unit
+                if quat.shape[0] != 0:
+                    for j in range(4):
+                        quat[i, j] = quats[c, k, j]
                 i += 1
     return per[ncell]
 
@@ -305,33 +383,39 @@ def run_rounds(g: CellRsa, round_fn, new_arrays) -> tuple:
         slots_per_cell *= 2
 
 
-def place_random(g: CellRsa, keys: tuple) -> np.ndarray:
-    """The n centres (n x 3, m) of a random start on the host (see the module docstring); ``keys``: the positions',
-    attempt counts' and removal keys (uint64)."""
-    pos_key, count_key, trim_key = (np.uint64(k) for k in keys)
+def place_random(g: CellRsa, keys: tuple, threads: bool = True):
+    """The n centres (n x 3, m) of a random start on the host (see the module docstring), and for spheroids their
+    orientations (n x 4): (pos, quat or None). ``keys``: the positions', attempt counts', removal and (spheroids)
+    orientations' keys (uint64); ``threads``: run the rounds on the host's threads (else on the calling one)."""
+    pos_key, count_key, trim_key = (np.uint64(k) for k in keys[:3])
+    quat_key = np.uint64(keys[3]) if g.spheroid else np.uint64(0)
     cdf = np.array(g.cdf, np.uint64)
+    axes = np.array(g.axes, np.float64)
     ncell = g.nc ** 3
+    rounds_fn = _round if threads else _round_serial
 
     def new_arrays(per_cell: int) -> tuple:
         return (np.zeros(ncell, np.int32), np.empty((ncell, per_cell, 3), np.int16),
-                np.empty((ncell, per_cell), np.int32))
+                np.empty((ncell, per_cell), np.int32),
+                np.empty((ncell, per_cell, 4) if g.spheroid else (1, 1, 4), np.float64))
 
     def one_round(r: int, arrays: tuple) -> tuple:
-        counts, slots, spass = arrays
-        full = _round(r, g.nc, g.thr, cdf, pos_key, count_key, counts, slots, spass)
+        counts, slots, spass, quats = arrays
+        full = rounds_fn(r, g.nc, g.thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, g.unit)
         return full, int(counts.sum())
 
-    (counts, slots, spass), rounds, prev = run_rounds(g, one_round, new_arrays)
+    (counts, slots, spass, quats), rounds, prev = run_rounds(g, one_round, new_arrays)
     first_pass = _COLOURS * (rounds - 1)
     m = int(counts.sum()) - prev
     keys_last, index_last = np.empty(m, np.uint64), np.empty(m, np.int64)
     _last_round(first_pass, trim_key, counts, spass, keys_last, index_last)
     cut_key, cut_index = cut_of(keys_last, index_last, g.n - prev)
     pos = np.empty((g.n, 3))
-    placed = _gather(g.nc, g.unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, pos)
+    quat = np.empty((g.n if g.spheroid else 0, 4))
+    placed = _gather(g.nc, g.unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, quats, pos, quat)
     if placed != g.n:
-        raise RuntimeError(f"random start: {placed} spheres kept for {g.n}")
-    return pos
+        raise RuntimeError(f"random start: {placed} particles kept for {g.n}")
+    return pos, (quat if g.spheroid else None)
 
 
 fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

@@ -284,23 +284,32 @@ def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
 
 
 def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
-    """Start of an ellipsoid spec (Rubio-Largo et al. 2015, §4): bounding spheres (radius a) placed without overlap,
-    uniformly random orientations, Maxwellian velocities, and spins about the two axes perpendicular to
-    the symmetry axis at the translational temperature per degree of freedom; no spin about the axis when
-    the contacts are frictionless (they can neither create nor use it: Rubio-Largo et al. (2015) set omega_y(0) = 0), a
-    thermal one when they are rough (all three rotational dof exchange energy)."""
+    """Start of an ellipsoid spec: placed without overlap, uniformly random orientations, Maxwellian velocities, and
+    spins about the two axes perpendicular to the symmetry axis at the translational temperature per degree of
+    freedom; no spin about the axis when the contacts are frictionless (they can neither create nor use it:
+    Rubio-Largo et al. (2015) set omega_y(0) = 0), a thermal one when they are rough (all three rotational dof exchange
+    energy). Placed on a lattice by their bounding spheres (radius a; the protocol of Rubio-Largo et al. 2015, §4), or
+    for ``start = "random"`` by random sequential addition of the spheroids themselves, each with its orientation
+    (engine/setup/cell_rsa.py: cell rounds on the host's threads from the parallel start's size on, on one thread
+    below it)."""
     n = spec.n_particles
-    a = p.semi_axes[0]
-    parallel = start_generator(spec) == PARALLEL_GENERATOR
+    a, b = p.semi_axes[0], p.semi_axes[1]
+    random = start_protocol(spec) == RANDOM
+    parallel = start_generator(spec) in (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR)
     rng = None if parallel else np.random.default_rng(spec.seed)
     w_rms = _ellipsoid_spin_rms(spec, p)
     try:
         if parallel:
             streams, _ = parallel_start_streams(spec, p)
-            pos, drawn = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, a))
-            vel, quat, w_b = drawn[:3]
-        elif start_protocol(spec) == RANDOM:
-            pos, _ = place_species([n], [a], spec.box_length, rng)
+            if random:
+                pos, drawn = StartDraw.of(n, spec.seed, streams, spec.box_length, a, RANDOM, (a, b)).on_host()
+                by_stream = dict(zip([s for s, _, _ in streams] + [STREAM_QUATERNION], drawn))
+            else:
+                pos, drawn = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, a))
+                by_stream = dict(zip([s for s, _, _ in streams], drawn))
+            vel, quat, w_b = by_stream[STREAM_VELOCITY], by_stream[STREAM_QUATERNION], by_stream[STREAM_SPIN]
+        elif random:
+            pos, quat = place_random(CellRsa.of(n, spec.box_length, a, (a, b)), rsa_keys(spec.seed), threads=False)
         else:
             pos = place_spheres(n, spec.box_length, a, rng)
     except SpecError as exc:
@@ -308,7 +317,8 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
                         f"elongation = {spec.elongation:g})") from None
     if not parallel:
         vel = maxwellian(n, spec.velocity_rms, rng)
-        quat = random_quaternions(n, rng)
+        if not random:
+            quat = random_quaternions(n, rng)
         w_b = rng.normal(size=(n, 2))
         w_b -= w_b.mean(axis=0) if n > 1 else 0.0
         w_b *= w_rms[0] / math.sqrt(np.mean(w_b * w_b))
@@ -317,7 +327,7 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
         # rough contacts exchange spin about the symmetry axis too: that dof starts thermal as well
         # (drawn after the others, from its own stream, so a smooth start is unchanged)
         if parallel:
-            w_a = drawn[3]
+            w_a = by_stream[STREAM_SPIN_AXIS]
         else:
             w_a = rng.normal(size=(n, 1))
             w_a -= w_a.mean(axis=0) if n > 1 else 0.0
@@ -371,13 +381,18 @@ def load_parallel_start(spec, p: Derived) -> bool:
     n = 64
     streams, _ = parallel_start_streams(spec, p)
     # unplaced: the same compiled calls with the same argument types (a site count of 0 selects no site)
-    _, drawn = _parallel_draws(n, spec.seed, streams)
-    if spec.shape == "sphere" and start_protocol(spec) == RANDOM:     # the random start's rounds
-                                                                      # (engine/setup/cell_rsa.py)
-        StartDraw.of(n, spec.seed, streams, 20.0, 1.0, RANDOM).on_host()
+    ids = [s for s, _, _ in streams]
+    if start_protocol(spec) == RANDOM:     # the random start's rounds (engine/setup/cell_rsa.py)
+        axes = (1.0, 0.5) if spec.shape == "ellipsoid" else ()
+        _, drawn = StartDraw.of(n, spec.seed, streams, 20.0, 1.0, RANDOM, axes).on_host()
+        ids.append(STREAM_QUATERNION)
+    else:
+        _, drawn = _parallel_draws(n, spec.seed, streams)
     if spec.shape == "ellipsoid":
-        w_a = drawn[3] if not spec.smooth else np.zeros((n, 1))
-        _space_spins_parallel(drawn[1], drawn[2], w_a, not spec.smooth, np.empty((n, 3)))
+        by_stream = dict(zip(ids, drawn))
+        w_a = np.zeros((n, 1)) if spec.smooth else by_stream[STREAM_SPIN_AXIS]
+        _space_spins_parallel(by_stream[STREAM_QUATERNION], by_stream[STREAM_SPIN], w_a, not spec.smooth,
+                              np.empty((n, 3)))
     return True
 
 
@@ -393,9 +408,11 @@ def parallel_start_streams(spec, p: Derived) -> tuple:
     takes them, and the radius its particles are placed by (a sphere's, an ellipsoid's bounding sphere's)."""
     if spec.shape == "ellipsoid":
         w_rms, w1_rms = _ellipsoid_spin_rms(spec, p)
-        # every stream is its own sequence of draws: the axial spin's (rough contacts) leaves the others as they are
-        return [(STREAM_VELOCITY, 3, spec.velocity_rms), (STREAM_QUATERNION, 4, None),
-                (STREAM_SPIN, 2, w_rms * math.sqrt(2.0))] + \
+        # every stream is its own sequence of draws: the axial spin's (rough contacts) leaves the others as they are;
+        # a random start draws its orientations with its centres (engine/setup/cell_rsa.py)
+        return [(STREAM_VELOCITY, 3, spec.velocity_rms)] + \
+            ([] if start_protocol(spec) == RANDOM else [(STREAM_QUATERNION, 4, None)]) + \
+            [(STREAM_SPIN, 2, w_rms * math.sqrt(2.0))] + \
             ([] if spec.smooth else [(STREAM_SPIN_AXIS, 1, w1_rms)]), p.semi_axes[0]
     # equal rotational and translational temperature: I <w^2> = m <v^2>
     w_rms = spec.velocity_rms * math.sqrt(p.mass / p.inertia[0])
@@ -406,8 +423,8 @@ def parallel_start_streams(spec, p: Derived) -> tuple:
 
 STREAM_SITES, STREAM_DISPLACEMENT, STREAM_VELOCITY, STREAM_SPIN, STREAM_QUATERNION, STREAM_SPIN_AXIS = range(6)
 #: the random start's draws (engine/setup/cell_rsa.py): candidate centres, attempt counts, the last round's removal
-#: order
-STREAM_RSA_CENTRES, STREAM_RSA_ATTEMPTS, STREAM_RSA_REMOVAL = range(6, 9)
+#: order, and a spheroid candidate's orientation
+STREAM_RSA_CENTRES, STREAM_RSA_ATTEMPTS, STREAM_RSA_REMOVAL, STREAM_RSA_ORIENTATION = range(6, 10)
 _BLOCK = 1 << 14     # particles per block of the deterministic sums
 
 @numba.njit(cache=True, inline="always")
@@ -715,10 +732,12 @@ class StartDraw:
     rsa: object = None
 
     @classmethod
-    def of(cls, n: int, seed: int, streams, box: float, radius: float, protocol: str = "lattice") -> "StartDraw":
-        """Checked on the host at once (SpecError when the spheres do not fit), drawn later on the device."""
+    def of(cls, n: int, seed: int, streams, box: float, radius: float, protocol: str = "lattice",
+           axes: tuple = ()) -> "StartDraw":
+        """Checked on the host at once (SpecError when the spheres do not fit), drawn later on the device. ``axes``:
+        a random spheroid start's semi-axes (a, b) (``radius`` = a; orientations drawn with the centres)."""
         _check_streams(streams)
-        rsa = CellRsa.of(n, box, radius) if protocol == RANDOM else None
+        rsa = CellRsa.of(n, box, radius, axes) if protocol == RANDOM else None
         return cls(n, seed, tuple(tuple(s) for s in streams), float(box), float(radius), *lattice_of(n, box, radius),
                    rsa=rsa)
 
@@ -728,16 +747,25 @@ class StartDraw:
                 [_stream_key(self.seed, stream) for stream, _, _ in self.streams])
 
     def rsa_keys(self) -> tuple:
-        """The random start's keys: candidate centres, attempt counts, removal order (numpy uint64)."""
-        return tuple(_stream_key(self.seed, s) for s in (STREAM_RSA_CENTRES, STREAM_RSA_ATTEMPTS, STREAM_RSA_REMOVAL))
+        """The random start's keys (numpy uint64): candidate centres, attempt counts, removal order, orientations."""
+        return rsa_keys(self.seed)
 
-    def on_host(self) -> tuple:
+    def on_host(self, threads: bool = True) -> tuple:
         """The same start drawn on the host (positions, [arrays]): _parallel_draws, and for a random start the
-        centres of engine/setup/cell_rsa.py ``place_random``."""
+        centres of engine/setup/cell_rsa.py ``place_random`` (a spheroid start's orientations appended to the
+        arrays)."""
         if self.rsa is None:
             return _parallel_draws(self.n, self.seed, list(self.streams), place=(self.box, self.radius))
         _, drawn = _parallel_draws(self.n, self.seed, list(self.streams))
-        return place_random(self.rsa, self.rsa_keys()), drawn
+        pos, quat = place_random(self.rsa, self.rsa_keys(), threads)
+        return pos, (drawn if quat is None else [*drawn, quat])
+
+
+def rsa_keys(seed: int) -> tuple:
+    """The keys of a random start's cell rounds (engine/setup/cell_rsa.py) for ``seed``: candidate centres, attempt
+    counts, removal order, a spheroid candidate's orientation (numpy uint64)."""
+    return tuple(_stream_key(seed, s) for s in (STREAM_RSA_CENTRES, STREAM_RSA_ATTEMPTS, STREAM_RSA_REMOVAL,
+                                                STREAM_RSA_ORIENTATION))
 
 
 def drawn_on_host(system):

@@ -236,7 +236,7 @@ class SimulationSpec(BaseModel):
                           "'lattice' = fcc lattice sites with a random displacement (the rough-sphere papers' "
                           "protocol; one-size spheres and ellipsoids); null = 'random' where it is cheap "
                           "(species; one-size spheres up to volume_fraction 0.30, placed in parallel from 2^20 "
-                          "particles on), else 'lattice'.")
+                          "particles on; spheroids up to volume_fraction x elongation^2 = 0.30), else 'lattice'.")
     thermalization: Optional[float] = Field(
         None, description="Collisions per particle run without dissipation before t = 0 (0 ... 10000); "
                           "null = what the start needs: a random start 0 up to volume_fraction 0.02, 0.25 up to "
@@ -334,12 +334,13 @@ class SimulationSpec(BaseModel):
         if self.start == "lattice" and poly:
             raise ValueError("start = 'lattice' but species is given: size distributions are placed by random "
                              "sequential addition only; set start to 'random' or null")
-        bounding = self.volume_fraction * self.elongation**2     # ellipsoids: RSA places the bounding spheres
+        # ellipsoids: the random start's cells hold their bounding spheres, whose volume fraction is phi xi^2
+        bounding = self.volume_fraction * self.elongation**2
         if self.start == "random" and bounding > SPECIES_MAX_VOLUME_FRACTION:
             raise ValueError(
-                f"start = 'random' needs volume_fraction x elongation^2 <= {SPECIES_MAX_VOLUME_FRACTION:g} "
-                f"(random sequential addition jams near 0.38), but it is {bounding:g}; use start = 'lattice' or "
-                f"null")
+                f"start = 'random' needs volume_fraction x elongation^2 <= {SPECIES_MAX_VOLUME_FRACTION:g} (the "
+                f"bounding spheres' volume fraction, which sets the random start's cost), but it is {bounding:g}; "
+                f"use start = 'lattice' or null")
         p = scales(self)
         if not p.temperature0 >= sys.float_info.min:
             # T0 = <m> v_rms^2 / 3 underflows: the collision rate, hence the thermalisation time, would be 0 or nan

@@ -11,8 +11,9 @@ Two protocols place the particles (``spec.start``):
   cooling papers), which must be melted by ``thermalization`` collisions per particle of elastic dynamics.
 
 ``spec.start = null`` picks ``"random"`` wherever RSA is cheap (one-size particles of a shape whose trait
-``RANDOM_START`` says so, the sphere's, up to RANDOM_MAX_VOLUME_FRACTION, at any N: from PARALLEL_START_MIN spheres
-on it is placed in parallel, engine/setup/cell_rsa.py; every species spec), ``"lattice"`` otherwise (ellipsoids, denser
+``RANDOM_START`` says so, spheres and spheroids, whose bounding spheres' volume fraction phi xi^2 is at most
+RANDOM_MAX_VOLUME_FRACTION, at any N: from PARALLEL_START_MIN particles on it is placed in parallel,
+engine/setup/cell_rsa.py, which places every spheroid start; every species spec), ``"lattice"`` otherwise (denser
 gases).
 ``spec.thermalization = null`` is what that start needs (:func:`thermalization_collisions`).
 """
@@ -56,7 +57,7 @@ def start_protocol(spec) -> str:
         return spec.start
     if species_table(spec) is not None:
         return RANDOM
-    if traits(spec.shape).RANDOM_START and spec.volume_fraction <= RANDOM_MAX_VOLUME_FRACTION:
+    if traits(spec.shape).RANDOM_START and spec.volume_fraction * spec.elongation ** 2 <= RANDOM_MAX_VOLUME_FRACTION:
         return RANDOM
     return LATTICE
 
@@ -75,12 +76,11 @@ def thermalization_collisions(spec) -> float:
 def start_generator(spec) -> str:
     """Which generator draws a spec's start: the sequential NumPy one, or for N >= PARALLEL_START_MIN one-size
     particles the parallel counter-based one: the lattice protocol's, or a random start's random sequential addition
-    in cell rounds (spheres; species starts are sequential RSA at any N)."""
+    in cell rounds (species starts are sequential RSA at any N). A smaller random spheroid start draws its velocities
+    and spins from NumPy and its centres and orientations by the same cell rounds on one thread."""
     if species_table(spec) is not None or spec.n_particles < PARALLEL_START_MIN:
         return SEQUENTIAL_GENERATOR
-    if start_protocol(spec) == LATTICE:
-        return PARALLEL_GENERATOR
-    return PARALLEL_RSA_GENERATOR if spec.shape == "sphere" else SEQUENTIAL_GENERATOR
+    return PARALLEL_GENERATOR if start_protocol(spec) == LATTICE else PARALLEL_RSA_GENERATOR
 
 
 def device_start(spec) -> bool:

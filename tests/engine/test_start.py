@@ -39,7 +39,11 @@ def test_null_start_is_random_where_cheap_and_lattice_elsewhere():
     assert start_protocol(large) == RANDOM and start_generator(large) == PARALLEL_RSA_GENERATOR
     assert start_generator(SimulationSpec(n_particles=PARALLEL_START_MIN - 1)) == SEQUENTIAL_GENERATOR
     assert start_generator(SimulationSpec(n_particles=PARALLEL_START_MIN, start="lattice")) == PARALLEL_GENERATOR
-    assert start_protocol(SimulationSpec(shape="ellipsoid", elongation=2.0, volume_fraction=0.02)) == LATTICE
+    # spheroids: random up to phi xi^2 = 0.3 (their bounding spheres' volume fraction), the lattice above
+    assert start_protocol(SimulationSpec(shape="ellipsoid", elongation=2.0, volume_fraction=0.075)) == RANDOM
+    assert start_protocol(SimulationSpec(shape="ellipsoid", elongation=2.0, volume_fraction=0.076)) == LATTICE
+    assert start_generator(SimulationSpec(shape="ellipsoid", elongation=2.0, n_particles=PARALLEL_START_MIN)) \
+        == PARALLEL_RSA_GENERATOR
     assert start_protocol(SimulationSpec(start="lattice")) == LATTICE
     assert start_protocol(SimulationSpec(start="random", n_particles=PARALLEL_START_MIN, volume_fraction=0.01)) \
         == RANDOM

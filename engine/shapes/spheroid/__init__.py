@@ -18,8 +18,9 @@ ELONGATED = True
 SPECIES = False
 #: runs precision "mixed": the contact solver has no mixed-precision variant
 MIXED = False
-#: a null ``start`` never places it by random sequential addition (engine/setup/start_kind.py): always the lattice
-RANDOM_START = False
+#: a null ``start`` places it by random sequential addition of the spheroids themselves where their bounding spheres'
+#: volume fraction phi xi^2 allows (engine/setup/start_kind.py, engine/setup/cell_rsa.py), else on the lattice
+RANDOM_START = True
 #: a null verlet_skin is the CPU default (the skin rule over phi was measured for spheres only)
 SKIN_BY_VOLUME_FRACTION = False
 
