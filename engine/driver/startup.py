@@ -85,9 +85,9 @@ class GpuStartup:
                 ensemble.warmup()
             ensemble.observe()
             if self._start_dtypes is not None:  # the job's large start is drawn on the device (cuda_start.py)
-                from engine.loops.cuda_start import load
+                from engine.shapes import host
 
-                load(*self._start_dtypes)
+                host(shape).load_device_start(*self._start_dtypes)
         except Exception as exc:  # noqa: BLE001  (the job loads its kernels itself)
             self.error = f"{type(exc).__name__}: {exc}"
         finally:

@@ -61,7 +61,8 @@ class EllipsoidSystem:
     As :class:`SphereSystem`, with semi_axes (N,3) m (a, b, c along the body axes x, y, z; prolate
     spheroids: a >= b = c) and inertia (N,3) kg m^2, the principal moments about the body axes.
     angular_velocity is in the space frame. contact_pairs/contact_springs: contact slots carried over
-    from a checkpoint (overlap and dashpot force in columns 3, 4), empty for a fresh start.
+    from a checkpoint (overlap and dashpot force in columns 3, 4), empty for a fresh start. draw: as
+    :class:`SphereSystem`'s (a large start drawn by the GPU backend; the state arrays are then None).
     """
 
     shape: ClassVar[str] = "ellipsoid"
@@ -75,10 +76,11 @@ class EllipsoidSystem:
     inertia: np.ndarray
     contact_pairs: Optional[np.ndarray] = None
     contact_springs: Optional[np.ndarray] = None
+    draw: Optional[object] = None
 
     @property
     def n(self) -> int:
-        return self.position.shape[0]
+        return self.draw.n if self.position is None else self.position.shape[0]
 
 
 @dataclass(frozen=True)

@@ -283,7 +283,7 @@ def initial_spheres(spec, p: Derived, on_device: bool = False) -> SphereSystem:
         radius=np.full(n, p.radius), mass=np.full(n, p.mass), inertia=np.full(n, p.inertia[0]))
 
 
-def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
+def initial_ellipsoids(spec, p: Derived, on_device: bool = False) -> EllipsoidSystem:
     """Start of an ellipsoid spec: placed without overlap, uniformly random orientations, Maxwellian velocities, and
     spins about the two axes perpendicular to the symmetry axis at the translational temperature per degree of
     freedom; no spin about the axis when the contacts are frictionless (they can neither create nor use it:
@@ -291,53 +291,73 @@ def initial_ellipsoids(spec, p: Derived) -> EllipsoidSystem:
     energy). Placed on a lattice by their bounding spheres (radius a; the protocol of Rubio-Largo et al. 2015, §4), or
     for ``start = "random"`` by random sequential addition of the spheroids themselves, each with its orientation
     (engine/setup/cell_rsa.py: cell rounds on the host's threads from the parallel start's size on, on one thread
-    below it)."""
+    below it). ``on_device``: as :func:`initial_spheres`' (a large start comes as its :class:`StartDraw`)."""
     n = spec.n_particles
     a, b = p.semi_axes[0], p.semi_axes[1]
     random = start_protocol(spec) == RANDOM
     parallel = start_generator(spec) in (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR)
     rng = None if parallel else np.random.default_rng(spec.seed)
     w_rms = _ellipsoid_spin_rms(spec, p)
+    axes, inertia = np.asarray(p.semi_axes, float), np.asarray(p.inertia, float)
     try:
         if parallel:
             streams, _ = parallel_start_streams(spec, p)
-            if random:
-                pos, drawn = StartDraw.of(n, spec.seed, streams, spec.box_length, a, RANDOM, (a, b)).on_host()
-                by_stream = dict(zip([s for s, _, _ in streams] + [STREAM_QUATERNION], drawn))
-            else:
-                pos, drawn = _parallel_draws(n, spec.seed, streams, place=(spec.box_length, a))
-                by_stream = dict(zip([s for s, _, _ in streams], drawn))
-            vel, quat, w_b = by_stream[STREAM_VELOCITY], by_stream[STREAM_QUATERNION], by_stream[STREAM_SPIN]
-        elif random:
+            draw = StartDraw.of(n, spec.seed, streams, spec.box_length, a, start_protocol(spec),
+                                (a, b) if random else ())
+            if on_device:    # drawn by the GPU job's backend (engine/loops/cuda_start.py)
+                return EllipsoidSystem(
+                    box_length=spec.box_length, position=None, velocity=None, angular_velocity=None,
+                    orientation=None, semi_axes=np.broadcast_to(axes, (n, 3)),
+                    mass=np.broadcast_to(np.float64(p.mass), (n,)), inertia=np.broadcast_to(inertia, (n, 3)),
+                    draw=draw)
+            pos, vel, omega, quat = ellipsoid_draw_on_host(draw)
+            return EllipsoidSystem(
+                box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
+                semi_axes=np.tile(axes, (n, 1)), mass=np.full(n, p.mass), inertia=np.tile(inertia, (n, 1)))
+        if random:
             pos, quat = place_random(CellRsa.of(n, spec.box_length, a, (a, b)), rsa_keys(spec.seed), threads=False)
         else:
             pos = place_spheres(n, spec.box_length, a, rng)
     except SpecError as exc:
         raise SpecError(f"{exc} (ellipsoids are placed by their bounding spheres of radius a = {a:.4g} m, "
                         f"elongation = {spec.elongation:g})") from None
-    if not parallel:
-        vel = maxwellian(n, spec.velocity_rms, rng)
-        if not random:
-            quat = random_quaternions(n, rng)
-        w_b = rng.normal(size=(n, 2))
-        w_b -= w_b.mean(axis=0) if n > 1 else 0.0
-        w_b *= w_rms[0] / math.sqrt(np.mean(w_b * w_b))
+    vel = maxwellian(n, spec.velocity_rms, rng)
+    if not random:
+        quat = random_quaternions(n, rng)
+    w_b = rng.normal(size=(n, 2))
+    w_b -= w_b.mean(axis=0) if n > 1 else 0.0
+    w_b *= w_rms[0] / math.sqrt(np.mean(w_b * w_b))
     w_a = np.zeros((n, 1))
     if not spec.smooth:
         # rough contacts exchange spin about the symmetry axis too: that dof starts thermal as well
         # (drawn after the others, from its own stream, so a smooth start is unchanged)
-        if parallel:
-            w_a = by_stream[STREAM_SPIN_AXIS]
-        else:
-            w_a = rng.normal(size=(n, 1))
-            w_a -= w_a.mean(axis=0) if n > 1 else 0.0
-            w_a *= w_rms[1] / math.sqrt(np.mean(w_a * w_a))
+        w_a = rng.normal(size=(n, 1))
+        w_a -= w_a.mean(axis=0) if n > 1 else 0.0
+        w_a *= w_rms[1] / math.sqrt(np.mean(w_a * w_a))
     omega = np.empty((n, 3))
-    (_space_spins_parallel if parallel else _space_spins)(quat, w_b, w_a, not spec.smooth, omega)
+    _space_spins(quat, w_b, w_a, not spec.smooth, omega)
     return EllipsoidSystem(
         box_length=spec.box_length, position=pos, velocity=vel, angular_velocity=omega, orientation=quat,
-        semi_axes=np.tile(np.asarray(p.semi_axes, float), (n, 1)), mass=np.full(n, p.mass),
-        inertia=np.tile(np.asarray(p.inertia, float), (n, 1)))
+        semi_axes=np.tile(axes, (n, 1)), mass=np.full(n, p.mass), inertia=np.tile(inertia, (n, 1)))
+
+
+def ellipsoid_draw_rows(d) -> tuple:
+    """{stream: row block} of an ellipsoid start's draws as :meth:`StartDraw.on_host` returns them (a random start's
+    orientations last), and whether it is rough (an axial spin stream)."""
+    ids = [s for s, _, _ in d.streams] + ([STREAM_QUATERNION] if d.rsa is not None else [])
+    return ids, STREAM_SPIN_AXIS in ids
+
+
+def ellipsoid_draw_on_host(d) -> tuple:
+    """(position, velocity, space-frame spin, orientation) of a large ellipsoid start drawn on the host from its
+    :class:`StartDraw` (the spins from the body-axis draws by :func:`_space_spin`)."""
+    pos, drawn = d.on_host()
+    ids, rough = ellipsoid_draw_rows(d)
+    by_stream = dict(zip(ids, drawn))
+    w_a = by_stream[STREAM_SPIN_AXIS] if rough else np.zeros((d.n, 1))
+    omega = np.empty((d.n, 3))
+    _space_spins_parallel(by_stream[STREAM_QUATERNION], by_stream[STREAM_SPIN], w_a, rough, omega)
+    return pos, by_stream[STREAM_VELOCITY], omega, by_stream[STREAM_QUATERNION]
 
 
 @numba.njit(cache=True, inline="always")
@@ -773,6 +793,11 @@ def drawn_on_host(system):
     d = getattr(system, "draw", None)
     if d is None:
         return system
+    if isinstance(system, EllipsoidSystem):
+        pos, vel, omega, quat = ellipsoid_draw_on_host(d)
+        return replace(system, position=pos, velocity=vel, angular_velocity=omega, orientation=quat, draw=None,
+                       semi_axes=np.array(system.semi_axes), mass=np.array(system.mass),
+                       inertia=np.array(system.inertia))
     pos, (vel, omega, quat) = d.on_host()
     # the CPU loops take writable arrays of their own, not the device start's broadcast constants
     return replace(system, position=pos, velocity=vel, angular_velocity=omega, orientation=quat, draw=None,

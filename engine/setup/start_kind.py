@@ -84,7 +84,6 @@ def start_generator(spec) -> str:
 
 
 def device_start(spec) -> bool:
-    """Whether a GPU job of ``spec`` draws its start on the device (engine/loops/cuda_start.py): a large
-    one-size sphere lattice start (the parallel generator), unless :data:`DEVICE_START` is False."""
-    return DEVICE_START and spec.shape == "sphere" and start_generator(spec) in (PARALLEL_GENERATOR,
-                                                                                PARALLEL_RSA_GENERATOR)
+    """Whether a GPU job of ``spec`` draws its start on the device (engine/loops/cuda_start.py): a large one-size
+    start of spheres or spheroids (a parallel generator's), unless :data:`DEVICE_START` is False."""
+    return DEVICE_START and start_generator(spec) in (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR)

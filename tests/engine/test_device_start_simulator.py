@@ -110,9 +110,48 @@ def _ensemble() -> None:
     print("ensemble ok")
 
 
+def _spheroids() -> None:
+    """A spheroid ensemble of scenes drawn on the device (a rough random start, a smooth lattice start, in float64
+    and float32) beside a scene with host arrays holds the state of one built from the same draws on the host: the
+    random start's centres and orientations, the spins from the body-axis draws, L and the predicted spin."""
+    import dataclasses
+
+    from engine.shapes.spheroid.cuda_backend import CudaEllipsoidEnsemble
+    from engine.setup.params import derive
+    from engine.setup.scene import drawn_on_host, initial_ellipsoids
+    from engine.setup.spec import SimulationSpec
+    from tests.engine.test_cuda_ellipsoid_simulator import contact, tiny_ellipsoids
+
+    from engine.setup import start_kind
+
+    start_kind.PARALLEL_START_MIN = 64      # these small starts are drawn as a large one is
+    scenes = []
+    for start, e_t, seed in (("random", 0.8, 3), ("lattice", -1.0, 4)):
+        spec = SimulationSpec(shape="ellipsoid", elongation=2.0, n_particles=80, volume_fraction=0.05, start=start,
+                              e_t=e_t, seed=seed, box_length=1.0)
+        drawn = initial_ellipsoids(spec, derive(spec), on_device=True)
+        assert drawn.draw is not None and drawn.position is None and drawn.n == 80
+        scenes.append(drawn)
+    other = tiny_ellipsoids()
+    for precision in ("float64", "float32"):
+        c = contact(precision=precision)
+        a = CudaEllipsoidEnsemble([other, *scenes], [c, c, c])
+        b = CudaEllipsoidEnsemble([other] + [dataclasses.replace(drawn_on_host(s)) for s in scenes], [c, c, c])
+        for k in (0, 1, 2):
+            sa, sb = a.state(k), b.state(k)
+            for key in ("position", "velocity", "angular_velocity", "orientation"):
+                assert np.array_equal(sa[key], sb[key]), (precision, k, key)
+        for name in ("angm", "omega_p", "quat", "pos_prev", "quat_prev", "vel_p"):
+            assert np.array_equal(getattr(a, name).copy_to_host(), getattr(b, name).copy_to_host()), name
+    from engine.shapes import host
+
+    host("ellipsoid").load_device_start(np.float32, np.float32)     # the GPU start-up's load runs these kernels
+    print("spheroids ok")
+
+
 def test_device_start_is_the_host_start_under_the_simulator():
     here = Path(__file__).resolve()
-    res = run_children({part: [here, part] for part in ("draws", "ensemble")}, timeout=600)
+    res = run_children({part: [here, part] for part in ("draws", "ensemble", "spheroids")}, timeout=600)
     for part, (rc, out, err) in res.items():
         assert rc == 0 and f"{part} ok" in out, f"{part}:\n{out}\n{err[-3000:]}"
 
@@ -122,4 +161,4 @@ if __name__ == "__main__":
 
     sys.path.insert(0, str(ROOT))
     fast_block_polling()
-    _draws() if sys.argv[1] == "draws" else _ensemble()
+    {"draws": _draws, "ensemble": _ensemble, "spheroids": _spheroids}[sys.argv[1]]()

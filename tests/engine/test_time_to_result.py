@@ -74,7 +74,8 @@ def test_a_gpu_jobs_large_sphere_start_is_left_to_the_device_and_drawn_on_the_ho
     # the CPU loops get writable arrays of their own
     assert all(getattr(scene.system, a).flags.writeable and getattr(scene.system, a).flags.c_contiguous
                for a in ("radius", "mass", "inertia"))
-    assert device_start(spec) and not device_start(_big(shape="ellipsoid", elongation=2.0))
+    assert device_start(spec) and device_start(_big(shape="ellipsoid", elongation=2.0))     # spheroids alike
+    assert not device_start(_big(PARALLEL_START_MIN - 1))
     # a job that runs on the GPU leaves its start to the device, unless start_kind.DEVICE_START is False
     monkeypatch.setattr(sim, "resolve_backend", lambda name, shape: "cuda")
     gpu = sim.SceneRun(spec, tmp_path / "y.h5")

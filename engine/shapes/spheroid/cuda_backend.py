@@ -34,13 +34,99 @@ from engine.loops import cuda_loop
 from engine.loops.system import ContactParams, EllipsoidSystem
 from engine.shapes.spheroid.cpu_backend import (PW_SCREEN, PW_TOL, SLOT_ROUGH, angm_from_omega, omega_from_angm,
                                                 rotational_dof, tangential_factor_of, unit_quaternions)
+from engine.loops.cuda_cache import cache_kernels
 from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
+from engine.physics.rotation import angular_momentum, quat_unit, space_omega
+from engine.setup.scene import _space_spin
 from engine.physics.sonine import sonine_sums
 from engine.shapes import device as shape_device   # the device module of this class's shape (a subclass's own)
 from engine.shapes.spheroid import device as CE
 
 #: the spheroid columns of spd (engine/shapes/spheroid/device.py: offsets from the common K.ND)
 E_A, E_B, E_C, E_II1, E_II2, E_II3, E_TOL, E_BMIN, E_SCR, E_FT = (K.ND + c for c in range(CE.NCOL))
+
+
+def _host_rows(orient, omega, inertia_c, inv_i, half) -> tuple:
+    """(unit quaternions, space-frame L, predicted spin) in the working precision from float64 orientations and
+    space-frame spins, exactly as CpuEllipsoidBackend builds them."""
+    dt_ = inertia_c.dtype
+    n = orient.shape[0]
+    quat = np.empty((n, 4), dt_)
+    unit_quaternions(np.ascontiguousarray(orient), quat)
+    angm = np.empty((n, 3), dt_)        # every row written by the loops below
+    angm_from_omega(quat, np.ascontiguousarray(omega.astype(dt_, copy=False)), inertia_c, half, angm)
+    omega_p = np.empty((n, 3), dt_)
+    omega_from_angm(quat, angm, inv_i, half, omega_p)
+    return quat, angm, omega_p
+
+
+@cuda.jit
+def start_rows(q64, w_b, w_a, rough, col0, count, i1, i2, i3, ii1, ii2, ii3, half, quat, angm, omega_p):
+    """Columns [col0, col0 + count) of a start drawn on the device: from its float64 orientations q64 and body-axis
+    spins (w_b about e2, e3; w_a about e1 when ``rough``) the space-frame spin (engine.setup.scene._space_spin), and as
+    :func:`_host_rows` the unit quaternion, L and the predicted spin in the working precision (a value is cast by
+    storing it; omega_p holds the spin until L is taken). Principal moments i and their inverses ii: the scene's."""
+    for i in range(cuda.grid(1), count, cuda.gridsize(1)):
+        c = col0 + i
+        g0, g1, g2, g3 = q64[0, c], q64[1, c], q64[2, c], q64[3, c]
+        wa = w_a[0, c] if rough else 0.0
+        ox, oy, oz = _space_spin(g0, g1, g2, g3, w_b[0, c], w_b[1, c], wa, rough)
+        u0, u1, u2, u3 = quat_unit(g0, g1, g2, g3)
+        quat[0, c], quat[1, c], quat[2, c], quat[3, c] = u0, u1, u2, u3
+        omega_p[0, c], omega_p[1, c], omega_p[2, c] = ox, oy, oz
+        q0, q1, q2, q3 = quat[0, c], quat[1, c], quat[2, c], quat[3, c]
+        lx, ly, lz = angular_momentum(q0, q1, q2, q3, omega_p[0, c], omega_p[1, c], omega_p[2, c], i1, i2, i3, half)
+        angm[0, c], angm[1, c], angm[2, c] = lx, ly, lz
+        lx, ly, lz = angm[0, c], angm[1, c], angm[2, c]
+        omega_p[0, c], omega_p[1, c], omega_p[2, c] = space_omega(q0, q1, q2, q3, lx, ly, lz, ii1, ii2, ii3, half)
+
+
+cache_kernels({"start_rows": start_rows}, ("spheroid_start",))
+
+
+def draw_ellipsoid_start(d, col0: int, pos, vel, angm, omega_p, quat, inertia_row, inv_i_row, half, stream,
+                         cap: int = 1 << 14) -> None:
+    """Draw the ellipsoid start ``d`` (engine.setup.scene.StartDraw: the lattice's or the random one's) into columns
+    [col0, col0 + n) of the device state: engine/loops/cuda_start.py's draws (velocities into vel, orientations and
+    body-axis spins into float64 scratch), then :func:`start_rows`. ``inertia_row``, ``inv_i_row``: the scene's
+    principal moments and their inverses in the working precision."""
+    from engine.loops.cuda_start import draw_start
+    from engine.setup.scene import (STREAM_QUATERNION, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY,
+                                    ellipsoid_draw_rows)
+
+    n = vel.shape[1]
+    _, rough = ellipsoid_draw_rows(d)
+    q64 = cuda.device_array((4, n), np.float64, stream=stream)
+    w_b = cuda.device_array((2, n), np.float64, stream=stream)
+    w_a = cuda.device_array((1, n if rough else 0), np.float64, stream=stream)
+    dsts = {STREAM_VELOCITY: vel, STREAM_SPIN: w_b, STREAM_SPIN_AXIS: w_a, STREAM_QUATERNION: q64}
+    draw_start(d, col0, pos, {k: dsts[k] for k, _, _ in d.streams}, stream, cap,
+               quat=q64 if d.rsa is not None else None)
+    blocks = max(1, min(cap, (d.n + 255) // 256))
+    start_rows[blocks, 256, stream](q64, w_b, w_a, rough, np.int64(col0), np.int64(d.n), *inertia_row, *inv_i_row,
+                                    half, quat, angm, omega_p)
+
+
+def load_device_start(dtype) -> None:
+    """Load (or compile) every kernel of a device-drawn spheroid start in the working precision ``dtype``, for the
+    argument types a job's start calls them with: a lattice and a random start of 64 rough spheroids, discarded (the
+    GPU start-up thread, engine/driver/startup.py)."""
+    from engine.setup.params import derive
+    from engine.setup.scene import StartDraw, parallel_start_streams
+    from engine.setup.spec import SimulationSpec
+
+    stream = cuda.stream()
+    half = dtype(0.5)
+    for start in ("lattice", "random"):
+        spec = SimulationSpec(shape="ellipsoid", elongation=2.0, n_particles=64, start=start)
+        p = derive(spec)
+        a, b = p.semi_axes[0], p.semi_axes[1]
+        d = StartDraw.of(64, 0, parallel_start_streams(spec, p)[0], spec.box_length, a, start,
+                         (a, b) if start == "random" else ())
+        rows = [cuda.device_array((k, 64), dtype, stream=stream) for k in (3, 3, 3, 3, 4)]
+        inertia = np.asarray(p.inertia, dtype)
+        draw_ellipsoid_start(d, 0, *rows, inertia, (1.0 / inertia).astype(dtype), half, stream)
+    stream.synchronize()
 
 
 class CudaEllipsoidEnsemble(CudaEnsembleBase):
@@ -69,41 +155,37 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
     # ---- set-up (hooks of CudaEnsembleBase) -------------------------------------------------------------
 
     def _upload_particles(self, systems) -> None:
-        """State (L from the angular velocity, as the CPU backend does) and constants on the device."""
+        """State (L from the angular velocity, as the CPU backend does) and constants on the device; a start still
+        to be drawn (``system.draw``) is drawn into its columns on the device (:func:`draw_ellipsoid_start`)."""
         dt_, n, s = self.dtype, self.n, self.stream
         half = dt_(0.5)
         cat = self._cat
         axes = cat([sy.semi_axes for sy in systems])
         mass = cat([sy.mass for sy in systems])[:, 0]
         inertia = cat([sy.inertia for sy in systems])
-        orient = cat([sy.orientation for sy in systems])
         self.uniform = all(sy.n == 0 or (np.all(sy.semi_axes == sy.semi_axes[0]) and np.all(sy.mass == sy.mass[0])
                                          and np.all(sy.inertia == sy.inertia[0])) for sy in systems)
         self._rmax = [float(np.max(sy.semi_axes)) if sy.n else 0.0 for sy in systems]
-        # host arrays in the working precision, exactly as CpuEllipsoidBackend builds them
-        quat = np.empty((n, 4), dt_)
-        unit_quaternions(np.ascontiguousarray(orient), quat)
         axes_c = axes.astype(dt_, copy=False)
         inertia_c = np.ascontiguousarray(inertia.astype(dt_, copy=False))
         inv_i = (1.0 / inertia_c).astype(dt_, copy=False)
         inv_m = (1.0 / mass.astype(dt_)).astype(dt_)
-        angm = np.empty((n, 3), dt_)        # every row written by the loops below
-        angm_from_omega(quat,
-                        np.ascontiguousarray(cat([sy.angular_velocity for sy in systems]).astype(dt_, copy=False)),
-                        inertia_c, half, angm)
-        omega_p = np.empty((n, 3), dt_)
-        omega_from_angm(quat, angm, inv_i, half, omega_p)
         self._inv_i_h = inv_i
         self._bmin = [float(np.min(axes_c[a:a + m])) if m else 1.0 for a, m in zip(self.starts, self.sizes)]
         self._scene0 = [(axes_c[a], mass[a], inertia_c[a]) if m else (np.ones(3, dt_), 1.0, np.ones(3, dt_))
                         for a, m in zip(self.starts, self.sizes)]
-        up = self._up
-        self.pos = up(cat([sy.position for sy in systems]), 3)
-        self.vel = up(cat([sy.velocity for sy in systems]), 3)
+        if any(sy.draw is not None for sy in systems):
+            self._draw_starts(systems, inertia_c, inv_i, half)
+        else:
+            up = self._up
+            quat, angm, omega_p = _host_rows(cat([sy.orientation for sy in systems]),
+                                             cat([sy.angular_velocity for sy in systems]), inertia_c, inv_i, half)
+            self.pos = up(cat([sy.position for sy in systems]), 3)
+            self.vel = up(cat([sy.velocity for sy in systems]), 3)
+            self.angm = up(angm, 3)
+            self.omega_p = up(omega_p, 3)
+            self.quat = up(quat, 4)
         self.vel_p = self._copy(self.vel)
-        self.angm = up(angm, 3)
-        self.omega_p = up(omega_p, 3)
-        self.quat = up(quat, 4)
         # state before the current step (a contact starting after a screened step needs that step's gap)
         self.pos_prev = self._copy(self.pos)
         self.quat_prev = self._copy(self.quat)
@@ -123,6 +205,27 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
             self.inv_i = up(inv_i, 3)
             self.mass = up(mass, 1)
             self._per_particle = (self.radius, self.axes, self.inv_m, self.inv_i, self.mass)
+
+    def _draw_starts(self, systems, inertia_c, inv_i, half) -> None:
+        """pos, vel, angm, omega_p, quat of scenes of which some hold a start to draw on the device; the others'
+        host rows go up into their columns."""
+        n, st, dt_ = self.n, self.stream, self.dtype
+        self.pos, self.vel, self.angm, self.omega_p = (cuda.device_array((3, n), dt_, stream=st) for _ in range(4))
+        self.quat = cuda.device_array((4, n), dt_, stream=st)
+        if self.reads_state:
+            self._prepare_frame_slot()     # beside the draws
+        for sy, col0, m in zip(systems, self.starts, self.sizes):
+            a = int(col0)
+            if sy.draw is not None:
+                draw_ellipsoid_start(sy.draw, a, self.pos, self.vel, self.angm, self.omega_p, self.quat,
+                                     inertia_c[a], inv_i[a], half, st, self.max_blocks)
+                continue
+            quat, angm, omega_p = _host_rows(np.asarray(sy.orientation, np.float64),
+                                             np.asarray(sy.angular_velocity, np.float64), inertia_c[a:a + m],
+                                             inv_i[a:a + m], half)
+            for rows, dst in ((sy.position, self.pos), (sy.velocity, self.vel), (angm, self.angm),
+                              (omega_p, self.omega_p), (quat, self.quat)):
+                self._up_into(rows, dst, a)
 
     def _permuted_arrays(self) -> tuple:
         return self.pos, self.vel, self.angm, self.quat, self.vel_p, self.omega_p, self.pos_prev, self.quat_prev

@@ -12,12 +12,13 @@ from engine.loops.system import EllipsoidSystem
 SYSTEM = EllipsoidSystem
 
 
-def initial_system(spec, p) -> EllipsoidSystem:
-    """The start of an ellipsoid spec (engine.setup.scene.initial_ellipsoids: bounding spheres placed without
-    overlap, random orientations, Maxwellian velocities, spins about the two perpendicular axes)."""
+def initial_system(spec, p, on_device: bool = False) -> EllipsoidSystem:
+    """The start of an ellipsoid spec (engine.setup.scene.initial_ellipsoids: placed without overlap, random
+    orientations, Maxwellian velocities, spins about the two perpendicular axes, and the axial one when rough);
+    ``on_device``: a GPU job's large start is left to its backend to draw (``system.draw``)."""
     from engine.setup.scene import initial_ellipsoids
 
-    return initial_ellipsoids(spec, p)
+    return initial_ellipsoids(spec, p, on_device)
 
 
 def standin_system(p, n_edge: int) -> EllipsoidSystem:
@@ -55,3 +56,12 @@ def cuda_backend():
     from engine.shapes.spheroid.cuda_backend import CudaEllipsoidBackend
 
     return CudaEllipsoidBackend
+
+
+def load_device_start(pos_dtype, dtype) -> None:
+    """Load the kernels of a spheroid start drawn on the GPU (engine/shapes/spheroid/cuda_backend.py
+    draw_ellipsoid_start; its positions are in the state precision ``dtype``): the GPU start-up thread's
+    (engine/driver/startup.py), before a job whose start is drawn there."""
+    from engine.shapes.spheroid.cuda_backend import load_device_start as load
+
+    load(dtype)
