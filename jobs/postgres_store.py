@@ -10,7 +10,11 @@ from __future__ import annotations
 from sqlalchemy import Select, create_engine, text
 from sqlalchemy.engine import make_url
 
+from engine.optional import require
 from jobs.sql_store import SqlJobStore
+
+#: The extra (pyproject.toml) that installs the driver: the light install runs the SQLite queue only.
+EXTRA = "postgres"
 
 
 def sqlalchemy_url(url: str) -> str:
@@ -29,6 +33,9 @@ class PostgresJobStore(SqlJobStore):
     """The job table in PostgreSQL (``postgresql://user@host:port/db``)."""
 
     def __init__(self, url: str, table_prefix: str = ""):
+        # the psycopg 3 driver comes with the `postgres` extra: without it, engine.optional.MissingExtra naming the
+        # extra (an ImportError), rather than SQLAlchemy's bare "No module named 'psycopg'"
+        require("psycopg", EXTRA, "a PostgreSQL job queue (a postgresql:// database URL)")
         super().__init__(create_engine(sqlalchemy_url(url), pool_pre_ping=True), table_prefix)
 
     def _lock_next(self, query: Select) -> Select:

@@ -78,16 +78,20 @@ def _settings(args) -> Settings:
 
 def _open_store(s: Settings):
     """The job store of the settings (jobs/stores.py), or a :class:`CommandError`: a URL of no supported kind, a
-    data directory that cannot be made or written (usage, 2), a database server that does not answer (1)."""
+    database driver that is not installed (its extra named), a data directory that cannot be made or written
+    (usage, 2), a database server that does not answer (1)."""
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import SQLAlchemyError
 
+    from engine.optional import MissingExtra
     from jobs.stores import open_store
 
     try:
         return open_store(s.database_url, s.table_prefix)
     except ValueError as exc:
         raise CommandError(f"{exc} (--database-url/DEMQ_DATABASE_URL)") from None
+    except MissingExtra as exc:
+        raise CommandError(str(exc)) from None
     except OSError as exc:
         raise CommandError(f"cannot use the data directory {str(s.data_dir)!r} ({exc.strerror or exc}); set "
                            f"--data-dir/DEMQ_DATA_DIR to a folder you can write") from None

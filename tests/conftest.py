@@ -11,4 +11,19 @@ threads change no result is checked where it is the point, in child processes gi
 
 import os
 
+import pytest
+
 os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
+#: The test running in this process (set before its fixtures): tests.jobs.conftest.postgres_url checks its marks.
+_CURRENT: dict = {}
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    _CURRENT["item"] = item
+
+
+def current_test():
+    """The pytest item now running in this process, or None outside a test."""
+    return _CURRENT.get("item")

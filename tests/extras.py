@@ -1,6 +1,8 @@
 """The optional extras in tests: whether the ``plots`` extra (matplotlib) is installed, and what a figure route
 answers with it (a PNG) and without it (501 naming the extra). Tests that need a real figure skip without
-matplotlib and are marked heavy (.ci/run's second stage installs the extras and runs them)."""
+matplotlib and are marked heavy (.ci/run's second stage installs the extras and runs them). Whether the
+``postgres`` extra (the psycopg driver) is installed: the PostgreSQL tests (marked postgres) need it, see
+tests/jobs/conftest.py."""
 
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ import pytest
 HAVE_PLOTS = importlib.util.find_spec("matplotlib") is not None
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 NO_PLOTS = "pip install 'demq[plots]'"
+HAVE_POSTGRES_DRIVER = importlib.util.find_spec("psycopg") is not None
+NO_POSTGRES = "pip install 'demq[postgres]'"
 
 
 #: Marks a test that needs matplotlib: skipped without it (before its fixtures run).
@@ -43,3 +47,10 @@ def figure_or_missing_extra():
     from engine.optional import MissingExtra
 
     return contextlib.nullcontext() if HAVE_PLOTS else pytest.raises(MissingExtra, match=r"demq\[plots\]")
+
+
+def hide_psycopg(monkeypatch) -> None:
+    """Make ``import psycopg`` fail, as without the postgres extra."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "psycopg", None)

@@ -23,7 +23,8 @@ COPY engine /src/engine
 COPY jobs /src/jobs
 COPY service /src/service
 COPY bench /src/bench
-RUN pip install --constraint /src/deploy/docker/constraints.txt /src \
+# the postgres extra: the psycopg driver of the shared PostgreSQL queue (the light install has the SQLite one only)
+RUN pip install --constraint /src/deploy/docker/constraints.txt "/src[postgres]" \
  && useradd --system --create-home --home-dir /home/demq demq \
  && mkdir -p /data \
  && chown demq:demq /data

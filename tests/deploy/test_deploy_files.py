@@ -207,6 +207,7 @@ def test_systemd_analyze_verify(tmp_path):
 
 
 # ---- health checks, documentation, test dependencies --------------------------------------------------
+@pytest.mark.postgres
 def test_worker_healthcheck_command_runs(tmp_path, bin_dir):
     """The worker containers' health check (`demq status --local --limit 1`): 0 when the job table
     answers, non-zero when it does not."""

@@ -9,6 +9,8 @@ import threading
 import time
 import uuid
 
+import pytest
+
 from jobs.schema import DONE
 from jobs.specs import parse_spec
 from jobs.store import NewJob
@@ -63,6 +65,7 @@ def test_cli_exit_when_idle_exits_zero(tmp_path):
     assert "--exit-when-idle" in help_text
 
 
+@pytest.mark.postgres
 def test_many_workers_starting_at_once_on_a_fresh_postgres_table():
     """Eight stores created at the same moment on a new table: CREATE TABLE is serialised (advisory
     lock), none fails with UniqueViolation/DuplicateTable."""

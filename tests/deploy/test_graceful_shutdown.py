@@ -54,6 +54,7 @@ def _check_complete_result(path, t_end: float) -> None:
     assert times[0] == 0.0 and times[-1] == pytest.approx(t_end, rel=1e-3), "records missing"
 
 
+@pytest.mark.postgres
 def test_slurm_task_sigterm_releases_the_job_and_the_next_task_resumes_it(tmp_path, pg, procs, bin_dir, warm_jit):
     """scancel / the time limit (--signal=B:TERM@120) -> SIGTERM to the exec'd worker."""
     url, prefix, store = pg

@@ -22,7 +22,8 @@ from jobs.schema import DONE, QUEUED, RUNNING
 from tests.deploy.conftest import SPEC, free_port, process_env, wait_for
 from tests.deploy.deployfiles import SBATCH, compose, compose_workers, sbatch_exec
 
-pytestmark = pytest.mark.heavy   # an API, three workers and real-engine jobs: over a minute of CPU
+pytestmark = [pytest.mark.heavy,   # an API, three workers and real-engine jobs: over a minute of CPU
+              pytest.mark.postgres]
 
 N_JOBS = 30
 #: The documented log line: "<date> <time>,<ms> <logger> <LEVEL> <message>".

@@ -1,7 +1,11 @@
 """Fixtures of the queue tests: settings on a temporary data directory, stores on SQLite and PostgreSQL.
 
-PostgreSQL: the URL comes from DEMQ_TEST_POSTGRES_URL. Without it the PostgreSQL cases are skipped
-locally, but FAIL when CI is set (CI must run them). Every store gets a fresh table prefix, dropped
+PostgreSQL: the URL comes from DEMQ_TEST_POSTGRES_URL, the driver from the ``postgres`` extra (psycopg). Without
+the URL the PostgreSQL cases are skipped, but FAIL when CI is set and the driver is installed (CI must run them:
+.ci/run's first stage, the README's light install, has no driver and no URL; its second stage installs the extra,
+sets the URL and runs the tests marked postgres). With the URL set they run, driver or not. Every test that uses
+PostgreSQL must be marked ``postgres`` (the store fixtures' PostgreSQL case is): :func:`postgres_url` fails a
+test that is not, so none is left out of that second stage. Every store gets a fresh table prefix, dropped
 afterwards, so concurrent runs do not collide.
 """
 
@@ -20,6 +24,8 @@ if str(ROOT) not in sys.path:  # the simulation processes import tests.jobs.fake
 
 from jobs.settings import Settings  # noqa: E402
 from jobs.stores import open_store  # noqa: E402
+from tests.conftest import current_test  # noqa: E402
+from tests.extras import HAVE_POSTGRES_DRIVER  # noqa: E402
 from tests.jobs.fake_engine import TARGET  # noqa: E402
 
 #: A scene the real engine runs in about a second once compiled (checked valid by test_specs).
@@ -27,13 +33,30 @@ TINY = {"n_particles": 64, "volume_fraction": 0.05, "box_length": 0.5, "t_end": 
         "thermalization": 0, "snapshots": 1}
 
 
+def _marked_postgres() -> None:
+    test = current_test()
+    if test is not None and test.get_closest_marker("postgres") is None:
+        pytest.fail(f"{test.nodeid} uses PostgreSQL but is not marked postgres (.ci/run selects the PostgreSQL "
+                    f"tests by that mark)")
+
+
 def postgres_url() -> str:
+    """DEMQ_TEST_POSTGRES_URL, or the test skipped without it (failed when CI is set and the driver installed)."""
+    _marked_postgres()
     url = os.environ.get("DEMQ_TEST_POSTGRES_URL")
     if not url:
-        if os.environ.get("CI"):
+        if os.environ.get("CI") and HAVE_POSTGRES_DRIVER:
             pytest.fail("CI is set but DEMQ_TEST_POSTGRES_URL is not: the PostgreSQL tests must run in CI")
         pytest.skip("DEMQ_TEST_POSTGRES_URL not set (PostgreSQL tests run in CI)")
     return url
+
+
+def postgres_driver() -> None:
+    """For a test that needs the psycopg driver but no server: skipped without the driver unless
+    DEMQ_TEST_POSTGRES_URL is set (then it runs, and fails without the driver)."""
+    _marked_postgres()
+    if not HAVE_POSTGRES_DRIVER and not os.environ.get("DEMQ_TEST_POSTGRES_URL"):
+        pytest.skip("psycopg not installed (pip install '.[postgres]'; the PostgreSQL tests run in CI)")
 
 
 def make_settings(tmp_path: Path, **overrides) -> Settings:
@@ -50,7 +73,7 @@ def settings(tmp_path) -> Settings:
     return make_settings(tmp_path)
 
 
-@pytest.fixture(params=["sqlite", "postgres"])
+@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def store_url(request, tmp_path):
     """(database URL, table prefix) for each backend."""
     if request.param == "sqlite":

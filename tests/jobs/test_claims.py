@@ -278,6 +278,7 @@ def _worker_process(settings, prefix: str, url: str, worker_id: str) -> subproce
                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.postgres
 def test_two_worker_processes_share_twelve_cpu_jobs_on_postgresql(tmp_path):
     """12 CPU jobs, two `demq worker` processes on one PostgreSQL queue: neither runs more than 8 of them (before
     the fair share, the first worker packed 11 and the second ran one)."""

@@ -23,7 +23,8 @@ import pytest
 import engine.backends.base
 from engine.validation import sonine
 from service.cli import build_parser
-from tests.extras import hide_matplotlib
+from tests.extras import NO_POSTGRES, hide_matplotlib, hide_psycopg
+from tests.jobs.conftest import postgres_driver
 from tests.service.test_cli import _one_line, _run
 
 
@@ -166,16 +167,32 @@ def test_missing_files_and_folders_are_usage_errors(argv, words, tmp_path, capsy
 @pytest.mark.parametrize("argv, env, code, words", [
     (["status"], {"DEMQ_PORT": "abc"}, 2, "DEMQ_PORT='abc' is not a valid int"),
     (["status", "--local", "--database-url", "mysql://x"], {}, 2, "unsupported database URL 'mysql://x'"),
-    (["status", "--local", "--database-url", "postgresql://demq:secret@127.0.0.1:1/demq"], {}, 1,
-     "cannot open the job database postgresql://demq:***@127.0.0.1:1/demq (connection failed"),
+    pytest.param(["status", "--local", "--database-url", "postgresql://demq:secret@127.0.0.1:1/demq"], {}, 1,
+                 "cannot open the job database postgresql://demq:***@127.0.0.1:1/demq (connection failed",
+                 marks=pytest.mark.postgres, id="postgres-no-server"),
     (["status", "--local", "0123abcd"], {}, 1, "no job with id '0123abcd'"),
 ])
 def test_settings_and_queue_errors_are_one_line(argv, env, code, words, tmp_path, capsys, monkeypatch):
+    if "postgresql://" in " ".join(argv):
+        postgres_driver()        # no server needed, the driver is: the postgres extra
     monkeypatch.chdir(tmp_path)
     for name, value in env.items():
         monkeypatch.setenv(name, value)
     got, _, err = _run(argv, capsys)
     assert got == code and words in _one_line(err) and "secret" not in err
+
+
+@pytest.mark.parametrize("command", ["status", "worker"])
+def test_a_postgres_url_without_the_driver_names_the_extra(command, tmp_path, capsys, monkeypatch):
+    """The light install has no PostgreSQL driver: a postgresql:// URL stops with one line naming the extra."""
+    hide_psycopg(monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("DEMQ_DATABASE_URL", "postgresql://demq:secret@127.0.0.1:1/demq")
+    argv = [command, "--local"] if command == "status" else [command]
+    code, _, err = _run(argv, capsys)
+    assert code == 2 and "secret" not in err
+    assert _one_line(err).startswith(f"demq {command}: a PostgreSQL job queue (a postgresql:// database URL) "
+                                     f"needs psycopg, which is not installed: {NO_POSTGRES}")
 
 
 def test_serve_on_a_port_another_server_has_is_one_line(tmp_path, capsys):
