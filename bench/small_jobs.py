@@ -14,7 +14,9 @@ Up to three scenes, each on a fresh server and data directory:
 
 ``--lanes L ...`` runs only this instead: a CPU worker (it sees no GPU) with L lanes (DEMQ_WORKER_LANES,
 jobs/worker.py), for each L, ``--lane-jobs`` jobs of 512 spheres as one batch; printed: the time from the batch's
-submission until its last job is done, against the first L's, and the jobs' distinct end times.
+submission until its last job is done, against the first L's, the jobs' distinct end times, and a lane's seconds
+per job (that time x L / jobs) against the engine's own (the mean of the jobs' job_wall_s: the run from its spec to
+its closed result file): their difference is what the queue costs a job, or what the lanes' jobs cost each other.
 
 Times are the server's own (the job rows' created_at and finished_at). Nothing is asserted here: the figures go
 into docs/performance.md.
@@ -201,7 +203,10 @@ def lanes(out: Path, lane_counts: list, n_jobs: int, n_particles: int = 512) -> 
             server.close()
         t0 = min(_t(j["created_at"]) for j in jobs)
         ends = sorted(_t(j["finished_at"]) for j in jobs)
+        walls = [j["job_wall_s"] for j in jobs if j["job_wall_s"] is not None]
         rows.append({"lanes": count, "jobs": n_jobs, "n_particles": n_particles, "span_s": ends[-1] - t0,
+                     "lane_s_per_job": (ends[-1] - t0) * count / n_jobs,
+                     "engine_s_per_job": statistics.mean(walls) if walls else None,
                      "distinct_end_times": len(set(ends)), "states": sorted({j["state"] for j in jobs})})
     base = rows[0]["span_s"]
     for row in rows:
@@ -225,10 +230,12 @@ def main(argv=None) -> int:
     if args.lanes:
         rows = lanes(args.out, args.lanes, args.lane_jobs)
         for row in rows:
+            engine = row["engine_s_per_job"]
             print(f"{row['lanes']} lane(s), {os.cpu_count()} cores: {row['jobs']} jobs of {row['n_particles']} "
                   f"spheres done {row['span_s']:.2f} s after the batch's submission (x{row['speed_up']:.2f} of "
-                  f"{rows[0]['lanes']} lane(s)); {row['distinct_end_times']} distinct end times; states "
-                  f"{row['states']}", flush=True)
+                  f"{rows[0]['lanes']} lane(s)); a lane's {row['lane_s_per_job']:.3f} s per job against the engine's "
+                  f"{'-' if engine is None else f'{engine:.3f}'} s; {row['distinct_end_times']} distinct end times; "
+                  f"states {row['states']}", flush=True)
         (args.out / "lanes.json").write_text(json.dumps(rows, indent=2))
         return 0
     report = {"cpus": os.cpu_count(), "many_small": many_small(args.out, args.jobs, args.clients)}

@@ -78,6 +78,10 @@ DRAIN_MESSAGES = 10_000
 #: Seconds a standby process that gets no claim has to exit before it is killed.
 STANDBY_CLOSE_S = 0.5
 
+#: Seconds a lane's process that has sent every job's end of its last claim has to say that it reads the next one
+#: (it does at once; a process that does not is ended and the claim gets a fresh one).
+REUSE_READY_S = 2.0
+
 #: What a standby process warms when the worker has run no claim yet: the default spec (the service's form and
 #: `demq submit`'s default job).
 DEFAULT_WARM_SPEC = "{}"
@@ -119,6 +123,7 @@ class Worker:
         self._lanes: list[tuple["Worker", threading.Thread]] = []   # the other lanes (run_forever)
         self.threads: Optional[int] = None            # Numba threads of its simulation processes (None: all)
         self._is_lane = False                         # one of another worker's lanes (not the first)
+        self._started_up = False                      # a lane: its process has been started (_start_up_lanes)
 
     def stop(self) -> None:
         """Stop claiming; a running job is stopped (checkpointed by the engine) and released."""
@@ -149,13 +154,13 @@ class Worker:
             # the warm-up of every other specialisation beside it: neither holds up a claim
             self._keep_standby = self.settings.standby_enabled
             if self._keep_standby and not self._stop.is_set() and not self._is_lane:
-                # (the other lanes start their standbys with their first claims: a dozen processes compiling the
-                # default spec at once on an empty cache would hold up the first claims)
+                # (the other lanes start theirs once this one is ready: _start_up_lanes)
                 self._standby = self._spawn_standby(None)
             self._warm(backends)
             while not self._stop.is_set():
                 self._reap(wait=False)
                 self._warm_up_progress()
+                self._start_up_lanes()
                 jobs = self._next(None)
                 if not jobs:
                     if exit_when_idle and self._drained():
@@ -186,11 +191,34 @@ class Worker:
     def _run_claim(self, jobs: list[Job]) -> dict[str, str]:
         """:meth:`execute_pack` with the background warm-up paused meanwhile (the claims have the host to
         themselves: it goes on once no lane runs one)."""
+        self._started_up = True
         self._gate.enter()
         try:
             return self.execute_pack(jobs)
         finally:
             self._gate.leave()
+
+    def _start_up_lanes(self) -> None:
+        """The other lanes' processes start up once the first lane's standby is ready (or its first claim is over):
+        then its kernels are in numba's cache and the others load them, where a dozen processes compiling the same
+        default spec at once on an empty cache would hold up the first claims. Each lane starts its own, at most once
+        before its first claim (later, a lane's process stays for its next claims; one that died is replaced by the
+        next claim)."""
+        if not self._keep_standby or self._stop.is_set():
+            return
+        gate = self._gate
+        if not self._is_lane:
+            if self._lanes and not gate.started_up.is_set():
+                sim = self._standby
+                if sim is not None:
+                    sim.read_start_up()
+                if sim is None or sim.ready or not sim.proc.is_alive():
+                    gate.started_up.set()
+                    for lane, _ in self._lanes:
+                        lane.wake()
+        elif self._standby is None and not self._started_up and gate.started_up.is_set():
+            self._started_up = True
+            self._standby = self._spawn_standby(None)
 
     def _start_lanes(self, backends: tuple[str, ...], exit_when_idle: bool) -> None:
         """With several lanes (Settings.lane_count), start the others: each a worker of its own in a thread of this
@@ -392,7 +420,14 @@ class Worker:
         claim = (s.engine_run_ensemble if mode == ENSEMBLE else s.engine_run, [_spec_json(j) for j in jobs],
                  [str(x.output) for x in slots], [str(x.checkpoints) for x in slots], s.checkpoint_interval,
                  mode)
+        # a CPU claim's process stays for the lane's next claims (its imports and loaded code serve them all: with
+        # many small claims, a process start-up per claim had cost a lane more than its jobs' runs); a GPU claim's
+        # process ends with it, its device memory going back with its context
+        keep = self._keep_standby and self._packer.backend(jobs[0]) != "cuda"
         sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
+        if sim is None and keep:   # the lane's process, started with its first claim (or after one that died)
+            self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
+            sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
         if sim is None:
             ctx = multiprocessing.get_context("spawn")
             receiver, sender = ctx.Pipe(duplex=False)
@@ -402,14 +437,23 @@ class Worker:
             proc.start()
             sender.close()
             sim = _SimProcess(proc, receiver, flags)
-        if self._keep_standby:    # the next claim's process starts up while this one runs
+        if self._keep_standby and not keep:    # the next claim's process starts up while this one runs
             self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
         pack_error = self._supervise(slots, sim.proc, sim.receiver, sim.flags, mode)
-        if all(slot.outcome == DONE for slot in slots) and sim.proc.is_alive():
-            # every job has its result file and is done: the next claim does not wait for this process's exit
-            # (a GPU process's context teardown takes seconds); it is joined later (_reap)
-            self._exiting.append(sim)
+        if all(slot.final is not None for slot in slots) and sim.proc.is_alive():
+            # every job's end has come from the process (each concluded as it came): nothing of the claim is left
+            # in it. A lane's process takes the next claim; another one's exit is not waited for (a GPU process's
+            # context teardown takes seconds): it is joined later (_reap)
+            self._conclude_rest(slots, None, pack_error, mode)
+            if keep and pack_error is None and not self._stop.is_set() and self._standby is None:
+                sim.claims_run += 1
+                sim.ready = sim.compiling = False
+                self._standby = sim
+            else:
+                sim.retire()
+                self._exiting.append(sim)
             return {slot.job.id: slot.outcome for slot in slots}
+        sim.retire()
         sim.receiver.close()
         sim.proc.join()
         self._conclude_rest(slots, sim.proc.exitcode, pack_error, mode)
@@ -448,14 +492,23 @@ class Worker:
         return _SimProcess(proc, receiver, flags, claims_out, warm_key=_specialisation(warm_spec_json))
 
     def _hand_to_standby(self, claim: tuple, n_jobs: int, job_id: str) -> Optional["_SimProcess"]:
-        """Give ``claim`` to the standby process; None if there is none fit to take it. A standby still compiling
-        the kernels of another specialisation than the claim's (an empty kernel cache) is not waited for: it is
-        ended (what it compiled stays in the cache) and the claim gets a process of its own, which compiles or
-        loads only what the claim needs."""
+        """Give ``claim`` to the standby process (started ahead, or the lane's process after its previous claim);
+        None if there is none fit to take it. A standby still compiling the kernels of another specialisation than
+        the claim's (an empty kernel cache) is not waited for: it is ended (what it compiled stays in the cache) and
+        the claim gets a process of its own, which compiles or loads only what the claim needs. A process that ran a
+        claim takes the next one once it has said that it reads it (REUSE_READY_S)."""
         sim, self._standby = self._standby, None
         if sim is None:
             return None
-        sim.read_start_up()
+        if sim.claims_run:
+            sim.wait_ready(REUSE_READY_S)
+            if not sim.ready:
+                log.warning("job %s: the lane's simulation process (pid %s) did not come back from its last claim; "
+                            "the claim gets a fresh one", job_id, sim.proc.pid)
+                sim.close()
+                return None
+        else:
+            sim.read_start_up()
         if not sim.proc.is_alive() or len(sim.flags) < n_jobs:
             sim.close()
             return None
@@ -464,14 +517,15 @@ class Worker:
                      "gets a process of its own", job_id)
             sim.close(grace_s=0.0)
             return None
+        sim.flags[:] = bytes(len(sim.flags))   # the previous claim's cancel flags, cleared (the process waits)
         try:
             sim.claims.send(claim)
         except (BrokenPipeError, OSError):
             sim.close()
             return None
-        sim.claims.close()
-        sim.claims = None
-        log.info("job %s: handed to the standby simulation process (pid %s)", job_id, sim.proc.pid)
+        sim.ready = False
+        log.info("job %s: handed to the standby simulation process (pid %s, its claim %d)", job_id, sim.proc.pid,
+                 sim.claims_run + 1)
         return sim
 
     def _supervise(self, slots: list["_Slot"], proc, receiver, flags, mode: str = ONE) -> Optional[str]:
@@ -482,6 +536,7 @@ class Worker:
         pack_error = None
         last_beat = last_write = last_poll = time.monotonic()
         killed = False
+        awaited = sum(x.final is None for x in slots)   # jobs whose final message has not come yet
         while True:
             now = time.monotonic()
             kill_at = min((x.kill_at for x in slots if x.outcome is None and x.kill_at is not None), default=now + 1.0)
@@ -510,15 +565,18 @@ class Worker:
                     elif kind == "progress":
                         self._progress(slots, k, payload, sequence)
                     else:
+                        awaited -= slots[k].final is None
                         slots[k].final = (kind, payload)
                         if slots[k].outcome is None:
                             finals.append(slots[k])
+                        if not awaited:
+                            break   # what follows is no longer this claim's (a lane's process: "ready")
                     if not receiver.poll(0):
                         break
                 if finals:
                     self._conclude_all(finals)
-                if ended or all(x.outcome == DONE for x in slots):
-                    break   # every job's result is in: what is left of the process is its exit
+                if ended or not awaited:
+                    break   # every job's end is in: nothing of the claim is left in the process
             elif not proc.is_alive():
                 if receiver.poll(0):
                     continue   # it sent its last messages and exited between the poll and this check: read them
@@ -710,12 +768,14 @@ class Worker:
 
 class _ClaimGate:
     """The claims running in a worker's lanes, counted: the background warm-up (jobs/warm.py BackgroundWarmUp) of the
-    worker's first lane is paused while any lane runs a claim and goes on when none does."""
+    worker's first lane is paused while any lane runs a claim and goes on when none does. Also when the lanes may
+    start their processes (Worker._start_up_lanes)."""
 
     def __init__(self):
         self._lock = threading.Lock()
         self._running = 0
         self._warm_up = None
+        self.started_up = threading.Event()   # the first lane's standby is ready: the others start theirs
 
     def attach(self, warm_up) -> None:
         """The warm-up to pause and resume (paused at once if a lane already runs a claim); None once it ended."""
@@ -747,21 +807,27 @@ class _SimProcess:
     claims: Optional[object] = None    # a standby's claim pipe, until it has its claim
     warm_key: Optional[tuple] = None   # a standby's: the specialisation it starts up for (_specialisation)
     compiling: bool = False            # a standby's start-up has compiled kernels (said "compiling")
-    ready: bool = False                # a standby's start-up is done (said "ready")
+    ready: bool = False                # a standby's start-up is done, or its last claim over (said "ready")
+    claims_run: int = 0                # claims it has run to their end (a lane's process, kept for the next)
 
     def read_start_up(self) -> None:
         """Read what a standby has said of its start-up so far ("compiling", "ready"), without waiting."""
+        self.wait_ready(0.0)
+
+    def wait_ready(self, timeout: float) -> None:
+        """Read what the process has said until it says "ready" (its start-up done, or its last claim over: it
+        reads the next one), waiting up to ``timeout`` seconds for it."""
+        deadline = time.monotonic() + timeout
         try:
-            while not self.ready and self.receiver.poll(0):
+            while not self.ready and self.receiver.poll(max(0.0, deadline - time.monotonic())):
                 kind = self.receiver.recv()[0]
                 self.compiling |= kind == "compiling"
                 self.ready |= kind == "ready"
         except (EOFError, OSError):   # it died: the caller sees that it is not alive
             pass
 
-    def close(self, grace_s: float = STANDBY_CLOSE_S) -> None:
-        """End a standby that will get no claim, a process that died or one whose jobs are all done: tell a standby,
-        then wait (``grace_s``) or kill."""
+    def retire(self) -> None:
+        """Tell a standby-started process to exit once its claim is over (it gets no other)."""
         if self.claims is not None:
             try:
                 self.claims.send(None)
@@ -769,6 +835,11 @@ class _SimProcess:
                 pass
             self.claims.close()
             self.claims = None
+
+    def close(self, grace_s: float = STANDBY_CLOSE_S) -> None:
+        """End a standby that will get no claim, a process that died or one whose jobs are all done: tell a standby,
+        then wait (``grace_s``) or kill."""
+        self.retire()
         self.proc.join(timeout=grace_s)
         if self.proc.is_alive():   # still starting up (it reads the pipe only then): its start-up is not needed
             self.proc.kill()
