@@ -112,18 +112,24 @@ def run_claim(engine_target: str, spec_jsons: list, outputs: list, checkpoint_di
 
 
 def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Optional[str] = None,
-                 threads: Optional[int] = None) -> None:
+                 threads: Optional[int] = None, engine_targets: tuple = ()) -> None:
     """Entry point of a standby simulation process: started by the worker before its claim, it pays the
     process's one-off start-up (the engine's imports, numba's targets, on a GPU the driver, the context and
     the kernels of ``warm_spec_json``'s specialisation: engine.driver.simulate.warm_process) while the worker waits
     for work or runs the previous claim, then runs the claims it receives on ``claims`` one after another, as
     :func:`child_main` would, saying ("ready", None, None) after each. ``None`` instead of a claim (or a closed
-    pipe): exit. ``warm_spec_json`` None: nothing is warmed (a non-default engine: its module is imported with the
-    claim). ``threads``: as for :func:`child_main`."""
+    pipe): exit. ``engine_targets``: the ``module:function`` entry points its claims call, imported first (a
+    non-default engine's too). ``warm_spec_json`` None: nothing is warmed (a non-default engine). ``threads``: as for
+    :func:`child_main`."""
     _use_threads(threads)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
+    for target in engine_targets:
+        try:
+            load_callable(target)
+        except Exception:  # noqa: BLE001  (a claim that calls it fails with the reason)
+            pass
     if warm_spec_json is not None:
         try:
             import engine.driver.ensemble  # noqa: F401  (the pack entry point's imports)

@@ -1,4 +1,4 @@
-"""The worker: claims a job — or several — and runs the claim in its own simulation process.
+"""The worker: claims a job — or several — and runs the claim in a simulation process of its own.
 
 At its start a worker registers in the store's worker table (the backends it can run: "cpu", and "cuda" where a
 GPU is; `demq serve` registers its embedded worker before it answers a request) and claims at once. With the
@@ -14,8 +14,9 @@ whole queue while others are idle. Several CPU jobs run one after another in one
 first (``sequence``); several GPU jobs of similar cost run as one ensemble (``ensemble``). One attempt
 (:meth:`Worker.execute_pack`; :meth:`Worker.execute` for one job)::
 
-    spawn the simulation process (jobs/runner.py; a running worker hands the claim to the standby process it
-                    started ahead, DEMQ_WORKER_STANDBY, and starts the next one)
+    spawn the simulation process (jobs/runner.py; a running worker, DEMQ_WORKER_STANDBY, hands the claim to its
+                    standby process instead: the one it started ahead, or the process of its last CPU claim,
+                    which stays for the next claims; with a GPU claim it starts the next claim's process)
                     --pipe--> per job: (started,) progress, then done | error | cancelled
     every heartbeat (or progress, rate-limited): renew every job's lease and write its progress (one
                     transaction; a sequence's jobs that wait for their turn get phase "waiting" and the
@@ -31,13 +32,15 @@ first (``sequence``); several GPU jobs of similar cost run as one ensemble (``en
                     checkpoints removed; the sequence's jobs that had not started go back to the queue
     another stop not honoured within the grace period -> SIGKILL if no other job of the process is still
                     running, else the job ends without waiting for its scene
+    every job's final message in -> the claim is over; its process takes the lane's next claim once it
+                    says "ready" (a CPU claim's), or exits (joined later, not waited for)
     process exit    -> jobs still without an end: one job fails with the reason (a sequence's running job:
                     the one that was running; its jobs that had not started go back to the queue); several
                     (a pack that died or failed as a whole) go back to the queue to run alone next time
 
 A crash of the simulation process fails that job only (a pack's jobs are retried alone, where the
-culprit fails by itself); the worker goes on with the next claim. If the worker itself dies, the leases
-expire and the reaper (run by every worker between claims) puts the jobs back in the queue, where the
+culprit fails by itself); the worker goes on with the next claim, in a fresh process. If the worker itself dies,
+the leases expire and the reaper (run by every worker between claims) puts the jobs back in the queue, where the
 engine resumes each from its last checkpoint.
 """
 
@@ -123,7 +126,6 @@ class Worker:
         self._lanes: list[tuple["Worker", threading.Thread]] = []   # the other lanes (run_forever)
         self.threads: Optional[int] = None            # Numba threads of its simulation processes (None: all)
         self._is_lane = False                         # one of another worker's lanes (not the first)
-        self._started_up = False                      # a lane: its process has been started (_start_up_lanes)
 
     def stop(self) -> None:
         """Stop claiming; a running job is stopped (checkpointed by the engine) and released."""
@@ -153,14 +155,15 @@ class Worker:
             # the first claim's process starts up (imports, GPU context, the default spec's kernels) at once, and
             # the warm-up of every other specialisation beside it: neither holds up a claim
             self._keep_standby = self.settings.standby_enabled
-            if self._keep_standby and not self._stop.is_set() and not self._is_lane:
-                # (the other lanes start theirs once this one is ready: _start_up_lanes)
-                self._standby = self._spawn_standby(None)
+            if self._keep_standby and not self._stop.is_set():
+                # the other lanes' processes only import the engine: a dozen processes compiling the default spec's
+                # kernels at once on an empty cache would hold up the first claims (a lane's first run loads, or
+                # compiles, the kernels its claims need)
+                self._standby = self._spawn_standby(None, warm=not self._is_lane)
             self._warm(backends)
             while not self._stop.is_set():
                 self._reap(wait=False)
                 self._warm_up_progress()
-                self._start_up_lanes()
                 jobs = self._next(None)
                 if not jobs:
                     if exit_when_idle and self._drained():
@@ -191,34 +194,11 @@ class Worker:
     def _run_claim(self, jobs: list[Job]) -> dict[str, str]:
         """:meth:`execute_pack` with the background warm-up paused meanwhile (the claims have the host to
         themselves: it goes on once no lane runs one)."""
-        self._started_up = True
         self._gate.enter()
         try:
             return self.execute_pack(jobs)
         finally:
             self._gate.leave()
-
-    def _start_up_lanes(self) -> None:
-        """The other lanes' processes start up once the first lane's standby is ready (or its first claim is over):
-        then its kernels are in numba's cache and the others load them, where a dozen processes compiling the same
-        default spec at once on an empty cache would hold up the first claims. Each lane starts its own, at most once
-        before its first claim (later, a lane's process stays for its next claims; one that died is replaced by the
-        next claim)."""
-        if not self._keep_standby or self._stop.is_set():
-            return
-        gate = self._gate
-        if not self._is_lane:
-            if self._lanes and not gate.started_up.is_set():
-                sim = self._standby
-                if sim is not None:
-                    sim.read_start_up()
-                if sim is None or sim.ready or not sim.proc.is_alive():
-                    gate.started_up.set()
-                    for lane, _ in self._lanes:
-                        lane.wake()
-        elif self._standby is None and not self._started_up and gate.started_up.is_set():
-            self._started_up = True
-            self._standby = self._spawn_standby(None)
 
     def _start_lanes(self, backends: tuple[str, ...], exit_when_idle: bool) -> None:
         """With several lanes (Settings.lane_count), start the others: each a worker of its own in a thread of this
@@ -468,21 +448,25 @@ class Worker:
                 self._exiting.remove(sim)
 
     # ---- the standby simulation process (time to result) --------------------------------------------
-    def _spawn_standby(self, warm_spec_json: Optional[str]) -> Optional["_SimProcess"]:
+    def _spawn_standby(self, warm_spec_json: Optional[str], warm: bool = True) -> Optional["_SimProcess"]:
         """Start the next claim's simulation process now (jobs/runner.py standby_main): its start-up
         (interpreter, imports, on a GPU the driver, context and kernels of ``warm_spec_json``'s
-        specialisation, the default spec's when None and the engine is the default one) overlaps the
-        worker's idle wait or the running claim. None if it cannot be started (the claim then spawns its own)."""
+        specialisation, the default spec's when None and the engine is the default one; without ``warm`` the
+        imports only) overlaps the worker's idle wait or the running claim. None if it cannot be started (the claim
+        then spawns its own)."""
         s = self.settings
-        if warm_spec_json is None and s.engine_run == DEFAULT_ENGINE_RUN:
+        if not warm:
+            warm_spec_json = None
+        elif warm_spec_json is None and s.engine_run == DEFAULT_ENGINE_RUN:
             warm_spec_json = DEFAULT_WARM_SPEC
         try:
             ctx = multiprocessing.get_context("spawn")
             receiver, sender = ctx.Pipe(duplex=False)
             claims_in, claims_out = ctx.Pipe(duplex=False)
             flags = ctx.RawArray("b", s.ensemble_max_jobs if s.packing else 1)
+            targets = tuple(t for t in (s.engine_run, s.engine_run_ensemble) if t)
             proc = ctx.Process(target=standby_main, name="demq-standby",
-                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json, self.threads))
+                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json, self.threads, targets))
             proc.start()
         except Exception as exc:  # noqa: BLE001  (out of processes or memory: claims spawn their own)
             log.error("cannot start a standby simulation process: %s", exc)
@@ -768,14 +752,12 @@ class Worker:
 
 class _ClaimGate:
     """The claims running in a worker's lanes, counted: the background warm-up (jobs/warm.py BackgroundWarmUp) of the
-    worker's first lane is paused while any lane runs a claim and goes on when none does. Also when the lanes may
-    start their processes (Worker._start_up_lanes)."""
+    worker's first lane is paused while any lane runs a claim and goes on when none does."""
 
     def __init__(self):
         self._lock = threading.Lock()
         self._running = 0
         self._warm_up = None
-        self.started_up = threading.Event()   # the first lane's standby is ready: the others start theirs
 
     def attach(self, warm_up) -> None:
         """The warm-up to pause and resume (paused at once if a lane already runs a claim); None once it ended."""
@@ -804,7 +786,7 @@ class _SimProcess:
     proc: object                       # multiprocessing Process
     receiver: object                   # its messages (jobs/runner.py's protocol)
     flags: object                      # per-job cancel bytes (shared memory)
-    claims: Optional[object] = None    # a standby's claim pipe, until it has its claim
+    claims: Optional[object] = None    # a standby's claim pipe, while it may get a claim
     warm_key: Optional[tuple] = None   # a standby's: the specialisation it starts up for (_specialisation)
     compiling: bool = False            # a standby's start-up has compiled kernels (said "compiling")
     ready: bool = False                # a standby's start-up is done, or its last claim over (said "ready")
