@@ -14,13 +14,18 @@ Up to three scenes, each on a fresh server and data directory:
 
 ``--lanes L ...`` runs only this instead: a CPU worker (it sees no GPU) with L lanes (DEMQ_WORKER_LANES,
 jobs/worker.py), for each L, ``--lane-jobs`` jobs of 512 spheres as one batch; printed: the time from the batch's
-submission until its last job is done, against the first L's, and the jobs' distinct end times.
+submission until its last job is done, against the first L's, the jobs' distinct end times, and a lane's seconds
+per job (that time x L / jobs) against the engine's own (the mean of the jobs' job_wall_s: the run from its spec to
+its closed result file): their difference is what the queue costs a job, or what the lanes' jobs cost each other.
+With ``--lane-sleep S`` the jobs run no physics: each sleeps S wall seconds in 200 records, with the engine's progress
+report and cancel check at each, and writes an empty result (:func:`sleep_run`): what the queue costs a job at L
+lanes, free of the jobs' contention for the cores (a lane's seconds per job against S).
 
 Times are the server's own (the job rows' created_at and finished_at). Nothing is asserted here: the figures go
 into docs/performance.md.
 
     python -m bench small_jobs [--jobs 100] [--clients 10] [--lone K] [--skip-large] [--out DIR]
-    python -m bench small_jobs --lanes 1 8 [--lane-jobs 200]
+    python -m bench small_jobs --lanes 1 8 [--lane-jobs 200] [--lane-sleep S]
 """
 
 from __future__ import annotations
@@ -180,14 +185,49 @@ def small_among_large(out: Path) -> dict:
             "states": sorted({j["state"] for j in jobs})}
 
 
-def lanes(out: Path, lane_counts: list, n_jobs: int, n_particles: int = 512) -> list:
+#: Wall seconds a job of :func:`sleep_run` takes (``--lane-sleep``; read in the simulation process).
+SLEEP_ENV = "DEMQ_BENCH_SLEEP_S"
+#: Progress reports of a job of :func:`sleep_run` (the engine's records of a default job).
+SLEEP_RECORDS = 200
+
+
+def sleep_run(spec, output, *, progress=None, should_cancel=None, **_):
+    """The engine of ``--lane-sleep`` (engine.driver.simulate.run's signature, DEMQ_ENGINE_RUN): the job sleeps
+    DEMQ_BENCH_SLEEP_S wall seconds in SLEEP_RECORDS records, with a progress report and a cancel check at each, and
+    writes an empty result file atomically; no physics."""
+    from engine.driver.simulate import Progress, RunSummary
+    from engine.errors import Cancelled
+
+    seconds = float(os.environ[SLEEP_ENV])
+    t0 = time.monotonic()
+    for k in range(SLEEP_RECORDS):
+        if should_cancel is not None and should_cancel():
+            raise Cancelled(f"cancelled at record {k}")
+        time.sleep(seconds / SLEEP_RECORDS)
+        if progress is not None:
+            wall = time.monotonic() - t0
+            progress(Progress(phase="cooling", fraction=(k + 1) / SLEEP_RECORDS, step=k + 1, time=0.0,
+                              eta_s=wall / (k + 1) * (SLEEP_RECORDS - k - 1), cundall=0.0, loop_s=wall))
+    partial = Path(f"{output}.part")
+    partial.write_bytes(b"")
+    os.replace(partial, output)
+    wall = time.monotonic() - t0
+    return RunSummary(output=Path(output), backend="sleep", device="none", n_particles=spec.n_particles,
+                      steps=SLEEP_RECORDS, loop_s=wall, cundall=0.0, job_wall_s=wall)
+
+
+def lanes(out: Path, lane_counts: list, n_jobs: int, n_particles: int = 512, sleep_s: Optional[float] = None) -> list:
     """A CPU worker's lanes (DEMQ_WORKER_LANES): for each count, a fresh server whose worker sees no GPU
     (CUDA_VISIBLE_DEVICES empty), one job to load the kernels, then ``n_jobs`` jobs of ``n_particles`` spheres (the
     default spec otherwise) as one batch; the time from the batch's submission to its last job done, and how many
-    distinct end times the jobs have (each job reported done as its own run ends, not with its claim)."""
+    distinct end times the jobs have (each job reported done as its own run ends, not with its claim). With
+    ``sleep_s``, the jobs run :func:`sleep_run` instead of the engine."""
     rows = []
     for count in lane_counts:
         env = {"DEMQ_WORKER_LANES": str(count), "CUDA_VISIBLE_DEVICES": "", "DEMQ_WORKER_WARM": "off"}
+        if sleep_s is not None:
+            env.update({"DEMQ_ENGINE_RUN": "bench.small_jobs:sleep_run", SLEEP_ENV: str(sleep_s),
+                        "DEMQ_ENGINE_RUN_ENSEMBLE": "engine.driver.ensemble:run_ensemble"})
         server = Server(out / f"lanes_{count}.log", env_extra=env, wait_for_warm_up=False)
         try:
             first = httpx.post(f"{server.url}/jobs", json={"n_particles": n_particles, "seed": 10**6}, timeout=60)
@@ -201,7 +241,11 @@ def lanes(out: Path, lane_counts: list, n_jobs: int, n_particles: int = 512) -> 
             server.close()
         t0 = min(_t(j["created_at"]) for j in jobs)
         ends = sorted(_t(j["finished_at"]) for j in jobs)
-        rows.append({"lanes": count, "jobs": n_jobs, "n_particles": n_particles, "span_s": ends[-1] - t0,
+        walls = [j["job_wall_s"] for j in jobs if j["job_wall_s"] is not None]
+        rows.append({"lanes": count, "jobs": n_jobs, "n_particles": n_particles, "sleep_s": sleep_s,
+                     "span_s": ends[-1] - t0,
+                     "lane_s_per_job": (ends[-1] - t0) * count / n_jobs,
+                     "engine_s_per_job": statistics.mean(walls) if walls else None,
                      "distinct_end_times": len(set(ends)), "states": sorted({j["state"] for j in jobs})})
     base = rows[0]["span_s"]
     for row in rows:
@@ -219,16 +263,22 @@ def main(argv=None) -> int:
                     help="only this: a CPU worker with L lanes for each L (the first is the reference), "
                          "--lane-jobs jobs of 512 spheres each")
     ap.add_argument("--lane-jobs", type=int, default=200)
+    ap.add_argument("--lane-sleep", type=float, default=None, metavar="S",
+                    help="with --lanes: jobs that sleep S wall seconds each instead of running the engine (the "
+                         "queue's own cost per job)")
     ap.add_argument("--out", type=Path, default=Path("bench-out/small_jobs"))
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.lanes:
-        rows = lanes(args.out, args.lanes, args.lane_jobs)
+        rows = lanes(args.out, args.lanes, args.lane_jobs, sleep_s=args.lane_sleep)
+        kind = "spheres" if args.lane_sleep is None else f"spheres sleeping {args.lane_sleep:g} s (no engine)"
         for row in rows:
+            engine = row["engine_s_per_job"]
             print(f"{row['lanes']} lane(s), {os.cpu_count()} cores: {row['jobs']} jobs of {row['n_particles']} "
-                  f"spheres done {row['span_s']:.2f} s after the batch's submission (x{row['speed_up']:.2f} of "
-                  f"{rows[0]['lanes']} lane(s)); {row['distinct_end_times']} distinct end times; states "
-                  f"{row['states']}", flush=True)
+                  f"{kind} done {row['span_s']:.2f} s after the batch's submission (x{row['speed_up']:.2f} of "
+                  f"{rows[0]['lanes']} lane(s)); a lane's {row['lane_s_per_job']:.3f} s per job against the engine's "
+                  f"{'-' if engine is None else f'{engine:.3f}'} s; {row['distinct_end_times']} distinct end times; "
+                  f"states {row['states']}", flush=True)
         (args.out / "lanes.json").write_text(json.dumps(rows, indent=2))
         return 0
     report = {"cpus": os.cpu_count(), "many_small": many_small(args.out, args.jobs, args.clients)}

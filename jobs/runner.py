@@ -1,7 +1,8 @@
-"""The simulation process: one per claim — one job, a sequence of CPU jobs run one after another, or a pack of jobs
+"""The simulation process: it runs a claim — one job, a sequence of CPU jobs run one after another, or a pack of jobs
 run as one ensemble (jobs/packing.py) — started by the worker with the ``spawn`` context, either with its claim
-(:func:`child_main`) or ahead of it as a standby (:func:`standby_main`: started up while the worker waits or runs
-the previous claim, then handed its claim over a pipe).
+(:func:`child_main`: that claim only) or ahead of it as a standby (:func:`standby_main`: started up while the worker
+waits or runs the previous claim, then handed its claims over a pipe, one at a time: a CPU lane's process runs claim
+after claim, its imports and loaded code serving them all; the worker ends it with ``None`` instead of a claim).
 
 It validates the specs, calls the engine with a progress callback and a cancel check per job (one job, and each
 job of a sequence in turn, in this one warm process: ``DEMQ_ENGINE_RUN``, engine.driver.simulate.run; a pack:
@@ -20,7 +21,8 @@ message names the job by its index k in the claim::
     ("error", None, readable message)     the pack as a whole failed (no job is singled out)
 
 A standby process says first, before its claim: ("compiling", None, None) once if its start-up compiles kernels
-(an empty or partial kernel cache), then ("ready", None, None) when its start-up is done.
+(an empty or partial kernel cache), then ("ready", None, None) when its start-up is done; and ("ready", None, None)
+again after each claim, once everything of that claim has been said and it reads the next one.
 
 A sequence's or a pack's jobs report done / cancelled / error one by one, as their runs end. Each job has its own
 cancel flag (a shared byte array), so one job stops without disturbing the others; a sequence's job whose flag is
@@ -87,34 +89,47 @@ def child_main(engine_target: str, spec_jsons: list, outputs: list, checkpoint_d
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
     try:
-        if mode == ENSEMBLE:
-            _run_pack(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn,
-                      cancel_flags, parent_pid)
-        elif mode == SEQUENCE:
-            _run_sequence(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn,
-                          cancel_flags, parent_pid)
-        else:
-            conn.send(_run(engine_target, 0, spec_jsons[0], outputs[0], checkpoint_dirs[0], checkpoint_interval,
-                           conn, cancel_flags, parent_pid))
+        run_claim(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
+                  parent_pid, mode)
     except BrokenPipeError:
         pass  # the worker is gone; nothing to report to
     finally:
         conn.close()
 
 
+def run_claim(engine_target: str, spec_jsons: list, outputs: list, checkpoint_dirs: list,
+              checkpoint_interval: float, conn, cancel_flags, parent_pid: int, mode: str = ONE) -> None:
+    """One claim in this process, reported on ``conn`` (see :func:`child_main` for the arguments)."""
+    if mode == ENSEMBLE:
+        _run_pack(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
+                  parent_pid)
+    elif mode == SEQUENCE:
+        _run_sequence(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
+                      parent_pid)
+    else:
+        conn.send(_run(engine_target, 0, spec_jsons[0], outputs[0], checkpoint_dirs[0], checkpoint_interval, conn,
+                       cancel_flags, parent_pid))
+
+
 def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Optional[str] = None,
-                 threads: Optional[int] = None) -> None:
+                 threads: Optional[int] = None, engine_targets: tuple = ()) -> None:
     """Entry point of a standby simulation process: started by the worker before its claim, it pays the
     process's one-off start-up (the engine's imports, numba's targets, on a GPU the driver, the context and
     the kernels of ``warm_spec_json``'s specialisation: engine.driver.simulate.warm_process) while the worker waits
-    for work or runs the previous claim, then runs the one claim it receives on ``claims`` as
-    :func:`child_main` would, and exits. ``None`` instead of a claim (or a closed pipe): exit at once.
-    ``warm_spec_json`` None: nothing is warmed (a non-default engine: its module is imported with the claim).
-    ``threads``: as for :func:`child_main`."""
+    for work or runs the previous claim, then runs the claims it receives on ``claims`` one after another, as
+    :func:`child_main` would, saying ("ready", None, None) after each. ``None`` instead of a claim (or a closed
+    pipe): exit. ``engine_targets``: the ``module:function`` entry points its claims call, imported first (a
+    non-default engine's too). ``warm_spec_json`` None: nothing is warmed (a non-default engine). ``threads``: as for
+    :func:`child_main`."""
     _use_threads(threads)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent()
+    for target in engine_targets:
+        try:
+            load_callable(target)
+        except Exception:  # noqa: BLE001  (a claim that calls it fails with the reason)
+            pass
     if warm_spec_json is not None:
         try:
             import engine.driver.ensemble  # noqa: F401  (the pack entry point's imports)
@@ -132,18 +147,19 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
         except Exception:  # noqa: BLE001  (a start-up that fails here is paid again, and reported, by the job)
             pass
     try:
-        conn.send(("ready", None, None))
-        claim = claims.recv()
-    except (EOFError, OSError):
-        claim = None
+        while True:
+            conn.send(("ready", None, None))
+            claim = claims.recv()
+            if claim is None:
+                break
+            engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, mode = claim
+            run_claim(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
+                      parent_pid, mode)
+    except (EOFError, OSError):   # the worker closed the claims pipe, or is gone (BrokenPipeError)
+        pass
     finally:
         claims.close()
-    if claim is None:
         conn.close()
-        return
-    engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, mode = claim
-    child_main(engine_target, spec_jsons, outputs, checkpoint_dirs, checkpoint_interval, conn, cancel_flags,
-               parent_pid, mode)
 
 
 def _tell_when_compiling(conn):

@@ -68,7 +68,8 @@ DEMQ_WORKER_ID                 ``<hostname>:<pid>:<random>``       Lease owner n
 DEMQ_WORKER_STANDBY            ``auto``                            ``on``: a running worker keeps the next claim's
                                                                    simulation process started up (interpreter,
                                                                    imports, GPU context and kernels) while it waits
-                                                                   or runs a claim; ``off``: each claim spawns its
+                                                                   or runs a claim, and a CPU claim's process for
+                                                                   the next claims; ``off``: each claim spawns its
                                                                    own; ``auto``: on where an NVIDIA driver is or
                                                                    the host has more than one CPU core.
 DEMQ_WORKER_WARM               ``on``                              ``on``: with the default engine, a worker compiles

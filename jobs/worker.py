@@ -1,4 +1,4 @@
-"""The worker: claims a job — or several — and runs the claim in its own simulation process.
+"""The worker: claims a job — or several — and runs the claim in a simulation process of its own.
 
 At its start a worker registers in the store's worker table (the backends it can run: "cpu", and "cuda" where a
 GPU is; `demq serve` registers its embedded worker before it answers a request) and claims at once. With the
@@ -14,8 +14,9 @@ whole queue while others are idle. Several CPU jobs run one after another in one
 first (``sequence``); several GPU jobs of similar cost run as one ensemble (``ensemble``). One attempt
 (:meth:`Worker.execute_pack`; :meth:`Worker.execute` for one job)::
 
-    spawn the simulation process (jobs/runner.py; a running worker hands the claim to the standby process it
-                    started ahead, DEMQ_WORKER_STANDBY, and starts the next one)
+    spawn the simulation process (jobs/runner.py; a running worker, DEMQ_WORKER_STANDBY, hands the claim to its
+                    standby process instead: the one it started ahead, or the process of its last CPU claim,
+                    which stays for the next claims; with a GPU claim it starts the next claim's process)
                     --pipe--> per job: (started,) progress, then done | error | cancelled
     every heartbeat (or progress, rate-limited): renew every job's lease and write its progress (one
                     transaction; a sequence's jobs that wait for their turn get phase "waiting" and the
@@ -31,13 +32,15 @@ first (``sequence``); several GPU jobs of similar cost run as one ensemble (``en
                     checkpoints removed; the sequence's jobs that had not started go back to the queue
     another stop not honoured within the grace period -> SIGKILL if no other job of the process is still
                     running, else the job ends without waiting for its scene
+    every job's final message in -> the claim is over; its process takes the lane's next claim once it
+                    says "ready" (a CPU claim's), or exits (joined later, not waited for)
     process exit    -> jobs still without an end: one job fails with the reason (a sequence's running job:
                     the one that was running; its jobs that had not started go back to the queue); several
                     (a pack that died or failed as a whole) go back to the queue to run alone next time
 
 A crash of the simulation process fails that job only (a pack's jobs are retried alone, where the
-culprit fails by itself); the worker goes on with the next claim. If the worker itself dies, the leases
-expire and the reaper (run by every worker between claims) puts the jobs back in the queue, where the
+culprit fails by itself); the worker goes on with the next claim, in a fresh process. If the worker itself dies,
+the leases expire and the reaper (run by every worker between claims) puts the jobs back in the queue, where the
 engine resumes each from its last checkpoint.
 """
 
@@ -77,6 +80,10 @@ DRAIN_MESSAGES = 10_000
 
 #: Seconds a standby process that gets no claim has to exit before it is killed.
 STANDBY_CLOSE_S = 0.5
+
+#: Seconds a lane's process that has sent every job's end of its last claim has to say that it reads the next one
+#: (it does at once; a process that does not is ended and the claim gets a fresh one).
+REUSE_READY_S = 2.0
 
 #: What a standby process warms when the worker has run no claim yet: the default spec (the service's form and
 #: `demq submit`'s default job).
@@ -148,10 +155,11 @@ class Worker:
             # the first claim's process starts up (imports, GPU context, the default spec's kernels) at once, and
             # the warm-up of every other specialisation beside it: neither holds up a claim
             self._keep_standby = self.settings.standby_enabled
-            if self._keep_standby and not self._stop.is_set() and not self._is_lane:
-                # (the other lanes start their standbys with their first claims: a dozen processes compiling the
-                # default spec at once on an empty cache would hold up the first claims)
-                self._standby = self._spawn_standby(None)
+            if self._keep_standby and not self._stop.is_set():
+                # the other lanes' processes only import the engine: a dozen processes compiling the default spec's
+                # kernels at once on an empty cache would hold up the first claims (a lane's first run loads, or
+                # compiles, the kernels its claims need)
+                self._standby = self._spawn_standby(None, warm=not self._is_lane)
             self._warm(backends)
             while not self._stop.is_set():
                 self._reap(wait=False)
@@ -392,7 +400,14 @@ class Worker:
         claim = (s.engine_run_ensemble if mode == ENSEMBLE else s.engine_run, [_spec_json(j) for j in jobs],
                  [str(x.output) for x in slots], [str(x.checkpoints) for x in slots], s.checkpoint_interval,
                  mode)
+        # a CPU claim's process stays for the lane's next claims (its imports and loaded code serve them all: with
+        # many small claims, a process start-up per claim had cost a lane more than its jobs' runs); a GPU claim's
+        # process ends with it, its device memory going back with its context
+        keep = self._keep_standby and self._packer.backend(jobs[0]) != "cuda"
         sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
+        if sim is None and keep:   # the lane's process, started with its first claim (or after one that died)
+            self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
+            sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
         if sim is None:
             ctx = multiprocessing.get_context("spawn")
             receiver, sender = ctx.Pipe(duplex=False)
@@ -402,14 +417,23 @@ class Worker:
             proc.start()
             sender.close()
             sim = _SimProcess(proc, receiver, flags)
-        if self._keep_standby:    # the next claim's process starts up while this one runs
+        if self._keep_standby and not keep:    # the next claim's process starts up while this one runs
             self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
         pack_error = self._supervise(slots, sim.proc, sim.receiver, sim.flags, mode)
-        if all(slot.outcome == DONE for slot in slots) and sim.proc.is_alive():
-            # every job has its result file and is done: the next claim does not wait for this process's exit
-            # (a GPU process's context teardown takes seconds); it is joined later (_reap)
-            self._exiting.append(sim)
+        if all(slot.final is not None for slot in slots) and sim.proc.is_alive():
+            # every job's end has come from the process (each concluded as it came): nothing of the claim is left
+            # in it. A lane's process takes the next claim; another one's exit is not waited for (a GPU process's
+            # context teardown takes seconds): it is joined later (_reap)
+            self._conclude_rest(slots, None, pack_error, mode)
+            if keep and pack_error is None and not self._stop.is_set() and self._standby is None:
+                sim.claims_run += 1
+                sim.ready = sim.compiling = False
+                self._standby = sim
+            else:
+                sim.retire()
+                self._exiting.append(sim)
             return {slot.job.id: slot.outcome for slot in slots}
+        sim.retire()
         sim.receiver.close()
         sim.proc.join()
         self._conclude_rest(slots, sim.proc.exitcode, pack_error, mode)
@@ -424,21 +448,25 @@ class Worker:
                 self._exiting.remove(sim)
 
     # ---- the standby simulation process (time to result) --------------------------------------------
-    def _spawn_standby(self, warm_spec_json: Optional[str]) -> Optional["_SimProcess"]:
+    def _spawn_standby(self, warm_spec_json: Optional[str], warm: bool = True) -> Optional["_SimProcess"]:
         """Start the next claim's simulation process now (jobs/runner.py standby_main): its start-up
         (interpreter, imports, on a GPU the driver, context and kernels of ``warm_spec_json``'s
-        specialisation, the default spec's when None and the engine is the default one) overlaps the
-        worker's idle wait or the running claim. None if it cannot be started (the claim then spawns its own)."""
+        specialisation, the default spec's when None and the engine is the default one; without ``warm`` the
+        imports only) overlaps the worker's idle wait or the running claim. None if it cannot be started (the claim
+        then spawns its own)."""
         s = self.settings
-        if warm_spec_json is None and s.engine_run == DEFAULT_ENGINE_RUN:
+        if not warm:
+            warm_spec_json = None
+        elif warm_spec_json is None and s.engine_run == DEFAULT_ENGINE_RUN:
             warm_spec_json = DEFAULT_WARM_SPEC
         try:
             ctx = multiprocessing.get_context("spawn")
             receiver, sender = ctx.Pipe(duplex=False)
             claims_in, claims_out = ctx.Pipe(duplex=False)
             flags = ctx.RawArray("b", s.ensemble_max_jobs if s.packing else 1)
+            targets = tuple(t for t in (s.engine_run, s.engine_run_ensemble) if t)
             proc = ctx.Process(target=standby_main, name="demq-standby",
-                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json, self.threads))
+                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json, self.threads, targets))
             proc.start()
         except Exception as exc:  # noqa: BLE001  (out of processes or memory: claims spawn their own)
             log.error("cannot start a standby simulation process: %s", exc)
@@ -448,14 +476,23 @@ class Worker:
         return _SimProcess(proc, receiver, flags, claims_out, warm_key=_specialisation(warm_spec_json))
 
     def _hand_to_standby(self, claim: tuple, n_jobs: int, job_id: str) -> Optional["_SimProcess"]:
-        """Give ``claim`` to the standby process; None if there is none fit to take it. A standby still compiling
-        the kernels of another specialisation than the claim's (an empty kernel cache) is not waited for: it is
-        ended (what it compiled stays in the cache) and the claim gets a process of its own, which compiles or
-        loads only what the claim needs."""
+        """Give ``claim`` to the standby process (started ahead, or the lane's process after its previous claim);
+        None if there is none fit to take it. A standby still compiling the kernels of another specialisation than
+        the claim's (an empty kernel cache) is not waited for: it is ended (what it compiled stays in the cache) and
+        the claim gets a process of its own, which compiles or loads only what the claim needs. A process that ran a
+        claim takes the next one once it has said that it reads it (REUSE_READY_S)."""
         sim, self._standby = self._standby, None
         if sim is None:
             return None
-        sim.read_start_up()
+        if sim.claims_run:
+            sim.wait_ready(REUSE_READY_S)
+            if not sim.ready:
+                log.warning("job %s: the lane's simulation process (pid %s) did not come back from its last claim; "
+                            "the claim gets a fresh one", job_id, sim.proc.pid)
+                sim.close()
+                return None
+        else:
+            sim.read_start_up()
         if not sim.proc.is_alive() or len(sim.flags) < n_jobs:
             sim.close()
             return None
@@ -464,14 +501,15 @@ class Worker:
                      "gets a process of its own", job_id)
             sim.close(grace_s=0.0)
             return None
+        sim.flags[:] = bytes(len(sim.flags))   # the previous claim's cancel flags, cleared (the process waits)
         try:
             sim.claims.send(claim)
         except (BrokenPipeError, OSError):
             sim.close()
             return None
-        sim.claims.close()
-        sim.claims = None
-        log.info("job %s: handed to the standby simulation process (pid %s)", job_id, sim.proc.pid)
+        sim.ready = False
+        log.info("job %s: handed to the standby simulation process (pid %s, its claim %d)", job_id, sim.proc.pid,
+                 sim.claims_run + 1)
         return sim
 
     def _supervise(self, slots: list["_Slot"], proc, receiver, flags, mode: str = ONE) -> Optional[str]:
@@ -482,6 +520,7 @@ class Worker:
         pack_error = None
         last_beat = last_write = last_poll = time.monotonic()
         killed = False
+        awaited = sum(x.final is None for x in slots)   # jobs whose final message has not come yet
         while True:
             now = time.monotonic()
             kill_at = min((x.kill_at for x in slots if x.outcome is None and x.kill_at is not None), default=now + 1.0)
@@ -510,15 +549,18 @@ class Worker:
                     elif kind == "progress":
                         self._progress(slots, k, payload, sequence)
                     else:
+                        awaited -= slots[k].final is None
                         slots[k].final = (kind, payload)
                         if slots[k].outcome is None:
                             finals.append(slots[k])
+                        if not awaited:
+                            break   # what follows is no longer this claim's (a lane's process: "ready")
                     if not receiver.poll(0):
                         break
                 if finals:
                     self._conclude_all(finals)
-                if ended or all(x.outcome == DONE for x in slots):
-                    break   # every job's result is in: what is left of the process is its exit
+                if ended or not awaited:
+                    break   # every job's end is in: nothing of the claim is left in the process
             elif not proc.is_alive():
                 if receiver.poll(0):
                     continue   # it sent its last messages and exited between the poll and this check: read them
@@ -744,24 +786,30 @@ class _SimProcess:
     proc: object                       # multiprocessing Process
     receiver: object                   # its messages (jobs/runner.py's protocol)
     flags: object                      # per-job cancel bytes (shared memory)
-    claims: Optional[object] = None    # a standby's claim pipe, until it has its claim
+    claims: Optional[object] = None    # a standby's claim pipe, while it may get a claim
     warm_key: Optional[tuple] = None   # a standby's: the specialisation it starts up for (_specialisation)
     compiling: bool = False            # a standby's start-up has compiled kernels (said "compiling")
-    ready: bool = False                # a standby's start-up is done (said "ready")
+    ready: bool = False                # a standby's start-up is done, or its last claim over (said "ready")
+    claims_run: int = 0                # claims it has run to their end (a lane's process, kept for the next)
 
     def read_start_up(self) -> None:
         """Read what a standby has said of its start-up so far ("compiling", "ready"), without waiting."""
+        self.wait_ready(0.0)
+
+    def wait_ready(self, timeout: float) -> None:
+        """Read what the process has said until it says "ready" (its start-up done, or its last claim over: it
+        reads the next one), waiting up to ``timeout`` seconds for it."""
+        deadline = time.monotonic() + timeout
         try:
-            while not self.ready and self.receiver.poll(0):
+            while not self.ready and self.receiver.poll(max(0.0, deadline - time.monotonic())):
                 kind = self.receiver.recv()[0]
                 self.compiling |= kind == "compiling"
                 self.ready |= kind == "ready"
         except (EOFError, OSError):   # it died: the caller sees that it is not alive
             pass
 
-    def close(self, grace_s: float = STANDBY_CLOSE_S) -> None:
-        """End a standby that will get no claim, a process that died or one whose jobs are all done: tell a standby,
-        then wait (``grace_s``) or kill."""
+    def retire(self) -> None:
+        """Tell a standby-started process to exit once its claim is over (it gets no other)."""
         if self.claims is not None:
             try:
                 self.claims.send(None)
@@ -769,6 +817,11 @@ class _SimProcess:
                 pass
             self.claims.close()
             self.claims = None
+
+    def close(self, grace_s: float = STANDBY_CLOSE_S) -> None:
+        """End a standby that will get no claim, a process that died or one whose jobs are all done: tell a standby,
+        then wait (``grace_s``) or kill."""
+        self.retire()
         self.proc.join(timeout=grace_s)
         if self.proc.is_alive():   # still starting up (it reads the pipe only then): its start-up is not needed
             self.proc.kill()

@@ -136,9 +136,19 @@ def _standby_worker(tmp_path, **kw):
     return settings, store, Worker(store, settings)
 
 
+def _handed(caplog) -> list[tuple[str, str, str]]:
+    """(job id, pid, claim number in that process) of each "handed to the standby" line of the worker's log."""
+    import re
+
+    pattern = r"job (\w+): handed to the standby simulation process \(pid (\d+), its claim (\d+)\)"
+    return [re.match(pattern, r.getMessage()).groups() for r in caplog.records
+            if "handed to the standby" in r.getMessage()]
+
+
 def test_claims_run_in_standby_processes_and_none_is_left_behind(tmp_path, caplog):
-    """A running worker hands each claim to the process it started ahead (the first one at its own start); when
-    it stops, the unused standby goes too."""
+    """A running worker hands its first claim to the process it started ahead (at its own start), and each later
+    CPU claim to the same process, which stays for them (one start-up for all); when the worker stops, that process
+    goes too."""
     import logging
     import multiprocessing
 
@@ -147,9 +157,70 @@ def test_claims_run_in_standby_processes_and_none_is_left_behind(tmp_path, caplo
     with caplog.at_level(logging.INFO, logger="demq.worker"):
         worker.run_forever(exit_when_idle=True)
     assert [store.get(j.id).state for j in jobs] == [DONE] * 3
-    handed = [r.getMessage() for r in caplog.records if "handed to the standby" in r.getMessage()]
-    assert [m.split()[1][:-1] for m in handed] == [j.id for j in jobs]
+    handed = _handed(caplog)
+    assert [job_id for job_id, _, _ in handed] == [j.id for j in jobs]
+    assert len({pid for _, pid, _ in handed}) == 1 and [n for _, _, n in handed] == ["1", "2", "3"]
+    assert "did not come back" not in caplog.text
     assert multiprocessing.active_children() == []
+    store.close()
+
+
+def test_a_lanes_process_clears_the_last_claims_cancel_and_a_crashed_one_is_replaced(tmp_path, caplog, monkeypatch):
+    """The process that ran a claim in which a job was cancelled runs the next claim's job to its end (its cancel
+    flags are cleared in between); a process that crashed is not reused: the next claim gets a fresh one, and the
+    crash fails only its own job."""
+    import logging
+
+    monkeypatch.setenv(TEST_CRASH_ENV, "99")
+    settings, store, worker = _standby_worker(tmp_path, ensemble_max_jobs=1, cancel_kill_s=30.0)
+    thread = threading.Thread(target=worker.run_forever)
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        thread.start()
+        try:
+            cancelled = _enqueue(store, t_end=2.0, seed=5)
+            _wait(lambda: store.get(cancelled.id).progress > 0)
+            store.request_cancel(cancelled.id)
+            _wait(lambda: store.get(cancelled.id).state == CANCELLED)
+            after_cancel = _enqueue(store, seed=6)
+            _wait(lambda: store.get(after_cancel.id).state in (DONE, FAILED))
+            crash = _enqueue(store, seed=99)
+            _wait(lambda: store.get(crash.id).state in (DONE, FAILED))
+            after_crash = _enqueue(store, seed=7)
+            _wait(lambda: store.get(after_crash.id).state in (DONE, FAILED))
+        finally:
+            worker.stop()
+            thread.join(30)
+    assert not thread.is_alive()
+    assert store.get(after_cancel.id).state == DONE, store.get(after_cancel.id).error
+    assert store.get(crash.id).error == "simulation process killed by signal SIGSEGV"
+    assert store.get(after_crash.id).state == DONE
+    pid = {job_id: pid for job_id, pid, _ in _handed(caplog)}
+    assert pid[cancelled.id] == pid[after_cancel.id] == pid[crash.id] != pid[after_crash.id]
+    store.close()
+
+
+def test_every_lane_starts_its_process_with_the_worker(tmp_path):
+    """With lanes, each lane starts its simulation process with the worker, before any claim (the first lane's
+    warms the default spec; the others import the engine only)."""
+    from tests.jobs.conftest import make_settings
+
+    settings = make_settings(tmp_path, standby="on", lanes="3")
+    store = open_store(settings.database_url)
+    worker = Worker(store, settings)
+
+    def started():
+        lanes = [worker] + [lane for lane, _ in worker._lanes]
+        return len(lanes) == 3 and all(w._standby is not None and w._standby.proc.is_alive() for w in lanes)
+
+    thread = threading.Thread(target=worker.run_forever)
+    thread.start()
+    try:
+        _wait(started)
+    finally:
+        worker.stop()
+        thread.join(30)
+    assert not thread.is_alive()
+    assert store.counts() == {}          # no job: the lanes' processes started without a claim
     store.close()
 
 
@@ -379,14 +450,16 @@ def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monk
     def warm_process(spec):
         warmed.append(spec.n_particles)
         claims_out.send(claim)           # the claim comes while the standby warms up
+        claims_out.send(None)            # and no other: the process ends after it
 
     monkeypatch.setattr(engine.driver.simulate, "warm_process", warm_process)
-    monkeypatch.setattr(runner, "child_main", lambda *args: ran.append(args[:2]))
+    monkeypatch.setattr(runner, "run_claim", lambda *args: ran.append(args[:2]))
     monkeypatch.setattr(runner, "_die_with_parent", lambda: None)
     monkeypatch.setattr(runner.signal, "signal", lambda *a: None)
     if claim_waiting:
         claims_out.send(claim)
+        claims_out.send(None)
     runner.standby_main(claims_in, sender, None, 0, '{"n_particles": 4096}')
     assert warmed == ([] if claim_waiting else [4096])
     assert ran == [("engine.driver.simulate:run", ['{"n_particles": 512}'])]
-    assert receiver.recv()[0] == "ready"
+    assert [receiver.recv()[0] for _ in range(2)] == ["ready", "ready"]   # started up; the claim over
