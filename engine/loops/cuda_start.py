@@ -36,7 +36,8 @@ from __future__ import annotations
 import numpy as np
 from numba import cuda
 
-from engine.setup.cell_rsa import RSA_Q, cell_pass, cut_of, final_key, kept, pass_key, run_rounds, slot_index
+from engine.setup.cell_rsa import (RSA_Q, SPHERES, SPHEROIDS, cut_of, final_key, kept, pass_functions, pass_key,
+                                   run_rounds, slot_index)
 from engine.loops.cuda_cache import SIM, cache_kernels
 from engine.setup.counter_rng import _bits
 from engine.setup.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw,
@@ -190,14 +191,25 @@ else:
         return a
 
 
-@cuda.jit
-def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit, full):
-    """Pass p (its cells: the m of colour ``colour``) of a random start: engine.setup.cell_rsa.cell_pass per cell;
-    full[0] counts the cells that lacked a slot."""
-    for t in range(cuda.grid(1), m, cuda.gridsize(1)):
-        if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, quat_key, _raw(counts), _raw(slots),
-                     _raw(spass), _raw(quats), _raw(axes), unit):
-            cuda.atomic.add(full, 0, 1)
+def _pass_kernel(kind: int):
+    """The pass kernel of spheres or spheroids (engine.setup.cell_rsa.pass_functions: the shape a constant of the
+    compiled code)."""
+    _, cell_pass = pass_functions(kind)
+
+    @cuda.jit
+    def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit,
+                 full):
+        """Pass p (its cells: the m of colour ``colour``) of a random start: engine.setup.cell_rsa's cell_pass per
+        cell; full[0] counts the cells that lacked a slot."""
+        for t in range(cuda.grid(1), m, cuda.gridsize(1)):
+            if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, quat_key, _raw(counts), _raw(slots),
+                         _raw(spass), _raw(quats), _raw(axes), unit):
+                cuda.atomic.add(full, 0, 1)
+
+    return rsa_pass
+
+
+rsa_pass, rsa_pass_spheroid = _pass_kernel(SPHERES), _pass_kernel(SPHEROIDS)
 
 
 @cuda.jit
@@ -268,9 +280,10 @@ def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots,
 
 
 cache_kernels({"site_hist": site_hist, "site_gather": site_gather, "place_draw": place_draw,
-               "block_moments": block_moments, "scale_into": scale_into, "rsa_pass": rsa_pass, "rsa_total": rsa_total,
-               "rsa_last_hist": rsa_last_hist, "rsa_last_gather": rsa_last_gather, "rsa_kept_counts": rsa_kept_counts,
-               "rsa_place": rsa_place}, ("start",))
+               "block_moments": block_moments, "scale_into": scale_into, "rsa_pass": rsa_pass,
+               "rsa_pass_spheroid": rsa_pass_spheroid, "rsa_total": rsa_total, "rsa_last_hist": rsa_last_hist,
+               "rsa_last_gather": rsa_last_gather, "rsa_kept_counts": rsa_kept_counts, "rsa_place": rsa_place},
+              ("start",))
 
 
 def _blocks(work: int, tpb: int, cap: int) -> int:
@@ -318,6 +331,7 @@ def _random_centres(d: StartDraw, col0: int, pos, quat, keys, dims, unit, row0, 
     quat_key = np.uint64(rsa_keys[3]) if g.spheroid else np.uint64(0)
     cdf = cuda.to_device(np.array(g.cdf, np.uint64), stream=stream)
     axes = cuda.to_device(np.array(g.axes, np.float64), stream=stream)
+    kernel = rsa_pass_spheroid if g.spheroid else rsa_pass
     ncell = g.nc ** 3
     m = (g.nc // 2) ** 3
     grid_cells, grid_colour = _blocks(ncell, _WIDE, cap), _blocks(m, _WIDE, cap)
@@ -337,9 +351,9 @@ def _random_centres(d: StartDraw, col0: int, pos, quat, keys, dims, unit, row0, 
         total.copy_to_device(zero, stream=stream)
         for colour in range(8):
             p = 8 * r + colour
-            rsa_pass[grid_colour, _WIDE, stream](m, colour, p, g.nc, g.thr, cdf, np.uint64(pass_key(pos_key, p)),
-                                                 np.uint64(pass_key(count_key, p)), np.uint64(pass_key(quat_key, p)),
-                                                 counts, slots, spass, quats, axes, g.unit, full)
+            kernel[grid_colour, _WIDE, stream](m, colour, p, g.nc, g.thr, cdf, np.uint64(pass_key(pos_key, p)),
+                                               np.uint64(pass_key(count_key, p)), np.uint64(pass_key(quat_key, p)),
+                                               counts, slots, spass, quats, axes, g.unit, full)
         rsa_total[grid_cells, _WIDE, stream](counts, total)
         f, t = full.copy_to_host(stream=stream), total.copy_to_host(stream=stream)
         stream.synchronize()

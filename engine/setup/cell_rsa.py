@@ -185,64 +185,86 @@ def _wrap(dx, span):
     return dx
 
 
-@numba.njit(cache=True, inline="always")
-def is_clear(gx, gy, gz, cx, cy, cz, nc, thr, counts, slots, cq, quats, axes, unit):
-    """Whether a centre at grid point (gx, gy, gz) of cell (cx, cy, cz) overlaps no sphere kept in the 27 cells
-    around: exact int64 squared distances against thr. Spheroids (``axes`` = (a, b)): a kept one within the bounding
-    distance is tested with the candidate's orientation ``cq`` and its own (quats[c, k]) by :func:`spheroids_clear`
-    (``unit``: the grid's, m)."""
-    q = np.int64(RSA_Q)
-    span = np.int64(nc) * q
-    for ox in range(-1, 2):
-        nx = (cx + ox + nc) % nc
-        for oy in range(-1, 2):
-            ny = (cy + oy + nc) % nc
-            for oz in range(-1, 2):
-                nz = (cz + oz + nc) % nc
-                c = (nx * nc + ny) * nc + nz
-                for k in range(counts[c]):
-                    dx = _wrap(nx * q + np.int64(slots[c, k, 0]) - gx, span)
-                    dy = _wrap(ny * q + np.int64(slots[c, k, 1]) - gy, span)
-                    dz = _wrap(nz * q + np.int64(slots[c, k, 2]) - gz, span)
-                    if dx * dx + dy * dy + dz * dz < thr:
-                        if axes.shape[0] == 0:
-                            return False
-                        if not spheroids_clear(dx * unit, dy * unit, dz * unit, cq[0], cq[1], cq[2], cq[3],
-                                               quats[c, k, 0], quats[c, k, 1], quats[c, k, 2], quats[c, k, 3],
-                                               axes[0], axes[1]):
-                            return False
-    return True
+#: which particles a pass function is compiled for (:func:`pass_functions`): one-size spheres, spheroids, or either
+#: as ``axes`` says at run time
+SPHERES, SPHEROIDS, EITHER = 0, 1, 2
 
 
-@numba.njit(cache=True, inline="always")
-def cell_pass(t, colour, p, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit):
-    """The attempts of pass p in the t-th cell of colour ``colour``; returns 1 when the cell had no free slot for a
-    centre it kept (the start is then redone with more slots), else 0. Spheroids (``axes`` = (a, b)) draw an
-    orientation per attempt from ``quat_key`` and keep it in quats[c, slot]."""
-    h2 = nc // 2
-    cx = 2 * (t // (h2 * h2)) + ((colour >> 2) & 1)
-    cy = 2 * ((t // h2) % h2) + ((colour >> 1) & 1)
-    cz = 2 * (t % h2) + (colour & 1)
-    c = (cx * nc + cy) * nc + cz
-    q = np.int64(RSA_Q)
-    for a in range(attempts_of(cdf, count_key, c)):
-        qx, qy, qz = candidate(pos_key, c, a)
-        cq = (1.0, 0.0, 0.0, 0.0)
-        if axes.shape[0] != 0:
-            cq = candidate_orientation(quat_key, c, a)
-        if is_clear(cx * q + qx, cy * q + qy, cz * q + qz, cx, cy, cz, nc, thr, counts, slots, cq, quats, axes, unit):
-            m = counts[c]
-            if m >= slots.shape[1]:
-                return 1
-            slots[c, m, 0] = qx
-            slots[c, m, 1] = qy
-            slots[c, m, 2] = qz
-            spass[c, m] = p
-            if axes.shape[0] != 0:
-                for j in range(4):
-                    quats[c, m, j] = cq[j]
-            counts[c] = m + 1
-    return 0
+def pass_functions(kind: int) -> tuple:
+    """(is_clear, cell_pass) compiled for ``kind`` (SPHERES, SPHEROIDS or EITHER). The shape is a constant of the
+    compiled code for SPHERES and SPHEROIDS: a GPU kernel for spheres then carries no Perram-Wertheim test (with it,
+    the sphere pass kernel took 188 registers against 80, and twice the time: H200, 8M spheres); the host's rounds
+    take EITHER."""
+
+    @numba.njit(inline="always")
+    def spheroid(axes):
+        if kind == EITHER:
+            return axes.shape[0] != 0
+        return kind == SPHEROIDS
+
+    @numba.njit(inline="always")
+    def is_clear(gx, gy, gz, cx, cy, cz, nc, thr, counts, slots, cq, quats, axes, unit):
+        """Whether a centre at grid point (gx, gy, gz) of cell (cx, cy, cz) overlaps no particle kept in the 27
+        cells around: exact int64 squared distances against thr. Spheroids (``axes`` = (a, b)): a kept one within
+        the bounding distance is tested with the candidate's orientation ``cq`` and its own (quats[c, k]) by
+        :func:`spheroids_clear` (``unit``: the grid's, m)."""
+        q = np.int64(RSA_Q)
+        span = np.int64(nc) * q
+        for ox in range(-1, 2):
+            nx = (cx + ox + nc) % nc
+            for oy in range(-1, 2):
+                ny = (cy + oy + nc) % nc
+                for oz in range(-1, 2):
+                    nz = (cz + oz + nc) % nc
+                    c = (nx * nc + ny) * nc + nz
+                    for k in range(counts[c]):
+                        dx = _wrap(nx * q + np.int64(slots[c, k, 0]) - gx, span)
+                        dy = _wrap(ny * q + np.int64(slots[c, k, 1]) - gy, span)
+                        dz = _wrap(nz * q + np.int64(slots[c, k, 2]) - gz, span)
+                        if dx * dx + dy * dy + dz * dz < thr:
+                            if not spheroid(axes):
+                                return False
+                            if not spheroids_clear(dx * unit, dy * unit, dz * unit, cq[0], cq[1], cq[2], cq[3],
+                                                   quats[c, k, 0], quats[c, k, 1], quats[c, k, 2], quats[c, k, 3],
+                                                   axes[0], axes[1]):
+                                return False
+        return True
+
+    @numba.njit(inline="always")
+    def cell_pass(t, colour, p, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit):
+        """The attempts of pass p in the t-th cell of colour ``colour``; returns 1 when the cell had no free slot
+        for a centre it kept (the start is then redone with more slots), else 0. Spheroids (``axes`` = (a, b)) draw
+        an orientation per attempt from ``quat_key`` and keep it in quats[c, slot]."""
+        h2 = nc // 2
+        cx = 2 * (t // (h2 * h2)) + ((colour >> 2) & 1)
+        cy = 2 * ((t // h2) % h2) + ((colour >> 1) & 1)
+        cz = 2 * (t % h2) + (colour & 1)
+        c = (cx * nc + cy) * nc + cz
+        q = np.int64(RSA_Q)
+        for a in range(attempts_of(cdf, count_key, c)):
+            qx, qy, qz = candidate(pos_key, c, a)
+            cq = (1.0, 0.0, 0.0, 0.0)
+            if spheroid(axes):
+                cq = candidate_orientation(quat_key, c, a)
+            if is_clear(cx * q + qx, cy * q + qy, cz * q + qz, cx, cy, cz, nc, thr, counts, slots, cq, quats, axes,
+                        unit):
+                m = counts[c]
+                if m >= slots.shape[1]:
+                    return 1
+                slots[c, m, 0] = qx
+                slots[c, m, 1] = qy
+                slots[c, m, 2] = qz
+                spass[c, m] = p
+                if spheroid(axes):
+                    for j in range(4):
+                        quats[c, m, j] = cq[j]
+                counts[c] = m + 1
+        return 0
+
+    return is_clear, cell_pass
+
+
+is_clear, cell_pass = pass_functions(EITHER)
 
 
 @numba.njit(cache=True, inline="always")

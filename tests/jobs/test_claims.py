@@ -369,7 +369,7 @@ def test_lanes_setting():
     auto = Settings.from_env(environ={})
     assert auto.lane_count(("cpu", "cuda")) == 1             # a GPU worker: its claims share the GPU
     cores = os.cpu_count() or 1
-    assert auto.lane_count(("cpu",)) == (1 if cores <= 3 else cores // 2)
+    assert auto.lane_count(("cpu",)) == (1 if cores <= 3 else cores)
 
 
 def test_a_sigkilled_worker_with_lanes_leaves_every_job_done_exactly_once(tmp_path):
