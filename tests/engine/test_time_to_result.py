@@ -121,11 +121,13 @@ def test_parallel_start_is_a_valid_homogeneous_gas():
 
 
 @pytest.mark.parametrize("kw", [{}, {"start": None}, {"shape": "ellipsoid", "elongation": 2.0, "e_t": -1.0},
-                                {"shape": "ellipsoid", "elongation": 2.0}])
+                                {"shape": "ellipsoid", "elongation": 2.0},
+                                {"shape": "ellipsoid", "elongation": 2.0, "e_t": -1.0, "start": None},
+                                {"shape": "ellipsoid", "elongation": 2.0, "start": None}])
 def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(monkeypatch, kw):
     """engine.setup.scene.load_parallel_start (the worker's standby, warm_process) calls every compiled function of a
-    large start of the spec's kind (spheres; smooth and rough ellipsoids, 3 and 4 streams) with the argument types
-    the start calls it with, so the start loads nothing more."""
+    large start of the spec's kind (spheres; smooth and rough ellipsoids, 3 and 4 streams; lattice and random) with
+    the argument types the start calls it with, so the start loads nothing more."""
     import engine.setup.cell_rsa as rsa
     import engine.setup.scene as sc
     from engine.shapes import host
