@@ -232,10 +232,12 @@ def dsmc_ratio(xi: float, e_n: float, dem: bool, n: int = 20000, coll_per_partic
 
 def _spec(xi: float, e_n: float, seed: int, backend: str, n: int, collisions: float, velocity_rms: float,
           thermalization: float) -> SimulationSpec:
-    """phi = 0.058 at the Hidalgo et al. (2013) particle size (L scaled with N^(1/3)); t_end = collisions / Gamma_0."""
+    """phi = 0.058 at the Hidalgo et al. (2013) particle size (L scaled with N^(1/3)); t_end = collisions / Gamma_0.
+    The start of Rubio-Largo et al. (2015) §4, named: bounding spheres on the lattice, melted by the thermalisation
+    (a null start would be the random one up to phi xi^2 = 0.3)."""
     base = SimulationSpec(shape="ellipsoid", elongation=xi, n_particles=n, volume_fraction=0.058,
                           box_length=2.0 * (n / 4096) ** (1 / 3), e_n=e_n, e_t=-1.0, velocity_rms=velocity_rms,
-                          seed=seed, backend=backend, snapshots=0, thermalization=thermalization)
+                          seed=seed, backend=backend, snapshots=0, start="lattice", thermalization=thermalization)
     p = derive(base)
     g0 = gamma0(xi, e_n, p.radius, p.number_density, p.mass, 0.058, p.temperature0)["gamma0"]
     t_end = collisions / g0
