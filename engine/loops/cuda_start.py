@@ -1,8 +1,9 @@
 """Large starts drawn on the GPU (a job's time to result).
 
-A GPU job of a large one-size sphere start (engine.setup.scene.device_start) does not draw its start on the host and
-upload it: the sphere's CUDA ensemble (engine/shapes/sphere/cuda_backend.py) draws it into its own state arrays when it
-is built, from an ``engine.setup.scene.StartDraw``. The draws are the host's (engine.setup.scene._draw_start), in the
+A GPU job of a large one-size start (engine.setup.scene.device_start) does not draw its start on the host and upload
+it: the shape's CUDA ensemble (engine/shapes/sphere/cuda_backend.py; the spheroid's, engine/shapes/spheroid/
+cuda_backend.py ``draw_ellipsoid_start``, turns its draws into spins and L after these kernels) draws it into its
+own state arrays when it is built, from an ``engine.setup.scene.StartDraw``. The draws are the host's (engine.setup.scene._draw_start), in the
 same order:
 
 1. the site selection (the n of the n_sites fcc sites whose 64-bit key is smallest): a histogram of the keys'
@@ -18,11 +19,13 @@ same order:
 4. :func:`scale_into`: each stream, scaled, into its state array in the working precision (the cast an upload
    would make on the device, K.scatter_rows).
 
-A random start (``StartDraw.rsa``) replaces steps 1 and 2 by the rounds of engine/setup/cell_rsa.py: :func:`rsa_pass`
-per pass and colour, a count per round (:func:`rsa_total`), the last round's surplus removed by a histogram of its
+A random start (``StartDraw.rsa``) replaces steps 1 and 2 by the rounds of engine/setup/cell_rsa.py: ``rsa_pass``
+(spheres) or ``rsa_pass_spheroid`` (their orientations drawn with the centres, into the ``quat`` rows) per pass and
+colour, a count per round (:func:`rsa_total`), the last round's surplus removed by a histogram of its
 removal keys (:func:`rsa_last_hist`, :func:`rsa_last_gather`, a host sort of one bucket), and one thread per cell
 placing its spheres and their stream rows (:func:`rsa_kept_counts`, a host scan, :func:`rsa_place`); the centres
-are the host's exactly (integer tests, one rounding each).
+are the host's exactly (integer tests, one rounding each; a spheroid pair within the bounding distance is tested in
+floating point, engine/setup/cell_rsa.py).
 
 The formulas are engine.setup.scene's ``@numba.njit`` functions, called by these kernels and by the host's draws alike.
 Sites, blocks and host arithmetic are identical; the values are equal to rounding (libdevice's log, cos, sin and
