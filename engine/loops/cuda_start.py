@@ -3,8 +3,8 @@
 A GPU job of a large one-size start (engine.setup.scene.device_start) does not draw its start on the host and upload
 it: the shape's CUDA ensemble (engine/shapes/sphere/cuda_backend.py; the spheroid's, engine/shapes/spheroid/
 cuda_backend.py ``draw_ellipsoid_start``, turns its draws into spins and L after these kernels) draws it into its
-own state arrays when it is built, from an ``engine.setup.scene.StartDraw``. The draws are the host's (engine.setup.scene._draw_start), in the
-same order:
+own state arrays when it is built, from an ``engine.setup.scene.StartDraw``. The draws are the host's
+(engine.setup.scene._draw_start), in the same order:
 
 1. the site selection (the n of the n_sites fcc sites whose 64-bit key is smallest): a histogram of the keys'
    leading bits (:func:`site_hist`), the keys of the bucket that holds the n-th smallest gathered with each
