@@ -9,7 +9,8 @@ blows up stops alone) and runs the same kernels: the one CUDA time loop (:mod:`e
 specialised by the spheroid's device functions (engine/shapes/spheroid/device.py, which call the njit physics
 of the CPU plug-in engine/shapes/spheroid/kernels.py: Perram-Wertheim contact, Fincham's leap-frog on the
 body-frame angular velocity, Rubio-Largo et al. (2015) Eqs. 13-24). This module owns only the spheroid's host side: its
-state and per-scene constants on the device, the arrays it hands to the kernels and its observables.
+state and per-scene constants on the device, the arrays it hands to the kernels, its observables, and a large start
+drawn on the device (:func:`draw_ellipsoid_start`: engine/loops/cuda_start.py's draws, then :func:`start_rows`).
 :class:`CudaEllipsoidBackend` is the one-scene case (K = 1) with the interface of
 :class:`engine.shapes.spheroid.cpu_backend.CpuEllipsoidBackend`.
 
