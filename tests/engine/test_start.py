@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from engine import SimulationSpec
 from engine.analysis.pairs import periodic_pairs
-from engine.errors import SpecError
 from engine.setup.params import derive
 from engine.setup.scene import initial_spheres
 from engine.setup.start_kind import (LATTICE, PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN, RANDOM,
