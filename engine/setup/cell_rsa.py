@@ -45,8 +45,7 @@ import numpy as np
 from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 from engine.errors import SpecError
 from engine.physics.ellipsoid import plane_separated, pw_contact, shape_matrix_inverse
-from engine.physics.rotation import quat_unit
-from engine.setup.counter_rng import _DRAWS, _GOLDEN, _M1, _U, _bits, _mix64, _normal_pair
+from engine.setup.counter_rng import _DRAWS, _GOLDEN, _M1, _U, _bits, _mix64, uniform_quaternion
 
 #: Relative gap RSA keeps between accepted spheres: rounding can never make a start overlap (every random start:
 #: the sequential one of engine/setup/scene.py and this one)
@@ -153,10 +152,7 @@ def candidate(pos_key, cell, a):
 def candidate_orientation(quat_key, cell, a):
     """Attempt a's orientation (a spheroid's): a uniform unit quaternion (w, x, y, z) from four normals, draws of
     (cell, attempt) in the pass's orientation stream."""
-    i = np.int64(cell) * np.int64(_DRAWS) + np.int64(a)
-    g0, g1 = _normal_pair(quat_key, i, 0)
-    g2, g3 = _normal_pair(quat_key, i, 2)
-    return quat_unit(g0, g1, g2, g3)
+    return uniform_quaternion(quat_key, np.int64(cell) * np.int64(_DRAWS) + np.int64(a))
 
 
 @numba.njit(cache=True, inline="always")

@@ -13,6 +13,7 @@ with coverage_hidden():
 import numpy as np
 
 from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
+from engine.physics.rotation import quat_unit
 
 _DRAWS = 8           # counter values reserved per particle and stream
 _U = np.uint64
@@ -46,6 +47,15 @@ def _normal_pair(key, i, k):
     r = math.sqrt(-2.0 * math.log(_uniform(key, i, k)))
     t = 2.0 * math.pi * _uniform(key, i, k + 1)
     return r * math.cos(t), r * math.sin(t)
+
+
+@numba.njit(cache=True, inline="always")
+def uniform_quaternion(key, i):
+    """A uniformly distributed orientation (unit quaternion w, x, y, z): four standard normals, draws 0-3 of i in the
+    stream of ``key``, over their norm."""
+    g0, g1 = _normal_pair(key, i, 0)
+    g2, g3 = _normal_pair(key, i, 2)
+    return quat_unit(g0, g1, g2, g3)
 
 
 fast_loads(globals())  # their disk-cache loads skip numba's target refresh (engine/numba_support/jitcache.py)

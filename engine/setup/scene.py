@@ -46,9 +46,8 @@ from engine.backends.base import EllipsoidSystem, SphereSystem
 from engine.neighbours.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.errors import SpecError
 from engine.setup.cell_rsa import RSA_GAP, CellRsa, place_random
-from engine.setup.counter_rng import _GOLDEN, _M1, _M2, _U, _bits, _normal_pair, _uniform
+from engine.setup.counter_rng import _GOLDEN, _M1, _M2, _U, _bits, _normal_pair, _uniform, uniform_quaternion
 from engine.setup.params import Derived, species_table
-from engine.physics.rotation import quat_unit
 from engine.setup.start_kind import (PARALLEL_GENERATOR, PARALLEL_RSA_GENERATOR, PARALLEL_START_MIN,  # noqa: F401
                                      RANDOM, SEQUENTIAL_GENERATOR, device_start, start_generator, start_protocol)
 
@@ -341,23 +340,28 @@ def initial_ellipsoids(spec, p: Derived, on_device: bool = False) -> EllipsoidSy
         semi_axes=np.tile(axes, (n, 1)), mass=np.full(n, p.mass), inertia=np.tile(inertia, (n, 1)))
 
 
-def ellipsoid_draw_rows(d) -> tuple:
-    """{stream: row block} of an ellipsoid start's draws as :meth:`StartDraw.on_host` returns them (a random start's
-    orientations last), and whether it is rough (an axial spin stream)."""
-    ids = [s for s, _, _ in d.streams] + ([STREAM_QUATERNION] if d.rsa is not None else [])
-    return ids, STREAM_SPIN_AXIS in ids
+def is_rough_draw(streams) -> bool:
+    """Whether an ellipsoid start's streams draw an axial spin (rough contacts)."""
+    return any(s == STREAM_SPIN_AXIS for s, _, _ in streams)
+
+
+def _ellipsoid_rows(streams, random: bool, drawn: list, n: int) -> tuple:
+    """(velocity, space-frame spin, orientation) of an ellipsoid start from its drawn row blocks, in the order of
+    ``streams`` (a random start's orientations last, drawn with its centres): the spins from the body-axis draws by
+    :func:`_space_spin`."""
+    by_stream = dict(zip([s for s, _, _ in streams] + ([STREAM_QUATERNION] if random else []), drawn))
+    rough = is_rough_draw(streams)
+    w_a = by_stream[STREAM_SPIN_AXIS] if rough else np.zeros((n, 1))
+    omega = np.empty((n, 3))
+    _space_spins_parallel(by_stream[STREAM_QUATERNION], by_stream[STREAM_SPIN], w_a, rough, omega)
+    return by_stream[STREAM_VELOCITY], omega, by_stream[STREAM_QUATERNION]
 
 
 def ellipsoid_draw_on_host(d) -> tuple:
     """(position, velocity, space-frame spin, orientation) of a large ellipsoid start drawn on the host from its
-    :class:`StartDraw` (the spins from the body-axis draws by :func:`_space_spin`)."""
+    :class:`StartDraw`."""
     pos, drawn = d.on_host()
-    ids, rough = ellipsoid_draw_rows(d)
-    by_stream = dict(zip(ids, drawn))
-    w_a = by_stream[STREAM_SPIN_AXIS] if rough else np.zeros((d.n, 1))
-    omega = np.empty((d.n, 3))
-    _space_spins_parallel(by_stream[STREAM_QUATERNION], by_stream[STREAM_SPIN], w_a, rough, omega)
-    return pos, by_stream[STREAM_VELOCITY], omega, by_stream[STREAM_QUATERNION]
+    return (pos, *_ellipsoid_rows(d.streams, d.rsa is not None, drawn, d.n))
 
 
 @numba.njit(cache=True, inline="always")
@@ -400,19 +404,14 @@ def load_parallel_start(spec, p: Derived) -> bool:
         return False
     n = 64
     streams, _ = parallel_start_streams(spec, p)
-    # unplaced: the same compiled calls with the same argument types (a site count of 0 selects no site)
-    ids = [s for s, _, _ in streams]
-    if start_protocol(spec) == RANDOM:     # the random start's rounds (engine/setup/cell_rsa.py)
+    random = start_protocol(spec) == RANDOM
+    if random:     # the random start's rounds (engine/setup/cell_rsa.py)
         axes = (1.0, 0.5) if spec.shape == "ellipsoid" else ()
         _, drawn = StartDraw.of(n, spec.seed, streams, 20.0, 1.0, RANDOM, axes).on_host()
-        ids.append(STREAM_QUATERNION)
-    else:
+    else:          # unplaced: the same compiled calls with the same argument types (a site count of 0 selects none)
         _, drawn = _parallel_draws(n, spec.seed, streams)
     if spec.shape == "ellipsoid":
-        by_stream = dict(zip(ids, drawn))
-        w_a = np.zeros((n, 1)) if spec.smooth else by_stream[STREAM_SPIN_AXIS]
-        _space_spins_parallel(by_stream[STREAM_QUATERNION], by_stream[STREAM_SPIN], w_a, not spec.smooth,
-                              np.empty((n, 3)))
+        _ellipsoid_rows(streams, random, drawn, n)
     return True
 
 
@@ -476,13 +475,13 @@ def _stream_values(key, i, dim, unit):
     """Particle i's row of a stream (dim 1-4 values; the unused ones 0): standard normals from draws 0..dim-1 of
     the stream ``key``, normalised to a unit quaternion when ``unit`` (dim 4: uniform orientations). One source for
     the host's draws (:func:`_draw_start`) and the GPU's (engine/loops/cuda_start.py)."""
+    if unit:
+        return uniform_quaternion(key, i)
     g0, g1 = _normal_pair(key, i, 0)
     g2 = 0.0
     g3 = 0.0
     if dim > 2:
         g2, g3 = _normal_pair(key, i, 2)
-    if unit:
-        g0, g1, g2, g3 = quat_unit(g0, g1, g2, g3)
     return g0, g1, g2, g3
 
 

@@ -92,11 +92,10 @@ def draw_ellipsoid_start(d, col0: int, pos, vel, angm, omega_p, quat, inertia_ro
     body-axis spins into float64 scratch), then :func:`start_rows`. ``inertia_row``, ``inv_i_row``: the scene's
     principal moments and their inverses in the working precision."""
     from engine.loops.cuda_start import draw_start
-    from engine.setup.scene import (STREAM_QUATERNION, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY,
-                                    ellipsoid_draw_rows)
+    from engine.setup.scene import STREAM_QUATERNION, STREAM_SPIN, STREAM_SPIN_AXIS, STREAM_VELOCITY, is_rough_draw
 
     n = vel.shape[1]
-    _, rough = ellipsoid_draw_rows(d)
+    rough = is_rough_draw(d.streams)
     q64 = cuda.device_array((4, n), np.float64, stream=stream)
     w_b = cuda.device_array((2, n), np.float64, stream=stream)
     w_a = cuda.device_array((1, n if rough else 0), np.float64, stream=stream)
