@@ -3,13 +3,15 @@
 - the force loop visits only the particles with list entries (``index_active``): the same forces, torques, slot
   histories, collision counts and worst overlap as the loop over every particle, whatever stale force the others
   held before the build;
-- the kick-drift of a particle with an empty list uses compile-time zeros for its force and torque: the same state
-  as the kick-drift that loads its stored zeros (spheres smooth and rough, orientations tracked, float64 and mixed
-  precision, spheroids), -0.0 components included;
+- the kick-drift kicks only where a kick changes something: spheres kick the force loop's hot list (a force or
+  torque now or at the last kick) and drift every particle, the same numbers as the full kick-drift of every
+  particle (smooth and rough, orientations tracked, float64 and mixed precision); a spheroid with an empty list is
+  kicked with compile-time zeros, the same bits as with its stored zeros, -0.0 components included;
 - the list build walks the neighbour cells with nested offset loops: the same list, entry for entry, as the walk by
   engine.neighbours.cells.neighbour_cell, on grids of 1, 2, 3 and more cells per side;
 - through the whole time loop (list builds inside it, and the growth of a list that overflows): the active set is
-  the particles with list entries and their forces and torques are +0.0 after every advance;
+  the particles with list entries, the others' forces and torques are +0.0 after every advance, and every listed
+  particle that is not hot has zero force and torque and a predicted velocity equal to its velocity;
 - engine/backends/ensemble.py ``ThreadChoice``: all threads while they are faster, one thread when it is faster.
 
 The trajectories these changes must leave unchanged are also fingerprinted by ``python -m bench bit_identity``.
@@ -25,7 +27,7 @@ import pytest
 
 from engine.backends.ensemble import ONE_THREAD_BELOW, ThreadChoice
 from engine.driver.simulate import contact_params
-from engine.loops.cpu import bin_particles, build_list, index_active, make_forces, make_step
+from engine.loops.cpu import all_hot, bin_particles, build_list, index_active, make_forces, make_step
 from engine.neighbours.cells import cell_coords_of, distance2, neighbour_cell, neighbour_cell_count
 from engine.neighbours.multigrid import carry_slot
 from engine.setup.params import derive
@@ -73,7 +75,8 @@ def _forces(be, active, n_active, hist, begun_or_ext, force, torque):
     """The backend's force loop on copies of its slot history, forces and collision counts."""
     make_forces(be.shape)(be.pos, be.vel, be.vel_p, be._spin, be._quat_arg, be._rad_list, be.inv_m, be.nbr, be.nn,
                           hist, force, torque, be.box_c, be.inv_box, be.half, be.k_n, be.gn_coef, be._law, be.dt,
-                          begun_or_ext, be.chunk_a, be.chunk_b, active, n_active)
+                          begun_or_ext, be.chunk_a, be.chunk_b, active, n_active, np.zeros(n_active[0], np.int64),
+                          np.zeros_like(be.hot_count))
     return be.chunk_a.copy(), be.chunk_b.copy()
 
 
@@ -110,30 +113,50 @@ def test_force_loop_over_the_listed_particles_is_the_full_loop(backends, name):
     assert ca[k_a] > 0, "some pair in contact"
 
 
-@pytest.mark.parametrize("name", ["rough", "smooth", "mixed", "ellipsoids"])
-def test_kick_drift_of_a_particle_with_an_empty_list_is_the_stored_zero_kick(backends, name):
-    be = backends[name]
+def _step_copies(be, force, torque, nn, active, n_active, hot, hot_count):
+    """Three kick-drifts (opening half kick, then full kicks) of copies of the backend's state under the stored
+    ``force`` and ``torque``, with -0.0 planted in some velocity and spin components: the copies, in order."""
     step = make_step(be.shape)
-    zero_force, zero_torque = np.zeros_like(be.force), np.zeros_like(be.torque)
-    out = []
-    for nn in (np.ones_like(be.nn), np.zeros_like(be.nn)):     # loads the stored zeros / the compile-time zeros
-        pos, vel, vel_p, spin = be.pos.copy(), be.vel.copy(), be.vel_p.copy(), be._spin.copy()
-        vel[::7, 1] = -0.0       # -0.0 + 0.0 is +0.0: the shortcut must not keep the sign
-        spin[::5, 2] = -0.0
-        quat = None if be._quat_arg is None else be._quat_arg.copy()
-        ext = _copy_ext(be._ext)
-        x_ref = be.x_ref.copy()
-        ca, cb = np.zeros_like(be.chunk_a), np.zeros_like(be.chunk_b)
-        for s, hk in enumerate((be.dt * be.half, be.dt, be.dt)):
-            step(pos, vel, spin, quat, zero_force, None if be._torque_arg is None else zero_torque, be.inv_m,
-                 be._spin_inv, x_ref, vel_p, ext, hk, be.dt, be.box_c, be.inv_box, be.half, ca, cb, s, nn)
-        out.append((pos, vel, vel_p, spin, quat, ext, ca, cb))
-    for a, b in zip(*out):
+    pos, vel, vel_p, spin = be.pos.copy(), be.vel.copy(), be.vel_p.copy(), be._spin.copy()
+    vel[::7, 1] = -0.0       # -0.0 + 0.0 is +0.0: a kick by zero gives the same number, not the same sign
+    vel_p[::7, 1] = -0.0     # (and vel_p = v after a kick by zero, the state the loop leaves)
+    spin[::5, 2] = -0.0
+    quat = None if be._quat_arg is None else be._quat_arg.copy()
+    ext = _copy_ext(be._ext)
+    x_ref = be.x_ref.copy()
+    ca, cb = np.zeros_like(be.chunk_a), np.zeros_like(be.chunk_b)
+    for s, hk in enumerate((be.dt * be.half, be.dt, be.dt)):
+        step(pos, vel, spin, quat, force, None if be._torque_arg is None else torque, be.inv_m, be._spin_inv, x_ref,
+             vel_p, ext, hk, be.dt, be.box_c, be.inv_box, be.half, ca, cb, s, nn, active, n_active, hot, hot_count)
+    return pos, vel, vel_p, spin, quat, ext, ca, cb
+
+
+@pytest.mark.parametrize("name", ["rough", "smooth", "mixed", "ellipsoids"])
+def test_kick_drift_kicks_only_where_a_kick_changes_something(backends, name):
+    """Against the full kick-drift of every particle (every particle listed and hot, its stored force and torque:
+    zeros for the unlisted). Spheres (FREE_DRIFT): the kicks of the hot list and a drift of all give the same
+    numbers, ``vel_p`` of every listed particle included (a kept -0.0 is the number +0.0 would be). Spheroids: an
+    unlisted particle kicked with compile-time zeros gives the same bits, signs of zero included."""
+    be = backends[name]
+    n = be.n
+    everyone, hot_all, count_all = np.arange(n, dtype=np.int64), np.zeros(n, np.int64), np.zeros_like(be.hot_count)
+    all_hot(everyone, np.array([n]), hot_all, count_all)
+    full = _step_copies(be, be.force, be.torque, np.ones_like(be.nn), everyone, np.array([n]), hot_all, count_all)
+    fast = _step_copies(be, be.force, be.torque, be.nn, be.active, be.n_active, be.hot, be.hot_count)
+    free_drift = getattr(be.shape, "FREE_DRIFT", False)
+    listed = be.nn > 0
+    if free_drift:
+        assert 0 < int(be.hot_count.sum()) < int(listed.sum()), "some listed particles are hot, not all"
+    for k, (a, b) in enumerate(zip(full, fast)):
         if a is None:
             assert b is None
             continue
         for x, y in zip(a if isinstance(a, tuple) else (a,), b if isinstance(b, tuple) else (b,)):
-            assert x.dtype == y.dtype and np.array_equal(x, y) and np.array_equal(np.signbit(x), np.signbit(y))
+            if free_drift and k == 2:        # vel_p: read only for list partners
+                x, y = x[listed], y[listed]
+            assert x.dtype == y.dtype and np.array_equal(x, y)
+            if not free_drift:
+                assert np.array_equal(np.signbit(x), np.signbit(y))
 
 
 @numba.njit
@@ -199,7 +222,7 @@ def test_active_set_and_zero_forces_hold_after_every_advance():
     be._alloc_lists(1)
     be._build()
     be._forces()
-    builds, seen_free = be.builds, 0
+    builds, seen_free, seen_hot = be.builds, 0, 0
     for _ in range(12):
         be.advance(150)
         listed = np.flatnonzero(be.nn > 0)
@@ -208,7 +231,17 @@ def test_active_set_and_zero_forces_hold_after_every_advance():
         seen_free += int(free.sum())
         assert np.all(be.force[free] == 0) and not np.signbit(be.force[free]).any()
         assert np.all(be.torque[free] == 0) and not np.signbit(be.torque[free]).any()
-    assert be.builds > builds + 2 and be.max_nb > 1 and seen_free > 0
+        # the kick-drift skips every listed particle that is not hot: its force and torque are zero and its
+        # predicted velocity is its velocity (engine/loops/cpu.py make_step)
+        hot = np.zeros(be.n, bool)
+        for c in range(len(be.hot_count)):
+            a0 = c * be.n_active[0] // len(be.hot_count)
+            hot[be.hot[a0:a0 + be.hot_count[c]]] = True
+        cold = (be.nn > 0) & ~hot
+        seen_hot += int(hot.sum())
+        assert np.all(be.force[cold] == 0) and np.all(be.torque[cold] == 0)
+        assert np.array_equal(be.vel_p[cold], be.vel[cold])
+    assert seen_hot > 0 and be.builds > builds + 2 and be.max_nb > 1 and seen_free > 0
 
 
 def test_thread_choice_takes_the_faster_count():

@@ -8,6 +8,9 @@ A shape package's ``kernels.py`` (engine/shapes/README.md) provides, for engine/
 - ``EXACT_DISPLACEMENT``: False = ``rotate`` returns |v|^2 (m^2/s^2) and the loop bounds the displacement since
   the last list build by sum max|v| dt (the exact displacement is read only when the bound passes L_v/2);
   True = ``rotate`` returns the exact squared displacement since the last build (m^2);
+- ``FREE_DRIFT``: True = a particle under no force and no torque only drifts (its velocity, spin and orientation
+  turns stay as they are: spheres); the loop then moves a particle whose list is empty by x += v dt alone
+  (engine/loops/cpu.py ``make_step``); False (or absent) = such a particle takes the full kick-drift with zeros;
 - ``pre_step(i, pos, quat, ext)``: anything to keep from before particle i's step;
 - ``rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half, s)``:
   the shape's rotation step of particle i after the shared translation (kick hk, predicted velocity at hp = dt/2,
@@ -53,6 +56,7 @@ from engine.shapes.sphere.law import sphere_pair
 
 NAME = "sphere"
 EXACT_DISPLACEMENT = False
+FREE_DRIFT = True
 
 
 @numba.njit(inline="always")
