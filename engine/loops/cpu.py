@@ -264,7 +264,8 @@ def make_step(shape, parallel: bool = True):
     scenes' loop), specialised by a shape's ``pre_step`` and ``rotate`` (cached on disk per shape):
 
     ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
-    chunk_a, chunk_b, s, nn, active, n_active, hot, hot_count)`` (s: the step's index counted from the last full ``settle`` of the orientations,
+    chunk_a, chunk_b, s, nn, active, n_active, hot, hot_count)`` (s: the step's index counted from the last full
+    ``settle`` of the orientations,
     :func:`make_run_steps`): per particle, the shape's ``pre_step``,
     then the shared translation v += F/m hk, predicted end-of-step velocity v + F/m dt/2 (the normal
     dashpot's), x += v dt wrapped into the box, then the shape's ``rotate`` with the particle's torque, which
@@ -502,7 +503,8 @@ def make_run_steps(shape, parallel: bool = True):
     ``run_steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
     ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
     inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg, active, n_active, hot,
-    hot_count, pending, settle_all)`` advances up to nsteps velocity-Verlet steps; velocities (and ``spin``) are synchronous on entry and
+    hot_count, pending, settle_all)`` advances up to nsteps velocity-Verlet steps; velocities (and ``spin``) are
+    synchronous on entry and
     on exit.
 
     Orientations (``quat`` not None): the shape's ``settle`` brings them up to date. ``settle_all`` (or an exit other
