@@ -26,8 +26,9 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
                     rad, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
                                                          (only for a shape with ``MULTISTEP_FUSABLE``)
     observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc)
-    forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf, spi,
-                   status, step, ext, obs_rad, mass, inertia, acc, row)
+    forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, spin_inv, nbr, nn, hist, ids, sc, spd,
+                   spf, spi, status, step, ext, obs_rad, mass, inertia, acc, row)
+                                                         (only for a shape with ``OBSERVES_AFTER_FORCES``; one scene)
     forces_observe_kick_drift(<forces_kick_drift's arguments>, obs_rad, mass, inertia, acc, row)
                                                          (only for a shape with ``FUSABLE``; one scene)
 ``spin`` is the rotational state the torque kicks (spheres: angular velocity; spheroids: angular momentum),
@@ -125,7 +126,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
     PREDICTS, TORQUE = P.PREDICTS, P.TORQUE
     translated, rotate, spin_kick = P.translated, P.rotate, P.spin_kick
     particle, pair, observe_one = P.particle, P.pair, P.observe_one
-    observe_after_forces = P.observe_after_forces if P.FUSABLE else None
+    observes_after_forces = bool(getattr(P, "OBSERVES_AFTER_FORCES", P.FUSABLE))
+    observe_after_forces = P.observe_after_forces if observes_after_forces else None
 
     block_max2, fail = L.device_helpers(TPB)
 
@@ -495,7 +497,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
 
     @cuda.jit(device=True)
     def observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn, hist, spd,
-                       spf, ext):
+                       spf, ext, torque, spin_inv):
         """Particle i's observe sums (one scene) from its velocity half a step behind, brought level with the
         positions in registers, v = u + F/m dt/2 (the closing half kick's expression), and not stored; called
         right after particle i's force pass (the shape's ``observe_after_forces``)."""
@@ -503,15 +505,15 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         hk = spd[0, D_HP]
         observe_after_forces(i, 0, vals, kick(vel[0, i], fx, im, hk), kick(vel[1, i], fy, im, hk),
                              kick(vel[2, i], fz, im, hk), pos, spin, quat, obs_rad, mass, inertia, nbr, nn, hist, spd,
-                             spf, ext)
+                             spf, ext, torque, spin_inv)
 
     @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)
-    def forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
-                       spi, status, step, ext, obs_rad, mass, inertia, acc, row):
+    def forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, spin_inv, nbr, nn, hist, ids, sc,
+                       spd, spf, spi, status, step, ext, obs_rad, mass, inertia, acc, row):
         """The forces of ``step`` (as ``forces``) and, in the same pass, the observe sums of the state they complete
-        into acc[row] (as ``observe``): one scene of a shape with ``FUSABLE`` (its force pass leaves the spins alone),
-        velocities half a step behind the positions (:func:`observe_synced`): the state stays so, and the next
-        step's kick is a whole one."""
+        into acc[row] (as ``observe``): one scene of a shape with ``OBSERVES_AFTER_FORCES`` (its force pass leaves
+        the spins alone), velocities and spins half a step behind the positions (:func:`observe_synced`): the state
+        stays so, and the next step's kick is a whole one."""
         sh = cuda.shared.array(SH_OBS, ct.float64)
         vals = cuda.local.array(NOBS, ct.float64)
         for q in range(NOBS):
@@ -523,7 +525,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                 fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist,
                                         ids, sc, spd, spf, spi, status, step, ext)
                 observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
-                               hist, spd, spf, ext)
+                               hist, spd, spf, ext, torque, spin_inv)
         block_accumulate(sh, vals, acc, row)
 
     @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)
@@ -546,7 +548,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                                     sc, spd, spf, spi, status, step, ext)
             if spi[0, I_ACTIVE] != 0:
                 observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
-                               hist, spd, spf, ext)
+                               hist, spd, spf, ext, torque, spin_inv)
             d2, v2 = kick_drift_one(i, 0, exact, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
                                     spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
@@ -557,8 +559,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
     k = dict(kick_drift=kick_drift, forces=forces, half_kick=half_kick, run_steps=run_steps, observe=observe)
     if P.FUSABLE:
         k["forces_kick_drift"] = forces_kick_drift
-        k["forces_observe"] = forces_observe
         k["forces_observe_kick_drift"] = forces_observe_kick_drift
+    if observes_after_forces:
+        k["forces_observe"] = forces_observe
     if P.MULTISTEP_FUSABLE:
         k["run_steps_fused"] = run_steps_fused
     if settle_one is not None:

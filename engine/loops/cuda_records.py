@@ -3,7 +3,8 @@
 
 One launch of the shape's observe kernel sums every scene's energies, contacts, overlap, momentum and energy moments
 into a (K, NOBS) accumulator, copied into a pinned host buffer and read once the stream has reached it. A lone
-smooth-sphere scene in the per-phase loop gets the same sums from the force passes of the steps it is observed at,
+sphere scene (smooth or rough) in the per-phase loop gets the same sums from the force passes of the steps it is
+observed at,
 one row each (``_observe_in_forces``), read once at the end of the advance call: a record then costs no pass over
 the particles, no launch and no wait of its own.
 """
@@ -77,8 +78,8 @@ class ObserveSums:
         else:
             self._lc.launch("forces_observe", self.k["forces_observe"], grid, (
                 n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
-                self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step,
-                ext) + tail)
+                spin_inv, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status,
+                step, ext) + tail)
 
     def observe(self) -> list:
         """Per scene: the observables of :meth:`CudaBackend.observe` (:meth:`_observables`), None for an

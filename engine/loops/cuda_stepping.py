@@ -31,11 +31,11 @@ MULTISTEP_FUSED = True
 #: True: the per-phase loop runs a step's forces and the next kick-drift in one launch where the shape's kernels
 #: allow it (cuda_loop ``forces_kick_drift``); False: two launches a step (bench/e2e.py --off fused, the tests)
 FUSED = True
-#: True: a lone scene of smooth spheres in the per-phase loop sums its observables in the force pass of each step it
-#: is observed at (cuda_loop ``forces_observe``, ``forces_observe_kick_drift``: the end of an advance call, and the
-#: records :meth:`TimeLoop.advance_observing` passes inside one) and leaves its velocities half a step behind until
-#: the state is read (:meth:`TimeLoop._close`); False: every call ends with the closing half kick, and observe()
-#: launches the observe kernel and waits for it (bench/e2e.py --off observe_in_forces)
+#: True: a lone scene of spheres (smooth or rough) in the per-phase loop sums its observables in the force pass of
+#: each step it is observed at (cuda_loop ``forces_observe``, ``forces_observe_kick_drift``: the end of an advance
+#: call, and the records :meth:`TimeLoop.advance_observing` passes inside one) and leaves its velocities (and spins)
+#: half a step behind until the state is read (:meth:`TimeLoop._close`); False: every call ends with the closing
+#: half kick, and observe() launches the observe kernel and waits for it (bench/e2e.py --off observe_in_forces)
 OBSERVE_IN_FORCES = True
 #: what :meth:`TimeLoop.warmup` has warmed in this process: (kernel set, position and state types, loop kind)
 _WARMED: set = set()
@@ -157,7 +157,7 @@ class TimeLoop:
         # large lone scene of the same specialisation runs these
         if "forces_observe" in self.k and self.n_scenes == 1:
             self._record_rows()
-            for fused in (True, False):
+            for fused in (True, False) if "forces_observe_kick_drift" in self.k else (False,):
                 self._observe_in_forces(0, 0, fused, n=0, grid=g)
                 if fused:
                     self._observe_in_forces(0, 0, fused, n=0, grid=g)     # the buffers swap back
@@ -182,7 +182,7 @@ class TimeLoop:
         return self._advance(int(nsteps), (int(nsteps),))[0]
 
     def advance_observing(self, nsteps: int, at) -> tuple:
-        """:meth:`Ensemble.advance_observing`: a lone smooth-sphere scene in the per-phase loop (``_ends_calls_open``)
+        """:meth:`Ensemble.advance_observing`: a lone sphere scene in the per-phase loop (``_ends_calls_open``)
         sums the observables in the force passes of the steps in ``at``, in calls of up to RECORD_ROWS of them with
         one wait each; other ensembles advance to each and observe."""
         check_observation_steps(nsteps, at)
@@ -242,7 +242,7 @@ class TimeLoop:
     def _ends_calls_open(self) -> bool:
         """Whether an advance call sums its observables in its force passes (cuda_loop ``forces_observe``) and ends
         with the velocities half a step behind (``OBSERVE_IN_FORCES``: one scene in the per-phase loop, a shape whose
-        force pass leaves the spins alone)."""
+        force pass leaves the spins alone, ``OBSERVES_AFTER_FORCES``)."""
         return OBSERVE_IN_FORCES and not self.multistep and self.n_scenes == 1 and "forces_observe" in self.k
 
     def _close(self) -> None:

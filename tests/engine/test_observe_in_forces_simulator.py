@@ -1,5 +1,7 @@
 """Records summed in the last force pass of an advance call (engine/loops/cuda_stepping.py ``OBSERVE_IN_FORCES``,
-cuda_loop ``forces_observe``), under the CUDA simulator, for a lone smooth-sphere scene in the per-phase loop:
+cuda_loop ``forces_observe``), under the CUDA simulator, for a lone sphere scene in the per-phase loop, smooth (its
+force and kick-drift passes fused) and rough (two passes a step; the spins, half a step behind too, brought level
+with the torques the force pass stored):
 
 - the observables equal those of the closing half kick and the observe kernel at the same state;
 - calls split at records, and one call observing at the same steps in its fused force passes
@@ -39,7 +41,10 @@ def spy(self, step, row, fused, par=0, exact=1, n=None, grid=None):
     return orig(self, step, row, fused, par, exact, n=n, grid=grid)
 ObserveSums._observe_in_forces = spy
 
-spec = SimulationSpec(n_particles=32, volume_fraction=0.1, e_n=0.8, e_t=-1.0, velocity_rms=2.0, seed=3,
+import sys
+E_T = float(sys.argv[1]) if len(sys.argv) > 1 else -1.0
+FUSED = E_T < 0                    # smooth spheres fuse a step's forces with the next kick-drift; rough ones do not
+spec = SimulationSpec(n_particles=32, volume_fraction=0.1, e_n=0.8, e_t=E_T, velocity_rms=2.0, seed=3,
                       thermalization=0.0)
 p = derive(spec)
 system, contact = initial_spheres(spec, p), contact_params(spec, p, thermalization=False)
@@ -74,6 +79,8 @@ for _ in range(3):
                                    err_msg=key)   # the same velocities and sums; only the block sums' order may differ
     assert o_kernel["contacts"] > 0 and o_kernel["elastic_energy"] > 0.0 and o_kernel["max_overlap"] > 0.0, o_kernel
 assert len(launches) == 3 and all(r == 0 and not f for _, r, f in launches), launches
+if not FUSED:
+    assert o_kernel["kinetic_energy_rotational"] > 0.0, o_kernel
 
 # 2. calls split at records give one long call's trajectory bit for bit, and so does one call observing at the same
 # steps inside its fused force passes; the closing path differs by rounding only
@@ -88,7 +95,7 @@ batched = backend(True)
 launches.clear()
 failed, rows = batched.e.advance_observing(20, [4, 8, 12, 16, 20])
 assert not failed and len(rows) == 5
-assert [(st_, r, f) for st_, r, f in launches] == [(3, 0, True), (7, 1, True), (11, 2, True), (15, 3, True),
+assert [(st_, r, f) for st_, r, f in launches] == [(3, 0, FUSED), (7, 1, FUSED), (11, 2, FUSED), (15, 3, FUSED),
                                                     (19, 4, False)], launches
 assert batched.observe() == rows[-1][0]
 closed = backend(False)
@@ -97,7 +104,7 @@ for _ in range(5):
     closed.observe()
 assert split.builds == one.builds == batched.builds == closed.builds, (split.builds, one.builds, closed.builds)
 s_split, s_one, s_batched, s_closed = split.state(), one.state(), batched.state(), closed.state()
-for key in ("position", "velocity"):
+for key in ("position", "velocity", "angular_velocity"):
     assert np.array_equal(s_split[key], s_one[key]), key
     assert np.array_equal(s_split[key], s_batched[key]), key
     np.testing.assert_allclose(s_split[key], s_closed[key], rtol=1e-12, atol=1e-12, err_msg=key)  # rounding of
@@ -106,8 +113,8 @@ for a, b in zip(seen, rows):
     for key, v in a.items():
         np.testing.assert_allclose(np.asarray(b[0][key], float), np.asarray(v, float), rtol=1e-13, atol=1e-300,
                                    err_msg=key)   # the same sums but for the block sums' order
-np.testing.assert_allclose(split.observe()["kinetic_energy_translational"],
-                           closed.observe()["kinetic_energy_translational"], rtol=1e-12)
+for key in ("kinetic_energy_translational", "kinetic_energy_rotational"):
+    np.testing.assert_allclose(split.observe()[key], closed.observe()[key], rtol=1e-12, atol=1e-300)
 print("OBSERVE-OK", len(launches))
 '''
 
@@ -121,7 +128,7 @@ def spy_ao(self, nsteps, at):
     return orig_ao(self, nsteps, at)
 st.TimeLoop.advance_observing = spy_ao
 # 3. whole runs: thermalisation then cooling (a contact switch while the velocities are half a step behind),
-# records and snapshots, smooth and rough (the rough cooling closes at the switch and records the old way)
+# records and snapshots, smooth and rough (records inside one call: fused passes for smooth, two passes for rough)
 for e_t in (-1.0, 0.8):
     files = {}
     for open_records in (True, False):
@@ -137,9 +144,10 @@ for e_t in (-1.0, 0.8):
                                                             "observables/elastic_energy/value",
                                                             "particles/all/position/value",
                                                             "particles/all/velocity/value")}
-        if open_records and e_t < 0:
+        if open_records:
             assert any(len(b) > 2 for b in batches), batches     # records passed inside one call
-            assert sum(f for _, _, f in launches) >= 3, launches  # ... by the fused observing kernel
+            # ... by the fused observing kernel (smooth), the observing force pass (rough)
+            assert sum(f == (e_t < 0) for _, _, f in launches) >= 3, launches
         else:
             assert not batches, batches
         batches.clear()
@@ -151,8 +159,9 @@ print("OBSERVE-OK", len(launches))
 '''
 
 
-def test_records_from_the_force_pass_match_the_observe_kernel_and_keep_the_trajectory():
-    rc, out, err = run_children({"run": ["-c", PRELUDE + BACKEND]}, timeout=900)["run"]
+@pytest.mark.parametrize("e_t", [-1.0, 0.8], ids=["smooth", "rough"])
+def test_records_from_the_force_pass_match_the_observe_kernel_and_keep_the_trajectory(e_t):
+    rc, out, err = run_children({"run": ["-c", PRELUDE + BACKEND, str(e_t)]}, timeout=900)["run"]
     assert rc == 0 and "OBSERVE-OK" in out, out[-3000:] + err[-3000:]
 
 

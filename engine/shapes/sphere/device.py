@@ -20,6 +20,9 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
     the kick-drift rewrites but its position, velocity and ``spin``): the many-steps kernel then runs a step's
     forces and the next kick-drift in one pass, one grid sync a step (cuda_loop ``run_steps_fused``; positions,
     velocities and spins double-buffered);
+  - ``OBSERVES_AFTER_FORCES`` (absent: ``FUSABLE``): the force pass leaves the rotational state alone and the
+    shape has ``observe_after_forces``: a lone scene's records are summed in the force passes (cuda_loop
+    ``forces_observe``);
   - ``NOBS``, ``OBS_MAX``: the observe sums per scene and the slot that is a maximum;
   - ``translated(k, i, x_old, v, f, im, hp, ext)``: after the shared kick of component k of particle i
     (v = the new velocity, f = the force, x_old = the position before the drift);
@@ -37,9 +40,11 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)``:
     particle i's share of the observe sums ``vals`` (float64), its velocity (v0, v1, v2) given (synchronous with
     the positions: the observe kernel reads it, the fused force pass of a record computes it);
-  - ``observe_after_forces`` (same arguments; a ``FUSABLE`` shape): ``observe_one`` called by the force pass of a
-    record right after particle i's forces at the same positions, so it may read what that pass stored (the
-    sphere: each slot's overlap, instead of the neighbours' positions); a shape may give ``observe_one`` itself;
+  - ``observe_after_forces`` (``observe_one``'s arguments, then ``torque, spin_inv``; a shape with
+    ``OBSERVES_AFTER_FORCES``, whose force pass leaves the spins alone): ``observe_one`` called by the force pass of
+    a record right after particle i's forces at the same positions, its velocity half a step behind brought level
+    (v0, v1, v2 given; the shape brings its spin level with the torque the pass just stored), so it may read what
+    that pass stored (the sphere: each slot's overlap, instead of the neighbours' positions);
   - ``kernels``: the shape's own kernels (a dict, may be empty).
 
 Spheres: ``spin`` = angular velocity (3, N), ``spin_inv`` = 1/I (N), ``rad`` = radius (N), ``ext`` = (last,
@@ -234,18 +239,18 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)
-    def observe_own(i, s, vals, v0, v1, v2, spin, mass, inertia, spd, ext):
+    def observe_own(i, s, vals, v0, v1, v2, w0, w1, w2, mass, inertia, spd, ext):
         """Sphere i's own share of the observe sums: contacts begun, E_tr, E_rot, momentum and the Sonine moments
-        (engine.shapes.sphere.kernels.observe), from its velocity (v0, v1, v2)."""
+        (engine.shapes.sphere.kernels.observe), from its velocity (v0, v1, v2) and angular velocity (w0, w1, w2)."""
         vals[O_COLL] += f64(ext[1][i])
         m = f64(spd[s, D_M0]) if UNIFORM else f64(mass[i])
         ii = f64(spd[s, D_I0]) if UNIFORM else f64(inertia[i])
         vx = f64(v0)
         vy = f64(v1)
         vz = f64(v2)
-        wx = f64(spin[0, i])
-        wy = f64(spin[1, i])
-        wz = f64(spin[2, i])
+        wx = f64(w0)
+        wy = f64(w1)
+        wz = f64(w2)
         et_i = 0.5 * m * (vx * vx + vy * vy + vz * vz)
         er_i = 0.5 * ii * (wx * wx + wy * wy + wz * wz)
         vals[0] += et_i
@@ -271,7 +276,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     def observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext):
         """E_tr, E_rot, contacts (x2), elastic energy, P, max overlap, Sonine moments, contact starts of
         particle i (engine.shapes.sphere.kernels.observe); the overlaps from the positions."""
-        observe_own(i, s, vals, v0, v1, v2, spin, mass, inertia, spd, ext)
+        observe_own(i, s, vals, v0, v1, v2, spin[0, i], spin[1, i], spin[2, i], mass, inertia, spd, ext)
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]
         r0 = spd[s, D_R0]
@@ -289,11 +294,21 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
 
     @cuda.jit(device=True)
     def observe_after_forces(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf,
-                             ext):
+                             ext, torque, spin_inv):
         """:func:`observe_one` right after the force pass of the same positions has run for sphere i: the
         overlaps are the ones its pair evaluators just stored (hist[3], the overlap each slot's force used), so no
-        neighbour position is read again."""
-        observe_own(i, s, vals, v0, v1, v2, spin, mass, inertia, spd, ext)
+        neighbour position is read again; a rough sphere's spin, half a step behind, brought level in registers,
+        w + tau/I dt/2 (the closing half kick's expression, :func:`spin_kick`), from the torque the pass stored."""
+        w0 = spin[0, i]
+        w1 = spin[1, i]
+        w2 = spin[2, i]
+        if ROUGH:
+            ii = spd[s, D_II0] if UNIFORM else spin_inv[i]
+            hk = spd[s, D_HP]
+            w0 = kick(w0, torque[0, i], ii, hk)
+            w1 = kick(w1, torque[1, i], ii, hk)
+            w2 = kick(w2, torque[2, i], ii, hk)
+        observe_own(i, s, vals, v0, v1, v2, w0, w1, w2, mass, inertia, spd, ext)
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
         for kk in range(nn[i]):
@@ -306,7 +321,9 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
     # registers than one block of 256 threads per SM leaves)
     # MULTISTEP_FUSABLE for every sphere: the pair reads the neighbours' positions, velocities and spins only, all
     # three double-buffered by the fused many-steps kernel (small scenes: there a step is bound by its grid syncs)
-    return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, FUSABLE=not ROUGH, MULTISTEP_FUSABLE=True, NOBS=NOBS,
+    # OBSERVES_AFTER_FORCES for every sphere: the force pass (fused or not) leaves the spins alone
+    return SimpleNamespace(PREDICTS=False, TORQUE=ROUGH, FUSABLE=not ROUGH, MULTISTEP_FUSABLE=True,
+                           OBSERVES_AFTER_FORCES=True, NOBS=NOBS,
                            OBS_MAX=O_MAX, translated=translated, rotate=rotate,
                            settle_one=settle_one if ORIENT else None, spin_kick=spin_kick, particle=particle,
                            pair=pair, observe_one=observe_one, observe_after_forces=observe_after_forces, kernels={})
