@@ -57,7 +57,7 @@ class GpuStartup:
         self.error: Optional[str] = None
         self.seconds: Optional[float] = None   # the thread's own wall time
         self._driver = driver
-        self._start_dtypes = start_dtypes      # (position, state) dtypes of a start drawn on the device, or None
+        self._start_dtypes = start_dtypes      # (position dtype, state dtype, placement) of a device start, or None
         self._thread = threading.Thread(target=self._work, args=(shape, system, contacts),
                                         name="demq-gpu-startup")
         self._thread.start()
@@ -87,7 +87,8 @@ class GpuStartup:
             if self._start_dtypes is not None:  # the job's large start is drawn on the device (cuda_start.py)
                 from engine.shapes import host
 
-                host(shape).load_device_start(*self._start_dtypes)
+                pos_dtype, dtype, placement = self._start_dtypes
+                host(shape).load_device_start(pos_dtype, dtype, (placement,))
         except Exception as exc:  # noqa: BLE001  (the job loads its kernels itself)
             self.error = f"{type(exc).__name__}: {exc}"
         finally:
@@ -108,7 +109,7 @@ def begin(spec, backend: str, contacts: tuple, p) -> Optional[GpuStartup]:
     if not _wanted(backend):
         return None
     start_dtypes = _device_start_dtypes(spec)
-    key = (spec.shape, spec.precision, bool(spec.species), start_dtypes is not None) + tuple(
+    key = (spec.shape, spec.precision, bool(spec.species), start_dtypes) + tuple(
         (c.k_t is None, c.friction is None, c.orientation, c.list_mode) for c in contacts)
     with _lock:
         started = _started.get(key)
@@ -221,15 +222,15 @@ def nvidia_driver() -> bool:
 
 
 def _device_start_dtypes(spec) -> Optional[tuple]:
-    """(position dtype, state dtype) when a GPU job of ``spec`` draws its start on the device (the thread then loads
-    those kernels too: engine.loops.cuda_start.load), else None."""
-    from engine.setup.start_kind import device_start
+    """(position dtype, state dtype, placement) when a GPU job of ``spec`` draws its start on the device (the thread
+    then loads the kernels of that placement, "lattice" or "random": engine.loops.cuda_start.load), else None."""
+    from engine.setup.start_kind import device_start, start_protocol
 
     if not device_start(spec):
         return None
     from engine.setup.precision import position_dtype, state_dtype
 
-    return position_dtype(spec.precision), state_dtype(spec.precision)
+    return position_dtype(spec.precision), state_dtype(spec.precision), start_protocol(spec)
 
 
 def _standin(spec, p):

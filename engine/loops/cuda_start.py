@@ -445,17 +445,17 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
 SPHERE_TARGETS = {STREAM_VELOCITY: "vel", STREAM_SPIN: "omega", STREAM_QUATERNION: "quat"}
 
 
-def load(pos_dtype, dtype) -> None:
+def load(pos_dtype, dtype, placements=("lattice", "random")) -> None:
     """Load (or compile) every kernel of a device start into device arrays of these precisions, for the argument
-    types a job's start calls them with: a start of 64 spheres on a lattice of 108 sites and a random one,
-    discarded (the GPU start-up thread, engine/driver/startup.py)."""
+    types a job's start calls them with: a start of 64 spheres of each of ``placements`` (on a lattice of 108 sites,
+    random), discarded (the GPU start-up thread, engine/driver/startup.py, loads the job's own placement only)."""
     from engine.setup.params import derive
     from engine.setup.scene import parallel_start_streams
     from engine.setup.spec import SimulationSpec
 
     sphere = SimulationSpec()
     stream = cuda.stream()
-    for protocol in ("lattice", "random"):
+    for protocol in placements:
         d = StartDraw.of(64, 0, parallel_start_streams(sphere, derive(sphere))[0], 20.0, 1.0, protocol)
         pos = cuda.device_array((3, d.n), pos_dtype, stream=stream)
         dsts = {k: cuda.device_array((dim, d.n), dtype, stream=stream) for k, dim, _ in d.streams}

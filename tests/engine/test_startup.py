@@ -99,14 +99,18 @@ def test_one_startup_per_specialisation(monkeypatch):
     startup.begin(species, "auto", _contacts(species, ps), ps)
     assert made[-1][1] is None      # a mixture: the driver and the context only, no stand-in scene
     assert all(m[3] is None for m in made)      # no start drawn on the device: no such kernels to load
-    # a large one-size sphere start is drawn on the device: its own start-up, which loads those kernels too
+    # a large one-size sphere start is drawn on the device: its own start-up, which loads the kernels of its own
+    # placement too (another placement: another start-up)
     big = SimulationSpec(n_particles=1 << 20, precision="mixed")
     pg = derive(big)
     s_big = startup.begin(big, "auto", _contacts(big, pg), pg)
-    assert s_big is not s1 and made[-1][3] == (np.float64, np.float32)
+    assert s_big is not s1 and made[-1][3] == (np.float64, np.float32, "random")
+    lattice = big.model_copy(update={"start": "lattice"})
+    s_lattice = startup.begin(lattice, "auto", _contacts(lattice, pg), pg)
+    assert s_lattice is not s_big and made[-1][3] == (np.float64, np.float32, "lattice")
     monkeypatch.setattr(start_kind, "DEVICE_START", False)
     s_off = startup.begin(big, "auto", _contacts(big, pg), pg)
-    assert s_off is not s_big and len(made) == 5 and made[-1][3] is None     # drawn on the host: no such load
+    assert s_off is not s_big and len(made) == 6 and made[-1][3] is None     # drawn on the host: no such load
 
 
 class _FakeDriver:

@@ -66,9 +66,10 @@ def cuda_backend():
     return CudaBackend
 
 
-def load_device_start(pos_dtype, dtype) -> None:
+def load_device_start(pos_dtype, dtype, placements=("lattice", "random")) -> None:
     """Load the kernels of a start drawn on the GPU (engine/loops/cuda_start.py) for these position and state
-    precisions: the GPU start-up thread's (engine/driver/startup.py), before a job whose start is drawn there."""
+    precisions and placements: the GPU start-up thread's (engine/driver/startup.py), before a job whose start is
+    drawn there."""
     from engine.loops.cuda_start import load
 
-    load(pos_dtype, dtype)
+    load(pos_dtype, dtype, placements)

@@ -107,17 +107,17 @@ def draw_ellipsoid_start(d, col0: int, pos, vel, angm, omega_p, quat, inertia_ro
                                     half, quat, angm, omega_p)
 
 
-def load_device_start(dtype) -> None:
+def load_device_start(dtype, placements=("lattice", "random")) -> None:
     """Load (or compile) every kernel of a device-drawn spheroid start in the working precision ``dtype``, for the
-    argument types a job's start calls them with: a lattice and a random start of 64 rough spheroids, discarded (the
-    GPU start-up thread, engine/driver/startup.py)."""
+    argument types a job's start calls them with: a start of 64 rough spheroids of each of ``placements``
+    ("lattice", "random"), discarded (the GPU start-up thread, engine/driver/startup.py)."""
     from engine.setup.params import derive
     from engine.setup.scene import StartDraw, parallel_start_streams
     from engine.setup.spec import SimulationSpec
 
     stream = cuda.stream()
     half = dtype(0.5)
-    for start in ("lattice", "random"):
+    for start in placements:
         spec = SimulationSpec(shape="ellipsoid", elongation=2.0, n_particles=64, start=start)
         p = derive(spec)
         a, b = p.semi_axes[0], p.semi_axes[1]

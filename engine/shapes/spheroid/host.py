@@ -58,10 +58,10 @@ def cuda_backend():
     return CudaEllipsoidBackend
 
 
-def load_device_start(pos_dtype, dtype) -> None:
+def load_device_start(pos_dtype, dtype, placements=("lattice", "random")) -> None:
     """Load the kernels of a spheroid start drawn on the GPU (engine/shapes/spheroid/cuda_backend.py
     draw_ellipsoid_start; its positions are in the state precision ``dtype``): the GPU start-up thread's
     (engine/driver/startup.py), before a job whose start is drawn there."""
     from engine.shapes.spheroid.cuda_backend import load_device_start as load
 
-    load(dtype)
+    load(dtype, placements)
