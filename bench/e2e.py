@@ -45,6 +45,10 @@ that the step count is exact):
                             against one such scene with 4 records, in the same process (the issue's
                             must-show ratio)
 
+``--trace`` prints, for each timed run of a case with one job, when each step of its set-up and build ran and on which
+thread (the GPU start-up thread's driver start, kernel loads, stand-in and device-start loads beside the job's
+own set-up, build, device draw and first list; the file's writes and close): where the time outside the loop goes.
+
 ``--quick`` shrinks every case (for the smoke test). ``--reps`` runs each case several times (median of the
 end-to-end wall time). Writes ``--out``/e2e.json and e2e.md.
 """
@@ -175,7 +179,52 @@ def _sum_timings(summaries) -> dict:
     return out
 
 
-def run_case(case: str, quick: bool, workdir: Path, off=(), start=None) -> dict:
+#: what ``--trace`` times: (module, class or None, attribute) of the set-up and build steps of one job
+TRACED = (
+    ("engine.driver.simulate", "SceneRun", "__init__"), ("engine.driver.simulate", None, "_build"),
+    ("engine.driver.simulate", None, "_compile"), ("engine.driver.simulate", "SceneRun", "finish_begin"),
+    ("engine.driver.startup", None, "begin"), ("engine.driver.startup", "GpuStartup", "wait"),
+    ("engine.driver.startup", "GpuStartup", "_work"), ("engine.driver.startup", "DriverStart", "_work"),
+    ("engine.backends.base", None, "cuda_available"), ("engine.backends.ensemble", None, "make_ensemble"),
+    ("engine.loops.cuda_memory", None, "refuse_oversize"), ("engine.shapes.sphere.host", None, "initial_system"),
+    ("engine.shapes.sphere.host", None, "load_device_start"),
+    ("engine.loops.cuda_ensemble", "CudaEnsembleBase", "_init_host"),
+    ("engine.shapes.sphere.cuda_backend", "CudaEnsemble", "_upload_particles"),
+    ("engine.loops.cuda_rebuild", "ListBuilds", "_rebuild"), ("engine.loops.cuda_stepping", "TimeLoop", "warmup"),
+    ("engine.output.h5md", "H5MDWriter", "_create"), ("engine.output.h5md", "H5MDWriter", "_write_frame"),
+    ("engine.output.h5md", "H5MDWriter", "finish_async"),
+)
+
+
+def trace_steps(log: list, origin: list) -> None:
+    """Wrap the :data:`TRACED` steps: each call appends (start, end in s after ``origin[0]``, thread name, step) to
+    ``log``. Only a step's first 40 calls are kept (list rebuilds recur through the loop). The traced modules are
+    imported here, before the call's clock starts (their imports then leave the call's set-up, as with ``--off``)."""
+    import functools
+    import importlib
+    import threading
+
+    for mod_name, cls_name, attr in TRACED:
+        owner = importlib.import_module(mod_name)
+        if cls_name is not None:
+            owner = getattr(owner, cls_name)
+        f = getattr(owner, attr)
+        name = f"{cls_name or mod_name.rsplit('.', 1)[-1]}.{attr}"
+        calls = [0]
+
+        def timed(*a, __f=f, __name=name, __calls=calls, **k):
+            t = time.perf_counter()
+            try:
+                return __f(*a, **k)
+            finally:
+                __calls[0] += 1
+                if __calls[0] <= 40:
+                    log.append((round(t - origin[0], 4), round(time.perf_counter() - origin[0], 4),
+                                threading.current_thread().name, __name))
+        setattr(owner, attr, functools.wraps(f)(timed))
+
+
+def run_case(case: str, quick: bool, workdir: Path, off=(), start=None, trace: bool = False) -> dict:
     """Time one case in this process (the caller gives it a fresh one), with the SWITCHES ``off`` turned off and,
     when ``start`` is given, every scene started that way (the spec's ``start``: "lattice" or "random")."""
     info = case_specs(case, quick)
@@ -193,7 +242,11 @@ def run_case(case: str, quick: bool, workdir: Path, off=(), start=None) -> dict:
     from engine.driver.simulate import run
 
     specs = [to_spec(d) for d in raw]   # the bench's own step arithmetic: not the user's time
-    t0 = time.perf_counter()
+    log: list = []
+    origin = [0.0]
+    if trace and path == "run":
+        trace_steps(log, origin)
+    t0 = origin[0] = time.perf_counter()    # the trace's times count from the call's start
     if path == "run":
         summary = run(specs[0], workdir / "out.h5")
         wall = time.perf_counter() - t0
@@ -205,6 +258,8 @@ def run_case(case: str, quick: bool, workdir: Path, off=(), start=None) -> dict:
                     "list_mode": summary.extra.get("list_mode"),
                     # engine/driver/startup.py's thread (None: off, --off startup, or no GPU)
                     "gpu_startup": summary.extra.get("gpu_startup")})
+        if trace:
+            row["trace"] = sorted(log)
         return row
     outs = [workdir / f"s{k}.h5" for k in range(len(specs))]
     results = run_ensemble(specs, outs)
@@ -317,12 +372,12 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
             Path(keep).write_text((workdir / "server.log").read_text())
 
 
-def fresh_process(case: str, quick: bool, off=(), start=None) -> dict:
+def fresh_process(case: str, quick: bool, off=(), start=None, trace: bool = False) -> dict:
     """run_case in a new Python process (compilation / cache load counted, as for a user's first call)."""
     with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
         code = ("import json,sys; sys.path.insert(0, %r); from bench.e2e import run_case; from pathlib import Path; "
-                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r, %r)))"
-                % (str(ROOT), case, quick, d, tuple(off), start))
+                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r, %r, %r)))"
+                % (str(ROOT), case, quick, d, tuple(off), start, trace))
         t0 = time.perf_counter()
         p = subprocess.run([sys.executable, "-c", code], cwd=str(ROOT), capture_output=True, text=True)
         process_s = time.perf_counter() - t0
@@ -359,6 +414,8 @@ def main(argv=None, out_dir=None) -> int:
     ap.add_argument("--out", type=Path, default=out_dir or Path("bench-out") / "e2e",
                     help="report folder (default ./bench-out/e2e/)")
     ap.add_argument("--same-process", action="store_true", help="run the cases in this process (warm caches)")
+    ap.add_argument("--trace", action="store_true", help="print when each set-up and build step of a one-job case "
+                    "ran, and on which thread (module docstring)")
     ap.add_argument("--prime", action="store_true", help="run each case once first, untimed (fills the kernel "
                     "disk cache; its wall time is reported as the first run)")
     args = ap.parse_args(argv)
@@ -371,8 +428,8 @@ def main(argv=None, out_dir=None) -> int:
     def once(case):
         if args.same_process:
             with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
-                return run_case(case, args.quick, Path(d), args.off, args.start)
-        return fresh_process(case, args.quick, args.off, args.start)
+                return run_case(case, args.quick, Path(d), args.off, args.start, args.trace)
+        return fresh_process(case, args.quick, args.off, args.start, args.trace)
 
     for case in args.cases:
         first = once(case) if args.prime else None
@@ -385,6 +442,9 @@ def main(argv=None, out_dir=None) -> int:
         if first is not None:
             row["first_run"] = {"wall_s": first["wall_s"], "timings": first["timings"]}
         rows.append(row)
+        for k, r in enumerate(reps):
+            for a, b, thread, step in r.get("trace", []):
+                print(f"  {case} run {k + 1}: {a:7.3f} {b:7.3f} s {b - a:6.3f} s  {thread:20.20s} {step}")
         procs = [r["process_s"] for r in reps if r.get("process_s") is not None]
         print(f"{case}: wall {row['wall_s']:.2f} s (runs {', '.join(f'{w:.2f}' for w in row['walls'])}"
               + (f"; processes {', '.join(f'{w:.2f}' for w in procs)} s" if procs else "")

@@ -45,3 +45,18 @@ def test_a_fresh_process_case_reports_the_process_seconds():
     """The fresh-process path also times the whole process (interpreter start to exit), which holds the call."""
     row = e2e.fresh_process("quickstart", quick=True)
     assert 0 < row["wall_s"] < row["process_s"]
+
+
+def test_the_trace_times_every_step_it_names_in_a_fresh_process():
+    """--trace: every traced step exists (an engine rename would otherwise trace nothing), and a fresh process's
+    CPU job reports its set-up, build and file steps within the call, in order."""
+    import importlib
+
+    for module, cls, attr in e2e.TRACED:
+        owner = importlib.import_module(module)
+        assert hasattr(getattr(owner, cls) if cls else owner, attr), (module, cls, attr)
+    row = e2e.fresh_process("quickstart", quick=True, trace=True)
+    steps = {step: (a, b) for a, b, _, step in row["trace"]}
+    assert {"SceneRun.__init__", "simulate._build", "H5MDWriter.finish_async"} <= set(steps), steps
+    assert 0 <= steps["SceneRun.__init__"][0] <= steps["simulate._build"][0] <= steps["H5MDWriter.finish_async"][0]
+    assert steps["H5MDWriter.finish_async"][1] <= row["wall_s"] + 0.01
