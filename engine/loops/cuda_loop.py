@@ -139,11 +139,14 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
     # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
 
     @cuda.jit(device=True)
-    def translate(k, i, x_old, u, f, xr, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext):
+    def translate(k, i, x_old, u, f, xr, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, in_place, ext):
         """Component k of particle i's translation: v = u + f im hk, x = x_old + v dt wrapped (stored), the
-        shape's ``translated`` hook; returns the squared displacement from xr (0 unless ``exact``) and v^2."""
+        shape's ``translated`` hook; returns the squared displacement from xr (0 unless ``exact``) and v^2.
+        ``in_place`` (vel_out is the array u was read from): a kick by f = 0 stores nothing (v = u + 0 is u: the same
+        number, a -0.0 kept), the store of a particle under no force (most of a dilute gas) is saved."""
         v = kick(u, f, im, hk)
-        vel_out[k, i] = v
+        if not in_place or f != ZERO:
+            vel_out[k, i] = v
         translated(k, i, x_old, v, f, im, hp, ext)
         x = drift_wrap(x_old, v, dt, box, inv_box)
         pos_out[k, i] = x
@@ -151,14 +154,15 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         return d * d, v * v
 
     @cuda.jit(device=True)
-    def kick_drift_one(i, first, exact, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
+    def kick_drift_one(i, first, exact, in_place, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
                        spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext):
         """v += F/m hk (hk = dt/2 on the first step of a call, else dt; F = (fx, fy, fz)), x += v dt wrapped,
         then the shape's rotation step; returns the normalised squared displacement since the build (0 unless
         ``exact``) and speed (0, 0 for a skipped scene). Reads pos and vel, writes pos_out and vel_out (the same
-        arrays, or the other half of the fused kernel's double buffer; a skipped scene's particles are copied
-        across). Every read is issued before the first write: one memory latency, not one per component (the
-        compiler may not move a read past a write that could alias it)."""
+        arrays, ``in_place`` True: a velocity under no force is not stored again; or the other half of the fused
+        kernel's double buffer; a skipped scene's particles are copied across). Every read is issued before the first
+        write: one memory latency, not one per component (the compiler may not move a read past a write that could
+        alias it)."""
         s = scene_of(i, sc, spi)
         x0 = pos[0, i]
         x1 = pos[1, i]
@@ -186,9 +190,12 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]
         im = spd[s, D_IM0] if UNIFORM else inv_m[i]
-        d0, w0 = translate(0, i, x0, u0, fx, r0, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext)
-        d1, w1 = translate(1, i, x1, u1, fy, r1, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext)
-        d2, w2 = translate(2, i, x2, u2, fz, r2, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, ext)
+        d0, w0 = translate(0, i, x0, u0, fx, r0, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out,
+                           in_place, ext)
+        d1, w1 = translate(1, i, x1, u1, fy, r1, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out,
+                           in_place, ext)
+        d2, w2 = translate(2, i, x2, u2, fz, r2, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out,
+                           in_place, ext)
         dsp = ZERO + d0 + d1 + d2
         v2 = ZERO + w0 + w1 + w2
         ok = rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)
@@ -267,7 +274,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         md = 0.0
         mv = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            d2, v2 = kick_drift_one(i, first, exact, pos, pos, vel, vel, spin, quat, force[0, i], force[1, i],
+            d2, v2 = kick_drift_one(i, first, exact, True, pos, pos, vel, vel, spin, quat, force[0, i], force[1, i],
                                     force[2, i], torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status,
                                     step, ext)
             md = max(md, d2)
@@ -304,8 +311,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         for i in range(i0, n, cuda.gridsize(1)):
             fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids,
                                     sc, spd, spf, spi, status, step, ext)
-            d2, v2 = kick_drift_one(i, 0, exact, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
-                                    spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+            d2, v2 = kick_drift_one(i, 0, exact, False, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
+                                    inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)
         publish_maxima(sh, md, mv, par, status)
@@ -378,7 +385,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                     status[S_D2B if even else S_D2] = 0.0  # the other parity's slot, free until next step
                 md = 0.0
                 for i in range(i0, n, stride):
-                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, 1, pos, pos, vel, vel, spin, quat,
+                    d2, v2 = kick_drift_one(i, first if st == 0 else 0, 1, True, pos, pos, vel, vel, spin, quat,
                                             fa[0, i], fa[1, i], fa[2, i], torque, inv_m, spin_inv, x_ref, ids, sc,
                                             spd, spf, spi, status, step, ext)
                     md = max(md, d2)
@@ -424,7 +431,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         begin_run(g, i0, status)
         md = 0.0
         for i in range(i0, n, stride):
-            d2, v2 = kick_drift_one(i, first, 1, pos, pos, vel, vel, spin, quat, f0[0, i], f0[1, i], f0[2, i],
+            d2, v2 = kick_drift_one(i, first, 1, True, pos, pos, vel, vel, spin, quat, f0[0, i], f0[1, i], f0[2, i],
                                     torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step0, ext)
             md = max(md, d2)
         block_max2(sh, md, 0.0)
@@ -453,8 +460,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                     if more:
                         for k in range(3):
                             w_out[k, i] = w_in[k, i]
-                        d2, v2 = kick_drift_one(i, 0, 1, p_in, p_out, v_in, v_out, w_out, quat, fx, fy, fz, torque,
-                                                inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+                        d2, v2 = kick_drift_one(i, 0, 1, False, p_in, p_out, v_in, v_out, w_out, quat, fx, fy, fz,
+                                                torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status,
+                                                step + 1, ext)
                         md = max(md, d2)
                 done += 1
                 if not more:
@@ -549,8 +557,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
             if spi[0, I_ACTIVE] != 0:
                 observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
                                hist, spd, spf, ext, torque, spin_inv)
-            d2, v2 = kick_drift_one(i, 0, exact, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
-                                    spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+            d2, v2 = kick_drift_one(i, 0, exact, False, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
+                                    inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)
         publish_maxima(sh, md, mv, par, status)

@@ -116,16 +116,21 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         """w += tau/I hk (rough); the orientation (when tracked) lazily, as on the CPU
         (engine/shapes/sphere/kernels.py ``rotate``): ext[0][i] is the step from which sphere i's turns are
         pending, all with the spin it has; only a torque about to change that spin brings q up to date (before
-        the kick), and :func:`settle_one` when the loop returns. A free sphere reads and writes no quaternion."""
+        the kick), and :func:`settle_one` when the loop returns. A free sphere reads and writes no quaternion, and
+        no spin: a kick by a zero torque leaves w as it is (w + 0 is w, a -0.0 kept), finite since its last kick,
+        so a sphere out of contact (most of a dilute gas) costs the torque's read alone. The spin array is the one
+        the kick acts on in place (the fused many-steps kernel copies it into its output half first)."""
         omega = spin
         w2 = ZERO
         if ROUGH:
-            ii = spd[s, D_II0] if UNIFORM else spin_inv[i]
             tx = torque[0, i]
             ty = torque[1, i]
             tz = torque[2, i]
+            if tx == ZERO and ty == ZERO and tz == ZERO:
+                return True
+            ii = spd[s, D_II0] if UNIFORM else spin_inv[i]
             if ORIENT:
-                if spi[s, I_ORIENT] != 0 and (tx != ZERO or ty != ZERO or tz != ZERO):
+                if spi[s, I_ORIENT] != 0:
                     turn(i, omega, quat, ext[0], step, dt)
             wx = kick(omega[0, i], tx, ii, hk)
             wy = kick(omega[1, i], ty, ii, hk)
