@@ -307,41 +307,30 @@ def make_step(shape, parallel: bool = True):
 
     drift_only = numba.njit(inline="always")(drift_only)
 
-    def kick_only(i, fx, fy, fz, tq, pos, vel, spin, quat, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, hp, dt,
-                  box, inv_box, half, s):
-        # the kick half of one() (FREE_DRIFT shapes, whose rotate neither reads nor writes the position): the
-        # drift follows in its own pass
-        pre_step(i, pos, quat, ext)
-        im = inv_m[i]
-        v2 = 0.0
-        for k in range(3):
-            f = fx if k == 0 else (fy if k == 1 else fz)
-            v = kick(vel[i, k], f, im, hk)
-            vel[i, k] = v
-            vel_p[i, k] = kick(v, f, im, hp)
-            v2 += v * v
-        return rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half,
-                      s)
+    def kick_drift_of(drift: bool):
+        def kick_drift(i, fx, fy, fz, tq, pos, vel, spin, quat, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, hp,
+                       dt, box, inv_box, half, s):
+            # the kick-drift of particle i under force (fx, fy, fz) and torque tq: (displacement measure, finite);
+            # without `drift` (a compile-time constant) its kick alone, for FREE_DRIFT shapes, whose rotate neither
+            # reads nor writes the position: the drift follows in its own pass
+            pre_step(i, pos, quat, ext)
+            im = inv_m[i]
+            v2 = 0.0
+            for k in range(3):
+                f = fx if k == 0 else (fy if k == 1 else fz)
+                v = kick(vel[i, k], f, im, hk)
+                vel[i, k] = v
+                vel_p[i, k] = kick(v, f, im, hp)
+                if drift:
+                    pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
+                v2 += v * v
+            return rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box,
+                          half, s)
 
-    kick_only = numba.njit(inline="always")(kick_only)
+        return numba.njit(inline="always")(kick_drift)
 
-    def one(i, fx, fy, fz, tq, pos, vel, spin, quat, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, hp, dt, box,
-            inv_box, half, s):
-        # the kick-drift of particle i under force (fx, fy, fz) and torque tq: (displacement measure, finite)
-        pre_step(i, pos, quat, ext)
-        im = inv_m[i]
-        v2 = 0.0
-        for k in range(3):
-            f = fx if k == 0 else (fy if k == 1 else fz)
-            v = kick(vel[i, k], f, im, hk)
-            vel[i, k] = v
-            vel_p[i, k] = kick(v, f, im, hp)
-            pos[i, k] = drift_wrap(pos[i, k], v, dt, box, inv_box)
-            v2 += v * v
-        return rotate(i, v2, pos, vel, spin, quat, torque, tq, spin_inv, x_ref, ext, hk, hp, dt, box, inv_box, half,
-                      s)
-
-    one = numba.njit(inline="always")(one)
+    one = kick_drift_of(True)
+    kick_only = kick_drift_of(False)
 
     def step_free_drift(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box,
                         inv_box, half, chunk_a, chunk_b, s, nn, active, n_active, hot, hot_count):
