@@ -221,6 +221,11 @@ def refresh_predicted(nn_old, nn_new, vel, vel_p, force, inv_m, hp):
                 vel_p[i, k] = kick(vel[i, k], force[i, k], im, hp)
 
 
+def _free_drift(shape) -> bool:
+    """Whether a particle of ``shape`` under no force and no torque only drifts (its ``FREE_DRIFT``: spheres)."""
+    return bool(getattr(shape, "FREE_DRIFT", False))
+
+
 #: A scene of fewer particles than this advances in the time loop compiled without parallel regions
 #: (:func:`make_run_steps` with ``parallel=False``); it runs on one Numba thread anyway
 #: (engine.backends.ensemble.ONE_THREAD_BELOW, the same size). Why: each ``parallel=True`` region enters Numba's
@@ -265,9 +270,8 @@ def make_step(shape, parallel: bool = True):
 
     ``step(pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, vel_p, ext, hk, dt, box, inv_box, half,
     chunk_a, chunk_b, s, nn, active, n_active, hot, hot_count)`` (s: the step's index counted from the last full
-    ``settle`` of the orientations,
-    :func:`make_run_steps`): per particle, the shape's ``pre_step``,
-    then the shared translation v += F/m hk, predicted end-of-step velocity v + F/m dt/2 (the normal
+    ``settle`` of the orientations, :func:`make_run_steps`): per particle, the shape's ``pre_step``, then the shared
+    translation v += F/m hk, predicted end-of-step velocity v + F/m dt/2 (the normal
     dashpot's), x += v dt wrapped into the box, then the shape's ``rotate`` with the particle's torque, which
     returns the particle's displacement measure (module docstring of engine/shapes/sphere/kernels.py: |v|^2 or the
     exact squared displacement) and whether its state is finite. Per chunk: the largest measure into ``chunk_a``,
@@ -294,7 +298,7 @@ def make_step(shape, parallel: bool = True):
         return _step_loops[shape.NAME, parallel]
     pre_step = shape.pre_step
     rotate = shape.rotate
-    free_drift = bool(getattr(shape, "FREE_DRIFT", False))
+    free_drift = _free_drift(shape)
 
     def drift_only(i, pos, vel, dt, box, inv_box):
         # a free particle's step when the shape's FREE_DRIFT holds: (|v|^2, finite)
@@ -427,7 +431,7 @@ def make_forces(shape, parallel: bool = True):
     if (shape.NAME, parallel) in _force_loops:
         return _force_loops[shape.NAME, parallel]
     pair = shape.pair
-    free_drift = bool(getattr(shape, "FREE_DRIFT", False))
+    free_drift = _free_drift(shape)
 
     def compute_forces(pos, vel, vel_p, spin, quat, rad, inv_m, nbr, nn, hist, force, torque, box, inv_box, half,
                        k_n, gn_coef, law, dt, ext, chunk_ovl, chunk_ovl_idx, active, n_active, hot, hot_count):
@@ -493,8 +497,7 @@ def make_run_steps(shape, parallel: bool = True):
     ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of, cursor, box,
     inv_box, half, dt, skin, k_n, gn_coef, law, overlap_limit, chunk_a, chunk_b, mg, active, n_active, hot,
     hot_count, pending, settle_all)`` advances up to nsteps velocity-Verlet steps; velocities (and ``spin``) are
-    synchronous on entry and
-    on exit.
+    synchronous on entry and on exit.
 
     Orientations (``quat`` not None): the shape's ``settle`` brings them up to date. ``settle_all`` (or an exit other
     than OK): every one, and nothing is left pending; otherwise only those the closing half kick is about to turn
@@ -534,7 +537,7 @@ def make_run_steps(shape, parallel: bool = True):
     build_multigrid = kernel(build_levels_carry)
     close_kick = kernel(half_kick)
     exact = bool(shape.EXACT_DISPLACEMENT)
-    free_drift = bool(getattr(shape, "FREE_DRIFT", False))
+    free_drift = _free_drift(shape)
 
     def steps(nsteps, pos, vel, spin, quat, force, torque, inv_m, spin_inv, rad, x_ref, vel_p, disp_bound,
               ext, nbr, nn, hist, nbr_new, nn_new, hist_new, nc, inv_cell, cell_start, cell_list, cell_of,

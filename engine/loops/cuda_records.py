@@ -4,9 +4,8 @@
 One launch of the shape's observe kernel sums every scene's energies, contacts, overlap, momentum and energy moments
 into a (K, NOBS) accumulator, copied into a pinned host buffer and read once the stream has reached it. A lone
 sphere scene (smooth or rough) in the per-phase loop gets the same sums from the force passes of the steps it is
-observed at,
-one row each (``_observe_in_forces``), read once at the end of the advance call: a record then costs no pass over
-the particles, no launch and no wait of its own.
+observed at, one row each (``_observe_in_forces``), read once at the end of the advance call: a record then costs no
+pass over the particles, no launch and no wait of its own.
 """
 
 from __future__ import annotations
