@@ -10,8 +10,9 @@
 - the list build walks the neighbour cells with nested offset loops: the same list, entry for entry, as the walk by
   engine.neighbours.cells.neighbour_cell, on grids of 1, 2, 3 and more cells per side;
 - through the whole time loop (list builds inside it, and the growth of a list that overflows): the active set is
-  the particles with list entries, the others' forces and torques are +0.0 after every advance, and every listed
-  particle that is not hot has zero force and torque and a predicted velocity equal to its velocity;
+  the particles with list entries, the others' forces and torques are +0.0 after every advance, every listed
+  particle that is not hot has zero force and torque and a predicted velocity equal to its velocity, and an unlisted
+  particle's predicted velocity is written when a build lists it;
 - engine/backends/ensemble.py ``ThreadChoice``: all threads while they are faster, one thread when it is faster.
 
 The trajectories these changes must leave unchanged are also fingerprinted by ``python -m bench bit_identity``.
@@ -222,9 +223,15 @@ def test_active_set_and_zero_forces_hold_after_every_advance():
     be._alloc_lists(1)
     be._build()
     be._forces()
-    builds, seen_free, seen_hot = be.builds, 0, 0
+    builds, seen_free, seen_hot, seen_listed_anew = be.builds, 0, 0, 0
     for _ in range(12):
+        # an unlisted particle's predicted velocity is no one's business until a build lists it, which writes it
+        # (engine/loops/cpu.py refresh_predicted): poisoned here, it must never reach a force or a listed particle
+        was_free = be.nn == 0
+        be.vel_p[was_free] = np.nan
         be.advance(150)
+        seen_listed_anew += int((was_free & (be.nn > 0)).sum())
+        assert np.isfinite(be.force).all() and np.isfinite(be.vel_p[be.nn > 0]).all()
         listed = np.flatnonzero(be.nn > 0)
         assert np.array_equal(be.active[:be.n_active[0]], listed) and len(listed)
         free = be.nn == 0
@@ -241,7 +248,7 @@ def test_active_set_and_zero_forces_hold_after_every_advance():
         seen_hot += int(hot.sum())
         assert np.all(be.force[cold] == 0) and np.all(be.torque[cold] == 0)
         assert np.array_equal(be.vel_p[cold], be.vel[cold])
-    assert seen_hot > 0 and be.builds > builds + 2 and be.max_nb > 1 and seen_free > 0
+    assert seen_hot > 0 and be.builds > builds + 2 and be.max_nb > 1 and seen_free > 0 and seen_listed_anew > 0
 
 
 def test_thread_choice_takes_the_faster_count():
