@@ -33,7 +33,7 @@ BENCHMARKS: dict[str, bool] = {
     # speed (Cundall numbers) and time to result
     "gpu_scaling": True, "gpu_ensemble": True, "vs_lammps": True, "e2e": True, "multigrid_cost": True,
     "specialisation": True, "vs_jaxmd": True, "large_scenes": True,
-    "loop_ab": False, "host_memory": False, "download_speed": False, "cpu_default_job": False,
+    "loop_ab": False, "step_bytes": True, "host_memory": False, "download_speed": False, "cpu_default_job": False,
     # accuracy against cost, stability, bit identity
     "accuracy": True, "stability": True, "bit_identity": False,
     # the service under load

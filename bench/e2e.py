@@ -88,6 +88,7 @@ SWITCHES = {
     "fused": ("engine.loops.cuda_stepping", "FUSED", False),
     "multistep_fused": ("engine.loops.cuda_stepping", "MULTISTEP_FUSED", False),
     "observe_in_forces": ("engine.loops.cuda_stepping", "OBSERVE_IN_FORCES", False),
+    "skip_cold": ("engine.loops.cuda_loop", "SKIP_COLD", False),
 }
 
 

@@ -120,6 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda")
     ap.add_argument("--steps-scale", type=float, default=1.0)
+    ap.add_argument("--phi", type=float, default=0.058, help="volume fraction of the JAX-MD cases (default 0.058)")
     ap.add_argument("--start", choices=("lattice", "random"), default=None,
                     help="every scene's start protocol (default: the engine's choice: random for spheres up to "
                          "phi = 0.3, the lattice for spheroids)")
@@ -136,7 +137,7 @@ def main(argv=None) -> int:
         if case in EXTRA:
             return extra_specs(case, steps, args.backend, args.start)
         n, precision, _, contact = JAXMD_CASES[case]
-        spec = case_spec(Case(n, precision, steps, contact, 0.058), args.backend)
+        spec = case_spec(Case(n, precision, steps, contact, args.phi), args.backend)
         return [type(spec)(**dict(spec.model_dump(), start=args.start))]      # None: the engine's choice by size
 
     def run_case(specs: list, tmp: Path) -> tuple:
@@ -170,7 +171,8 @@ def main(argv=None) -> int:
                     steps_done = summaries[0].steps
                     with h5py.File(summaries[0].output, "r") as f:
                         builds = int(f["parameters"].attrs["neighbour_builds"])
-                    print(json.dumps({"case": case, "variant": v, "rep": rep, "device": summaries[0].device,
+                    print(json.dumps({"case": case, "phi": specs[0].volume_fraction, "variant": v, "rep": rep,
+                                      "device": summaries[0].device,
                                       "scenes": len(specs), "n": n, "start": start_protocol(specs[0]),
                                       "steps": steps_done, "list_builds": builds,
                                       "loop_s": round(loop_s, 4), "wall_s": round(wall, 3),

@@ -175,7 +175,13 @@ class SceneRun:
         self.verlet_skin = verlet_skin_radii(spec, self.backend)
         self.p = p = with_backend(p, spec, self.backend)
         if self.backend == "cuda" and spec.shape == "sphere":   # before the GPU holds anything of this job
+            from engine.backends.base import cuda_available
             from engine.loops.cuda_memory import refuse_oversize
+
+            # an explicit backend = 'cuda' is not probed on this thread: wait here for the start-up thread's probe,
+            # which starts numba-cuda's driver; the memory query's first driver call beside it failed with
+            # CUDA_ERROR_NOT_INITIALIZED (numba-cuda's driver start is not safe across threads)
+            cuda_available()
 
             refuse_oversize(spec.model_copy(update={"verlet_skin": self.verlet_skin}), p,
                             reads_state=spec.snapshots > 0 or checkpoint_dir is not None)

@@ -169,6 +169,9 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.inv_old = cuda.device_array(n, np.int32, stream=self.stream)
         self.c_off = self._zeros(n, np.int32)
         self.c_cnt = self._zeros(n, np.int32)
+        # which particles' force buffers may hold something other than zero (cuda_loop SKIP_COLD)
+        self.hot = cuda.device_array(n, np.uint8, stream=self.stream)
+        self._forces_unknown()
         self._alloc_store(max(1024, n // 8))
         self.status = cuda.to_device(self._fresh_status(), stream=self.stream)
         # pinned status copies: the per-step slots 0 and 1 of the per-phase loop, and 2 for a wait-now read
@@ -291,6 +294,18 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
             b.copy_to_device(a, stream=self.stream)
         return b
 
+    def _forces_unknown(self) -> None:
+        """Mark every particle's force and torque buffers as possibly not zero (``hot`` = 0xFF,
+        engine/loops/cuda_loop.py ``SKIP_COLD``), after they were written outside the force passes or the kernels
+        that write them changed (allocation, a rebuild's permutation, a new specialisation): the next two force
+        passes store every particle's force and torque, every kick reads them."""
+        if not self.n:
+            return
+        if SIM:
+            self.hot.copy_to_device(np.full(self.n, 0xFF, np.uint8), stream=self.stream)
+        else:
+            device_memset(self.hot, 0xFF, self.stream)
+
     def _zeros(self, shape, dtype):
         """A device array of zeros: a memset on the stream, no host array to copy."""
         a = cuda.device_array(shape, dtype, stream=self.stream)
@@ -358,6 +373,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
             self._set_scene_contact(k, contact)
         self._upload_params()
         self._specialise()
+        self._forces_unknown()     # a smooth specialisation leaves the torque alone: stale where it turns rough
 
     def deactivate(self, k: int) -> None:
         """Scene k drops out (finished, cancelled or failed): it is never advanced again."""

@@ -11,29 +11,33 @@ force law) and its observables. Layout, per-scene tables, status words and the n
 engine/loops/cuda_kernels.py's; the physics stays in engine/physics/ (njit functions every backend calls).
 
 Kernel arguments (device arrays, particle index fastest), the same for every shape:
-    kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf,
-               spi, status, step, ext)
-    forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf, spi,
+    kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, hot, inv_m, spin_inv, x_ref, ids, sc, spd,
+               spf, spi, status, step, ext)
+    forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd, spf, spi,
            status, step, ext)
     forces_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new, torque,
-                      spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext)
+                      hot, spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext)
                                                          (only for a shape with ``FUSABLE``)
     half_kick(n, vel, spin, force, torque, inv_m, spin_inv, sc, spd, spi)
     settle(n, spin, quat, sc, spd, spi, step, ext)       (only for a shape with ``settle_one``)
-    run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad, x_ref,
-              nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
-    run_steps_fused(n, nmax, first, thr, pos, pos_b, vel, vel_b, spin, spin_b, quat, f0, f1, torque, inv_m, spin_inv,
-                    rad, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
+    run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, hot, inv_m, spin_inv, rad,
+              x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
+    run_steps_fused(n, nmax, first, thr, pos, pos_b, vel, vel_b, spin, spin_b, quat, f0, f1, torque, hot, inv_m,
+                    spin_inv, rad, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext)
                                                          (only for a shape with ``MULTISTEP_FUSABLE``)
     observe(pos, vel, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, spi, ext, acc)
-    forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, spin_inv, nbr, nn, hist, ids, sc, spd,
-                   spf, spi, status, step, ext, obs_rad, mass, inertia, acc, row)
+    forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, spin_inv, nbr, nn, hist, ids, sc,
+                   spd, spf, spi, status, step, ext, obs_rad, mass, inertia, acc, row)
                                                          (only for a shape with ``OBSERVES_AFTER_FORCES``; one scene)
     forces_observe_kick_drift(<forces_kick_drift's arguments>, obs_rad, mass, inertia, acc, row)
                                                          (only for a shape with ``FUSABLE``; one scene)
 ``spin`` is the rotational state the torque kicks (spheres: angular velocity; spheroids: angular momentum),
 ``rad`` the list radius, ``ext`` a tuple of the shape's own arrays; f_old/f_new (f0/f1) are the double buffer
-of the forces (a shape that does not read other particles' old forces gets the same array twice).
+of the forces (a shape that does not read other particles' old forces gets the same array twice). ``hot`` (uint8,
+N) says which particles' force buffers hold something other than zero (``SKIP_COLD``, below): bit 0, the force or
+torque of the last force pass was not zero; bit 1, that of the pass before; 0xFF (any bit 2-7 set) when the buffers
+were written outside the force passes (allocation, a rebuild's permutation): every pass writes them, every kick
+reads them.
 ``exact`` = 0: kick_drift does not read x_ref and reports no displacement, only the speeds (the host bounds the
 displacements by the sum of max |v| dt, engine/loops/cuda_stepping.py). With one scene (``spi`` of one row) no
 kernel reads ``sc``: every particle is in scene 0.
@@ -55,6 +59,15 @@ from engine.physics.integrate import drift_wrap, kick
 
 _cache: dict = {}
 
+#: True: a force pass stores a particle's force and torque only where they are not zero or were not at either of
+#: the two previous passes (the double buffer's other half and the torque then still hold the zeros they need),
+#: and marks in ``hot`` whether they are; the kick-drift reads the force and torque of a particle only where
+#: ``hot`` says they are not zero. Most of a dilute gas is out of contact at any step: 24 bytes a particle-step of
+#: stores (float32, rough) and as many of loads are saved for 2 bytes of flags. The buffers hold the same numbers
+#: as with every store made (a force summed from +0.0 is never -0.0), so the trajectory is the same bits.
+#: False: every pass stores, every kick reads (bench/e2e.py --off skip_cold, the tests' reference).
+SKIP_COLD = True
+
 #: blocks of the force kernel (and of the fused force-and-kick-drift kernel) each SM must hold, by (shape,
 #: precision, shape flags) or "*" (its launch bounds: the compiler keeps the registers to 65536 / (TPB x blocks)
 #: and spills the rest); a specialisation not named is
@@ -62,22 +75,31 @@ _cache: dict = {}
 #: float64 spheres, 96 registers and 2 blocks of 256 threads left alone, run their force kernel with 3 blocks
 #: (80 registers, 20 bytes spilled on the rare contact path) 5 % faster on an H100; smooth float32 spheres, whose
 #: fused kernel takes 72 registers (3 blocks, 35 % of the warps active), with 4 blocks: the 8M-sphere loop 14 %
-#: faster on an H200 (bench loop_ab --variants default blocks=4); rough spheres (126 registers) lose when forced.
+#: faster on an H200 (bench loop_ab --variants default blocks=4); rough spheres (126 registers) lose when forced
+#: to 3. Rough float64 spheres are held to 2 blocks: their force kernel, left alone, took 130 registers with the
+#: ``hot`` flags (one block of 256 threads an SM: 11 % of the warps active, the kernel 1.7 times as long on an H200;
+#: bench step_bytes --cases rough-2M-f64); with a Coulomb cap they are left alone (not measured).
 #: None: no launch bounds anywhere (bench loop_ab's variants).
 FORCES_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3,
                                      ("sphere", "<f8", (False, False, True)): 3,
                                      ("sphere", "<f4", (False, False, False)): 4,
-                                     ("sphere", "<f4", (False, False, True)): 4}
+                                     ("sphere", "<f4", (False, False, True)): 4,
+                                     ("sphere", "<f8", (True, False, False)): 2,
+                                     ("sphere", "<f8", (True, False, True)): 2}
 
 #: Blocks of 256 threads per SM that the force passes which also sum a record's observables (forces_observe,
 #: forces_observe_kick_drift) are compiled for, keyed as FORCES_BLOCKS_PER_SM; absent or None: left to the
 #: compiler. Smooth spheres, left alone, take 123 registers (float32: 2 blocks, 25 % of the warps active); with 3
 #: blocks the 8M-sphere loop with 200 records is 6 % (float32) and 14 % (float64) faster on an H200 (bench loop_ab
-#: --variants default observe_blocks=3 observe_blocks=4; 4 blocks gained less).
+#: --variants default observe_blocks=3 observe_blocks=4; 4 blocks gained less). Rough float64 spheres, 170 registers
+#: left alone (one block), with 2 blocks: the 2M-sphere loop with 200 records 6 % faster on an H200 (7.82e9 against
+#: 7.37e9, bench loop_ab --cases rough-2M-f64 --variants default observe_blocks=2; float32 unchanged at 128).
 OBSERVE_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3,
                                       ("sphere", "<f8", (False, False, True)): 3,
                                       ("sphere", "<f4", (False, False, False)): 3,
-                                      ("sphere", "<f4", (False, False, True)): 3}
+                                      ("sphere", "<f4", (False, False, True)): 3,
+                                      ("sphere", "<f8", (True, False, False)): 2,
+                                      ("sphere", "<f8", (True, False, True)): 2}
 
 
 def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int, device) -> dict:
@@ -87,12 +109,12 @@ def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int, device) ->
     ``make_cuda``), which the caller passes in: this module names no shape and no shape registry."""
     flags = tuple(bool(f) for f in flags)
     key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags),
-           observe_blocks(shape, dtype, flags))
+           observe_blocks(shape, dtype, flags), bool(SKIP_COLD))
     if key not in _cache:
         dt = np.dtype(dtype).type
         parts = device.make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
-        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6]),
+        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6], key[7]),
                                ("loop",) + key[:2] + tuple(map(str, key[2:]))))
         k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))
         _cache[key] = k
@@ -117,7 +139,8 @@ def _blocks(table: dict | None, shape: str, dtype, flags: tuple):
     return table.get((shape, np.dtype(dtype).str, flags), table.get("*"))
 
 
-def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa: C901  (a closure per specialisation)
+def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None, SKIP=True):  # noqa: C901  (one closure per
+    # specialisation)
     ZERO = DT(0)
     HALF = DT(0.5)
     BIG = DT(np.finfo(DT).max)
@@ -154,15 +177,15 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         return d * d, v * v
 
     @cuda.jit(device=True)
-    def kick_drift_one(i, first, exact, in_place, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, inv_m,
-                       spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext):
+    def kick_drift_one(i, first, exact, in_place, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, torqued,
+                       inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext):
         """v += F/m hk (hk = dt/2 on the first step of a call, else dt; F = (fx, fy, fz)), x += v dt wrapped,
-        then the shape's rotation step; returns the normalised squared displacement since the build (0 unless
-        ``exact``) and speed (0, 0 for a skipped scene). Reads pos and vel, writes pos_out and vel_out (the same
-        arrays, ``in_place`` True: a velocity under no force is not stored again; or the other half of the fused
-        kernel's double buffer; a skipped scene's particles are copied across). Every read is issued before the first
-        write: one memory latency, not one per component (the compiler may not move a read past a write that could
-        alias it)."""
+        then the shape's rotation step (``torqued`` False: the torque is zero, not read); returns the normalised
+        squared displacement since the build (0 unless ``exact``) and speed (0, 0 for a skipped scene). Reads pos
+        and vel, writes pos_out and vel_out (the same arrays, ``in_place`` True: a velocity under no force is not
+        stored again; or the other half of the fused kernel's double buffer; a skipped scene's particles are copied
+        across). Every read is issued before the first write: one memory latency, not one per component (the
+        compiler may not move a read past a write that could alias it)."""
         s = scene_of(i, sc, spi)
         x0 = pos[0, i]
         x1 = pos[1, i]
@@ -198,42 +221,53 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                            in_place, ext)
         dsp = ZERO + d0 + d1 + d2
         v2 = ZERO + w0 + w1 + w2
-        ok = rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)
+        ok = rotate(i, s, spin, quat, torque, torqued, spin_inv, ext, spd, spi, hk, hp, dt, step)
         if not (dsp < BIG) or not (v2 < BIG) or not ok:
             fail(status, spi, s, SS_BAD_ID, ids[i], step)
             return 0.0, 0.0
         return f64(dsp) * spf[s, F_LIM2INV], f64(v2) * spf[s, F_V2F]
 
     @cuda.jit(device=True)
-    def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
+    def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd,
                    spf, spi, status, step, ext):
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
         in list order); per-slot history advanced in place; a scene whose overlap exceeds its limit stops.
-        Returns the force (stored in f_new too; zero for a skipped scene)."""
+        Returns the force (stored in f_new too; zero for a skipped scene) and whether force or torque is not zero
+        (``hot`` bit 0). The stores are skipped where both are zero and were at the two passes before (``SKIP``:
+        f_new, the buffer written two passes ago, and the torque, written one pass ago, hold zeros already)."""
         s = scene_of(i, sc, spi)
         # the particle's own reads are issued before the scene's active flag is known (harmless for a stopped
         # scene, whose slots are then left alone): one memory latency less per particle in a latency-bound kernel
         p = particle(i, s, pos, rad, inv_m, ids, spd)
         m = nn[i]
+        was = hot[i] if SKIP else 3
         if spi[s, I_ACTIVE] == 0:
-            return ZERO, ZERO, ZERO
+            return ZERO, ZERO, ZERO, False
         acc = (ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ZERO)
         for kk in range(m):
             acc = pair(i, kk, nbr[kk, i], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
         fx, fy, fz, tx, ty, tz, worst = acc
-        f_new[0, i] = fx
-        f_new[1, i] = fy
-        f_new[2, i] = fz
+        now = not (fx == ZERO and fy == ZERO and fz == ZERO)
         if TORQUE:
-            torque[0, i] = tx
-            torque[1, i] = ty
-            torque[2, i] = tz
+            now = now or not (tx == ZERO and ty == ZERO and tz == ZERO)
+        if now or (was & 3) != 0:
+            f_new[0, i] = fx
+            f_new[1, i] = fy
+            f_new[2, i] = fz
+            if TORQUE:
+                torque[0, i] = tx
+                torque[1, i] = ty
+                torque[2, i] = tz
+        if SKIP:
+            flags = (1 if now else 0) | ((was & 1) << 1)
+            if flags != was:
+                hot[i] = flags
         w64 = f64(worst)
         if w64 > spf[s, F_OVL]:
             b = SS0 + NSS * s
             cuda.atomic.max(status, b + SS_OVL, w64)
             fail(status, spi, s, SS_OVL_ID, ids[i], step)
-        return fx, fy, fz
+        return fx, fy, fz, now
 
     # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
 
@@ -268,15 +302,21 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
             cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
 
     @cuda.jit
-    def kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, inv_m, spin_inv, x_ref, ids, sc, spd,
+    def kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, hot, inv_m, spin_inv, x_ref, ids, sc, spd,
                    spf, spi, status, step, ext):
         sh = cuda.shared.array(SH2, ct.float64)
         md = 0.0
         mv = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            d2, v2 = kick_drift_one(i, first, exact, True, pos, pos, vel, vel, spin, quat, force[0, i], force[1, i],
-                                    force[2, i], torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status,
-                                    step, ext)
+            # a particle whose last force pass left force and torque zero (hot bit 0 clear): neither is read
+            pushed = (hot[i] & 1) != 0 if SKIP else True
+            fx = fy = fz = ZERO
+            if pushed:
+                fx = force[0, i]
+                fy = force[1, i]
+                fz = force[2, i]
+            d2, v2 = kick_drift_one(i, first, exact, True, pos, pos, vel, vel, spin, quat, fx, fy, fz, torque, pushed,
+                                    inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext)
             md = max(md, d2)
             mv = max(mv, v2)
         block_max2(sh, md, mv)
@@ -285,17 +325,17 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
             cuda.atomic.max(status, S_V2, sh[TPB])
 
     @(cuda.jit(launch_bounds=(TPB, FORCE_BLOCKS)) if FORCE_BLOCKS else cuda.jit)
-    def forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd, spf,
+    def forces(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd, spf,
                spi, status, step, ext):
         i0 = cuda.grid(1)
         clear_maxima(i0, status)
         for i in range(i0, n, cuda.gridsize(1)):
-            forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids, sc, spd,
+            forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd,
                        spf, spi, status, step, ext)
 
     @(cuda.jit(launch_bounds=(TPB, FORCE_BLOCKS)) if FORCE_BLOCKS else cuda.jit)
     def forces_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new, torque,
-                          spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext):
+                          hot, spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext):
         """The forces of step ``step`` and the kick-drift of step + 1, one pass over the particles (a shape with
         ``FUSABLE``: its pair evaluator reads no neighbour state the kick-drift rewrites but positions and
         velocities). The pair evaluators read the neighbours' positions and velocities of step ``step`` from
@@ -309,10 +349,10 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         md = 0.0
         mv = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
-            fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids,
-                                    sc, spd, spf, spi, status, step, ext)
+            fx, fy, fz, pushed = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn,
+                                            hist, ids, sc, spd, spf, spi, status, step, ext)
             d2, v2 = kick_drift_one(i, 0, exact, False, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
-                                    inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+                                    pushed, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)
         publish_maxima(sh, md, mv, par, status)
@@ -353,7 +393,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         g.sync()
 
     @cuda.jit
-    def run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, inv_m, spin_inv, rad,
+    def run_steps(n, nmax, first, skip_kick, thr, pos, vel, spin, quat, f0, f1, torque, hot, inv_m, spin_inv, rad,
                   x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext):
         """Up to nmax whole steps in one cooperative launch, the phases separated by grid syncs.
 
@@ -386,8 +426,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                 md = 0.0
                 for i in range(i0, n, stride):
                     d2, v2 = kick_drift_one(i, first if st == 0 else 0, 1, True, pos, pos, vel, vel, spin, quat,
-                                            fa[0, i], fa[1, i], fa[2, i], torque, inv_m, spin_inv, x_ref, ids, sc,
-                                            spd, spf, spi, status, step, ext)
+                                            fa[0, i], fa[1, i], fa[2, i], torque, True, inv_m, spin_inv, x_ref, ids,
+                                            sc, spd, spf, spi, status, step, ext)
                     md = max(md, d2)
                 block_max2(sh, md, 0.0)
                 if cuda.threadIdx.x == 0:
@@ -396,7 +436,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                 if status[slot] > thr:
                     break
             for i in range(i0, n, stride):
-                forces_one(i, pos, vel, spin, quat, rad, inv_m, fa, fb, torque, nbr, nn, hist, ids, sc, spd,
+                forces_one(i, pos, vel, spin, quat, rad, inv_m, fa, fb, torque, hot, nbr, nn, hist, ids, sc, spd,
                            spf, spi, status, step, ext)
             done += 1
             g.sync()
@@ -411,7 +451,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         return S_D2 if r == 0 else (S_D2B if r == 1 else S_D2C)
 
     @cuda.jit
-    def run_steps_fused(n, nmax, first, thr, pos, pos_b, vel, vel_b, spin, spin_b, quat, f0, f1, torque, inv_m,
+    def run_steps_fused(n, nmax, first, thr, pos, pos_b, vel, vel_b, spin, spin_b, quat, f0, f1, torque, hot, inv_m,
                         spin_inv, rad, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step0, ext):
         """run_steps with one grid sync a step (a shape with ``MULTISTEP_FUSABLE``): the drift of step 0, then
         for each step st one pass of the forces of st and the drift of st + 1, as cuda_loop's
@@ -432,7 +472,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         md = 0.0
         for i in range(i0, n, stride):
             d2, v2 = kick_drift_one(i, first, 1, True, pos, pos, vel, vel, spin, quat, f0[0, i], f0[1, i], f0[2, i],
-                                    torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step0, ext)
+                                    torque, True, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step0, ext)
             md = max(md, d2)
         block_max2(sh, md, 0.0)
         if cuda.threadIdx.x == 0:
@@ -455,14 +495,14 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                     status[drift_slot(st + 2)] = 0.0
                 md = 0.0
                 for i in range(i0, n, stride):
-                    fx, fy, fz = forces_one(i, p_in, v_in, w_in, quat, rad, inv_m, fa, fb, torque, nbr, nn, hist, ids,
-                                            sc, spd, spf, spi, status, step, ext)
+                    fx, fy, fz, pushed = forces_one(i, p_in, v_in, w_in, quat, rad, inv_m, fa, fb, torque, hot, nbr,
+                                                    nn, hist, ids, sc, spd, spf, spi, status, step, ext)
                     if more:
                         for k in range(3):
                             w_out[k, i] = w_in[k, i]
                         d2, v2 = kick_drift_one(i, 0, 1, False, p_in, p_out, v_in, v_out, w_out, quat, fx, fy, fz,
-                                                torque, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status,
-                                                step + 1, ext)
+                                                torque, pushed, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi,
+                                                status, step + 1, ext)
                         md = max(md, d2)
                 done += 1
                 if not more:
@@ -516,8 +556,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
                              spf, ext, torque, spin_inv)
 
     @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)
-    def forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, spin_inv, nbr, nn, hist, ids, sc,
-                       spd, spf, spi, status, step, ext, obs_rad, mass, inertia, acc, row):
+    def forces_observe(n, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, spin_inv, nbr, nn, hist, ids,
+                       sc, spd, spf, spi, status, step, ext, obs_rad, mass, inertia, acc, row):
         """The forces of ``step`` (as ``forces``) and, in the same pass, the observe sums of the state they complete
         into acc[row] (as ``observe``): one scene of a shape with ``OBSERVES_AFTER_FORCES`` (its force pass leaves
         the spins alone), velocities and spins half a step behind the positions (:func:`observe_synced`): the state
@@ -530,16 +570,16 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         clear_maxima(i0, status)
         if spi[0, I_ACTIVE] != 0:
             for i in range(i0, n, cuda.gridsize(1)):
-                fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist,
-                                        ids, sc, spd, spf, spi, status, step, ext)
+                fx, fy, fz, _ = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn,
+                                           hist, ids, sc, spd, spf, spi, status, step, ext)
                 observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
                                hist, spd, spf, ext, torque, spin_inv)
         block_accumulate(sh, vals, acc, row)
 
     @(cuda.jit(launch_bounds=(TPB, OBSERVE_BLOCKS)) if OBSERVE_BLOCKS else cuda.jit)
     def forces_observe_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new,
-                                  torque, spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext,
-                                  obs_rad, mass, inertia, acc, row):
+                                  torque, hot, spin_inv, x_ref, nbr, nn, hist, ids, sc, spd, spf, spi, status, step,
+                                  ext, obs_rad, mass, inertia, acc, row):
         """``forces_kick_drift`` with the observe sums of the state its forces complete into acc[row], as
         ``forces_observe`` (one scene): a record inside an advance call costs no pass and no wait of its own."""
         sh = cuda.shared.array(SH2, ct.float64)
@@ -552,13 +592,13 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None):  # noqa:
         md = 0.0
         mv = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
-            fx, fy, fz = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, nbr, nn, hist, ids,
-                                    sc, spd, spf, spi, status, step, ext)
+            fx, fy, fz, pushed = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn,
+                                            hist, ids, sc, spd, spf, spi, status, step, ext)
             if spi[0, I_ACTIVE] != 0:
                 observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
                                hist, spd, spf, ext, torque, spin_inv)
             d2, v2 = kick_drift_one(i, 0, exact, False, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
-                                    inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
+                                    pushed, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)
         publish_maxima(sh, md, mv, par, status)

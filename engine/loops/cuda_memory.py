@@ -169,7 +169,7 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
         "x_ref": 3 * n * pw, "ids": 4 * n, "sc": 4 * n,
         "pos": 3 * n * pw, "vel": 3 * n * w, "omega": 3 * n * w, "quat": 4 * n * w,
         "f_cur": 3 * n * w, "f_nxt": 3 * n * w, "torque": 3 * n * w,
-        "q_last": 8 * n, "begun": 8 * n,
+        "q_last": 8 * n, "begun": 8 * n, "hot": n,
         "scratch": 4 * n * w, "scratch_i": 4 * n, "scratch_l": 8 * n, "order": 4 * n, "inv_old": 4 * n,
         "c_off": 4 * n, "c_cnt": 4 * n,
         "cj": 4 * L.store_cap, "chist": L.hist_words * L.store_cap * w,

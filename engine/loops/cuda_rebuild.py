@@ -105,6 +105,8 @@ class ListBuilds:
         for q, (tmp, a) in enumerate(ints):   # (gather_i32 is typed at launch: the same kernel for int64)
             lc.launch(f"gather_i32/{q}", k["gather_i32"], self._grid(n), (n, a, tmp, self.order))
             _copy(a, tmp, s)
+        # f_nxt and the torque stay in the old order: the next force pass must store every particle's
+        self._forces_unknown()
 
     def _scratch_rows(self, a):
         """The scratch rows that permuted array ``a`` is gathered into: a view made once per row count and

@@ -71,14 +71,14 @@ class ObserveSums:
             pos_out, vel_out = self._fused_out()
             self._lc.launch("forces_observe_kick_drift", self.k["forces_observe_kick_drift"], grid, (
                 n, par, exact, self.pos, pos_out, self.vel, vel_out, spin, self.quat, rad, self.inv_m1, self.f_cur,
-                self.f_nxt, self.torque, spin_inv, self.x_ref, self.nbr, self.nn, self.hist, self.ids, self.sc,
-                self.spd, self.spf, self.spi, self.status, step, ext) + tail)
+                self.f_nxt, self.torque, self.hot, spin_inv, self.x_ref, self.nbr, self.nn, self.hist, self.ids,
+                self.sc, self.spd, self.spf, self.spi, self.status, step, ext) + tail)
             self._swap_fused()
         else:
             self._lc.launch("forces_observe", self.k["forces_observe"], grid, (
                 n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
-                spin_inv, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status,
-                step, ext) + tail)
+                self.hot, spin_inv, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
+                self.status, step, ext) + tail)
 
     def observe(self) -> list:
         """Per scene: the observables of :meth:`CudaBackend.observe` (:meth:`_observables`), None for an

@@ -56,7 +56,7 @@ class TimeLoop:
         spin, _, rad, ext = self._step_arrays()
         n = self.n if n is None else n
         self._lc.launch("forces", self.k["forces"], grid or self._grid(n), (
-            n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque,
+            n, self.pos, self.vel, spin, self.quat, rad, self.inv_m1, self.f_cur, self.f_nxt, self.torque, self.hot,
             self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
 
     def _forces_kick_drift(self, step: int, par: int, exact: int, n: int | None = None, grid=None) -> None:
@@ -66,8 +66,8 @@ class TimeLoop:
         pos_out, vel_out = self._fused_out()
         self._lc.launch("forces_kick_drift", self.k["forces_kick_drift"], grid or self._grid(self.n), (
             self.n if n is None else n, par, exact, self.pos, pos_out, self.vel, vel_out, spin, self.quat, rad,
-            self.inv_m1, self.f_cur, self.f_nxt, self.torque, spin_inv, self.x_ref, self.nbr, self.nn, self.hist,
-            self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
+            self.inv_m1, self.f_cur, self.f_nxt, self.torque, self.hot, spin_inv, self.x_ref, self.nbr, self.nn,
+            self.hist, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
         self._swap_fused()
         self.f_cur, self.f_nxt = self.f_nxt, self.f_cur
 
@@ -90,8 +90,8 @@ class TimeLoop:
         spin, spin_inv, _, ext = self._step_arrays()
         n = self.n if n is None else n
         self._lc.launch("kick_drift", self.k["kick_drift"], grid or self._grid(n), (
-            n, first, exact, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.inv_m1, spin_inv,
-            self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
+            n, first, exact, self.pos, self.vel, spin, self.quat, self.f_cur, self.torque, self.hot, self.inv_m1,
+            spin_inv, self.x_ref, self.ids, self.sc, self.spd, self.spf, self.spi, self.status, step, ext))
 
     def _half_kick(self, n: int | None = None, grid=None) -> None:
         spin, spin_inv, _, _ = self._step_arrays()
@@ -120,14 +120,14 @@ class TimeLoop:
             grid = grid or self._coop_grid("run_steps_fused")
             self._lc.launch("run_steps_fused", self.k["run_steps_fused"], grid, (
                 self.n if n is None else n, nmax, first, float(self._exit_thr if thr is None else thr), self.pos,
-                pos_b, self.vel, vel_b, spin, spin_b, self.quat, self.f_cur, self.f_nxt, self.torque, self.inv_m1,
-                spin_inv, rad, self.x_ref, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf,
-                self.spi, self.status if status is None else status, step0, ext))
+                pos_b, self.vel, vel_b, spin, spin_b, self.quat, self.f_cur, self.f_nxt, self.torque, self.hot,
+                self.inv_m1, spin_inv, rad, self.x_ref, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd,
+                self.spf, self.spi, self.status if status is None else status, step0, ext))
             return
         self._lc.launch("run_steps", self.k["run_steps"], grid or self._coop_grid(), (
             self.n if n is None else n, nmax, first, 0, float(self._exit_thr if thr is None else thr), self.pos,
-            self.vel, spin, self.quat, self.f_cur, self.f_nxt, self.torque, self.inv_m1, spin_inv, rad, self.x_ref,
-            self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
+            self.vel, spin, self.quat, self.f_cur, self.f_nxt, self.torque, self.hot, self.inv_m1, spin_inv, rad,
+            self.x_ref, self.nbr, self.nn, self.hist, self.ids, self.sc, self.spd, self.spf, self.spi,
             self.status if status is None else status, step0, ext))
 
     def warmup(self) -> None:

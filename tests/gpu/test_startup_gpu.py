@@ -53,3 +53,21 @@ def test_a_fresh_process_writes_the_same_file_with_and_without_the_startup_threa
     # cancels O(1) moment ratios against each other, so its rounding is absolute, ~1e-13
     for name in differ:
         assert np.allclose(files["0"][name], files["1"][name], rtol=1e-9, atol=1e-12), (name, differ[name])
+
+
+_EXPLICIT_CUDA = """
+import json, sys
+from numba import cuda  # imported first, as by a script or a worker: the job's first driver call comes at once
+from engine.driver.simulate import run
+from engine.setup.spec import SimulationSpec
+s = run(SimulationSpec(**json.loads(sys.argv[1])), sys.argv[2], backend="cuda")
+print("DONE " + json.dumps(s.steps))
+"""
+
+
+def test_an_explicit_cuda_job_in_a_process_that_imported_numba_cuda_starts(tmp_path):
+    # backend = 'cuda' skips the main thread's probe: its memory query's first driver call came beside the start-up
+    # thread's probe and failed with CUDA_ERROR_NOT_INITIALIZED (in most such processes on an H200)
+    kw = dict(n_particles=4096, volume_fraction=0.1, t_end=0.002, snapshots=0, seed=1, thermalization=0)
+    for k in range(4):
+        assert run_job(_EXPLICIT_CUDA, kw, tmp_path / f"r{k}.h5", {}, "DONE") > 0

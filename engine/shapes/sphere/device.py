@@ -26,9 +26,9 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
   - ``NOBS``, ``OBS_MAX``: the observe sums per scene and the slot that is a maximum;
   - ``translated(k, i, x_old, v, f, im, hp, ext)``: after the shared kick of component k of particle i
     (v = the new velocity, f = the force, x_old = the position before the drift);
-  - ``rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step)``: the shape's rotation step
-    after the shared translation (``step``: the index of the step); returns True when the rotational state is
-    finite;
+  - ``rotate(i, s, spin, quat, torque, torqued, spin_inv, ext, spd, spi, hk, hp, dt, step)``: the shape's rotation
+    step after the shared translation (``step``: the index of the step; ``torqued`` False: the torque is zero and
+    is not to be read); returns True when the rotational state is finite;
   - ``settle_one(i, s, spin, quat, ext, spd, spi, step)`` or None: what the loop does to particle i when an
     advance call ends at ``step``, before the closing half kick (spheres: the lazy orientations brought up to
     date); None: nothing, no kernel launched;
@@ -112,17 +112,20 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             last[i] = step
 
     @cuda.jit(device=True)
-    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step):
+    def rotate(i, s, spin, quat, torque, torqued, spin_inv, ext, spd, spi, hk, hp, dt, step):
         """w += tau/I hk (rough); the orientation (when tracked) lazily, as on the CPU
         (engine/shapes/sphere/kernels.py ``rotate``): ext[0][i] is the step from which sphere i's turns are
         pending, all with the spin it has; only a torque about to change that spin brings q up to date (before
         the kick), and :func:`settle_one` when the loop returns. A free sphere reads and writes no quaternion, and
         no spin: a kick by a zero torque leaves w as it is (w + 0 is w, a -0.0 kept), finite since its last kick,
-        so a sphere out of contact (most of a dilute gas) costs the torque's read alone. The spin array is the one
+        so a sphere out of contact (most of a dilute gas) costs nothing, or the torque's read where the loop does not
+        know it zero (``torqued``). The spin array is the one
         the kick acts on in place (the fused many-steps kernel copies it into its output half first)."""
         omega = spin
         w2 = ZERO
         if ROUGH:
+            if not torqued:
+                return True
             tx = torque[0, i]
             ty = torque[1, i]
             tz = torque[2, i]

@@ -81,10 +81,11 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
         ext[1][k, i] = kick(v, f, im, hp)
 
     @cuda.jit(device=True)
-    def rotate(i, s, spin, quat, torque, spin_inv, ext, spd, spi, hk, hp, dt, step):
+    def rotate(i, s, spin, quat, torque, torqued, spin_inv, ext, spd, spi, hk, hp, dt, step):
         """The orientation before the step into quat_prev, then the gather from and scatter into this backend's
         layout of the spheroid's one rotation step (law.spheroid_rotation: L += tau hk, q by Fincham's leap-frog,
-        the predicted space-frame w at t + dt into omega_p). True when L and q are finite."""
+        the predicted space-frame w at t + dt into omega_p). True when L and q are finite. ``torqued`` False: the
+        torque is zero (+0.0, as the force pass sums it) and is not read."""
         angm = spin
         omega_p = ext[2]
         quat_prev = ext[4]
@@ -98,9 +99,14 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             ii1 = spin_inv[0, i]
             ii2 = spin_inv[1, i]
             ii3 = spin_inv[2, i]
+        tx = ty = tz = ZERO
+        if torqued:
+            tx = torque[0, i]
+            ty = torque[1, i]
+            tz = torque[2, i]
         lx, ly, lz, q0, q1, q2, q3, wx, wy, wz = spheroid_rotation(
             quat[0, i], quat[1, i], quat[2, i], quat[3, i], angm[0, i], angm[1, i], angm[2, i],
-            torque[0, i], torque[1, i], torque[2, i], ii1, ii2, ii3, hk, hp, dt, HALF)
+            tx, ty, tz, ii1, ii2, ii3, hk, hp, dt, HALF)
         angm[0, i] = lx
         angm[1, i] = ly
         angm[2, i] = lz
