@@ -7,9 +7,10 @@ each with its DRAM bytes read and written, its duration and the DRAM throughput 
 (``gpu__dram_throughput``), the warps active and the registers. The table gives, per kernel, the median over its
 launches of the bytes per particle (read + written over N) and of the percentage of peak, and the step's total
 (the kernels of one step: forces + kick_drift, or the fused forces_kick_drift). The clocks are left alone
-(``--clock-control none``, as the timed benchmarks run). The profiled process runs without the start-up threads
-(loop_ab's ``startup`` switch): under Nsight Compute's injection, the driver start-up thread's ``cuInit`` and
-numba-cuda's first context call raced (CUDA_ERROR_NOT_INITIALIZED); the loop's kernels are the same.
+(``--clock-control none``, as the timed benchmarks run). The profiled process runs without the GPU start-up
+threads (loop_ab's ``startup`` switch): the loop's kernels are the same, and no second thread calls the driver
+while Nsight Compute's injection starts (before engine/driver/simulate.py waited for the start-up thread's probe,
+5 of 6 such runs crashed at their first CUDA call).
 
     python -m bench step_bytes --cases rough-8M-f32 elastic-8M-f32 --variants default skip_cold
     python -m bench step_bytes --cases rough-8M-f32 --phi 0.2
