@@ -139,8 +139,8 @@ def _blocks(table: dict | None, shape: str, dtype, flags: tuple):
     return table.get((shape, np.dtype(dtype).str, flags), table.get("*"))
 
 
-def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None, SKIP=True):  # noqa: C901  (one closure per
-    # specialisation)
+def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: C901  (a closure per specialisation)
+          SKIP=True):
     ZERO = DT(0)
     HALF = DT(0.5)
     BIG = DT(np.finfo(DT).max)
