@@ -119,8 +119,8 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         the kick), and :func:`settle_one` when the loop returns. A free sphere reads and writes no quaternion, and
         no spin: a kick by a zero torque leaves w as it is (w + 0 is w, a -0.0 kept), finite since its last kick,
         so a sphere out of contact (most of a dilute gas) costs nothing, or the torque's read where the loop does not
-        know it zero (``torqued``). The spin array is the one
-        the kick acts on in place (the fused many-steps kernel copies it into its output half first)."""
+        know it zero (``torqued``). The spin array is the one the kick acts on in place (the fused many-steps kernel
+        copies it into its output half first)."""
         omega = spin
         w2 = ZERO
         if ROUGH:
