@@ -37,7 +37,7 @@ BENCHMARKS: dict[str, bool] = {
     # accuracy against cost, stability, bit identity
     "accuracy": True, "stability": True, "bit_identity": False,
     # the service under load
-    "load_service": False, "small_jobs": True, "first_job": True,
+    "load_service": False, "small_jobs": True, "first_job": True, "gpu_workers": True,
 }
 
 

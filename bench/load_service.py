@@ -41,7 +41,7 @@ def instant_run(spec, output, **_):
     tmp.write_bytes(b"")
     os.replace(tmp, output)
     return SimpleNamespace(output=Path(output), backend="instant", device="none", n_particles=spec.n_particles,
-                           steps=0, loop_s=0.0, job_wall_s=0.0, cundall=0.0, resumed_from_step=None)
+                           steps=0, loop_s=0.0, job_wall_s=0.0, cundall=0.0, resumed_from_step=None, extra={})
 
 
 def _free_port() -> int:

@@ -7,8 +7,10 @@ prints one JSON line per run: the loop and end-to-end Cundall numbers and the ne
 ``displacement_bound``), ``multistep_on`` (the many-steps-per-launch loop forced for a large scene), ``blocks=B``
 (every force kernel compiled for B blocks per SM: engine/loops/cuda_loop.py FORCES_BLOCKS_PER_SM; ``blocks=0``: none
 compiled with launch bounds), ``observe_blocks=B`` (the same for the force passes that also sum a record's
-observables: OBSERVE_BLOCKS_PER_SM), ``gc_off`` (Python's cyclic garbage collector off during the run). For the cost
-of one piece of machinery inside the loop, without the fresh-process noise of bench/e2e.py.
+observables: OBSERVE_BLOCKS_PER_SM), ``gc_off`` (Python's cyclic garbage collector off during the run),
+``own_scratch`` (a rebuild's scratch in arrays of its own, not lent by the list and the force buffer:
+engine/loops/cuda_rebuild.py LEND_SCRATCH). For the cost of one piece of machinery inside the loop, without the
+fresh-process noise of bench/e2e.py.
 
     python -m bench loop_ab --cases elastic-2M-f64 elastic-8M-f32 --variants launch_cache default multistep_on
     python -m bench loop_ab --cases rough-2M-f64 --variants default blocks=2 blocks=3
@@ -44,11 +46,13 @@ def apply(variant: str, default_blocks) -> None:
     from bench.e2e import SWITCHES, switch_off
     import engine.loops.cuda_ensemble as ensemble
     import engine.loops.cuda_loop as loop
+    import engine.loops.cuda_rebuild as rebuild
 
     for module, setting, _ in SWITCHES.values():
         mod = importlib.import_module(module)
         setattr(mod, setting, None if (module, setting) == ("engine.loops.cuda_ensemble", "MULTISTEP") else True)
     loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = default_blocks
+    rebuild.LEND_SCRATCH = True
     gc.enable()
     off = []
     for part in ([] if variant == "default" else variant.split("+")):
@@ -56,6 +60,8 @@ def apply(variant: str, default_blocks) -> None:
             gc.disable()
         elif part == "multistep_on":
             ensemble.MULTISTEP = True
+        elif part == "own_scratch":
+            rebuild.LEND_SCRATCH = False
         elif part.startswith("blocks="):
             b = int(part.split("=", 1)[1])
             loop.FORCES_BLOCKS_PER_SM = {"*": b} if b > 0 else None

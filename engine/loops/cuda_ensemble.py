@@ -45,6 +45,7 @@ from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_frames import StateFrames
 from engine.loops.cuda_launch import LaunchCache
+from engine.loops.cuda_memory import FIRST_STRIDE
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
@@ -102,7 +103,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._views()
         self._init_scratch()
         self._init_tables(systems, contacts)
-        self._alloc_list(8)
+        self._alloc_list(FIRST_STRIDE)
         for s, c in enumerate(contacts):
             self._set_scene_contact(s, c)
         self._upload_params()
@@ -155,20 +156,13 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
                                                  self.sc)
 
     def _init_scratch(self) -> None:
-        """Scratch arrays of the permutation and the list build, the compact store and the status words."""
-        n, dt_, nk = self.n, self.dtype, self.n_scenes
-        # scratch for permutations (4 rows covers the quaternion)
-        self.scratch = cuda.device_array((4, n), dt_, stream=self.stream)
-        # ... and for the positions when they are kept in another precision ('mixed')
-        self.scratch_x = self.scratch if self.pos_dtype is dt_ else cuda.device_array((3, n), self.pos_dtype,
-                                                                                      stream=self.stream)
-        self.scratch_i = cuda.device_array(n, np.int32, stream=self.stream)
-        self._scratch_views = {}                # ListBuilds._scratch_rows
-        self.scratch_l = cuda.device_array(n if self._permuted_i64() else 1, np.int64, stream=self.stream)
+        """The permutation's order, the compact store's index, the compact store and the status words. (The
+        permutation's scratch rows and the cells' counts lie in the list's memory, the compact store's index in the
+        next force buffer's: ListBuilds._in_list, _store_index.)"""
+        n, nk = self.n, self.n_scenes
         self.order = cuda.device_array(n, np.int32, stream=self.stream)
         self.inv_old = cuda.device_array(n, np.int32, stream=self.stream)
-        self.c_off = self._zeros(n, np.int32)
-        self.c_cnt = self._zeros(n, np.int32)
+        self._init_store_index()
         # which particles' force buffers may hold something other than zero (cuda_loop SKIP_COLD)
         self.hot = cuda.device_array(n, np.uint8, stream=self.stream)
         self._forces_unknown()

@@ -162,19 +162,19 @@ class SphereLayout:
 
 def sphere_account(L: SphereLayout) -> dict[str, int]:
     """{array: bytes} of a sphere ensemble on the device, named as :func:`device_allocations` finds them: the state,
-    forces, the permutation's scratch, the Verlet list with its contact history, the cells, the compact store, the
-    records' accumulators and (when used) the double buffers and the state staging."""
+    forces, the permutation's order, the Verlet list with its contact history, the cells, the compact store, the
+    records' accumulators and (when used) the double buffers and the state staging. A rebuild's scratch takes no
+    memory of its own: the permutation's rows and the cells' counts lie in the list, the compact store's index in
+    the next force buffer (engine/loops/cuda_rebuild.py ``LEND_SCRATCH``)."""
     n, w, pw = L.n, L.word, L.pos_word
     a = {
         "x_ref": 3 * n * pw, "ids": 4 * n, "sc": 4 * n,
         "pos": 3 * n * pw, "vel": 3 * n * w, "omega": 3 * n * w, "quat": 4 * n * w,
         "f_cur": 3 * n * w, "f_nxt": 3 * n * w, "torque": 3 * n * w,
-        "q_last": 8 * n, "begun": 8 * n, "hot": n,
-        "scratch": 4 * n * w, "scratch_i": 4 * n, "scratch_l": 8 * n, "order": 4 * n, "inv_old": 4 * n,
-        "c_off": 4 * n, "c_cnt": 4 * n,
+        "q_last": 8 * n, "begun": 8 * n, "hot": n, "order": 4 * n, "inv_old": 4 * n,
         "cj": 4 * L.store_cap, "chist": L.hist_words * L.store_cap * w,
         "nbr": 4 * L.stride * n, "nn": 4 * n, "hist": L.hist_words * L.stride * n * w,
-        "count": 4 * (L.ncell + 1), "cell_start": 4 * (L.ncell + 1),
+        "cell_start": 4 * (L.ncell + 1),
         "_sums.acc": 8 * L.n_scenes * L.nobs, "_rows.acc": 8 * L.record_rows * L.nobs,
     }
     nd, nf, ni, status = L.scene_words
@@ -182,8 +182,8 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
     tile = L.tpb * 16
     blocks = max(1, (L.ncell + 1 + tile - 1) // tile)
     a.update({"_scan_cells.bsum": 4 * blocks, "_scan_cells.bsum_scan": 4 * blocks, "_scan_cells.bsum_tot": 4})
-    if pw != w:
-        a["scratch_x"] = 3 * n * pw
+    if L.ncell + 1 > FIRST_STRIDE * n:     # cell counts that the first list cannot lend room to
+        a["_count_own"] = 4 * (L.ncell + 1)
     if L.uniform:
         a["radius"] = w
     else:

@@ -19,11 +19,15 @@ from numba import cuda
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
+from engine.loops.cuda_memory import FIRST_STRIDE
 from engine.loops.system import SphereSystem
 
 #: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
 #: history, set it for the cost comparison with the multigrid build)
 MULTIGRID = True
+#: True: a rebuild's scratch lies in memory that holds nothing needed while it is used (:meth:`ListBuilds._in_list`,
+#: :meth:`ListBuilds._store_index`); False: arrays of its own (tests compare the two)
+LEND_SCRATCH = True
 
 
 class ListBuilds:
@@ -32,9 +36,13 @@ class ListBuilds:
 
     def _setup_scan(self) -> None:
         s = self.stream
-        self.count = cuda.device_array(self.ncell + 1, np.int32, stream=s)
         self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=s)
         self._scan_cells = self._scan_buffers(self.ncell + 1)
+        # the cells' counts lie in the list's neighbour indices (:meth:`_cell_counts`) unless the first list is
+        # smaller than them (a few particles in many cells)
+        self._count_own = None
+        if not LEND_SCRATCH or self.ncell + 1 > FIRST_STRIDE * self.n:
+            self._count_own = cuda.device_array(self.ncell + 1, np.int32, stream=s)
 
     def _scan_buffers(self, m: int) -> SimpleNamespace:
         """Block-sum buffers of an exclusive scan of m int32 counts (tiles of tpb * 16)."""
@@ -55,6 +63,11 @@ class ListBuilds:
     def _alloc_list(self, max_nb: int) -> None:
         s = self.stream
         self.max_nb = max_nb
+        # the old list and the views lent from it (:meth:`_in_list`) go first: the old list can then be freed before
+        # the new one is made (the kept history is in the compact store); nbr and hist are named before the views
+        # (cuda_memory.device_allocations counts an allocation under the first name it meets)
+        self.nbr = self.hist = None
+        self._list_views = {}
         self.nbr = cuda.device_array((max_nb, self.n), np.int32, stream=s)
         self.nn = self._zeros(self.n, np.int32)
         self.hist = cuda.device_array((self.hist_words, max_nb, self.n), self.dtype, stream=s)
@@ -81,15 +94,18 @@ class ListBuilds:
         self.lists = HostLists(self, mode)
 
     def _sort_and_permute(self) -> None:
+        """Particles into cell order (sorted by id within a cell), between the compaction of the kept history and
+        the new list's build: the list's memory is the scratch here (:meth:`_in_list`)."""
         k, n, s, lc = self.k, self.n, self.stream, self._lc
-        lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (self.count, 0))
+        count = self._cell_counts()
+        lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (count, 0))
         lc.launch("count_cells", k["count_cells"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
-                                                                     self.count))
+                                                                     count))
         # exclusive scan of ncell + 1 counts (the last is 0) -> cell_start, cell_start[ncell] = n
-        self._exclusive_scan(self.count, self.cell_start, self._scan_cells)
-        lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (self.count, 0))
+        self._exclusive_scan(count, self.cell_start, self._scan_cells)
+        lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (count, 0))
         lc.launch("scatter", k["scatter"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
-                                                            self.cell_start, self.count, self.order))
+                                                            self.cell_start, count, self.order))
         lc.launch("sort_cells", k["sort_cells"], self._grid(self.ncell), (self.ncell, self.cell_start, self.order,
                                                                            self.ids))
         lc.launch("inverse_perm", k["inverse_perm"], self._grid(n), (n, self.order, self.inv_old))
@@ -100,23 +116,70 @@ class ListBuilds:
             tmp = self._scratch_rows(a)
             lc.launch(f"gather_rows/{q}", k["gather_rows"], self._grid(n), (n, a, tmp, self.order))
             _copy(a, tmp, s)
-        ints = [(self.scratch_i, a) for a in ((self.ids, self.lvl) if self.multigrid else (self.ids,))]
-        ints += [(self.scratch_l, a) for a in self._permuted_i64()]
-        for q, (tmp, a) in enumerate(ints):   # (gather_i32 is typed at launch: the same kernel for int64)
+        ints = ((self.ids, self.lvl) if self.multigrid else (self.ids,)) + tuple(self._permuted_i64())
+        for q, a in enumerate(ints):   # (gather_i32 is typed at launch: the same kernel for int64)
+            tmp = self._scratch_rows(a)
             lc.launch(f"gather_i32/{q}", k["gather_i32"], self._grid(n), (n, a, tmp, self.order))
             _copy(a, tmp, s)
         # f_nxt and the torque stay in the old order: the next force pass must store every particle's
         self._forces_unknown()
 
     def _scratch_rows(self, a):
-        """The scratch rows that permuted array ``a`` is gathered into: a view made once per row count and
-        precision (the launch cache knows its arrays by identity)."""
-        base = self.scratch if a.dtype == self.scratch.dtype else self.scratch_x
-        key = (id(base), a.shape[0])
-        view = self._scratch_views.get(key)
+        """The scratch that permuted array ``a`` (rows x N, or N) is gathered into, in the memory of the contact
+        history (:meth:`_in_list`)."""
+        return self._in_list(self.hist, a.dtype, a.shape)
+
+    def _cell_counts(self):
+        """The per-cell counts of a rebuild's sort (ncell + 1 int32), in the list's neighbour indices."""
+        if self._count_own is not None:
+            return self._count_own
+        return self._in_list(self.nbr, np.int32, (self.ncell + 1,))
+
+    def _in_list(self, base, dtype, shape: tuple):
+        """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of list array ``base`` (nbr or hist),
+        made once per list allocation (the launch cache knows its arrays by identity). Valid only between the
+        compaction of the kept history and the new list's build, when the list holds nothing needed: a rebuild's
+        sort and permutation. Its own array where ``LEND_SCRATCH`` is off; the list is always the larger (5 words
+        of history and 4 B of index per slot, at least FIRST_STRIDE slots a particle, against at most 4 words and
+        ncell + 1 <= FIRST_STRIDE N counts, :meth:`_setup_scan`)."""
+        dtype = np.dtype(dtype)
+        key = (id(base), dtype.str, tuple(shape))
+        view = self._list_views.get(key)
         if view is None:
-            view = self._scratch_views[key] = base[:a.shape[0]]
+            size = int(np.prod(shape))
+            if not LEND_SCRATCH:
+                view = cuda.device_array(shape, dtype, stream=self.stream)
+            else:
+                flat = base.reshape(base.size).view(dtype)
+                if flat.size < size:
+                    raise RuntimeError(f"a rebuild's scratch of {size} x {dtype} exceeds the list's {base.nbytes} B")
+                view = flat[:size].reshape(*shape)
+            self._list_views[key] = view
         return view
+
+    def _init_store_index(self) -> None:
+        """The compact store's index (c_off, c_cnt: int32 N each) where it cannot lie in the next force buffer
+        (:meth:`_store_index`): a shape with one force buffer (spheroids), or ``LEND_SCRATCH`` off."""
+        self._store_views = {}
+        self._c_own = None
+        self.c_off = self.c_cnt = None     # set by each compaction (_compact)
+        if self.f_nxt is self.f_cur or not LEND_SCRATCH:
+            self._c_own = (self._zeros(self.n, np.int32), self._zeros(self.n, np.int32))
+            self.c_off, self.c_cnt = self._c_own
+
+    def _store_index(self) -> tuple:
+        """(c_off, c_cnt) of a rebuild: where each particle's kept history starts in the compact store and how many
+        slots it kept, written by the compaction and read by the build (or the attachment of a host-built list).
+        They lie in the force buffer the next force pass writes (``f_nxt``, 3 words N): nothing reads it before
+        that pass, which stores every particle's force after a rebuild (``_forces_unknown``, cuda_loop
+        ``SKIP_COLD``) and runs only after the build. One pair of views per buffer (they alternate)."""
+        if self._c_own is not None:
+            return self._c_own
+        got = self._store_views.get(id(self.f_nxt))
+        if got is None:
+            flat = self.f_nxt.reshape(self.f_nxt.size).view(np.int32)
+            got = self._store_views[id(self.f_nxt)] = (self.f_nxt, flat[:self.n], flat[self.n:2 * self.n])
+        return got[1], got[2]
 
     def _set_status(self, slot: int, value: float) -> None:
         """status[slot] = value, in stream order."""
@@ -124,6 +187,7 @@ class ListBuilds:
 
     def _compact(self) -> None:
         """Copy the history that must survive the rebuild into the compact store (grown when full)."""
+        self.c_off, self.c_cnt = self._store_index()
         while True:
             self._set_status(K.S_NCOMP, 0.0)
             self._lc.launch("compact", self.k["compact"], self._grid(self.n), (

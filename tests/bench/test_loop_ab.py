@@ -53,3 +53,18 @@ def test_blocks_variants_set_the_force_and_observing_launch_bounds_and_default_r
         assert (loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM) == blocks
     finally:
         loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = blocks
+
+
+def test_the_own_scratch_variant_gives_the_rebuild_its_own_scratch_and_default_lends_it_again():
+    import engine.loops.cuda_loop as loop
+    import engine.loops.cuda_rebuild as rebuild
+
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
+    try:
+        loop_ab.apply("own_scratch", blocks)
+        assert rebuild.LEND_SCRATCH is False
+        loop_ab.apply("default", blocks)
+        assert rebuild.LEND_SCRATCH is True
+    finally:
+        rebuild.LEND_SCRATCH = True
+        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = blocks
