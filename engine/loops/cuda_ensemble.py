@@ -418,14 +418,17 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.stream.synchronize()
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         sl = slice(a0, a0 + n_k)
-        nbr, nn, hist, ids_k = nbr[:, sl], nn[sl], hist[:, :, sl], ids[sl]
+        nbr, count, row, ids_k = nbr[:, sl], nn[0, sl], nn[1, sl], ids[sl]
         m = nbr.shape[0]
-        slot = np.arange(m)[:, None] < np.minimum(nn, m)[None, :]
-        kk, ii = np.nonzero(slot & (hist[3] > 0))
+        slot = np.arange(m)[:, None] < np.minimum(count, m)[None, :]
+        kk, ii = np.nonzero(slot)
+        q = row[ii] + kk                                  # the slots' history (cuda_kernels: the list's layout)
+        touching = hist[3, q] > 0
+        kk, ii, q = kk[touching], ii[touching], q[touching]
         order = np.lexsort((kk, ids_k[ii]))
-        kk, ii = kk[order], ii[order]
+        kk, ii, q = kk[order], ii[order], q[order]
         pairs = np.stack([ids_k[ii] - a0, ids[nbr[kk, ii]] - a0], axis=1).astype(np.int64)
-        springs = np.ascontiguousarray(hist[:, kk, ii].T).astype(self.dtype)
+        springs = np.ascontiguousarray(hist[:, q].T).astype(self.dtype)
         return pairs, springs
 
     # ---- introspection (bench) ----------------------------------------------------------------------

@@ -60,13 +60,19 @@ NI = 6
 # (and S_V2B, its other parity): max (2 |v| dt / (L_v/2))^2
 # S_CHECK: max (displacement from a list's snapshot / (L_v/2))^2, the a-posteriori check of a CPU-built list
 # S_D2C: the third slot of the fused many-steps kernel, which rotates the step maxima through S_D2, S_D2B, S_D2C
-S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK, S_V2B, S_D2C = range(10)
-SS0 = 10
+# S_SLOTS: the history slots of a new list's rows (slot_total; ListBuilds._alloc_hist)
+S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK, S_V2B, S_D2C, S_SLOTS = range(11)
+SS0 = 11
 # per-scene status words
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5
 HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force (a shape's
 #        pair law may keep more: the host allocates hist/chist with its own count, the kernels read shape[0])
+# The list: nbr[kk, i] the neighbour in slot kk of particle i (stride S = nbr.shape[0] slots a particle); nn (2, N + 1):
+# nn[0, i] the count of i's slots (a build's output), nn[1, i] where i's slots' history starts in hist (words x
+# slots), nn[1, N] the slots in all: the history of slot kk is hist[:, nn[1, i] + kk], the rows back to back in particle
+# order (an exclusive scan of nn[0]; only the slots in use hold history, neighbouring threads read neighbouring
+# history), and the time loop reads a row's count as nn[1, i + 1] - nn[1, i] (one cache line a warp, not two)
 
 _cache: dict = {}
 
@@ -304,9 +310,10 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             inv[order[k]] = k
 
     @cuda.jit(device=True)
-    def keeps_history(i, kk, j, pos, radius, hist, s, spd):
-        """A slot whose history must survive a rebuild: in contact at the previous step or now."""
-        if hist[3, kk, i] > ZERO:
+    def keeps_history(i, q, j, pos, radius, hist, s, spd):
+        """A slot (history slot q of particle i, neighbour j) whose history must survive a rebuild: in contact at the
+        previous step or now."""
+        if hist[3, q] > ZERO:
             return True
         box = spd[s, D_BOX]
         inv_box = spd[s, D_INVBOX]
@@ -326,10 +333,11 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             s = sc[i]
             cnt = 0
-            no = min(nn[i], m)
+            no = min(nn[0, i], m)
+            h0 = nn[1, i]
             if spi[s, I_ACTIVE] != 0:
                 for kk in range(no):
-                    if keeps_history(i, kk, nbr[kk, i], pos, radius, hist, s, spd):
+                    if keeps_history(i, h0 + kk, nbr[kk, i], pos, radius, hist, s, spd):
                         cnt += 1
             off = 0
             if cnt > 0:
@@ -340,23 +348,20 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                 q = off
                 for kk in range(no):
                     j = nbr[kk, i]
-                    if keeps_history(i, kk, j, pos, radius, hist, s, spd):
+                    if keeps_history(i, h0 + kk, j, pos, radius, hist, s, spd):
                         cj[q] = j
                         for w in range(chist.shape[0]):
-                            chist[w, q] = hist[w, kk, i]
+                            chist[w, q] = hist[w, h0 + kk]
                         q += 1
 
     @cuda.jit
     def build(n, pos, radius, cell_start, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, x_ref, sc,
               spd, spf, spi, status):
-        """Full Verlet list in the sorted order; kept history found in the compact store.
-
-        The compact store is indexed by the previous order: the old slot of new i is order[i]; an old
-        neighbour index o maps to the new index inv_old[o]. nn[i] gets the true count even beyond the
-        stride (the host grows the list and reruns when it does not fit).
-        """
+        """Full Verlet list in the sorted order: neighbours and counts. nn[0, i] gets the true count even beyond the
+        stride, status[S_NEED_NB] the largest (the host grows the list and reruns when it does not fit). The rows'
+        history slots are handed out afterwards (a scan of nn[0] into nn[1]) and filled from the compact store by
+        :func:`fill_history` (the store, order and inv_old arguments are that kernel's)."""
         sh = cuda.shared.array(SH2, ct.float64)
-        max_nb = nbr.shape[0]
         need = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
@@ -367,28 +372,64 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             r0 = spd[s, D_R0]
             cx, cy, cz = cell_coords(xi, yi, zi, spf[s, F_INVCELL], nc)
             ri = r0 if UNIFORM else radius[i]
-            oi = order[i]
-            k0 = c_off[oi]
-            k1 = k0 + c_cnt[oi]
             cnt = 0
             for k in range(neighbour_cell_count(nc)):
                 cc = coff + neighbour_cell(cx, cy, cz, k, nc)
                 for j in range(cell_start[cc], cell_start[cc + 1]):
                     rj = r0 if UNIFORM else radius[j]
-                    c2, d2 = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr)
-                    if c2 > cnt and cnt < max_nb:
-                        init_slot(i, cnt, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
-                    cnt = c2
-            nn[i] = cnt
+                    cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr)
+            nn[0, i] = cnt
             if cnt > need:
                 need = f64(cnt)
         block_max2(sh, need, 0.0)
         if cuda.threadIdx.x == 0:
             cuda.atomic.max(status, S_NEED_NB, sh[0])
 
-    return dict(fill_i32=fill_i32, set_word=set_word, count_cells=count_cells, tile_scan=tile_scan,
-                add_offsets=add_offsets, scatter=scatter, sort_cells=sort_cells, gather_rows=gather_rows,
-                gather_i32=gather_i32, inverse_perm=inverse_perm, compact=compact, build=build)
+    @cuda.jit
+    def slot_total(n, nn, status):
+        """nn[1, n] and status[S_SLOTS] = the history slots of the list's rows, nn[1, n-1] + nn[0, n-1] (after the scan
+        of the counts nn[0] into the rows' first slots nn[1]; in int64 for the status: the host checks it)."""
+        if cuda.grid(1) == 0:
+            total = np.int64(0)
+            if n > 0:
+                total = np.int64(nn[1, n - 1]) + np.int64(nn[0, n - 1])
+            nn[1, n] = total
+            status[S_SLOTS] = f64(total)
+
+    @cuda.jit
+    def fill_history(n, pos, radius, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, sc, spd, spi):
+        """The history of every slot of a list built on the GPU (single grid or multigrid), in its row's slots
+        hist[:, nn[1, i] + kk]: the kept history from the compact store, indexed by the previous order (old slot of
+        new i: order[i]; old neighbour index o: new index inv_old[o]), else a fresh slot whose previous overlap is
+        the gap R_i + R_j - |r_ij| from the candidate test's own squared distance (cells.distance2)."""
+        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            s = sc[i]
+            if spi[s, I_ACTIVE] == 0:
+                continue
+            cnt = nn[0, i]
+            if cnt == 0:
+                continue
+            h0 = nn[1, i]
+            box = spd[s, D_BOX]
+            inv_box = spd[s, D_INVBOX]
+            r0 = spd[s, D_R0]
+            ri = r0 if UNIFORM else radius[i]
+            xi = pos[0, i]
+            yi = pos[1, i]
+            zi = pos[2, i]
+            oi = order[i]
+            k0 = c_off[oi]
+            k1 = k0 + c_cnt[oi]
+            for kk in range(cnt):
+                j = nbr[kk, i]
+                rj = r0 if UNIFORM else radius[j]
+                d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, HALF)
+                init_slot(h0 + kk, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
+
+    return dict(fill_i32=fill_i32, set_word=set_word, slot_total=slot_total, fill_history=fill_history,
+                count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets, scatter=scatter,
+                sort_cells=sort_cells, gather_rows=gather_rows, gather_i32=gather_i32, inverse_perm=inverse_perm,
+                compact=compact, build=build)
 
 
 @cuda.jit
@@ -450,7 +491,7 @@ def list_origin(i, pos, x_ref, nn, sc, spd, spi):
     inv_box = spd[s, D_INVBOX]
     skin = spd[s, D_SKIN]
     if spi[s, I_ACTIVE] == 0:
-        nn[i] = 0
+        nn[0, i] = 0
         return xi, yi, zi, -1, box, inv_box, skin
     return xi, yi, zi, s, box, inv_box, skin
 
@@ -472,15 +513,15 @@ def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, 
 
 
 @cuda.jit(device=True)
-def init_slot(i, kk, j, gap, k0, k1, cj, chist, inv_old, hist):
-    """History of list slot kk of particle i (neighbour j) after a rebuild: the kept history from the
-    compact store entries k0..k1 of i (old indices o map to new ones by inv_old[o]), else a fresh slot
-    (zero spring, zero dashpot force, previous overlap = the current gap, m)."""
-    for q in range(k0, k1):
-        if inv_old[cj[q]] == j:
+def init_slot(q, j, gap, k0, k1, cj, chist, inv_old, hist):
+    """History slot q (neighbour j) after a rebuild: the kept history from the compact store entries k0..k1 of its
+    particle (old indices o map to new ones by inv_old[o]), else a fresh slot (zero spring, zero dashpot force,
+    previous overlap = the current gap, m)."""
+    for c in range(k0, k1):
+        if inv_old[cj[c]] == j:
             for w in range(hist.shape[0]):
-                hist[w, kk, i] = chist[w, q]
+                hist[w, q] = chist[w, c]
             return
     for w in range(hist.shape[0]):
-        hist[w, kk, i] = 0
-    hist[3, kk, i] = gap
+        hist[w, q] = 0
+    hist[3, q] = gap

@@ -52,6 +52,7 @@ from numba import cuda
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
+from engine.loops.cuda_memory import grown_history
 
 MODES = ("gpu", "cpu-sequential", "cpu-pipelined", "auto")
 #: stages of the GPU list measured before the first prediction, stages a candidate mode is tried, and
@@ -139,7 +140,7 @@ class HostLists:
         if self._host is None or self._host["nbr"].shape[0] != max_nb:
             pos = self._host["pos"] if self._host is not None else cuda.pinned_array((3, n), self.ens.pos_dtype)
             self._host = {"pos": pos, "nbr": cuda.pinned_array((max_nb, n), np.int32),
-                          "nn": cuda.pinned_array(n, np.int32)}
+                          "nn": cuda.pinned_array(n, np.int32), "rows": cuda.pinned_array((2, n + 1), np.int32)}
 
     # ---- the three pieces of a CPU build ------------------------------------------------------------
 
@@ -167,8 +168,18 @@ class HostLists:
         st = ens.stream
         t0 = time.perf_counter()
         h = self._host
+        # the rows' history slots, back to back in particle order (the device builds hand them out instead)
+        rows, counts = h["rows"], h["nn"]
+        slots = int(counts.sum(dtype=np.int64))
+        ens._check_slots(slots)
+        rows[0, :-1] = counts
+        rows[0, -1] = 0
+        rows[1, 0] = 0
+        np.cumsum(counts, out=rows[1, 1:])
+        if slots > ens.hist.shape[1]:
+            ens._alloc_hist(grown_history(slots))
         ens.nbr.copy_to_device(h["nbr"], stream=st)
-        ens.nn.copy_to_device(h["nn"], stream=st)
+        ens.nn.copy_to_device(rows, stream=st)
         st.synchronize()
         t_up = time.perf_counter() - t0
         ens.kl["attach"][ens._grid(ens.n)](ens.n, ens.pos, ens.radius1, 0 if not ens.uniform else 1, ens.c_off,

@@ -88,8 +88,9 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
     def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, c_off, c_cnt, cj, chist, order, inv_old, nbr,
                  nn, hist, x_ref, sc, spd, spi, status):
         """Full Verlet list over the grid levels (module docstring); kept history from the compact store
-        (indexed by the previous order, as in the single-grid build); true counts in nn, the largest in
-        status[S_NEED_NB] (the host grows the list and reruns when it does not fit)."""
+        (indexed by the previous order, as in the single-grid build); true counts in nn[0], the largest in
+        status[S_NEED_NB] (the host grows the list and reruns when it does not fit); the history follows as in the
+        single-grid build (cuda_kernels.fill_history)."""
         need = 0.0
         sh = cuda.shared.array(SH2, ct.float64)
         max_nb = nbr.shape[0]
@@ -112,11 +113,11 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                             j = items[p]
                             cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, radius[j], skin, pos, box, inv_box,
                                                    HALF, nbr)
-            nn[i] = cnt
+            nn[0, i] = cnt
             if cnt > need:
                 need = np.float64(cnt)
             if cnt <= max_nb:
-                # sort the row by neighbour index (binning order is atomic), then attach history
+                # sort the row by neighbour index (binning order is atomic); the history follows (fill_history)
                 for p in range(1, cnt):
                     v = nbr[p, i]
                     q = p - 1
@@ -124,13 +125,6 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                         nbr[q + 1, i] = nbr[q, i]
                         q -= 1
                     nbr[q + 1, i] = v
-                oi = order[i]
-                k0 = c_off[oi]
-                k1 = k0 + c_cnt[oi]
-                for kk in range(cnt):
-                    j = nbr[kk, i]
-                    init_slot(i, kk, j, gap_of(i, j, ri, radius[j], pos, box, inv_box), k0, k1, cj, chist,
-                              inv_old, hist)
         block_max2(sh, need, 0.0)
         if cuda.threadIdx.x == 0:
             cuda.atomic.max(status, S_NEED_NB, sh[0])
@@ -138,11 +132,12 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
     @cuda.jit
     def attach(n, pos, radius, uniform, c_off, c_cnt, cj, chist, inv_old, nbr, nn, hist, sc, spd, spi):
         """History of every slot of a list uploaded from the host (no particle permutation since the
-        compaction: the store is indexed by the current order, inv_old is the identity)."""
+        compaction: the store is indexed by the current order, inv_old is the identity), into the history rows
+        the host handed out (nn[1])."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             s = sc[i]
             if spi[s, I_ACTIVE] == 0:
-                nn[i] = 0
+                nn[0, i] = 0
                 continue
             box = spd[s, D_BOX]
             inv_box = spd[s, D_INVBOX]
@@ -150,10 +145,11 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
             k1 = k0 + c_cnt[i]
             r0 = spd[s, D_R0]
             ri = r0 if uniform else radius[i]
-            for kk in range(nn[i]):
+            h0 = nn[1, i]
+            for kk in range(nn[0, i]):
                 j = nbr[kk, i]
                 rj = r0 if uniform else radius[j]
-                init_slot(i, kk, j, gap_of(i, j, ri, rj, pos, box, inv_box), k0, k1, cj, chist, inv_old, hist)
+                init_slot(h0 + kk, j, gap_of(i, j, ri, rj, pos, box, inv_box), k0, k1, cj, chist, inv_old, hist)
 
     @cuda.jit
     def check_snapshot(n, pos, snap, sc, spd, spf, spi, status):

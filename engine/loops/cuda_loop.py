@@ -93,11 +93,16 @@ FORCES_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3
 #: blocks the 8M-sphere loop with 200 records is 6 % (float32) and 14 % (float64) faster on an H200 (bench loop_ab
 #: --variants default observe_blocks=3 observe_blocks=4; 4 blocks gained less). Rough float64 spheres, 170 registers
 #: left alone (one block), with 2 blocks: the 2M-sphere loop with 200 records 6 % faster on an H200 (7.82e9 against
-#: 7.37e9, bench loop_ab --cases rough-2M-f64 --variants default observe_blocks=2; float32 unchanged at 128).
+#: 7.37e9, bench loop_ab --cases rough-2M-f64 --variants default observe_blocks=2). Rough float32 spheres, with the
+#: list's history in packed rows, left alone, lost a block: the 8M-sphere loop with 200 records at 1.00e10; with 3
+#: blocks 1.19e10, with 2 1.17e10 (H200, bench loop_ab --cases rough-8M-f32 --variants default observe_blocks=2
+#: observe_blocks=3).
 OBSERVE_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3,
                                       ("sphere", "<f8", (False, False, True)): 3,
                                       ("sphere", "<f4", (False, False, False)): 3,
                                       ("sphere", "<f4", (False, False, True)): 3,
+                                      ("sphere", "<f4", (True, False, False)): 3,
+                                      ("sphere", "<f4", (True, False, True)): 3,
                                       ("sphere", "<f8", (True, False, False)): 2,
                                       ("sphere", "<f8", (True, False, True)): 2}
 
@@ -231,7 +236,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
     def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd,
                    spf, spi, status, step, ext):
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
-        in list order); per-slot history advanced in place; a scene whose overlap exceeds its limit stops.
+        in list order; slot kk's history is hist[:, nn[1, i] + kk], nn[1, i + 1] - nn[1, i] slots); per-slot history
+        advanced in place; a scene
+        whose overlap exceeds its limit stops.
         Returns the force (stored in f_new too; zero for a skipped scene) and whether force or torque is not zero
         (``hot`` bit 0). The stores are skipped where both are zero and were at the two passes before (``SKIP``:
         f_new, the buffer written two passes ago, and the torque, written one pass ago, hold zeros already)."""
@@ -239,13 +246,14 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         # the particle's own reads are issued before the scene's active flag is known (harmless for a stopped
         # scene, whose slots are then left alone): one memory latency less per particle in a latency-bound kernel
         p = particle(i, s, pos, rad, inv_m, ids, spd)
-        m = nn[i]
+        h0 = nn[1, i]          # the row's first history slot, and its count from the next row's (cuda_kernels: the
+        m = nn[1, i + 1] - h0  # list's layout; the two loads share a cache line across the warp)
         was = hot[i] if SKIP else 3
         if spi[s, I_ACTIVE] == 0:
             return ZERO, ZERO, ZERO, False
         acc = (ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ZERO)
         for kk in range(m):
-            acc = pair(i, kk, nbr[kk, i], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
+            acc = pair(i, h0 + kk, nbr[kk, i], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
         fx, fy, fz, tx, ty, tz, worst = acc
         now = not (fx == ZERO and fy == ZERO and fz == ZERO)
         if TORQUE:

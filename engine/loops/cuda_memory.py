@@ -69,6 +69,16 @@ FIRST_STRIDE = 8
 STRIDE_MISS = 1.0e-3
 
 
+#: history slots a list's history holds beyond its rows' (engine/loops/cuda_rebuild.py ``_alloc_hist``): it starts
+#: with N + HIST_MARGIN and is regrown to 5/4 of the slots a build hands out plus HIST_MARGIN when they do not fit
+HIST_MARGIN = 1024
+
+
+def grown_history(slots: int) -> int:
+    """The history's slots after a build that handed out ``slots`` (more than it held)."""
+    return int(1.25 * slots) + HIST_MARGIN
+
+
 def grown_stride(need: int) -> int:
     """The list stride after a build that found ``need`` neighbours in one particle's row."""
     return max(FIRST_STRIDE, int(math.ceil((need + 2) / 4.0)) * 4) if need > FIRST_STRIDE else FIRST_STRIDE
@@ -136,9 +146,9 @@ def predicted_list_need(n: int, mean: float, q: float = 1.0, miss: float = STRID
 @dataclass(frozen=True)
 class SphereLayout:
     """What sizes a sphere ensemble's device arrays (engine/shapes/sphere/cuda_backend.py, engine/loops/): N in all,
-    the state and position word (bytes), rough or smooth, equal spheres or not, the list stride, the compact
-    store's capacity, the cells, the scenes, the threads per block, whether the many-steps loop and the state
-    staging of snapshots are used, and the per-scene tables' sizes."""
+    the state and position word (bytes), rough or smooth, equal spheres or not, the list stride, the slots of the
+    list's history, the compact store's capacity, the cells, the scenes, the threads per block, whether the
+    many-steps loop and the state staging of snapshots are used, and the per-scene tables' sizes."""
 
     n: int
     word: int
@@ -146,6 +156,7 @@ class SphereLayout:
     rough: bool
     uniform: bool
     stride: int
+    hist_slots: int
     store_cap: int
     ncell: int
     n_scenes: int = 1
@@ -173,15 +184,16 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
         "f_cur": 3 * n * w, "f_nxt": 3 * n * w, "torque": 3 * n * w,
         "q_last": 8 * n, "begun": 8 * n, "hot": n, "order": 4 * n, "inv_old": 4 * n,
         "cj": 4 * L.store_cap, "chist": L.hist_words * L.store_cap * w,
-        "nbr": 4 * L.stride * n, "nn": 4 * n, "hist": L.hist_words * L.stride * n * w,
+        "nbr": 4 * L.stride * n, "nn": 8 * (n + 1), "hist": L.hist_words * L.hist_slots * w,
         "cell_start": 4 * (L.ncell + 1),
         "_sums.acc": 8 * L.n_scenes * L.nobs, "_rows.acc": 8 * L.record_rows * L.nobs,
     }
     nd, nf, ni, status = L.scene_words
     a.update({"spd": L.n_scenes * nd * w, "spf": L.n_scenes * nf * 8, "spi": L.n_scenes * ni * 4, "status": 8 * status})
     tile = L.tpb * 16
-    blocks = max(1, (L.ncell + 1 + tile - 1) // tile)
-    a.update({"_scan_cells.bsum": 4 * blocks, "_scan_cells.bsum_scan": 4 * blocks, "_scan_cells.bsum_tot": 4})
+    for name, m in (("_scan_cells", L.ncell + 1), ("_scan_rows", n)):     # the cells' and the list rows' scans
+        blocks = max(1, (m + tile - 1) // tile)
+        a.update({f"{name}.bsum": 4 * blocks, f"{name}.bsum_scan": 4 * blocks, f"{name}.bsum_tot": 4})
     if L.ncell + 1 > FIRST_STRIDE * n:     # cell counts that the first list cannot lend room to
         a["_count_own"] = 4 * (L.ncell + 1)
     if L.uniform:
@@ -204,6 +216,16 @@ START_ROWS = 10
 #: part of the free device memory a run may plan to use: the CUDA context, the kernels' local memory and the
 #: allocator's rounding take the rest
 USABLE_FRACTION = 0.95
+
+
+def random_start_bytes(n: int, box: float, radius: float) -> int:
+    """Device bytes of the cells of a random start of n spheres drawn on the device (engine/loops/cuda_start.py
+    ``_random_centres``; engine/setup/cell_rsa.py): per cell the count, the kept count and the first index (4 + 4 + 8
+    B), and per slot the grid centre (3 int16) and the pass that placed it (int32)."""
+    from engine.setup.cell_rsa import CellRsa
+
+    g = CellRsa.of(n, box, radius)
+    return g.nc ** 3 * (4 + 4 + 8 + g.slots * (3 * 2 + 4))
 
 
 @dataclass(frozen=True)
@@ -230,23 +252,28 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
     (engine.setup.params.derive, with the run's skin). ``reads_state``: snapshots or checkpoints copy the state out."""
     from engine.loops.system import MULTISTEP_MAX_PARTICLES, cell_grid
     from engine.setup.precision import position_dtype, state_dtype
-    from engine.setup.start_kind import device_start
+    from engine.setup.start_kind import RANDOM, device_start, start_protocol
 
     n = int(spec.n_particles)
     word = np.dtype(state_dtype(spec.precision)).itemsize
     pos_word = np.dtype(position_dtype(spec.precision)).itemsize
     uniform = len(p.species_radius) <= 1
     reach = (2.0 * p.radius_max + p.skin) / (2.0 * p.radius_max)
-    need = predicted_list_need(n, mean_list_neighbours(spec.volume_fraction, reach), shell_pair_apart(reach))
+    mean = mean_list_neighbours(spec.volume_fraction, reach)
+    need = predicted_list_need(n, mean, shell_pair_apart(reach))
     stride = grown_stride(need)
+    # the history starts with N + HIST_MARGIN slots and grows when a build hands out more (cuda_rebuild._alloc_hist)
+    slots = n + HIST_MARGIN if mean * n <= n + HIST_MARGIN else grown_history(int(math.ceil(mean * n)))
     layout = SphereLayout(
-        n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, stride=stride,
+        n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, stride=stride, hist_slots=slots,
         store_cap=max(1024, n // 8), ncell=cell_grid(spec.box_length, n, p.radius_max, p.skin) ** 3, tpb=tpb,
         multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state)
     table = sphere_account(layout)
     start = sum(table[k] for k in ("x_ref", "ids", "sc", "pos", "vel", "omega", "quat"))
     if device_start(spec):
         start += 8 * START_ROWS * n
+        if start_protocol(spec) == RANDOM:
+            start += random_start_bytes(n, spec.box_length, p.radius)
     return DevicePrediction(table=table, start_bytes=start, stride=stride)
 
 

@@ -10,7 +10,6 @@ its list built on the host instead (engine/loops/cuda_listmodes.py, Skorych & Do
 
 from __future__ import annotations
 
-import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -19,7 +18,7 @@ from numba import cuda
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
-from engine.loops.cuda_memory import FIRST_STRIDE
+from engine.loops.cuda_memory import FIRST_STRIDE, HIST_MARGIN, grown_history, grown_stride
 from engine.loops.system import SphereSystem
 
 #: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
@@ -38,6 +37,7 @@ class ListBuilds:
         s = self.stream
         self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=s)
         self._scan_cells = self._scan_buffers(self.ncell + 1)
+        self._scan_rows = self._scan_buffers(self.n)      # the list rows' first history slots (_gpu_rebuild)
         # the cells' counts lie in the list's neighbour indices (:meth:`_cell_counts`) unless the first list is
         # smaller than them (a few particles in many cells)
         self._count_own = None
@@ -66,11 +66,27 @@ class ListBuilds:
         # the old list and the views lent from it (:meth:`_in_list`) go first: the old list can then be freed before
         # the new one is made (the kept history is in the compact store); nbr and hist are named before the views
         # (cuda_memory.device_allocations counts an allocation under the first name it meets)
-        self.nbr = self.hist = None
+        self.nbr = None
         self._list_views = {}
         self.nbr = cuda.device_array((max_nb, self.n), np.int32, stream=s)
-        self.nn = self._zeros(self.n, np.int32)
-        self.hist = cuda.device_array((self.hist_words, max_nb, self.n), self.dtype, stream=s)
+        self.nn = self._zeros((2, self.n + 1), np.int32)   # counts and history rows (cuda_kernels: the list's layout)
+        self._nn_rows = (self.nn[0, :self.n], self.nn[1, :self.n])   # (views made once: the launch cache knows them)
+        if getattr(self, "hist", None) is None:
+            self._alloc_hist(self.n + HIST_MARGIN)
+
+    @staticmethod
+    def _check_slots(slots: int) -> None:
+        """The history's rows are int32 offsets (nn[1]): a list of 2^31 slots or more is not representable."""
+        if not 0 <= slots < 2**31:
+            raise RuntimeError(f"the Verlet list holds {slots} slots; at most 2^31 - 1 are supported (fewer particles "
+                               "or a lower volume fraction)")
+
+    def _alloc_hist(self, slots: int) -> None:
+        """The list's history: ``hist_words`` x ``slots`` (rows packed back to back, only the slots in use: each
+        build hands them out, cuda_kernels.hand_out_rows); the old one is freed first (the kept history is in the
+        compact store)."""
+        self.hist = None
+        self.hist = cuda.device_array((self.hist_words, slots), self.dtype, stream=self.stream)
 
     def _alloc_store(self, cap: int) -> None:
         self.store_cap = cap
@@ -125,9 +141,9 @@ class ListBuilds:
         self._forces_unknown()
 
     def _scratch_rows(self, a):
-        """The scratch that permuted array ``a`` (rows x N, or N) is gathered into, in the memory of the contact
-        history (:meth:`_in_list`)."""
-        return self._in_list(self.hist, a.dtype, a.shape)
+        """The scratch that permuted array ``a`` (rows x N, or N) is gathered into, in the memory of the list's
+        neighbour indices (:meth:`_in_list`)."""
+        return self._in_list(self.nbr, a.dtype, a.shape)
 
     def _cell_counts(self):
         """The per-cell counts of a rebuild's sort (ncell + 1 int32), in the list's neighbour indices."""
@@ -139,8 +155,8 @@ class ListBuilds:
         """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of list array ``base`` (nbr or hist),
         made once per list allocation (the launch cache knows its arrays by identity). Valid only between the
         compaction of the kept history and the new list's build, when the list holds nothing needed: a rebuild's
-        sort and permutation. Its own array where ``LEND_SCRATCH`` is off; the list is always the larger (5 words
-        of history and 4 B of index per slot, at least FIRST_STRIDE slots a particle, against at most 4 words and
+        sort and permutation. Its own array where ``LEND_SCRATCH`` is off; the neighbour indices are always the
+        larger (4 B per slot, at least FIRST_STRIDE = 8 slots a particle, against at most 4 words of 8 B and
         ncell + 1 <= FIRST_STRIDE N counts, :meth:`_setup_scan`)."""
         dtype = np.dtype(dtype)
         key = (id(base), dtype.str, tuple(shape))
@@ -223,11 +239,22 @@ class ListBuilds:
                     self.n, self.pos, self.radius1, self.cell_start, self.c_off, self.c_cnt, self.cj,
                     self.chist, self.order, self.inv_old, self.nbr, self.nn, self.hist, self.x_ref, self.sc,
                     self.spd, self.spf, self.spi, self.status))
-            need = int(self._read_status_now()[K.S_NEED_NB])
+            # each row's first history slot: an exclusive scan of the counts (rows in particle order), and the total
+            self._exclusive_scan(self._nn_rows[0], self._nn_rows[1], self._scan_rows)
+            self._lc.launch("slot_total", self.k["slot_total"], (1, 32, self.stream), (self.n, self.nn, self.status))
+            h = self._read_status_now()
+            need = int(h[K.S_NEED_NB])
             if need <= self.max_nb:
                 break
             # the kept history is in the compact store: the list can be reallocated and rebuilt
-            self._alloc_list(int(math.ceil((need + 2) / 4.0)) * 4)
+            self._alloc_list(grown_stride(need))
+        slots = int(h[K.S_SLOTS])
+        self._check_slots(slots)
+        if slots > self.hist.shape[1]:
+            self._alloc_hist(grown_history(slots))
+        self._lc.launch("fill_history", self.k["fill_history"], self._grid(self.n), (
+            self.n, self.pos, self.radius1, self.c_off, self.c_cnt, self.cj, self.chist, self.order, self.inv_old,
+            self.nbr, self.nn, self.hist, self.sc, self.spd, self.spi))
         self.builds += 1
 
     def _setup_multigrid(self, systems, contacts) -> None:
@@ -303,9 +330,9 @@ class ListBuilds:
         for p in range(pairs.shape[0]):
             i = slot_of[pairs[p, 0]]
             j = slot_of[pairs[p, 1]]
-            for kk in range(min(nn[i], nbr.shape[0])):
+            for kk in range(min(nn[0, i], nbr.shape[0])):
                 if nbr[kk, i] == j:
                     q = min(self.hist_words, springs.shape[1])
-                    hist[0:q, kk, i] = springs[p, :q]
+                    hist[0:q, nn[1, i] + kk] = springs[p, :q]
                     break
         self.hist.copy_to_device(hist, stream=self.stream)

@@ -52,7 +52,8 @@ def _child(case: str) -> None:
 
     layout = SphereLayout(n=e.n, word=np.dtype(state_dtype(spec.precision)).itemsize,
                           pos_word=np.dtype(position_dtype(spec.precision)).itemsize, rough=not spec.smooth,
-                          uniform=e.uniform, stride=e.max_nb, store_cap=e.store_cap, ncell=e.ncell, tpb=e.tpb,
+                          uniform=e.uniform, stride=e.max_nb, hist_slots=e.hist.shape[1], store_cap=e.store_cap,
+                          ncell=e.ncell, tpb=e.tpb,
                           multistep=e.multistep, reads_state=e._stage is not None,
                           scene_words=(K.ND, K.NF, K.NI, K.status_len(e.n_scenes)))
     import dataclasses

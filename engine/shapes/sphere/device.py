@@ -34,9 +34,10 @@ engine/shapes/sphere/kernels.py's njit functions specialise the CPU loop). The i
     date); None: nothing, no kernel launched;
   - ``spin_kick(i, s, spin, torque, spin_inv, spd, hk)``: the closing half kick of the rotational state;
   - ``particle(i, s, pos, rad, inv_m, ids, spd)``: what the force loop of particle i reads once (a tuple);
-  - ``pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)``: the pair
-    evaluator of list slot kk (neighbour j): adds the force and torque on i to ``acc`` = (F_x, F_y, F_z, T_x,
-    T_y, T_z, worst overlap relative to the pair's size) and returns it; advances the slot's history in place;
+  - ``pair(i, q, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)``: the pair
+    evaluator of a list slot (neighbour j, history ``hist[:, q]``: engine/loops/cuda_kernels.py, the list's
+    layout): adds the force and torque on i to ``acc`` = (F_x, F_y, F_z, T_x, T_y, T_z, worst overlap relative to
+    the pair's size) and returns it; advances the slot's history in place;
   - ``observe_one(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf, ext)``:
     particle i's share of the observe sums ``vals`` (float64), its velocity (v0, v1, v2) given (synchronous with
     the positions: the observe kernel reads it, the fused force pass of a record computes it);
@@ -184,10 +185,11 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             return k_n, gn_coef, None, None
 
     @cuda.jit(device=True)
-    def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
-        """List slot kk of sphere i (neighbour j): the gather from and scatter into this backend's layout of the
-        sphere's one pair evaluator (law.sphere_pair), history advanced in place. The predicted end-of-step
-        velocities u = v + F_old/m dt/2 of both partners (the CPU's vel_p) are read only while in contact."""
+    def pair(i, q, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
+        """A list slot of sphere i (neighbour j, its history hist[:, q]): the gather from and scatter into this
+        backend's layout of the sphere's one pair evaluator (law.sphere_pair), history advanced in place. The
+        predicted end-of-step velocities u = v + F_old/m dt/2 of both partners (the CPU's vel_p) are read only
+        while in contact."""
         xi, yi, zi, ri, box, inv_box = p
         fx, fy, fz, tx, ty, tz, wsi = acc
         omega = spin
@@ -196,12 +198,12 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         rx, ry, rz, d, delta = sphere_separation(min_image(xi - pos[0, j], box, inv_box, HALF),
                                                  min_image(yi - pos[1, j], box, inv_box, HALF),
                                                  min_image(zi - pos[2, j], box, inv_box, HALF), ri + rj, HALF)
-        delta_prev = hist[3, kk, i]
+        delta_prev = hist[3, q]
         # the new overlap is stored once the slot's other reads are issued (here, and at the end for a contact):
         # stored straight after reading delta_prev, before this branch, it stalled every slot on the load (the
         # force kernel took 2.3 times as long on an H100: long-scoreboard stalls, same instructions and bytes)
         if not (delta > ZERO or delta_prev > ZERO):
-            hist[3, kk, i] = delta
+            hist[3, q] = delta
             return fx, fy, fz, tx, ty, tz, wsi
         hp = spd[s, D_HP]
         dt = spd[s, D_DT]
@@ -224,7 +226,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             rx, ry, rz, d, delta, delta_prev, vix - vjx, viy - vjy, viz - vjz, ux, uy, uz,
             omega[0, i] if ROUGH else ZERO, omega[1, i] if ROUGH else ZERO, omega[2, i] if ROUGH else ZERO,
             omega[0, j] if ROUGH else ZERO, omega[1, j] if ROUGH else ZERO, omega[2, j] if ROUGH else ZERO, ri, rj,
-            hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[4, kk, i], one / (imi + imj),
+            hist[0, q], hist[1, q], hist[2, q], hist[4, q], one / (imi + imj),
             law_constants(spd[s, D_KN], spd[s, D_GN], spd[s, D_KT], spd[s, D_MU]), dt, HALF)
         if began:
             ext[1][i] += 1      # one collision (counted in both partners' lists)
@@ -235,15 +237,15 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             tx += gtx
             ty += gty
             tz += gtz
-            hist[0, kk, i] = xix
-            hist[1, kk, i] = xiy
-            hist[2, kk, i] = xiz
+            hist[0, q] = xix
+            hist[1, q] = xiy
+            hist[2, q] = xiz
         if delta > ZERO:
-            hist[4, kk, i] = fd
+            hist[4, q] = fd
             ov = delta / min(ri, rj)
             if ov > wsi:
                 wsi = ov
-        hist[3, kk, i] = delta
+        hist[3, q] = delta
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)
@@ -271,12 +273,12 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         vals[O_X] += et_i * er_i
 
     @cuda.jit(device=True)
-    def observe_contact(vals, delta, kk, i, s, ri, rj, hist, spf):
-        """List slot kk of sphere i in contact with overlap ``delta`` (m, float64): the contacts, the elastic
+    def observe_contact(vals, delta, q, s, ri, rj, hist, spf):
+        """A list slot (history hist[:, q]) in contact with overlap ``delta`` (m, float64): the contacts, the elastic
         energy (half of the pair's: each pair appears in both partners' lists) and the largest overlap relative
         to the smaller radius."""
         vals[2] += 1.0
-        vals[3] += 0.5 * contact_elastic_energy(delta, f64(hist[0, kk, i]), f64(hist[1, kk, i]), f64(hist[2, kk, i]),
+        vals[3] += 0.5 * contact_elastic_energy(delta, f64(hist[0, q]), f64(hist[1, q]), f64(hist[2, q]),
                                                 spf[s, F_KN], spf[s, F_KT], 0.5)
         vals[O_MAX] = max(vals[O_MAX], delta / f64(min(ri, rj)))
 
@@ -289,7 +291,8 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         inv_box = spd[s, D_INVBOX]
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        for kk in range(nn[i]):
+        h0 = nn[1, i]
+        for kk in range(nn[1, i + 1] - h0):
             j = nbr[kk, i]
             rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
             ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
@@ -298,7 +301,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             rs = ri + rj
             d2 = rx * rx + ry * ry + rz * rz
             if d2 < rs * rs:
-                observe_contact(vals, f64(rs - math.sqrt(d2)), kk, i, s, ri, rj, hist, spf)
+                observe_contact(vals, f64(rs - math.sqrt(d2)), h0 + kk, s, ri, rj, hist, spf)
 
     @cuda.jit(device=True)
     def observe_after_forces(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf,
@@ -319,10 +322,11 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         observe_own(i, s, vals, v0, v1, v2, w0, w1, w2, mass, inertia, spd, ext)
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        for kk in range(nn[i]):
-            delta = hist[3, kk, i]
+        h0 = nn[1, i]
+        for q in range(h0, nn[1, i + 1]):
+            delta = hist[3, q]
             if delta > ZERO:
-                observe_contact(vals, f64(delta), kk, i, s, ri, r0 if UNIFORM else rad[nbr[kk, i]], hist, spf)
+                observe_contact(vals, f64(delta), q, s, ri, r0 if UNIFORM else rad[nbr[q - h0, i]], hist, spf)
 
     # FUSABLE for smooth spheres: a rough pair reads the neighbours' spins, which the kick-drift rewrites (with
     # the spins double-buffered too, the fused rough kernel was no faster than the two on an H100: it needs more

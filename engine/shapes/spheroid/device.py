@@ -144,12 +144,12 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             return None
 
     @cuda.jit(device=True)
-    def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
-        """List slot kk of particle i (neighbour j), evaluated when the bounding spheres overlap or the pair was
-        in contact at the previous step: the gather from and scatter into this backend's layout of the spheroid's
-        one pair evaluator (law.spheroid_pair, with (A, B) = (lower id, higher id)); a contact starting after a
-        screened step gets that step's gap from pos_prev/quat_prev (law.spheroid_gap); overlap, dashpot (and
-        rough: spring) history advanced in place."""
+    def pair(i, q, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
+        """A list slot of particle i (neighbour j, its history hist[:, q]), evaluated when the bounding spheres
+        overlap or the pair was in contact at the previous step: the gather from and scatter into this backend's
+        layout of the spheroid's one pair evaluator (law.spheroid_pair, with (A, B) = (lower id, higher id)); a
+        contact starting after a screened step gets that step's gap from pos_prev/quat_prev (law.spheroid_gap);
+        overlap, dashpot (and rough: spring) history advanced in place."""
         idi, box, inv_box, dt, k_n, gn_coef, tol, margin, r0, im0 = p
         fx, fy, fz, tx, ty, tz, worst = acc
         axes = ext[0]
@@ -168,9 +168,9 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
         rz = min_image(pos[2, b] - pos[2, a], box, inv_box, HALF)
         rc = (r0 + r0) if UNIFORM else (rad[a] + rad[b])
         d2 = rx * rx + ry * ry + rz * rz
-        if d2 >= rc * rc and hist[3, kk, i] <= ZERO:
-            hist[3, kk, i] = rc - math.sqrt(d2)  # negative: no contact possible
-            hist[4, kk, i] = ZERO
+        if d2 >= rc * rc and hist[3, q] <= ZERO:
+            hist[3, q] = rc - math.sqrt(d2)  # negative: no contact possible
+            hist[4, q] = ZERO
             return acc
         if UNIFORM:
             m12 = ONE / (im0 + im0)
@@ -201,17 +201,17 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
                                     (spin[0, a], spin[1, a], spin[2, a]), ia, HALF),
                      mid_step_omega((quat_prev[0, b], quat_prev[1, b], quat_prev[2, b], quat_prev[3, b]), qb,
                                     (spin[0, b], spin[1, b], spin[2, b]), ib, HALF),
-                     ia, ib, (hist[0, kk, i], hist[1, kk, i], hist[2, kk, i], hist[5, kk, i]), spd[s, E_FT],
+                     ia, ib, (hist[0, q], hist[1, q], hist[2, q], hist[5, q]), spd[s, E_FT],
                      friction_of(spd, s))
         else:
             rough = None
-        d_prev = hist[3, kk, i]
+        d_prev = hist[3, q]
         for _ in range(2):
             g = spheroid_pair(rx, ry, rz, qa, qb, sa, sb,
                               (vel_p[0, b] - vel_p[0, a], vel_p[1, b] - vel_p[1, a], vel_p[2, b] - vel_p[2, a]),
                               (omega_p[0, a], omega_p[1, a], omega_p[2, a]),
                               (omega_p[0, b], omega_p[1, b], omega_p[2, b]),
-                              d_prev, hist[4, kk, i], m12, (k_n, gn_coef, tol, margin, SCREENED_GAP), rough, dt, HALF)
+                              d_prev, hist[4, q], m12, (k_n, gn_coef, tol, margin, SCREENED_GAP), rough, dt, HALF)
             status = g[S_STATUS]
             if status != PAIR_NEEDS_PREV:
                 break
@@ -237,13 +237,13 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
             ty += g[7]
             tz += g[8]
         delta = g[S_DELTA]
-        hist[3, kk, i] = delta
-        hist[4, kk, i] = g[S_FD]
+        hist[3, q] = delta
+        hist[4, q] = g[S_FD]
         if ROUGH and status == PAIR_DONE:
-            hist[0, kk, i] = g[S_XI_X]
-            hist[1, kk, i] = g[S_XI_Y]
-            hist[2, kk, i] = g[S_XI_Z]
-            hist[5, kk, i] = g[S_KT]
+            hist[0, q] = g[S_XI_X]
+            hist[1, q] = g[S_XI_Y]
+            hist[2, q] = g[S_XI_Z]
+            hist[5, q] = g[S_KT]
         if delta > ZERO:
             bmin = spd[s, E_BMIN] if UNIFORM else min(min(ba, ca), min(bb, cb))
             ov = delta / bmin
@@ -290,14 +290,14 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
         vals[A_TR2] += et_i * et_i
         vals[A_ROT2] += ep * ep
         vals[A_X] += et_i * ep
-        for kk in range(nn[i]):
-            d = f64(hist[3, kk, i])
+        for q in range(nn[1, i], nn[1, i + 1]):
+            d = f64(hist[3, q])
             if d > 0.0:
                 vals[A_CON] += 1.0
                 if ROUGH:
-                    vals[A_EL] += 0.5 * contact_elastic_energy(d, f64(hist[0, kk, i]), f64(hist[1, kk, i]),
-                                                               f64(hist[2, kk, i]), spf[s, F_KN],
-                                                               f64(hist[5, kk, i]), 0.5)
+                    vals[A_EL] += 0.5 * contact_elastic_energy(d, f64(hist[0, q]), f64(hist[1, q]),
+                                                               f64(hist[2, q]), spf[s, F_KN],
+                                                               f64(hist[5, q]), 0.5)
                 else:
                     vals[A_EL] += 0.5 * contact_elastic_energy(d, 0.0, 0.0, 0.0, spf[s, F_KN], 0.0, 0.5)
                 vals[A_OVL] = max(vals[A_OVL], d)
@@ -306,9 +306,9 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
     def clamp_history(n, nn, hist):
         """A fresh list holds bounding-sphere overlaps in slot 3: no contact history at t = 0 (CPU _prime)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            for kk in range(min(nn[i], hist.shape[1])):
-                if hist[3, kk, i] > ZERO:
-                    hist[3, kk, i] = ZERO
+            for q in range(nn[1, i], nn[1, i + 1]):
+                if hist[3, q] > ZERO:
+                    hist[3, q] = ZERO
 
     # not FUSABLE: the pair evaluator reads the neighbours' orientations, which the rotation step rewrites
     return SimpleNamespace(PREDICTS=True, TORQUE=True, FUSABLE=False, MULTISTEP_FUSABLE=False, NOBS=NACC,

@@ -32,8 +32,9 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
     observe_sphere = parts.observe_one
 
     @cuda.jit(device=True)
-    def pair(i, kk, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
-        """Hertz force on i from list slot kk (neighbour j), no torque; the slot keeps the overlap."""
+    def pair(i, q, j, s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd):
+        """Hertz force on i from a list slot (neighbour j, history hist[:, q]), no torque; the slot keeps the
+        overlap."""
         xi, yi, zi, ri, box, inv_box = p       # the sphere's ``particle``: position, radius, box
         fx, fy, fz, tx, ty, tz, wsi = acc
         rj = ri if UNIFORM else rad[j]
@@ -43,7 +44,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
         d = math.sqrt(rx * rx + ry * ry + rz * rz)
         delta = ri + rj - d
         if delta > ZERO:
-            if contact_begins(delta, hist[3, kk, i]):
+            if contact_begins(delta, hist[3, q]):
                 ext[1][i] += 1      # one collision (counted in both partners' lists)
             f_over_d = hertz_force(delta, ri * rj / (ri + rj), spd[s, D_KN]) / d
             fx += f_over_d * rx
@@ -52,7 +53,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
             ov = delta / min(ri, rj)
             if ov > wsi:
                 wsi = ov
-        hist[3, kk, i] = delta
+        hist[3, q] = delta
         return fx, fy, fz, tx, ty, tz, wsi
 
     @cuda.jit(device=True)
@@ -65,7 +66,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
         inv_box = spd[s, D_INVBOX]
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        for kk in range(nn[i]):
+        for kk in range(nn[1, i + 1] - nn[1, i]):      # the row's count (engine/loops/cuda_kernels.py)
             j = nbr[kk, i]
             rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
             ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
