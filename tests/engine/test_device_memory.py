@@ -136,6 +136,26 @@ def test_predicted_need_grows_with_n_and_is_the_first_k_below_the_miss_chance():
     assert grown_stride(0) == grown_stride(8) == 8 and grown_stride(9) == 12 and grown_stride(14) == 16
 
 
+def test_the_predicted_start_of_a_random_start_on_the_device_counts_its_cells():
+    """A large random start drawn on the device holds its cells (tests/engine/test_device_start_simulator.py checks
+    random_start_bytes against what the draw allocates) beside the state and the staging rows; a lattice start
+    holds no cells. In float32 at phi = 0.058 that start is the peak, above the loop's arrays."""
+    from engine.loops.cuda_memory import START_ROWS, predict_sphere_device, random_start_bytes
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
+
+    n = 1 << 21
+    for start in ("random", "lattice"):
+        spec = SimulationSpec(n_particles=n, volume_fraction=0.058, precision="float32", backend="cuda", start=start)
+        p = derive(spec)
+        pred = predict_sphere_device(spec, p)
+        state = sum(pred.table[k] for k in ("x_ref", "ids", "sc", "pos", "vel", "omega", "quat"))
+        cells = random_start_bytes(n, spec.box_length, p.radius) if start == "random" else 0
+        assert pred.start_bytes == state + 8 * START_ROWS * n + cells, start
+        assert (pred.peak_bytes == pred.start_bytes > pred.loop_bytes) == (start == "random"), start
+    assert random_start_bytes(n, spec.box_length, p.radius) > 50 * n
+
+
 def test_refusal_names_the_estimate_and_the_largest_n_that_fits():
     from engine.loops.cuda_memory import USABLE_FRACTION, memory_refusal, predict_sphere_device
     from engine.setup.params import derive

@@ -1,5 +1,6 @@
 """Large starts drawn on the GPU (engine/loops/cuda_start.py) under the Numba CUDA simulator: the same start as the
-host's draws (engine.setup.scene._parallel_draws).
+host's draws (engine.setup.scene._parallel_draws), and the device memory a random start allocates against the memory
+prediction's count of it.
 
 Under the simulator the kernels call the same compiled engine.setup.scene functions as the host and add in Python's
 float64, in the same order, so the device start must equal the host's bit for bit here; on a GPU it is equal to
@@ -149,9 +150,48 @@ def _spheroids() -> None:
     print("spheroids ok")
 
 
+def _memory() -> None:
+    """The device memory a random start drawn on the device allocates (every device_array and to_device while it is
+    drawn) is what the memory prediction counts for it (engine/loops/cuda_memory.py: ``random_start_bytes``, the
+    cells, and the float64 staging of START_ROWS rows), up to the fixed small arrays (the last round's key histogram
+    of 2^SELECT_BITS int32 and a few words)."""
+    from numba import cuda
+
+    from engine.loops import cuda_start
+    from engine.loops.cuda_memory import START_ROWS, random_start_bytes
+    from engine.setup.scene import StartDraw
+
+    n, radius = 3000, 0.01
+    box = (n * 4.0 / 3.0 * np.pi * radius ** 3 / 0.058) ** (1.0 / 3.0)
+    d = StartDraw.of(n, 7, _streams(), box, radius, "random")
+    stream = cuda.stream()
+    pos = cuda.device_array((3, n), np.float64)
+    dsts = {k: cuda.device_array((dim, n), np.float64) for k, dim, _ in d.streams}
+    made = []
+    device_array, to_device = cuda.device_array, cuda.to_device
+
+    def counted(make):
+        def f(*a, **k):
+            x = make(*a, **k)
+            made.append(x.nbytes)
+            return x
+        return f
+
+    cuda.device_array, cuda.to_device = counted(device_array), counted(to_device)
+    try:
+        cuda_start.draw_start(d, 0, pos, dsts, stream)
+        stream.synchronize()
+    finally:
+        cuda.device_array, cuda.to_device = device_array, to_device
+    predicted = random_start_bytes(n, box, radius) + 8 * START_ROWS * n
+    fixed = 4 * cuda_start._NB + 4096
+    assert predicted <= sum(made) <= predicted + fixed, (sum(made), predicted, sorted(made)[-6:])
+    print("memory ok")
+
+
 def test_device_start_is_the_host_start_under_the_simulator():
     here = Path(__file__).resolve()
-    res = run_children({part: [here, part] for part in ("draws", "ensemble", "spheroids")}, timeout=600)
+    res = run_children({part: [here, part] for part in ("draws", "ensemble", "spheroids", "memory")}, timeout=600)
     for part, (rc, out, err) in res.items():
         assert rc == 0 and f"{part} ok" in out, f"{part}:\n{out}\n{err[-3000:]}"
 
@@ -161,4 +201,4 @@ if __name__ == "__main__":
 
     sys.path.insert(0, str(ROOT))
     fast_block_polling()
-    {"draws": _draws, "ensemble": _ensemble, "spheroids": _spheroids}[sys.argv[1]]()
+    {"draws": _draws, "ensemble": _ensemble, "spheroids": _spheroids, "memory": _memory}[sys.argv[1]]()
