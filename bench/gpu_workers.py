@@ -25,29 +25,19 @@ import argparse
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from datetime import datetime
 from pathlib import Path
 
 import httpx
 
+from bench.small_jobs import _free_port, _t
+
 ROOT = Path(__file__).resolve().parents[1]
 DONE = re.compile(r"job (\w+): done\b")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _t(stamp: str) -> float:
-    return datetime.fromisoformat(stamp).timestamp()
 
 
 def sweep_base(n: int, steps: int, precision: str) -> dict:

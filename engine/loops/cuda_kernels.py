@@ -355,12 +355,10 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                         q += 1
 
     @cuda.jit
-    def build(n, pos, radius, cell_start, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, x_ref, sc,
-              spd, spf, spi, status):
+    def build(n, pos, radius, cell_start, nbr, nn, x_ref, sc, spd, spf, spi, status):
         """Full Verlet list in the sorted order: neighbours and counts. nn[0, i] gets the true count even beyond the
         stride, status[S_NEED_NB] the largest (the host grows the list and reruns when it does not fit). The rows'
-        history slots are handed out afterwards (a scan of nn[0] into nn[1]) and filled from the compact store by
-        :func:`fill_history` (the store, order and inv_old arguments are that kernel's)."""
+        history slots are handed out afterwards (a scan of nn[0] into nn[1]) and filled by :func:`fill_history`."""
         sh = cuda.shared.array(SH2, ct.float64)
         need = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
@@ -398,10 +396,11 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
 
     @cuda.jit
     def fill_history(n, pos, radius, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, sc, spd, spi):
-        """The history of every slot of a list built on the GPU (single grid or multigrid), in its row's slots
-        hist[:, nn[1, i] + kk]: the kept history from the compact store, indexed by the previous order (old slot of
-        new i: order[i]; old neighbour index o: new index inv_old[o]), else a fresh slot whose previous overlap is
-        the gap R_i + R_j - |r_ij| from the candidate test's own squared distance (cells.distance2)."""
+        """The history of every slot of a new list (built on the GPU, single grid or multigrid, or on the host), in
+        its row's slots hist[:, nn[1, i] + kk]: the kept history from the compact store, indexed by the previous
+        order (old slot of new i: order[i]; old neighbour index o: new index inv_old[o]; both the identity for a
+        host-built list, which permutes nothing), else a fresh slot whose previous overlap is the gap
+        R_i + R_j - |r_ij| from the candidate test's own squared distance (cells.distance2)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             s = sc[i]
             if spi[s, I_ACTIVE] == 0:

@@ -34,7 +34,7 @@ Three ways to get the GPU its neighbour list (``list_mode``):
 The CPU modes keep the particle order of the device fixed (the GPU mode re-sorts at every rebuild), so
 a list built from a position snapshot stays valid for the slots it names. History carry-over is the GPU
 path's: the slots that must keep history go to the compact store before the new list arrives and are
-matched by the ``attach`` kernel (:mod:`engine.loops.cuda_lists`).
+matched by the GPU builds' ``fill_history`` kernel (:mod:`engine.loops.cuda_kernels`).
 
 Measured per stage (``stats``): mode, steps, tau_GPU (s of integration), tau_CPU (s of CPU build),
 tau_exch (s of position download + list upload), tau_build (s of GPU build), waits and restarts; q and
@@ -52,7 +52,7 @@ from numba import cuda
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
-from engine.loops.cuda_memory import grown_history
+from engine.loops.cuda_memory import grown_stride
 
 MODES = ("gpu", "cpu-sequential", "cpu-pipelined", "auto")
 #: stages of the GPU list measured before the first prediction, stages a candidate mode is tried, and
@@ -170,21 +170,18 @@ class HostLists:
         h = self._host
         # the rows' history slots, back to back in particle order (the device builds hand them out instead)
         rows, counts = h["rows"], h["nn"]
+        for s in np.flatnonzero(~ens.active):     # an inactive scene's rows are empty, as a device build leaves them
+            counts[ens.starts[s]:ens.starts[s] + ens.sizes[s]] = 0
         slots = int(counts.sum(dtype=np.int64))
-        ens._check_slots(slots)
         rows[0, :-1] = counts
         rows[0, -1] = 0
         rows[1, 0] = 0
         np.cumsum(counts, out=rows[1, 1:])
-        if slots > ens.hist.shape[1]:
-            ens._alloc_hist(grown_history(slots))
         ens.nbr.copy_to_device(h["nbr"], stream=st)
         ens.nn.copy_to_device(rows, stream=st)
         st.synchronize()
         t_up = time.perf_counter() - t0
-        ens.kl["attach"][ens._grid(ens.n)](ens.n, ens.pos, ens.radius1, 0 if not ens.uniform else 1, ens.c_off,
-                                           ens.c_cnt, ens.cj, ens.chist, ens.inv_old, ens.nbr, ens.nn, ens.hist,
-                                           ens.sc, ens.spd, ens.spi)
+        ens._fill_history(slots)
         _copy(ens.x_ref, snapshot_dev, st)
         ens.builds += 1
         return t_up
@@ -193,7 +190,7 @@ class HostLists:
         """A list that did not fit: larger device list and host buffers. The history must already be in
         the compact store: compacting the new, empty list would clear it."""
         ens = self.ens
-        ens._alloc_list(int(np.ceil((need + 2) / 4.0)) * 4)
+        ens._alloc_list(grown_stride(need))
         self._alloc_host(ens.max_nb)
 
     def _sync_build(self) -> dict:

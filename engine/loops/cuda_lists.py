@@ -9,20 +9,17 @@
   each grid): every pair once from each side, large-large at their level, large-small at the larger
   one's, each level's cell covering R_i + R_j + L_v (Eqs. 1, 3, 4). Rows are sorted by neighbour index,
   which makes the list independent of the atomic order of the binning.
-- ``attach``: history for a list built elsewhere (on the CPU, Skorych & Dosta 2022, §3): the kept history from the
-  compact store, fresh slots otherwise (the same rule as the GPU build, :func:`cuda_kernels.init_slot`).
 - ``check_snapshot``: the a-posteriori test of a list built from earlier positions (Skorych & Dosta 2022, §3, B10):
   max over particles of (|x - x_snapshot| / (L_v/2))^2 into status[S_CHECK].
 
 The row start and the candidate test are the single-grid build's (:func:`cuda_kernels.list_origin`,
-:func:`cuda_kernels.add_candidate`); the cell arithmetic is engine/neighbours/cells.py's.
+:func:`cuda_kernels.add_candidate`), and so is the history of every list, built here, there or on the host
+(:func:`cuda_kernels.fill_history`); the cell arithmetic is engine/neighbours/cells.py's.
 
 Layout and per-scene tables as in :mod:`engine.loops.cuda_kernels`.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 from numba import cuda
@@ -30,7 +27,7 @@ from numba.cuda import types as ct
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import cache_kernels
-from engine.loops.cuda_kernels import add_candidate, init_slot, list_origin
+from engine.loops.cuda_kernels import add_candidate, list_origin
 from engine.neighbours.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
@@ -49,7 +46,7 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
     HALF = DT(0.5)
     SH2 = 2 * TPB
     block_max2, _fail = K.device_helpers(TPB)
-    D_BOX, D_INVBOX, D_R0 = K.D_BOX, K.D_INVBOX, K.D_R0
+    D_BOX, D_INVBOX = K.D_BOX, K.D_INVBOX
     I_ACTIVE, F_LIM2INV = K.I_ACTIVE, K.F_LIM2INV
     S_NEED_NB, S_CHECK = K.S_NEED_NB, K.S_CHECK
 
@@ -76,19 +73,9 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                 b = level_bin(i, l, li, pos, s, mgi, mgf)
                 items[start[b] + cuda.atomic.add(cursor, b, 1)] = i
 
-    @cuda.jit(device=True)
-    def gap_of(i, j, ri, rj, pos, box, inv_box):
-        """R_i + R_j - |r_ij| (m, minimum image): the previous overlap of a fresh list slot."""
-        dx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
-        dy = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
-        dz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
-        return ri + rj - math.sqrt(dx * dx + dy * dy + dz * dz)
-
     @cuda.jit
-    def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, c_off, c_cnt, cj, chist, order, inv_old, nbr,
-                 nn, hist, x_ref, sc, spd, spi, status):
-        """Full Verlet list over the grid levels (module docstring); kept history from the compact store
-        (indexed by the previous order, as in the single-grid build); true counts in nn[0], the largest in
+    def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, nbr, nn, x_ref, sc, spd, spi, status):
+        """Full Verlet list over the grid levels (module docstring): neighbours, true counts in nn[0], the largest in
         status[S_NEED_NB] (the host grows the list and reruns when it does not fit); the history follows as in the
         single-grid build (cuda_kernels.fill_history)."""
         need = 0.0
@@ -130,28 +117,6 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
             cuda.atomic.max(status, S_NEED_NB, sh[0])
 
     @cuda.jit
-    def attach(n, pos, radius, uniform, c_off, c_cnt, cj, chist, inv_old, nbr, nn, hist, sc, spd, spi):
-        """History of every slot of a list uploaded from the host (no particle permutation since the
-        compaction: the store is indexed by the current order, inv_old is the identity), into the history rows
-        the host handed out (nn[1])."""
-        for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
-            if spi[s, I_ACTIVE] == 0:
-                nn[0, i] = 0
-                continue
-            box = spd[s, D_BOX]
-            inv_box = spd[s, D_INVBOX]
-            k0 = c_off[i]
-            k1 = k0 + c_cnt[i]
-            r0 = spd[s, D_R0]
-            ri = r0 if uniform else radius[i]
-            h0 = nn[1, i]
-            for kk in range(nn[0, i]):
-                j = nbr[kk, i]
-                rj = r0 if uniform else radius[j]
-                init_slot(h0 + kk, j, gap_of(i, j, ri, rj, pos, box, inv_box), k0, k1, cj, chist, inv_old, hist)
-
-    @cuda.jit
     def check_snapshot(n, pos, snap, sc, spd, spf, spi, status):
         """status[S_CHECK] = max (|x - x_snap| / (L_v/2))^2 over the active particles (Skorych & Dosta 2022, Eq. 2)."""
         sh = cuda.shared.array(SH2, ct.float64)
@@ -171,5 +136,4 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
         if cuda.threadIdx.x == 0:
             cuda.atomic.max(status, S_CHECK, sh[0])
 
-    return dict(mg_count=mg_count, mg_scatter=mg_scatter, mg_build=mg_build, attach=attach,
-                check_snapshot=check_snapshot)
+    return dict(mg_count=mg_count, mg_scatter=mg_scatter, mg_build=mg_build, check_snapshot=check_snapshot)

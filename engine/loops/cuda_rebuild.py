@@ -82,9 +82,8 @@ class ListBuilds:
                                "or a lower volume fraction)")
 
     def _alloc_hist(self, slots: int) -> None:
-        """The list's history: ``hist_words`` x ``slots`` (rows packed back to back, only the slots in use: each
-        build hands them out, cuda_kernels.hand_out_rows); the old one is freed first (the kept history is in the
-        compact store)."""
+        """The list's history: ``hist_words`` x ``slots`` (rows back to back, only the slots in use: cuda_kernels,
+        the list's layout); the old one is freed first (the kept history is in the compact store)."""
         self.hist = None
         self.hist = cuda.device_array((self.hist_words, slots), self.dtype, stream=self.stream)
 
@@ -143,32 +142,33 @@ class ListBuilds:
     def _scratch_rows(self, a):
         """The scratch that permuted array ``a`` (rows x N, or N) is gathered into, in the memory of the list's
         neighbour indices (:meth:`_in_list`)."""
-        return self._in_list(self.nbr, a.dtype, a.shape)
+        return self._in_list(a.dtype, a.shape)
 
     def _cell_counts(self):
         """The per-cell counts of a rebuild's sort (ncell + 1 int32), in the list's neighbour indices."""
         if self._count_own is not None:
             return self._count_own
-        return self._in_list(self.nbr, np.int32, (self.ncell + 1,))
+        return self._in_list(np.int32, (self.ncell + 1,))
 
-    def _in_list(self, base, dtype, shape: tuple):
-        """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of list array ``base`` (nbr or hist),
-        made once per list allocation (the launch cache knows its arrays by identity). Valid only between the
+    def _in_list(self, dtype, shape: tuple):
+        """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's neighbour indices
+        (``nbr``), made once per list allocation (the launch cache knows its arrays by identity). Valid only between the
         compaction of the kept history and the new list's build, when the list holds nothing needed: a rebuild's
         sort and permutation. Its own array where ``LEND_SCRATCH`` is off; the neighbour indices are always the
         larger (4 B per slot, at least FIRST_STRIDE = 8 slots a particle, against at most 4 words of 8 B and
         ncell + 1 <= FIRST_STRIDE N counts, :meth:`_setup_scan`)."""
         dtype = np.dtype(dtype)
-        key = (id(base), dtype.str, tuple(shape))
+        key = (dtype.str, tuple(shape))
         view = self._list_views.get(key)
         if view is None:
             size = int(np.prod(shape))
             if not LEND_SCRATCH:
                 view = cuda.device_array(shape, dtype, stream=self.stream)
             else:
-                flat = base.reshape(base.size).view(dtype)
+                flat = self.nbr.reshape(self.nbr.size).view(dtype)
                 if flat.size < size:
-                    raise RuntimeError(f"a rebuild's scratch of {size} x {dtype} exceeds the list's {base.nbytes} B")
+                    raise RuntimeError(f"a rebuild's scratch of {size} x {dtype} exceeds the list's "
+                                       f"{self.nbr.nbytes} B")
                 view = flat[:size].reshape(*shape)
             self._list_views[key] = view
         return view
@@ -232,12 +232,10 @@ class ListBuilds:
             if self.multigrid:
                 self._lc.launch("mg_build", self.kl["mg_build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
-                    self.c_off, self.c_cnt, self.cj, self.chist, self.order, self.inv_old, self.nbr, self.nn,
-                    self.hist, self.x_ref, self.sc, self.spd, self.spi, self.status))
+                    self.nbr, self.nn, self.x_ref, self.sc, self.spd, self.spi, self.status))
             else:
                 self._lc.launch("build", self.k["build"], self._grid(self.n), (
-                    self.n, self.pos, self.radius1, self.cell_start, self.c_off, self.c_cnt, self.cj,
-                    self.chist, self.order, self.inv_old, self.nbr, self.nn, self.hist, self.x_ref, self.sc,
+                    self.n, self.pos, self.radius1, self.cell_start, self.nbr, self.nn, self.x_ref, self.sc,
                     self.spd, self.spf, self.spi, self.status))
             # each row's first history slot: an exclusive scan of the counts (rows in particle order), and the total
             self._exclusive_scan(self._nn_rows[0], self._nn_rows[1], self._scan_rows)
@@ -248,14 +246,18 @@ class ListBuilds:
                 break
             # the kept history is in the compact store: the list can be reallocated and rebuilt
             self._alloc_list(grown_stride(need))
-        slots = int(h[K.S_SLOTS])
+        self._fill_history(int(h[K.S_SLOTS]))
+        self.builds += 1
+
+    def _fill_history(self, slots: int) -> None:
+        """The new list's history (cuda_kernels.fill_history) once its rows are in ``nn`` (``slots`` in all): the
+        history is regrown first where it is too small."""
         self._check_slots(slots)
         if slots > self.hist.shape[1]:
             self._alloc_hist(grown_history(slots))
         self._lc.launch("fill_history", self.k["fill_history"], self._grid(self.n), (
             self.n, self.pos, self.radius1, self.c_off, self.c_cnt, self.cj, self.chist, self.order, self.inv_old,
             self.nbr, self.nn, self.hist, self.sc, self.spd, self.spi))
-        self.builds += 1
 
     def _setup_multigrid(self, systems, contacts) -> None:
         """Grid levels per scene (Skorych & Dosta 2022, Algorithm 1, :mod:`engine.neighbours.multigrid`) when some
