@@ -210,9 +210,9 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
     return a
 
 
-#: rows of a device-drawn sphere start's float64 staging array (velocity 3, spin 3, orientation 4:
-#: engine/loops/cuda_start.py ``draw_start``)
-START_ROWS = 10
+#: rows of a device-drawn sphere start's float64 scratch: one stream's at a time, the largest the orientation's 4
+#: (engine/loops/cuda_start.py ``draw_start``)
+START_ROWS = 4
 #: part of the free device memory a run may plan to use: the CUDA context, the kernels' local memory and the
 #: allocator's rounding take the rest
 USABLE_FRACTION = 0.95
@@ -271,9 +271,9 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
     table = sphere_account(layout)
     start = sum(table[k] for k in ("x_ref", "ids", "sc", "pos", "vel", "omega", "quat"))
     if device_start(spec):
-        start += 8 * START_ROWS * n
-        if start_protocol(spec) == RANDOM:
-            start += random_start_bytes(n, spec.box_length, p.radius)
+        # the random start's cells are freed before the first stream's scratch is made
+        start += max(8 * START_ROWS * n,
+                     random_start_bytes(n, spec.box_length, p.radius) if start_protocol(spec) == RANDOM else 0)
     return DevicePrediction(table=table, start_bytes=start, stride=stride)
 
 

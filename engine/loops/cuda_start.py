@@ -11,19 +11,20 @@ own state arrays when it is built, from an ``engine.setup.scene.StartDraw``. The
    block's count below it (:func:`site_gather`); the host sorts that bucket (a few hundred keys), finds the cut
    and each block's first particle;
 2. :func:`place_draw`: one thread per site; a block scan gives each chosen site its particle i (sites in
-   order, as the host's), whose position (engine.setup.scene._site_position) and stream rows
-   (engine.setup.scene._stream_values) it draws into a float64 scratch (rows, n);
-3. :func:`block_moments`: each stream row's sums over the same fixed blocks of engine.setup.scene._BLOCK particles,
-   summed in the same order; the host turns them into means (engine.setup.scene.stream_mean), the kernel centres the
+   order, as the host's), whose position (engine.setup.scene._site_position) it draws;
+3. one stream at a time, :func:`stream_draw`: each particle's rows of the stream (engine.setup.scene._stream_values)
+   into a float64 scratch (dim, n), then :func:`block_moments`: each row's sums over the same fixed blocks of
+   engine.setup.scene._BLOCK particles, summed in the same order; the host turns them into means (engine.setup.scene.stream_mean), the kernel centres the
    rows and sums their squares, the host takes the scales (engine.setup.scene.stream_scale);
-4. :func:`scale_into`: each stream, scaled, into its state array in the working precision (the cast an upload
+4. :func:`scale_into`: the stream, scaled, into its state array in the working precision (the cast an upload
    would make on the device, K.scatter_rows).
 
 A random start (``StartDraw.rsa``) replaces steps 1 and 2 by the rounds of engine/setup/cell_rsa.py: ``rsa_pass``
 (spheres) or ``rsa_pass_spheroid`` (their orientations drawn with the centres, into the ``quat`` rows) per pass and
 colour, a count per round (:func:`rsa_total`), the last round's surplus removed by a histogram of its
 removal keys (:func:`rsa_last_hist`, :func:`rsa_last_gather`, a host sort of one bucket), and one thread per cell
-placing its spheres and their stream rows (:func:`rsa_kept_counts`, a host scan, :func:`rsa_place`); the centres
+placing its spheres (:func:`rsa_kept_counts`, a host scan, :func:`rsa_place`); the cells are freed before the first
+stream's scratch is made, so the start's peak holds the cells or one stream's scratch, not both; the centres
 are the host's exactly (integer tests, one rounding each; a spheroid pair within the bounding distance is tested in
 floating point, engine/setup/cell_rsa.py).
 
@@ -96,30 +97,25 @@ def site_gather(site_key, n_sites, bucket, cand_key, cand_site, cand_n, below):
         below[cuda.blockIdx.x] = cnt[0]
 
 
-@cuda.jit(device=True)
-def _write_streams(i, keys, dims, unit, row0, out):
-    """Particle i's rows of every stream s into out[row0[s]:row0[s] + dims[s], i] (engine.setup.scene
-    ``_stream_values``, float64)."""
-    for s in range(keys.shape[0]):
-        dim = dims[s]
-        r = row0[s]
-        v0, v1, v2, v3 = _stream_values(keys[s], i, dim, unit[s])
-        out[r, i] = v0
+@cuda.jit
+def stream_draw(key, dim, unit, out):
+    """out[r, i] (r < dim) = particle i's values of one stream (engine.setup.scene ``_stream_values``, float64)."""
+    for i in range(cuda.grid(1), out.shape[1], cuda.gridsize(1)):
+        v0, v1, v2, v3 = _stream_values(key, i, dim, unit)
+        out[0, i] = v0
         if dim > 1:
-            out[r + 1, i] = v1
+            out[1, i] = v1
         if dim > 2:
-            out[r + 2, i] = v2
+            out[2, i] = v2
         if dim > 3:
-            out[r + 3, i] = v3
+            out[3, i] = v3
 
 
 @cuda.jit
-def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, keys, dims, unit, row0, pos, col0,
-               out):
+def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, pos, col0):
     """One thread per site, TPB per block: a site whose key is <= ``cut`` is chosen; its particle i is the block's
     first particle (``first``) plus the chosen sites before it in the block (a shared-memory scan). Particle i's
-    position goes to pos[:, col0 + i] (cast to pos's precision), its rows of every stream s to
-    out[row0[s]:row0[s] + dims[s], i] (float64)."""
+    position goes to pos[:, col0 + i] (cast to pos's precision)."""
     flags = cuda.shared.array(TPB, np.int32)
     t = cuda.threadIdx.x
     j = cuda.blockIdx.x * TPB + t
@@ -141,7 +137,6 @@ def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, ke
         pos[0, col0 + i] = x
         pos[1, col0 + i] = y
         pos[2, col0 + i] = z
-        _write_streams(i, keys, dims, unit, row0, out)
 
 
 @cuda.jit
@@ -259,11 +254,11 @@ def rsa_kept_counts(first_pass, trim_key, cut_key, cut_index, counts, spass, kep
 
 
 @cuda.jit
-def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, quats, first, keys, dims,
-              unit_rows, row0, pos, quat, col0, out):
+def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, quats, first, pos, quat,
+              col0):
     """One thread per cell: its kept particles, numbered from first[c] in slot order, get their centre in pos[:, col0 +
-    i] (cast to pos's precision), a spheroid its orientation in quat[:, col0 + i] (quat has no columns for spheres),
-    and their stream rows in out (as :func:`place_draw`)."""
+    i] (cast to pos's precision), a spheroid its orientation in quat[:, col0 + i] (quat has no columns for
+    spheres)."""
     q = np.int64(RSA_Q)
     for c in range(cuda.grid(1), counts.shape[0], cuda.gridsize(1)):
         i = first[c]
@@ -278,13 +273,12 @@ def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots,
                 if quat.shape[1] != 0:
                     for j in range(4):
                         quat[j, col0 + i] = quats[c, k, j]
-                _write_streams(i, keys, dims, unit_rows, row0, out)
                 i += 1
 
 
 cache_kernels({"site_hist": site_hist, "site_gather": site_gather, "place_draw": place_draw,
-               "block_moments": block_moments, "scale_into": scale_into, "rsa_pass": rsa_pass,
-               "rsa_pass_spheroid": rsa_pass_spheroid, "rsa_total": rsa_total, "rsa_last_hist": rsa_last_hist,
+               "stream_draw": stream_draw, "block_moments": block_moments, "scale_into": scale_into,
+               "rsa_pass": rsa_pass, "rsa_pass_spheroid": rsa_pass_spheroid, "rsa_total": rsa_total, "rsa_last_hist": rsa_last_hist,
                "rsa_last_gather": rsa_last_gather, "rsa_kept_counts": rsa_kept_counts, "rsa_place": rsa_place},
               ("start",))
 
@@ -323,9 +317,9 @@ def _cut(d: StartDraw, site_key, stream, cap: int) -> tuple:
     return cut, counts
 
 
-def _random_centres(d: StartDraw, col0: int, pos, quat, keys, dims, unit, row0, out, stream, cap: int) -> None:
+def _random_centres(d: StartDraw, col0: int, pos, quat, stream, cap: int) -> None:
     """A random start's centres into pos[:, col0:col0 + n] (a spheroid start's orientations into quat[:, col0:col0 +
-    n]) and its stream rows into out: the rounds of engine/setup/cell_rsa.py on the device, the last round's cut by a
+    n]): the rounds of engine/setup/cell_rsa.py on the device, the last round's cut by a
     histogram of its removal keys and a host sort of one bucket (as :func:`_cut`), then one thread per cell places its
     particles."""
     g = d.rsa
@@ -389,7 +383,7 @@ def _random_centres(d: StartDraw, col0: int, pos, quat, keys, dims, unit, row0, 
     first = np.concatenate([[0], np.cumsum(per, dtype=np.int64)[:-1]])
     rsa_place[grid_cells, _WIDE, stream](
         g.nc, g.unit, first_pass, trim_key, cut_key, cut_index, counts, slots, spass, quats,
-        cuda.to_device(first, stream=stream), keys, dims, unit, row0, pos, quat, np.int64(col0), out)
+        cuda.to_device(first, stream=stream), pos, quat, np.int64(col0))
 
 
 def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 << 14, quat=None) -> None:
@@ -398,47 +392,48 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
     orientations (drawn with the centres). ``cap``: most blocks of a grid-stride launch."""
     n = d.n
     site_key, place_key, keys = d.keys()
-    dims = np.array([dim for _, dim, _ in d.streams], np.int64)
-    unit = np.array([rms is None for _, _, rms in d.streams], np.bool_)
-    row0 = np.concatenate([[0], np.cumsum(dims)[:-1]]).astype(np.int64)
-    rows = int(dims.sum())
-    out = cuda.device_array((rows, n), np.float64, stream=stream)
-    keys_d, dims_d, unit_d, row0_d = (cuda.to_device(a, stream=stream) for a in (np.array(keys, np.uint64), dims,
-                                                                                 unit, row0))
     if d.rsa is not None:
         if quat is None:
             quat = cuda.device_array((4, 0), np.float64, stream=stream)
-        _random_centres(d, col0, pos, quat, keys_d, dims_d, unit_d, row0_d, out, stream, cap)
+        _random_centres(d, col0, pos, quat, stream, cap)
+        if not SIM:     # numba-cuda frees lazily: the cells go before the streams' rows are made (the start's peak)
+            cuda.current_context().deallocations.clear()
     else:
         cut, counts = _cut(d, site_key, stream, cap)
         if int(counts.sum()) != n:
             raise RuntimeError(f"device start: {int(counts.sum())} sites chosen for {n} particles")
         first = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        place_draw[len(first), TPB, stream](
-            site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream), d.m, d.a, d.half_gap, d.box,
-            place_key, keys_d, dims_d, unit_d, row0_d, pos, np.int64(col0), out)
-    # the streams' means and scales, from block sums taken as the host's are (engine.setup.scene.stream_mean,
-    # stream_scale)
-    n_blocks = (n + _BLOCK - 1) // _BLOCK
-    skip = np.repeat(unit, dims)
-    skip_d = cuda.to_device(skip, stream=stream)
-    sums = cuda.device_array((rows, n_blocks), np.float64, stream=stream)
-    grid = _blocks(rows * n_blocks, 64, cap)      # a few thousand threads: small blocks spread them over the SMs
-    means = np.zeros(rows)
-    block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip_d, 0, sums)
-    s_h = sums.copy_to_host(stream=stream)
-    stream.synchronize()
-    for s, (_, dim, rms) in enumerate(d.streams):
-        r = row0[s]
-        means[r:r + dim] = stream_mean(np.ascontiguousarray(s_h[r:r + dim].T), n, rms)
-    block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip_d, 1, sums)
-    s_h = sums.copy_to_host(stream=stream)
-    stream.synchronize()
-    for s, (stream_no, dim, rms) in enumerate(d.streams):
-        r = row0[s]
-        scale = stream_scale(np.ascontiguousarray(s_h[r:r + dim].T), n, rms)
-        scale_into[_blocks(n, _WIDE, cap), _WIDE, stream](out, np.int64(r), np.int64(dim), float(scale),
-                                                          dsts[stream_no], np.int64(col0))
+        place_draw[len(first), TPB, stream](site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream),
+                                            d.m, d.a, d.half_gap, d.box, place_key, pos, np.int64(col0))
+    for (stream_no, dim, rms), key in zip(d.streams, keys):
+        _draw_stream(n, np.uint64(key), dim, rms, dsts[stream_no], col0, stream, cap)
+        if not SIM:     # its scratch goes before the next stream's is made
+            cuda.current_context().deallocations.clear()
+
+
+def _draw_stream(n: int, key, dim: int, rms, dst, col0: int, stream, cap: int) -> None:
+    """One stream's rows into dst[:, col0:col0 + n]: drawn into a float64 scratch (dim, n) (one stream at a time:
+    the start's peak), centred and scaled by the means and scale the host takes from the same block sums
+    (engine.setup.scene.stream_mean, stream_scale)."""
+    out = cuda.device_array((dim, n), np.float64, stream=stream)
+    stream_draw[_blocks(n, _WIDE, cap), _WIDE, stream](key, np.int64(dim), np.bool_(rms is None), out)
+    scale = 1.0
+    if rms is not None:
+        n_blocks = (n + _BLOCK - 1) // _BLOCK
+        skip = cuda.to_device(np.zeros(dim, np.bool_), stream=stream)
+        sums = cuda.device_array((dim, n_blocks), np.float64, stream=stream)
+        grid = _blocks(dim * n_blocks, 64, cap)      # a few thousand threads: small blocks spread them over the SMs
+        means = np.zeros(dim)
+        block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip, 0, sums)
+        s_h = sums.copy_to_host(stream=stream)
+        stream.synchronize()
+        means = stream_mean(np.ascontiguousarray(s_h.T), n, rms)
+        block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip, 1, sums)
+        s_h = sums.copy_to_host(stream=stream)
+        stream.synchronize()
+        scale = stream_scale(np.ascontiguousarray(s_h.T), n, rms)
+    scale_into[_blocks(n, _WIDE, cap), _WIDE, stream](out, np.int64(0), np.int64(dim), float(scale), dst,
+                                                      np.int64(col0))
 
 
 #: the sphere state array each stream of a sphere start goes to (engine.setup.scene.parallel_start_streams)

@@ -172,13 +172,15 @@ def spheroids_clear(rx, ry, rz, qa0, qa1, qa2, qa3, qb0, qb1, qb2, qb3, a, b):
 
 
 @numba.njit(cache=True, inline="always")
-def _wrap(dx, span):
-    """dx (grid units) to the nearest image in a periodic span."""
-    if dx > span // 2:
-        return dx - span
-    if dx < -(span // 2):
-        return dx + span
-    return dx
+def _neighbour(c, offset, nc):
+    """The index of the cell ``offset`` (-1, 0 or 1) from cell index c along an axis of nc periodic cells (no
+    division: the GPU's int64 division costs tens of instructions)."""
+    n = c + offset
+    if n < 0:
+        return n + nc
+    if n >= nc:
+        return n - nc
+    return n
 
 
 #: which particles a pass function is compiled for (:func:`pass_functions`): one-size spheres, spheroids, or either
@@ -205,18 +207,25 @@ def pass_functions(kind: int) -> tuple:
         the bounding distance is tested with the candidate's orientation ``cq`` and its own (quats[c, k]) by
         :func:`spheroids_clear` (``unit``: the grid's, m)."""
         q = np.int64(RSA_Q)
-        span = np.int64(nc) * q
+        # the candidate's offset in its cell; a kept centre in the cell at offset (ox, oy, oz) lies at
+        # (ox q + slot - local) from it: that image is the nearest one for nc >= 4, and for nc = 2 (where offsets
+        # -1 and +1 name one cell) the other image is at least a cell edge >= the exclusion distance away, so no
+        # division or periodic wrap is needed per kept centre
+        lx, ly, lz = gx - cx * q, gy - cy * q, gz - cz * q
         for ox in range(-1, 2):
-            nx = (cx + ox + nc) % nc
+            nx = _neighbour(cx, ox, nc)
+            bx = ox * q - lx
             for oy in range(-1, 2):
-                ny = (cy + oy + nc) % nc
+                ny = _neighbour(cy, oy, nc)
+                by = oy * q - ly
                 for oz in range(-1, 2):
-                    nz = (cz + oz + nc) % nc
+                    nz = _neighbour(cz, oz, nc)
+                    bz = oz * q - lz
                     c = (nx * nc + ny) * nc + nz
                     for k in range(counts[c]):
-                        dx = _wrap(nx * q + np.int64(slots[c, k, 0]) - gx, span)
-                        dy = _wrap(ny * q + np.int64(slots[c, k, 1]) - gy, span)
-                        dz = _wrap(nz * q + np.int64(slots[c, k, 2]) - gz, span)
+                        dx = bx + np.int64(slots[c, k, 0])
+                        dy = by + np.int64(slots[c, k, 1])
+                        dz = bz + np.int64(slots[c, k, 2])
                         if dx * dx + dy * dy + dz * dz < thr:
                             if not spheroid(axes):
                                 return False
