@@ -14,8 +14,9 @@ own state arrays when it is built, from an ``engine.setup.scene.StartDraw``. The
    order, as the host's), whose position (engine.setup.scene._site_position) it draws;
 3. one stream at a time, :func:`stream_draw`: each particle's rows of the stream (engine.setup.scene._stream_values)
    into a float64 scratch (dim, n), then :func:`block_moments`: each row's sums over the same fixed blocks of
-   engine.setup.scene._BLOCK particles, summed in the same order; the host turns them into means (engine.setup.scene.stream_mean), the kernel centres the
-   rows and sums their squares, the host takes the scales (engine.setup.scene.stream_scale);
+   engine.setup.scene._BLOCK particles, summed in the same order; the host turns them into means
+   (engine.setup.scene.stream_mean), the kernel centres the rows and sums their squares, the host takes the scales
+   (engine.setup.scene.stream_scale);
 4. :func:`scale_into`: the stream, scaled, into its state array in the working precision (the cast an upload
    would make on the device, K.scatter_rows).
 
@@ -278,8 +279,9 @@ def rsa_place(nc, unit, first_pass, trim_key, cut_key, cut_index, counts, slots,
 
 cache_kernels({"site_hist": site_hist, "site_gather": site_gather, "place_draw": place_draw,
                "stream_draw": stream_draw, "block_moments": block_moments, "scale_into": scale_into,
-               "rsa_pass": rsa_pass, "rsa_pass_spheroid": rsa_pass_spheroid, "rsa_total": rsa_total, "rsa_last_hist": rsa_last_hist,
-               "rsa_last_gather": rsa_last_gather, "rsa_kept_counts": rsa_kept_counts, "rsa_place": rsa_place},
+               "rsa_pass": rsa_pass, "rsa_pass_spheroid": rsa_pass_spheroid, "rsa_total": rsa_total,
+               "rsa_last_hist": rsa_last_hist, "rsa_last_gather": rsa_last_gather,
+               "rsa_kept_counts": rsa_kept_counts, "rsa_place": rsa_place},
               ("start",))
 
 
