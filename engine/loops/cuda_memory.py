@@ -163,6 +163,8 @@ class SphereLayout:
     tpb: int = 256
     multistep: bool = False
     reads_state: bool = False
+    #: orientations and their marks on the device (engine/shapes/sphere/cuda_backend.py ``orientations_held``)
+    orientations: bool = True
     hist_words: int = 5
     nobs: int = 12
     record_rows: int = 256
@@ -180,9 +182,9 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
     n, w, pw = L.n, L.word, L.pos_word
     a = {
         "x_ref": 3 * n * pw, "ids": 4 * n, "sc": 4 * n,
-        "pos": 3 * n * pw, "vel": 3 * n * w, "omega": 3 * n * w, "quat": 4 * n * w,
+        "pos": 3 * n * pw, "vel": 3 * n * w, "omega": 3 * n * w, "quat": 4 * (n if L.orientations else 1) * w,
         "f_cur": 3 * n * w, "f_nxt": 3 * n * w, "torque": 3 * n * w,
-        "q_last": 8 * n, "begun": 8 * n, "hot": n, "order": 4 * n, "inv_old": 4 * n,
+        "q_last": 8 * (n if L.orientations else 1), "begun": 8 * n, "hot": n, "order": 4 * n, "inv_old": 4 * n,
         "cj": 4 * L.store_cap, "chist": L.hist_words * L.store_cap * w,
         "nbr": 4 * L.stride * n, "nn": 8 * (n + 1), "hist": L.hist_words * L.hist_slots * w,
         "cell_start": 4 * (L.ncell + 1),
@@ -267,7 +269,8 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
     layout = SphereLayout(
         n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, stride=stride, hist_slots=slots,
         store_cap=max(1024, n // 8), ncell=cell_grid(spec.box_length, n, p.radius_max, p.skin) ** 3, tpb=tpb,
-        multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state)
+        multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state,
+        orientations=reads_state or spec.snapshots > 0)
     table = sphere_account(layout)
     start = sum(table[k] for k in ("x_ref", "ids", "sc", "pos", "vel", "omega", "quat"))
     if device_start(spec):

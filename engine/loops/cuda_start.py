@@ -390,8 +390,9 @@ def _random_centres(d: StartDraw, col0: int, pos, quat, stream, cap: int) -> Non
 
 def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 << 14, quat=None) -> None:
     """Draw ``d`` into columns [col0, col0 + n) of the device arrays ``pos`` (3, N) and ``dsts`` (stream number ->
-    (dim, N) array), in their precisions; see the module docstring. ``quat`` (4, N): a random spheroid start's
-    orientations (drawn with the centres). ``cap``: most blocks of a grid-stride launch."""
+    (dim, N) array; a stream missing there is not drawn, the others are the same), in their precisions; see the
+    module docstring. ``quat`` (4, N): a random spheroid start's orientations (drawn with the centres). ``cap``:
+    most blocks of a grid-stride launch."""
     n = d.n
     site_key, place_key, keys = d.keys()
     if d.rsa is not None:
@@ -408,6 +409,8 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
         place_draw[len(first), TPB, stream](site_key, np.uint64(cut), d.n_sites, cuda.to_device(first, stream=stream),
                                             d.m, d.a, d.half_gap, d.box, place_key, pos, np.int64(col0))
     for (stream_no, dim, rms), key in zip(d.streams, keys):
+        if stream_no not in dsts:       # a stream nobody holds (a sphere ensemble without orientations)
+            continue
         _draw_stream(n, np.uint64(key), dim, rms, dsts[stream_no], col0, stream, cap)
         if not SIM:     # its scratch goes before the next stream's is made
             cuda.current_context().deallocations.clear()

@@ -55,6 +55,7 @@ def _child(case: str) -> None:
                           uniform=e.uniform, stride=e.max_nb, hist_slots=e.hist.shape[1], store_cap=e.store_cap,
                           ncell=e.ncell, tpb=e.tpb,
                           multistep=e.multistep, reads_state=e._stage is not None,
+                          orientations=e.orientations_held,
                           scene_words=(K.ND, K.NF, K.NI, K.status_len(e.n_scenes)))
     import dataclasses
 
@@ -66,6 +67,7 @@ def _child(case: str) -> None:
     assert (SphereLayout.hist_words, SphereLayout.nobs, SphereLayout.record_rows) == (e.hist_words, e._NOBS,
                                                                                          RECORD_ROWS)
     print(json.dumps({"found": device_allocations(e), "account": account, "reads_state": e._stage is not None,
+                      "orientations": e.orientations_held,
                       "per_particle": sorted(k for k in account if doubled[k] != account[k])}))
 
 
@@ -84,6 +86,9 @@ def test_account_lists_every_device_array_of_a_sphere_ensemble():
         # a per-particle array of the account that the run did not make is one of the lazily made double buffers
         assert per_particle - set(found) <= {"_alt[0]", "_alt[1]", "_alt_spin"}, (case, per_particle - set(found))
         assert got["reads_state"] == (CASES[case]["snapshots"] > 0), case
+        # orientations are held only where something reads or tracks them (snapshots here)
+        assert got["orientations"] == (CASES[case]["snapshots"] > 0), case
+        assert (found["quat"] < 4 * 216) == (not got["orientations"]), case
 
 
 def test_list_count_model_matches_an_equilibrium_gas_and_bounds_its_fullest_row():

@@ -6,7 +6,9 @@ The machinery (tables, lists, time loop, records, state copies) is the shared
 arrays (space-frame angular velocity, scalar radius, mass and inertia; per particle only when a scene's spheres
 differ, else in the scene's constants), a large start drawn on the device (engine/loops/cuda_start.py), the lazy
 orientations' marks and the collision counter (engine/shapes/sphere/device.py), the orientation switch of the
-specialisation, and the observables. Its Verlet list may be built on the host for a lone scene (Skorych & Dosta 2022,
+specialisation, and the observables. An ensemble that neither tracks orientations nor has its state read (no
+snapshots, no checkpoints: ``reads_state`` False) holds no orientations and no marks on the device (a sphere's
+orientation changes nothing else; 20 B a particle in float32, 40 in float64). Its Verlet list may be built on the host for a lone scene (Skorych & Dosta 2022,
 §3).
 """
 
@@ -39,6 +41,8 @@ class CudaEnsemble(CudaEnsembleBase):
     def _upload_particles(self, systems) -> None:
         """Sphere state and constants on the device (uniform scenes keep their constants in spd)."""
         dt_, n = self.dtype, self.n
+        #: orientations (and their marks) on the device: tracked, or the state is read (see the module docstring)
+        self.orientations_held = self.reads_state or any(c.orientation for c in self.contact)
         rad, mass, inertia = (self._cat(arrays)[:, 0] for arrays in (
             [s.radius for s in systems], [s.mass for s in systems], [s.inertia for s in systems]))
         uniform = [rows_equal(s.radius) and rows_equal(s.mass) and rows_equal(s.inertia) for s in systems]
@@ -54,14 +58,15 @@ class CudaEnsemble(CudaEnsembleBase):
             self.pos = up(cat([s.position for s in systems]), 3, self.pos_dtype)
             self.vel = up(cat([s.velocity for s in systems]), 3)
             self.omega = up(cat([s.angular_velocity for s in systems]), 3)
-            self.quat = up(cat([s.orientation for s in systems]), 4)
+            self.quat = up(cat([s.orientation for s in systems]), 4) if self.orientations_held else \
+                self._no_orientations()
         self.f_cur = self._zeros((3, n), dt_)
         self.f_nxt = cuda.device_array((3, n), dt_, stream=self.stream)
         self._alt = None     # the fused step's other halves of pos and vel (_fused_out)
         self._alt_spin = None  # and of omega, for the fused many-steps kernel (_multistep_out)
         self.torque = self._zeros((3, n), dt_)
         # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
-        self.q_last = self._zeros(n, np.int64)
+        self.q_last = self._zeros(n if self.orientations_held else 1, np.int64)
         # the contacts each sphere has begun (the collisions observable; shapes/sphere/device.py pair)
         self.begun = self._zeros(n, np.int64)
         if self.uniform:
@@ -76,19 +81,39 @@ class CudaEnsemble(CudaEnsembleBase):
             self.inv_i = up((1.0 / inertia.astype(dt_)).astype(dt_), 1)
             self._per_particle = (self.radius, self.mass, self.inertia, self.inv_m, self.inv_i)
 
+    def _no_orientations(self):
+        """The stand-in for the orientations an ensemble does not hold: a (4, 1) array of the state's type, which
+        kernels compiled without orientations never read."""
+        return cuda.device_array((4, 1), self.dtype, stream=self.stream)
+
     def _permuted_arrays(self) -> tuple:
         """The device arrays permuted into cell order at a rebuild, besides the per-particle constants."""
+        if not self.orientations_held:
+            return self.pos, self.vel, self.omega, self.f_cur
         return self.pos, self.vel, self.omega, self.quat, self.f_cur
 
     def _permuted_i64(self) -> tuple:
         """The int64 device arrays (N) permuted with them (spheres: the lazy orientations' marks, the contacts
         begun)."""
-        return self.q_last, self.begun
+        return (self.q_last, self.begun) if self.orientations_held else (self.begun,)
 
     def state_arrays(self) -> dict:
         """{state key: device array (rows, N, particle index fastest)} that :meth:`_scene_rows` copies out
-        (spheres: the space-frame angular velocity itself)."""
-        return {"position": self.pos, "velocity": self.vel, "angular_velocity": self.omega, "orientation": self.quat}
+        (spheres: the space-frame angular velocity itself; the orientations where held)."""
+        arrays = {"position": self.pos, "velocity": self.vel, "angular_velocity": self.omega}
+        if self.orientations_held:
+            arrays["orientation"] = self.quat
+        return arrays
+
+    def state(self, k: int, reuse=False) -> dict:
+        """Host copies of scene k's state in particle-id order; where the orientations are not held, the identity
+        quaternion stands for each (nothing reads them: no snapshots, no checkpoints, none tracked)."""
+        out = super().state(k, reuse)
+        if not self.orientations_held:
+            q = np.zeros((int(self.sizes[k]), 4), self.dtype)
+            q[:, 0] = 1.0
+            out["orientation"] = q
+        return out
 
     def _draw_starts(self, systems) -> None:
         """pos, vel, omega, quat of scenes of which some hold a start to draw on the device
@@ -99,18 +124,20 @@ class CudaEnsemble(CudaEnsembleBase):
         self.pos = cuda.device_array((3, n), self.pos_dtype, stream=st)
         self.vel = cuda.device_array((3, n), self.dtype, stream=st)
         self.omega = cuda.device_array((3, n), self.dtype, stream=st)
-        self.quat = cuda.device_array((4, n), self.dtype, stream=st)
+        held = self.orientations_held
+        self.quat = cuda.device_array((4, n), self.dtype, stream=st) if held else self._no_orientations()
         if self.reads_state:
             self._prepare_frame_slot()     # beside the draws
+        targets = {"vel": self.vel, "omega": self.omega, "quat": self.quat}
         for sy, col0 in zip(systems, self.starts):
-            if sy.draw is not None:
-                targets = {"vel": self.vel, "omega": self.omega, "quat": self.quat}
-                draw_start(sy.draw, int(col0), self.pos, {k: targets[a] for k, a in SPHERE_TARGETS.items()}, st,
-                           self.max_blocks)
+            if sy.draw is not None:     # (the orientation stream is left undrawn where none are held)
+                draw_start(sy.draw, int(col0), self.pos, {k: targets[a] for k, a in SPHERE_TARGETS.items()
+                                                          if held or a != "quat"}, st, self.max_blocks)
             else:
                 for a, dst in ((sy.position, self.pos), (sy.velocity, self.vel), (sy.angular_velocity, self.omega),
-                               (sy.orientation, self.quat)):
-                    self._up_into(a, dst, int(col0))
+                               (sy.orientation, self.quat if held else None)):
+                    if dst is not None:
+                        self._up_into(a, dst, int(col0))
 
     def _scene_constants(self, s: int) -> None:
         """Scene s's particle constants in spd (used when its particles are uniform)."""
@@ -130,6 +157,9 @@ class CudaEnsemble(CudaEnsembleBase):
         rough = any(c.k_t is not None for c in act)
         coulomb = rough and any(c.friction is not None for c in act)
         orient = any(c.orientation for c in act)
+        if orient and not self.orientations_held:
+            raise RuntimeError("orientations switched on in an ensemble made without them (reads_state False and "
+                               "no scene tracking orientations): make it with reads_state=True")
         if orient and not self._orient:
             # orientations tracked from now on: nothing is pending from the steps run without them
             self.q_last.copy_to_device(np.full(self.n, self.steps_done, np.int64), stream=self.stream)
