@@ -8,8 +8,8 @@ differ, else in the scene's constants), a large start drawn on the device (engin
 orientations' marks and the collision counter (engine/shapes/sphere/device.py), the orientation switch of the
 specialisation, and the observables. An ensemble that neither tracks orientations nor has its state read (no
 snapshots, no checkpoints: ``reads_state`` False) holds no orientations and no marks on the device (a sphere's
-orientation changes nothing else; 20 B a particle in float32, 40 in float64). Its Verlet list may be built on the host for a lone scene (Skorych & Dosta 2022,
-§3).
+orientation changes nothing else; 24 B a particle in float32, 40 in float64). Its Verlet list may be built on the
+host for a lone scene (Skorych & Dosta 2022, §3).
 """
 
 from __future__ import annotations
