@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def _child() -> None:
     from engine.backends.base import SphereSystem
     from engine.backends.cuda import CudaEnsemble
+    from engine.loops import cuda_ensemble
     from engine.setup.scene import StartDraw
     from tests.engine.test_cuda_simulator import contact, tiny_system
     from tests.engine.test_device_start_simulator import _streams
@@ -27,22 +28,25 @@ def _child() -> None:
                          radius=np.full(n, r), mass=np.full(n, 1.0), inertia=np.full(n, 0.4 * r * r),
                          draw=StartDraw.of(n, 5, _streams(), box, r))
     c = contact(skin=0.01, orientation=False)
-    ens = {held: CudaEnsemble([tiny_system(), drawn], [c, c], reads_state=held) for held in (False, True)}
-    assert not ens[False].orientations_held and ens[True].orientations_held
-    assert ens[False].quat.size == 4 and ens[True].quat.shape == (4, tiny_system().n + n)
-    for e in ens.values():
-        e.advance(40)
-    a, b = ens[False], ens[True]
-    assert a.builds == b.builds >= 2, (a.builds, b.builds)
-    for k in (0, 1):
-        sa, sb = a.state(k), b.state(k)
-        for key in ("position", "velocity", "angular_velocity"):
-            assert np.array_equal(sa[key], sb[key]), (k, key)
-        identity = np.zeros((sa["position"].shape[0], 4))
-        identity[:, 0] = 1.0
-        assert np.array_equal(sa["orientation"], identity), k
-    oa, ob = a.observe(), b.observe()
-    assert oa == ob, (oa, ob)
+    for multistep in (True, False):     # the many-steps loop of small scenes and the per-phase loop of large ones
+        cuda_ensemble.MULTISTEP = multistep
+        ens = {held: CudaEnsemble([tiny_system(), drawn], [c, c], reads_state=held) for held in (False, True)}
+        assert not ens[False].orientations_held and ens[True].orientations_held
+        assert ens[False].quat.size == 4 and ens[True].quat.shape == (4, tiny_system().n + n)
+        for e in ens.values():
+            assert e.multistep == multistep
+            e.advance(40)
+        a, b = ens[False], ens[True]
+        assert a.builds == b.builds >= 2, (a.builds, b.builds)
+        for k in (0, 1):
+            sa, sb = a.state(k), b.state(k)
+            for key in ("position", "velocity", "angular_velocity"):
+                assert np.array_equal(sa[key], sb[key]), (multistep, k, key)
+            identity = np.zeros((sa["position"].shape[0], 4))
+            identity[:, 0] = 1.0
+            assert np.array_equal(sa["orientation"], identity), k
+        oa, ob = a.observe(), b.observe()
+        assert oa == ob, (multistep, oa, ob)
     try:
         a.set_contact(0, contact(skin=0.01, orientation=True))
     except RuntimeError as exc:
