@@ -395,6 +395,31 @@ def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp
                           np.stack([f["velocity"] for f in frames]).astype(np.float64))
 
 
+def test_a_frame_above_the_chunk_limit_is_written_in_chunks_of_whole_rows(tmp_path, monkeypatch):
+    """A frame larger than h5md.CHUNK_MAX_BYTES is stored in chunks of whole particle rows (HDF5 before 2.0 refuses a
+    chunk of 4 GiB or more), each written as it is, the last one padded: the same file as through HDF5's copy and the
+    same values."""
+    from engine.output import h5md
+
+    monkeypatch.setattr(h5md, "CHUNK_MAX_BYTES", 7 * 3 * 8)     # 7 rows of float64 positions, 5 of orientations
+    rng = np.random.default_rng(6)
+    frames = [{"position": rng.random((40, 3)), "orientation": rng.random((40, 4))} for _ in range(2)]
+    paths = {}
+    for label, conv in (("chunk", lambda a: a), ("copy", np.asfortranarray)):
+        w = H5MDWriter(tmp_path / f"{label}.h5", n=40, box_length=1.0, spec_json="{}", derived={},
+                       radius=np.ones(40))
+        for k, fr in enumerate(frames):
+            w.snapshot(k, 0.1 * k, {name: conv(a) for name, a in fr.items()})
+        paths[label] = w.finish({"wall_time": 1.0})
+    assert paths["chunk"].read_bytes() == paths["copy"].read_bytes()
+    with h5py.File(paths["chunk"], "r") as f:
+        assert f["particles/all/position/value"].chunks == (1, 7, 3)
+        assert f["particles/all/orientation/value"].chunks == (1, 5, 4)
+    d = _datasets(paths["chunk"])
+    for name in ("position", "orientation"):
+        assert np.array_equal(d[f"particles/all/{name}/value"], np.stack([f[name] for f in frames])), name
+
+
 def test_pieces_cover_the_array_and_write_through_to_it():
     from engine.backends.cuda import _touched_empty
     from engine.output.pieces import map_pieces
