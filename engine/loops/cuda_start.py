@@ -141,8 +141,8 @@ def place_draw(site_key, cut, n_sites, first, m, a, half_gap, box, place_key, po
 
 
 @cuda.jit
-def block_moments(out, means, skip, square, sums):
-    """One thread per (row r, block of _BLOCK particles), rows with skip[r] left alone. square = 0: sums[r, block]
+def block_moments(out, means, square, sums):
+    """One thread per (row r, block of _BLOCK particles). square = 0: sums[r, block]
     = the sum of out[r, i] over the block, in particle order (as engine.setup.scene._draw_start's); square = 1: the row
     is centred, out[r, i] -= means[r], and sums[r, block] = the sum of the squares
     (engine.setup.scene._centre_and_square)."""
@@ -153,8 +153,6 @@ def block_moments(out, means, skip, square, sums):
         return
     r = g // nb
     bl = g - r * nb
-    if skip[r]:
-        return
     acc = 0.0
     if square:
         mu = means[r]
@@ -169,12 +167,11 @@ def block_moments(out, means, skip, square, sums):
 
 
 @cuda.jit
-def scale_into(out, r0, dim, scale, dst, col0):
-    """dst[r, col0 + i] = out[r0 + r, i] * scale, cast to dst's precision (r < dim)."""
-    n = out.shape[1]
-    for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-        for r in range(dim):
-            dst[r, col0 + i] = out[r0 + r, i] * scale
+def scale_into(out, scale, dst, col0):
+    """dst[r, col0 + i] = out[r, i] * scale, cast to dst's precision."""
+    for i in range(cuda.grid(1), out.shape[1], cuda.gridsize(1)):
+        for r in range(out.shape[0]):
+            dst[r, col0 + i] = out[r, i] * scale
 
 
 # ---- a random start: random sequential addition in cell rounds (engine/setup/cell_rsa.py) ------------------------
@@ -399,8 +396,7 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
         if quat is None:
             quat = cuda.device_array((4, 0), np.float64, stream=stream)
         _random_centres(d, col0, pos, quat, stream, cap)
-        if not SIM:     # numba-cuda frees lazily: the cells go before the streams' rows are made (the start's peak)
-            cuda.current_context().deallocations.clear()
+        _free_released()    # the cells go before the streams' rows are made (the start's peak)
     else:
         cut, counts = _cut(d, site_key, stream, cap)
         if int(counts.sum()) != n:
@@ -412,8 +408,13 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
         if stream_no not in dsts:       # a stream nobody holds (a sphere ensemble without orientations)
             continue
         _draw_stream(n, np.uint64(key), dim, rms, dsts[stream_no], col0, stream, cap)
-        if not SIM:     # its scratch goes before the next stream's is made
-            cuda.current_context().deallocations.clear()
+        _free_released()    # its scratch goes before the next stream's is made
+
+
+def _free_released() -> None:
+    """Free the device memory of the arrays released so far now (numba-cuda frees lazily)."""
+    if not SIM:
+        cuda.current_context().deallocations.clear()
 
 
 def _draw_stream(n: int, key, dim: int, rms, dst, col0: int, stream, cap: int) -> None:
@@ -425,20 +426,18 @@ def _draw_stream(n: int, key, dim: int, rms, dst, col0: int, stream, cap: int) -
     scale = 1.0
     if rms is not None:
         n_blocks = (n + _BLOCK - 1) // _BLOCK
-        skip = cuda.to_device(np.zeros(dim, np.bool_), stream=stream)
         sums = cuda.device_array((dim, n_blocks), np.float64, stream=stream)
         grid = _blocks(dim * n_blocks, 64, cap)      # a few thousand threads: small blocks spread them over the SMs
         means = np.zeros(dim)
-        block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip, 0, sums)
+        block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), 0, sums)
         s_h = sums.copy_to_host(stream=stream)
         stream.synchronize()
         means = stream_mean(np.ascontiguousarray(s_h.T), n, rms)
-        block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), skip, 1, sums)
+        block_moments[grid, 64, stream](out, cuda.to_device(means, stream=stream), 1, sums)
         s_h = sums.copy_to_host(stream=stream)
         stream.synchronize()
         scale = stream_scale(np.ascontiguousarray(s_h.T), n, rms)
-    scale_into[_blocks(n, _WIDE, cap), _WIDE, stream](out, np.int64(0), np.int64(dim), float(scale), dst,
-                                                      np.int64(col0))
+    scale_into[_blocks(n, _WIDE, cap), _WIDE, stream](out, float(scale), dst, np.int64(col0))
 
 
 #: the sphere state array each stream of a sphere start goes to (engine.setup.scene.parallel_start_streams)

@@ -374,13 +374,9 @@ def test_a_non_finite_frame_on_the_io_thread_never_reaches_a_result(tmp_path):
     assert not path.exists() and not partial_path(path).exists()
 
 
-def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp_path):
-    """A frame series (engine.output.h5md._FrameSeries.append) writes a C-ordered frame of the dataset's type as its
-    chunk (H5Dwrite_chunk); any other array (here Fortran-ordered copies, float32 into a float64 file) goes through
-    HDF5's write. Same bytes."""
-    rng = np.random.default_rng(5)
-    frames = [{"position": rng.random((40, 3)), "orientation": rng.random((40, 4)),
-               "velocity": rng.random((40, 3)).astype(np.float32)} for _ in range(3)]
+def _chunked_and_copied(tmp_path, frames) -> dict:
+    """The files of 40 particles with ``frames`` written as they are ("chunk": C order, written as chunks where the
+    dtype fits) and as Fortran-ordered copies ("copy": through HDF5's write)."""
     paths = {}
     for label, conv in (("chunk", lambda a: a), ("copy", np.asfortranarray)):
         w = H5MDWriter(tmp_path / f"{label}.h5", n=40, box_length=1.0, spec_json="{}", derived={},
@@ -388,6 +384,17 @@ def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp
         for k, fr in enumerate(frames):
             w.snapshot(k, 0.1 * k, {name: conv(a) for name, a in fr.items()})
         paths[label] = w.finish({"wall_time": 1.0})
+    return paths
+
+
+def test_a_frame_written_as_its_chunk_is_the_same_file_as_through_hdf5s_copy(tmp_path):
+    """A frame series (engine.output.h5md._FrameSeries.append) writes a C-ordered frame of the dataset's type as its
+    chunk (H5Dwrite_chunk); any other array (here Fortran-ordered copies, float32 into a float64 file) goes through
+    HDF5's write. Same bytes."""
+    rng = np.random.default_rng(5)
+    frames = [{"position": rng.random((40, 3)), "orientation": rng.random((40, 4)),
+               "velocity": rng.random((40, 3)).astype(np.float32)} for _ in range(3)]
+    paths = _chunked_and_copied(tmp_path, frames)
     assert paths["chunk"].read_bytes() == paths["copy"].read_bytes()
     d = _datasets(paths["chunk"])
     assert np.array_equal(d["particles/all/position/value"], np.stack([f["position"] for f in frames]))
@@ -404,13 +411,7 @@ def test_a_frame_above_the_chunk_limit_is_written_in_chunks_of_whole_rows(tmp_pa
     monkeypatch.setattr(h5md, "CHUNK_MAX_BYTES", 7 * 3 * 8)     # 7 rows of float64 positions, 5 of orientations
     rng = np.random.default_rng(6)
     frames = [{"position": rng.random((40, 3)), "orientation": rng.random((40, 4))} for _ in range(2)]
-    paths = {}
-    for label, conv in (("chunk", lambda a: a), ("copy", np.asfortranarray)):
-        w = H5MDWriter(tmp_path / f"{label}.h5", n=40, box_length=1.0, spec_json="{}", derived={},
-                       radius=np.ones(40))
-        for k, fr in enumerate(frames):
-            w.snapshot(k, 0.1 * k, {name: conv(a) for name, a in fr.items()})
-        paths[label] = w.finish({"wall_time": 1.0})
+    paths = _chunked_and_copied(tmp_path, frames)
     assert paths["chunk"].read_bytes() == paths["copy"].read_bytes()
     with h5py.File(paths["chunk"], "r") as f:
         assert f["particles/all/position/value"].chunks == (1, 7, 3)

@@ -88,9 +88,7 @@ class CudaEnsemble(CudaEnsembleBase):
 
     def _permuted_arrays(self) -> tuple:
         """The device arrays permuted into cell order at a rebuild, besides the per-particle constants."""
-        if not self.orientations_held:
-            return self.pos, self.vel, self.omega, self.f_cur
-        return self.pos, self.vel, self.omega, self.quat, self.f_cur
+        return (self.pos, self.vel, self.omega) + ((self.quat,) if self.orientations_held else ()) + (self.f_cur,)
 
     def _permuted_i64(self) -> tuple:
         """The int64 device arrays (N) permuted with them (spheres: the lazy orientations' marks, the contacts
@@ -134,10 +132,9 @@ class CudaEnsemble(CudaEnsembleBase):
                 draw_start(sy.draw, int(col0), self.pos, {k: targets[a] for k, a in SPHERE_TARGETS.items()
                                                           if held or a != "quat"}, st, self.max_blocks)
             else:
-                for a, dst in ((sy.position, self.pos), (sy.velocity, self.vel), (sy.angular_velocity, self.omega),
-                               (sy.orientation, self.quat if held else None)):
-                    if dst is not None:
-                        self._up_into(a, dst, int(col0))
+                pairs = [(sy.position, self.pos), (sy.velocity, self.vel), (sy.angular_velocity, self.omega)]
+                for a, dst in pairs + ([(sy.orientation, self.quat)] if held else []):
+                    self._up_into(a, dst, int(col0))
 
     def _scene_constants(self, s: int) -> None:
         """Scene s's particle constants in spd (used when its particles are uniform)."""
