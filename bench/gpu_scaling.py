@@ -120,7 +120,7 @@ def measure(n, phi, precision, reps, target_s, make=scene, multistep=None, backe
     obs = be.observe()
     row = dict(n=n, phi=phi, precision=precision, loop=loop, steps=steps, reps=reps,
                cundall_median=float(np.median(runs)), cundall_runs=runs, frac=frac, kernel_ms_per_step=tot / psteps,
-               builds_per_step=builds_per_step, late_rebuilds=be.late_rebuilds, max_nb=be.max_nb,
+               builds_per_step=builds_per_step, late_rebuilds=be.late_rebuilds, list_slots=be.list_slots,
                bytes_per_particle_arrays=be.device_bytes() / n, bytes_per_particle_meminfo=(free0 - free1) / n,
                contacts_per_particle=obs["contacts"] / n, setup_s=setup)
     del be
@@ -192,7 +192,7 @@ def main():
         print(json.dumps(r), flush=True)
     with open(out_dir(args.out, "gpu_scaling") / "gpu_scaling.json", "w") as fh:
         json.dump(dict(info=info, rows=rows), fh, indent=1)
-    print("\n| precision | phi | N | loop | Cundall (median) | KD | rebuild | forces | B/particle | max_nb |")
+    print("\n| precision | phi | N | loop | Cundall (median) | KD | rebuild | forces | B/particle | list slots |")
     for r in rows:
         if "error" in r:
             print(f"| {r['precision']} | {r['phi']} | {r['n']} | ERROR {r['error'][:80]} |")
@@ -200,7 +200,7 @@ def main():
         f = r["frac"]
         print(f"| {r['precision']} | {r['phi']} | {r['n']} | {r['loop']} | {r['cundall_median']:.3g} | "
               f"{f['kick_drift']:.2f} | "
-              f"{f['rebuild']:.2f} | {f['forces']:.2f} | {r['bytes_per_particle_meminfo']:.0f} | {r['max_nb']} | "
+              f"{f['rebuild']:.2f} | {f['forces']:.2f} | {r['bytes_per_particle_meminfo']:.0f} | {r['list_slots']} | "
               f"{r['contacts_per_particle']:.2g} |")
 
 

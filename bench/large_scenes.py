@@ -5,10 +5,10 @@
 
 ``memory``: per case (rough spheres, e_n = e_t = 0.8, phi = 0.058 unless ``--phi``, no snapshots, records every
 t_end/200, ``--steps`` cooling steps, no thermalisation, the spec's start or ``--start``) the predicted peak (B per
-particle; the list stride it assumes, engine/loops/cuda_memory.py); the allocator's peak of live device bytes during
-the run (a Numba memory-manager plugin that counts what is allocated and released; pending deallocations are
+particle; the list slots per particle it assumes, engine/loops/cuda_memory.py); the allocator's peak of live device
+bytes during the run (a Numba memory-manager plugin that counts what is allocated and released; pending deallocations are
 flushed at once, NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT = 1); the process's peak as nvidia-smi sees it (context
-included); the arrays the ensemble holds at the end (``device_allocations``) and the stride reached; the loop's
+included); the arrays the ensemble holds at the end (``device_allocations``) and the list slots reached; the loop's
 Cundall number. A spec the prediction refuses is reported with the refusal's text and how long it took.
 
 ``start``: the random start (engine/setup/cell_rsa.py) drawn on the device (engine/loops/cuda_start.py ``draw_start``,
@@ -121,7 +121,7 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     row = dict(n=n, precision=precision, phi=phi, steps=steps, start=start or "default",
                predicted_B_per_particle=pred.peak_bytes / n,
                predicted_loop_B=pred.loop_bytes / n, predicted_start_B=pred.start_bytes / n,
-               predicted_stride=pred.stride)
+               predicted_slots_per_particle=pred.slots / n)
     cuda_ensemble.CudaEnsembleBase.__init__ = keep
     release_unreferenced()     # the earlier cases' arrays freed first: none may be released during this one
     _Peak.reset()
@@ -141,7 +141,7 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     if kept:
         e = kept[-1]
         found = device_allocations(e)
-        row.update(stride=e.max_nb, held_B_per_particle=sum(found.values()) / n,
+        row.update(slots_per_particle=e.nbr.shape[0] / n, held_B_per_particle=sum(found.values()) / n,
                    held_by_array={k: round(v / n, 2) for k, v in sorted(found.items(), key=lambda kv: -kv[1])[:16]},
                    predicted_by_array={k: round(v / n, 2) for k, v in sorted(pred.table.items(),
                                                                               key=lambda kv: -kv[1])[:16]})

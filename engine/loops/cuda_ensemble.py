@@ -45,7 +45,6 @@ from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_frames import StateFrames
 from engine.loops.cuda_launch import LaunchCache
-from engine.loops.cuda_memory import FIRST_STRIDE
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
@@ -103,7 +102,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._views()
         self._init_scratch()
         self._init_tables(systems, contacts)
-        self._alloc_list(FIRST_STRIDE)
+        self._alloc_list()
         for s, c in enumerate(contacts):
             self._set_scene_contact(s, c)
         self._upload_params()
@@ -148,20 +147,21 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.active = np.ones(nk, bool)
         self.contact = list(contacts)
         self.box = np.array([float(s.box_length) for s in systems])
-        self.x_ref = cuda.device_array((3, n), self.pos_dtype, stream=self.stream)
+        self.x_ref = None           # made after the state (_init_scratch): a start drawn on the device peaks before
         self.ids = cuda.device_array(n, np.int32, stream=self.stream)
-        self.sc = cuda.device_array(n, np.int32, stream=self.stream)
+        self.sc = cuda.device_array(n if nk > 1 else 1, np.int32, stream=self.stream)   # (cuda_kernels.scene_of)
         if n:
             K.slot_ids_and_scenes[self._grid(n)](cuda.to_device(np.cumsum(self.sizes), stream=self.stream), self.ids,
                                                  self.sc)
 
     def _init_scratch(self) -> None:
-        """The permutation's order, the compact store's index, the compact store and the status words. (The
-        permutation's scratch rows and the cells' counts lie in the list's memory, the compact store's index in the
-        next force buffer's: ListBuilds._in_list, _store_index.)"""
+        """The compact store's index, the compact store and the status words. (The permutation's order and inverse
+        lie in the torque or arrays of their own, its scratch rows and the cells' counts in the list's history, the
+        compact store's index in the next force buffer: ListBuilds._perm_rows, _lent, _store_index.)"""
         n, nk = self.n, self.n_scenes
-        self.order = cuda.device_array(n, np.int32, stream=self.stream)
-        self.inv_old = cuda.device_array(n, np.int32, stream=self.stream)
+        self.x_ref = cuda.device_array((3, n), self.pos_dtype, stream=self.stream)
+        self._perm_own = None
+        self._perm_views = {}
         self._init_store_index()
         # which particles' force buffers may hold something other than zero (cuda_loop SKIP_COLD)
         self.hot = cuda.device_array(n, np.uint8, stream=self.stream)
@@ -418,16 +418,15 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.stream.synchronize()
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         sl = slice(a0, a0 + n_k)
-        nbr, count, row, ids_k = nbr[:, sl], nn[0, sl], nn[1, sl], ids[sl]
-        m = nbr.shape[0]
-        slot = np.arange(m)[:, None] < np.minimum(count, m)[None, :]
-        kk, ii = np.nonzero(slot)
-        q = row[ii] + kk                                  # the slots' history (cuda_kernels: the list's layout)
+        count, ids_k = nn[0, sl], ids[sl]
+        # the scene's rows lie back to back from its first particle's (cuda_kernels: the list's layout)
+        ii = np.repeat(np.arange(n_k), count)             # the particle of each of the scene's slots
+        q = (int(nn[1, a0]) if n_k else 0) + np.arange(len(ii))
         touching = hist[3, q] > 0
-        kk, ii, q = kk[touching], ii[touching], q[touching]
-        order = np.lexsort((kk, ids_k[ii]))
-        kk, ii, q = kk[order], ii[order], q[order]
-        pairs = np.stack([ids_k[ii] - a0, ids[nbr[kk, ii]] - a0], axis=1).astype(np.int64)
+        ii, q = ii[touching], q[touching]
+        order = np.lexsort((q, ids_k[ii]))                # by particle id, then list slot
+        ii, q = ii[order], q[order]
+        pairs = np.stack([ids_k[ii] - a0, ids[nbr[q]] - a0], axis=1).astype(np.int64)
         springs = np.ascontiguousarray(hist[:, q].T).astype(self.dtype)
         return pairs, springs
 
@@ -480,8 +479,9 @@ class CudaSceneBackend(Backend):
         return self.e.launches
 
     @property
-    def max_nb(self) -> int:
-        return self.e.max_nb
+    def list_slots(self) -> int:
+        """The slots the Verlet list has room for (neighbour indices and their history, all particles' rows)."""
+        return int(self.e.nbr.shape[0])
 
     @property
     def dtype(self):

@@ -11,14 +11,15 @@ what the scenes need (docs/design.md §1) and call the same ``@numba.njit`` func
 
 Layout (device, structure of arrays, particle index fastest). The scenes lie back to back: scene s owns
 the slots [start_s, start_s + n_s) and keeps them (its cells come before the next scene's, so the cell
-sort never moves a particle into another scene's range); ``sc[i]`` is the scene of slot i.
+sort never moves a particle into another scene's range); ``sc[i]`` is the scene of slot i (a lone scene holds one
+word, never read: :func:`scene_of`).
     pos, vel, spin (3, N) (spin: the rotational state the torque kicks, the shape's); quat (4, N); f0/f1
     (3, N) (double buffer: the sphere force phase reads the previous step's forces for the predicted
     velocities of *other* particles while writing its own); torque (3, N); x_ref (3, N); ids (N) int32 =
     ensemble-wide particle id (start_s + id within the scene); a shape's own arrays (``ext``).
-    Neighbour list (of the list radius: a sphere's radius, a spheroid's bounding radius): nbr (M, N) int32,
-    nn (N) int32, hist (H, M, N) per-slot contact history (H = 5: tangential spring x, y, z, previous
-    overlap, previous dashpot force).
+    Neighbour list (of the list radius: a sphere's radius, a spheroid's bounding radius), packed rows (below):
+    nn (2, N + 1) int32 counts and rows, nbr (slots) int32, hist (H, slots) per-slot contact history (H = 5:
+    tangential spring x, y, z, previous overlap, previous dashpot force).
     Compact history store (rebuilds only): the slots whose history matters across a rebuild (in contact
     at the previous step or overlapping now) are copied to cj/chist before the list is rebuilt in place;
     every other slot restarts from zero history with the current gap as its previous overlap, which gives
@@ -29,7 +30,7 @@ Per-scene constants: spd (K, ND + the shape's columns) in the working precision,
 spi (K, NI) int32; a scene whose ``spi[s, I_ACTIVE]`` is 0 is skipped by every kernel (finished, cancelled or
 failed: a blow-up clears it on the device so a failing scene cannot disturb the others).
 
-Status (float64): global slots S_* (rebuild decision, list stride, compaction count, multi-step exit)
+Status (float64): global slots S_* (rebuild decision, list slots, compaction count, multi-step exit)
 then NSS words per scene at SS0 + NSS s (first bad value, worst overlap beyond the limit).
 """
 
@@ -60,19 +61,19 @@ NI = 6
 # (and S_V2B, its other parity): max (2 |v| dt / (L_v/2))^2
 # S_CHECK: max (displacement from a list's snapshot / (L_v/2))^2, the a-posteriori check of a CPU-built list
 # S_D2C: the third slot of the fused many-steps kernel, which rotates the step maxima through S_D2, S_D2B, S_D2C
-# S_SLOTS: the history slots of a new list's rows (slot_total; ListBuilds._alloc_hist)
-S_D2, S_D2B, S_V2, S_NEED_NB, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK, S_V2B, S_D2C, S_SLOTS = range(11)
-SS0 = 11
+# S_SLOTS: the slots of a new list's rows (slot_total; ListBuilds._list_room)
+S_D2, S_D2B, S_V2, S_NCOMP, S_RUN_DONE, S_RUN_REBUILD, S_CHECK, S_V2B, S_D2C, S_SLOTS = range(10)
+SS0 = 10
 # per-scene status words
 SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5
 HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force (a shape's
 #        pair law may keep more: the host allocates hist/chist with its own count, the kernels read shape[0])
-# The list: nbr[kk, i] the neighbour in slot kk of particle i (stride S = nbr.shape[0] slots a particle); nn (2, N + 1):
-# nn[0, i] the count of i's slots (a build's output), nn[1, i] where i's slots' history starts in hist (words x
-# slots), nn[1, N] the slots in all: the history of slot kk is hist[:, nn[1, i] + kk], the rows back to back in particle
-# order (an exclusive scan of nn[0]; only the slots in use hold history, neighbouring threads read neighbouring
-# history), and the time loop reads a row's count as nn[1, i + 1] - nn[1, i] (one cache line a warp, not two)
+# The list: nn (2, N + 1): nn[0, i] the count of particle i's slots (a build's output), nn[1, i] its row's first slot,
+# nn[1, N] the slots in all (an exclusive scan of nn[0]: the rows back to back in particle order, only the slots in
+# use); slot q of the list holds the neighbour nbr[q] (int32, packed) and its contact history hist[:, q] (words x
+# slots), so neighbouring threads read neighbouring slots, and the time loop reads a row's count as
+# nn[1, i + 1] - nn[1, i] (one cache line a warp, not two)
 
 _cache: dict = {}
 
@@ -208,15 +209,12 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     ZERO = DT(0)
     HALF = DT(0.5)
     f64 = np.float64
-    SH2 = 2 * TPB
-
-    block_max2, fail = device_helpers(TPB)
 
     # ---- neighbour list: cells, sort, permute, compact history, build -----------------------------------
 
     @cuda.jit(device=True)
     def cell_of(i, pos, sc, spf, spi):
-        s = sc[i]
+        s = scene_of(i, sc, spi)
         return spi[s, I_COFF] + cell_index_of(pos[0, i], pos[1, i], pos[2, i], spf[s, F_INVCELL], spi[s, I_NC])
 
     @cuda.jit
@@ -329,15 +327,14 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         """Copy the slots that keep history into the compact store (old slot order); the total goes to
         status[S_NCOMP]; nothing is written past the store's capacity (the host grows it and reruns)."""
         cap = cj.shape[0]
-        m = nbr.shape[0]
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
+            s = scene_of(i, sc, spi)
             cnt = 0
-            no = min(nn[0, i], m)
             h0 = nn[1, i]
+            h1 = h0 + nn[0, i]
             if spi[s, I_ACTIVE] != 0:
-                for kk in range(no):
-                    if keeps_history(i, h0 + kk, nbr[kk, i], pos, radius, hist, s, spd):
+                for q in range(h0, h1):
+                    if keeps_history(i, q, nbr[q], pos, radius, hist, s, spd):
                         cnt += 1
             off = 0
             if cnt > 0:
@@ -345,22 +342,20 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             c_off[i] = off
             c_cnt[i] = cnt
             if cnt > 0 and off + cnt <= cap:
-                q = off
-                for kk in range(no):
-                    j = nbr[kk, i]
-                    if keeps_history(i, h0 + kk, j, pos, radius, hist, s, spd):
-                        cj[q] = j
+                c = off
+                for q in range(h0, h1):
+                    j = nbr[q]
+                    if keeps_history(i, q, j, pos, radius, hist, s, spd):
+                        cj[c] = j
                         for w in range(chist.shape[0]):
-                            chist[w, q] = hist[w, h0 + kk]
-                        q += 1
+                            chist[w, c] = hist[w, q]
+                        c += 1
 
     @cuda.jit
-    def build(n, pos, radius, cell_start, nbr, nn, x_ref, sc, spd, spf, spi, status):
-        """Full Verlet list in the sorted order: neighbours and counts. nn[0, i] gets the true count even beyond the
-        stride, status[S_NEED_NB] the largest (the host grows the list and reruns when it does not fit). The rows'
-        history slots are handed out afterwards (a scan of nn[0] into nn[1]) and filled by :func:`fill_history`."""
-        sh = cuda.shared.array(SH2, ct.float64)
-        need = 0.0
+    def build(n, pos, radius, cell_start, nbr, nn, x_ref, sc, spd, spf, spi, fill):
+        """Full Verlet list in the sorted order, in two passes over the same cells: ``fill`` 0 counts each row into
+        nn[0] (the host then hands out the rows, a scan of nn[0] into nn[1], and makes room for them); ``fill`` 1
+        writes the neighbours into the rows nbr[nn[1, i] + k]. The rows' history follows (:func:`fill_history`)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
             if s < 0:
@@ -370,18 +365,14 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             r0 = spd[s, D_R0]
             cx, cy, cz = cell_coords(xi, yi, zi, spf[s, F_INVCELL], nc)
             ri = r0 if UNIFORM else radius[i]
+            base = nn[1, i] if fill != 0 else -1
             cnt = 0
             for k in range(neighbour_cell_count(nc)):
                 cc = coff + neighbour_cell(cx, cy, cz, k, nc)
                 for j in range(cell_start[cc], cell_start[cc + 1]):
                     rj = r0 if UNIFORM else radius[j]
-                    cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr)
+                    cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr, base)
             nn[0, i] = cnt
-            if cnt > need:
-                need = f64(cnt)
-        block_max2(sh, need, 0.0)
-        if cuda.threadIdx.x == 0:
-            cuda.atomic.max(status, S_NEED_NB, sh[0])
 
     @cuda.jit
     def slot_total(n, nn, status):
@@ -397,12 +388,12 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
     @cuda.jit
     def fill_history(n, pos, radius, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, sc, spd, spi):
         """The history of every slot of a new list (built on the GPU, single grid or multigrid, or on the host), in
-        its row's slots hist[:, nn[1, i] + kk]: the kept history from the compact store, indexed by the previous
+        its row's slots hist[:, nn[1, i] + k]: the kept history from the compact store, indexed by the previous
         order (old slot of new i: order[i]; old neighbour index o: new index inv_old[o]; both the identity for a
         host-built list, which permutes nothing), else a fresh slot whose previous overlap is the gap
         R_i + R_j - |r_ij| from the candidate test's own squared distance (cells.distance2)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
+            s = scene_of(i, sc, spi)
             if spi[s, I_ACTIVE] == 0:
                 continue
             cnt = nn[0, i]
@@ -419,11 +410,11 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             oi = order[i]
             k0 = c_off[oi]
             k1 = k0 + c_cnt[oi]
-            for kk in range(cnt):
-                j = nbr[kk, i]
+            for q in range(h0, h0 + cnt):
+                j = nbr[q]
                 rj = r0 if UNIFORM else radius[j]
                 d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, HALF)
-                init_slot(h0 + kk, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
+                init_slot(q, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
 
     return dict(fill_i32=fill_i32, set_word=set_word, slot_total=slot_total, fill_history=fill_history,
                 count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets, scatter=scatter,
@@ -456,10 +447,13 @@ def scatter_rows(src, a0, dst):
 def slot_ids_and_scenes(ends, ids, sc):
     """ids[i] = i and sc[i] = the scene of slot i, scene k holding slots ends[k - 1] .. ends[k] - 1 (ends: the
     cumulative scene sizes, ends[-1] = N): an ensemble's first identity order and scene index, made on the device
-    (uploaded, they were two N-long host arrays and copies of a large job's set-up)."""
+    (uploaded, they were two N-long host arrays and copies of a large job's set-up). A lone scene's sc (one word)
+    is left alone (:func:`scene_of`)."""
     nk = ends.shape[0]
     for i in range(cuda.grid(1), ids.shape[0], cuda.gridsize(1)):
         ids[i] = i
+        if nk == 1:
+            continue
         lo = 0
         hi = nk - 1
         while lo < hi:          # the first scene whose end lies beyond i
@@ -476,6 +470,12 @@ cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows,
 
 
 @cuda.jit(device=True)
+def scene_of(i, sc, spi):
+    """The scene of particle slot i: 0 when there is one (sc is then not read, nor held: one word)."""
+    return 0 if spi.shape[0] == 1 else sc[i]
+
+
+@cuda.jit(device=True)
 def list_origin(i, pos, x_ref, nn, sc, spd, spi):
     """Start of particle i's row of a list build: its position, recorded as the list's reference x_ref, its
     scene s and the scene's box, 1/box and skin; s = -1 (and an empty row) when the scene is inactive."""
@@ -485,7 +485,7 @@ def list_origin(i, pos, x_ref, nn, sc, spd, spi):
     x_ref[0, i] = xi
     x_ref[1, i] = yi
     x_ref[2, i] = zi
-    s = sc[i]
+    s = scene_of(i, sc, spi)
     box = spd[s, D_BOX]
     inv_box = spd[s, D_INVBOX]
     skin = spd[s, D_SKIN]
@@ -496,17 +496,17 @@ def list_origin(i, pos, x_ref, nn, sc, spd, spi):
 
 
 @cuda.jit(device=True)
-def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, nbr):
-    """The candidate test of every CUDA list build (engine/neighbours/cells.distance2): j (!= i) joins i's row at slot
-    cnt when |r_ij| < R_i + R_j + L_v (a row longer than the stride is only counted). Returns (the new count, the
-    squared distance; 0 for j = i)."""
+def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, nbr, base):
+    """The candidate test of every CUDA list build (engine/neighbours/cells.distance2): j (!= i) joins i's row
+    when |r_ij| < R_i + R_j + L_v, stored at nbr[base + cnt] (a build's counting pass, base < 0, stores nothing).
+    Returns (the new count, the squared distance; 0 for j = i)."""
     if j == i:
         return cnt, half - half
     d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, half)
     rc = ri + rj + skin
     if d2 < rc * rc:
-        if cnt < nbr.shape[0]:
-            nbr[cnt, i] = j
+        if base >= 0:
+            nbr[base + cnt] = j
         return cnt + 1, d2
     return cnt, d2
 

@@ -52,7 +52,7 @@ from numba import cuda
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
-from engine.loops.cuda_memory import grown_stride
+from engine.loops.cuda_memory import FIRST_STRIDE, grown_stride
 
 MODES = ("gpu", "cpu-sequential", "cpu-pipelined", "auto")
 #: stages of the GPU list measured before the first prediction, stages a candidate mode is tried, and
@@ -98,6 +98,7 @@ class HostLists:
         self._next_probe = WARM_STAGES
         self.builder = None
         self._host = None
+        self._uploaded_slots = ens.n      # the list slots of the last upload (predict: the exchange's bytes)
         self.snap = None
         if self.mode != "gpu":
             self._enter_cpu_mode()
@@ -108,8 +109,8 @@ class HostLists:
         """Fix the slot order (no permutation from now on) and set the builder up for it."""
         ens = self.ens
         ids = np.arange(ens.n, dtype=np.int32)
-        ens.order.copy_to_device(ids, stream=ens.stream)
-        ens.inv_old.copy_to_device(ids, stream=ens.stream)
+        for rows in ens._own_perm_rows():
+            rows.copy_to_device(ids, stream=ens.stream)
         self._prepare()
 
     def _prepare(self) -> None:
@@ -125,17 +126,18 @@ class HostLists:
         if self.builder is not None and self.builder.n == ens.n:
             # the same particles in another slot order (the GPU list re-sorts): new radii, same levels
             self.builder.set_radius(r)
-            self._alloc_host(ens.max_nb)
             return
         skin = float(ens.contact[0].skin)
         levels = (ens.levels[0] if ens.multigrid else
                   grid_levels(float(ens.box[0]), ens.n, float(r.min()), float(r.max()), skin, max_levels=1))
         self.builder = MultigridBuilder(float(ens.box[0]), r, levels, skin=skin)
-        self._alloc_host(ens.max_nb)
+        self._alloc_host(FIRST_STRIDE if self._host is None else self._host["nbr"].shape[0])
         if self.snap is None:
             self.snap = cuda.device_array((3, ens.n), ens.pos_dtype, stream=st)
 
     def _alloc_host(self, max_nb: int) -> None:
+        """Pinned host buffers: the positions, the list of ``max_nb`` slots a particle as the host builder fills it
+        (its rows are packed for the device on upload, :meth:`_install`), its counts and the rows' offsets."""
         n = self.ens.n
         if self._host is None or self._host["nbr"].shape[0] != max_nb:
             pos = self._host["pos"] if self._host is not None else cuda.pinned_array((3, n), self.ens.pos_dtype)
@@ -177,21 +179,23 @@ class HostLists:
         rows[0, -1] = 0
         rows[1, 0] = 0
         np.cumsum(counts, out=rows[1, 1:])
-        ens.nbr.copy_to_device(h["nbr"], stream=st)
+        stride = h["nbr"].shape[0]
+        packed = h["nbr"].T[np.arange(stride)[None, :] < counts[:, None]]     # rows in particle order
+        ens._list_room(slots)
+        self._uploaded_slots = slots
+        if slots:
+            ens.nbr[:slots].copy_to_device(packed, stream=st)
         ens.nn.copy_to_device(rows, stream=st)
         st.synchronize()
         t_up = time.perf_counter() - t0
-        ens._fill_history(slots)
+        ens._fill_history()
         _copy(ens.x_ref, snapshot_dev, st)
         ens.builds += 1
         return t_up
 
     def _grow(self, need: int) -> None:
-        """A list that did not fit: larger device list and host buffers. The history must already be in
-        the compact store: compacting the new, empty list would clear it."""
-        ens = self.ens
-        ens._alloc_list(grown_stride(need))
-        self._alloc_host(ens.max_nb)
+        """A list that did not fit the host buffers' rows: wider ones (the device list is sized on upload)."""
+        self._alloc_host(grown_stride(need))
 
     def _sync_build(self) -> dict:
         """Sequential build from the current positions (A5, A1, A2 / B1, B2); the outgoing list's history
@@ -199,7 +203,7 @@ class HostLists:
         self.ens._compact()
         t_down = self._download()
         need, t_cpu = self._cpu_build()
-        while need > self.ens.max_nb:
+        while need > self._host["nbr"].shape[0]:
             self._grow(need)
             need, t2 = self._cpu_build()
             t_cpu += t2
@@ -269,7 +273,7 @@ class HostLists:
         ens.kl["check_snapshot"][ens._grid(ens.n)](ens.n, ens.pos, self.snap, ens.sc, ens.spd, ens.spf, ens.spi,
                                                    ens.status)
         h = ens._read_status_now()                  # B9, B10
-        if h[K.S_CHECK] >= 1.0 or need > ens.max_nb:
+        if h[K.S_CHECK] >= 1.0 or need > self._host["nbr"].shape[0]:
             out = self._sync_build()               # grows the list itself when it does not fit
             out["tau_cpu"] += t_cpu
             out.update(wait=wait, restart=True)
@@ -308,7 +312,7 @@ class HostLists:
             return None
         t_cpu, t_down = self._probe
         ens = self.ens
-        list_bytes = ens.max_nb * ens.n * 4 + ens.n * 4
+        list_bytes = self._uploaded_slots * 4 + ens.n * 8
         pos_bytes = 3 * ens.n * np.dtype(ens.pos_dtype).itemsize
         t_exch = t_down * (1.0 + list_bytes / pos_bytes)
         steps = max(1.0, np.mean([r["steps"] for r in self.stages if r["mode"] == "gpu"][-8:]))

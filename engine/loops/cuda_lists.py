@@ -27,7 +27,7 @@ from numba.cuda import types as ct
 
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import cache_kernels
-from engine.loops.cuda_kernels import add_candidate, list_origin
+from engine.loops.cuda_kernels import add_candidate, list_origin, scene_of
 from engine.neighbours.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
 from engine.physics.contact import min_image
 
@@ -48,7 +48,7 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
     block_max2, _fail = K.device_helpers(TPB)
     D_BOX, D_INVBOX = K.D_BOX, K.D_INVBOX
     I_ACTIVE, F_LIM2INV = K.I_ACTIVE, K.F_LIM2INV
-    S_NEED_NB, S_CHECK = K.S_NEED_NB, K.S_CHECK
+    S_CHECK = K.S_CHECK
 
     @cuda.jit(device=True)
     def level_bin(i, l, li, pos, s, mgi, mgf):
@@ -57,36 +57,34 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
         return (mgi[s, l, 1] if l == li else mgi[s, l, 2]) + c
 
     @cuda.jit
-    def mg_count(n, pos, sc, lvl, mgi, mgf, count):
+    def mg_count(n, pos, sc, spi, lvl, mgi, mgf, count):
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
+            s = scene_of(i, sc, spi)
             li = lvl[i]
             for l in range(li + 1):
                 cuda.atomic.add(count, level_bin(i, l, li, pos, s, mgi, mgf), 1)
 
     @cuda.jit
-    def mg_scatter(n, pos, sc, lvl, mgi, mgf, start, cursor, items):
+    def mg_scatter(n, pos, sc, spi, lvl, mgi, mgf, start, cursor, items):
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
+            s = scene_of(i, sc, spi)
             li = lvl[i]
             for l in range(li + 1):
                 b = level_bin(i, l, li, pos, s, mgi, mgf)
                 items[start[b] + cuda.atomic.add(cursor, b, 1)] = i
 
     @cuda.jit
-    def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, nbr, nn, x_ref, sc, spd, spi, status):
-        """Full Verlet list over the grid levels (module docstring): neighbours, true counts in nn[0], the largest in
-        status[S_NEED_NB] (the host grows the list and reruns when it does not fit); the history follows as in the
-        single-grid build (cuda_kernels.fill_history)."""
-        need = 0.0
-        sh = cuda.shared.array(SH2, ct.float64)
-        max_nb = nbr.shape[0]
+    def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, nbr, nn, x_ref, sc, spd, spi, fill):
+        """Full Verlet list over the grid levels (module docstring), in the single-grid build's two passes
+        (cuda_kernels.build): ``fill`` 0 counts each row into nn[0], ``fill`` 1 writes it at nbr[nn[1, i]:] and sorts it
+        by neighbour index (the binning order is atomic); the history follows (cuda_kernels.fill_history)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
             if s < 0:
                 continue
             ri = radius[i]
             li = lvl[i]
+            base = nn[1, i] if fill != 0 else -1
             cnt = 0
             for l in range(li + 1):
                 nc = mgi[s, l, 0]
@@ -99,22 +97,16 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                         for p in range(start[b], start[b + 1]):
                             j = items[p]
                             cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, radius[j], skin, pos, box, inv_box,
-                                                   HALF, nbr)
+                                                   HALF, nbr, base)
             nn[0, i] = cnt
-            if cnt > need:
-                need = np.float64(cnt)
-            if cnt <= max_nb:
-                # sort the row by neighbour index (binning order is atomic); the history follows (fill_history)
-                for p in range(1, cnt):
-                    v = nbr[p, i]
+            if fill != 0:
+                for p in range(base + 1, base + cnt):
+                    v = nbr[p]
                     q = p - 1
-                    while q >= 0 and nbr[q, i] > v:
-                        nbr[q + 1, i] = nbr[q, i]
+                    while q >= base and nbr[q] > v:
+                        nbr[q + 1] = nbr[q]
                         q -= 1
-                    nbr[q + 1, i] = v
-        block_max2(sh, need, 0.0)
-        if cuda.threadIdx.x == 0:
-            cuda.atomic.max(status, S_NEED_NB, sh[0])
+                    nbr[q + 1] = v
 
     @cuda.jit
     def check_snapshot(n, pos, snap, sc, spd, spf, spi, status):
@@ -122,7 +114,7 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
         sh = cuda.shared.array(SH2, ct.float64)
         md = 0.0
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            s = sc[i]
+            s = scene_of(i, sc, spi)
             if spi[s, I_ACTIVE] == 0:
                 continue
             box = spd[s, D_BOX]

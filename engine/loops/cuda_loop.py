@@ -159,10 +159,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
 
     block_max2, fail = L.device_helpers(TPB)
 
-    @cuda.jit(device=True)
-    def scene_of(i, sc, spi):
-        """The scene of particle slot i: 0 when there is one (sc is not read: 4 bytes a particle per pass)."""
-        return 0 if spi.shape[0] == 1 else sc[i]
+    scene_of = L.scene_of
 
     # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
 
@@ -236,9 +233,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
     def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd,
                    spf, spi, status, step, ext):
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
-        in list order; slot kk's history is hist[:, nn[1, i] + kk], nn[1, i + 1] - nn[1, i] slots); per-slot history
-        advanced in place; a scene
-        whose overlap exceeds its limit stops.
+        in list order; slots q = nn[1, i] .. nn[1, i + 1] - 1 hold the neighbour nbr[q] and its history
+        hist[:, q]); per-slot history advanced in place; a scene whose overlap exceeds its limit stops.
         Returns the force (stored in f_new too; zero for a skipped scene) and whether force or torque is not zero
         (``hot`` bit 0). The stores are skipped where both are zero and were at the two passes before (``SKIP``:
         f_new, the buffer written two passes ago, and the torque, written one pass ago, hold zeros already)."""
@@ -252,8 +248,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         if spi[s, I_ACTIVE] == 0:
             return ZERO, ZERO, ZERO, False
         acc = (ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ZERO)
-        for kk in range(m):
-            acc = pair(i, h0 + kk, nbr[kk, i], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
+        for q in range(h0, h0 + m):
+            acc = pair(i, q, nbr[q], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
         fx, fy, fz, tx, ty, tz, worst = acc
         now = not (fx == ZERO and fy == ZERO and fz == ZERO)
         if TORQUE:

@@ -61,27 +61,31 @@ def device_allocations(root, prefix: str = "") -> dict[str, int]:
     return found
 
 
-#: list slots a CUDA ensemble starts with (engine/loops/cuda_ensemble.py); a build that finds more grows the stride
-#: to ceil((need + 2) / 4) * 4 (engine/loops/cuda_rebuild.py)
+#: slots a particle's row has in a CUDA list built on the host (engine/loops/cuda_listmodes.py: its host buffers, packed
+#: for the device on upload); a build that finds more widens them to ceil((need + 2) / 4) * 4
 FIRST_STRIDE = 8
-#: the chance, over a run, that some particle's list outgrows the predicted stride (the stride is then regrown, a
-#: few per cent above the prediction)
-STRIDE_MISS = 1.0e-3
 
 
-#: history slots a list's history holds beyond its rows' (engine/loops/cuda_rebuild.py ``_alloc_hist``): it starts
-#: with N + HIST_MARGIN and is regrown to 5/4 of the slots a build hands out plus HIST_MARGIN when they do not fit
+#: list slots (neighbour indices and their history) a CUDA list holds beyond its rows' (engine/loops/cuda_rebuild.py
+#: ``_alloc_slots``): it starts with N + HIST_MARGIN and is regrown to 5/4 of the slots a build hands out plus
+#: HIST_MARGIN when they do not fit
 HIST_MARGIN = 1024
 
 
 def grown_history(slots: int) -> int:
-    """The history's slots after a build that handed out ``slots`` (more than it held)."""
+    """The list's slots after a build that handed out ``slots`` (more than it held)."""
     return int(1.25 * slots) + HIST_MARGIN
 
 
 def grown_stride(need: int) -> int:
-    """The list stride after a build that found ``need`` neighbours in one particle's row."""
+    """The host list's row width after a build that found ``need`` neighbours in one particle's row."""
     return max(FIRST_STRIDE, int(math.ceil((need + 2) / 4.0)) * 4) if need > FIRST_STRIDE else FIRST_STRIDE
+
+
+def lends_cell_counts(ncell: int, n: int, hist_words: int, word: int) -> bool:
+    """Whether a rebuild's per-cell counts (ncell + 1 int32) fit in the first list history of n particles
+    (engine/loops/cuda_rebuild.py ``_lent``); a scene of few particles in many cells gives them their own array."""
+    return 4 * (ncell + 1) <= hist_words * (n + HIST_MARGIN) * word
 
 
 def mean_list_neighbours(volume_fraction: float, reach_over_diameter: float) -> float:
@@ -94,60 +98,11 @@ def mean_list_neighbours(volume_fraction: float, reach_over_diameter: float) -> 
     return 8.0 * volume_fraction * carnahan_starling_g(volume_fraction) * (reach_over_diameter ** 3 - 1.0)
 
 
-def shell_pair_apart(reach_over_diameter: float, nodes: int = 64) -> float:
-    """q: the probability that two points drawn uniformly in the shell sigma < r < r_c around a sphere are more than
-    sigma apart (two neighbours in the list's reach that do not overlap each other); Gauss-Legendre quadrature over
-    both radii of P(cos theta < (r1^2 + r2^2 - sigma^2) / (2 r1 r2)) with cos theta uniform on [-1, 1] (sigma = 1)."""
-    x, w = np.polynomial.legendre.leggauss(nodes)
-    rc = reach_over_diameter
-    r = 1.0 + 0.5 * (x + 1.0) * (rc - 1.0)
-    weight = w * 0.5 * (rc - 1.0) * 3.0 * r * r / (rc ** 3 - 1.0)     # the radial density 3 r^2 / (r_c^3 - 1)
-    r1, r2 = np.meshgrid(r, r, indexing="ij")
-    c0 = (r1 * r1 + r2 * r2 - 1.0) / (2.0 * r1 * r2)
-    close = np.clip(0.5 * (1.0 - c0), 0.0, 1.0)                         # P(|x1 - x2| < sigma | r1, r2)
-    return float(1.0 - weight @ close @ weight)
-
-
-def list_count_distribution(mean: float, q: float, kmax: int = 64) -> np.ndarray:
-    """P(k), k < kmax: the number of neighbours in a sphere's list reach in an equilibrium gas, as a pairwise-
-    interaction (Strauss) count, P(k) ~ lambda^k / k! q^(k (k - 1) / 2): Poisson for independent neighbours, each
-    pair of them weighted by the chance q that they do not overlap; lambda is set so that the mean is ``mean``.
-    Against an RSA start of 524 288 spheres at phi = 0.058 (reach 2.8 a) it gives 207 640, 207 237, 86 258, 19 964,
-    2891, 279, 19, 1 particles with 0..7 neighbours where 206 385, 208 589, 86 918, 19 545, 2593, 249, 8, 1 were
-    counted (Poisson: 221 080, 190 906, 82 425, 23 725, 5122, 885, 127, 16)."""
-    k = np.arange(kmax)
-    log_fact = np.cumsum(np.log(np.maximum(k, 1)))
-
-    def dist(lam: float) -> np.ndarray:
-        logw = k * math.log(lam) - log_fact + 0.5 * k * (k - 1) * math.log(q)
-        w = np.exp(logw - logw.max())
-        return w / w.sum()
-
-    lo, hi = 1e-12, max(1.0, 4.0 * mean)
-    while (k * dist(hi)).sum() < mean:
-        hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if (k * dist(mid)).sum() < mean else (lo, mid)
-    return dist(hi)
-
-
-def predicted_list_need(n: int, mean: float, q: float = 1.0, miss: float = STRIDE_MISS) -> int:
-    """The largest row a build is expected to find among n particles: the smallest k with n P(X > k) < miss, X the
-    count of :func:`list_count_distribution` (q = 1: Poisson)."""
-    if n <= 0 or mean <= 0.0:
-        return 0
-    p = list_count_distribution(mean, q)
-    above = 1.0 - np.cumsum(p)          # P(X > k)
-    ks = np.nonzero(n * above < miss)[0]
-    return int(ks[0]) if len(ks) else len(p)
-
-
 @dataclass(frozen=True)
 class SphereLayout:
     """What sizes a sphere ensemble's device arrays (engine/shapes/sphere/cuda_backend.py, engine/loops/): N in all,
-    the state and position word (bytes), rough or smooth, equal spheres or not, the list stride, the slots of the
-    list's history, the compact store's capacity, the cells, the scenes, the threads per block, whether the
+    the state and position word (bytes), rough or smooth, equal spheres or not, the list's slots (neighbour
+    indices and their history), the compact store's capacity, the cells, the scenes, the threads per block, whether the
     many-steps loop and the state staging of snapshots are used, and the per-scene tables' sizes."""
 
     n: int
@@ -155,7 +110,6 @@ class SphereLayout:
     pos_word: int
     rough: bool
     uniform: bool
-    stride: int
     hist_slots: int
     store_cap: int
     ncell: int
@@ -177,16 +131,17 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
     """{array: bytes} of a sphere ensemble on the device, named as :func:`device_allocations` finds them: the state,
     forces, the permutation's order, the Verlet list with its contact history, the cells, the compact store, the
     records' accumulators and (when used) the double buffers and the state staging. A rebuild's scratch takes no
-    memory of its own: the permutation's rows and the cells' counts lie in the list, the compact store's index in
-    the next force buffer (engine/loops/cuda_rebuild.py ``LEND_SCRATCH``)."""
+    memory of its own: the permutation's rows and the cells' counts lie in the list's history, the compact store's
+    index in the next force buffer, and for a lone scene of rough spheres the permutation's order and inverse in the
+    torque (engine/loops/cuda_rebuild.py ``LEND_SCRATCH``)."""
     n, w, pw = L.n, L.word, L.pos_word
     a = {
-        "x_ref": 3 * n * pw, "ids": 4 * n, "sc": 4 * n,
+        "x_ref": 3 * n * pw, "ids": 4 * n, "sc": 4 * (n if L.n_scenes > 1 else 1),
         "pos": 3 * n * pw, "vel": 3 * n * w, "omega": 3 * n * w, "quat": 4 * (n if L.orientations else 1) * w,
         "f_cur": 3 * n * w, "f_nxt": 3 * n * w, "torque": 3 * n * w,
-        "q_last": 8 * (n if L.orientations else 1), "begun": 8 * n, "hot": n, "order": 4 * n, "inv_old": 4 * n,
+        "q_last": 8 * (n if L.orientations else 1), "begun": 4 * n, "hot": n,
         "cj": 4 * L.store_cap, "chist": L.hist_words * L.store_cap * w,
-        "nbr": 4 * L.stride * n, "nn": 8 * (n + 1), "hist": L.hist_words * L.hist_slots * w,
+        "nbr": 4 * L.hist_slots, "nn": 8 * (n + 1), "hist": L.hist_words * L.hist_slots * w,
         "cell_start": 4 * (L.ncell + 1),
         "_sums.acc": 8 * L.n_scenes * L.nobs, "_rows.acc": 8 * L.record_rows * L.nobs,
     }
@@ -196,8 +151,10 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
     for name, m in (("_scan_cells", L.ncell + 1), ("_scan_rows", n)):     # the cells' and the list rows' scans
         blocks = max(1, (m + tile - 1) // tile)
         a.update({f"{name}.bsum": 4 * blocks, f"{name}.bsum_scan": 4 * blocks, f"{name}.bsum_tot": 4})
-    if L.ncell + 1 > FIRST_STRIDE * n:     # cell counts that the first list cannot lend room to
+    if not lends_cell_counts(L.ncell, n, L.hist_words, w):
         a["_count_own"] = 4 * (L.ncell + 1)
+    if not (L.rough and L.n_scenes == 1):     # the permutation's order and inverse, where the torque cannot lend them
+        a["_perm_own[0]"], a["_perm_own[1]"] = 4 * n, 4 * n
     if L.uniform:
         a["radius"] = w
     else:
@@ -233,11 +190,11 @@ def random_start_bytes(n: int, box: float, radius: float) -> int:
 @dataclass(frozen=True)
 class DevicePrediction:
     """A sphere spec's predicted device memory: the per-array table of the running loop (bytes), the start's
-    transient arrays, the peak (the larger of the loop and the start) and the list stride assumed."""
+    transient arrays, the peak (the larger of the loop and the start) and the list slots assumed."""
 
     table: dict
     start_bytes: int
-    stride: int
+    slots: int
 
     @property
     def loop_bytes(self) -> int:
@@ -249,8 +206,8 @@ class DevicePrediction:
 
 
 def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256) -> DevicePrediction:
-    """The device memory of a sphere spec run as one scene on the GPU (:func:`sphere_account` with the list stride
-    a run is expected to reach, :func:`predicted_list_need`), from the spec and its derived parameters ``p``
+    """The device memory of a sphere spec run as one scene on the GPU (:func:`sphere_account` with the list slots
+    an equilibrium gas needs, :func:`mean_list_neighbours`), from the spec and its derived parameters ``p``
     (engine.setup.params.derive, with the run's skin). ``reads_state``: snapshots or checkpoints copy the state out."""
     from engine.loops.system import MULTISTEP_MAX_PARTICLES, cell_grid
     from engine.setup.precision import position_dtype, state_dtype
@@ -262,22 +219,22 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
     uniform = len(p.species_radius) <= 1
     reach = (2.0 * p.radius_max + p.skin) / (2.0 * p.radius_max)
     mean = mean_list_neighbours(spec.volume_fraction, reach)
-    need = predicted_list_need(n, mean, shell_pair_apart(reach))
-    stride = grown_stride(need)
-    # the history starts with N + HIST_MARGIN slots and grows when a build hands out more (cuda_rebuild._alloc_hist)
+    # the list starts with N + HIST_MARGIN slots and grows when a build hands out more (cuda_rebuild._list_room)
     slots = n + HIST_MARGIN if mean * n <= n + HIST_MARGIN else grown_history(int(math.ceil(mean * n)))
     layout = SphereLayout(
-        n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, stride=stride, hist_slots=slots,
+        n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, hist_slots=slots,
         store_cap=max(1024, n // 8), ncell=cell_grid(spec.box_length, n, p.radius_max, p.skin) ** 3, tpb=tpb,
         multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state,
         orientations=reads_state or spec.snapshots > 0)
     table = sphere_account(layout)
-    start = sum(table[k] for k in ("x_ref", "ids", "sc", "pos", "vel", "omega", "quat"))
+    start = sum(table[k] for k in ("ids", "sc", "pos", "vel", "omega", "quat"))
     if device_start(spec):
-        # the random start's cells are freed before the first stream's scratch is made
-        start += max(8 * START_ROWS * n,
-                     random_start_bytes(n, spec.box_length, p.radius) if start_protocol(spec) == RANDOM else 0)
-    return DevicePrediction(table=table, start_bytes=start, stride=stride)
+        # the centres are placed beside the positions alone (the other state arrays are made once the random
+        # start's cells are freed), then each stream is drawn into a float64 scratch of its own rows, one at a time
+        rows = START_ROWS if layout.orientations else START_ROWS - 1
+        cells = random_start_bytes(n, spec.box_length, p.radius) if start_protocol(spec) == RANDOM else 0
+        start = max(start + 8 * rows * n, sum(table[k] for k in ("ids", "sc", "pos")) + cells)
+    return DevicePrediction(table=table, start_bytes=start, slots=slots)
 
 
 def largest_fitting(spec, p_of, budget: float, **kw) -> int:
@@ -329,7 +286,7 @@ def memory_refusal(spec, p, free_bytes: float, device: str, p_of, *, reads_state
         return None
     fits = largest_fitting(spec, p_of, budget, reads_state=reads_state)
     return (f"n_particles = {spec.n_particles}: the run needs about {_gb(pred.peak_bytes)} of device memory "
-            f"({pred.peak_bytes / spec.n_particles:.0f} B per particle, {spec.precision}, list stride {pred.stride}); "
+            f"({pred.peak_bytes / spec.n_particles:.0f} B per particle, {spec.precision}); "
             f"{device} has {_gb(free_bytes)} free, of which {USABLE_FRACTION:.0%} may be planned; "
             f"the largest n_particles that fits is about {fits:.3g}")
 

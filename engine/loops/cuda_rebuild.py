@@ -3,7 +3,8 @@
 
 A rebuild keeps the contact history that must survive in a compact store, counts particles per cell (scene-major
 cell ids), scans, scatters, sorts each cell by id, permutes the particle arrays into that order and builds the full
-Verlet list, taking the kept history back; the stride grows when a particle has more neighbours. Scenes whose size
+Verlet list in two passes (count the rows, hand them out, fill them: the list holds only the slots in use, packed),
+taking the kept history back; the list's slots grow when a build hands out more. Scenes whose size
 spread needs more than one grid level use the multigrid cells (Skorych & Dosta 2022, Algorithm 1); one scene may have
 its list built on the host instead (engine/loops/cuda_listmodes.py, Skorych & Dosta 2022, §3).
 """
@@ -18,13 +19,13 @@ from numba import cuda
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
-from engine.loops.cuda_memory import FIRST_STRIDE, HIST_MARGIN, grown_history, grown_stride
+from engine.loops.cuda_memory import HIST_MARGIN, grown_history, lends_cell_counts
 from engine.loops.system import SphereSystem
 
 #: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
 #: history, set it for the cost comparison with the multigrid build)
 MULTIGRID = True
-#: True: a rebuild's scratch lies in memory that holds nothing needed while it is used (:meth:`ListBuilds._in_list`,
+#: True: a rebuild's scratch lies in memory that holds nothing needed while it is used (:meth:`ListBuilds._lent`,
 #: :meth:`ListBuilds._store_index`); False: arrays of its own (tests compare the two)
 LEND_SCRATCH = True
 
@@ -38,10 +39,11 @@ class ListBuilds:
         self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=s)
         self._scan_cells = self._scan_buffers(self.ncell + 1)
         self._scan_rows = self._scan_buffers(self.n)      # the list rows' first history slots (_gpu_rebuild)
-        # the cells' counts lie in the list's neighbour indices (:meth:`_cell_counts`) unless the first list is
-        # smaller than them (a few particles in many cells)
+        # the cells' counts lie in the list's history (:meth:`_cell_counts`) unless the first history is smaller than
+        # them (a few particles in many cells)
         self._count_own = None
-        if not LEND_SCRATCH or self.ncell + 1 > FIRST_STRIDE * self.n:
+        word = np.dtype(self.dtype).itemsize
+        if not LEND_SCRATCH or not lends_cell_counts(self.ncell, self.n, self.hist_words, word):
             self._count_own = cuda.device_array(self.ncell + 1, np.int32, stream=s)
 
     def _scan_buffers(self, m: int) -> SimpleNamespace:
@@ -60,32 +62,36 @@ class ListBuilds:
                       (b.bsum, b.bsum_scan, b.nb, b.bsum_tot, items))
             lc.launch("add_offsets", k["add_offsets"], self._grid(b.m), (dst, b.m, b.bsum_scan, b.tile))
 
-    def _alloc_list(self, max_nb: int) -> None:
-        s = self.stream
-        self.max_nb = max_nb
-        # the old list and the views lent from it (:meth:`_in_list`) go first: the old list can then be freed before
-        # the new one is made (the kept history is in the compact store); nbr and hist are named before the views
-        # (cuda_memory.device_allocations counts an allocation under the first name it meets)
-        self.nbr = None
-        self._list_views = {}
-        self.nbr = cuda.device_array((max_nb, self.n), np.int32, stream=s)
-        self.nn = self._zeros((2, self.n + 1), np.int32)   # counts and history rows (cuda_kernels: the list's layout)
+    def _alloc_list(self) -> None:
+        """The list's counts and rows (``nn``) and its first slots (:meth:`_alloc_slots`)."""
+        self.nn = self._zeros((2, self.n + 1), np.int32)   # counts and rows (cuda_kernels: the list's layout)
         self._nn_rows = (self.nn[0, :self.n], self.nn[1, :self.n])   # (views made once: the launch cache knows them)
-        if getattr(self, "hist", None) is None:
-            self._alloc_hist(self.n + HIST_MARGIN)
+        self._alloc_slots(self.n + HIST_MARGIN)
 
     @staticmethod
     def _check_slots(slots: int) -> None:
-        """The history's rows are int32 offsets (nn[1]): a list of 2^31 slots or more is not representable."""
+        """The rows are int32 offsets (nn[1]): a list of 2^31 slots or more is not representable."""
         if not 0 <= slots < 2**31:
             raise RuntimeError(f"the Verlet list holds {slots} slots; at most 2^31 - 1 are supported (fewer particles "
                                "or a lower volume fraction)")
 
-    def _alloc_hist(self, slots: int) -> None:
-        """The list's history: ``hist_words`` x ``slots`` (rows back to back, only the slots in use: cuda_kernels,
-        the list's layout); the old one is freed first (the kept history is in the compact store)."""
-        self.hist = None
-        self.hist = cuda.device_array((self.hist_words, slots), self.dtype, stream=self.stream)
+    def _alloc_slots(self, slots: int) -> None:
+        """The list's slots: the neighbour indices ``nbr`` (int32) and their history ``hist`` (``hist_words`` x
+        ``slots``), rows back to back (cuda_kernels: the list's layout). The old ones and the views lent from the
+        history (:meth:`_lent`) are freed first: the kept history is in the compact store. (nbr and hist are named
+        before the views: cuda_memory.device_allocations counts an allocation under the first name it meets.)"""
+        s = self.stream
+        self.nbr = self.hist = None
+        self._list_views = {}
+        self.nbr = cuda.device_array(slots, np.int32, stream=s)
+        self.hist = cuda.device_array((self.hist_words, slots), self.dtype, stream=s)
+
+    def _list_room(self, slots: int) -> None:
+        """Room for a new list of ``slots`` slots (after the kept history's compaction): the slots regrown where
+        they are too few."""
+        self._check_slots(slots)
+        if slots > self.nbr.shape[0]:
+            self._alloc_slots(grown_history(slots))
 
     def _alloc_store(self, cap: int) -> None:
         self.store_cap = cap
@@ -110,9 +116,10 @@ class ListBuilds:
 
     def _sort_and_permute(self) -> None:
         """Particles into cell order (sorted by id within a cell), between the compaction of the kept history and
-        the new list's build: the list's memory is the scratch here (:meth:`_in_list`)."""
+        the new list's build: the list's history is the scratch here (:meth:`_lent`)."""
         k, n, s, lc = self.k, self.n, self.stream, self._lc
         count = self._cell_counts()
+        order, inv_old = self._perm_rows()
         lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (count, 0))
         lc.launch("count_cells", k["count_cells"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
                                                                      count))
@@ -120,58 +127,80 @@ class ListBuilds:
         self._exclusive_scan(count, self.cell_start, self._scan_cells)
         lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (count, 0))
         lc.launch("scatter", k["scatter"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
-                                                            self.cell_start, count, self.order))
-        lc.launch("sort_cells", k["sort_cells"], self._grid(self.ncell), (self.ncell, self.cell_start, self.order,
+                                                            self.cell_start, count, order))
+        lc.launch("sort_cells", k["sort_cells"], self._grid(self.ncell), (self.ncell, self.cell_start, order,
                                                                            self.ids))
-        lc.launch("inverse_perm", k["inverse_perm"], self._grid(n), (n, self.order, self.inv_old))
+        lc.launch("inverse_perm", k["inverse_perm"], self._grid(n), (n, order, inv_old))
         # permute the particle arrays into cell order (forces too: the next force step reads them), each through
         # its own launch-cache name (an array and its scratch rows are the same objects at every rebuild)
         # (torque need not move: the next force step rewrites it before any kick reads it)
         for q, a in enumerate(self._permuted_arrays() + self._per_particle):
             tmp = self._scratch_rows(a)
-            lc.launch(f"gather_rows/{q}", k["gather_rows"], self._grid(n), (n, a, tmp, self.order))
+            lc.launch(f"gather_rows/{q}", k["gather_rows"], self._grid(n), (n, a, tmp, order))
             _copy(a, tmp, s)
         ints = ((self.ids, self.lvl) if self.multigrid else (self.ids,)) + tuple(self._permuted_i64())
         for q, a in enumerate(ints):   # (gather_i32 is typed at launch: the same kernel for int64)
             tmp = self._scratch_rows(a)
-            lc.launch(f"gather_i32/{q}", k["gather_i32"], self._grid(n), (n, a, tmp, self.order))
+            lc.launch(f"gather_i32/{q}", k["gather_i32"], self._grid(n), (n, a, tmp, order))
             _copy(a, tmp, s)
         # f_nxt and the torque stay in the old order: the next force pass must store every particle's
         self._forces_unknown()
 
     def _scratch_rows(self, a):
         """The scratch that permuted array ``a`` (rows x N, or N) is gathered into, in the memory of the list's
-        neighbour indices (:meth:`_in_list`)."""
-        return self._in_list(a.dtype, a.shape)
+        history (:meth:`_lent`)."""
+        return self._lent(a.dtype, a.shape)
 
     def _cell_counts(self):
-        """The per-cell counts of a rebuild's sort (ncell + 1 int32), in the list's neighbour indices."""
+        """The per-cell counts of a rebuild's sort (ncell + 1 int32), in the list's history."""
         if self._count_own is not None:
             return self._count_own
-        return self._in_list(np.int32, (self.ncell + 1,))
+        return self._lent(np.int32, (self.ncell + 1,))
 
-    def _in_list(self, dtype, shape: tuple):
-        """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's neighbour indices
-        (``nbr``), made once per list allocation (the launch cache knows its arrays by identity). Valid only between the
-        compaction of the kept history and the new list's build, when the list holds nothing needed: a rebuild's
-        sort and permutation. Its own array where ``LEND_SCRATCH`` is off; the neighbour indices are always the
-        larger (4 B per slot, at least FIRST_STRIDE = 8 slots a particle, against at most 4 words of 8 B and
-        ncell + 1 <= FIRST_STRIDE N counts, :meth:`_setup_scan`)."""
+    def _lent(self, dtype, shape: tuple):
+        """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's history (``hist``),
+        made once per allocation (the launch cache knows its arrays by identity). Valid only between the compaction
+        of the kept history and the new list's history (:meth:`_fill_history`), when the history holds nothing
+        needed: a rebuild's sort, permutation and build. Its own array where ``LEND_SCRATCH`` is off or the history
+        is too small (it holds at least N + HIST_MARGIN slots of ``hist_words`` >= 5 words, against at most 4
+        words of 8 B per particle, and the cell counts where :func:`cuda_memory.lends_cell_counts`)."""
         dtype = np.dtype(dtype)
         key = (dtype.str, tuple(shape))
         view = self._list_views.get(key)
         if view is None:
             size = int(np.prod(shape))
-            if not LEND_SCRATCH:
+            flat = self.hist.reshape(self.hist.size).view(np.uint8)
+            if not LEND_SCRATCH or flat.size < size * dtype.itemsize:
                 view = cuda.device_array(shape, dtype, stream=self.stream)
             else:
-                flat = self.nbr.reshape(self.nbr.size).view(dtype)
-                if flat.size < size:
-                    raise RuntimeError(f"a rebuild's scratch of {size} x {dtype} exceeds the list's "
-                                       f"{self.nbr.nbytes} B")
-                view = flat[:size].reshape(*shape)
+                view = flat[:size * dtype.itemsize].view(dtype).reshape(*shape)
             self._list_views[key] = view
         return view
+
+    def _perm_rows(self) -> tuple:
+        """(order, inv_old) of a rebuild's permutation (int32 N each: the old slot of each new one, the new slot of
+        each old one), written by the sort and read until the new list's history is filled. Two rows of the torque
+        where the next force pass rewrites it for every particle (:meth:`_torque_rewritten`; the torque's content
+        is not kept across a rebuild anyway: it is not permuted), else arrays of their own (:meth:`_own_perm_rows`)."""
+        if self._perm_own is None and LEND_SCRATCH and self._torque_rewritten():
+            got = self._perm_views.get(id(self.torque))
+            if got is None:
+                flat = self.torque.reshape(self.torque.size).view(np.int32)
+                got = self._perm_views[id(self.torque)] = (self.torque, flat[:self.n], flat[self.n:2 * self.n])
+            return got[1], got[2]
+        return self._own_perm_rows()
+
+    def _own_perm_rows(self) -> tuple:
+        """(order, inv_old) in arrays of their own, made at the first call and used from then on (a list built on
+        the host keeps them the identity across rebuilds)."""
+        if self._perm_own is None:
+            self._perm_own = tuple(cuda.device_array(self.n, np.int32, stream=self.stream) for _ in range(2))
+        return self._perm_own
+
+    def _torque_rewritten(self) -> bool:
+        """Whether the next force pass stores every particle's torque (3 words a particle, at least two int32's),
+        which a shape's ensemble says; by default no."""
+        return False
 
     def _init_store_index(self) -> None:
         """The compact store's index (c_off, c_cnt: int32 N each) where it cannot lie in the next force buffer
@@ -222,41 +251,34 @@ class ListBuilds:
             self._gpu_rebuild()
 
     def _gpu_rebuild(self) -> None:
-        """Keep history, sort, permute and build; grows the stride when a particle has more neighbours."""
+        """Keep history, sort, permute and build: count the rows, hand them out (an exclusive scan of the counts,
+        rows in particle order), make room for them, fill them, and give each slot its history."""
         self._compact()
         self._sort_and_permute()
         if self.multigrid:
             self._bin_levels()
-        while True:
-            self._set_status(K.S_NEED_NB, 0.0)
+        for fill in (0, 1):
             if self.multigrid:
                 self._lc.launch("mg_build", self.kl["mg_build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
-                    self.nbr, self.nn, self.x_ref, self.sc, self.spd, self.spi, self.status))
+                    self.nbr, self.nn, self.x_ref, self.sc, self.spd, self.spi, fill))
             else:
                 self._lc.launch("build", self.k["build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.cell_start, self.nbr, self.nn, self.x_ref, self.sc,
-                    self.spd, self.spf, self.spi, self.status))
-            # each row's first history slot: an exclusive scan of the counts (rows in particle order), and the total
-            self._exclusive_scan(self._nn_rows[0], self._nn_rows[1], self._scan_rows)
-            self._lc.launch("slot_total", self.k["slot_total"], (1, 32, self.stream), (self.n, self.nn, self.status))
-            h = self._read_status_now()
-            need = int(h[K.S_NEED_NB])
-            if need <= self.max_nb:
-                break
-            # the kept history is in the compact store: the list can be reallocated and rebuilt
-            self._alloc_list(grown_stride(need))
-        self._fill_history(int(h[K.S_SLOTS]))
+                    self.spd, self.spf, self.spi, fill))
+            if fill == 0:
+                self._exclusive_scan(self._nn_rows[0], self._nn_rows[1], self._scan_rows)
+                self._lc.launch("slot_total", self.k["slot_total"], (1, 32, self.stream),
+                                (self.n, self.nn, self.status))
+                self._list_room(int(self._read_status_now()[K.S_SLOTS]))
+        self._fill_history()
         self.builds += 1
 
-    def _fill_history(self, slots: int) -> None:
-        """The new list's history (cuda_kernels.fill_history) once its rows are in ``nn`` (``slots`` in all): the
-        history is regrown first where it is too small."""
-        self._check_slots(slots)
-        if slots > self.hist.shape[1]:
-            self._alloc_hist(grown_history(slots))
+    def _fill_history(self) -> None:
+        """The new list's history (cuda_kernels.fill_history) once its rows and neighbours are in place."""
+        order, inv_old = self._perm_rows()
         self._lc.launch("fill_history", self.k["fill_history"], self._grid(self.n), (
-            self.n, self.pos, self.radius1, self.c_off, self.c_cnt, self.cj, self.chist, self.order, self.inv_old,
+            self.n, self.pos, self.radius1, self.c_off, self.c_cnt, self.cj, self.chist, order, inv_old,
             self.nbr, self.nn, self.hist, self.sc, self.spd, self.spi))
 
     def _setup_multigrid(self, systems, contacts) -> None:
@@ -315,13 +337,13 @@ class ListBuilds:
         """Main and secondary bins of every level (counting sort by bin)."""
         k, n, lc = self.k, self.n, self._lc
         lc.launch("fill_i32", k["fill_i32"], self._grid(self.mg_nbins + 1), (self.mg_count, 0))
-        lc.launch("mg_count", self.kl["mg_count"], self._grid(n), (n, self.pos, self.sc, self.lvl, self.mgi, self.mgf,
-                                                                     self.mg_count))
+        lc.launch("mg_count", self.kl["mg_count"], self._grid(n), (n, self.pos, self.sc, self.spi, self.lvl, self.mgi,
+                                                                     self.mgf, self.mg_count))
         self._exclusive_scan(self.mg_count, self.mg_start, self._scan_mg)
         lc.launch("fill_i32", k["fill_i32"], self._grid(self.mg_nbins), (self.mg_cursor, 0))
-        lc.launch("mg_scatter", self.kl["mg_scatter"], self._grid(n), (n, self.pos, self.sc, self.lvl, self.mgi,
-                                                                         self.mgf, self.mg_start, self.mg_cursor,
-                                                                         self.mg_items))
+        lc.launch("mg_scatter", self.kl["mg_scatter"], self._grid(n), (n, self.pos, self.sc, self.spi, self.lvl,
+                                                                         self.mgi, self.mgf, self.mg_start,
+                                                                         self.mg_cursor, self.mg_items))
 
     def _restore_springs(self, pairs, springs) -> None:
         nbr, nn, hist = (a.copy_to_host(stream=self.stream) for a in (self.nbr, self.nn, self.hist))
@@ -332,9 +354,9 @@ class ListBuilds:
         for p in range(pairs.shape[0]):
             i = slot_of[pairs[p, 0]]
             j = slot_of[pairs[p, 1]]
-            for kk in range(min(nn[0, i], nbr.shape[0])):
-                if nbr[kk, i] == j:
-                    q = min(self.hist_words, springs.shape[1])
-                    hist[0:q, nn[1, i] + kk] = springs[p, :q]
+            for q in range(nn[1, i], nn[1, i] + nn[0, i]):
+                if nbr[q] == j:
+                    w = min(self.hist_words, springs.shape[1])
+                    hist[0:w, q] = springs[p, :w]
                     break
         self.hist.copy_to_device(hist, stream=self.stream)

@@ -387,7 +387,8 @@ def _random_centres(d: StartDraw, col0: int, pos, quat, stream, cap: int) -> Non
 
 def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 << 14, quat=None) -> None:
     """Draw ``d`` into columns [col0, col0 + n) of the device arrays ``pos`` (3, N) and ``dsts`` (stream number ->
-    (dim, N) array; a stream missing there is not drawn, the others are the same), in their precisions; see the
+    (dim, N) array, or a function that returns it, called once the centres' cells are freed; a stream missing there
+    is not drawn, the others are the same), in their precisions; see the
     module docstring. ``quat`` (4, N): a random spheroid start's orientations (drawn with the centres). ``cap``:
     most blocks of a grid-stride launch."""
     n = d.n
@@ -407,7 +408,8 @@ def draw_start(d: StartDraw, col0: int, pos, dsts: dict, stream, cap: int = 1 <<
     for (stream_no, dim, rms), key in zip(d.streams, keys):
         if stream_no not in dsts:       # a stream nobody holds (a sphere ensemble without orientations)
             continue
-        _draw_stream(n, np.uint64(key), dim, rms, dsts[stream_no], col0, stream, cap)
+        dst = dsts[stream_no]
+        _draw_stream(n, np.uint64(key), dim, rms, dst() if callable(dst) else dst, col0, stream, cap)
         _free_released()    # its scratch goes before the next stream's is made
 
 

@@ -117,8 +117,9 @@ def list_slots(spec, p=None) -> int:
 
     Monodisperse: 32 (as before). Species: the largest species has the most neighbours,
     ~ sum_b n_b g_ab (4 pi/3)((sigma_ab + L_v)^3 - sigma_ab^3), i.e. ~ (R_L/R_s)^2 small ones per large
-    one; GPU and CPU lists have one stride for all particles (= the largest count), so this count
-    with a fluctuation margin (1.5 x mean + 4 sqrt(mean) + 8) sets the memory of every particle.
+    one; the CPU list has one stride for all particles (= the largest count), so this count with a
+    fluctuation margin (1.5 x mean + 4 sqrt(mean) + 8) sets the memory of every particle (the GPU list
+    packs its rows: an upper bound there, engine/loops/cuda_memory.py predicts the device's).
     """
     p = p or derive(spec)
     sp = species_table(spec)

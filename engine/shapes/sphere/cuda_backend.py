@@ -67,8 +67,9 @@ class CudaEnsemble(CudaEnsembleBase):
         self.torque = self._zeros((3, n), dt_)
         # the step from which each sphere's orientation turns are pending (lazy orientations, shapes/sphere/device.py)
         self.q_last = self._zeros(n if self.orientations_held else 1, np.int64)
-        # the contacts each sphere has begun (the collisions observable; shapes/sphere/device.py pair)
-        self.begun = self._zeros(n, np.int64)
+        # the contacts each sphere has begun (the collisions observable; shapes/sphere/device.py pair; int32: a sphere
+        # begins thousands of contacts in the longest runs, 2^31 is far beyond any)
+        self.begun = self._zeros(n, np.int32)
         if self.uniform:
             dummy = cuda.device_array((1, 1), dt_, stream=self.stream)
             self.radius = self.inv_m = self.inv_i = self.mass = self.inertia = dummy
@@ -91,8 +92,8 @@ class CudaEnsemble(CudaEnsembleBase):
         return (self.pos, self.vel, self.omega) + ((self.quat,) if self.orientations_held else ()) + (self.f_cur,)
 
     def _permuted_i64(self) -> tuple:
-        """The int64 device arrays (N) permuted with them (spheres: the lazy orientations' marks, the contacts
-        begun)."""
+        """The integer device arrays (N) permuted with them (spheres: the lazy orientations' marks, int64, the
+        contacts begun, int32)."""
         return (self.q_last, self.begun) if self.orientations_held else (self.begun,)
 
     def state_arrays(self) -> dict:
@@ -120,21 +121,31 @@ class CudaEnsemble(CudaEnsembleBase):
 
         n, st = self.n, self.stream
         self.pos = cuda.device_array((3, n), self.pos_dtype, stream=st)
-        self.vel = cuda.device_array((3, n), self.dtype, stream=st)
-        self.omega = cuda.device_array((3, n), self.dtype, stream=st)
         held = self.orientations_held
-        self.quat = cuda.device_array((4, n), self.dtype, stream=st) if held else self._no_orientations()
-        if self.reads_state:
-            self._prepare_frame_slot()     # beside the draws
-        targets = {"vel": self.vel, "omega": self.omega, "quat": self.quat}
+        made = {}
+
+        def target(name: str, rows: int):
+            """The state array ``name``, made at its first use: after the first random start's cells are freed
+            (they and the positions are the start's peak, engine/loops/cuda_memory.py predict_sphere_device)."""
+            def get():
+                if name not in made:
+                    made[name] = cuda.device_array((rows, n), self.dtype, stream=st)
+                return made[name]
+            return get
+
+        targets = {"vel": target("vel", 3), "omega": target("omega", 3), "quat": target("quat", 4)}
         for sy, col0 in zip(systems, self.starts):
             if sy.draw is not None:     # (the orientation stream is left undrawn where none are held)
                 draw_start(sy.draw, int(col0), self.pos, {k: targets[a] for k, a in SPHERE_TARGETS.items()
                                                           if held or a != "quat"}, st, self.max_blocks)
             else:
-                pairs = [(sy.position, self.pos), (sy.velocity, self.vel), (sy.angular_velocity, self.omega)]
-                for a, dst in pairs + ([(sy.orientation, self.quat)] if held else []):
-                    self._up_into(a, dst, int(col0))
+                pairs = [(sy.position, "pos"), (sy.velocity, "vel"), (sy.angular_velocity, "omega")]
+                for a, name in pairs + ([(sy.orientation, "quat")] if held else []):
+                    self._up_into(a, self.pos if name == "pos" else targets[name](), int(col0))
+        self.vel, self.omega = targets["vel"](), targets["omega"]()
+        self.quat = targets["quat"]() if held else self._no_orientations()
+        if self.reads_state:
+            self._prepare_frame_slot()     # (its staging made after the start's peak)
 
     def _scene_constants(self, s: int) -> None:
         """Scene s's particle constants in spd (used when its particles are uniform)."""
@@ -161,9 +172,15 @@ class CudaEnsemble(CudaEnsembleBase):
             # orientations tracked from now on: nothing is pending from the steps run without them
             self.q_last.copy_to_device(np.full(self.n, self.steps_done, np.int64), stream=self.stream)
         self._orient = orient
+        self._torque_stored = rough      # the force passes store every particle's torque (after a rebuild)
         self.k = cuda_loop.kernels(self.shape, self.dtype, (rough, coulomb, orient), self.uniform, self.tpb,
                                    shape_device(self.shape))
         self._coop_blocks = None
+
+    def _torque_rewritten(self) -> bool:
+        """A lone scene of rough spheres: its next force pass stores every sphere's torque after a rebuild (an
+        ensemble's stopped scenes are skipped by the force passes: their torque is left as it is)."""
+        return self._torque_stored and self.n_scenes == 1
 
     def _prime(self, systems) -> None:
         """First list build (restoring checkpointed springs) and forces at t = 0."""

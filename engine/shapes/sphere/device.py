@@ -291,9 +291,8 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         inv_box = spd[s, D_INVBOX]
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        h0 = nn[1, i]
-        for kk in range(nn[1, i + 1] - h0):
-            j = nbr[kk, i]
+        for q in range(nn[1, i], nn[1, i + 1]):
+            j = nbr[q]
             rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
             ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
             rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
@@ -301,7 +300,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
             rs = ri + rj
             d2 = rx * rx + ry * ry + rz * rz
             if d2 < rs * rs:
-                observe_contact(vals, f64(rs - math.sqrt(d2)), h0 + kk, s, ri, rj, hist, spf)
+                observe_contact(vals, f64(rs - math.sqrt(d2)), q, s, ri, rj, hist, spf)
 
     @cuda.jit(device=True)
     def observe_after_forces(i, s, vals, v0, v1, v2, pos, spin, quat, rad, mass, inertia, nbr, nn, hist, spd, spf,
@@ -322,11 +321,10 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         observe_own(i, s, vals, v0, v1, v2, w0, w1, w2, mass, inertia, spd, ext)
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        h0 = nn[1, i]
-        for q in range(h0, nn[1, i + 1]):
+        for q in range(nn[1, i], nn[1, i + 1]):
             delta = hist[3, q]
             if delta > ZERO:
-                observe_contact(vals, f64(delta), q, s, ri, r0 if UNIFORM else rad[nbr[q - h0, i]], hist, spf)
+                observe_contact(vals, f64(delta), q, s, ri, r0 if UNIFORM else rad[nbr[q]], hist, spf)
 
     # FUSABLE for smooth spheres: a rough pair reads the neighbours' spins, which the kick-drift rewrites (with
     # the spins double-buffered too, the fused rough kernel was no faster than the two on an H100: it needs more

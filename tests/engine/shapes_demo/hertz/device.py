@@ -66,8 +66,8 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
         inv_box = spd[s, D_INVBOX]
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        for kk in range(nn[1, i + 1] - nn[1, i]):      # the row's count (engine/loops/cuda_kernels.py)
-            j = nbr[kk, i]
+        for q in range(nn[1, i], nn[1, i + 1]):         # the row's slots (engine/loops/cuda_kernels.py)
+            j = nbr[q]
             rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
             ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
             rz = min_image(pos[2, i] - pos[2, j], box, inv_box, HALF)
