@@ -172,6 +172,8 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
 #: rows of a device-drawn sphere start's float64 scratch: one stream's at a time, the largest the orientation's 4
 #: (engine/loops/cuda_start.py ``draw_start``)
 START_ROWS = 4
+#: the slots a CUDA list can address (its rows' offsets are int32: engine/loops/cuda_rebuild.py ``_check_slots``)
+MAX_LIST_SLOTS = 2 ** 31
 #: part of the free device memory a run may plan to use: the CUDA context, the kernels' local memory and the
 #: allocator's rounding take the rest
 USABLE_FRACTION = 0.95
@@ -190,11 +192,13 @@ def random_start_bytes(n: int, box: float, radius: float) -> int:
 @dataclass(frozen=True)
 class DevicePrediction:
     """A sphere spec's predicted device memory: the per-array table of the running loop (bytes), the start's
-    transient arrays, the peak (the larger of the loop and the start) and the list slots assumed."""
+    transient arrays, the peak (the larger of the loop and the start), the list slots assumed and the slots an
+    equilibrium gas's rows take (the mean neighbour count times N)."""
 
     table: dict
     start_bytes: int
     slots: int
+    rows_slots: int = 0
 
     @property
     def loop_bytes(self) -> int:
@@ -234,7 +238,7 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
         rows = START_ROWS if layout.orientations else START_ROWS - 1
         cells = random_start_bytes(n, spec.box_length, p.radius) if start_protocol(spec) == RANDOM else 0
         start = max(start + 8 * rows * n, sum(table[k] for k in ("ids", "sc", "pos")) + cells)
-    return DevicePrediction(table=table, start_bytes=start, slots=slots)
+    return DevicePrediction(table=table, start_bytes=start, slots=slots, rows_slots=int(math.ceil(mean * n)))
 
 
 def largest_fitting(spec, p_of, budget: float, **kw) -> int:
@@ -272,6 +276,14 @@ def device_memory() -> Optional[tuple[int, int, str]]:
     return int(free), int(total), name.decode() if isinstance(name, bytes) else str(name)
 
 
+def _down3(x: float) -> float:
+    """x rounded down to three significant digits (a largest N that still fits when printed with :.3g)."""
+    if x < 1:
+        return 0.0
+    unit = 10.0 ** (math.floor(math.log10(x)) - 2)
+    return math.floor(x / unit) * unit
+
+
 def _gb(b: float) -> str:
     return f"{b / 1e9:.3g} GB"
 
@@ -282,6 +294,11 @@ def memory_refusal(spec, p, free_bytes: float, device: str, p_of, *, reads_state
     derives a spec's parameters)."""
     budget = USABLE_FRACTION * free_bytes
     pred = predict_sphere_device(spec, p, reads_state=reads_state)
+    if pred.rows_slots >= MAX_LIST_SLOTS:
+        return (f"n_particles = {spec.n_particles}: its Verlet list would hold about {pred.rows_slots:.3g} slots "
+                f"({pred.rows_slots / spec.n_particles:.2f} a particle at volume_fraction = {spec.volume_fraction:g}); "
+                f"at most {MAX_LIST_SLOTS - 1} are supported (int32 row offsets): the largest n_particles is about "
+                f"{_down3((MAX_LIST_SLOTS - 1) * spec.n_particles / pred.rows_slots):.3g}")
     if pred.peak_bytes <= budget:
         return None
     fits = largest_fitting(spec, p_of, budget, reads_state=reads_state)

@@ -19,7 +19,7 @@ from numba import cuda
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
-from engine.loops.cuda_memory import HIST_MARGIN, grown_history, lends_cell_counts
+from engine.loops.cuda_memory import HIST_MARGIN, MAX_LIST_SLOTS, grown_history, lends_cell_counts
 from engine.loops.system import SphereSystem
 
 #: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
@@ -70,8 +70,9 @@ class ListBuilds:
 
     @staticmethod
     def _check_slots(slots: int) -> None:
-        """The rows are int32 offsets (nn[1]): a list of 2^31 slots or more is not representable."""
-        if not 0 <= slots < 2**31:
+        """The rows are int32 offsets (nn[1]): a list of MAX_LIST_SLOTS = 2^31 slots or more is not representable
+        (the memory prediction refuses a spec whose gas would need that many: cuda_memory.memory_refusal)."""
+        if not 0 <= slots < MAX_LIST_SLOTS:
             raise RuntimeError(f"the Verlet list holds {slots} slots; at most 2^31 - 1 are supported (fewer particles "
                                "or a lower volume fraction)")
 

@@ -167,6 +167,22 @@ def test_refusal_names_the_estimate_and_the_largest_n_that_fits():
                           derive(spec.model_copy(update={"n_particles": int(fits * 0.99)})), free, "x", derive) is None
 
 
+def test_a_list_beyond_int32_row_offsets_is_refused_whatever_the_memory():
+    """2e9 spheres at phi = 0.2 (about 1.66 list slots a sphere) would need more list slots than int32 row offsets
+    address: refused with the slot count and the largest N, even on a device with memory to spare."""
+    from engine.loops.cuda_memory import MAX_LIST_SLOTS, memory_refusal, predict_sphere_device
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
+
+    spec = SimulationSpec(n_particles=2 * 10**9, volume_fraction=0.2, precision="float32", backend="cuda")
+    why = memory_refusal(spec, derive(spec), 1e13, "a 10 TB device", derive)
+    assert why is not None and "Verlet list would hold about" in why and str(MAX_LIST_SLOTS - 1) in why
+    largest = int(float(why.rsplit("about ", 1)[1]))
+    fits = spec.model_copy(update={"n_particles": largest})
+    assert predict_sphere_device(fits, derive(fits)).rows_slots < MAX_LIST_SLOTS
+    assert memory_refusal(fits, derive(fits), 1e13, "a 10 TB device", derive) is None
+
+
 def test_engine_run_refuses_before_the_device_holds_anything(tmp_path, monkeypatch):
     """engine.run of a CUDA sphere spec larger than the device's free memory raises SpecError with the estimate,
     before any ensemble is made and without a result file."""
