@@ -198,7 +198,7 @@ class DevicePrediction:
     table: dict
     start_bytes: int
     slots: int
-    rows_slots: int = 0
+    rows_slots: int
 
     @property
     def loop_bytes(self) -> int:

@@ -162,18 +162,21 @@ class ListBuilds:
         """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's history (``hist``),
         made once per allocation (the launch cache knows its arrays by identity). Valid only between the compaction
         of the kept history and the new list's history (:meth:`_fill_history`), when the history holds nothing
-        needed: a rebuild's sort, permutation and build. Its own array where ``LEND_SCRATCH`` is off or the history
-        is too small (it holds at least N + HIST_MARGIN slots of ``hist_words`` >= 5 words, against at most 4
-        words of 8 B per particle, and the cell counts where :func:`cuda_memory.lends_cell_counts`)."""
+        needed: a rebuild's sort, permutation and build. Its own array where ``LEND_SCRATCH`` is off; the history is
+        always the larger (at least N + HIST_MARGIN slots of ``hist_words`` >= 5 words, against at most 4 words of
+        8 B per particle, and the cell counts where :func:`cuda_memory.lends_cell_counts`, :meth:`_setup_scan`)."""
         dtype = np.dtype(dtype)
         key = (dtype.str, tuple(shape))
         view = self._list_views.get(key)
         if view is None:
             size = int(np.prod(shape))
-            flat = self.hist.reshape(self.hist.size).view(np.uint8)
-            if not LEND_SCRATCH or flat.size < size * dtype.itemsize:
+            if not LEND_SCRATCH:
                 view = cuda.device_array(shape, dtype, stream=self.stream)
             else:
+                flat = self.hist.reshape(self.hist.size).view(np.uint8)
+                if flat.size < size * dtype.itemsize:
+                    raise RuntimeError(f"a rebuild's scratch of {size} x {dtype} exceeds the list history's "
+                                       f"{self.hist.nbytes} B")
                 view = flat[:size * dtype.itemsize].view(dtype).reshape(*shape)
             self._list_views[key] = view
         return view
