@@ -45,6 +45,7 @@ from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_frames import StateFrames
 from engine.loops.cuda_launch import LaunchCache
+from engine.loops.cuda_memory import xref_dtype, xref_margin
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
@@ -159,7 +160,12 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         lie in the torque or arrays of their own, its scratch rows and the cells' counts in the list's history, the
         compact store's index in the next force buffer: ListBuilds._perm_rows, _lent, _store_index.)"""
         n, nk = self.n, self.n_scenes
-        self.x_ref = cuda.device_array((3, n), self.pos_dtype, stream=self.stream)
+        xref = xref_dtype(self.pos_dtype, self.box, [float(c.skin) for c in self.contact])
+        self.x_ref = cuda.device_array((3, n), xref, stream=self.stream)
+        # per scene, x_ref's rounding bound in units of the rule's limit (_set_scene_contact); the largest is the
+        # displacement the rule measures right after a build (TimeLoop's bound, _rebuilt_bound)
+        self._xref_gaps = np.zeros(nk)
+        self._rebuilt_bound = 0.0
         self._perm_own = None
         self._perm_views = {}
         self._init_store_index()
@@ -328,10 +334,17 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
 
     def _set_scene_contact(self, s: int, contact: ContactParams) -> None:
         c = self.dtype
+        skin = c(contact.skin)
+        # the Verlet rule's limit L_v / 2 less what x_ref's rounding may hide (cuda_memory.xref_margin)
+        margin = xref_margin(self.box[s], self.x_ref.dtype, self.pos_dtype)
+        lim = float(skin) * 0.5 - margin
+        if not lim > 0.0:
+            raise ValueError(f"verlet_skin = {float(skin):g} m is too small for the float32 list reference of a box "
+                             f"of {self.box[s]:g} m: its rounding takes the whole Verlet limit L_v / 2")
+        self._xref_gaps[s] = margin / lim
+        self._rebuilt_bound = float(self._xref_gaps.max())
         self.contact[s] = contact
         dt = c(contact.dt)
-        skin = c(contact.skin)
-        lim = float(skin) * 0.5
         self.spd_h[s, [K.D_DT, K.D_HP, K.D_KN, K.D_GN, K.D_KT, K.D_SKIN]] = [
             dt, c(dt * c(0.5)), c(contact.k_n), c(contact.gamma_n_coef),
             c(0.0) if contact.k_t is None else c(contact.k_t), skin]
@@ -418,10 +431,10 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.stream.synchronize()
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         sl = slice(a0, a0 + n_k)
-        count, ids_k = nn[0, sl], ids[sl]
+        count, ids_k = np.diff(nn[a0:a0 + n_k + 1]), ids[sl]
         # the scene's rows lie back to back from its first particle's (cuda_kernels: the list's layout)
         ii = np.repeat(np.arange(n_k), count)             # the particle of each of the scene's slots
-        q = (int(nn[1, a0]) if n_k else 0) + np.arange(len(ii))
+        q = (int(nn[a0]) if n_k else 0) + np.arange(len(ii))
         touching = hist[3, q] > 0
         ii, q = ii[touching], q[touching]
         order = np.lexsort((q, ids_k[ii]))                # by particle id, then list slot

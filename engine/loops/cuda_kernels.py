@@ -15,10 +15,11 @@ sort never moves a particle into another scene's range); ``sc[i]`` is the scene 
 word, never read: :func:`scene_of`).
     pos, vel, spin (3, N) (spin: the rotational state the torque kicks, the shape's); quat (4, N); f0/f1
     (3, N) (double buffer: the sphere force phase reads the previous step's forces for the predicted
-    velocities of *other* particles while writing its own); torque (3, N); x_ref (3, N); ids (N) int32 =
+    velocities of *other* particles while writing its own); torque (3, N); x_ref (3, N) (float32 beside float64
+    positions where its rounding is small against the skin: cuda_memory.xref_dtype); ids (N) int32 =
     ensemble-wide particle id (start_s + id within the scene); a shape's own arrays (``ext``).
     Neighbour list (of the list radius: a sphere's radius, a spheroid's bounding radius), packed rows (below):
-    nn (2, N + 1) int32 counts and rows, nbr (slots) int32, hist (H, slots) per-slot contact history (H = 5:
+    nn (N + 1) int32 rows, nbr (slots) int32, hist (H, slots) per-slot contact history (H = 5:
     tangential spring x, y, z, previous overlap, previous dashpot force).
     Compact history store (rebuilds only): the slots whose history matters across a rebuild (in contact
     at the previous step or overlapping now) are copied to cj/chist before the list is rebuilt in place;
@@ -69,11 +70,10 @@ SS_BAD_ID, SS_BAD_STEP, SS_OVL, SS_OVL_ID, SS_OVL_STEP = range(5)
 NSS = 5
 HW = 5  # history words per list slot: spring x, y, z, previous overlap, previous dashpot force (a shape's
 #        pair law may keep more: the host allocates hist/chist with its own count, the kernels read shape[0])
-# The list: nn (2, N + 1): nn[0, i] the count of particle i's slots (a build's output), nn[1, i] its row's first slot,
-# nn[1, N] the slots in all (an exclusive scan of nn[0]: the rows back to back in particle order, only the slots in
-# use); slot q of the list holds the neighbour nbr[q] (int32, packed) and its contact history hist[:, q] (words x
-# slots), so neighbouring threads read neighbouring slots, and the time loop reads a row's count as
-# nn[1, i + 1] - nn[1, i] (one cache line a warp, not two)
+# The list: nn (N + 1): nn[i] the first slot of particle i's row, nn[N] the slots in all (the rows back to back in
+# particle order, only the slots in use: an exclusive scan of a build's per-row counts, which are scratch of the build);
+# slot q of the list holds the neighbour nbr[q] (int32, packed) and its contact history hist[:, q] (words x slots), so
+# neighbouring threads read neighbouring slots; row i's count is nn[i + 1] - nn[i] (one cache line a warp)
 
 _cache: dict = {}
 
@@ -330,8 +330,8 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             s = scene_of(i, sc, spi)
             cnt = 0
-            h0 = nn[1, i]
-            h1 = h0 + nn[0, i]
+            h0 = nn[i]
+            h1 = nn[i + 1]
             if spi[s, I_ACTIVE] != 0:
                 for q in range(h0, h1):
                     if keeps_history(i, q, nbr[q], pos, radius, hist, s, spd):
@@ -352,43 +352,47 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                         c += 1
 
     @cuda.jit
-    def build(n, pos, radius, cell_start, nbr, nn, x_ref, sc, spd, spf, spi, fill):
+    def build(n, pos, radius, cell_start, nbr, nn, counts, x_ref, sc, spd, spf, spi, fill):
         """Full Verlet list in the sorted order, in two passes over the same cells: ``fill`` 0 counts each row into
-        nn[0] (the host then hands out the rows, a scan of nn[0] into nn[1], and makes room for them); ``fill`` 1
-        writes the neighbours into the rows nbr[nn[1, i] + k]. The rows' history follows (:func:`fill_history`)."""
+        counts[i] (the host then hands out the rows, an exclusive scan of the counts into nn, and makes room for
+        them); ``fill`` 1 writes the neighbours into the rows nbr[nn[i] + k]. The rows' history follows
+        (:func:`fill_history`)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
+            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, sc, spd, spi)
             if s < 0:
+                if fill == 0:
+                    counts[i] = 0
                 continue
             nc = spi[s, I_NC]
             coff = spi[s, I_COFF]
             r0 = spd[s, D_R0]
             cx, cy, cz = cell_coords(xi, yi, zi, spf[s, F_INVCELL], nc)
             ri = r0 if UNIFORM else radius[i]
-            base = nn[1, i] if fill != 0 else -1
+            base = nn[i] if fill != 0 else -1
             cnt = 0
             for k in range(neighbour_cell_count(nc)):
                 cc = coff + neighbour_cell(cx, cy, cz, k, nc)
                 for j in range(cell_start[cc], cell_start[cc + 1]):
                     rj = r0 if UNIFORM else radius[j]
                     cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr, base)
-            nn[0, i] = cnt
+            if fill == 0:
+                counts[i] = cnt
 
     @cuda.jit
-    def slot_total(n, nn, status):
-        """nn[1, n] and status[S_SLOTS] = the history slots of the list's rows, nn[1, n-1] + nn[0, n-1] (after the scan
-        of the counts nn[0] into the rows' first slots nn[1]; in int64 for the status: the host checks it)."""
+    def slot_total(n, nn, counts, status):
+        """nn[n] and status[S_SLOTS] = the slots of the list's rows, nn[n-1] + counts[n-1] (after the exclusive scan
+        of a build's counts into the rows' first slots nn[:n]; in int64 for the status: the host checks it)."""
         if cuda.grid(1) == 0:
             total = np.int64(0)
             if n > 0:
-                total = np.int64(nn[1, n - 1]) + np.int64(nn[0, n - 1])
-            nn[1, n] = total
+                total = np.int64(nn[n - 1]) + np.int64(counts[n - 1])
+            nn[n] = total
             status[S_SLOTS] = f64(total)
 
     @cuda.jit
     def fill_history(n, pos, radius, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, sc, spd, spi):
         """The history of every slot of a new list (built on the GPU, single grid or multigrid, or on the host), in
-        its row's slots hist[:, nn[1, i] + k]: the kept history from the compact store, indexed by the previous
+        its row's slots hist[:, nn[i] + k]: the kept history from the compact store, indexed by the previous
         order (old slot of new i: order[i]; old neighbour index o: new index inv_old[o]; both the identity for a
         host-built list, which permutes nothing), else a fresh slot whose previous overlap is the gap
         R_i + R_j - |r_ij| from the candidate test's own squared distance (cells.distance2)."""
@@ -396,10 +400,10 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             s = scene_of(i, sc, spi)
             if spi[s, I_ACTIVE] == 0:
                 continue
-            cnt = nn[0, i]
+            h0 = nn[i]
+            cnt = nn[i + 1] - h0
             if cnt == 0:
                 continue
-            h0 = nn[1, i]
             box = spd[s, D_BOX]
             inv_box = spd[s, D_INVBOX]
             r0 = spd[s, D_R0]
@@ -465,8 +469,17 @@ def slot_ids_and_scenes(ends, ids, sc):
         sc[i] = lo
 
 
+@cuda.jit
+def cast_rows(src, dst):
+    """dst[r, i] = src[r, i], cast to dst's type: a (rows, N) array copied into one of another precision (the
+    positions a host-built list was made from into a float32 x_ref)."""
+    for i in range(cuda.grid(1), src.shape[1], cuda.gridsize(1)):
+        for r in range(src.shape[0]):
+            dst[r, i] = src[r, i]
+
+
 cache_kernels({"gather_scene": gather_scene, "scatter_rows": scatter_rows,
-               "slot_ids_and_scenes": slot_ids_and_scenes}, ("gather",))
+               "slot_ids_and_scenes": slot_ids_and_scenes, "cast_rows": cast_rows}, ("gather",))
 
 
 @cuda.jit(device=True)
@@ -476,9 +489,10 @@ def scene_of(i, sc, spi):
 
 
 @cuda.jit(device=True)
-def list_origin(i, pos, x_ref, nn, sc, spd, spi):
-    """Start of particle i's row of a list build: its position, recorded as the list's reference x_ref, its
-    scene s and the scene's box, 1/box and skin; s = -1 (and an empty row) when the scene is inactive."""
+def list_origin(i, pos, x_ref, sc, spd, spi):
+    """Start of particle i's row of a list build: its position, recorded as the list's reference x_ref (in x_ref's
+    type: cuda_memory.xref_dtype), its scene s and the scene's box, 1/box and skin; s = -1 when the scene is
+    inactive (its row is empty)."""
     xi = pos[0, i]
     yi = pos[1, i]
     zi = pos[2, i]
@@ -490,7 +504,6 @@ def list_origin(i, pos, x_ref, nn, sc, spd, spi):
     inv_box = spd[s, D_INVBOX]
     skin = spd[s, D_SKIN]
     if spi[s, I_ACTIVE] == 0:
-        nn[0, i] = 0
         return xi, yi, zi, -1, box, inv_box, skin
     return xi, yi, zi, s, box, inv_box, skin
 

@@ -142,7 +142,7 @@ class HostLists:
         if self._host is None or self._host["nbr"].shape[0] != max_nb:
             pos = self._host["pos"] if self._host is not None else cuda.pinned_array((3, n), self.ens.pos_dtype)
             self._host = {"pos": pos, "nbr": cuda.pinned_array((max_nb, n), np.int32),
-                          "nn": cuda.pinned_array(n, np.int32), "rows": cuda.pinned_array((2, n + 1), np.int32)}
+                          "nn": cuda.pinned_array(n, np.int32), "rows": cuda.pinned_array(n + 1, np.int32)}
 
     # ---- the three pieces of a CPU build ------------------------------------------------------------
 
@@ -175,10 +175,8 @@ class HostLists:
         for s in np.flatnonzero(~ens.active):     # an inactive scene's rows are empty, as a device build leaves them
             counts[ens.starts[s]:ens.starts[s] + ens.sizes[s]] = 0
         slots = int(counts.sum(dtype=np.int64))
-        rows[0, :-1] = counts
-        rows[0, -1] = 0
-        rows[1, 0] = 0
-        np.cumsum(counts, out=rows[1, 1:])
+        rows[0] = 0
+        np.cumsum(counts, out=rows[1:])
         stride = h["nbr"].shape[0]
         packed = h["nbr"].T[np.arange(stride)[None, :] < counts[:, None]]     # rows in particle order
         ens._list_room(slots)
@@ -189,7 +187,10 @@ class HostLists:
         st.synchronize()
         t_up = time.perf_counter() - t0
         ens._fill_history()
-        _copy(ens.x_ref, snapshot_dev, st)
+        if ens.x_ref.dtype == snapshot_dev.dtype:
+            _copy(ens.x_ref, snapshot_dev, st)
+        else:       # a float32 x_ref beside float64 positions (cuda_memory.xref_dtype)
+            K.cast_rows[ens._grid(ens.n)](snapshot_dev, ens.x_ref)
         ens.builds += 1
         return t_up
 

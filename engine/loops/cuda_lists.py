@@ -74,17 +74,19 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                 items[start[b] + cuda.atomic.add(cursor, b, 1)] = i
 
     @cuda.jit
-    def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, nbr, nn, x_ref, sc, spd, spi, fill):
+    def mg_build(n, pos, radius, lvl, mgi, mgf, start, items, nbr, nn, counts, x_ref, sc, spd, spi, fill):
         """Full Verlet list over the grid levels (module docstring), in the single-grid build's two passes
-        (cuda_kernels.build): ``fill`` 0 counts each row into nn[0], ``fill`` 1 writes it at nbr[nn[1, i]:] and sorts it
-        by neighbour index (the binning order is atomic); the history follows (cuda_kernels.fill_history)."""
+        (cuda_kernels.build): ``fill`` 0 counts each row into counts[i], ``fill`` 1 writes it at nbr[nn[i]:] and sorts
+        it by neighbour index (the binning order is atomic); the history follows (cuda_kernels.fill_history)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, nn, sc, spd, spi)
+            xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, sc, spd, spi)
             if s < 0:
+                if fill == 0:
+                    counts[i] = 0
                 continue
             ri = radius[i]
             li = lvl[i]
-            base = nn[1, i] if fill != 0 else -1
+            base = nn[i] if fill != 0 else -1
             cnt = 0
             for l in range(li + 1):
                 nc = mgi[s, l, 0]
@@ -98,8 +100,9 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                             j = items[p]
                             cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, radius[j], skin, pos, box, inv_box,
                                                    HALF, nbr, base)
-            nn[0, i] = cnt
-            if fill != 0:
+            if fill == 0:
+                counts[i] = cnt
+            else:
                 for p in range(base + 1, base + cnt):
                     v = nbr[p]
                     q = p - 1

@@ -148,6 +148,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
           SKIP=True):
     ZERO = DT(0)
     HALF = DT(0.5)
+    WIDEN_REF = DT == np.float64    # x_ref may be float32 beside float64 positions (cuda_memory.xref_dtype)
     BIG = DT(np.finfo(DT).max)
     f64 = np.float64
     SH2 = 2 * TPB
@@ -196,7 +197,13 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         u1 = vel[1, i]
         u2 = vel[2, i]
         r0 = r1 = r2 = ZERO
-        if exact:
+        if exact and WIDEN_REF:
+            # a float32 x_ref beside float64 positions, widened explicitly: the CUDA simulator's NumPy scalars would
+            # otherwise round the displacement to float32 (the GPU's typing widens it anyway)
+            r0 = ZERO + x_ref[0, i]
+            r1 = ZERO + x_ref[1, i]
+            r2 = ZERO + x_ref[2, i]
+        elif exact:
             r0 = x_ref[0, i]
             r1 = x_ref[1, i]
             r2 = x_ref[2, i]
@@ -233,7 +240,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
     def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd,
                    spf, spi, status, step, ext):
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
-        in list order; slots q = nn[1, i] .. nn[1, i + 1] - 1 hold the neighbour nbr[q] and its history
+        in list order; slots q = nn[i] .. nn[i + 1] - 1 hold the neighbour nbr[q] and its history
         hist[:, q]); per-slot history advanced in place; a scene whose overlap exceeds its limit stops.
         Returns the force (stored in f_new too; zero for a skipped scene) and whether force or torque is not zero
         (``hot`` bit 0). The stores are skipped where both are zero and were at the two passes before (``SKIP``:
@@ -242,8 +249,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         # the particle's own reads are issued before the scene's active flag is known (harmless for a stopped
         # scene, whose slots are then left alone): one memory latency less per particle in a latency-bound kernel
         p = particle(i, s, pos, rad, inv_m, ids, spd)
-        h0 = nn[1, i]          # the row's first history slot, and its count from the next row's (cuda_kernels: the
-        m = nn[1, i + 1] - h0  # list's layout; the two loads share a cache line across the warp)
+        h0 = nn[i]          # the row's first history slot, and its count from the next row's (cuda_kernels: the
+        m = nn[i + 1] - h0  # list's layout; the two loads share a cache line across the warp)
         was = hot[i] if SKIP else 3
         if spi[s, I_ACTIVE] == 0:
             return ZERO, ZERO, ZERO, False

@@ -88,6 +88,39 @@ def lends_cell_counts(ncell: int, n: int, hist_words: int, word: int) -> bool:
     return 4 * (ncell + 1) <= hist_words * (n + HIST_MARGIN) * word
 
 
+#: the largest part of the Verlet rule's limit L_v / 2 that a float32 x_ref's rounding may take (:func:`xref_dtype`)
+XREF_MARGIN_SHARE = 1.0 / 64.0
+
+
+def xref_margin(box: float, xref_dtype, pos_dtype) -> float:
+    """Bound (m) on the distance between a position in [0, box) and x_ref's copy of it: 0 where x_ref has the
+    positions' type, else sqrt(3) 2^-24 box for float32 (half an ulp of a coordinate below box, on each axis). The
+    Verlet rule subtracts it from its limit: a displacement measured against the rounded x_ref below
+    L_v / 2 - margin leaves the true one below L_v / 2."""
+    if np.dtype(xref_dtype) == np.dtype(pos_dtype):
+        return 0.0
+    return math.sqrt(3.0) * 2.0 ** -24 * float(box)
+
+
+def xref_dtype(pos_dtype, boxes, skins):
+    """The type of the list's reference positions x_ref: float32 where the positions are float64 (float64 and mixed
+    precision: 12 B a particle less) and its rounding takes at most XREF_MARGIN_SHARE of the Verlet rule's limit
+    L_v / 2 in every scene (boxes, skins: m), else the positions' own type."""
+    pos_dtype = np.dtype(pos_dtype)
+    if pos_dtype != np.float64:
+        return pos_dtype
+    if all(xref_margin(b, np.float32, pos_dtype) <= XREF_MARGIN_SHARE * 0.5 * float(v) for b, v in zip(boxes, skins)):
+        return np.dtype(np.float32)
+    return pos_dtype
+
+
+def lends_cell_starts(ncell: int, n: int, two_force_buffers: bool, word: int) -> bool:
+    """Whether a rebuild's cell starts (ncell + 1 int32) fit in the next force buffer (3 words of n particles) after
+    the compact store's index (2 n int32) (engine/loops/cuda_rebuild.py ``_cell_starts``): in float64 for gases of up
+    to about 4 cells a particle; a shape with one force buffer (spheroids) has none to lend."""
+    return two_force_buffers and 4 * (2 * n + ncell + 1) <= 3 * n * word
+
+
 def mean_list_neighbours(volume_fraction: float, reach_over_diameter: float) -> float:
     """Mean count of neighbours within the list's reach r_c = sigma (1 + L_v / sigma) of a sphere in an equilibrium
     gas of equal spheres: n g(sigma) (4 pi / 3)(r_c^3 - sigma^3) = 8 phi g(sigma) ((r_c / sigma)^3 - 1), with the
@@ -101,9 +134,10 @@ def mean_list_neighbours(volume_fraction: float, reach_over_diameter: float) -> 
 @dataclass(frozen=True)
 class SphereLayout:
     """What sizes a sphere ensemble's device arrays (engine/shapes/sphere/cuda_backend.py, engine/loops/): N in all,
-    the state and position word (bytes), rough or smooth, equal spheres or not, the list's slots (neighbour
-    indices and their history), the compact store's capacity, the cells, the scenes, the threads per block, whether the
-    many-steps loop and the state staging of snapshots are used, and the per-scene tables' sizes."""
+    the state and position word (bytes) and the list reference's (``xref_word``, 0: the position's), rough or
+    smooth, equal spheres or not, the list's slots (neighbour indices and their history), the compact store's
+    capacity, the cells, the scenes, the threads per block, whether the many-steps loop and the state staging of
+    snapshots are used, and the per-scene tables' sizes."""
 
     n: int
     word: int
@@ -125,24 +159,25 @@ class SphereLayout:
     #: words per scene of the constant tables spd, spf, spi and of the status array (engine/loops/cuda_kernels.py
     #: ND, NF, NI, status_len): an upper bound by default, exact where the kernels module is at hand
     scene_words: tuple = (64, 64, 64, 64)
+    xref_word: int = 0
 
 
 def sphere_account(L: SphereLayout) -> dict[str, int]:
     """{array: bytes} of a sphere ensemble on the device, named as :func:`device_allocations` finds them: the state,
     forces, the permutation's order, the Verlet list with its contact history, the cells, the compact store, the
     records' accumulators and (when used) the double buffers and the state staging. A rebuild's scratch takes no
-    memory of its own: the permutation's rows and the cells' counts lie in the list's history, the compact store's
-    index in the next force buffer, and for a lone scene of rough spheres the permutation's order and inverse in the
-    torque (engine/loops/cuda_rebuild.py ``LEND_SCRATCH``)."""
+    memory of its own: the permutation's rows, the cells' counts and the list rows' counts lie in the list's history,
+    the compact store's index and (where :func:`lends_cell_starts`) the cells' starts in the next force buffer, and
+    for a lone scene of rough spheres the permutation's order and inverse in the torque
+    (engine/loops/cuda_rebuild.py ``LEND_SCRATCH``)."""
     n, w, pw = L.n, L.word, L.pos_word
     a = {
-        "x_ref": 3 * n * pw, "ids": 4 * n, "sc": 4 * (n if L.n_scenes > 1 else 1),
+        "x_ref": 3 * n * (L.xref_word or pw), "ids": 4 * n, "sc": 4 * (n if L.n_scenes > 1 else 1),
         "pos": 3 * n * pw, "vel": 3 * n * w, "omega": 3 * n * w, "quat": 4 * (n if L.orientations else 1) * w,
         "f_cur": 3 * n * w, "f_nxt": 3 * n * w, "torque": 3 * n * w,
         "q_last": 8 * (n if L.orientations else 1), "begun": 4 * n, "hot": n,
         "cj": 4 * L.store_cap, "chist": L.hist_words * L.store_cap * w,
-        "nbr": 4 * L.hist_slots, "nn": 8 * (n + 1), "hist": L.hist_words * L.hist_slots * w,
-        "cell_start": 4 * (L.ncell + 1),
+        "nbr": 4 * L.hist_slots, "nn": 4 * (n + 1), "hist": L.hist_words * L.hist_slots * w,
         "_sums.acc": 8 * L.n_scenes * L.nobs, "_rows.acc": 8 * L.record_rows * L.nobs,
     }
     nd, nf, ni, status = L.scene_words
@@ -153,6 +188,8 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
         a.update({f"{name}.bsum": 4 * blocks, f"{name}.bsum_scan": 4 * blocks, f"{name}.bsum_tot": 4})
     if not lends_cell_counts(L.ncell, n, L.hist_words, w):
         a["_count_own"] = 4 * (L.ncell + 1)
+    if not lends_cell_starts(L.ncell, n, True, w):
+        a["_cell_start_own"] = 4 * (L.ncell + 1)
     if not (L.rough and L.n_scenes == 1):     # the permutation's order and inverse, where the torque cannot lend them
         a["_perm_own[0]"], a["_perm_own[1]"] = 4 * n, 4 * n
     if L.uniform:
@@ -229,7 +266,8 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
         n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, hist_slots=slots,
         store_cap=max(1024, n // 8), ncell=cell_grid(spec.box_length, n, p.radius_max, p.skin) ** 3, tpb=tpb,
         multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state,
-        orientations=reads_state or spec.snapshots > 0)
+        orientations=reads_state or spec.snapshots > 0,
+        xref_word=xref_dtype(position_dtype(spec.precision), [spec.box_length], [p.skin]).itemsize)
     table = sphere_account(layout)
     start = sum(table[k] for k in ("ids", "sc", "pos", "vel", "omega", "quat"))
     if device_start(spec):

@@ -19,7 +19,8 @@ from numba import cuda
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_device import copy_device as _copy
 from engine.loops.cuda_lists import list_kernels
-from engine.loops.cuda_memory import HIST_MARGIN, MAX_LIST_SLOTS, grown_history, lends_cell_counts
+from engine.loops.cuda_memory import (HIST_MARGIN, MAX_LIST_SLOTS, grown_history, lends_cell_counts,
+                                      lends_cell_starts)
 from engine.loops.system import SphereSystem
 
 #: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
@@ -36,7 +37,13 @@ class ListBuilds:
 
     def _setup_scan(self) -> None:
         s = self.stream
-        self.cell_start = cuda.device_array(self.ncell + 1, np.int32, stream=s)
+        # the cells' first slots lie in the next force buffer where it has room beside the compact store's index
+        # (:meth:`_cell_starts`), else in an array of their own
+        self._cell_start_own = None
+        self._cell_start_views: dict = {}
+        if not (LEND_SCRATCH and lends_cell_starts(self.ncell, self.n, self.f_nxt is not self.f_cur,
+                                                   np.dtype(self.dtype).itemsize)):
+            self._cell_start_own = cuda.device_array(self.ncell + 1, np.int32, stream=s)
         self._scan_cells = self._scan_buffers(self.ncell + 1)
         self._scan_rows = self._scan_buffers(self.n)      # the list rows' first history slots (_gpu_rebuild)
         # the cells' counts lie in the list's history (:meth:`_cell_counts`) unless the first history is smaller than
@@ -63,14 +70,15 @@ class ListBuilds:
             lc.launch("add_offsets", k["add_offsets"], self._grid(b.m), (dst, b.m, b.bsum_scan, b.tile))
 
     def _alloc_list(self) -> None:
-        """The list's counts and rows (``nn``) and its first slots (:meth:`_alloc_slots`)."""
-        self.nn = self._zeros((2, self.n + 1), np.int32)   # counts and rows (cuda_kernels: the list's layout)
-        self._nn_rows = (self.nn[0, :self.n], self.nn[1, :self.n])   # (views made once: the launch cache knows them)
+        """The list's rows (``nn``) and its first slots (:meth:`_alloc_slots`)."""
+        self.nn = self._zeros(self.n + 1, np.int32)   # rows (cuda_kernels: the list's layout)
+        self._nn_rows = self.nn[:self.n]     # (a view made once: the launch cache knows its arrays by identity)
+        self._counts_own = None if LEND_SCRATCH else cuda.device_array(max(1, self.n), np.int32, stream=self.stream)
         self._alloc_slots(self.n + HIST_MARGIN)
 
     @staticmethod
     def _check_slots(slots: int) -> None:
-        """The rows are int32 offsets (nn[1]): a list of MAX_LIST_SLOTS = 2^31 slots or more is not representable
+        """The rows are int32 offsets (nn): a list of MAX_LIST_SLOTS = 2^31 slots or more is not representable
         (the memory prediction refuses a spec whose gas would need that many: cuda_memory.memory_refusal)."""
         if not 0 <= slots < MAX_LIST_SLOTS:
             raise RuntimeError(f"the Verlet list holds {slots} slots; at most 2^31 - 1 are supported (fewer particles "
@@ -120,16 +128,17 @@ class ListBuilds:
         the new list's build: the list's history is the scratch here (:meth:`_lent`)."""
         k, n, s, lc = self.k, self.n, self.stream, self._lc
         count = self._cell_counts()
+        cell_start = self._cell_starts()
         order, inv_old = self._perm_rows()
         lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (count, 0))
         lc.launch("count_cells", k["count_cells"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
                                                                      count))
         # exclusive scan of ncell + 1 counts (the last is 0) -> cell_start, cell_start[ncell] = n
-        self._exclusive_scan(count, self.cell_start, self._scan_cells)
+        self._exclusive_scan(count, cell_start, self._scan_cells)
         lc.launch("fill_i32", k["fill_i32"], self._grid(self.ncell + 1), (count, 0))
         lc.launch("scatter", k["scatter"], self._grid(n), (n, self.pos, self.sc, self.spf, self.spi,
-                                                            self.cell_start, count, order))
-        lc.launch("sort_cells", k["sort_cells"], self._grid(self.ncell), (self.ncell, self.cell_start, order,
+                                                            cell_start, count, order))
+        lc.launch("sort_cells", k["sort_cells"], self._grid(self.ncell), (self.ncell, cell_start, order,
                                                                            self.ids))
         lc.launch("inverse_perm", k["inverse_perm"], self._grid(n), (n, order, inv_old))
         # permute the particle arrays into cell order (forces too: the next force step reads them), each through
@@ -157,6 +166,28 @@ class ListBuilds:
         if self._count_own is not None:
             return self._count_own
         return self._lent(np.int32, (self.ncell + 1,))
+
+    def _cell_starts(self):
+        """The cells' first slots of a rebuild (ncell + 1 int32: an exclusive scan of the cell counts), written by
+        the sort and read by the build. In the next force buffer after the compact store's index
+        (:meth:`_store_index`: both hold nothing the next force pass reads, and that pass runs after the build)
+        where :func:`cuda_memory.lends_cell_starts`, else an array of their own. One view per buffer."""
+        if self._cell_start_own is not None:
+            return self._cell_start_own
+        got = self._cell_start_views.get(id(self.f_nxt))
+        if got is None:
+            flat = self.f_nxt.reshape(self.f_nxt.size).view(np.int32)
+            got = self._cell_start_views[id(self.f_nxt)] = (self.f_nxt,
+                                                            flat[2 * self.n:2 * self.n + self.ncell + 1])
+        return got[1]
+
+    def _row_counts(self):
+        """The per-row counts of a build's counting pass (N int32), scanned into the rows ``nn``: in the list's
+        history, which holds nothing needed until the new list's history is filled (:meth:`_lent`), or an array of
+        their own where ``LEND_SCRATCH`` is off."""
+        if self._counts_own is not None:
+            return self._counts_own
+        return self._lent(np.int32, (max(1, self.n),))
 
     def _lent(self, dtype, shape: tuple):
         """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's history (``hist``),
@@ -261,19 +292,22 @@ class ListBuilds:
         self._sort_and_permute()
         if self.multigrid:
             self._bin_levels()
+        cell_start = self._cell_starts()
         for fill in (0, 1):
+            # the counts lie in the history, which the room may replace: the filling pass neither reads nor writes
+            counts = self._row_counts()
             if self.multigrid:
                 self._lc.launch("mg_build", self.kl["mg_build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
-                    self.nbr, self.nn, self.x_ref, self.sc, self.spd, self.spi, fill))
+                    self.nbr, self.nn, counts, self.x_ref, self.sc, self.spd, self.spi, fill))
             else:
                 self._lc.launch("build", self.k["build"], self._grid(self.n), (
-                    self.n, self.pos, self.radius1, self.cell_start, self.nbr, self.nn, self.x_ref, self.sc,
+                    self.n, self.pos, self.radius1, cell_start, self.nbr, self.nn, counts, self.x_ref, self.sc,
                     self.spd, self.spf, self.spi, fill))
             if fill == 0:
-                self._exclusive_scan(self._nn_rows[0], self._nn_rows[1], self._scan_rows)
+                self._exclusive_scan(counts, self._nn_rows, self._scan_rows)
                 self._lc.launch("slot_total", self.k["slot_total"], (1, 32, self.stream),
-                                (self.n, self.nn, self.status))
+                                (self.n, self.nn, counts, self.status))
                 self._list_room(int(self._read_status_now()[K.S_SLOTS]))
         self._fill_history()
         self.builds += 1
@@ -358,7 +392,7 @@ class ListBuilds:
         for p in range(pairs.shape[0]):
             i = slot_of[pairs[p, 0]]
             j = slot_of[pairs[p, 1]]
-            for q in range(nn[1, i], nn[1, i] + nn[0, i]):
+            for q in range(nn[i], nn[i + 1]):
                 if nbr[q] == j:
                     w = min(self.hist_words, springs.shape[1])
                     hist[0:w, q] = springs[p, :w]

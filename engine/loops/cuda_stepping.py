@@ -364,7 +364,7 @@ class TimeLoop:
                 d2, v2 = _maxima(h, fused and prev == 1)
                 u_last = math.sqrt(v2)
                 if rebuilt_prev:
-                    bound = 0.0
+                    bound = self._rebuilt_bound
                 elif exact_of[prev]:
                     bound = math.sqrt(d2)
                     if bound > 1.0:
@@ -425,7 +425,8 @@ class TimeLoop:
         d2, v2 = _maxima(self.status_h[slot], odd)
         u, d = math.sqrt(v2), math.sqrt(d2)
         if rebuilt:
-            b = 0.0     # rebuilt before the last forces: x_ref holds the last kick-drift's positions
+            # rebuilt before the last forces: x_ref holds the last kick-drift's positions (rounded: _rebuilt_bound)
+            b = self._rebuilt_bound
         elif exact:
             b = d
             if d > 1.0:

@@ -91,7 +91,8 @@ def _sets() -> dict:
         sy = poly_system(120, ratio, 0.25, seed=ratio)
         skin = 0.2 * float(sy.radius.min())
         ens = CudaEnsemble([sy], [contact(skin, 1e-4)])
-        nbr, (nn, row), ids = ens.nbr.copy_to_host(), ens.nn.copy_to_host(), ens.ids.copy_to_host()
+        nbr, row, ids = ens.nbr.copy_to_host(), ens.nn.copy_to_host(), ens.ids.copy_to_host()
+        nn = np.diff(row)
         got = {(int(ids[i]), int(ids[nbr[row[i] + k]])) for i in range(ens.n) for k in range(nn[i])}
         want = brute_pairs(np.asarray(sy.position), np.asarray(sy.radius), sy.box_length, skin)
         dup = sum(int(nn[i]) for i in range(ens.n)) - len(got)
@@ -155,8 +156,8 @@ def _growth(gpu_ref) -> dict:
         calls.append(need)
         if len(calls) == 2:  # the second CPU build claims an overflow: the list must grow
             h, k = be.e.hist.copy_to_host(), be.e.nn.copy_to_host()
-            # the slots in use: nn[0, i] of them from nn[1, i] (engine/loops/cuda_kernels.py, the list's layout)
-            live = np.concatenate([np.arange(r, r + c) for c, r in zip(k[0], k[1])]).astype(np.int64)
+            # the slots in use: nn[i] .. nn[i + 1] - 1 (engine/loops/cuda_kernels.py, the list's layout)
+            live = np.concatenate([np.arange(a, b) for a, b in zip(k[:-1], k[1:])]).astype(np.int64)
             springs.append(int((h[0, live] != 0).sum()))
             return nbr.shape[1] + 1
         return need

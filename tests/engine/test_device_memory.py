@@ -55,7 +55,7 @@ def _child(case: str) -> None:
                           uniform=e.uniform, hist_slots=e.hist.shape[1], store_cap=e.store_cap,
                           ncell=e.ncell, tpb=e.tpb,
                           multistep=e.multistep, reads_state=e._stage is not None,
-                          orientations=e.orientations_held,
+                          orientations=e.orientations_held, xref_word=e.x_ref.dtype.itemsize,
                           scene_words=(K.ND, K.NF, K.NI, K.status_len(e.n_scenes)))
     import dataclasses
 
@@ -67,7 +67,7 @@ def _child(case: str) -> None:
     assert (SphereLayout.hist_words, SphereLayout.nobs, SphereLayout.record_rows) == (e.hist_words, e._NOBS,
                                                                                          RECORD_ROWS)
     print(json.dumps({"found": device_allocations(e), "account": account, "reads_state": e._stage is not None,
-                      "orientations": e.orientations_held,
+                      "orientations": e.orientations_held, "xref": e.x_ref.dtype.str,
                       "per_particle": sorted(k for k in account if doubled[k] != account[k])}))
 
 
@@ -89,6 +89,8 @@ def test_account_lists_every_device_array_of_a_sphere_ensemble():
         # orientations are held only where something reads or tracks them (snapshots here)
         assert got["orientations"] == (CASES[case]["snapshots"] > 0), case
         assert (found["quat"] < 4 * 216) == (not got["orientations"]), case
+        # the list's reference positions are float32 at every precision in these small boxes (cuda_memory.xref_dtype)
+        assert got["xref"] == "<f4", case
 
 
 def test_predicted_list_slots_bound_an_equilibrium_gas():

@@ -1,5 +1,5 @@
 """The CUDA list's history in packed rows (engine/loops/cuda_kernels.py, the list's layout), under the CUDA simulator:
-nn[1] is the exclusive scan of the counts nn[0] with the total in nn[1, N], the neighbour indices and the history
+nn (N + 1) holds the rows' first slots with the total in nn[N], the neighbour indices and the history
 hold N + HIST_MARGIN slots until a build hands out more and then 5/4 of them plus the margin, and every fresh slot's
 previous overlap is the pair's gap R_i + R_j - |r_ij| (negative: apart)."""
 
@@ -24,9 +24,10 @@ for name, phi, skin_r in (("dilute", 0.05, 0.4), ("dense", 0.3, 2.0)):
     nn, hist, nbr = ens.nn.copy_to_host(), ens.hist.copy_to_host(), ens.nbr.copy_to_host()
     pos = ens.pos.copy_to_host()
     n = ens.n
-    counts, rows = nn[0, :n], nn[1]
+    rows = nn
+    counts = np.diff(rows)
     total = int(counts.sum())
-    assert np.array_equal(rows[:n], np.concatenate([[0], np.cumsum(counts)[:-1]])) and rows[n] == total, name
+    assert nn.shape == (n + 1,) and rows[0] == 0 and (counts >= 0).all() and rows[n] == total, name
     want = n + HIST_MARGIN if total <= n + HIST_MARGIN else grown_history(total)
     assert hist.shape == (ens.hist_words, want) and nbr.shape == (want,), (name, hist.shape, nbr.shape, total)
     gaps = []

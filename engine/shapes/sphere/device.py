@@ -291,7 +291,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         inv_box = spd[s, D_INVBOX]
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        for q in range(nn[1, i], nn[1, i + 1]):
+        for q in range(nn[i], nn[i + 1]):
             j = nbr[q]
             rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
             ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
@@ -321,7 +321,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):  # noqa: C901  (one 
         observe_own(i, s, vals, v0, v1, v2, w0, w1, w2, mass, inertia, spd, ext)
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        for q in range(nn[1, i], nn[1, i + 1]):
+        for q in range(nn[i], nn[i + 1]):
             delta = hist[3, q]
             if delta > ZERO:
                 observe_contact(vals, f64(delta), q, s, ri, r0 if UNIFORM else rad[nbr[q]], hist, spf)

@@ -290,7 +290,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
         vals[A_TR2] += et_i * et_i
         vals[A_ROT2] += ep * ep
         vals[A_X] += et_i * ep
-        for q in range(nn[1, i], nn[1, i + 1]):
+        for q in range(nn[i], nn[i + 1]):
             d = f64(hist[3, q])
             if d > 0.0:
                 vals[A_CON] += 1.0
@@ -306,7 +306,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB):  # noqa: C901  (one closure 
     def clamp_history(n, nn, hist):
         """A fresh list holds bounding-sphere overlaps in slot 3: no contact history at t = 0 (CPU _prime)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
-            for q in range(nn[1, i], nn[1, i + 1]):
+            for q in range(nn[i], nn[i + 1]):
                 if hist[3, q] > ZERO:
                     hist[3, q] = ZERO
 

@@ -66,7 +66,7 @@ def make_cuda(L, DT, UNIFORM, TPB, ROUGH, COULOMB, ORIENT):
         inv_box = spd[s, D_INVBOX]
         r0 = spd[s, D_R0]
         ri = r0 if UNIFORM else rad[i]
-        for q in range(nn[1, i], nn[1, i + 1]):         # the row's slots (engine/loops/cuda_kernels.py)
+        for q in range(nn[i], nn[i + 1]):         # the row's slots (engine/loops/cuda_kernels.py)
             j = nbr[q]
             rx = min_image(pos[0, i] - pos[0, j], box, inv_box, HALF)
             ry = min_image(pos[1, i] - pos[1, j], box, inv_box, HALF)
