@@ -92,6 +92,7 @@ class ListBuilds:
         s = self.stream
         self.nbr = self.hist = None
         self._list_views = {}
+        self._part_views: dict = {}
         self.nbr = cuda.device_array(slots, np.int32, stream=s)
         self.hist = cuda.device_array((self.hist_words, slots), self.dtype, stream=s)
 
@@ -145,9 +146,9 @@ class ListBuilds:
         # its own launch-cache name (an array and its scratch rows are the same objects at every rebuild)
         # (torque need not move: the next force step rewrites it before any kick reads it)
         for q, a in enumerate(self._permuted_arrays() + self._per_particle):
-            tmp = self._scratch_rows(a)
-            lc.launch(f"gather_rows/{q}", k["gather_rows"], self._grid(n), (n, a, tmp, order))
-            _copy(a, tmp, s)
+            for r, (rows, tmp) in enumerate(self._gather_parts(a)):
+                lc.launch(f"gather_rows/{q}/{r}", k["gather_rows"], self._grid(n), (n, rows, tmp, order))
+                _copy(rows, tmp, s)
         ints = ((self.ids, self.lvl) if self.multigrid else (self.ids,)) + tuple(self._permuted_i64())
         for q, a in enumerate(ints):   # (gather_i32 is typed at launch: the same kernel for int64)
             tmp = self._scratch_rows(a)
@@ -160,6 +161,21 @@ class ListBuilds:
         """The scratch that permuted array ``a`` (rows x N, or N) is gathered into, in the memory of the list's
         history (:meth:`_lent`)."""
         return self._lent(a.dtype, a.shape)
+
+    def _gather_parts(self, a) -> list:
+        """[(rows of ``a``, their scratch)] of a (rows, N) array's permutation: the whole array at once where its
+        scratch fits in the list's history, else one row at a time (mixed precision: 3 float64 position rows, 24 B a
+        particle, against a history of 5 float32 words a slot and about one slot a particle in a dilute gas). Made
+        once per array and history (the launch cache knows its arrays by identity)."""
+        got = self._part_views.get(id(a))
+        if got is None or got[1] is not self.hist:
+            if not LEND_SCRATCH or a.nbytes <= self.hist.nbytes:
+                parts = [(a, self._scratch_rows(a))]
+            else:
+                tmp = self._lent(a.dtype, (1, a.shape[1]))
+                parts = [(a[r:r + 1], tmp) for r in range(a.shape[0])]
+            got = self._part_views[id(a)] = (a, self.hist, parts)
+        return got[2]
 
     def _cell_counts(self):
         """The per-cell counts of a rebuild's sort (ncell + 1 int32), in the list's history."""
