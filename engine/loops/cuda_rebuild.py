@@ -209,9 +209,10 @@ class ListBuilds:
         """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's history (``hist``),
         made once per allocation (the launch cache knows its arrays by identity). Valid only between the compaction
         of the kept history and the new list's history (:meth:`_fill_history`), when the history holds nothing
-        needed: a rebuild's sort, permutation and build. Its own array where ``LEND_SCRATCH`` is off; the history is
-        always the larger (at least N + HIST_MARGIN slots of ``hist_words`` >= 5 words, against at most 4 words of
-        8 B per particle, and the cell counts where :func:`cuda_memory.lends_cell_counts`, :meth:`_setup_scan`)."""
+        needed: a rebuild's sort, permutation and build. Its own array where ``LEND_SCRATCH`` is off. The history
+        holds at least N + HIST_MARGIN slots of ``hist_words`` >= 5 words; a permuted array larger than it (mixed
+        precision's float64 positions) is gathered a row at a time (:meth:`_gather_parts`), and the cell counts lie
+        here only where :func:`cuda_memory.lends_cell_counts` (:meth:`_setup_scan`)."""
         dtype = np.dtype(dtype)
         key = (dtype.str, tuple(shape))
         view = self._list_views.get(key)
