@@ -1,11 +1,15 @@
 """Large sphere scenes on one GPU: their device memory against the prediction, and their start drawn on the device.
 
     python -m bench large_scenes memory --n 8388608 134217728 1000000000 --precision float32 float64 --steps 1000
+    python -m bench large_scenes memory --n 1000000000 --snapshots 1 --orientations off --out-dir /data
     python -m bench large_scenes start --n 2097152 8388608 --phi 0.008 0.058 0.2
 
 ``memory``: per case (rough spheres, e_n = e_t = 0.8, phi = 0.058 unless ``--phi``, no snapshots, records every
 t_end/200, ``--steps`` cooling steps, no thermalisation, the spec's start or ``--start``) the predicted peak (B per
-particle; the list slots per particle it assumes, engine/loops/cuda_memory.py); the allocator's peak of live device
+particle; the list slots per particle it assumes, engine/loops/cuda_memory.py); ``--snapshots K`` frames (the spec's
+``orientations`` from ``--orientations``), with the result file written under ``--out-dir`` and its size, the
+seconds of the snapshot stops and the process's peak host memory (ru_maxrss; a frame of more than FRAME_PIECE_ROWS
+particles is written in pieces, engine/output/pieces.py); the allocator's peak of live device
 bytes during the run (a Numba memory-manager plugin that counts what is allocated and released; pending deallocations are
 flushed at once, NUMBA_CUDA_MAX_PENDING_DEALLOCS_COUNT = 1); the process's peak as nvidia-smi sees it (context
 included); the arrays the ensemble holds at the end (``device_allocations``) and the list slots reached; the loop's
@@ -22,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -99,7 +104,8 @@ class _SmiPeak:
         return self.peak
 
 
-def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
+def case(n: int, precision: str, phi: float, steps: int, start=None, snapshots: int = 0, orientations: bool = True,
+         out_dir=None) -> dict:
     import engine
     from engine.errors import SpecError
     from engine.loops import cuda_ensemble
@@ -108,9 +114,10 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     from engine.setup.spec import SimulationSpec
 
     spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_n=0.8, e_t=0.8, precision=precision,
-                          backend="cuda", snapshots=0, thermalization=0, start=start)
+                          backend="cuda", snapshots=snapshots, orientations=orientations, thermalization=0,
+                          start=start)
     spec = spec.model_copy(update={"t_end": steps * derive(spec).dt})
-    pred = predict_sphere_device(spec, derive(spec))
+    pred = predict_sphere_device(spec, derive(spec), reads_state=snapshots > 0)
     kept = []
     init = cuda_ensemble.CudaEnsembleBase.__init__
 
@@ -118,7 +125,8 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
         kept.append(self)
         init(self, *a, **k)
 
-    row = dict(n=n, precision=precision, phi=phi, steps=steps, start=start or "default",
+    row = dict(n=n, precision=precision, phi=phi, steps=steps, start=start or "default", snapshots=snapshots,
+               orientations=orientations,
                predicted_B_per_particle=pred.peak_bytes / n,
                predicted_loop_B=pred.loop_bytes / n, predicted_start_B=pred.start_bytes / n,
                predicted_slots_per_particle=pred.slots / n)
@@ -129,23 +137,33 @@ def case(n: int, precision: str, phi: float, steps: int, start=None) -> dict:
     smi = _SmiPeak()
     t0 = time.perf_counter()
     try:
-        with tempfile.TemporaryDirectory() as tmp:
+        with tempfile.TemporaryDirectory(dir=out_dir) as tmp:
             s = engine.run(spec, os.path.join(tmp, "out.h5"))
-        row.update(loop_cundall=s.cundall, loop_s=s.loop_s, job_s=s.job_wall_s)
+            row.update(loop_cundall=s.cundall, loop_s=s.loop_s, job_s=s.job_wall_s,
+                       snapshots_s=s.extra["timings"]["snapshots"], close_s=s.extra["timings"]["close"],
+                       file_GB=os.path.getsize(s.output) / 1e9,
+                       host_peak_GB=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9)
+            if snapshots:
+                import h5py
+
+                with h5py.File(s.output) as f:
+                    part = f["particles/all"]
+                    row["frames"] = {k: list(part[k]["value"].shape) for k in part
+                                     if isinstance(part[k], h5py.Group) and "value" in part[k]}
     except SpecError as exc:
         row.update(refused=str(exc), refused_after_s=time.perf_counter() - t0)
     finally:
         cuda_ensemble.CudaEnsembleBase.__init__ = init
     row["smi_peak_B_per_particle"] = smi.stop() / n
     row["allocator_peak_B_per_particle"] = (_Peak.peak - base) / n
-    if kept:
+    if kept and "refused" not in row:     # (a refused spec's only ensemble is the start-up thread's stand-in)
         e = kept[-1]
         found = device_allocations(e)
         row.update(slots_per_particle=e.nbr.shape[0] / n, held_B_per_particle=sum(found.values()) / n,
                    held_by_array={k: round(v / n, 2) for k, v in sorted(found.items(), key=lambda kv: -kv[1])[:16]},
                    predicted_by_array={k: round(v / n, 2) for k, v in sorted(pred.table.items(),
                                                                               key=lambda kv: -kv[1])[:16]})
-        kept.clear()
+    kept.clear()
     if "allocator_peak_B_per_particle" in row and not row.get("refused"):
         row["predicted_over_allocator_peak"] = row["predicted_B_per_particle"] / row["allocator_peak_B_per_particle"]
     return row
@@ -202,6 +220,10 @@ def main(argv=None) -> int:
                     help="memory: the spec's start (default: the spec's own)")
     ap.add_argument("--reps", type=int, default=3, help="start: timed draws after the first")
     ap.add_argument("--check-max", type=int, default=2097152, help="start: largest N drawn on the host too")
+    ap.add_argument("--snapshots", type=int, default=0, help="memory: snapshot frames (the spec's snapshots)")
+    ap.add_argument("--orientations", choices=["on", "off"], default="on", help="memory: the spec's orientations")
+    ap.add_argument("--out-dir", default=None, help="memory: where the result files are written (a temporary "
+                                                    "directory there; default: the system's)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     rows = []
@@ -209,7 +231,8 @@ def main(argv=None) -> int:
         counting = _install_counter()
         for prec in args.precision:
             for n in args.n:
-                r = case(n, prec, args.phi[0], args.steps, args.start)
+                r = case(n, prec, args.phi[0], args.steps, args.start, args.snapshots, args.orientations == "on",
+                         args.out_dir)
                 r["allocator_counted"] = counting
                 rows.append(r)
                 print(json.dumps(r), flush=True)

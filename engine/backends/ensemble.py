@@ -285,7 +285,7 @@ class SerialEnsemble(Ensemble):
 
 
 def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams], *,
-                  reads_state: bool = True) -> Ensemble:
+                  reads_state: bool = True, orientations: bool = True) -> Ensemble:
     """An ensemble of the scenes for backend 'cpu', 'cuda' or 'auto'.
 
     'cpu' -> :class:`SerialEnsemble` of CPU backends; 'cuda' -> the shape's packed CUDA ensemble
@@ -294,7 +294,8 @@ def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams
     constructor does); 'auto' -> 'cuda' when a CUDA GPU is present, else 'cpu'. All scenes must have the same
     shape.
     ``reads_state``: whether the driver will copy scenes' state to the host (snapshots, checkpoints); False lets a
-    CUDA ensemble skip the host buffers it would prepare for it.
+    CUDA ensemble skip the host buffers it would prepare for it. ``orientations`` False: no scene's spheres have
+    orientations (their spec's ``orientations``), which a CUDA ensemble then never holds.
     """
     shapes = {shape_of(s) for s in systems}
     if len(shapes) > 1:
@@ -302,7 +303,8 @@ def make_ensemble(name: str, systems: Sequence, contacts: Sequence[ContactParams
     shape = shapes.pop() if shapes else "sphere"
     resolved = resolve_backend(name, shape)
     if resolved == "cuda":
-        ensemble = host(shape).cuda_ensemble()(list(systems), list(contacts), reads_state=reads_state)
+        ensemble = host(shape).cuda_ensemble()(list(systems), list(contacts), reads_state=reads_state,
+                                               orientations=orientations)
         if len(systems) == 1:
             ensemble.start_alone(contacts[0])
         return ensemble

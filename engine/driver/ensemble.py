@@ -118,9 +118,10 @@ def run_ensemble(specs, outputs, *, progress: Optional[Callable[[int, Progress],
         if isinstance(s, SceneRun):
             s.summary_extra["ensemble_setup_s"] = setup_s
             s.t_begin = t_setup          # a scene's job wall time counts the ensemble's set-up
-    reads = any(s.reads_state for s in scenes if isinstance(s, SceneRun))
-    return drive(scenes, lambda systems, contacts: make_ensemble(name, systems, contacts, reads_state=reads),
-                 build_one=lambda system, contact: make_ensemble(name, [system], [contact], reads_state=reads),
+    runs = [s for s in scenes if isinstance(s, SceneRun)]
+    kw = dict(reads_state=any(s.reads_state for s in runs), orientations=any(s.spec.orientations for s in runs))
+    return drive(scenes, lambda systems, contacts: make_ensemble(name, systems, contacts, **kw),
+                 build_one=lambda system, contact: make_ensemble(name, [system], [contact], **kw),
                  on_result=on_result)
 
 

@@ -96,12 +96,18 @@ def contact_params(spec: SimulationSpec, p: Derived, *, thermalization: bool) ->
     if thermalization:
         k_t = None if smooth else p.k_n * Q_SPHERE / (1.0 + Q_SPHERE)  # Hidalgo et al. (2013) Eq. 4 at e_t = 1
         return ContactParams(k_n=p.k_n, gamma_n_coef=0.0, k_t=k_t, friction=None, dt=p.dt, skin=p.skin,
-                             precision=spec.precision, orientation=spec.snapshots > 0,
+                             precision=spec.precision, orientation=tracks_orientations(spec),
                              overlap_limit=spec.overlap_limit, list_mode=spec.list_mode)
     return ContactParams(k_n=p.k_n, gamma_n_coef=p.gamma_n_coef, k_t=None if smooth else p.k_t,
                          friction=spec.friction, dt=p.dt, skin=p.skin, precision=spec.precision,
-                         orientation=spec.snapshots > 0, overlap_limit=spec.overlap_limit,
+                         orientation=tracks_orientations(spec), overlap_limit=spec.overlap_limit,
                          list_mode=spec.list_mode)
+
+
+def tracks_orientations(spec: SimulationSpec) -> bool:
+    """Whether a run integrates its spheres' orientations: only where its snapshots hold them (a sphere's
+    orientation changes nothing else; a spheroid's turns are its dynamics, which the shape's own law integrates)."""
+    return spec.snapshots > 0 and spec.orientations
 
 
 def run_contacts(spec: SimulationSpec, p: Derived) -> tuple:
@@ -216,7 +222,8 @@ class SceneRun:
         # checkpoints: ck
         self.records = RecordWriter(p, self.n, dissipative,
                                     float(resume["prev_energy"]) if resume is not None else None)
-        self.snapshots = SnapshotWriter(p.n_steps, spec.snapshots)
+        self.snapshots = SnapshotWriter(p.n_steps, spec.snapshots, n_particles=spec.n_particles,
+                                        orientations=spec.orientations)
         self.progress_writer = ProgressWriter(progress, self.n, self.total_steps, self.resumed_from)
         # collisions counted before a resume (the new backend's counter starts at 0)
         self.coll_base = int(resume["collisions"]) if resume is not None and "collisions" in resume else 0
@@ -470,6 +477,12 @@ class _SceneView:
         """Scene i's state in id order; ``reuse`` (True or a buffer slot): the arrays may be buffers that the
         next call with the same slot overwrites."""
         return self.ens.state(self.i, reuse=reuse)
+
+    def state_pieces(self, rows: int):
+        """Scene i's state in id order in pieces of ``rows`` particles (the ensemble's ``state_pieces``: a large
+        frame without a host copy of the whole), or None where the ensemble copies whole frames only."""
+        pieces = getattr(self.ens, "state_pieces", None)
+        return None if pieces is None else pieces(self.i, rows)
 
     def contacts(self):
         return self.ens.contacts(self.i)
@@ -823,8 +836,8 @@ def run(spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
     """
     scene = SceneRun(spec, output, progress=progress, should_cancel=should_cancel, checkpoint_dir=checkpoint_dir,
                      checkpoint_interval=checkpoint_interval, backend=backend)
-    (result,) = drive([scene], lambda systems, contacts: make_ensemble(scene.backend, systems, contacts,
-                                                                    reads_state=scene.reads_state))
+    (result,) = drive([scene], lambda systems, contacts: make_ensemble(
+        scene.backend, systems, contacts, reads_state=scene.reads_state, orientations=scene.spec.orientations))
     if isinstance(result, BaseException):
         raise result
     return result

@@ -82,10 +82,12 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     #: the observe kernel's sums per scene (the shape's NOBS)
     _NOBS: int
 
-    def __init__(self, systems: list, contacts: list, reads_state: bool = True):
+    def __init__(self, systems: list, contacts: list, reads_state: bool = True, orientations: bool = True):
         """``reads_state``: whether the driver will copy scenes' state to the host (snapshots, checkpoints); a large
-        scene's first host frame slot is then made on a thread during the build (:meth:`_prepare_frame_slot`)."""
+        scene's first host frame slot is then made on a thread during the build (:meth:`_prepare_frame_slot`).
+        ``orientations`` False: no scene wants its particles' orientations (spheres only: the shape decides)."""
         self.reads_state = reads_state
+        self.orientations_wanted = orientations
         if not SIM and not cuda.is_available():
             raise BackendUnavailable("backend = 'cuda' but no CUDA GPU is available here")
         if len(systems) != len(contacts) or not systems:

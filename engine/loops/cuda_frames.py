@@ -4,7 +4,9 @@
 A kernel gathers a scene's slots into particle-id order on the device, into one reused staging buffer, and one copy
 per array moves exactly that scene's rows into a reused host buffer slot. Small slots are pinned; large ones are plain
 memory faulted in by threads and page-locked in place (or, where that is refused, replaced by pinned buffers made on
-a thread after a few frames).
+a thread after a few frames). The staging buffer holds at most FRAME_PIECE_ROWS particles (engine/output/pieces.py):
+a larger scene is gathered a piece of ids at a time. :meth:`StateFrames._state_pieces` hands such a scene's frame out
+in those pieces, through two pinned piece buffers, so that no host buffer holds the whole frame either.
 """
 
 from __future__ import annotations
@@ -18,13 +20,15 @@ from numba import cuda
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.numba_support.numba_internals import page_lock
-from engine.output.pieces import map_pieces
+from engine.output.pieces import FRAME_PIECE_ROWS, map_pieces
 
 #: a snapshot buffer slot (all state arrays of the largest scene) larger than this is pageable memory, page-locked in
 #: place (StateFrames._host_slot)
 PINNED_SLOT_BYTES = 32 << 20
 #: ... or, where it cannot be, replaced by pinned buffers (allocated on a thread) after this many large frames
 PIN_AFTER_FRAMES = 3
+#: host buffers of :meth:`StateFrames._state_pieces`, used in turn: a piece stays valid until this many more are taken
+PIECE_BUFFERS = 2
 
 
 class StateFrames:
@@ -36,6 +40,7 @@ class StateFrames:
         """The buffers are made at their first use; a large scene's first slot on a thread during the build."""
         self._stage = None                      # device staging buffers per dtype
         self._stage_h: dict = {}                # buffer slot -> host buffers
+        self._piece_h: list = []                # the pinned host buffers of _state_pieces (PIECE_BUFFERS sets)
         self._slot_prep = None                  # a first frame slot being made on a thread (_prepare_frame_slot)
         self._pinned_slots: Optional[dict] = None   # pinned replacements of pageable slots, made on a thread
         self._pageable_slots: set = set()
@@ -52,22 +57,59 @@ class StateFrames:
         s = self.stream
         a0, n_k = int(self.starts[k]), int(self.sizes[k])
         nmax = int(self.sizes.max())
-        if self._stage is None:
-            self._stage = {np.dtype(t).str: cuda.device_array(max(1, 4 * nmax), t, stream=s)
-                           for t in {self.dtype, self.pos_dtype}}
+        piece = self._staged(nmax)
         slot = 0 if reuse is False or reuse is True else int(reuse)
         bufs = self._host_slot(slot, nmax)
         out = {}
         for key, src in self.state_arrays().items():
-            rows = src.shape[0]
             host = bufs[key][:n_k]
-            if n_k:
-                dst = self._stage[src.dtype.str][:n_k * rows].reshape(n_k, rows)
-                K.gather_scene[self._grid(n_k)](src, self.ids, a0, n_k, dst)
-                dst.copy_to_host(host, stream=s)
+            for lo in range(0, n_k, piece):
+                hi = min(n_k, lo + piece)
+                self._gather(src, a0, n_k, lo, hi).copy_to_host(host[lo:hi], stream=s)
             out[key] = host
         s.synchronize()
         return out if reuse is not False else {key: a.copy() for key, a in out.items()}
+
+    def _state_pieces(self, k: int, rows: int):
+        """Scene k's state arrays in particle-id order, in pieces of ``rows`` particles (at most FRAME_PIECE_ROWS):
+        yields (first id, {key: (m, D) host array}) in id order, each piece's arrays valid until PIECE_BUFFERS more
+        are taken. Per piece a kernel gathers the slots of those ids into the staging buffer and one copy per
+        array moves them into one of PIECE_BUFFERS pinned host buffers, one sync per piece: neither the device nor
+        the host holds a copy of the whole frame, and the caller writes a piece while the next one is copied."""
+        self._close()
+        s = self.stream
+        a0, n_k = int(self.starts[k]), int(self.sizes[k])
+        rows = max(1, min(int(rows), self._staged(int(self.sizes.max()))))
+        shapes = self._slot_shapes(min(rows, n_k))
+        if not self._piece_h or any(bufs[key].shape[0] < sh[0] for bufs in self._piece_h
+                                    for key, (sh, _) in shapes.items()):
+            self._piece_h = [{key: cuda.pinned_array(sh, t) for key, (sh, t) in shapes.items()}
+                             for _ in range(PIECE_BUFFERS)]
+        for j, lo in enumerate(range(0, n_k, rows)):
+            hi = min(n_k, lo + rows)
+            bufs, out = self._piece_h[j % PIECE_BUFFERS], {}
+            for key, src in self.state_arrays().items():
+                out[key] = bufs[key][:hi - lo]
+                self._gather(src, a0, n_k, lo, hi).copy_to_host(out[key], stream=s)
+            s.synchronize()
+            yield lo, out
+
+    def _staged(self, nmax: int) -> int:
+        """The staging buffers (per dtype, four rows of the particles of a piece) made where missing or too small;
+        returns the particles a piece holds: all of the largest scene's up to FRAME_PIECE_ROWS."""
+        piece = max(1, min(nmax, FRAME_PIECE_ROWS))
+        types = {np.dtype(t).str: t for t in (self.dtype, self.pos_dtype)}
+        if self._stage is None or any(self._stage[key].shape[0] < 4 * piece for key in types):
+            self._stage = {key: cuda.device_array(4 * piece, t, stream=self.stream) for key, t in types.items()}
+        return piece
+
+    def _gather(self, src, a0: int, n_k: int, lo: int, hi: int):
+        """The particles lo ... hi - 1 of the scene at a0 (n_k particles) of the (rows, N) array ``src``, in id order,
+        gathered into the staging buffer: a (hi - lo, rows) device view."""
+        rows = src.shape[0]
+        dst = self._stage[src.dtype.str][:(hi - lo) * rows].reshape(hi - lo, rows)
+        K.gather_scene[self._grid(n_k)](src, self.ids, a0, n_k, lo, hi, dst)
+        return dst
 
     def _host_slot(self, slot: int, nmax: int) -> dict:
         """The host buffers {key: (nmax, rows)} of a state buffer slot (:meth:`_scene_rows`).
@@ -124,9 +166,10 @@ class StateFrames:
         """A large scene's first frame slot, made on a thread while the build goes on (its state arrays exist): the
         buffers faulted in and page-locked as :meth:`_host_slot` makes them (about 30 ms for 2M spheres, which the
         first snapshot waited for), taken by the first :meth:`_host_slot` call (which waits for the thread)."""
-        shapes = self._slot_shapes(int(self.sizes.max()))
-        if SIM or not _big_slot(shapes):
-            return
+        nmax = int(self.sizes.max())
+        shapes = self._slot_shapes(nmax)
+        if SIM or not _big_slot(shapes) or (nmax > FRAME_PIECE_ROWS and hasattr(self, "state_pieces")):
+            return      # (the snapshots of a scene of more than FRAME_PIECE_ROWS come in pieces, without a slot)
         made: dict = {}
 
         def work() -> None:

@@ -427,14 +427,16 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
 
 
 @cuda.jit
-def gather_scene(src, ids, a0, n_k, dst):
-    """dst[ids[a0 + l] - a0, r] = src[r, a0 + l] for l < n_k: one scene's rows of a (rows, N) state array in
-    particle-id order, particle-major, for the host copy of a snapshot or checkpoint."""
+def gather_scene(src, ids, a0, n_k, lo, hi, dst):
+    """dst[o - lo, r] = src[r, a0 + l] for l < n_k where o = ids[a0 + l] - a0 lies in [lo, hi): the particles lo ...
+    hi - 1 (in id order within the scene) of one scene's (rows, N) state array, particle-major, for the host copy of
+    a snapshot or checkpoint (lo = 0, hi = n_k: the whole scene; a piece of a large one otherwise)."""
     for li in range(cuda.grid(1), n_k, cuda.gridsize(1)):
         i = a0 + li
         o = ids[i] - a0
-        for r in range(src.shape[0]):
-            dst[o, r] = src[r, i]
+        if lo <= o < hi:
+            for r in range(src.shape[0]):
+                dst[o - lo, r] = src[r, i]
 
 
 @cuda.jit

@@ -200,9 +200,11 @@ def sphere_account(L: SphereLayout) -> dict[str, int]:
         a["_alt[0]"], a["_alt[1]"] = 3 * n * pw, 3 * n * w
     if L.multistep:
         a["_alt_spin"] = 3 * n * w
-    if L.reads_state:
+    if L.reads_state:     # four rows of a piece of at most FRAME_PIECE_ROWS particles (engine/loops/cuda_frames.py)
+        from engine.output.pieces import FRAME_PIECE_ROWS
+
         for word in sorted({w, pw}):
-            a[f"_stage['<f{word}']"] = 4 * n * word
+            a[f"_stage['<f{word}']"] = 4 * max(1, min(n, FRAME_PIECE_ROWS)) * word
     return a
 
 
@@ -266,7 +268,7 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
         n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, hist_slots=slots,
         store_cap=max(1024, n // 8), ncell=cell_grid(spec.box_length, n, p.radius_max, p.skin) ** 3, tpb=tpb,
         multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state,
-        orientations=reads_state or spec.snapshots > 0,
+        orientations=spec.orientations and (reads_state or spec.snapshots > 0),
         xref_word=xref_dtype(position_dtype(spec.precision), [spec.box_length], [p.skin]).itemsize)
     table = sphere_account(layout)
     start = sum(table[k] for k in ("ids", "sc", "pos", "vel", "omega", "quat"))
@@ -340,10 +342,16 @@ def memory_refusal(spec, p, free_bytes: float, device: str, p_of, *, reads_state
     if pred.peak_bytes <= budget:
         return None
     fits = largest_fitting(spec, p_of, budget, reads_state=reads_state)
-    return (f"n_particles = {spec.n_particles}: the run needs about {_gb(pred.peak_bytes)} of device memory "
-            f"({pred.peak_bytes / spec.n_particles:.0f} B per particle, {spec.precision}); "
-            f"{device} has {_gb(free_bytes)} free, of which {USABLE_FRACTION:.0%} may be planned; "
-            f"the largest n_particles that fits is about {fits:.3g}")
+    why = (f"n_particles = {spec.n_particles}: the run needs about {_gb(pred.peak_bytes)} of device memory "
+           f"({pred.peak_bytes / spec.n_particles:.0f} B per particle, {spec.precision}); "
+           f"{device} has {_gb(free_bytes)} free, of which {USABLE_FRACTION:.0%} may be planned; "
+           f"the largest n_particles that fits is about {fits:.3g}")
+    if spec.orientations:    # the orientations a sphere's snapshots hold are its largest optional arrays
+        bare = predict_sphere_device(spec.model_copy(update={"orientations": False}), p, reads_state=reads_state)
+        if bare.peak_bytes < pred.peak_bytes:
+            why += (f"; without orientations in the snapshots (orientations = false) it needs about "
+                    f"{_gb(bare.peak_bytes)}{' and fits' if bare.peak_bytes <= budget else ''}")
+    return why
 
 
 def refuse_oversize(spec, p, *, reads_state: bool = False) -> None:

@@ -54,7 +54,7 @@ import h5py
 import numpy as np
 
 from engine.errors import InstabilityError
-from engine.output.pieces import PIECE, map_pieces
+from engine.output.pieces import FRAME_PIECE_ROWS, PIECE, map_pieces
 from engine.output.xdmf import write_xdmf, xdmf_text
 
 UNITS = {
@@ -183,15 +183,16 @@ class H5MDWriter:
         box.attrs["boundary"] = np.array([b"periodic"] * 3)
         edges = box.create_dataset("edges", data=np.full(3, box_length, dtype=np.float64))
         edges.attrs["unit"] = "m"
-        part.create_dataset("id", data=np.arange(n, dtype=np.int64))
-        part.create_dataset("species", data=np.zeros(n, dtype=np.int32) if species is None
-                            else np.asarray(species, dtype=np.int32).reshape(n))
+        ids = part.create_dataset("id", shape=(n,), dtype=np.int64)
+        for lo in range(0, n, FRAME_PIECE_ROWS):
+            ids[lo:min(n, lo + FRAME_PIECE_ROWS)] = np.arange(lo, min(n, lo + FRAME_PIECE_ROWS), dtype=np.int64)
+        _per_particle(part, "species", n, np.int32, np.zeros(1, np.int32) if species is None else species)
         if mass is not None:
-            part.create_dataset("mass", data=np.asarray(mass, dtype=np.float64)).attrs["unit"] = "kg"
+            _per_particle(part, "mass", n, np.float64, mass).attrs["unit"] = "kg"
         if semi_axes is not None:
-            part.create_dataset("semi_axes", data=np.asarray(semi_axes, dtype=np.float64)).attrs["unit"] = "m"
+            _per_particle(part, "semi_axes", n, np.float64, semi_axes).attrs["unit"] = "m"
         elif radius is not None:
-            part.create_dataset("radius", data=np.asarray(radius, dtype=np.float64)).attrs["unit"] = "m"
+            _per_particle(part, "radius", n, np.float64, radius).attrs["unit"] = "m"
         f.create_group("observables")
         par = f.create_group("parameters")
         par.attrs["spec"] = spec_json
@@ -304,6 +305,43 @@ class H5MDWriter:
             return fut
         self._write_frame(step, time, arrays)
         return None
+
+    def snapshot_pieces(self, step: int, time: float, n: int, pieces, left_out=()) -> None:
+        """Append one frame of ``n`` particles given in pieces: (first row, {element: (m, D) array}) in row order,
+        each piece's arrays valid until two more pieces are taken (engine/loops/cuda_frames.py ``_state_pieces``);
+        elements named in ``left_out`` are not written. Each piece is checked for finite values and written into
+        its rows of the frame (one chunk each: :func:`frame_chunks`), on the I/O thread while the next piece is
+        copied (background); returns when the frame is in the file. No copy of the whole frame is made. A
+        non-finite piece raises InstabilityError (the run fails, and its partial file is never a result)."""
+        self._materialize()
+        pending: deque = deque()
+        begun = False
+        for lo, arrays in pieces:
+            arrays = {name: a for name, a in arrays.items() if name in SNAPSHOT_ELEMENTS and name not in left_out}
+            if not begun:
+                self._submit(self._begin_frame, step, time, n, {name: a.shape[1:] for name, a in arrays.items()})
+                begun = True
+            fut = self._submit(self._write_piece, step, time, lo, arrays)
+            if fut is not None:
+                pending.append(fut)
+            while len(pending) >= 2:    # the next piece reuses the buffers of the oldest one in flight
+                pending.popleft().result()
+        while pending:
+            pending.popleft().result()
+
+    def _begin_frame(self, step: int, time: float, n: int, tails: dict) -> None:
+        part = self.f["particles/all"]
+        self._piece_frame = {name: (series := self._series(part, name, (n,) + tuple(tail), self.dtype),
+                                    series.begin(step, time))
+                             for name, tail in tails.items()}
+
+    def _write_piece(self, step: int, time: float, lo: int, arrays: dict) -> None:
+        for name, a in arrays.items():
+            _check_finite(name, a, step, time)
+            series, k = self._piece_frame[name]
+            if not series.write_rows(k, lo, a):
+                series.value[k, lo:lo + a.shape[0]] = a
+                series.value.flush()
 
     def _write_frame(self, step: int, time: float, arrays: dict) -> None:
         part = self.f["particles/all"]
@@ -428,34 +466,71 @@ class _FrameSeries:
         array is their bytes already (C order, the dataset's type, no filter) each is written as it is
         (H5Dwrite_chunk, the last one padded with the fill value's zeros), which skips HDF5's copy of a chunk larger
         than its chunk cache: 218 MB took 0.07 s instead of 0.22-0.27 s on the H200 host."""
+        k = self.begin(step, time)
+        a = np.asarray(value)
+        if tuple(self.value.shape[1:]) != a.shape or not self.write_rows(k, 0, a):
+            self.value[k] = a
+            self.value.flush()   # its chunk to the file now, as a direct write puts it: the same file either way
+
+    def begin(self, step: int, time: float) -> int:
+        """Append a frame's step and time, and room for its values (written by :meth:`write_rows`); its index."""
         k = self.frames
         for ds in (self.step, self.time, self.value):
             ds.resize(k + 1, axis=0)
         self.step[k] = step
         self.time[k] = time
-        a = np.asarray(value)
-        chunks = self.value.chunks
-        if (self.plain and a.ndim >= 1 and chunks[2:] == a.shape[1:] and tuple(self.value.shape[1:]) == a.shape
-                and a.dtype == self.value.dtype and a.flags.c_contiguous and a.size):
-            rows = chunks[1]
-            for r0 in range(0, a.shape[0], rows):
-                block = a[r0:r0 + rows]
-                if block.shape[0] < rows:
-                    padded = np.zeros((rows,) + a.shape[1:], a.dtype)
-                    padded[:block.shape[0]] = block
-                    block = padded
-                self.value.id.write_direct_chunk((k, r0) + (0,) * (a.ndim - 1), block)
-        else:
-            self.value[k] = a
-            self.value.flush()   # its chunk to the file now, as a direct write puts it: the same file either way
         self.frames = k + 1
+        return k
+
+    def write_rows(self, k: int, lo: int, a: np.ndarray) -> bool:
+        """Rows lo ... lo + len(a) - 1 of frame k, written chunk by chunk as they are (H5Dwrite_chunk, a last chunk
+        padded with the fill value's zeros) where the array is their bytes already (C order, the dataset's type, no
+        filter) and its rows start a chunk and fill it or end the frame: 218 MB took 0.07 s instead of 0.22-0.27 s
+        through HDF5's copy on the H200 host. Otherwise nothing is written and False returned."""
+        a = np.asarray(a)
+        chunks, n = self.value.chunks, self.value.shape[1]
+        rows = chunks[1]
+        if not (self.plain and a.ndim >= 1 and chunks[2:] == a.shape[1:] and a.dtype == self.value.dtype
+                and a.flags.c_contiguous and a.size and lo % rows == 0
+                and (a.shape[0] % rows == 0 or lo + a.shape[0] == n)):
+            return False
+        for r0 in range(0, a.shape[0], rows):
+            block = a[r0:r0 + rows]
+            if block.shape[0] < rows:
+                padded = np.zeros((rows,) + a.shape[1:], a.dtype)
+                padded[:block.shape[0]] = block
+                block = padded
+            self.value.id.write_direct_chunk((k, lo + r0) + (0,) * (a.ndim - 1), block)
+        return True
+
+
+def _per_particle(group: h5py.Group, name: str, n: int, dtype, values) -> h5py.Dataset:
+    """A per-particle constant (n rows; ``values``: an (n, ...) array, or one row for all): where every row is the
+    same (one row given, a broadcast view, or all equal), a chunked dataset whose fill value is that row and of which
+    no chunk is ever written, so that it takes neither disk nor a host copy (a billion spheres' radius alone would be
+    8 GB of both) and reads back as the row everywhere; otherwise the values, written a piece at a time."""
+    a = np.asarray(values)
+    if a.ndim == 0:
+        a = a.reshape(1)
+    tail = a.shape[1:]
+    one = a.shape[0] == 1 or (a.shape[0] == n and n > 0 and (a.strides[0] == 0 or bool(np.all(a == a[0]))))
+    if one and n > 0 and not tail:
+        return group.create_dataset(name, shape=(n,), dtype=dtype, chunks=(min(n, 1 << 20),),
+                                    fillvalue=np.asarray(a[0], dtype))
+    if one:
+        a = np.broadcast_to(a[:1], (n,) + tail)
+    ds = group.create_dataset(name, shape=(n,) + tail, dtype=dtype)
+    for lo in range(0, n, FRAME_PIECE_ROWS):
+        ds[lo:min(n, lo + FRAME_PIECE_ROWS)] = np.asarray(a[lo:lo + FRAME_PIECE_ROWS], dtype)
+    return ds
 
 
 def frame_chunks(shape_tail: tuple, itemsize: int) -> tuple:
     """The chunk shape of a frame series of frames ``shape_tail`` (N, D): the whole frame (1, N, D), or, above
-    :data:`CHUNK_MAX_BYTES`, (1, rows, D) with as many whole rows as fit."""
+    :data:`CHUNK_MAX_BYTES`, (1, rows, D) with as many whole rows as fit; at most FRAME_PIECE_ROWS rows (a larger
+    frame is written in pieces of that many, one chunk each: :meth:`H5MDWriter.snapshot_pieces`)."""
     row = itemsize * int(np.prod(shape_tail[1:], dtype=np.int64))
-    rows = shape_tail[0]
+    rows = min(shape_tail[0], FRAME_PIECE_ROWS)
     if rows * row > CHUNK_MAX_BYTES:
         rows = max(1, CHUNK_MAX_BYTES // row)
     return (1, rows) + tuple(shape_tail[1:])

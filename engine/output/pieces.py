@@ -15,6 +15,10 @@ import numpy as np
 
 #: elements per piece (16 MB of float64)
 PIECE = 1 << 21
+#: a frame of more particles is copied off the GPU and written in pieces of this many particles, each one chunk of
+#: its dataset (engine/output/writers/snapshots.py): neither the device's staging buffer nor the host holds the
+#: whole frame (a billion float32 spheres: 36 GB a frame)
+FRAME_PIECE_ROWS = 1 << 24
 
 _lock = threading.Lock()
 _pool = None

@@ -248,6 +248,11 @@ class SimulationSpec(BaseModel):
         None, description="Interval between observable records in s; null = t_end / 200.")
     snapshots: int = Field(
         5, description="Number of full particle snapshots, evenly spaced over [0, t_end] (0 ... 10000).")
+    orientations: bool = Field(
+        True, description="Whether the snapshots hold each sphere's orientation (a unit quaternion, integrated "
+                          "from its spin). A sphere's orientation changes nothing else: false integrates none, "
+                          "leaves it out of the snapshots and holds none on the GPU (24 B a particle in float32, "
+                          "40 in float64). Spheroids always have theirs (it is part of their dynamics).")
     precision: Literal["float64", "float32", "mixed"] = Field(
         "float64", description="Floating-point precision of the state and the arithmetic: 'float64'; "
                                "'float32'; 'mixed' = positions in float64, every other array in float32, "
@@ -321,6 +326,9 @@ class SimulationSpec(BaseModel):
             raise ValueError(f"elongation = {self.elongation} but shape is {self.shape!r}: elongation must be 1 "
                              f"for {self.shape}s")
         check_shape(self.precision, self.shape)
+        if shape.ELONGATED and not self.orientations:
+            raise ValueError(f"orientations = false but shape is {self.shape!r}: a spheroid's orientation is part "
+                             f"of its dynamics; set orientations to true")
         poly = self.species is not None and len(self.species) > 1
         if self.species is not None and not shape.SPECIES:
             which = " or ".join(repr(k) for k in SHAPES if traits(k).SPECIES)

@@ -1,9 +1,9 @@
 """A sphere ensemble that neither tracks orientations nor has its state read holds no orientations on the device
 (engine/shapes/sphere/cuda_backend.py ``orientations_held``), under the Numba CUDA simulator: the same positions,
-velocities, spins and observables bit for bit as the ensemble that holds them, a start drawn on the device
-included (its orientation stream left undrawn, the others the same), the identity quaternion where the state is
-asked for anyway, and a clear error where orientations would be switched on. Runs in a simulator child
-(tests/cudasim.py)."""
+velocities, spins and observables bit for bit as the ensemble that holds them (so does one whose state is read but
+whose scenes want no orientations), a start drawn on the device included (its orientation stream left undrawn, the
+others the same), the identity quaternion where the state is asked for anyway, and a clear error where orientations
+would be switched on. Runs in a simulator child (tests/cudasim.py)."""
 
 import sys
 from pathlib import Path
@@ -31,17 +31,20 @@ def _child() -> None:
     for multistep in (True, False):     # the many-steps loop of small scenes and the per-phase loop of large ones
         cuda_ensemble.MULTISTEP = multistep
         ens = {held: CudaEnsemble([tiny_system(), drawn], [c, c], reads_state=held) for held in (False, True)}
+        # state read, but no scene wants orientations (the spec's orientations = false): none held either
+        ens["read"] = CudaEnsemble([tiny_system(), drawn], [c, c], reads_state=True, orientations=False)
         assert not ens[False].orientations_held and ens[True].orientations_held
+        assert not ens["read"].orientations_held and ens["read"].quat.size == 4
         assert ens[False].quat.size == 4 and ens[True].quat.shape == (4, tiny_system().n + n)
         for e in ens.values():
             assert e.multistep == multistep
             e.advance(40)
-        a, b = ens[False], ens[True]
-        assert a.builds == b.builds >= 2, (a.builds, b.builds)
+        a, b, r = ens[False], ens[True], ens["read"]
+        assert a.builds == b.builds == r.builds >= 2, (a.builds, b.builds, r.builds)
         for k in (0, 1):
-            sa, sb = a.state(k), b.state(k)
+            sa, sb, sr = a.state(k), b.state(k), r.state(k)
             for key in ("position", "velocity", "angular_velocity"):
-                assert np.array_equal(sa[key], sb[key]), (multistep, k, key)
+                assert np.array_equal(sa[key], sb[key]) and np.array_equal(sr[key], sb[key]), (multistep, k, key)
             identity = np.zeros((sa["position"].shape[0], 4))
             identity[:, 0] = 1.0
             assert np.array_equal(sa["orientation"], identity), k

@@ -91,6 +91,25 @@ def test_elongated_sphere_is_refused_clearly_and_writes_nothing(tmp_path):
     assert not (tmp_path / "e.h5").exists()
 
 
+def test_spheres_without_orientations_run_the_same_and_leave_them_out(tmp_path):
+    """orientations = false: the snapshots have no orientation element and the rest is the same, bit for bit (a
+    sphere's orientation changes nothing else); a spheroid spec refuses it, naming the field."""
+    files = {}
+    for on in (True, False):
+        s = run(SimulationSpec(**{**TINY, "orientations": on}), tmp_path / f"o{on}.h5")
+        with h5py.File(s.output) as f:
+            part = f["particles/all"]
+            files[on] = {k: part[f"{k}/value"][...]
+                         for k in part if isinstance(part[k], h5py.Group) and "value" in part[k]}
+    assert sorted(files[True]) == ["angular_velocity", "orientation", "position", "velocity"]
+    assert sorted(files[False]) == ["angular_velocity", "position", "velocity"]
+    assert not np.array_equal(files[True]["orientation"][0], files[True]["orientation"][-1])
+    for k, a in files[False].items():
+        assert np.array_equal(a, files[True][k]), k
+    with pytest.raises(Exception, match="orientations = false but shape is 'ellipsoid'"):
+        SimulationSpec(shape="ellipsoid", elongation=2.0, orientations=False)
+
+
 @pytest.mark.parametrize("precision", ["float64", "mixed"])
 def test_checkpoint_resume_matches_uninterrupted_run(tmp_path, precision):
     spec = SimulationSpec(**{**TINY, "thermalization": 0.0, "t_end": 0.05, "precision": precision})

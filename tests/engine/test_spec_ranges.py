@@ -52,8 +52,8 @@ def test_schema_carries_the_table():
 
 
 def test_every_field_states_its_values_in_the_schema():
-    """A number carries a range, a string an enum, the species list its length; a new field without
-    one fails here."""
+    """A number carries a range, a string an enum, the species list its length (a boolean has its two values);
+    a new field without one fails here."""
     props = SimulationSpec.model_json_schema()["properties"]
     for field, prop in props.items():
         branch = next(b for b in prop.get("anyOf", [prop]) if b.get("type") != "null")
@@ -61,5 +61,7 @@ def test_every_field_states_its_values_in_the_schema():
             assert field in FIELD_RANGES and ("minimum" in branch or "exclusiveMinimum" in branch), field
         elif branch.get("type") == "string":
             assert branch.get("enum"), field
+        elif branch.get("type") == "boolean":
+            assert field == "orientations", field
         else:
             assert field == "species" and branch["type"] == "array" and branch["minItems"] == 1, field

@@ -1,5 +1,7 @@
 """The snapshot writer: full frames (position, velocity, angular velocity, orientation) at the snapshot steps, spread
-evenly over the cooling run (engine/output/writers/__init__.py), through the ensemble's two reused host buffer slots."""
+evenly over the cooling run (engine/output/writers/__init__.py), through the ensemble's two reused host buffer slots;
+a frame of more than FRAME_PIECE_ROWS particles in pieces (engine/output/pieces.py), where the ensemble can give
+them, without a host copy of the whole frame."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ from concurrent.futures import wait as futures_wait
 
 import numpy as np
 
+from engine.output.pieces import FRAME_PIECE_ROWS
 from engine.output.writers.triggers import AtSteps
 
 
@@ -20,19 +23,30 @@ def snapshot_steps(n_steps: int, snapshots: int) -> set:
 
 
 class SnapshotWriter:
-    """Writes a frame at every snapshot step (trigger: :func:`snapshot_steps`)."""
+    """Writes a frame at every snapshot step (trigger: :func:`snapshot_steps`) of a scene of ``n_particles``;
+    without ``orientations`` the frames leave the orientation out (the spec's ``orientations``)."""
 
-    def __init__(self, n_steps: int, snapshots: int):
+    def __init__(self, n_steps: int, snapshots: int, n_particles: int = 0, orientations: bool = True):
         self.trigger = AtSteps(snapshot_steps(n_steps, snapshots))
+        self.n_particles = n_particles
+        self.left_out = () if orientations else ("orientation",)
 
     def write(self, writer, step_done: int, t_sim: float, view) -> None:
         """Scene ``view``'s frame of ``step_done`` into ``writer`` (the I/O thread writes it while the run goes on).
 
         Two buffer slots (host memory reused on CUDA), shared by all scenes of the ensemble (``view.slots``): a
         slot is reused, by any scene, only after its previous frame is in the file (waited for, not raised: a
-        failed write is its writer's error)."""
+        failed write is its writer's error). A scene of more than FRAME_PIECE_ROWS particles whose ensemble hands
+        out pieces (``view.state_pieces``) is written a piece at a time instead, and the run waits for the frame."""
+        pieces = view.state_pieces(FRAME_PIECE_ROWS) if self.n_particles > FRAME_PIECE_ROWS else None
+        if pieces is not None:
+            writer.snapshot_pieces(step_done, t_sim, self.n_particles, pieces, left_out=self.left_out)
+            return
         slot = view.slots.take()
-        view.slots.busy[slot] = writer.snapshot(step_done, t_sim, view.state(reuse=2 + slot))
+        arrays = view.state(reuse=2 + slot)
+        for key in self.left_out:
+            arrays.pop(key, None)
+        view.slots.busy[slot] = writer.snapshot(step_done, t_sim, arrays)
 
 
 class FrameSlots:

@@ -7,9 +7,10 @@ arrays (space-frame angular velocity, scalar radius, mass and inertia; per parti
 differ, else in the scene's constants), a large start drawn on the device (engine/loops/cuda_start.py), the lazy
 orientations' marks and the collision counter (engine/shapes/sphere/device.py), the orientation switch of the
 specialisation, and the observables. An ensemble that neither tracks orientations nor has its state read (no
-snapshots, no checkpoints: ``reads_state`` False) holds no orientations and no marks on the device (a sphere's
-orientation changes nothing else; 24 B a particle in float32, 40 in float64). Its Verlet list may be built on the
-host for a lone scene (Skorych & Dosta 2022, §3).
+snapshots, no checkpoints: ``reads_state`` False), or whose scenes want none (their spec's ``orientations`` false),
+holds no orientations and no marks on the device (a sphere's orientation changes nothing else; 24 B a particle in
+float32, 40 in float64). Its Verlet list may be built on the host for a lone scene (Skorych & Dosta 2022, §3).
+A large scene's state is copied out in pieces for a snapshot (:meth:`state_pieces`).
 """
 
 from __future__ import annotations
@@ -41,8 +42,10 @@ class CudaEnsemble(CudaEnsembleBase):
     def _upload_particles(self, systems) -> None:
         """Sphere state and constants on the device (uniform scenes keep their constants in spd)."""
         dt_, n = self.dtype, self.n
-        #: orientations (and their marks) on the device: tracked, or the state is read (see the module docstring)
-        self.orientations_held = self.reads_state or any(c.orientation for c in self.contact)
+        #: orientations (and their marks) on the device: tracked, or the state is read and some scene wants them (see
+        #: the module docstring)
+        self.orientations_held = any(c.orientation for c in self.contact) or (
+            self.reads_state and self.orientations_wanted)
         rad, mass, inertia = (self._cat(arrays)[:, 0] for arrays in (
             [s.radius for s in systems], [s.mass for s in systems], [s.inertia for s in systems]))
         uniform = [rows_equal(s.radius) and rows_equal(s.mass) and rows_equal(s.inertia) for s in systems]
@@ -114,6 +117,11 @@ class CudaEnsemble(CudaEnsembleBase):
             out["orientation"] = q
         return out
 
+    def state_pieces(self, k: int, rows: int):
+        """Scene k's state in particle-id order in pieces of ``rows`` particles (StateFrames._state_pieces): the
+        snapshot of a large scene (engine/output/writers/snapshots.py). The orientations only where held."""
+        return self._state_pieces(k, rows)
+
     def _draw_starts(self, systems) -> None:
         """pos, vel, omega, quat of scenes of which some hold a start to draw on the device
         (engine.setup.scene.StartDraw: engine/loops/cuda_start.py); the others' host arrays go up into their columns."""
@@ -166,8 +174,8 @@ class CudaEnsemble(CudaEnsembleBase):
         coulomb = rough and any(c.friction is not None for c in act)
         orient = any(c.orientation for c in act)
         if orient and not self.orientations_held:
-            raise RuntimeError("orientations switched on in an ensemble made without them (reads_state False and "
-                               "no scene tracking orientations): make it with reads_state=True")
+            raise RuntimeError("orientations switched on in an ensemble made without them (reads_state False or "
+                               "orientations False, and no scene tracking orientations): make it with both True")
         if orient and not self._orient:
             # orientations tracked from now on: nothing is pending from the steps run without them
             self.q_last.copy_to_device(np.full(self.n, self.steps_done, np.int64), stream=self.stream)

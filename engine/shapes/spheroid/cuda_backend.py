@@ -143,14 +143,14 @@ class CudaEllipsoidEnsemble(CudaEnsembleBase):
     host_lists = False
     _view_names = ("radius1", "inv_m1")
 
-    def __init__(self, systems: list, contacts: list, reads_state: bool = True):
+    def __init__(self, systems: list, contacts: list, reads_state: bool = True, orientations: bool = True):
         for k, s in enumerate(systems):
             if not isinstance(s, EllipsoidSystem):
                 raise TypeError(f"scene {k}: CudaEllipsoidEnsemble needs EllipsoidSystem scenes, "
                                 f"got {type(s).__name__}")
         # rough contacts keep the spring and the contact's k_t: 6 history words (engine/shapes/spheroid/device.py)
         self.hist_words = SLOT_ROUGH if any(c.rough for c in contacts) else K.HW
-        super().__init__(systems, contacts, reads_state)
+        super().__init__(systems, contacts, reads_state)   # a spheroid always holds its orientation
 
     # ---- set-up (hooks of CudaEnsembleBase) -------------------------------------------------------------
 
