@@ -78,6 +78,8 @@ def show(value: Any) -> str:
     """A spec value as the form and the spec table show it (JSON for lists and null)."""
     if value is None:
         return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
     if isinstance(value, (list, dict)):
         return json.dumps(value)
     if isinstance(value, float) and abs(value) >= 1e5 and value == float(f"{value:.12e}"):
@@ -112,6 +114,8 @@ def form_fields() -> list[FormField]:
         kind, choices = "text", []
         if typing.get_origin(inner[0]) is typing.Literal:
             kind, choices = "select", [str(c) for c in typing.get_args(inner[0])]
+        elif inner[0] is bool:
+            kind, choices = "select", ["true", "false"]
         elif typing.get_origin(inner[0]) in (list, typing.List):
             kind = "json"
         out.append(FormField(name, kind, show(info.default), info.description or "", choices, optional))

@@ -182,14 +182,16 @@ def test_submit_form_has_the_defaults(client):
     assert f'name="e_n" value="{defaults.e_n}"' in page
     assert re.search(r'name="backend">\s*<option selected>auto</option>', page)
     assert 'name="dt" value="" placeholder="null"' in page
+    assert re.search(r'name="orientations">\s*<option selected>true</option>\s*<option>false</option>', page)
 
 
 def test_submit_form_queues_the_spec(client):
-    r = client.post("/ui/submit", data={**FORM, "backend": "cpu", "seed": "11", "dt": "", "priority": "5"},
-                    follow_redirects=False)
+    r = client.post("/ui/submit", data={**FORM, "backend": "cpu", "seed": "11", "dt": "", "priority": "5",
+                                        "orientations": "false"}, follow_redirects=False)
     assert r.status_code == 303
     job = client.get("/jobs/" + r.headers["location"].rsplit("/", 1)[1]).json()
     assert job["spec"]["backend"] == "cpu" and job["spec"]["seed"] == 11 and job["spec"]["dt"] is None
+    assert job["spec"]["orientations"] is False
     assert job["spec"]["n_particles"] == TINY["n_particles"] and job["priority"] == 5
 
 
