@@ -171,6 +171,14 @@ def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypat
     species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
     simulate.warm_process(SimulationSpec(species=species, volume_fraction=0.1))
     assert [s for s, _ in loaded] == ["sphere", "sphere"]     # a species start is NumPy's: one-size spheres then
+    # on a GPU (its start-up begun) a spec whose start the device draws loads no host start; a small one still does
+    monkeypatch.setattr(simulate, "begin_gpu_startup", lambda *a: types.SimpleNamespace(wait=lambda: None))
+    loaded.clear()
+    for shape, kw in (("sphere", {}), ("ellipsoid", dict(elongation=2.0))):
+        simulate.warm_process(SimulationSpec(shape=shape, n_particles=1 << 21, **kw))
+    assert loaded == []
+    simulate.warm_process()
+    assert loaded == [("sphere", False)]
 
 
 _DRAWS_ON_TWO_THREADS = """
