@@ -45,7 +45,7 @@ from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import SIM
 from engine.loops.cuda_frames import StateFrames
 from engine.loops.cuda_launch import LaunchCache
-from engine.loops.cuda_memory import xref_dtype, xref_margin
+from engine.loops.cuda_memory import device_zeros, xref_dtype, xref_margin
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
@@ -309,13 +309,8 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
             device_memset(self.hot, 0xFF, self.stream)
 
     def _zeros(self, shape, dtype):
-        """A device array of zeros: a memset on the stream, no host array to copy."""
-        a = cuda.device_array(shape, dtype, stream=self.stream)
-        if SIM:
-            a.copy_to_device(np.zeros(shape, dtype), stream=self.stream)
-        elif a.size:
-            device_memset(a, 0, self.stream)
-        return a
+        """A device array of zeros on the ensemble's stream (:func:`cuda_memory.device_zeros`)."""
+        return device_zeros(shape, dtype, self.stream)
 
     @staticmethod
     def _cat(arrays):

@@ -72,6 +72,22 @@ FIRST_STRIDE = 8
 HIST_MARGIN = 1024
 
 
+def device_zeros(shape, dtype, stream):
+    """A device array of zeros, set by a memset queued on ``stream``: no host array of zeros to copy up (under the
+    CUDA simulator, which has no memset, one is copied)."""
+    from numba import cuda
+
+    from engine.loops.cuda_cache import SIM
+    from engine.numba_support.numba_internals import device_memset
+
+    a = cuda.device_array(shape, dtype, stream=stream)
+    if SIM:
+        a.copy_to_device(np.zeros(shape, dtype), stream=stream)
+    elif a.size:
+        device_memset(a, 0, stream)
+    return a
+
+
 def grown_history(slots: int) -> int:
     """The list's slots after a build that handed out ``slots`` (more than it held)."""
     return int(1.25 * slots) + HIST_MARGIN

@@ -44,7 +44,7 @@ from numba import cuda
 from engine.setup.cell_rsa import (RSA_Q, SPHERES, SPHEROIDS, cut_of, final_key, kept, pass_functions, pass_key,
                                    run_rounds, slot_index)
 from engine.loops.cuda_cache import SIM, cache_kernels
-from engine.numba_support.numba_internals import device_memset
+from engine.loops.cuda_memory import device_zeros
 from engine.setup.counter_rng import _bits
 from engine.setup.scene import (_BLOCK, _SELECT_BITS, STREAM_QUATERNION, STREAM_SPIN, STREAM_VELOCITY, StartDraw,
                                 _site_position, _stream_values, stream_mean, stream_scale)
@@ -337,7 +337,7 @@ def _random_centres(d: StartDraw, col0: int, pos, quat, stream, cap: int) -> Non
     zero = np.zeros(1, np.int64)
 
     def new_arrays(per_cell: int) -> tuple:
-        counts = _zeroed(ncell, np.int32, stream)
+        counts = device_zeros(ncell, np.int32, stream)   # no host zeros: 2 GB of counts at 1e9 spheres
         return (counts, cuda.device_array((ncell, per_cell, 3), np.int16, stream=stream),
                 cuda.device_array((ncell, per_cell), np.int32, stream=stream),
                 cuda.device_array((ncell, per_cell, 4) if g.spheroid else (1, 1, 4), np.float64, stream=stream))
@@ -463,14 +463,3 @@ def load(pos_dtype, dtype, placements=("lattice", "random")) -> None:
         dsts = {k: cuda.device_array((dim, d.n), dtype, stream=stream) for k, dim, _ in d.streams}
         draw_start(d, 0, pos, dsts, stream)
     stream.synchronize()
-
-
-def _zeroed(n: int, dtype, stream):
-    """A device array of n zeros, set by a memset on the stream: no host array of zeros to copy up (the random start's
-    cell counts: 2 GB of them for a billion spheres at phi = 0.058)."""
-    a = cuda.device_array(n, dtype, stream=stream)
-    if SIM:
-        a.copy_to_device(np.zeros(n, dtype), stream=stream)
-    elif n:
-        device_memset(a, 0, stream)
-    return a

@@ -339,9 +339,7 @@ class H5MDWriter:
         for name, a in arrays.items():
             _check_finite(name, a, step, time)
             series, k = self._piece_frame[name]
-            if not series.write_rows(k, lo, a):
-                series.value[k, lo:lo + a.shape[0]] = a
-                series.value.flush()
+            series.write_rows(k, lo, a)
 
     def _write_frame(self, step: int, time: float, arrays: dict) -> None:
         part = self.f["particles/all"]
@@ -462,15 +460,9 @@ class _FrameSeries:
                       and value.scaleoffset is None)   # no filter: a frame's bytes are its chunk's
 
     def append(self, step: int, time: float, value) -> None:
-        """Append one frame. A frame is one chunk, or chunks of whole particle rows (:func:`frame_chunks`): when the
-        array is their bytes already (C order, the dataset's type, no filter) each is written as it is
-        (H5Dwrite_chunk, the last one padded with the fill value's zeros), which skips HDF5's copy of a chunk larger
-        than its chunk cache: 218 MB took 0.07 s instead of 0.22-0.27 s on the H200 host."""
-        k = self.begin(step, time)
-        a = np.asarray(value)
-        if tuple(self.value.shape[1:]) != a.shape or not self.write_rows(k, 0, a):
-            self.value[k] = a
-            self.value.flush()   # its chunk to the file now, as a direct write puts it: the same file either way
+        """Append one frame: one chunk, or chunks of whole particle rows (:func:`frame_chunks`), written by
+        :meth:`write_rows`."""
+        self.write_rows(self.begin(step, time), 0, value)
 
     def begin(self, step: int, time: float) -> int:
         """Append a frame's step and time, and room for its values (written by :meth:`write_rows`); its index."""
@@ -482,18 +474,20 @@ class _FrameSeries:
         self.frames = k + 1
         return k
 
-    def write_rows(self, k: int, lo: int, a: np.ndarray) -> bool:
-        """Rows lo ... lo + len(a) - 1 of frame k, written chunk by chunk as they are (H5Dwrite_chunk, a last chunk
-        padded with the fill value's zeros) where the array is their bytes already (C order, the dataset's type, no
-        filter) and its rows start a chunk and fill it or end the frame: 218 MB took 0.07 s instead of 0.22-0.27 s
-        through HDF5's copy on the H200 host. Otherwise nothing is written and False returned."""
+    def write_rows(self, k: int, lo: int, a: np.ndarray) -> None:
+        """Rows lo ... lo + len(a) - 1 of frame k: chunk by chunk as they are (H5Dwrite_chunk, a last chunk padded
+        with the fill value's zeros) where the array is their bytes already (C order, the dataset's type, no filter)
+        and its rows start a chunk and fill it or end the frame (218 MB took 0.07 s instead of 0.22-0.27 s through
+        HDF5's copy on the H200 host); otherwise through HDF5, flushed at once (the same file either way)."""
         a = np.asarray(a)
         chunks, n = self.value.chunks, self.value.shape[1]
         rows = chunks[1]
         if not (self.plain and a.ndim >= 1 and chunks[2:] == a.shape[1:] and a.dtype == self.value.dtype
                 and a.flags.c_contiguous and a.size and lo % rows == 0
                 and (a.shape[0] % rows == 0 or lo + a.shape[0] == n)):
-            return False
+            self.value[k, lo:lo + a.shape[0]] = a
+            self.value.flush()
+            return
         for r0 in range(0, a.shape[0], rows):
             block = a[r0:r0 + rows]
             if block.shape[0] < rows:
@@ -501,7 +495,6 @@ class _FrameSeries:
                 padded[:block.shape[0]] = block
                 block = padded
             self.value.id.write_direct_chunk((k, lo + r0) + (0,) * (a.ndim - 1), block)
-        return True
 
 
 def _per_particle(group: h5py.Group, name: str, n: int, dtype, values) -> h5py.Dataset:
