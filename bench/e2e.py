@@ -17,8 +17,9 @@ compilation or its disk-cache load is part of the figure, as for a user who star
 
 ``--off NAME ...`` turns latency machinery of the GPU path off in the process that runs each case, before the case
 starts, for side-by-side A/B timings (see SWITCHES): ``startup`` (the start-up thread, engine/driver/startup.py),
-``device_start`` (large starts drawn on the GPU, engine/setup/start_kind.py), ``kernel_cache`` (the kernels' disk cache,
-engine/loops/cuda_cache.py), ``multigrid`` (the multigrid list build), ``multistep`` (the many-steps-per-launch
+``gc_freeze`` (the garbage collector's freeze after the GPU path's imports, engine/driver/startup.py),
+``device_start`` (large starts drawn on the GPU, engine/setup/start_kind.py), ``kernel_cache`` (the kernels' disk
+cache, engine/loops/cuda_cache.py), ``multigrid`` (the multigrid list build), ``multistep`` (the many-steps-per-launch
 loop: the per-phase loop at every size), ``launch_cache`` (engine/loops/cuda_launch.py), ``displacement_bound`` (every
 kick-drift measures displacements against x_ref, engine/loops/cuda_stepping.py), ``fused`` (two launches a step
 instead of the fused force-and-kick-drift kernel, engine/loops/cuda_stepping.py), ``multistep_fused`` (two passes
@@ -79,6 +80,7 @@ CPU_CASES = ("quickstart", "cpu-16x512")
 #: --off name -> (module, setting, value when off): module-level settings of the engine, on by default
 SWITCHES = {
     "startup": ("engine.driver.startup", "ENABLED", False),
+    "gc_freeze": ("engine.driver.startup", "FREEZE_IMPORTS", False),
     "device_start": ("engine.setup.start_kind", "DEVICE_START", False),
     "kernel_cache": ("engine.loops.cuda_cache", "ENABLED", False),
     "multigrid": ("engine.loops.cuda_rebuild", "MULTIGRID", False),

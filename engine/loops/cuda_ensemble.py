@@ -57,6 +57,9 @@ from engine.setup.precision import check_shape, position_dtype, state_dtype
 #: and bench set it, for comparisons)
 MULTISTEP = None
 
+#: threads per block of the ensemble's launches
+TPB = 32 if SIM else 256
+
 
 class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble):
     """K scenes of one shape advanced together on the GPU; see the module docstring.
@@ -123,7 +126,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.device = "CUDA simulator" if SIM else cuda.get_current_device().name
         if isinstance(self.device, bytes):
             self.device = self.device.decode()
-        self.tpb = 32 if SIM else 256
+        self.tpb = TPB
         self.sm_count = 1 if SIM else cuda.get_current_device().MULTIPROCESSOR_COUNT
         self.max_blocks = 2 if SIM else self.sm_count * 16
         self.multistep = n <= MULTISTEP_MAX_PARTICLES if MULTISTEP is None else MULTISTEP
@@ -234,6 +237,12 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
     @abc.abstractmethod
     def _specialise(self) -> None:
         """Pick the kernels of the active scenes' contact laws (engine/loops/cuda_loop.kernels)."""
+
+    @classmethod
+    def prepare_kernels(cls, contacts: tuple) -> None:
+        """Make the kernel sets that a lone one-size scene switches through with ``contacts`` (their dispatchers:
+        nothing compiled or loaded), where the shape can say them without an ensemble; Python work that needs no
+        CUDA context, which the GPU start-up thread does while the driver starts (engine/driver/startup.py)."""
 
     @abc.abstractmethod
     def _prime(self, systems) -> None:

@@ -197,9 +197,14 @@ def _pass_kernel(kind: int):
     def rsa_pass(m, colour, p, nc, thr, cdf, pos_key, count_key, quat_key, counts, slots, spass, quats, axes, unit,
                  full):
         """Pass p (its cells: the m of colour ``colour``) of a random start: engine.setup.cell_rsa's cell_pass per
-        cell; full[0] counts the cells that lacked a slot."""
+        cell, with the pass's keys of the streams ``pos_key``, ``count_key`` and ``quat_key`` (cell_rsa.pass_key,
+        made here: a GPU job then calls no host-compiled function, whose first call in a process costs numba's
+        CPU start-up); full[0] counts the cells that lacked a slot."""
+        # np.uint64: the simulator's call of the host-compiled pass_key returns a Python int
+        pk, ck = np.uint64(pass_key(pos_key, p)), np.uint64(pass_key(count_key, p))
+        qk = np.uint64(pass_key(quat_key, p))
         for t in range(cuda.grid(1), m, cuda.gridsize(1)):
-            if cell_pass(t, colour, p, nc, thr, _raw(cdf), pos_key, count_key, quat_key, _raw(counts), _raw(slots),
+            if cell_pass(t, colour, p, nc, thr, _raw(cdf), pk, ck, qk, _raw(counts), _raw(slots),
                          _raw(spass), _raw(quats), _raw(axes), unit):
                 cuda.atomic.add(full, 0, 1)
 
@@ -348,8 +353,7 @@ def _random_centres(d: StartDraw, col0: int, pos, quat, stream, cap: int) -> Non
         total.copy_to_device(zero, stream=stream)
         for colour in range(8):
             p = 8 * r + colour
-            kernel[grid_colour, _WIDE, stream](m, colour, p, g.nc, g.thr, cdf, np.uint64(pass_key(pos_key, p)),
-                                               np.uint64(pass_key(count_key, p)), np.uint64(pass_key(quat_key, p)),
+            kernel[grid_colour, _WIDE, stream](m, colour, np.int64(p), g.nc, g.thr, cdf, pos_key, count_key, quat_key,
                                                counts, slots, spass, quats, axes, g.unit, full)
         rsa_total[grid_cells, _WIDE, stream](counts, total)
         f, t = full.copy_to_host(stream=stream), total.copy_to_host(stream=stream)

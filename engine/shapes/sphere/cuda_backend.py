@@ -20,9 +20,10 @@ from numba import cuda
 
 from engine.loops import cuda_kernels as K
 from engine.loops import cuda_loop
-from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
+from engine.loops.cuda_ensemble import TPB, CudaEnsembleBase, CudaSceneBackend
 from engine.loops.system import rows_equal
 from engine.physics.sonine import DOF_ROTATION_SPHERE, sonine_sums
+from engine.setup.precision import state_dtype
 from engine.shapes import device as shape_device   # the device module of this class's shape (a subclass's own)
 from engine.shapes.sphere import device as SC
 
@@ -168,11 +169,21 @@ class CudaEnsemble(CudaEnsembleBase):
         self.radius1, self.inv_m1, self.inv_i1 = self.radius[0], self.inv_m[0], self.inv_i[0]
         self.mass1, self.inertia1 = self.mass[0], self.inertia[0]
 
+    @staticmethod
+    def kernel_flags(contacts) -> tuple:
+        """The kernels' compile-time switches (rough, Coulomb cap, orientations) for scenes of ``contacts``."""
+        rough = any(c.k_t is not None for c in contacts)
+        return rough, rough and any(c.friction is not None for c in contacts), any(c.orientation for c in contacts)
+
+    @classmethod
+    def prepare_kernels(cls, contacts: tuple) -> None:
+        for c in contacts:
+            cuda_loop.kernels(cls.shape, state_dtype(c.precision), cls.kernel_flags([c]), True, TPB,
+                              shape_device(cls.shape))
+
     def _specialise(self) -> None:
         act = [c for c, a in zip(self.contact, self.active) if a] or self.contact
-        rough = any(c.k_t is not None for c in act)
-        coulomb = rough and any(c.friction is not None for c in act)
-        orient = any(c.orientation for c in act)
+        rough, coulomb, orient = self.kernel_flags(act)
         if orient and not self.orientations_held:
             raise RuntimeError("orientations switched on in an ensemble made without them (reads_state False or "
                                "orientations False, and no scene tracking orientations): make it with both True")
