@@ -6,7 +6,9 @@ modules go to the driver, which also releases the GIL). :func:`begin` starts the
 small stand-in scene of the job's specialisation (shape, precision, contact law, orientation: the compile-time
 choices of engine/loops/cuda_loop.py), while the calling thread places the job's particles; the job's backend
 then finds a live context and loaded kernels. What cannot overlap is Python work under the GIL (imports, numba's
-typing registries), which either thread pays once.
+typing registries), which either thread pays once; the thread does what needs no context first (the shape's
+``prepare_kernels``: the kernel sets' dispatchers), while the driver starts, and the caller freezes the imports'
+objects out of later garbage collections (:func:`_freeze_imports`).
 
 It changes no result. The stand-in (the shape plug-in's ``standin_system``: a resting lattice, no contact) shares
 no state with the job: kernels are compiled per argument types, never per values. A failure on the thread is
