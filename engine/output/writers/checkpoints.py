@@ -16,13 +16,11 @@ from engine.output.h5md import H5MDWriter, replace_file
 from engine.output.writers.triggers import WallClock
 
 
-#: the largest share of a run's wall time its slow checkpoints take: after a checkpoint that took d seconds, d at least
-#: SLOW_CHECKPOINT_S, the next one is due no sooner than d / CHECKPOINT_SHARE seconds later, whatever the interval. A
-#: checkpoint copies the whole state to the host and writes it with a copy of the partial file: tens of GB for a
-#: billion float32 spheres, which the service's default interval (60 s) would otherwise repeat every minute. A quicker
-#: one keeps the interval (at 60 s, under 2 % of the run), so that a short interval still bounds the work a crash costs
+#: the largest share of a run's wall time its checkpoints take: after a checkpoint that took d seconds the next one is
+#: due no sooner than d / CHECKPOINT_SHARE seconds later, whatever the interval. A checkpoint copies the whole state
+#: to the host and writes it with a copy of the partial file: tens of GB for a billion float32 spheres, which the
+#: service's default interval (60 s) would otherwise repeat every minute
 CHECKPOINT_SHARE = 0.05
-SLOW_CHECKPOINT_S = 1.0
 
 
 class Checkpointer:
@@ -58,8 +56,7 @@ class Checkpointer:
                  pairs=pairs, springs=springs, **st, **extra)
         replace_file(tmp_h5, self.dir / "partial.h5")
         replace_file(tmp, self.dir / "state.npz")
-        took = time.monotonic() - t0
-        self.clock.reset(at_least=took / CHECKPOINT_SHARE if took >= SLOW_CHECKPOINT_S else 0.0)
+        self.clock.reset(at_least=(time.monotonic() - t0) / CHECKPOINT_SHARE)
 
     def clear(self) -> None:
         if self.dir is not None and self.dir.exists():
