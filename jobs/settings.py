@@ -37,8 +37,7 @@ DEMQ_CANCEL_KILL_SECONDS       ``0.3``                             Time a cancel
                                                                    claim goes back to the queue).
 DEMQ_CANCEL_POLL_SECONDS       ``0.2``                             Interval of the worker's reads of cancel requests
                                                                    of its running jobs.
-DEMQ_CHECKPOINT_INTERVAL       ``60``                              Wall seconds between engine checkpoints (after
-                                                                   one that took d seconds, at least 20 d).
+DEMQ_CHECKPOINT_INTERVAL       ``60``                              Wall seconds between engine checkpoints.
 DEMQ_ENGINE_RUN                ``engine.driver.simulate:run``      ``module:function`` the simulation process calls
                                                                    (same signature as engine.driver.simulate.run);
                                                                    tests and the load bench point it at a fake

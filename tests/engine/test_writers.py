@@ -33,46 +33,6 @@ def test_wall_clock_without_an_interval_is_never_due():
     assert clock.due()
 
 
-def test_a_slow_checkpoint_postpones_the_next_one(tmp_path, monkeypatch):
-    """After a checkpoint that took d seconds the next is due no sooner than d / CHECKPOINT_SHARE seconds later,
-    whatever the interval (a billion spheres' state is tens of GB); after a quick one, the interval again."""
-    import shutil
-
-    import numpy as np
-
-    from engine.output.writers import checkpoints, triggers
-
-    now = [100.0]
-    clock = SimpleNamespace(monotonic=lambda: now[0])
-    monkeypatch.setattr(triggers, "time", clock)
-    monkeypatch.setattr(checkpoints, "time", clock)
-    copy_seconds, copyfile = [3.0], shutil.copyfile
-
-    def copy(src, dst):
-        now[0] += copy_seconds[0]
-        copyfile(src, dst)
-
-    monkeypatch.setattr(checkpoints.shutil, "copyfile", copy)
-    part = tmp_path / "run.h5.part"
-    part.write_bytes(b"partial")
-    writer = SimpleNamespace(flush=lambda: None, tmp=part, frame_counts=lambda: {})
-    backend = SimpleNamespace(state=lambda reuse: {"position": np.zeros((2, 3))},
-                              contacts=lambda: (np.zeros((0, 2), np.int64), np.zeros((0, 3))))
-    ck = checkpoints.Checkpointer(tmp_path / "ck", 10.0)
-    now[0] += 10.0
-    assert ck.due()
-    ck.save(writer, backend, phase="cooling", step_done=5, extra={})
-    wait = copy_seconds[0] / checkpoints.CHECKPOINT_SHARE      # 60 s: more than the interval
-    now[0] += wait - 0.5
-    assert not ck.due()
-    now[0] += 0.5
-    assert ck.due() and (tmp_path / "ck" / "state.npz").exists()
-    copy_seconds[0] = 0.0
-    ck.save(writer, backend, phase="cooling", step_done=6, extra={})
-    now[0] += 10.0
-    assert ck.due()                                             # a quick checkpoint: the interval again
-
-
 class _File:
     def __init__(self):
         self.rows = []

@@ -1,26 +1,17 @@
 """The checkpoint writer: ``state.npz`` (state, contact springs, clock) and a copy of the partial result file in a
 checkpoint directory, both through a temporary name and a rename; trigger: every ``interval`` wall seconds
-(engine/output/writers/__init__.py), and no sooner than :data:`CHECKPOINT_SHARE` allows. It also reads a checkpoint
-back for a resume."""
+(engine/output/writers/__init__.py). It also reads a checkpoint back for a resume."""
 
 from __future__ import annotations
 
 import json
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
 
 from engine.output.h5md import H5MDWriter, replace_file
 from engine.output.writers.triggers import WallClock
-
-
-#: the largest share of a run's wall time its checkpoints take: after a checkpoint that took d seconds the next one is
-#: due no sooner than d / CHECKPOINT_SHARE seconds later, whatever the interval. A checkpoint copies the whole state
-#: to the host and writes it with a copy of the partial file: tens of GB for a billion float32 spheres, which the
-#: service's default interval (60 s) would otherwise repeat every minute
-CHECKPOINT_SHARE = 0.05
 
 
 class Checkpointer:
@@ -44,7 +35,6 @@ class Checkpointer:
         return self.clock.due()
 
     def save(self, writer: H5MDWriter, backend, *, phase: str, step_done: int, extra: dict) -> None:
-        t0 = time.monotonic()
         self.dir.mkdir(parents=True, exist_ok=True)
         writer.flush()
         tmp_h5 = self.dir / "partial.h5.tmp"
@@ -56,7 +46,7 @@ class Checkpointer:
                  pairs=pairs, springs=springs, **st, **extra)
         replace_file(tmp_h5, self.dir / "partial.h5")
         replace_file(tmp, self.dir / "state.npz")
-        self.clock.reset(at_least=(time.monotonic() - t0) / CHECKPOINT_SHARE)
+        self.clock.reset()
 
     def clear(self) -> None:
         if self.dir is not None and self.dir.exists():

@@ -48,20 +48,15 @@ class AtSteps(Trigger):
 
 
 class WallClock:
-    """Due every ``interval`` wall seconds (monotonic clock) since the last :meth:`reset` (or the start), or the
-    longer wait that reset gave; never with ``interval`` None. Not a step trigger: it is asked at the stops the step
-    triggers make."""
+    """Due every ``interval`` wall seconds (monotonic clock) since the last :meth:`reset` (or the start); never with
+    ``interval`` None. Not a step trigger: it is asked at the stops the step triggers make."""
 
     def __init__(self, interval):
         self.interval = interval
-        self.wait = interval
         self.last = time.monotonic()
 
     def due(self) -> bool:
-        return self.interval is not None and time.monotonic() - self.last >= self.wait
+        return self.interval is not None and time.monotonic() - self.last >= self.interval
 
-    def reset(self, at_least: float = 0.0) -> None:
-        """Start the next wait now: ``interval`` seconds, or ``at_least`` if that is longer."""
+    def reset(self) -> None:
         self.last = time.monotonic()
-        if self.interval is not None:
-            self.wait = max(self.interval, at_least)
