@@ -370,9 +370,10 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
         except subprocess.TimeoutExpired:
             server.kill()
         log.close()
-        keep = os.environ.get("DEMQ_E2E_SERVER_LOG")   # a copy of the server's log, where asked for
+        keep = os.environ.get("DEMQ_E2E_SERVER_LOG")   # every run's server log, appended, where asked for
         if keep:
-            Path(keep).write_text((workdir / "server.log").read_text())
+            with open(keep, "a") as f:
+                f.write(f"==== {case} in {workdir}\n" + (workdir / "server.log").read_text())
 
 
 def fresh_process(case: str, quick: bool, off=(), start=None, trace: bool = False) -> dict:

@@ -7,7 +7,8 @@ prints one JSON line per run: the loop and end-to-end Cundall numbers and the ne
 ``displacement_bound``), ``multistep_on`` (the many-steps-per-launch loop forced for a large scene), ``blocks=B``
 (every force kernel compiled for B blocks per SM: engine/loops/cuda_loop.py FORCES_BLOCKS_PER_SM; ``blocks=0``: none
 compiled with launch bounds), ``observe_blocks=B`` (the same for the force passes that also sum a record's
-observables: OBSERVE_BLOCKS_PER_SM), ``gc_off`` (Python's cyclic garbage collector off during the run),
+observables: OBSERVE_BLOCKS_PER_SM), ``kick_blocks=B`` (the same for the kick-drift kernel: KICK_DRIFT_BLOCKS_PER_SM),
+``gc_off`` (Python's cyclic garbage collector off during the run),
 ``own_scratch`` (a rebuild's scratch in arrays of its own, not lent by the list and the force buffer:
 engine/loops/cuda_rebuild.py LEND_SCRATCH). For the cost of one piece of machinery inside the loop, without the
 fresh-process noise of bench/e2e.py.
@@ -37,9 +38,9 @@ if __name__ == "__main__":
 
 
 def apply(variant: str, default_blocks) -> None:
-    """Put every switch back on and the force kernels' launch bounds to the engine's ``default_blocks`` (the force
-    and observing tables), then turn off those the variant names (bench.e2e.SWITCHES) and set its ``blocks=B`` and
-    ``observe_blocks=B``."""
+    """Put every switch back on and the kernels' launch bounds to the engine's ``default_blocks`` (the force,
+    observing and kick-drift tables), then turn off those the variant names (bench.e2e.SWITCHES) and set its
+    ``blocks=B``, ``observe_blocks=B`` and ``kick_blocks=B``."""
     import gc
     import importlib
 
@@ -51,7 +52,7 @@ def apply(variant: str, default_blocks) -> None:
     for module, setting, _ in SWITCHES.values():
         mod = importlib.import_module(module)
         setattr(mod, setting, None if (module, setting) == ("engine.loops.cuda_ensemble", "MULTISTEP") else True)
-    loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = default_blocks
+    loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = default_blocks
     rebuild.LEND_SCRATCH = True
     gc.enable()
     off = []
@@ -68,6 +69,9 @@ def apply(variant: str, default_blocks) -> None:
         elif part.startswith("observe_blocks="):
             b = int(part.split("=", 1)[1])
             loop.OBSERVE_BLOCKS_PER_SM = {"*": b} if b > 0 else None
+        elif part.startswith("kick_blocks="):
+            b = int(part.split("=", 1)[1])
+            loop.KICK_DRIFT_BLOCKS_PER_SM = {"*": b} if b > 0 else None
         else:
             off.append(part)
     switch_off(off)
@@ -79,7 +83,10 @@ JAXMD_CASES = {"elastic-2M-f64": (2_097_152, "float64", 2000, "elastic"),
                "elastic-8M-f32": (8_388_608, "float32", 1000, "elastic"),
                "elastic-8M-f64": (8_388_608, "float64", 1000, "elastic"),
                "rough-2M-f64": (2_097_152, "float64", 2000, "rough"),
-               "rough-8M-f32": (8_388_608, "float32", 1000, "rough")}
+               "rough-8M-f32": (8_388_608, "float32", 1000, "rough"),
+               "rough-8M-mixed": (8_388_608, "mixed", 1000, "rough"),
+               "coulomb-2M-f64": (2_097_152, "float64", 2000, "rough-coulomb"),
+               "coulomb-8M-f32": (8_388_608, "float32", 1000, "rough-coulomb")}
 #: cases beyond those: name -> (scenes, N per scene, precision, steps, contact); the JAX-MD scene
 #: (phi = 0.058, k_n = 1e8, rho = 2000, v_rms = 2) at its sphere size (box 2 m x (N / 2^21)^(1/3)), elastic or
 #: rough (e_n = e_t = 0.8), and the rough spheroids of the spheroid papers (xi = 2, phi = 0.05, e_n = e_t = 0.8)
@@ -137,7 +144,7 @@ def main(argv=None) -> int:
     from engine import run, run_ensemble
     from engine.setup.start_kind import start_protocol
 
-    default_blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
+    default_blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM
 
     def specs_of(case: str, steps: int) -> list:
         if case in EXTRA:

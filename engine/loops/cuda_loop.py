@@ -75,17 +75,28 @@ SKIP_COLD = True
 #: float64 spheres, 96 registers and 2 blocks of 256 threads left alone, run their force kernel with 3 blocks
 #: (80 registers, 20 bytes spilled on the rare contact path) 5 % faster on an H100; smooth float32 spheres, whose
 #: fused kernel takes 72 registers (3 blocks, 35 % of the warps active), with 4 blocks: the 8M-sphere loop 14 %
-#: faster on an H200 (bench loop_ab --variants default blocks=4); rough spheres (126 registers) lose when forced
-#: to 3. Rough float64 spheres are held to 2 blocks: their force kernel, left alone, took 130 registers with the
-#: ``hot`` flags (one block of 256 threads an SM: 11 % of the warps active, the kernel 1.7 times as long on an H200;
-#: bench step_bytes --cases rough-2M-f64); with a Coulomb cap they are left alone (not measured).
+#: faster on an H200 (bench loop_ab --variants default blocks=4); rough float32 spheres (80 registers left alone,
+#: 34 % of the warps active) with 4 blocks: the 8M-sphere loop 8-10 % faster on an H200 at phi = 0.058 and 7 % at
+#: phi = 0.2 (bench loop_ab --cases rough-8M-f32 --variants default blocks=4 blocks=5: 5 blocks lose), in mixed
+#: precision (which shares the float32 key) 21 % (rough-8M-mixed against blocks=0); with a Coulomb cap 27-55 %
+#: (coulomb-8M-f32). Rough float64 spheres are held to 2 blocks: their force kernel, left alone, took 130 registers
+#: with the ``hot`` flags (one block of 256 threads an SM: 11 % of the warps active, the kernel 1.7 times as long on
+#: an H200; bench step_bytes --cases rough-2M-f64); with a Coulomb cap the 2M-sphere loop is 42 % faster at 2 blocks
+#: than left alone (coulomb-2M-f64). Spheroids are left alone: forced to 2 or 3 blocks their 1M rough loop ran 2.8
+#: and 4.7 times as long (spheroids-rough-1M-f64).
 #: None: no launch bounds anywhere (bench loop_ab's variants).
 FORCES_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 3,
                                      ("sphere", "<f8", (False, False, True)): 3,
                                      ("sphere", "<f4", (False, False, False)): 4,
                                      ("sphere", "<f4", (False, False, True)): 4,
+                                     ("sphere", "<f4", (True, False, False)): 4,
+                                     ("sphere", "<f4", (True, False, True)): 4,
+                                     ("sphere", "<f4", (True, True, False)): 4,
+                                     ("sphere", "<f4", (True, True, True)): 4,
                                      ("sphere", "<f8", (True, False, False)): 2,
-                                     ("sphere", "<f8", (True, False, True)): 2}
+                                     ("sphere", "<f8", (True, False, True)): 2,
+                                     ("sphere", "<f8", (True, True, False)): 2,
+                                     ("sphere", "<f8", (True, True, True)): 2}
 
 #: Blocks of 256 threads per SM that the force passes which also sum a record's observables (forces_observe,
 #: forces_observe_kick_drift) are compiled for, keyed as FORCES_BLOCKS_PER_SM; absent or None: left to the
@@ -107,6 +118,20 @@ OBSERVE_BLOCKS_PER_SM: dict | None = {("sphere", "<f8", (False, False, False)): 
                                       ("sphere", "<f8", (True, False, True)): 2}
 
 
+#: Blocks of 256 threads per SM the per-phase kick-drift kernel (``kick_drift``: rough spheres run it every step,
+#: smooth ones fuse it into the force pass) is compiled for, keyed as FORCES_BLOCKS_PER_SM; absent or None: left to
+#: the compiler. Rough spheres with 4 (H200, bench loop_ab --cases rough-8M-mixed rough-2M-f64 --variants default
+#: kick_blocks=4): mixed precision 5 % faster (its kick-drift holds float64 positions beside float32 velocities),
+#: float64 2 % (with a Coulomb cap too: coulomb-2M-f64); float32 takes 64 registers anyway (6 and 8 blocks lost 10
+#: and 27 %).
+KICK_DRIFT_BLOCKS_PER_SM: dict | None = {("sphere", "<f4", (True, False, False)): 4,
+                                         ("sphere", "<f4", (True, False, True)): 4,
+                                         ("sphere", "<f8", (True, False, False)): 4,
+                                         ("sphere", "<f8", (True, False, True)): 4,
+                                         ("sphere", "<f8", (True, True, False)): 4,
+                                         ("sphere", "<f8", (True, True, True)): 4}
+
+
 def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int, device) -> dict:
     """The kernel set of one shape and specialisation (cached): the neighbour-list kernels of
     cuda_kernels.grid_kernels, the time loop of this module and the shape's own kernels. ``flags``: the shape's
@@ -114,12 +139,12 @@ def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int, device) ->
     ``make_cuda``), which the caller passes in: this module names no shape and no shape registry."""
     flags = tuple(bool(f) for f in flags)
     key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags),
-           observe_blocks(shape, dtype, flags), bool(SKIP_COLD))
+           observe_blocks(shape, dtype, flags), bool(SKIP_COLD), kick_drift_blocks(shape, dtype, flags))
     if key not in _cache:
         dt = np.dtype(dtype).type
         parts = device.make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
-        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6], key[7]),
+        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6], key[7], key[8]),
                                ("loop",) + key[:2] + tuple(map(str, key[2:]))))
         k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))
         _cache[key] = k
@@ -136,6 +161,11 @@ def observe_blocks(shape: str, dtype, flags: tuple):
     return _blocks(OBSERVE_BLOCKS_PER_SM, shape, dtype, flags)
 
 
+def kick_drift_blocks(shape: str, dtype, flags: tuple):
+    """Blocks per SM the kick-drift kernel is compiled for (:data:`KICK_DRIFT_BLOCKS_PER_SM`), or None."""
+    return _blocks(KICK_DRIFT_BLOCKS_PER_SM, shape, dtype, flags)
+
+
 def _blocks(table: dict | None, shape: str, dtype, flags: tuple):
     """The entry of ``table`` for this specialisation (or its "*" entry), or None: no table, no entry, or the CUDA
     simulator, whose jit takes no launch bounds."""
@@ -145,7 +175,7 @@ def _blocks(table: dict | None, shape: str, dtype, flags: tuple):
 
 
 def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: C901  (a closure per specialisation)
-          SKIP=True):
+          SKIP=True, KICK_BLOCKS=None):
     ZERO = DT(0)
     HALF = DT(0.5)
     WIDEN_REF = DT == np.float64    # x_ref may be float32 beside float64 positions (cuda_memory.xref_dtype)
@@ -312,7 +342,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
             cuda.atomic.max(status, S_D2 if par == 0 else S_D2B, sh[0])
             cuda.atomic.max(status, S_V2 if par == 0 else S_V2B, sh[TPB])
 
-    @cuda.jit
+    @(cuda.jit(launch_bounds=(TPB, KICK_BLOCKS)) if KICK_BLOCKS else cuda.jit)
     def kick_drift(n, first, exact, pos, vel, spin, quat, force, torque, hot, inv_m, spin_inv, x_ref, ids, sc, spd,
                    spf, spi, status, step, ext):
         sh = cuda.shared.array(SH2, ct.float64)

@@ -29,7 +29,7 @@ def test_one_large_scene_and_packed_small_scenes_both_start_random_by_default_an
 def test_the_gc_off_variant_turns_the_collector_off_and_default_turns_it_back_on():
     import engine.loops.cuda_loop as loop
 
-    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM
     try:
         loop_ab.apply("gc_off", blocks)
         assert not gc.isenabled()
@@ -37,29 +37,30 @@ def test_the_gc_off_variant_turns_the_collector_off_and_default_turns_it_back_on
         assert gc.isenabled()
     finally:
         gc.enable()
-        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = blocks
+        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = blocks
 
 
 def test_blocks_variants_set_the_force_and_observing_launch_bounds_and_default_restores_them():
     import engine.loops.cuda_loop as loop
 
-    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM
     try:
-        loop_ab.apply("blocks=2+observe_blocks=3", blocks)
+        loop_ab.apply("blocks=2+observe_blocks=3+kick_blocks=5", blocks)
         assert loop.FORCES_BLOCKS_PER_SM == {"*": 2} and loop.OBSERVE_BLOCKS_PER_SM == {"*": 3}
+        assert loop.KICK_DRIFT_BLOCKS_PER_SM == {"*": 5}
         loop_ab.apply("observe_blocks=0", blocks)
         assert loop.FORCES_BLOCKS_PER_SM == blocks[0] and loop.OBSERVE_BLOCKS_PER_SM is None
         loop_ab.apply("default", blocks)
-        assert (loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM) == blocks
+        assert (loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM) == blocks
     finally:
-        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = blocks
+        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = blocks
 
 
 def test_the_own_scratch_variant_gives_the_rebuild_its_own_scratch_and_default_lends_it_again():
     import engine.loops.cuda_loop as loop
     import engine.loops.cuda_rebuild as rebuild
 
-    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM
     try:
         loop_ab.apply("own_scratch", blocks)
         assert rebuild.LEND_SCRATCH is False
@@ -67,4 +68,4 @@ def test_the_own_scratch_variant_gives_the_rebuild_its_own_scratch_and_default_l
         assert rebuild.LEND_SCRATCH is True
     finally:
         rebuild.LEND_SCRATCH = True
-        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM = blocks
+        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = blocks
