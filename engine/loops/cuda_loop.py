@@ -78,7 +78,7 @@ SKIP_COLD = True
 #: faster on an H200 (bench loop_ab --variants default blocks=4); rough float32 spheres (80 registers left alone,
 #: 34 % of the warps active) with 4 blocks: the 8M-sphere loop 8-10 % faster on an H200 at phi = 0.058 and 7 % at
 #: phi = 0.2 (bench loop_ab --cases rough-8M-f32 --variants default blocks=4 blocks=5: 5 blocks lose), in mixed
-#: precision (which shares the float32 key) 21 % (rough-8M-mixed against blocks=0); with a Coulomb cap 27-55 %
+#: precision (which shares the float32 key) 21 % (rough-8M-mixed against blocks=0); with a Coulomb cap 27 %
 #: (coulomb-8M-f32). Rough float64 spheres are held to 2 blocks: their force kernel, left alone, took 130 registers
 #: with the ``hot`` flags (one block of 256 threads an SM: 11 % of the warps active, the kernel 1.7 times as long on
 #: an H200; bench step_bytes --cases rough-2M-f64); with a Coulomb cap the 2M-sphere loop is 42 % faster at 2 blocks
