@@ -8,7 +8,8 @@ prints one JSON line per run: the loop and end-to-end Cundall numbers and the ne
 (every force kernel compiled for B blocks per SM: engine/loops/cuda_loop.py FORCES_BLOCKS_PER_SM; ``blocks=0``: none
 compiled with launch bounds), ``observe_blocks=B`` (the same for the force passes that also sum a record's
 observables: OBSERVE_BLOCKS_PER_SM), ``kick_blocks=B`` (the same for the kick-drift kernel: KICK_DRIFT_BLOCKS_PER_SM),
-``gc_off`` (Python's cyclic garbage collector off during the run),
+``gc_off`` (Python's cyclic garbage collector off during the run), ``skin=L`` (every scene's ``verlet_skin``, radii:
+the default skin rule against others on the same gas),
 ``own_scratch`` (a rebuild's scratch in arrays of its own, not lent by the list and the force buffer:
 engine/loops/cuda_rebuild.py LEND_SCRATCH). For the cost of one piece of machinery inside the loop, without the
 fresh-process noise of bench/e2e.py.
@@ -69,12 +70,22 @@ def apply(variant: str, default_blocks) -> None:
         elif part.startswith("observe_blocks="):
             b = int(part.split("=", 1)[1])
             loop.OBSERVE_BLOCKS_PER_SM = {"*": b} if b > 0 else None
+        elif part.startswith("skin="):
+            pass                                    # a spec field: variant_skin, read where the specs are made
         elif part.startswith("kick_blocks="):
             b = int(part.split("=", 1)[1])
             loop.KICK_DRIFT_BLOCKS_PER_SM = {"*": b} if b > 0 else None
         else:
             off.append(part)
     switch_off(off)
+
+
+def variant_skin(variant: str):
+    """The ``skin=L`` of a variant (radii, a float), or None: the engine's default skin."""
+    for part in ([] if variant == "default" else variant.split("+")):
+        if part.startswith("skin="):
+            return float(part.split("=", 1)[1])
+    return None
 
 
 #: the JAX-MD scene's cases (bench/vs_jaxmd.py's gas at phi = 0.058, its start left to the engine unless --start):
@@ -124,8 +135,31 @@ def extra_specs(case: str, steps: int, backend: str, start=None) -> list:
     return out
 
 
-def main(argv=None) -> int:
+def case_specs(case: str, steps: int, backend: str = "cuda", phi: float = 0.058, n=None, velocity_rms=None,
+               start=None, skin=None) -> list:
+    """The specs of ``case`` (one per scene) over ``steps`` steps: a JAX-MD case at volume fraction ``phi``, with
+    ``n`` particles at the same sphere size (the box scaled as N^(1/3), so the same dt) and rms speed
+    ``velocity_rms`` (m/s) where given; ``start``: every scene's start protocol (None: the engine's choice by size);
+    ``skin``: every scene's ``verlet_skin`` (radii; None: the default rule)."""
     from bench.vs_jaxmd import Case, case_spec
+
+    if case in EXTRA:
+        specs = extra_specs(case, steps, backend, start)
+    else:
+        n0, precision, _, contact = JAXMD_CASES[case]
+        specs = [case_spec(Case(n0, precision, steps, contact, phi), backend)]
+        if n is not None:
+            specs = [type(s)(**dict(s.model_dump(), n_particles=n, box_length=s.box_length * (n / n0) ** (1 / 3)))
+                     for s in specs]
+        if velocity_rms is not None:        # dt depends on the contact, not the speed
+            specs = [type(s)(**dict(s.model_dump(), velocity_rms=velocity_rms)) for s in specs]
+        specs = [type(s)(**dict(s.model_dump(), start=start)) for s in specs]
+    if skin is not None:
+        specs = [type(s)(**dict(s.model_dump(), verlet_skin=skin)) for s in specs]
+    return specs
+
+
+def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", choices=list(JAXMD_CASES) + list(EXTRA), default=["elastic-2M-f64"])
@@ -134,6 +168,11 @@ def main(argv=None) -> int:
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda")
     ap.add_argument("--steps-scale", type=float, default=1.0)
     ap.add_argument("--phi", type=float, default=0.058, help="volume fraction of the JAX-MD cases (default 0.058)")
+    ap.add_argument("--n", type=int, default=None,
+                    help="particles of the JAX-MD cases instead of theirs, at the same sphere size (the box scaled as "
+                         "N^(1/3)): the same gas at another N")
+    ap.add_argument("--velocity-rms", type=float, default=None,
+                    help="the JAX-MD cases' rms speed (m/s) instead of theirs: the same gas moving faster a step")
     ap.add_argument("--start", choices=("lattice", "random"), default=None,
                     help="every scene's start protocol (default: the engine's choice: random for spheres up to "
                          "phi = 0.3, the lattice for spheroids)")
@@ -146,12 +185,9 @@ def main(argv=None) -> int:
 
     default_blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM
 
-    def specs_of(case: str, steps: int) -> list:
-        if case in EXTRA:
-            return extra_specs(case, steps, args.backend, args.start)
-        n, precision, _, contact = JAXMD_CASES[case]
-        spec = case_spec(Case(n, precision, steps, contact, args.phi), args.backend)
-        return [type(spec)(**dict(spec.model_dump(), start=args.start))]      # None: the engine's choice by size
+    def specs_of(case: str, steps: int, variant: str) -> list:
+        return case_specs(case, steps, args.backend, phi=args.phi, n=args.n, velocity_rms=args.velocity_rms,
+                          start=args.start, skin=variant_skin(variant))
 
     def run_case(specs: list, tmp: Path) -> tuple:
         """(summaries, wall s): one scene through engine.run, several through one run_ensemble."""
@@ -173,21 +209,23 @@ def main(argv=None) -> int:
             steps = max(1, int(steps * args.steps_scale))
             for v in args.variants:
                 apply(v, default_blocks)
-                run_case(specs_of(case, 20), tmp)
+                run_case(specs_of(case, 20, v), tmp)
             for rep in range(args.reps):
                 for v in args.variants:
                     apply(v, default_blocks)
-                    specs = specs_of(case, steps)
+                    specs = specs_of(case, steps, v)
                     summaries, wall = run_case(specs, tmp)
                     n = sum(sp.n_particles for sp in specs)
                     loop_s = max(s.loop_s for s in summaries)
                     steps_done = summaries[0].steps
                     with h5py.File(summaries[0].output, "r") as f:
                         builds = int(f["parameters"].attrs["neighbour_builds"])
+                        skin_radii = round(float(f["parameters"].attrs["verlet_skin"]), 4)
                     print(json.dumps({"case": case, "phi": specs[0].volume_fraction, "variant": v, "rep": rep,
                                       "device": summaries[0].device,
                                       "scenes": len(specs), "n": n, "start": start_protocol(specs[0]),
                                       "steps": steps_done, "list_builds": builds,
+                                      "skin_radii": skin_radii,
                                       "loop_s": round(loop_s, 4), "wall_s": round(wall, 3),
                                       "cundall_loop": float(f"{n * steps_done / loop_s:.3e}"),
                                       "cundall_end_to_end": float(f"{n * steps_done / wall:.3e}")}), flush=True)

@@ -128,7 +128,7 @@ DEFAULT_CASES = [k for k, c in CASES.items() if c.contact == "elastic" or (c.n, 
 QUICK_N, QUICK_STEPS = 4096, 3000
 CHUNK = 100                 # steps per jit-compiled fori_loop call (static trip count)
 FORMATS = ("Dense", "Sparse", "OrderedSparse")
-SKINS = (0.2, 0.4, 0.8, 1.6)     # JAX-MD dr_threshold in radii; the search starts at SKINS[len // 2 - 1]
+SKINS = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6)     # JAX-MD dr_threshold in radii; the search starts at START_SKIN
 CAPACITIES = (1.25, 1.1)         # capacity_multiplier: the first for the format/skin search, then the others
 START_SKIN = 0.4
 JAXMD_MISSING = ("jax_md is not importable here ({error}): JAX-MD runs are skipped and demq runs alone. "

@@ -225,6 +225,16 @@ DEFAULT_VERLET_SKIN = {"cpu": 0.4, "cuda": 0.8}
 DEFAULT_SKIN_MEAN_FREE_PATH = 1.6
 #: ... down to this skin (radii): the fastest skin of dense gases on both backends.
 DEFAULT_SKIN_FLOOR = 0.2
+#: Sphere scenes of at least this many particles on CUDA take the large-scene rule (:func:`large_scene_skin`): a
+#: rebuild's fixed cost is spread over enough particles that a thin skin pays
+LARGE_SCENE_PARTICLES = 1 << 17
+#: The large-scene rule's skin (radii) at its reference gas: mean free path LARGE_SCENE_MEAN_FREE_PATH radii, the
+#: rms speed moving LARGE_SCENE_STEP_RADII radii a step (phi = 0.058, k_n = 1e8 N/m, v_rms = 2 m/s, a = 3.75 mm)
+LARGE_SCENE_SKIN = 0.12
+LARGE_SCENE_MEAN_FREE_PATH = 3.5
+LARGE_SCENE_STEP_RADII = 5.0e-5
+#: The large-scene rule's smallest skin (radii)
+LARGE_SCENE_SKIN_FLOOR = 0.1
 
 
 def mean_free_path(volume_fraction: float) -> float:
@@ -234,10 +244,16 @@ def mean_free_path(volume_fraction: float) -> float:
     return 1.0 / (3.0 * math.sqrt(2.0) * phi * (1.0 - 0.5 * phi) / (1.0 - phi) ** 3)
 
 
-def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Optional[float] = None) -> float:
+def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Optional[float] = None,
+                        n_particles: Optional[int] = None, step_radii: Optional[float] = None) -> float:
     """The skin (radii) a null ``verlet_skin`` means on ``backend`` ('cpu' or 'cuda', already resolved)
     at volume fraction ``volume_fraction`` (a species spec: the total phi; the skin then counts in radii
-    of the smallest species, engine.setup.params).
+    of the smallest species, engine.setup.params), for a scene of ``n_particles`` whose rms speed moves
+    ``step_radii`` radii a step (:func:`step_radii`; either None: the general rule alone).
+
+    Large scenes on CUDA (spheres, n_particles >= LARGE_SCENE_PARTICLES): the smaller of the general rule below
+    and :func:`large_scene_skin`, so the large-scene rule only ever thins the skin (the spec's box check, which
+    knows the general rule, stays an upper bound).
 
     Rule (spheres): L_v = clamp(L_max lambda / lambda_0, 0.2, L_max), with lambda = mean_free_path(phi),
     lambda_0 = DEFAULT_SKIN_MEAN_FREE_PATH = 1.6 radii and L_max = DEFAULT_VERLET_SKIN[backend] (0.4 CPU,
@@ -271,8 +287,33 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
         return top
     lam = mean_free_path(volume_fraction)
     if lam >= DEFAULT_SKIN_MEAN_FREE_PATH:
-        return top                      # exactly L_max (bit-identical dilute runs)
-    return max(DEFAULT_SKIN_FLOOR, top * lam / DEFAULT_SKIN_MEAN_FREE_PATH)
+        skin = top                      # exactly L_max (bit-identical dilute runs)
+    else:
+        skin = max(DEFAULT_SKIN_FLOOR, top * lam / DEFAULT_SKIN_MEAN_FREE_PATH)
+    if backend == "cuda" and n_particles is not None and n_particles >= LARGE_SCENE_PARTICLES \
+            and step_radii is not None:
+        return min(skin, large_scene_skin(lam, step_radii))
+    return skin
+
+
+def large_scene_skin(mean_free_path_radii: float, step_radii: float) -> float:
+    """The skin (radii) of a sphere scene of at least LARGE_SCENE_PARTICLES on CUDA, before the cap of the
+    general rule: L_v = max(0.1, 0.12 sqrt((lambda / 3.5) (s / 5e-5))), with lambda the mean free path and
+    s = v_rms dt / a the rms speed's flight per step, both in radii.
+
+    Why: per particle-step, a skin L_v adds about 2 sqrt(2) L_v / lambda list neighbours to the force pass
+    (a cost c_p each), and a rebuild (c_r per particle) comes every L_v / (2 k s) steps (k s: the fastest
+    particle's flight a step). The sum c_p 2 sqrt(2) L_v / lambda + c_r 2 k s / L_v is least at
+    L_v* = sqrt(k (c_r / c_p) s lambda / sqrt(2)): it grows as the square root of the mean free path and of the
+    flight per step. The constant is measured (NVIDIA H200, `python -m bench loop_ab --variants skin=L`, rough and
+    elastic spheres, the random start; docs/performance.md "The Verlet skin of large scenes"): at 2M and 8M spheres,
+    phi = 0.058, the fastest skin was 0.1-0.15 a (0.8 a, the general rule's, x0.77-0.83 of it); at phi = 0.2,
+    0.1 a (the rule's 0.34 a x0.86-0.87). Below LARGE_SCENE_PARTICLES the rebuild's fixed cost (launches, the
+    many-steps loop's return to the host) weighs more: at 32 768 spheres, phi = 0.058, the skins 0.1-0.8 a ran
+    within 8 % of one another, so small scenes keep the general rule.
+    """
+    scale = (mean_free_path_radii / LARGE_SCENE_MEAN_FREE_PATH) * (step_radii / LARGE_SCENE_STEP_RADII)
+    return max(LARGE_SCENE_SKIN_FLOOR, LARGE_SCENE_SKIN * math.sqrt(scale))
 
 
 def largest_default_verlet_skin(backend: str, shape: str = "sphere",
@@ -284,11 +325,20 @@ def largest_default_verlet_skin(backend: str, shape: str = "sphere",
     return max(default_verlet_skin(b, shape, volume_fraction) for b in DEFAULT_VERLET_SKIN)
 
 
+def step_radii(spec) -> float:
+    """s = v_rms dt / a: how far the rms speed moves a particle in one step, in radii of the smallest semi-axis
+    (species: of the smallest radius)."""
+    sc = scales(spec)
+    return spec.velocity_rms * sc.dt / sc.radius_min
+
+
 def verlet_skin_radii(spec, backend: str) -> float:
     """The Verlet skin L_v (radii) a run of ``spec`` on ``backend`` uses: the spec's, or the backend's default."""
     if spec.verlet_skin is not None:
         return spec.verlet_skin
-    return default_verlet_skin(backend, spec.shape, spec.volume_fraction)
+    large = backend == "cuda" and spec.n_particles >= LARGE_SCENE_PARTICLES
+    return default_verlet_skin(backend, spec.shape, spec.volume_fraction, spec.n_particles,
+                               step_radii(spec) if large else None)
 
 
 def _skin_length(spec, backend: str, semi_min: float, smallest_over_radius: Optional[float]) -> float:

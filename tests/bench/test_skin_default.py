@@ -222,3 +222,94 @@ def test_dense_skin_in_result_parameters(tmp_path):
         assert float(par["verlet_skin"]) == 0.2
         assert float(par["skin"]) == pytest.approx(0.2 * float(par["radius"]), rel=1e-15)
         assert json.loads(par["spec"])["verlet_skin"] is None
+
+
+# ---- the large-scene rule (CUDA, spheres, N >= LARGE_SCENE_PARTICLES) -------------------------------------------
+
+def test_large_scene_skin_formula():
+    """L_v = max(0.1, 0.12 sqrt((lambda / 3.5) (s / 5e-5))): the reference gas, the square roots, the floor."""
+    from engine.setup.params import large_scene_skin
+
+    assert large_scene_skin(3.5, 5e-5) == pytest.approx(0.12, rel=1e-12)
+    assert large_scene_skin(4 * 3.5, 5e-5) == pytest.approx(0.24, rel=1e-12)       # sqrt of the mean free path
+    assert large_scene_skin(3.5, 4 * 5e-5) == pytest.approx(0.24, rel=1e-12)       # sqrt of the flight per step
+    assert large_scene_skin(mean_free_path(0.2), 5e-5) == 0.1                     # the floor
+
+
+def test_step_radii_is_the_rms_flight_per_step():
+    from engine.setup.params import step_radii
+
+    spec = SimulationSpec(**TINY)
+    p = derive(spec)
+    assert step_radii(spec) == pytest.approx(spec.velocity_rms * p.dt / p.radius, rel=1e-14)
+
+
+def _large(n, phi=0.058, **kw):
+    from bench.loop_ab import case_specs
+
+    return case_specs("rough-2M-f64", 6000, n=n, phi=phi, **kw)[0]
+
+
+def test_large_scenes_on_cuda_take_the_large_scene_rule():
+    from engine.setup.params import LARGE_SCENE_PARTICLES, large_scene_skin, step_radii, verlet_skin_radii
+
+    big = _large(LARGE_SCENE_PARTICLES)
+    want = large_scene_skin(mean_free_path(0.058), step_radii(big))
+    assert 0.1 < want < 0.2
+    assert verlet_skin_radii(big, "cuda") == want
+    p = derive(big.model_copy(update={"backend": "cuda"}))
+    assert p.skin == pytest.approx(want * p.radius, rel=1e-14)
+    # one particle fewer: the general rule; the CPU, spheroids and an explicit skin are untouched
+    assert verlet_skin_radii(_large(LARGE_SCENE_PARTICLES - 1), "cuda") == 0.8
+    assert verlet_skin_radii(big, "cpu") == 0.4
+    assert verlet_skin_radii(big.model_copy(update={"verlet_skin": 0.6}), "cuda") == 0.6
+    assert default_verlet_skin("cuda", "ellipsoid", 0.058, 1 << 21, 5e-5) == 0.4
+    # a faster gas moves further a step: a thicker skin
+    fast = _large(LARGE_SCENE_PARTICLES, velocity_rms=4 * big.velocity_rms)
+    assert verlet_skin_radii(fast, "cuda") == pytest.approx(2 * want, rel=1e-12)
+
+
+def test_large_scene_rule_never_thickens_the_skin():
+    """The spec's box check knows the general rule (largest_default_verlet_skin): the large-scene rule stays under it
+    at every phi and flight per step."""
+    for k in range(1, 600, 7):
+        phi = k / 1000.0
+        general = default_verlet_skin("cuda", "sphere", phi)
+        for s in (1e-6, 5e-5, 1e-3, 1e-1):
+            got = default_verlet_skin("cuda", "sphere", phi, 1 << 22, s)
+            assert 0.1 <= got <= general <= largest_default_verlet_skin("auto", "sphere", phi)
+
+
+def large_skin_table() -> list[dict]:
+    """docs/performance.md's measured table of the large-scene rule (after ``<!-- skin-sweep: cuda-large -->``):
+    per row the `bench loop_ab` scene (case, N, phi, v_rms, steps), the rule's skin, the loop Cundall numbers at it
+    and at the other skins tried."""
+    lines = (ROOT / "docs" / "performance.md").read_text().splitlines()
+    start = lines.index("<!-- skin-sweep: cuda-large -->") + 3
+    rows = []
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        case, n, phi, v, steps, rule, at_rule, others = [c.strip() for c in line.strip().strip("|").split("|")]
+        rows.append({"case": case.strip("`"), "n": int(n.replace(" ", "")), "phi": float(phi),
+                     "velocity_rms": float(v), "steps": int(steps), "rule": float(rule),
+                     "at_rule": [float(x) for x in at_rule.split(",")],
+                     "others": {float(k): [float(x) for x in v.split(",")]
+                                for k, v in (c.split(":") for c in others.split(";"))}})
+    return rows
+
+
+def test_large_scene_rule_on_the_measured_cost_front():
+    """Every measured scene: the code's rule gives the skin the table was measured at (a change of the rule needs a
+    new measurement), and that skin runs within the timing noise (15 %) of the fastest skin tried."""
+    from bench.accuracy import TIME_NOISE
+    from bench.loop_ab import case_specs
+    from engine.setup.params import verlet_skin_radii
+
+    rows = large_skin_table()
+    assert len(rows) >= 6 and {r["phi"] for r in rows} >= {0.008, 0.058, 0.2}
+    for r in rows:
+        spec = case_specs(r["case"], r["steps"], n=r["n"], phi=r["phi"], velocity_rms=r["velocity_rms"])[0]
+        assert round(verlet_skin_radii(spec, "cuda"), 4) == r["rule"], r
+        best = max(max(v) for v in r["others"].values())
+        assert max(r["at_rule"]) >= (1.0 - TIME_NOISE) * best, r

@@ -109,10 +109,12 @@ def test_predicted_list_slots_bound_an_equilibrium_gas():
     from engine.setup.scene import initial_spheres
     from engine.setup.spec import SimulationSpec
 
-    spec = SimulationSpec(n_particles=131072, volume_fraction=0.058, start="random", backend="cuda", seed=3)
+    # the general rule's CUDA skin, 0.8 a, given (this many spheres would take the thinner large-scene rule)
+    spec = SimulationSpec(n_particles=131072, volume_fraction=0.058, start="random", backend="cuda", seed=3,
+                          verlet_skin=0.8)
     p = derive(spec)
     reach = (2.0 * p.radius + p.skin) / (2.0 * p.radius)
-    assert abs(reach - 1.4) < 1e-12                 # the CUDA default skin, 0.8 a, at this volume fraction
+    assert abs(reach - 1.4) < 1e-12
     pairs = periodic_pairs(initial_spheres(spec, p).position, spec.box_length, 2.0 * p.radius + p.skin)
     counts = np.bincount(pairs.ravel(), minlength=spec.n_particles)
     # the Carnahan-Starling contact value over the whole shell bounds the mean from above (g falls across it)
@@ -174,13 +176,15 @@ def test_refusal_names_the_estimate_and_the_largest_n_that_fits():
 
 
 def test_a_list_beyond_int32_row_offsets_is_refused_whatever_the_memory():
-    """2e9 spheres at phi = 0.2 (about 1.66 list slots a sphere) would need more list slots than int32 row offsets
-    address: refused with the slot count and the largest N, even on a device with memory to spare."""
+    """2e9 spheres at phi = 0.2 with the general rule's skin (0.34 a: about 1.66 list slots a sphere) would need more
+    list slots than int32 row offsets address: refused with the slot count and the largest N, even on a device with
+    memory to spare."""
     from engine.loops.cuda_memory import MAX_LIST_SLOTS, memory_refusal, predict_sphere_device
-    from engine.setup.params import derive
+    from engine.setup.params import default_verlet_skin, derive
     from engine.setup.spec import SimulationSpec
 
-    spec = SimulationSpec(n_particles=2 * 10**9, volume_fraction=0.2, precision="float32", backend="cuda")
+    spec = SimulationSpec(n_particles=2 * 10**9, volume_fraction=0.2, precision="float32", backend="cuda",
+                          verlet_skin=default_verlet_skin("cuda", "sphere", 0.2))
     why = memory_refusal(spec, derive(spec), 1e13, "a 10 TB device", derive)
     assert why is not None and "Verlet list would hold about" in why and str(MAX_LIST_SLOTS - 1) in why
     largest = int(float(why.rsplit("about ", 1)[1]))
