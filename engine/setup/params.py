@@ -225,9 +225,11 @@ DEFAULT_VERLET_SKIN = {"cpu": 0.4, "cuda": 0.8}
 DEFAULT_SKIN_MEAN_FREE_PATH = 1.6
 #: ... down to this skin (radii): the fastest skin of dense gases on both backends.
 DEFAULT_SKIN_FLOOR = 0.2
-#: Sphere scenes of at least this many particles on CUDA take the large-scene rule (:func:`large_scene_skin`): a
-#: rebuild's fixed cost is spread over enough particles that a thin skin pays
-LARGE_SCENE_PARTICLES = 1 << 17
+#: Sphere scenes of at least this many particles take the large-scene rule (:func:`large_scene_skin`), per resolved
+#: backend. CUDA: a rebuild's fixed cost (launches, the many-steps loop's return to the host) is spread over enough
+#: particles that a thin skin pays. CPU: the thin skin pays at 4096 spheres too, but the scenes below 2^15 (the
+#: papers' scenes, the quick start) keep the general rule and their bit-identical trajectories.
+LARGE_SCENE_PARTICLES = {"cuda": 1 << 17, "cpu": 1 << 15}
 #: The large-scene rule's skin (radii) at its reference gas: mean free path LARGE_SCENE_MEAN_FREE_PATH radii, the
 #: rms speed moving LARGE_SCENE_STEP_RADII radii a step (phi = 0.058, k_n = 1e8 N/m, v_rms = 2 m/s, a = 3.75 mm)
 LARGE_SCENE_SKIN = 0.12
@@ -251,7 +253,7 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
     of the smallest species, engine.setup.params), for a scene of ``n_particles`` whose rms speed moves
     ``step_radii`` radii a step (:func:`step_radii`; either None: the general rule alone).
 
-    Large scenes on CUDA (spheres, n_particles >= LARGE_SCENE_PARTICLES): the smaller of the general rule below
+    Large scenes (spheres, n_particles >= LARGE_SCENE_PARTICLES[backend]): the smaller of the general rule below
     and :func:`large_scene_skin`, so the large-scene rule only ever thins the skin (the spec's box check, which
     knows the general rule, stays an upper bound).
 
@@ -290,14 +292,18 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
         skin = top                      # exactly L_max (bit-identical dilute runs)
     else:
         skin = max(DEFAULT_SKIN_FLOOR, top * lam / DEFAULT_SKIN_MEAN_FREE_PATH)
-    if backend == "cuda" and n_particles is not None and n_particles >= LARGE_SCENE_PARTICLES \
-            and step_radii is not None:
+    if _large_scene(backend, n_particles) and step_radii is not None:
         return min(skin, large_scene_skin(lam, step_radii))
     return skin
 
 
+def _large_scene(backend: str, n_particles: Optional[int]) -> bool:
+    """Whether a sphere scene of ``n_particles`` on the resolved ``backend`` takes the large-scene rule."""
+    return n_particles is not None and n_particles >= LARGE_SCENE_PARTICLES.get(backend, math.inf)
+
+
 def large_scene_skin(mean_free_path_radii: float, step_radii: float) -> float:
-    """The skin (radii) of a sphere scene of at least LARGE_SCENE_PARTICLES on CUDA, before the cap of the
+    """The skin (radii) of a sphere scene of at least LARGE_SCENE_PARTICLES[backend], before the cap of the
     general rule: L_v = max(0.1, 0.12 sqrt((lambda / 3.5) (s / 5e-5))), with lambda the mean free path and
     s = v_rms dt / a the rms speed's flight per step, both in radii.
 
@@ -308,9 +314,10 @@ def large_scene_skin(mean_free_path_radii: float, step_radii: float) -> float:
     flight per step. The constant is measured (NVIDIA H200, `python -m bench loop_ab --variants skin=L`, rough and
     elastic spheres, the random start; docs/performance.md "The Verlet skin of large scenes"): at 2M and 8M spheres,
     phi = 0.058, the fastest skin was 0.1-0.15 a (0.8 a, the general rule's, x0.77-0.83 of it); at phi = 0.2,
-    0.1 a (the rule's 0.34 a x0.86-0.87). Below LARGE_SCENE_PARTICLES the rebuild's fixed cost (launches, the
-    many-steps loop's return to the host) weighs more: at 32 768 spheres, phi = 0.058, the skins 0.1-0.8 a ran
-    within 8 % of one another, so small scenes keep the general rule.
+    0.1 a (the rule's 0.34 a x0.86-0.87). Below LARGE_SCENE_PARTICLES['cuda'] the rebuild's fixed cost (launches,
+    the many-steps loop's return to the host) weighs more: at 32 768 spheres, phi = 0.058, the skins 0.1-0.8 a ran
+    within 8 % of one another, so small GPU scenes keep the general rule. The CPU, one thread, 32 768 spheres: 0.1 a
+    ran x1.7-1.9 of the general rule's 0.4 a at phi = 0.058 and 0.05-0.1 a x1.6-1.95 of its 0.2 a at phi = 0.2.
     """
     scale = (mean_free_path_radii / LARGE_SCENE_MEAN_FREE_PATH) * (step_radii / LARGE_SCENE_STEP_RADII)
     return max(LARGE_SCENE_SKIN_FLOOR, LARGE_SCENE_SKIN * math.sqrt(scale))
@@ -336,7 +343,7 @@ def verlet_skin_radii(spec, backend: str) -> float:
     """The Verlet skin L_v (radii) a run of ``spec`` on ``backend`` uses: the spec's, or the backend's default."""
     if spec.verlet_skin is not None:
         return spec.verlet_skin
-    large = backend == "cuda" and spec.n_particles >= LARGE_SCENE_PARTICLES
+    large = _large_scene(backend, spec.n_particles)
     return default_verlet_skin(backend, spec.shape, spec.volume_fraction, spec.n_particles,
                                step_radii(spec) if large else None)
 

@@ -224,7 +224,7 @@ def test_dense_skin_in_result_parameters(tmp_path):
         assert json.loads(par["spec"])["verlet_skin"] is None
 
 
-# ---- the large-scene rule (CUDA, spheres, N >= LARGE_SCENE_PARTICLES) -------------------------------------------
+# ---- the large-scene rule (spheres, N >= LARGE_SCENE_PARTICLES[backend]) -------------------------------------------
 
 def test_large_scene_skin_formula():
     """L_v = max(0.1, 0.12 sqrt((lambda / 3.5) (s / 5e-5))): the reference gas, the square roots, the floor."""
@@ -250,42 +250,56 @@ def _large(n, phi=0.058, **kw):
     return case_specs("rough-2M-f64", 6000, n=n, phi=phi, **kw)[0]
 
 
-def test_large_scenes_on_cuda_take_the_large_scene_rule():
+@pytest.mark.parametrize("backend, general", [("cuda", 0.8), ("cpu", 0.4)])
+def test_large_scenes_take_the_large_scene_rule(backend, general):
     from engine.setup.params import LARGE_SCENE_PARTICLES, large_scene_skin, step_radii, verlet_skin_radii
 
-    big = _large(LARGE_SCENE_PARTICLES)
+    n = LARGE_SCENE_PARTICLES[backend]
+    big = _large(n)
     want = large_scene_skin(mean_free_path(0.058), step_radii(big))
     assert 0.1 < want < 0.2
-    assert verlet_skin_radii(big, "cuda") == want
-    p = derive(big.model_copy(update={"backend": "cuda"}))
+    assert verlet_skin_radii(big, backend) == want
+    p = derive(big.model_copy(update={"backend": backend}))
     assert p.skin == pytest.approx(want * p.radius, rel=1e-14)
-    # one particle fewer: the general rule; the CPU, spheroids and an explicit skin are untouched
-    assert verlet_skin_radii(_large(LARGE_SCENE_PARTICLES - 1), "cuda") == 0.8
-    assert verlet_skin_radii(big, "cpu") == 0.4
-    assert verlet_skin_radii(big.model_copy(update={"verlet_skin": 0.6}), "cuda") == 0.6
-    assert default_verlet_skin("cuda", "ellipsoid", 0.058, 1 << 21, 5e-5) == 0.4
+    # one particle fewer: the general rule; spheroids and an explicit skin are untouched
+    assert verlet_skin_radii(_large(n - 1), backend) == general
+    assert verlet_skin_radii(big.model_copy(update={"verlet_skin": 0.6}), backend) == 0.6
+    assert default_verlet_skin(backend, "ellipsoid", 0.058, 1 << 21, 5e-5) == 0.4
     # a faster gas moves further a step: a thicker skin
-    fast = _large(LARGE_SCENE_PARTICLES, velocity_rms=4 * big.velocity_rms)
-    assert verlet_skin_radii(fast, "cuda") == pytest.approx(2 * want, rel=1e-12)
+    fast = _large(n, velocity_rms=4 * big.velocity_rms)
+    assert verlet_skin_radii(fast, backend) == pytest.approx(2 * want, rel=1e-12)
+
+
+def test_the_thresholds():
+    """CUDA from 2^17 (at 32 768 spheres the skins ran within 8 %); the CPU from 2^15, so that the papers' scenes and
+    the quick start (4096 spheres) keep their skin and their bits; an unresolved 'auto' takes no large-scene rule."""
+    from engine.setup.params import LARGE_SCENE_PARTICLES, verlet_skin_radii
+
+    assert LARGE_SCENE_PARTICLES == {"cuda": 1 << 17, "cpu": 1 << 15}
+    assert verlet_skin_radii(_large(1 << 16), "cuda") == 0.8 and verlet_skin_radii(_large(1 << 16), "cpu") < 0.2
+    assert verlet_skin_radii(_large(1 << 20), "auto") == 0.4
+    assert verlet_skin_radii(SimulationSpec(**{**TINY, "n_particles": 4096}), "cpu") == 0.4
 
 
 def test_large_scene_rule_never_thickens_the_skin():
     """The spec's box check knows the general rule (largest_default_verlet_skin): the large-scene rule stays under it
     at every phi and flight per step."""
-    for k in range(1, 600, 7):
-        phi = k / 1000.0
-        general = default_verlet_skin("cuda", "sphere", phi)
-        for s in (1e-6, 5e-5, 1e-3, 1e-1):
-            got = default_verlet_skin("cuda", "sphere", phi, 1 << 22, s)
-            assert 0.1 <= got <= general <= largest_default_verlet_skin("auto", "sphere", phi)
+    for backend in ("cuda", "cpu"):
+        for k in range(1, 600, 7):
+            phi = k / 1000.0
+            general = default_verlet_skin(backend, "sphere", phi)
+            for s in (1e-6, 5e-5, 1e-3, 1e-1):
+                got = default_verlet_skin(backend, "sphere", phi, 1 << 22, s)
+                assert 0.1 <= got <= general <= largest_default_verlet_skin("auto", "sphere", phi)
 
 
-def large_skin_table() -> list[dict]:
-    """docs/performance.md's measured table of the large-scene rule (after ``<!-- skin-sweep: cuda-large -->``):
+def large_skin_table(backend: str) -> list[dict]:
+    """docs/performance.md's measured table of the large-scene rule on ``backend`` (after
+    ``<!-- skin-sweep: BACKEND-large -->``):
     per row the `bench loop_ab` scene (case, N, phi, v_rms, steps), the rule's skin, the loop Cundall numbers at it
     and at the other skins tried."""
     lines = (ROOT / "docs" / "performance.md").read_text().splitlines()
-    start = lines.index("<!-- skin-sweep: cuda-large -->") + 3
+    start = lines.index(f"<!-- skin-sweep: {backend}-large -->") + 3
     rows = []
     for line in lines[start:]:
         if not line.startswith("|"):
@@ -299,17 +313,18 @@ def large_skin_table() -> list[dict]:
     return rows
 
 
-def test_large_scene_rule_on_the_measured_cost_front():
+@pytest.mark.parametrize("backend, min_rows", [("cuda", 6), ("cpu", 4)])
+def test_large_scene_rule_on_the_measured_cost_front(backend, min_rows):
     """Every measured scene: the code's rule gives the skin the table was measured at (a change of the rule needs a
     new measurement), and that skin runs within the timing noise (15 %) of the fastest skin tried."""
     from bench.accuracy import TIME_NOISE
     from bench.loop_ab import case_specs
     from engine.setup.params import verlet_skin_radii
 
-    rows = large_skin_table()
-    assert len(rows) >= 6 and {r["phi"] for r in rows} >= {0.008, 0.058, 0.2}
+    rows = large_skin_table(backend)
+    assert len(rows) >= min_rows and {r["phi"] for r in rows} >= {0.008, 0.058, 0.2}
     for r in rows:
         spec = case_specs(r["case"], r["steps"], n=r["n"], phi=r["phi"], velocity_rms=r["velocity_rms"])[0]
-        assert round(verlet_skin_radii(spec, "cuda"), 4) == r["rule"], r
+        assert round(verlet_skin_radii(spec, backend), 4) == r["rule"], r
         best = max(max(v) for v in r["others"].values())
         assert max(r["at_rule"]) >= (1.0 - TIME_NOISE) * best, r
