@@ -160,7 +160,6 @@ def case_specs(case: str, steps: int, backend: str = "cuda", phi: float = 0.058,
 
 
 def main(argv=None) -> int:
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", choices=list(JAXMD_CASES) + list(EXTRA), default=["elastic-2M-f64"])
     ap.add_argument("--variants", nargs="+", default=["launch_cache", "default"])

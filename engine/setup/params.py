@@ -343,9 +343,7 @@ def verlet_skin_radii(spec, backend: str) -> float:
     """The Verlet skin L_v (radii) a run of ``spec`` on ``backend`` uses: the spec's, or the backend's default."""
     if spec.verlet_skin is not None:
         return spec.verlet_skin
-    large = _large_scene(backend, spec.n_particles)
-    return default_verlet_skin(backend, spec.shape, spec.volume_fraction, spec.n_particles,
-                               step_radii(spec) if large else None)
+    return default_verlet_skin(backend, spec.shape, spec.volume_fraction, spec.n_particles, step_radii(spec))
 
 
 def _skin_length(spec, backend: str, semi_min: float, smallest_over_radius: Optional[float]) -> float:

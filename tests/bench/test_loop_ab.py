@@ -69,3 +69,31 @@ def test_the_own_scratch_variant_gives_the_rebuild_its_own_scratch_and_default_l
     finally:
         rebuild.LEND_SCRATCH = True
         loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = blocks
+
+
+def test_the_skin_variant_is_a_spec_field_not_a_switch():
+    """``skin=L`` sets every scene's verlet_skin (and turns no switch off); the other variants leave the default."""
+    import engine.loops.cuda_loop as loop
+
+    assert loop_ab.variant_skin("gc_off+skin=0.12") == 0.12 and loop_ab.variant_skin("default") is None
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM
+    try:
+        loop_ab.apply("skin=0.12", blocks)        # an unknown switch name would raise here
+    finally:
+        loop_ab.apply("default", blocks)
+    assert [s.verlet_skin for s in loop_ab.case_specs("rough-2M-f64", 100, skin=0.12)] == [0.12]
+    assert {s.verlet_skin for s in loop_ab.case_specs("packed-256x4096-f64", 100, skin=0.3)} == {0.3}
+    assert loop_ab.case_specs("rough-2M-f64", 100)[0].verlet_skin is None
+
+
+def test_case_specs_scale_the_box_with_n_and_keep_the_step():
+    """``n``: the same sphere radius, so the same dt and t_end; ``velocity_rms``: the same dt, a faster gas."""
+    from engine.setup.params import derive
+
+    base = loop_ab.case_specs("rough-2M-f64", 100)[0]
+    small = loop_ab.case_specs("rough-2M-f64", 100, n=32768)[0]
+    fast = loop_ab.case_specs("rough-2M-f64", 100, velocity_rms=8.0)[0]
+    p0, p1, p2 = derive(base), derive(small), derive(fast)
+    assert small.n_particles == 32768 and p1.radius == pytest.approx(p0.radius, rel=1e-12)
+    assert (small.dt, small.t_end) == (base.dt, base.t_end) and p1.n_steps == p0.n_steps == 100
+    assert fast.velocity_rms == 8.0 and fast.dt == base.dt and p2.radius == p0.radius
