@@ -12,7 +12,8 @@ observables: OBSERVE_BLOCKS_PER_SM), ``kick_blocks=B`` (the same for the kick-dr
 the default skin rule against others on the same gas),
 ``own_scratch`` (a rebuild's scratch in arrays of its own, not lent by the list and the force buffer:
 engine/loops/cuda_rebuild.py LEND_SCRATCH). For the cost of one piece of machinery inside the loop, without the
-fresh-process noise of bench/e2e.py.
+fresh-process noise of bench/e2e.py. ``--rebuild-parts`` also times each list rebuild's parts and kernels with CUDA
+events (:class:`RebuildParts`) and prints their device ms per rebuild and the rebuilds' share of the loop.
 
     python -m bench loop_ab --cases elastic-2M-f64 elastic-8M-f32 --variants launch_cache default multistep_on
     python -m bench loop_ab --cases rough-2M-f64 --variants default blocks=2 blocks=3
@@ -28,6 +29,7 @@ stays nearly empty over a short run).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import tempfile
@@ -86,6 +88,112 @@ def variant_skin(variant: str):
         if part.startswith("skin="):
             return float(part.split("=", 1)[1])
     return None
+
+
+class RebuildParts:
+    """CUDA events around a GPU list rebuild's parts (engine/loops/cuda_rebuild.py ``ListBuilds``): the kept
+    history's compaction, the sort and permutation, the build's two passes with their scan and slot count
+    (``build``: the rest), and the new list's history; device milliseconds per rebuild (the stream's time
+    between the events: kernels, and the gaps where the GPU waits on the host's launches and status reads) and
+    host milliseconds per rebuild, over the rebuilds of one run's time loop; and each kernel launched inside a
+    rebuild, by name (``kernels``: device ms per rebuild, the gaps between launches excluded). A diagnostic: the
+    events stay in the loop."""
+
+    PARTS = ("_compact", "_sort_and_permute", "_fill_history")
+
+    def __init__(self):
+        self.marks: list = []
+        self.host_s: list = []
+        self.launches: list = []        # (rebuild index, kernel name, events) of the launches inside rebuilds
+        self._depth = 0
+        self._saved: dict = {}
+        self._saved_launch = None
+
+    def __enter__(self):
+        import engine.loops.cuda_launch as launch
+        import engine.loops.cuda_rebuild as rebuild
+        from engine.loops.cuda_cache import SIM
+        from numba import cuda
+
+        event = (lambda: cuda.event()) if SIM else (lambda: cuda.event(timing=True))  # noqa: E731
+        cls = rebuild.ListBuilds
+        self._saved = {name: getattr(cls, name) for name in self.PARTS + ("_gpu_rebuild",)}
+        timer = self
+
+        def wrap(name, fn):
+            def timed(ens, *a, **k):
+                e0 = event()
+                e0.record(ens.stream)
+                t0 = time.perf_counter()
+                timer._depth += 1
+                try:
+                    out = fn(ens, *a, **k)
+                finally:
+                    timer._depth -= 1
+                e1 = event()
+                e1.record(ens.stream)
+                if name == "_gpu_rebuild":
+                    timer.host_s.append(time.perf_counter() - t0)
+                timer.marks.append((name, e0, e1))
+                return out
+            return timed
+
+        saved_launch = self._saved_launch = launch.LaunchCache.launch
+
+        def timed_launch(cache, name, dispatcher, config, args):
+            if not timer._depth:
+                return saved_launch(cache, name, dispatcher, config, args)
+            e0 = event()
+            e0.record(config[2])
+            saved_launch(cache, name, dispatcher, config, args)
+            e1 = event()
+            e1.record(config[2])
+            timer.launches.append((len(timer.host_s), name, e0, e1))
+
+        for name, fn in self._saved.items():
+            setattr(cls, name, wrap(name, fn))
+        launch.LaunchCache.launch = timed_launch
+        return self
+
+    def __exit__(self, *exc):
+        import engine.loops.cuda_launch as launch
+        import engine.loops.cuda_rebuild as rebuild
+
+        for name, fn in self._saved.items():
+            setattr(rebuild.ListBuilds, name, fn)
+        launch.LaunchCache.launch = self._saved_launch
+        return False
+
+    def summary(self) -> dict:
+        """{part: device ms per rebuild} with ``build`` (the whole less the timed parts), ``rebuild`` (the whole),
+        ``host_ms`` and ``rebuilds``, over the rebuilds inside the time loop: the first, the job's first list (built
+        before the loop), is left out."""
+        groups, group = [], []
+        for mark in self.marks:          # a rebuild's parts end before it does
+            group.append(mark)
+            if mark[0] == "_gpu_rebuild":
+                groups.append(group)
+                group = []
+        total: dict = {}
+        for name, e0, e1 in (m for g in groups[1:] for m in g):
+            e1.synchronize()
+            total[name] = total.get(name, 0.0) + e0.elapsed_time(e1)
+        n = len(groups) - 1
+        if n <= 0:
+            return {"rebuilds": 0}
+        out = {name.strip("_"): round(total.get(name, 0.0) / n, 3) for name in self.PARTS}
+        out["rebuild"] = round(total["_gpu_rebuild"] / n, 3)
+        out["build"] = round(out["rebuild"] - sum(out[p.strip("_")] for p in self.PARTS), 3)
+        out["host_ms"] = round(1e3 * sum(self.host_s[1:]) / n, 3)
+        out["rebuilds"] = n
+        kernels: dict = {}
+        for index, name, e0, e1 in self.launches:
+            if index >= 1:
+                e1.synchronize()
+                kernel = name.split("/")[0]          # gather_rows/<array>/<part>: one kernel
+                kernels[kernel] = kernels.get(kernel, 0.0) + e0.elapsed_time(e1) / n
+        out["kernels"] = {k: round(v, 3) for k, v in sorted(kernels.items(), key=lambda kv: -kv[1])}
+        return out
 
 
 #: the JAX-MD scene's cases (bench/vs_jaxmd.py's gas at phi = 0.058, its start left to the engine unless --start):
@@ -175,6 +283,9 @@ def main(argv=None) -> int:
     ap.add_argument("--start", choices=("lattice", "random"), default=None,
                     help="every scene's start protocol (default: the engine's choice: random for spheres up to "
                          "phi = 0.3, the lattice for spheroids)")
+    ap.add_argument("--rebuild-parts", action="store_true",
+                    help="time each GPU list rebuild's parts with CUDA events (RebuildParts) and print device ms per "
+                         "rebuild and the rebuilds' share of the loop")
     args = ap.parse_args(argv)
     import h5py
 
@@ -213,13 +324,20 @@ def main(argv=None) -> int:
                 for v in args.variants:
                     apply(v, default_blocks)
                     specs = specs_of(case, steps, v)
-                    summaries, wall = run_case(specs, tmp)
+                    timer = RebuildParts() if args.rebuild_parts else contextlib.nullcontext()
+                    with timer:
+                        summaries, wall = run_case(specs, tmp)
                     n = sum(sp.n_particles for sp in specs)
                     loop_s = max(s.loop_s for s in summaries)
                     steps_done = summaries[0].steps
                     with h5py.File(summaries[0].output, "r") as f:
                         builds = int(f["parameters"].attrs["neighbour_builds"])
                         skin_radii = round(float(f["parameters"].attrs["verlet_skin"]), 4)
+                    extra = {}
+                    if args.rebuild_parts:
+                        parts = timer.summary()
+                        extra = {"rebuild_ms": parts, "rebuild_share": round(
+                            parts.get("rebuild", 0.0) * parts["rebuilds"] / (1e3 * loop_s), 4)}
                     print(json.dumps({"case": case, "phi": specs[0].volume_fraction, "variant": v, "rep": rep,
                                       "device": summaries[0].device,
                                       "scenes": len(specs), "n": n, "start": start_protocol(specs[0]),
@@ -227,7 +345,8 @@ def main(argv=None) -> int:
                                       "skin_radii": skin_radii,
                                       "loop_s": round(loop_s, 4), "wall_s": round(wall, 3),
                                       "cundall_loop": float(f"{n * steps_done / loop_s:.3e}"),
-                                      "cundall_end_to_end": float(f"{n * steps_done / wall:.3e}")}), flush=True)
+                                      "cundall_end_to_end": float(f"{n * steps_done / wall:.3e}"), **extra}),
+                          flush=True)
     apply("default", default_blocks)
     return 0
 

@@ -44,7 +44,8 @@ from numba import cuda
 from numba.cuda import types as ct
 
 from engine.loops.cuda_cache import SIM, cache_kernels
-from engine.neighbours.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.neighbours.cells import (cell_coords, cell_index_of, distance2, offset_low, offset_span, row_runs,
+                                    wrap_cell)
 from engine.physics.contact import min_image
 
 # per-scene constants: spd (working precision)
@@ -370,11 +371,23 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             ri = r0 if UNIFORM else radius[i]
             base = nn[i] if fill != 0 else -1
             cnt = 0
-            for k in range(neighbour_cell_count(nc)):
-                cc = coff + neighbour_cell(cx, cy, cz, k, nc)
-                for j in range(cell_start[cc], cell_start[cc + 1]):
-                    rj = r0 if UNIFORM else radius[j]
-                    cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr, base)
+            # neighbour_cell's cells in its order, a row's z-cells as runs of the cell-sorted particles
+            # (cells.row_runs): neighbour_cell's integer divisions per cell took most of the build
+            span = offset_span(nc)
+            low = offset_low(nc)
+            z0, z1, z2, z3 = row_runs(cz, nc)
+            for ox in range(span):
+                ax = wrap_cell(cx + low + ox, nc)
+                for oy in range(span):
+                    row = coff + (ax * nc + wrap_cell(cy + low + oy, nc)) * nc
+                    for j in range(cell_start[row + z0], cell_start[row + z1]):
+                        rj = r0 if UNIFORM else radius[j]
+                        cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr,
+                                               base)
+                    for j in range(cell_start[row + z2], cell_start[row + z3]):
+                        rj = r0 if UNIFORM else radius[j]
+                        cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr,
+                                               base)
             if fill == 0:
                 counts[i] = cnt
 

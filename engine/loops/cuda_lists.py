@@ -28,7 +28,7 @@ from numba.cuda import types as ct
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import cache_kernels
 from engine.loops.cuda_kernels import add_candidate, list_origin, scene_of
-from engine.neighbours.cells import cell_coords, cell_index_of, neighbour_cell, neighbour_cell_count
+from engine.neighbours.cells import cell_coords, cell_index_of, offset_low, offset_span, wrap_cell
 from engine.physics.contact import min_image
 
 _cache: dict = {}
@@ -92,14 +92,21 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                 nc = mgi[s, l, 0]
                 cx, cy, cz = cell_coords(xi, yi, zi, mgf[s, l], nc)
                 kinds = 2 if l == li else 1
-                for k in range(neighbour_cell_count(nc)):
-                    cc = neighbour_cell(cx, cy, cz, k, nc)
-                    for kind in range(kinds):
-                        b = mgi[s, l, 1 + kind] + cc
-                        for p in range(start[b], start[b + 1]):
-                            j = items[p]
-                            cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, radius[j], skin, pos, box, inv_box,
-                                                   HALF, nbr, base)
+                span = offset_span(nc)
+                low = offset_low(nc)
+                # neighbour_cell's cells in its order, wrapped by comparisons (its divisions per cell cost most)
+                for ox in range(span):
+                    ax = wrap_cell(cx + low + ox, nc)
+                    for oy in range(span):
+                        row = (ax * nc + wrap_cell(cy + low + oy, nc)) * nc
+                        for oz in range(span):
+                            cc = row + wrap_cell(cz + low + oz, nc)
+                            for kind in range(kinds):
+                                b = mgi[s, l, 1 + kind] + cc
+                                for p in range(start[b], start[b + 1]):
+                                    j = items[p]
+                                    cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, radius[j], skin, pos, box,
+                                                           inv_box, HALF, nbr, base)
             if fill == 0:
                 counts[i] = cnt
             else:

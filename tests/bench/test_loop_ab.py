@@ -97,3 +97,37 @@ def test_case_specs_scale_the_box_with_n_and_keep_the_step():
     assert small.n_particles == 32768 and p1.radius == pytest.approx(p0.radius, rel=1e-12)
     assert (small.dt, small.t_end) == (base.dt, base.t_end) and p1.n_steps == p0.n_steps == 100
     assert fast.velocity_rms == 8.0 and fast.dt == base.dt and p2.radius == p0.radius
+
+
+class _Event:
+    """A stand-in CUDA event whose elapsed time to another is the difference of their stamps (ms)."""
+
+    def __init__(self, stamp: float):
+        self.stamp = stamp
+
+    def synchronize(self) -> None:
+        pass
+
+    def elapsed_time(self, other: "_Event") -> float:
+        return other.stamp - self.stamp
+
+
+def test_rebuild_parts_leave_out_the_first_build_and_give_the_rest_of_a_rebuild_to_build():
+    """RebuildParts.summary: per rebuild of the loop (the job's first build, before the loop, left out), each timed
+    part, the whole, and ``build`` = the whole less the timed parts; the kernels launched inside the loop's
+    rebuilds by name (their "/..." suffix dropped), per rebuild."""
+    timer = loop_ab.RebuildParts()
+    for k, scale in enumerate((100.0, 1.0, 3.0)):     # the first build is slow (setup), the two loop ones are not
+        t = 10.0 * k
+        parts = {"_compact": 0.5, "_sort_and_permute": 1.0, "_fill_history": 0.25}
+        for name, ms in parts.items():
+            timer.marks.append((name, _Event(t), _Event(t + scale * ms)))
+        timer.marks.append(("_gpu_rebuild", _Event(t), _Event(t + scale * 4.0)))
+        timer.host_s.append(scale * 5e-3)
+        timer.launches.append((k, f"gather_rows/{k}/0", _Event(t), _Event(t + scale * 0.5)))
+    out = timer.summary()
+    assert out["rebuilds"] == 2
+    assert out["compact"] == 1.0 and out["sort_and_permute"] == 2.0 and out["fill_history"] == 0.5
+    assert out["rebuild"] == 8.0 and out["build"] == 4.5 and out["host_ms"] == 10.0
+    assert out["kernels"] == {"gather_rows": 1.0}
+    assert loop_ab.RebuildParts().summary() == {"rebuilds": 0}

@@ -38,3 +38,18 @@ def test_springs_survive_rebuilds():
     # only the summation order differs (rounding); a lost spring would change spins at O(1)
     assert np.abs(w1 - w2).max() < 1e-8 * np.abs(w1).max()
     assert np.abs(p1 - p2).max() < 1e-10
+
+
+def test_row_runs_hold_a_rows_cells_in_neighbour_cell_order():
+    """engine.neighbours.cells.row_runs (the CUDA list build's walk of a neighbour block row): its two runs of
+    z-cells, read in turn, are the row's cells of neighbour_cell in its order, on grids of 1, 2, 3 and more cells per
+    side and at every cz (the block wrapping below 0 and above nc - 1)."""
+    from engine.neighbours.cells import neighbour_cell, offset_span, row_runs
+
+    for nc in range(1, 7):
+        span = offset_span(nc)
+        for cz in range(nc):
+            want = [neighbour_cell(0, 0, cz, k, nc) % nc for k in range(span)]   # oz only: ox, oy fixed
+            z0, z1, z2, z3 = row_runs(cz, nc)
+            assert 0 <= z0 <= z1 <= nc and 0 <= z2 <= z3 <= nc
+            assert list(range(z0, z1)) + list(range(z2, z3)) == want, (nc, cz)
