@@ -55,7 +55,8 @@ from numba import prange
 
 from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
-from engine.neighbours.cells import cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count
+from engine.neighbours.cells import (cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count,
+                                    offset_low, offset_span, wrap_cell)
 from engine.physics.contact import min_image
 
 #: Relative margin between the cell width box/nc and the nominal cell size L_c: rounding of the pair
@@ -197,17 +198,23 @@ def _search(i, pos, radius, level, skin, box, inv_box, half, nc, inv_cell, start
         ncl = nc[l]
         span = 1 if l < li else 2        # keys scanned per cell: main only, or main + secondary
         cx, cy, cz = cell_coords(xi, yi, zi, inv_cell[l], ncl)
-        for k in range(neighbour_cell_count(ncl)):
-            key = 2 * neighbour_cell(cx, cy, cz, k, ncl)
-            for s in range(cell_start[s0 + key], cell_start[s0 + key + span]):
-                j = cell_list[l0 + s]
-                if j == i:
-                    continue
-                rc = ri + radius[j] + skin
-                if distance2(xi, yi, zi, pos[j, 0], pos[j, 1], pos[j, 2], box, inv_box, half) < rc * rc:
-                    if cnt < max_nb:
-                        nbr[i, cnt] = j
-                    cnt += 1
+        m = offset_span(ncl)
+        low = offset_low(ncl)
+        for ox in range(m):          # neighbour_cell's cells in its order, wrapped by comparisons (cells.wrap_cell)
+            ax = wrap_cell(cx + low + ox, ncl)
+            for oy in range(m):
+                row = (ax * ncl + wrap_cell(cy + low + oy, ncl)) * ncl
+                for oz in range(m):
+                    key = 2 * (row + wrap_cell(cz + low + oz, ncl))
+                    for s in range(cell_start[s0 + key], cell_start[s0 + key + span]):
+                        j = cell_list[l0 + s]
+                        if j == i:
+                            continue
+                        rc = ri + radius[j] + skin
+                        if distance2(xi, yi, zi, pos[j, 0], pos[j, 1], pos[j, 2], box, inv_box, half) < rc * rc:
+                            if cnt < max_nb:
+                                nbr[i, cnt] = j
+                            cnt += 1
     return cnt
 
 
