@@ -81,7 +81,7 @@ def row_runs(cz, nc):
     """The z-cells of one row (fixed ox, oy) of cell (., ., cz)'s neighbour block, in neighbour_cell's order (oz
     ascending, wrapped), as two runs of consecutive z-indices [z0, z1) then [z2, z3), the second empty (0, 0) unless
     the block wraps in z. In a cell-sorted particle order each run's particles lie in one range, so a build reads
-    two cell starts per run (18 per particle) where a cell at a time reads 54, and wraps nothing per cell."""
+    a row as one range (two ranges where it wraps) instead of three cells, and wraps nothing per cell."""
     lo = cz + offset_low(nc)
     hi = lo + offset_span(nc)
     if lo < 0:
