@@ -15,7 +15,8 @@ while Nsight Compute's injection starts (before engine/driver/simulate.py waited
     python -m bench step_bytes --cases rough-8M-f32 elastic-8M-f32 --variants default skip_cold
     python -m bench step_bytes --cases rough-8M-f32 --phi 0.2
 
-Cases and variants are bench/loop_ab.py's (the JAX-MD cases, from the random start: an equilibrium gas).
+Cases and variants are bench/loop_ab.py's (the JAX-MD cases, from the random start: an equilibrium gas; and its
+extra cases, such as 256 packed scenes of 4096 against one scene of 2^20, bytes over all the scenes' particles).
 """
 
 from __future__ import annotations
@@ -102,10 +103,11 @@ def summarise(launches: list[dict], n: int) -> dict:
 
 def main(argv=None) -> int:
     from bench import out_dir
-    from bench.loop_ab import JAXMD_CASES
+    from bench.loop_ab import EXTRA, JAXMD_CASES
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", nargs="+", choices=list(JAXMD_CASES), default=["rough-8M-f32", "elastic-8M-f32"])
+    ap.add_argument("--cases", nargs="+", choices=list(JAXMD_CASES) + list(EXTRA),
+                    default=["rough-8M-f32", "elastic-8M-f32"])
     ap.add_argument("--variants", nargs="+", default=["default"], help="bench/loop_ab.py variants")
     ap.add_argument("--phi", type=float, default=0.058)
     ap.add_argument("--launch-skip", type=int, default=200)
@@ -117,7 +119,8 @@ def main(argv=None) -> int:
     out = out_dir(args.out, "step_bytes")
     regex = "regex:" + "|".join(KERNELS)
     for case in args.cases:
-        n = JAXMD_CASES[case][0]
+        # the particles of all the case's scenes (a packed case's kernels run over the whole ensemble)
+        n = JAXMD_CASES[case][0] if case in JAXMD_CASES else EXTRA[case][0] * EXTRA[case][1]
         for v in args.variants:
             profiled = "startup" if v == "default" else f"{v}+startup"
             cmd = [args.ncu, "--clock-control", "none", "--kernel-name", regex, "--launch-skip", str(args.launch_skip),
