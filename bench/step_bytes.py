@@ -101,6 +101,13 @@ def summarise(launches: list[dict], n: int) -> dict:
     return table
 
 
+def case_particles(case: str) -> int:
+    """The particles a bench/loop_ab.py case's kernels run over: all its scenes' (256 packed scenes of 4096: 2^20)."""
+    from bench.loop_ab import EXTRA, JAXMD_CASES
+
+    return JAXMD_CASES[case][0] if case in JAXMD_CASES else EXTRA[case][0] * EXTRA[case][1]
+
+
 def main(argv=None) -> int:
     from bench import out_dir
     from bench.loop_ab import EXTRA, JAXMD_CASES
@@ -119,8 +126,7 @@ def main(argv=None) -> int:
     out = out_dir(args.out, "step_bytes")
     regex = "regex:" + "|".join(KERNELS)
     for case in args.cases:
-        # the particles of all the case's scenes (a packed case's kernels run over the whole ensemble)
-        n = JAXMD_CASES[case][0] if case in JAXMD_CASES else EXTRA[case][0] * EXTRA[case][1]
+        n = case_particles(case)
         for v in args.variants:
             profiled = "startup" if v == "default" else f"{v}+startup"
             cmd = [args.ncu, "--clock-control", "none", "--kernel-name", regex, "--launch-skip", str(args.launch_skip),

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from bench.step_bytes import kernel_of, parse_ncu_csv, summarise
+from bench.step_bytes import case_particles, kernel_of, parse_ncu_csv, summarise
 
 HEADER = ('"ID","Process ID","Process Name","Host Name","Kernel Name","Context","Stream","Block Size","Grid Size",'
           '"Device","CC","Section Name","Metric Name","Metric Unit","Metric Value"')
@@ -54,3 +54,9 @@ def test_bytes_per_particle_step_are_the_medians_over_launches_and_the_step_sums
     assert math.isclose(table["kick_drift"]["bytes_per_particle"], 42.0)
     assert math.isclose(table["step (two launches)"]["bytes_per_particle"], 94.0)
     assert "step (fused)" not in table
+
+
+def test_a_packed_case_counts_every_scenes_particles():
+    """Bytes per particle of a packed case are over the whole ensemble the kernels run on."""
+    assert case_particles("packed-rough-256x4096-f64") == 256 * 4096 == case_particles("rough-1M-f64")
+    assert case_particles("rough-8M-f32") == 8_388_608
