@@ -154,7 +154,7 @@ def test_rule_is_monotone_and_bounded():
 
 
 def skin_sweep_table(backend: str) -> list[dict]:
-    """The measured skin sweep of docs/performance.md for ``backend``: rows {phi, skin, cundall, marked} from the
+    r"""The measured skin sweep of docs/performance.md for ``backend``: rows {phi, skin, cundall, marked} from the
     Markdown table after the marker ``<!-- skin-sweep: BACKEND -->`` (written from `python -m bench accuracy`);
     ``marked``: the cell carries the table's default mark ``\*``."""
     lines = (ROOT / "docs" / "performance.md").read_text().splitlines()
