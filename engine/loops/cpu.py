@@ -47,7 +47,7 @@ from engine.loops.system import ContactParams, cell_grid
 from engine.loops.cpu_shared import SLOT, cpu_name, worst_overlap
 from engine.backends.protocol import Backend
 from engine.loops.status import BAD_VALUE, OK, OVERFLOW, OVERLAP, instability_error
-from engine.neighbours.cells import cell_coords_of, cell_index_of, distance2, offset_low, offset_span, wrap_cell
+from engine.neighbours.cells import cell_coords_of, cell_index_of, distance2, neighbour_row, neighbour_z, offset_span
 from engine.neighbours.multigrid import (bin_levels, build_levels_carry, carry_slot, grid_levels, level_arrays,
                                          main_level)
 from engine.physics.contact import min_image
@@ -125,7 +125,6 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
     n = pos.shape[0]
     max_nb = nbr.shape[1]
     span = offset_span(nc)
-    low = offset_low(nc)
     for i in prange(n):
         cx, cy, cz = cell_coords_of(cell_of[i], nc)
         xi = pos[i, 0]
@@ -134,12 +133,10 @@ def build_list(pos, radius, skin, box, inv_box, half, nc, cell_start, cell_list,
         ri = radius[i]
         cnt = 0
         for ox in range(span):
-            ax = wrap_cell(cx + low + ox, nc)
             for oy in range(span):
-                ay = wrap_cell(cy + low + oy, nc)
-                row = (ax * nc + ay) * nc
+                row = neighbour_row(cx, cy, ox, oy, nc)
                 for oz in range(span):
-                    cc = row + wrap_cell(cz + low + oz, nc)
+                    cc = row + neighbour_z(cz, oz, nc)
                     for s in range(cell_start[cc], cell_start[cc + 1]):
                         j = cell_list[s]
                         if j == i:

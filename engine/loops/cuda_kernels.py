@@ -44,8 +44,7 @@ from numba import cuda
 from numba.cuda import types as ct
 
 from engine.loops.cuda_cache import SIM, cache_kernels
-from engine.neighbours.cells import (cell_coords, cell_index_of, distance2, offset_low, offset_span, row_runs,
-                                    wrap_cell)
+from engine.neighbours.cells import cell_coords, cell_index_of, distance2, neighbour_row, offset_span, row_runs
 from engine.physics.contact import min_image
 
 # per-scene constants: spd (working precision)
@@ -374,12 +373,10 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             # neighbour_cell's cells in its order, a row's z-cells as runs of the cell-sorted particles
             # (cells.row_runs): neighbour_cell's integer divisions per cell took most of the build
             span = offset_span(nc)
-            low = offset_low(nc)
             z0, z1, z2, z3 = row_runs(cz, nc)
             for ox in range(span):
-                ax = wrap_cell(cx + low + ox, nc)
                 for oy in range(span):
-                    row = coff + (ax * nc + wrap_cell(cy + low + oy, nc)) * nc
+                    row = coff + neighbour_row(cx, cy, ox, oy, nc)
                     for j in range(cell_start[row + z0], cell_start[row + z1]):
                         rj = r0 if UNIFORM else radius[j]
                         cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr,

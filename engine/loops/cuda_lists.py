@@ -28,7 +28,7 @@ from numba.cuda import types as ct
 from engine.loops import cuda_kernels as K
 from engine.loops.cuda_cache import cache_kernels
 from engine.loops.cuda_kernels import add_candidate, list_origin, scene_of
-from engine.neighbours.cells import cell_coords, cell_index_of, offset_low, offset_span, wrap_cell
+from engine.neighbours.cells import cell_coords, cell_index_of, neighbour_row, neighbour_z, offset_span
 from engine.physics.contact import min_image
 
 _cache: dict = {}
@@ -93,14 +93,12 @@ def _make(DT, TPB):  # noqa: C901  (one closure per precision)
                 cx, cy, cz = cell_coords(xi, yi, zi, mgf[s, l], nc)
                 kinds = 2 if l == li else 1
                 span = offset_span(nc)
-                low = offset_low(nc)
                 # neighbour_cell's cells in its order, wrapped by comparisons (its divisions per cell cost most)
                 for ox in range(span):
-                    ax = wrap_cell(cx + low + ox, nc)
                     for oy in range(span):
-                        row = (ax * nc + wrap_cell(cy + low + oy, nc)) * nc
+                        row = neighbour_row(cx, cy, ox, oy, nc)
                         for oz in range(span):
-                            cc = row + wrap_cell(cz + low + oz, nc)
+                            cc = row + neighbour_z(cz, oz, nc)
                             for kind in range(kinds):
                                 b = mgi[s, l, 1 + kind] + cc
                                 for p in range(start[b], start[b + 1]):

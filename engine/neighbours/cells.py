@@ -77,6 +77,21 @@ def wrap_cell(c, nc):
 
 
 @numba.njit(inline="always")
+def neighbour_row(cx, cy, ox, oy, nc):
+    """Flat index of the first cell (z = 0) of row (ox, oy) of cell (cx, cy, .)'s neighbour block: the cells of
+    neighbour_cell's k with k // m = ox m + oy (m = offset_span(nc)), wrapped by comparisons (:func:`wrap_cell`)."""
+    low = offset_low(nc)
+    return (wrap_cell(cx + low + ox, nc) * nc + wrap_cell(cy + low + oy, nc)) * nc
+
+
+@numba.njit(inline="always")
+def neighbour_z(cz, oz, nc):
+    """The z-coordinate of offset oz (0 <= oz < offset_span(nc)) of cell (., ., cz)'s neighbour block, wrapped:
+    neighbour_row(...) + neighbour_z(...) is neighbour_cell's cell, without its divisions."""
+    return wrap_cell(cz + offset_low(nc) + oz, nc)
+
+
+@numba.njit(inline="always")
 def row_runs(cz, nc):
     """The z-cells of one row (fixed ox, oy) of cell (., ., cz)'s neighbour block, in neighbour_cell's order (oz
     ascending, wrapped), as two runs of consecutive z-indices [z0, z1) then [z2, z3), the second empty (0, 0) unless

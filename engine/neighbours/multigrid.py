@@ -56,7 +56,7 @@ from numba import prange
 from engine.numba_support.jitcache import fast_loads  # before any cache=True kernel: keys the disk cache by source
 
 from engine.neighbours.cells import (cell_coords, cell_index_of, distance2, neighbour_cell, neighbour_cell_count,
-                                    offset_low, offset_span, wrap_cell)
+                                    neighbour_row, neighbour_z, offset_span)
 from engine.physics.contact import min_image
 
 #: Relative margin between the cell width box/nc and the nominal cell size L_c: rounding of the pair
@@ -199,13 +199,11 @@ def _search(i, pos, radius, level, skin, box, inv_box, half, nc, inv_cell, start
         span = 1 if l < li else 2        # keys scanned per cell: main only, or main + secondary
         cx, cy, cz = cell_coords(xi, yi, zi, inv_cell[l], ncl)
         m = offset_span(ncl)
-        low = offset_low(ncl)
-        for ox in range(m):          # neighbour_cell's cells in its order, wrapped by comparisons (cells.wrap_cell)
-            ax = wrap_cell(cx + low + ox, ncl)
+        for ox in range(m):          # neighbour_cell's cells in its order, without its divisions
             for oy in range(m):
-                row = (ax * ncl + wrap_cell(cy + low + oy, ncl)) * ncl
+                row = neighbour_row(cx, cy, ox, oy, ncl)
                 for oz in range(m):
-                    key = 2 * (row + wrap_cell(cz + low + oz, ncl))
+                    key = 2 * (row + neighbour_z(cz, oz, ncl))
                     for s in range(cell_start[s0 + key], cell_start[s0 + key + span]):
                         j = cell_list[l0 + s]
                         if j == i:

@@ -53,3 +53,16 @@ def test_row_runs_hold_a_rows_cells_in_neighbour_cell_order():
             z0, z1, z2, z3 = row_runs(cz, nc)
             assert 0 <= z0 <= z1 <= nc and 0 <= z2 <= z3 <= nc
             assert list(range(z0, z1)) + list(range(z2, z3)) == want, (nc, cz)
+
+
+def test_neighbour_row_and_z_are_neighbour_cell_without_its_divisions():
+    """neighbour_row(cx, cy, ox, oy, nc) + neighbour_z(cz, oz, nc), walked ox, oy, oz ascending (every list build's
+    nested loops), is neighbour_cell's k-th cell for k = (ox m + oy) m + oz, at every cell of grids of 1-6 cells."""
+    from engine.neighbours.cells import neighbour_cell, neighbour_row, neighbour_z, offset_span
+
+    for nc in range(1, 7):
+        m = offset_span(nc)
+        for cx, cy, cz in np.ndindex(nc, nc, nc):
+            walked = [neighbour_row(cx, cy, ox, oy, nc) + neighbour_z(cz, oz, nc)
+                      for ox in range(m) for oy in range(m) for oz in range(m)]
+            assert walked == [neighbour_cell(cx, cy, cz, k, nc) for k in range(m ** 3)], (nc, cx, cy, cz)
