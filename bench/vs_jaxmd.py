@@ -227,7 +227,7 @@ class StartMemo:
         import engine.setup.scene as scene
 
         self.scene, self.draw = scene, scene.initial_spheres
-        self.starts, self.draw_s = {}, {}
+        self.starts, self.draw_s, self.ready = {}, {}, {}
         scene.initial_spheres = self
 
     @staticmethod
@@ -243,7 +243,16 @@ class StartMemo:
             # centres, engine/setup/cell_rsa.py), so that it can be handed to JAX-MD and to the second run
             self.starts[key] = self.draw(spec, p, False)
             self.draw_s[key] = time.perf_counter() - t0
-        system = self.starts[key]
+        ready = self.ready.pop(key, None)
+        return ready if ready is not None else self._copy(self.starts[key])
+
+    def prepare(self) -> None:
+        """Copies of the starts drawn so far, made now, before a timed run: the run is handed a start as JAX-MD is,
+        without the memo's own copying (0.37 s for 8M spheres) in its time."""
+        self.ready = {key: self._copy(system) for key, system in self.starts.items()}
+
+    @staticmethod
+    def _copy(system):
         return dataclasses.replace(system, **{f.name: np.array(v) for f in dataclasses.fields(system)
                                               if isinstance(v := getattr(system, f.name), np.ndarray)})
 
@@ -268,6 +277,7 @@ def run_demq(job: dict) -> dict:
                     runs = []
                     for attempt in ("first", "warm"):
                         out = Path(tmp) / f"{attempt}.h5"
+                        memo.prepare()
                         t0 = time.perf_counter()
                         s = run(spec, out, backend=spec.backend)
                         runs.append((s, time.perf_counter() - t0))

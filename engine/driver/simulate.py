@@ -140,7 +140,8 @@ class SceneRun:
 
     def __init__(self, spec, output, *, progress: Optional[Callable[[Progress], None]] = None,
                  should_cancel: Optional[Callable[[], bool]] = None, checkpoint_dir=None,
-                 checkpoint_interval: float = 60.0, backend: Optional[str] = None):
+                 checkpoint_interval: float = 60.0, backend: Optional[str] = None,
+                 pack_particles: Optional[int] = None):
         from engine.shapes import host, traits
 
         t_setup = time.perf_counter()
@@ -177,9 +178,11 @@ class SceneRun:
 
             system = drawn_on_host(system)
         # a null verlet_skin is the resolved backend's default at this volume fraction (species: the total
-        # phi; the stored spec keeps null; /parameters say verlet_skin and skin); an explicit value always wins
-        self.verlet_skin = verlet_skin_radii(spec, self.backend)
-        self.p = p = with_backend(p, spec, self.backend)
+        # phi; the stored spec keeps null; /parameters say verlet_skin and skin); an explicit value always wins.
+        # A CUDA pack rebuilds its scenes' lists together: the large-scene rule counts its particles
+        pack = pack_particles if self.backend == "cuda" else None
+        self.verlet_skin = verlet_skin_radii(spec, self.backend, pack)
+        self.p = p = with_backend(p, spec, self.backend, pack)
         if self.backend == "cuda" and spec.shape == "sphere":   # before the GPU holds anything of this job
             from engine.backends.base import cuda_available
             from engine.loops.cuda_memory import refuse_oversize

@@ -230,13 +230,18 @@ DEFAULT_SKIN_FLOOR = 0.2
 #: particles that a thin skin pays. CPU: the thin skin pays at 4096 spheres too, but the scenes below 2^15 (the
 #: papers' scenes, the quick start) keep the general rule and their bit-identical trajectories.
 LARGE_SCENE_PARTICLES = {"cuda": 1 << 17, "cpu": 1 << 15}
-#: The large-scene rule's skin (radii) at its reference gas: mean free path LARGE_SCENE_MEAN_FREE_PATH radii, the
-#: rms speed moving LARGE_SCENE_STEP_RADII radii a step (phi = 0.058, k_n = 1e8 N/m, v_rms = 2 m/s, a = 3.75 mm)
-LARGE_SCENE_SKIN = 0.12
+#: The large-scene rule's skin (radii) at its reference gas, per resolved backend: mean free path
+#: LARGE_SCENE_MEAN_FREE_PATH radii, the rms speed moving LARGE_SCENE_STEP_RADII radii a step (phi = 0.058,
+#: k_n = 1e8 N/m, v_rms = 2 m/s, a = 3.75 mm), a scene (or pack of scenes) of many more than
+#: LARGE_SCENE_REBUILD_PARTICLES particles
+LARGE_SCENE_SKIN = {"cuda": 0.045, "cpu": 0.12}
 LARGE_SCENE_MEAN_FREE_PATH = 3.5
 LARGE_SCENE_STEP_RADII = 5.0e-5
+#: N_0 of the large-scene rule: the particles whose rebuild work equals a rebuild's fixed cost (CUDA: its ~30
+#: launches and two reads of the status words, about 1 ms of host time); 0: no fixed cost counted (the CPU)
+LARGE_SCENE_REBUILD_PARTICLES = {"cuda": 1 << 19, "cpu": 0}
 #: The large-scene rule's smallest skin (radii)
-LARGE_SCENE_SKIN_FLOOR = 0.1
+LARGE_SCENE_SKIN_FLOOR = {"cuda": 0.03, "cpu": 0.1}
 
 
 def mean_free_path(volume_fraction: float) -> float:
@@ -253,8 +258,8 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
     of the smallest species, engine.setup.params), for a scene of ``n_particles`` whose rms speed moves
     ``step_radii`` radii a step (:func:`step_radii`; either None: the general rule alone).
 
-    Large scenes (spheres, n_particles >= LARGE_SCENE_PARTICLES[backend]): the smaller of the general rule below
-    and :func:`large_scene_skin`, so the large-scene rule only ever thins the skin (the spec's box check, which
+    Large scenes (spheres, n_particles >= LARGE_SCENE_PARTICLES[backend]; a CUDA pack: its particles): the smaller
+    of the general rule below and :func:`large_scene_skin`, so the large-scene rule only ever thins the skin (the spec's box check, which
     knows the general rule, stays an upper bound).
 
     Rule (spheres): L_v = clamp(L_max lambda / lambda_0, 0.2, L_max), with lambda = mean_free_path(phi),
@@ -293,7 +298,7 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
     else:
         skin = max(DEFAULT_SKIN_FLOOR, top * lam / DEFAULT_SKIN_MEAN_FREE_PATH)
     if _large_scene(backend, n_particles) and step_radii is not None:
-        return min(skin, large_scene_skin(lam, step_radii))
+        return min(skin, large_scene_skin(lam, step_radii, backend, n_particles))
     return skin
 
 
@@ -302,25 +307,36 @@ def _large_scene(backend: str, n_particles: Optional[int]) -> bool:
     return n_particles is not None and n_particles >= LARGE_SCENE_PARTICLES.get(backend, math.inf)
 
 
-def large_scene_skin(mean_free_path_radii: float, step_radii: float) -> float:
-    """The skin (radii) of a sphere scene of at least LARGE_SCENE_PARTICLES[backend], before the cap of the
-    general rule: L_v = max(0.1, 0.12 sqrt((lambda / 3.5) (s / 5e-5))), with lambda the mean free path and
-    s = v_rms dt / a the rms speed's flight per step, both in radii.
+def large_scene_skin(mean_free_path_radii: float, step_radii: float, backend: str = "cuda",
+                     n_particles: Optional[int] = None) -> float:
+    """The skin (radii) of a sphere scene of at least LARGE_SCENE_PARTICLES[backend] particles (a pack of scenes on
+    CUDA: their sum), before the cap of the general rule:
+
+        L_v = max(L_min, L_0 sqrt((lambda / 3.5) (s / 5e-5) (1 + N_0 / N))),
+
+    with lambda the mean free path and s = v_rms dt / a the rms speed's flight per step, both in radii, N the
+    particles that rebuild their lists together, and per backend L_0 (LARGE_SCENE_SKIN), N_0
+    (LARGE_SCENE_REBUILD_PARTICLES) and L_min (LARGE_SCENE_SKIN_FLOOR): CUDA 0.045 a, 2^19, 0.03 a; the CPU
+    0.12 a, 0 (no N term), 0.1 a.
 
     Why: per particle-step, a skin L_v adds about 2 sqrt(2) L_v / lambda list neighbours to the force pass
-    (a cost c_p each), and a rebuild (c_r per particle) comes every L_v / (2 k s) steps (k s: the fastest
-    particle's flight a step). The sum c_p 2 sqrt(2) L_v / lambda + c_r 2 k s / L_v is least at
-    L_v* = sqrt(k (c_r / c_p) s lambda / sqrt(2)): it grows as the square root of the mean free path and of the
-    flight per step. The constant is measured (NVIDIA H200, `python -m bench loop_ab --variants skin=L`, rough and
-    elastic spheres, the random start; docs/performance.md "The Verlet skin of large scenes"): at 2M and 8M spheres,
-    phi = 0.058, the fastest skin was 0.1-0.15 a (0.8 a, the general rule's, x0.77-0.83 of it); at phi = 0.2,
-    0.1 a (the rule's 0.34 a x0.86-0.87). Below LARGE_SCENE_PARTICLES['cuda'] the rebuild's fixed cost (launches,
-    the many-steps loop's return to the host) weighs more: at 32 768 spheres, phi = 0.058, the skins 0.1-0.8 a ran
-    within 8 % of one another, so small GPU scenes keep the general rule. The CPU, one thread, 32 768 spheres: 0.1 a
-    ran x1.7-1.9 of the general rule's 0.4 a at phi = 0.058 and 0.05-0.1 a x1.6-1.95 of its 0.2 a at phi = 0.2.
+    (a cost c_p each), and a rebuild (c_r per particle and a fixed F) comes every L_v / (2 k s) steps (k s: the
+    fastest particle's flight a step). The sum c_p 2 sqrt(2) L_v / lambda + (c_r + F / N) 2 k s / L_v is least at
+    L_v* = sqrt(k ((c_r + F / N) / c_p) s lambda / sqrt(2)): it grows as the square root of the mean free path, of
+    the flight per step and of 1 + N_0 / N with N_0 = F / c_r. The constants are measured (NVIDIA H200, `python -m
+    bench loop_ab --variants skin=L`, rough and elastic spheres, the random start, the list build in row runs;
+    docs/performance.md "The Verlet skin of large scenes"): at 2M and 8M spheres, phi = 0.058, the fastest skins
+    were 0.035-0.05 a (0.12 a x0.94-0.96 of them, 0.8 a about x0.8); at phi = 0.2 0.03-0.05 a; at 131 072 spheres,
+    where a rebuild's launches weigh more, 0.075-0.12 a (0.05 a x0.92). Below LARGE_SCENE_PARTICLES['cuda'] small
+    GPU scenes keep the general rule (at 32 768 spheres, phi = 0.058, the skins 0.1-0.8 a ran within 8 % of one
+    another). The CPU, one thread, 32 768 spheres: 0.1 a ran x1.7-1.9 of the general rule's 0.4 a at phi = 0.058
+    and 0.05-0.1 a x1.6-1.95 of its 0.2 a at phi = 0.2.
     """
     scale = (mean_free_path_radii / LARGE_SCENE_MEAN_FREE_PATH) * (step_radii / LARGE_SCENE_STEP_RADII)
-    return max(LARGE_SCENE_SKIN_FLOOR, LARGE_SCENE_SKIN * math.sqrt(scale))
+    n0 = LARGE_SCENE_REBUILD_PARTICLES[backend]
+    if n0 and n_particles:
+        scale *= 1.0 + n0 / n_particles
+    return max(LARGE_SCENE_SKIN_FLOOR[backend], LARGE_SCENE_SKIN[backend] * math.sqrt(scale))
 
 
 def largest_default_verlet_skin(backend: str, shape: str = "sphere",
@@ -339,27 +355,35 @@ def step_radii(spec) -> float:
     return spec.velocity_rms * sc.dt / sc.radius_min
 
 
-def verlet_skin_radii(spec, backend: str) -> float:
-    """The Verlet skin L_v (radii) a run of ``spec`` on ``backend`` uses: the spec's, or the backend's default."""
+def verlet_skin_radii(spec, backend: str, pack_particles: Optional[int] = None) -> float:
+    """The Verlet skin L_v (radii) a run of ``spec`` on ``backend`` uses: the spec's, or the backend's default.
+
+    ``pack_particles``: the particles of every scene packed with this one into one CUDA ensemble, whose lists are
+    rebuilt together (engine.driver.ensemble.run_ensemble); the large-scene rule then counts them, not the scene's
+    own: the rebuild's cost is the pack's. The skin changes the cost only, never the equations a scene integrates."""
     if spec.verlet_skin is not None:
         return spec.verlet_skin
-    return default_verlet_skin(backend, spec.shape, spec.volume_fraction, spec.n_particles, step_radii(spec))
+    n = spec.n_particles if pack_particles is None else max(spec.n_particles, pack_particles)
+    return default_verlet_skin(backend, spec.shape, spec.volume_fraction, n, step_radii(spec))
 
 
-def _skin_length(spec, backend: str, semi_min: float, smallest_over_radius: Optional[float]) -> float:
+def _skin_length(spec, backend: str, semi_min: float, smallest_over_radius: Optional[float],
+                 pack_particles: Optional[int] = None) -> float:
     """The skin in m: L_v radii (:func:`verlet_skin_radii`) of the smallest semi-axis ``semi_min`` (the radius of a
     sphere); species (``smallest_over_radius`` = R_min / R_max): of the smallest radius (module doc)."""
-    skin = verlet_skin_radii(spec, backend) * semi_min
+    skin = verlet_skin_radii(spec, backend, pack_particles) * semi_min
     if smallest_over_radius is not None:
         skin *= smallest_over_radius
     return skin
 
 
-def with_backend(p: Derived, spec, backend: str) -> Derived:
+def with_backend(p: Derived, spec, backend: str, pack_particles: Optional[int] = None) -> Derived:
     """``p = derive(spec)`` with the skin and the cutoff of the resolved ``backend`` ('cpu' or 'cuda'): the only
-    derived numbers that depend on it (a null ``verlet_skin`` is that backend's default)."""
+    derived numbers that depend on it (a null ``verlet_skin`` is that backend's default; ``pack_particles``: as
+    :func:`verlet_skin_radii`)."""
     species = species_table(spec) is not None
-    skin = _skin_length(spec, backend, min(p.semi_axes), min(p.species_radius) / p.radius if species else None)
+    skin = _skin_length(spec, backend, min(p.semi_axes), min(p.species_radius) / p.radius if species else None,
+                        pack_particles)
     return replace(p, skin=skin, cutoff=2.0 * max(p.semi_axes) + skin)
 
 

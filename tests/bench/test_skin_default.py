@@ -94,6 +94,40 @@ def test_ensemble_scenes_resolve_per_scene(tmp_path):
     assert got == [0.4, 0.6]
 
 
+def test_cuda_pack_takes_the_skin_of_its_particles(tmp_path):
+    """A CUDA pack rebuilds its scenes' lists together: the large-scene rule counts the pack's particles (256 scenes
+    of 4096 spheres: the skin of one scene of 2^20); a lone scene and the CPU (each scene its own lists) do not."""
+    from engine.setup.params import large_scene_skin, step_radii
+
+    small = _large(4096)
+    packed = SceneRun(small, tmp_path / "p.h5", backend="cuda", pack_particles=1 << 20)
+    want = large_scene_skin(mean_free_path(0.058), step_radii(small), "cuda", 1 << 20)
+    assert packed.verlet_skin == want < 0.1
+    assert packed.p.skin == pytest.approx(want * packed.p.radius, rel=1e-14) and packed.cool.skin == packed.p.skin
+    assert SceneRun(small, tmp_path / "a.h5", backend="cuda").verlet_skin == 0.8
+    assert SceneRun(small, tmp_path / "c.h5", backend="cpu", pack_particles=1 << 20).verlet_skin == 0.4
+    explicit = small.model_copy(update={"verlet_skin": 0.6})
+    assert SceneRun(explicit, tmp_path / "e.h5", backend="cuda", pack_particles=1 << 20).verlet_skin == 0.6
+
+
+def test_run_ensemble_counts_the_pack(tmp_path, monkeypatch):
+    """run_ensemble hands every scene the particles of the whole pack."""
+    import engine.driver.ensemble as ens
+    from engine.errors import SpecError
+
+    seen = []
+
+    class Spy:
+        def __init__(self, spec, output, **kw):
+            seen.append(kw["pack_particles"])
+            raise SpecError("spied")
+
+    monkeypatch.setattr(ens, "SceneRun", Spy)
+    specs = [SimulationSpec(**{**TINY, "n_particles": n}) for n in (64, 100, 36)]
+    res = run_ensemble(specs, [tmp_path / f"{k}.h5" for k in range(3)])
+    assert all(isinstance(r, SpecError) for r in res) and seen == [200, 200, 200]
+
+
 def test_box_check_uses_the_largest_default():
     # 13 spheres at phi = 0.1 in a box of 8.17 radii: 3 neighbour cutoffs are 7.2 a at L_v = 0.4 a, 8.4 a at 0.8 a
     tight = dict(n_particles=13, volume_fraction=0.1, box_length=0.2, velocity_rms=0.5)
@@ -227,13 +261,20 @@ def test_dense_skin_in_result_parameters(tmp_path):
 # ---- the large-scene rule (spheres, N >= LARGE_SCENE_PARTICLES[backend]) -------------------------------------------
 
 def test_large_scene_skin_formula():
-    """L_v = max(0.1, 0.12 sqrt((lambda / 3.5) (s / 5e-5))): the reference gas, the square roots, the floor."""
+    """L_v = max(L_min, L_0 sqrt((lambda / 3.5) (s / 5e-5) (1 + N_0 / N))): the reference gas, the square roots, the
+    rebuild's fixed cost spread over N (CUDA only), the floor; per backend."""
     from engine.setup.params import large_scene_skin
 
-    assert large_scene_skin(3.5, 5e-5) == pytest.approx(0.12, rel=1e-12)
-    assert large_scene_skin(4 * 3.5, 5e-5) == pytest.approx(0.24, rel=1e-12)       # sqrt of the mean free path
-    assert large_scene_skin(3.5, 4 * 5e-5) == pytest.approx(0.24, rel=1e-12)       # sqrt of the flight per step
-    assert large_scene_skin(mean_free_path(0.2), 5e-5) == 0.1                     # the floor
+    big = 1 << 40       # N_0 / N = 5e-7: the square root within 3e-7 of the N-free value
+    for backend, l0, floor in (("cuda", 0.045, 0.03), ("cpu", 0.12, 0.1)):
+        assert large_scene_skin(3.5, 5e-5, backend, big) == pytest.approx(l0, rel=1e-6)
+        assert large_scene_skin(4 * 3.5, 5e-5, backend, big) == pytest.approx(2 * l0, rel=1e-6)   # sqrt of lambda
+        assert large_scene_skin(3.5, 4 * 5e-5, backend, big) == pytest.approx(2 * l0, rel=1e-6)   # sqrt of s
+        assert large_scene_skin(mean_free_path(0.3), 5e-5, backend, big) == floor                 # the floor
+    # CUDA: 1 + N_0 / N with N_0 = 2^19; the CPU counts no fixed cost
+    assert large_scene_skin(3.5, 5e-5, "cuda", 1 << 19) == pytest.approx(0.045 * math.sqrt(2), rel=1e-12)
+    assert large_scene_skin(3.5, 5e-5, "cuda", 1 << 17) == pytest.approx(0.045 * math.sqrt(5), rel=1e-12)
+    assert large_scene_skin(3.5, 5e-5, "cpu", 1 << 15) == pytest.approx(0.12, rel=1e-12)
 
 
 def test_step_radii_is_the_rms_flight_per_step():
@@ -256,8 +297,8 @@ def test_large_scenes_take_the_large_scene_rule(backend, general):
 
     n = LARGE_SCENE_PARTICLES[backend]
     big = _large(n)
-    want = large_scene_skin(mean_free_path(0.058), step_radii(big))
-    assert 0.1 < want < 0.2
+    want = large_scene_skin(mean_free_path(0.058), step_radii(big), backend, n)
+    assert 0.05 < want < 0.2
     assert verlet_skin_radii(big, backend) == want
     p = derive(big.model_copy(update={"backend": backend}))
     assert p.skin == pytest.approx(want * p.radius, rel=1e-14)
@@ -283,14 +324,18 @@ def test_the_thresholds():
 
 def test_large_scene_rule_never_thickens_the_skin():
     """The spec's box check knows the general rule (largest_default_verlet_skin): the large-scene rule stays under it
-    at every phi and flight per step."""
+    at every phi, flight per step and N."""
+    from engine.setup.params import LARGE_SCENE_SKIN_FLOOR
+
     for backend in ("cuda", "cpu"):
         for k in range(1, 600, 7):
             phi = k / 1000.0
             general = default_verlet_skin(backend, "sphere", phi)
             for s in (1e-6, 5e-5, 1e-3, 1e-1):
-                got = default_verlet_skin(backend, "sphere", phi, 1 << 22, s)
-                assert 0.1 <= got <= general <= largest_default_verlet_skin("auto", "sphere", phi)
+                for n in (1 << 17, 1 << 22, 1 << 30):
+                    got = default_verlet_skin(backend, "sphere", phi, n, s)
+                    assert LARGE_SCENE_SKIN_FLOOR[backend] <= got <= general <= largest_default_verlet_skin(
+                        "auto", "sphere", phi)
 
 
 def large_skin_table(backend: str) -> list[dict]:

@@ -135,3 +135,28 @@ def test_quick_side_by_side(tmp_path):
     md = (tmp_path / "results.md").read_text()
     assert "| elastic-2M-f64-phi0.2 | 4096 | 0.2 | float64 | 3000 |" in md
     assert "rough-coulomb-2M-f64-phi0.2 (vs elastic JAX-MD)" in md
+
+
+def test_start_memo_hands_out_copies_made_before_the_clock():
+    """The second run gets the first run's start, copied by prepare() before its timing starts: equal values, its own
+    arrays (a run may write into them), and a call without prepare() still copies."""
+    from engine.setup.spec import SimulationSpec
+
+    calls = []
+    memo = vs_jaxmd.StartMemo()
+    try:
+        draw = memo.draw
+        memo.draw = lambda spec, p, on_device: calls.append(1) or draw(spec, p, on_device)
+        spec = SimulationSpec(n_particles=512, volume_fraction=0.058, start="random", backend="cpu")
+        p = derive(spec)
+        first = memo(spec, p)
+        memo.prepare()
+        ready = memo.ready[memo.key(spec)]
+        second = memo(spec, p)
+        assert second is ready and memo.ready == {} and calls == [1]
+        third = memo(spec, p)
+        for s in (first, second, third):
+            assert np.array_equal(s.position, memo.starts[memo.key(spec)].position)
+        assert len({id(s.position) for s in (first, second, third, memo.starts[memo.key(spec)])}) == 4
+    finally:
+        memo.close()
