@@ -118,6 +118,12 @@ def xref_margin(box: float, xref_dtype, pos_dtype) -> float:
     return math.sqrt(3.0) * 2.0 ** -24 * float(box)
 
 
+def float32_reference_skin(box: float) -> float:
+    """The thinnest skin (m) for which float64 positions in a box of ``box`` m keep a float32 x_ref (:func:`xref_dtype`:
+    its rounding at most XREF_MARGIN_SHARE of L_v / 2), with a relative 1e-9 to spare for the rounding of the test."""
+    return xref_margin(box, np.float32, np.float64) / (XREF_MARGIN_SHARE * 0.5) * (1.0 + 1e-9)
+
+
 def xref_dtype(pos_dtype, boxes, skins):
     """The type of the list's reference positions x_ref: float32 where the positions are float64 (float64 and mixed
     precision: 12 B a particle less) and its rounding takes at most XREF_MARGIN_SHARE of the Verlet rule's limit

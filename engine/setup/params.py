@@ -252,11 +252,14 @@ def mean_free_path(volume_fraction: float) -> float:
 
 
 def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Optional[float] = None,
-                        n_particles: Optional[int] = None, step_radii: Optional[float] = None) -> float:
+                        n_particles: Optional[int] = None, step_radii: Optional[float] = None,
+                        large_scene_floor: float = 0.0) -> float:
     """The skin (radii) a null ``verlet_skin`` means on ``backend`` ('cpu' or 'cuda', already resolved)
     at volume fraction ``volume_fraction`` (a species spec: the total phi; the skin then counts in radii
     of the smallest species, engine.setup.params), for a scene of ``n_particles`` whose rms speed moves
-    ``step_radii`` radii a step (:func:`step_radii`; either None: the general rule alone).
+    ``step_radii`` radii a step (:func:`step_radii`; either None: the general rule alone); ``large_scene_floor``
+    (radii): the thinnest skin the large-scene rule may give (:func:`verlet_skin_radii`: a CUDA scene of float64
+    positions keeps its float32 list reference).
 
     Large scenes (spheres, n_particles >= LARGE_SCENE_PARTICLES[backend]; a CUDA pack: its particles): the smaller
     of the general rule below and :func:`large_scene_skin`, so the large-scene rule only ever thins the skin (the spec's box check, which
@@ -298,7 +301,7 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
     else:
         skin = max(DEFAULT_SKIN_FLOOR, top * lam / DEFAULT_SKIN_MEAN_FREE_PATH)
     if _large_scene(backend, n_particles) and step_radii is not None:
-        return min(skin, large_scene_skin(lam, step_radii, backend, n_particles))
+        return min(skin, max(large_scene_floor, large_scene_skin(lam, step_radii, backend, n_particles)))
     return skin
 
 
@@ -364,7 +367,20 @@ def verlet_skin_radii(spec, backend: str, pack_particles: Optional[int] = None) 
     if spec.verlet_skin is not None:
         return spec.verlet_skin
     n = spec.n_particles if pack_particles is None else max(spec.n_particles, pack_particles)
-    return default_verlet_skin(backend, spec.shape, spec.volume_fraction, n, step_radii(spec))
+    return default_verlet_skin(backend, spec.shape, spec.volume_fraction, n, step_radii(spec),
+                               _float32_reference_floor(spec, backend))
+
+
+def _float32_reference_floor(spec, backend: str) -> float:
+    """The thinnest skin (radii of the smallest sphere) at which a CUDA scene of float64 positions (float64 and mixed
+    precision) keeps its list reference x_ref in float32 (engine/loops/cuda_memory.py ``xref_dtype``: 12 B a
+    particle less; a float64 x_ref would make the largest scenes that fit smaller). 0 elsewhere. It binds only in
+    boxes of thousands of radii: about 0.045 a at 5e8 spheres, phi = 0.058."""
+    if backend != "cuda" or spec.precision == "float32":
+        return 0.0
+    from engine.loops.cuda_memory import float32_reference_skin
+
+    return float32_reference_skin(spec.box_length) / scales(spec).radius_min
 
 
 def _skin_length(spec, backend: str, semi_min: float, smallest_over_radius: Optional[float],

@@ -110,6 +110,34 @@ def test_cuda_pack_takes_the_skin_of_its_particles(tmp_path):
     assert SceneRun(explicit, tmp_path / "e.h5", backend="cuda", pack_particles=1 << 20).verlet_skin == 0.6
 
 
+def test_huge_float64_scenes_keep_a_float32_list_reference():
+    """The large-scene rule does not thin the skin of a CUDA scene of float64 positions below the skin at which its
+    list reference x_ref stays float32 (12 B a particle less): at 6.5e8 spheres, phi = 0.058, the rule alone would
+    make x_ref float64. float32 positions, the CPU and scenes of a few million spheres take the rule as it is."""
+    import numpy as np
+
+    from engine.loops.cuda_memory import xref_dtype
+    from engine.setup.params import large_scene_skin, step_radii, verlet_skin_radii, with_backend
+
+    def spec(n, precision):
+        return SimulationSpec(n_particles=n, volume_fraction=0.058, precision=precision, backend="cuda",
+                              box_length=2.0, stiffness=1e8, density=2000.0, velocity_rms=2.0, start="random")
+
+    huge = spec(650_000_000, "float64")
+    rule = large_scene_skin(mean_free_path(0.058), step_radii(huge), "cuda", huge.n_particles)
+    p = derive(huge)
+    assert xref_dtype(np.float64, [huge.box_length], [rule * p.radius]) == np.float64      # the rule alone
+    got = verlet_skin_radii(huge, "cuda")
+    assert rule < got < 0.8
+    assert xref_dtype(np.float64, [huge.box_length], [with_backend(p, huge, "cuda").skin]) == np.float32
+    assert verlet_skin_radii(spec(650_000_000, "mixed"), "cuda") == got
+    assert verlet_skin_radii(spec(650_000_000, "float32"), "cuda") == rule
+    assert verlet_skin_radii(huge, "cpu") == large_scene_skin(mean_free_path(0.058), step_radii(huge), "cpu")
+    small = spec(1 << 21, "float64")
+    assert verlet_skin_radii(small, "cuda") == large_scene_skin(mean_free_path(0.058), step_radii(small), "cuda",
+                                                                  small.n_particles)
+
+
 def test_run_ensemble_counts_the_pack(tmp_path, monkeypatch):
     """run_ensemble hands every scene the particles of the whole pack."""
     import engine.driver.ensemble as ens
