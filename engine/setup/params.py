@@ -374,8 +374,8 @@ def verlet_skin_radii(spec, backend: str, pack_particles: Optional[int] = None) 
 def _float32_reference_floor(spec, backend: str) -> float:
     """The thinnest skin (radii of the smallest sphere) at which a CUDA scene of float64 positions (float64 and mixed
     precision) keeps its list reference x_ref in float32 (engine/loops/cuda_memory.py ``xref_dtype``: 12 B a
-    particle less; a float64 x_ref would make the largest scenes that fit smaller). 0 elsewhere. It binds only in
-    boxes of thousands of radii: about 0.045 a at 5e8 spheres, phi = 0.058."""
+    particle less; a float64 x_ref would make the largest scenes that fit smaller). 0 elsewhere. It is 1.32e-5 of the
+    box: above the CUDA rule's floor of 0.03 a only in boxes of more than 2270 radii (1.6e8 spheres at phi = 0.058)."""
     if backend != "cuda" or spec.precision == "float32":
         return 0.0
     from engine.loops.cuda_memory import float32_reference_skin
