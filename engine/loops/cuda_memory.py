@@ -13,6 +13,8 @@ from typing import Optional
 
 import numpy as np
 
+from engine.setup.precision import XREF_MARGIN_SHARE, float32_copy_error
+
 
 def _allocation(a):
     """(key, bytes) of the allocation that device array ``a`` lives in (a view counts as its base), or None
@@ -104,24 +106,14 @@ def lends_cell_counts(ncell: int, n: int, hist_words: int, word: int) -> bool:
     return 4 * (ncell + 1) <= hist_words * (n + HIST_MARGIN) * word
 
 
-#: the largest part of the Verlet rule's limit L_v / 2 that a float32 x_ref's rounding may take (:func:`xref_dtype`)
-XREF_MARGIN_SHARE = 1.0 / 64.0
-
-
 def xref_margin(box: float, xref_dtype, pos_dtype) -> float:
     """Bound (m) on the distance between a position in [0, box) and x_ref's copy of it: 0 where x_ref has the
-    positions' type, else sqrt(3) 2^-24 box for float32 (half an ulp of a coordinate below box, on each axis). The
-    Verlet rule subtracts it from its limit: a displacement measured against the rounded x_ref below
-    L_v / 2 - margin leaves the true one below L_v / 2."""
+    positions' type, else sqrt(3) 2^-24 box for float32 (engine.setup.precision ``float32_copy_error``). The Verlet
+    rule subtracts it from its limit: a displacement measured against the rounded x_ref below L_v / 2 - margin leaves
+    the true one below L_v / 2."""
     if np.dtype(xref_dtype) == np.dtype(pos_dtype):
         return 0.0
-    return math.sqrt(3.0) * 2.0 ** -24 * float(box)
-
-
-def float32_reference_skin(box: float) -> float:
-    """The thinnest skin (m) for which float64 positions in a box of ``box`` m keep a float32 x_ref (:func:`xref_dtype`:
-    its rounding at most XREF_MARGIN_SHARE of L_v / 2), with a relative 1e-9 to spare for the rounding of the test."""
-    return xref_margin(box, np.float32, np.float64) / (XREF_MARGIN_SHARE * 0.5) * (1.0 + 1e-9)
+    return float32_copy_error(box)
 
 
 def xref_dtype(pos_dtype, boxes, skins):

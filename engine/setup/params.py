@@ -38,7 +38,7 @@ from typing import Optional
 
 import numpy as np
 
-from engine.setup.precision import position_dtype, state_dtype
+from engine.setup.precision import float32_reference_skin, position_dtype, state_dtype
 from engine.setup.scales import (Q_SPHERE, SpeciesTable, radius_from_volume_fraction, scales,  # noqa: F401
                                  species_counts, species_table)
 from engine.setup.start_kind import start_protocol, thermalization_collisions
@@ -262,8 +262,8 @@ def default_verlet_skin(backend: str, shape: str = "sphere", volume_fraction: Op
     positions keeps its float32 list reference).
 
     Large scenes (spheres, n_particles >= LARGE_SCENE_PARTICLES[backend]; a CUDA pack: its particles): the smaller
-    of the general rule below and :func:`large_scene_skin`, so the large-scene rule only ever thins the skin (the spec's box check, which
-    knows the general rule, stays an upper bound).
+    of the general rule below and :func:`large_scene_skin`, so the large-scene rule only ever thins the skin (the
+    spec's box check, which knows the general rule, stays an upper bound).
 
     Rule (spheres): L_v = clamp(L_max lambda / lambda_0, 0.2, L_max), with lambda = mean_free_path(phi),
     lambda_0 = DEFAULT_SKIN_MEAN_FREE_PATH = 1.6 radii and L_max = DEFAULT_VERLET_SKIN[backend] (0.4 CPU,
@@ -378,8 +378,6 @@ def _float32_reference_floor(spec, backend: str) -> float:
     box: above the CUDA rule's floor of 0.03 a only in boxes of more than 2270 radii (1.6e8 spheres at phi = 0.058)."""
     if backend != "cuda" or spec.precision == "float32":
         return 0.0
-    from engine.loops.cuda_memory import float32_reference_skin
-
     return float32_reference_skin(spec.box_length) / scales(spec).radius_min
 
 

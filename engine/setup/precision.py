@@ -16,6 +16,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 PRECISIONS = ("float64", "float32", "mixed")
@@ -49,3 +51,20 @@ def check_shape(precision: str, shape: str) -> None:
         which = " or ".join(repr(k) for k in SHAPES if traits(k).MIXED)
         raise ValueError(f"precision = 'mixed' is implemented for shape {which} only, got shape {shape!r}; "
                          f"use 'float64' or 'float32'")
+
+
+#: the largest part of the Verlet rule's limit L_v / 2 that the rounding of a float32 list reference x_ref of float64
+#: positions may take (engine/loops/cuda_memory.py ``xref_dtype``)
+XREF_MARGIN_SHARE = 1.0 / 64.0
+
+
+def float32_copy_error(box: float) -> float:
+    """Bound (m) on the distance between a position in [0, box) and its float32 copy: sqrt(3) 2^-24 box (half an ulp
+    of a coordinate below box, on each axis)."""
+    return math.sqrt(3.0) * 2.0 ** -24 * float(box)
+
+
+def float32_reference_skin(box: float) -> float:
+    """The thinnest skin (m) for which float64 positions in a box of ``box`` m keep a float32 x_ref (its rounding at
+    most XREF_MARGIN_SHARE of L_v / 2), with a relative 1e-9 to spare for the rounding of that test."""
+    return float32_copy_error(box) / (XREF_MARGIN_SHARE * 0.5) * (1.0 + 1e-9)
