@@ -13,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-from engine.setup.precision import XREF_MARGIN_SHARE, float32_copy_error
+from engine.setup.precision import float32_copy_error, float32_reference_fits
 
 
 def _allocation(a):
@@ -123,7 +123,7 @@ def xref_dtype(pos_dtype, boxes, skins):
     pos_dtype = np.dtype(pos_dtype)
     if pos_dtype != np.float64:
         return pos_dtype
-    if all(xref_margin(b, np.float32, pos_dtype) <= XREF_MARGIN_SHARE * 0.5 * float(v) for b, v in zip(boxes, skins)):
+    if all(float32_reference_fits(b, v) for b, v in zip(boxes, skins)):
         return np.dtype(np.float32)
     return pos_dtype
 

@@ -64,7 +64,13 @@ def float32_copy_error(box: float) -> float:
     return math.sqrt(3.0) * 2.0 ** -24 * float(box)
 
 
+def float32_reference_fits(box: float, skin: float) -> bool:
+    """Whether float64 positions in a box of ``box`` m may keep their list reference x_ref in float32 at skin ``skin``
+    (m): its rounding takes at most XREF_MARGIN_SHARE of the Verlet rule's limit L_v / 2."""
+    return float32_copy_error(box) <= XREF_MARGIN_SHARE * 0.5 * float(skin)
+
+
 def float32_reference_skin(box: float) -> float:
-    """The thinnest skin (m) for which float64 positions in a box of ``box`` m keep a float32 x_ref (its rounding at
-    most XREF_MARGIN_SHARE of L_v / 2), with a relative 1e-9 to spare for the rounding of that test."""
+    """The thinnest skin (m) at which :func:`float32_reference_fits`, with a relative 1e-9 to spare for the rounding
+    of that test."""
     return float32_copy_error(box) / (XREF_MARGIN_SHARE * 0.5) * (1.0 + 1e-9)

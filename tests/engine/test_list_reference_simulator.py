@@ -68,7 +68,8 @@ def test_the_float32_list_reference_keeps_the_verlet_rule():
 
 
 def test_the_reference_type_follows_the_box_against_the_skin():
-    from engine.loops.cuda_memory import XREF_MARGIN_SHARE, xref_dtype, xref_margin
+    from engine.loops.cuda_memory import xref_dtype, xref_margin
+    from engine.setup.precision import XREF_MARGIN_SHARE, float32_reference_fits, float32_reference_skin
 
     skin = 1e-3
     # the largest box whose float32 rounding takes at most XREF_MARGIN_SHARE of L_v / 2
@@ -76,6 +77,10 @@ def test_the_reference_type_follows_the_box_against_the_skin():
     assert xref_dtype(np.float64, [0.99 * edge], [skin]) == np.float32
     assert xref_dtype(np.float64, [0.99 * edge, 1.01 * edge], [skin, skin]) == np.float64   # every scene must fit
     assert xref_dtype(np.float32, [1e9], [skin]) == np.float32
+    # the skin floor of the large-scene rule (engine.setup.params) is the thinnest skin that fits
+    for box in (0.5, 2.0, 37.0):
+        thinnest = float32_reference_skin(box)
+        assert float32_reference_fits(box, thinnest) and not float32_reference_fits(box, thinnest * (1 - 1e-6))
     assert xref_margin(1.0, np.float64, np.float64) == xref_margin(1.0, np.float32, np.float32) == 0.0
     # the bound against float32 rounding of coordinates across [0, box)
     rng = np.random.default_rng(1)
