@@ -25,7 +25,9 @@ kick-drift measures displacements against x_ref, engine/loops/cuda_stepping.py),
 instead of the fused force-and-kick-drift kernel, engine/loops/cuda_stepping.py), ``multistep_fused`` (two passes
 and two grid syncs a step in the many-steps kernel instead of one, engine/loops/cuda_stepping.py),
 ``observe_in_forces`` (a lone smooth-sphere scene's records by the closing half kick and the observe kernel instead of
-the last force pass of each advance call, engine/loops/cuda_stepping.py). Not for the
+the last force pass of each advance call, engine/loops/cuda_stepping.py), ``direct_launch`` (the launch cache hands its
+argument lists to cuda.core's launch instead of calling the driver's cuLaunchKernel itself,
+engine/loops/cuda_launch.py). Not for the
 worker cases, whose jobs run in processes of the service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
@@ -91,6 +93,7 @@ SWITCHES = {
     "multistep_fused": ("engine.loops.cuda_stepping", "MULTISTEP_FUSED", False),
     "observe_in_forces": ("engine.loops.cuda_stepping", "OBSERVE_IN_FORCES", False),
     "skip_cold": ("engine.loops.cuda_loop", "SKIP_COLD", False),
+    "direct_launch": ("engine.loops.cuda_launch", "DIRECT", False),
 }
 
 

@@ -134,6 +134,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._horizon: Optional[int] = None     # the driver's plan: the run ends about here (plan())
         self._call_end: Optional[int] = None    # the current advance call ends here
         self._status_copiers = None             # per pinned status slot: copy + event record (TimeLoop._status_copy)
+        self._status_waits = None               # per pinned status slot: the wait for its event (TimeLoop._wait_status)
         self._carry = None                      # (step, builds, bound, speed) at the last per-phase call's end
         self._last_kick = None                  # what _close_call reads of that call's last kick-drift
         self._open = False                      # velocities half a step behind the positions (TimeLoop._close)

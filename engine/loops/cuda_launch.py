@@ -5,12 +5,14 @@ At N = 2M the per-step loop waits on the host: numba-cuda types every argument o
 loop's per-step kernels, with 20 to 28 arguments (one a tuple of arrays), that costs more host time per step than
 the kernels take on an H100 (docs/performance.md, "GPU: the time loop").
 
-:class:`LaunchCache` keeps, per kernel and set of argument arrays, the flattened argument list that numba-cuda's
-launch builds, made once for the first launch with those arrays. A later launch with the same arrays (the same
-Python objects, so the same device pointers) only replaces the scalar arguments (n, step, ...) and hands the list to
-cuda.core's ``launch``, as numba-cuda's own ``_Kernel.launch`` does. Same kernel, same argument values, same stream: the
-results are bit-identical (tests/gpu/test_cuda_gpu.py runs both ways). The numba-cuda internals it needs are
-engine/numba_support/numba_internals.py's (:func:`engine.numba_support.numba_internals.prepare_launch`).
+:class:`LaunchCache` keeps, per kernel and set of argument arrays, the flattened argument list that numba-cuda's launch
+builds, made once for the first launch with those arrays. A later launch with the same arrays (the same Python objects,
+so the same device pointers) only replaces the scalar arguments (n, step, ...) and hands the list to cuda.core's
+``launch``, as numba-cuda's own ``_Kernel.launch`` does. Same kernel, same argument values, same stream: the results are
+bit-identical (tests/gpu/test_cuda_gpu.py runs both ways). Where it can (``DIRECT``), an entry also holds the argument
+list as a parameter array of ctypes values and launches through the driver's ``cuLaunchKernel`` itself, refilling the
+scalars in place: cuda.core's launch converts every argument again at every launch. The numba-cuda internals it needs
+are engine/numba_support/numba_internals.py's (:func:`engine.numba_support.numba_internals.prepare_launch`).
 
 Not used (every launch goes through numba-cuda) under the CUDA simulator, with ``ENABLED`` False (bench/e2e.py
 ``--off launch_cache``), for a kernel that is launch-config sensitive, compiled with debug, or has pre-launch
@@ -29,6 +31,11 @@ from engine.loops.cuda_cache import SIM
 
 #: False: every launch goes through numba-cuda's dispatcher (bench/e2e.py --off launch_cache)
 ENABLED = True
+#: True: a cached launch calls the driver's cuLaunchKernel with a parameter array built once per entry
+#: (engine.numba_support.numba_internals.direct_launch) instead of handing the argument list to cuda.core's launch,
+#: which converts every one of the 200-odd flattened arguments at every launch (about 20 us of Python a launch; the
+#: per-phase loop at 2^20 particles waited on it). False: cuda.core's launch (bench/e2e.py --off direct_launch).
+DIRECT = True
 
 _SCALAR = (bool, int, float, np.integer, np.floating, np.bool_)
 #: the scalar types the loop passes, recognised by one set lookup (others by isinstance, :func:`_ident`)
@@ -49,6 +56,32 @@ def _ident(a):
     if isinstance(a, tuple):
         return ("t",) + tuple(map(_ident, a))
     return id(a)
+
+
+#: the types of a launch's arguments -> (positions of its scalars, positions of its tuples): made once per combination
+#: of types (a call site passes the same types at every launch), so that :func:`_args_key` calls Python per scalar and
+#: per tuple only, not per argument
+_LAYOUTS: dict = {}
+
+
+def _args_key(args: tuple) -> tuple:
+    """Cache-key part of a launch's arguments: their types, then each one's identity, a scalar's as 0 (its value is
+    filled in per launch) and a tuple's element by element (:func:`_ident`). It tells apart what
+    ``tuple(map(_ident, args))`` does (a scalar's type is among the types), with builtins mapped over the arguments
+    instead of a Python call for each: about half the host time of a launch of the loop's kernels went to that."""
+    types = tuple(map(type, args))
+    layout = _LAYOUTS.get(types)
+    if layout is None:
+        kinds = [_ident(a) for a in args]
+        layout = _LAYOUTS[types] = (tuple(p for p, k in enumerate(kinds) if type(k) is tuple and k[0] == "s"),
+                                    tuple(p for p, k in enumerate(kinds) if type(k) is tuple and k[0] == "t"))
+    scalars, tuples = layout
+    ids = list(map(id, args))
+    for p in scalars:
+        ids[p] = 0
+    for p in tuples:
+        ids[p] = _ident(args[p])
+    return types + tuple(ids)
 
 
 def _weak_arrays(args) -> tuple:
@@ -88,6 +121,8 @@ class LaunchCache:
         self.given_up: set = set()
         self.hits = 0
         self.misses = 0
+        self.direct = 0         # launches through the entry's direct driver call (DIRECT)
+        self.direct_off_reason = None   # why the last entry prepared without one has none
 
     def launch(self, name: str, dispatcher, config: tuple, args: tuple) -> None:
         """Launch ``dispatcher[config](*args)``, through the cache when possible. config: (grid, block, stream)."""
@@ -99,7 +134,7 @@ class LaunchCache:
             return
         # the dispatcher is part of the key: a scene that changes its specialisation (a contact law switched on
         # after the thermalisation) launches the new kernel under the same name with the same arrays
-        key = (id(dispatcher), config[0], config[1], id(config[2])) + tuple(map(_ident, args))
+        key = (id(dispatcher), config[0], config[1], id(config[2])) + _args_key(args)
         per = self.entries.setdefault(name, OrderedDict())
         entry = per.get(key)
         if entry is not None and not _alive(entry):
@@ -111,6 +146,11 @@ class LaunchCache:
         else:
             per.move_to_end(key)
             self.hits += 1
+        go = entry[6]
+        if callable(go):
+            go(args)
+            self.direct += 1
+            return
         core_launch, stream, launch_config, kernel, kargs, slots = entry[:6]
         for pos, slot, ctype in slots:
             kargs[slot] = ctype(args[pos]) if ctype is not None else args[pos]
@@ -141,7 +181,11 @@ class LaunchCache:
         for old in [k for k, e in per.items() if not _alive(e)]:
             del per[old]
         try:
-            entry = None if entry is None else entry[:6] + (dispatcher, _weak_arrays(args))  # (holds its id)
+            if entry is not None:
+                go = entry[6] if len(entry) > 6 else "not prepared"
+                if not callable(go):
+                    self.direct_off_reason = go
+                entry = entry[:6] + (go, dispatcher, _weak_arrays(args))  # (holds the dispatcher's id)
         except TypeError:   # an argument that takes no weak reference: not cached
             entry = None
         if entry is not None:
@@ -160,4 +204,4 @@ class LaunchCache:
         must not be used for this kernel."""
         from engine.numba_support.numba_internals import prepare_launch
 
-        return prepare_launch(dispatcher, config, args, _SCALAR)
+        return prepare_launch(dispatcher, config, args, _SCALAR, direct=DIRECT)

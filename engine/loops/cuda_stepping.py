@@ -353,13 +353,13 @@ class TimeLoop:
                 rebuild = bound + u_last > 1.0
             elif prev is None:
                 # first step of the call: this step's displacement is known exactly (the GPU catches up first)
-                self.events[slot].synchronize()
+                self._wait_status(slot)
                 h = self.status_h[slot]
                 d2 = h[K.S_D2]
                 bound = math.sqrt(d2)
                 rebuild = bound > 1.0
             else:
-                self.events[prev].synchronize()
+                self._wait_status(prev)
                 h = self.status_h[prev]
                 d2, v2 = _maxima(h, fused and prev == 1)
                 u_last = math.sqrt(v2)
@@ -452,6 +452,19 @@ class TimeLoop:
                                                               self.events[k]) for k in range(3)]
         self._status_copiers[slot]()
 
+    def _wait_status(self, slot: int) -> None:
+        """Wait for the status copy of pinned slot ``slot`` (its event; through
+        engine.numba_support.numba_internals.event_waiter on a GPU: the driver's wait called straight, which the
+        per-phase loop does every step)."""
+        if self._status_waits is None:
+            if SIM:
+                self._status_waits = [self.events[k].synchronize for k in range(3)]
+            else:
+                from engine.numba_support.numba_internals import event_waiter
+
+                self._status_waits = [event_waiter(self.events[k]) for k in range(3)]
+        self._status_waits[slot]()
+
     def _ev(self):
         return cuda.event(timing=True) if not SIM else cuda.event()
 
@@ -479,7 +492,14 @@ class TimeLoop:
     def _collect(self, h, failed: dict | None = None) -> dict:
         """Scenes that blew up according to status h (once each): deactivated, error recorded."""
         failed = {} if failed is None else failed
-        ss = h[K.SS0:].reshape(self.n_scenes, K.NSS)  # checked vectorised: this runs every step
+        # this runs every step: first whether any scene has recorded a failure at all (its offender's id is finite),
+        # in scalars for one scene, in two strided minima for several
+        if self.n_scenes == 1:
+            if not (h[K.SS0 + K.SS_BAD_ID] < np.inf or h[K.SS0 + K.SS_OVL_ID] < np.inf):
+                return failed
+        elif not (h[K.SS0 + K.SS_BAD_ID::K.NSS].min() < np.inf or h[K.SS0 + K.SS_OVL_ID::K.NSS].min() < np.inf):
+            return failed
+        ss = h[K.SS0:].reshape(self.n_scenes, K.NSS)
         hit = self.active & ((ss[:, K.SS_BAD_ID] < np.inf) | (ss[:, K.SS_OVL_ID] < np.inf))
         for s in np.nonzero(hit)[0]:
             b = K.SS0 + K.NSS * s

@@ -128,7 +128,10 @@ def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
 
 #: the cooperative many-steps-per-launch loop is used up to this many particles (all scenes together), the
 #: per-phase loop above: measured on an H200 (bench/gpu_ensemble.py) 10x faster at 4096 and 2x at 2^18 (64 packed
-#: scenes); at 2^20 the per-phase loop is the faster one on an H100 (bench/loop_ab.py --variants default
-#: multistep, docs/performance.md "Packed ensembles": one scene x1.4 rough, x1.75 elastic, x1.3 rough spheroids;
-#: 256 packed scenes x1.7 rough, x2.2 elastic): a grid of co-resident blocks loops over many particles per thread
-MULTISTEP_MAX_PARTICLES = (1 << 20) - 1
+#: scenes; 2026-11-21, when a per-phase step cost the host about 170 us); at 2^20 the per-phase loop is the faster one
+#: on an H100 (bench/loop_ab.py --variants default multistep, docs/performance.md "Packed ensembles": one scene x1.4
+#: rough, x1.75 elastic, x1.3 rough spheroids; 256 packed scenes x1.7 rough, x2.2 elastic), and at 2^19 on an H200
+#: (2026-11-30, one scene, float64, phi = 0.058: x1.7 elastic, x1.8 rough; bench/loop_ab.py --cases elastic-2M-f64
+#: rough-2M-f64 --n 524288 --variants default multistep): a grid of co-resident blocks loops over many particles per
+#: thread. Below 2^19 not measured since the per-phase loop's host work got cheaper (engine/loops/cuda_launch.py).
+MULTISTEP_MAX_PARTICLES = (1 << 19) - 1

@@ -29,14 +29,20 @@ numba-cuda (the CUDA kernels, engine/loops/):
 - ``Context.mempin(owner, pointer, size, mapped)`` of ``numba.cuda.current_context()``: page-lock existing host
   memory in place (cuMemHostRegister); the public API only allocates new pinned arrays.
 - a device array's ``device_ctypes_pointer`` and the ``handle`` of a numba-cuda ``Stream`` and ``Event``, given to
-  cuda-python's ``cuda.bindings.driver`` directly (:func:`async_copy_and_record`: the time loop's per-step status
-  copy, where numba-cuda's checked wrappers cost more host time than the step takes on the GPU).
+  the driver library directly through ctypes (cuda-python's ``cuda.bindings.driver`` where the library is not found
+  by name; :func:`async_copy_and_record`, :func:`event_waiter`: the time loop's per-step status copy and its wait,
+  where numba-cuda's checked wrappers cost more host time than the step takes on the GPU).
 - a kernel launch without the dispatcher (:func:`prepare_launch`, used by engine/loops/cuda_launch.py): a compiled
   kernel's ``argument_types``, its private ``_prepare_args`` (numba-cuda 0.30 flattens each array argument into
   meminfo, parent, size, itemsize, pointer, shape and strides, and each scalar into one ctypes value), its
   ``_codelibrary.get_cufunc()``, the dispatcher's ``configure`` (its ``griddim``, ``blockdim``, ``stream``,
   ``pre_launch_callbacks`` and ``sharedmem``) and ``_launch_config_sensitive``, and the module-level
   ``LaunchConfig``, ``launch`` and ``CUDA_CORE_GE_1_0`` of ``numba.cuda.dispatcher`` (cuda.core's).
+- the driver's ``cuLaunchKernel`` called through ctypes with a parameter array built once (:func:`direct_launch`),
+  given the ``handle`` of the cuda.core kernel and stream of :func:`prepare_launch` and its argument list read the
+  way cuda.core's ``ParamHolder`` reads it (a Python int as an ``intptr_t``, a float as a double, a ctypes or NumPy
+  scalar as its own type): cuda.core converts every argument at every launch, about 20 us of Python for the time
+  loop's 200-odd flattened arguments, which at 2^20 particles is more host time than a step takes on the GPU.
 
 The CUDA parts import numba.cuda only when called (a CPU job never imports it).
 """
@@ -190,14 +196,13 @@ def async_copy_device(dst, src, stream) -> None:
 
 def async_copy_and_record(device_array, host_array, stream, event):
     """A function that queues, on ``stream``, the copy of the whole ``device_array`` into the pinned ``host_array``
-    (same size), then records ``event``: straight through cuda-python's driver bindings (``cuMemcpyDtoHAsync``,
-    ``cuEventRecord``) with the pointers and handles resolved once. numba-cuda's ``copy_to_host`` and
+    (same size), then records ``event``: straight through the driver's ``cuMemcpyDtoHAsync`` and ``cuEventRecord``
+    with the pointers and handles resolved once, called through ctypes (about a microsecond each; cuda-python's
+    driver bindings where the driver library is not found by name: a few). numba-cuda's ``copy_to_host`` and
     ``Event.record`` check and convert their arguments at every call (about 40 us of Python for a copy of 100
     bytes): the per-step status copy of the GPU time loop then costs more host time than the step takes on the GPU.
     The arrays, stream and event must outlive the function. Raises RuntimeError naming the call where the driver
     refuses."""
-    from cuda.bindings import driver as cu
-
     if device_array.nbytes != host_array.nbytes:
         raise ValueError(f"copy of {device_array.nbytes} bytes into a buffer of {host_array.nbytes}")
     src = int(device_array.device_ctypes_pointer.value)
@@ -205,9 +210,22 @@ def async_copy_and_record(device_array, host_array, stream, event):
     nbytes = int(host_array.nbytes)
     hs = int(stream.handle)
     he = int(event.handle)
+    copy, record = _driver_call("cuMemcpyDtoHAsync_v2"), _driver_call("cuEventRecord")
+    if copy is not None and record is not None:
+        def copy_and_record() -> None:
+            err = copy(dst, src, nbytes, hs)
+            if err:
+                raise RuntimeError(f"cuMemcpyDtoHAsync: CUresult {err}")
+            err = record(he, hs)
+            if err:
+                raise RuntimeError(f"cuEventRecord: CUresult {err}")
+
+        return copy_and_record
+    from cuda.bindings import driver as cu
+
     copy, record, success = cu.cuMemcpyDtoHAsync, cu.cuEventRecord, cu.CUresult.CUDA_SUCCESS
 
-    def copy_and_record() -> None:
+    def copy_and_record_bindings() -> None:
         err, = copy(dst, src, nbytes, hs)
         if err != success:
             raise RuntimeError(f"cuMemcpyDtoHAsync: {err}")
@@ -215,7 +233,56 @@ def async_copy_and_record(device_array, host_array, stream, event):
         if err != success:
             raise RuntimeError(f"cuEventRecord: {err}")
 
-    return copy_and_record
+    return copy_and_record_bindings
+
+
+def event_waiter(event):
+    """A function that waits for numba-cuda ``event`` (``event.synchronize()``) through the driver's
+    ``cuEventSynchronize`` called with its handle through ctypes (numba-cuda's wrapper checks its argument and the
+    result in Python at every call: a few microseconds, paid every step of the per-phase loop); the event's own
+    ``synchronize`` where the driver library is not found by name. The event must outlive the function. Raises
+    RuntimeError with the driver's error code where the wait fails."""
+    wait = _driver_call("cuEventSynchronize")
+    if wait is None:
+        return event.synchronize
+    he = int(event.handle)
+
+    def synchronize() -> None:
+        err = wait(he)
+        if err:
+            raise RuntimeError(f"cuEventSynchronize: CUresult {err}")
+
+    return synchronize
+
+
+#: the driver calls made through ctypes, with their argument types (CUresult as the return value)
+_DRIVER_ARGS = {"cuMemcpyDtoHAsync_v2": ("p", "u64", "size", "p"), "cuEventRecord": ("p", "p"),
+                "cuEventSynchronize": ("p",),
+                "cuLaunchKernel": ("p", "u", "u", "u", "u", "u", "u", "u", "p", "p", "p")}
+#: the calls that wait (ctypes lets go of the GIL during them, so that the result files' I/O thread works meanwhile);
+#: the others only queue work and return: they keep the GIL, which a thread that let it go may have to wait up to
+#: Python's switch interval to get back while another thread runs
+_DRIVER_WAITS = {"cuEventSynchronize"}
+_driver_calls: dict = {}
+
+
+def _driver_call(name: str):
+    """The driver library's ``name`` as a ctypes function with its argument types (:data:`_DRIVER_ARGS`), or None
+    where the library or the symbol is not found; a call of :data:`_DRIVER_WAITS` lets go of the GIL, the others
+    keep it."""
+    if name not in _driver_calls:
+        import ctypes
+
+        kinds = {"p": ctypes.c_void_p, "u64": ctypes.c_uint64, "size": ctypes.c_size_t, "u": ctypes.c_uint}
+        loader = ctypes.CDLL if name in _DRIVER_WAITS else ctypes.PyDLL
+        try:
+            fn = getattr(loader("libcuda.so.1"), name)
+            fn.argtypes = [kinds[k] for k in _DRIVER_ARGS[name]]
+            fn.restype = ctypes.c_int
+        except (OSError, AttributeError):
+            fn = None
+        _driver_calls[name] = fn
+    return _driver_calls[name]
 
 
 def page_lock(arrays) -> list:
@@ -227,15 +294,16 @@ def page_lock(arrays) -> list:
     return [ctx.mempin(a, a.ctypes.data, a.nbytes, mapped=False) for a in arrays]
 
 
-def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
-    """What numba-cuda's own launch of ``dispatcher[config](*args)`` hands to cuda.core, kept for later launches
-    with the same arrays: ``(launch, stream, launch_config, kernel, kargs, slots)``, where ``launch(stream,
-    launch_config, kernel, *kargs)`` launches and ``slots`` lists ``(position in args, index in kargs, ctypes type or
-    None)`` of each top-level scalar argument (its value is refilled per launch). None where such a launch would not
-    be numba-cuda's (a launch-configuration-sensitive or debug kernel, pre-launch callbacks, dynamic shared memory,
-    host arrays copied per launch, a scalar inside a tuple). A cooperative kernel keeps its cooperative launch. The
-    kernel must have been launched once in this process (numba-cuda then knows whether it is launch-configuration
-    sensitive); argument types it has not been launched with are compiled or loaded here."""
+def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple, direct: bool = False):
+    """What numba-cuda's own launch of ``dispatcher[config](*args)`` hands to cuda.core, kept for later launches with
+    the same arrays: ``(launch, stream, launch_config, kernel, kargs, slots, go)``, where ``launch(stream,
+    launch_config, kernel, *kargs)`` launches, ``slots`` lists ``(position in args, index in kargs, ctypes type or
+    None)`` of each top-level scalar argument (its value is refilled per launch) and ``go`` the same launch through the
+    driver (:func:`direct_launch`, with ``direct``) or, where there is none, a string that says why. None where such a
+    launch would not be numba-cuda's (a launch-configuration-sensitive or debug kernel, pre-launch callbacks, dynamic
+    shared memory, host arrays copied per launch, a scalar inside a tuple). A cooperative kernel keeps its cooperative
+    launch. The kernel must have been launched once in this process (numba-cuda then knows whether it is
+    launch-configuration sensitive); argument types it has not been launched with are compiled or loaded here."""
     import ctypes
 
     from numba.cuda import dispatcher as nd
@@ -269,4 +337,82 @@ def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple):
     else:
         launch_config = nd.LaunchConfig(grid=lc.griddim, block=lc.blockdim, shmem_size=0,
                                        cooperative_launch=bool(kernel.cooperative))
-    return (nd.launch, stream, launch_config, kernel._codelibrary.get_cufunc().kernel, kargs, slots)
+    cufunc = kernel._codelibrary.get_cufunc().kernel
+    go = "not asked for"
+    if direct:
+        try:
+            go = direct_launch(stream, (lc.griddim, lc.blockdim, bool(kernel.cooperative)), cufunc, kargs, slots)
+        except Exception as exc:  # noqa: BLE001  (cuda.core's launch then, as before)
+            go = f"{type(exc).__name__}: {exc}"
+    return (nd.launch, stream, launch_config, cufunc, kargs, slots, go)
+
+
+#: the driver's CUresult of a call made on a thread where no context is current
+CUDA_ERROR_INVALID_CONTEXT = 201
+
+
+def _launch_kernel_function():
+    """The driver's ``cuLaunchKernel`` through ctypes, or None where the driver library is not found."""
+    return _driver_call("cuLaunchKernel")
+
+
+def direct_launch(stream, dims: tuple, kernel, kargs: list, slots: list):
+    """A function ``go(args)`` that launches what ``launch(stream, launch_config, kernel, *kargs)`` of
+    :func:`prepare_launch` launches, through the driver's ``cuLaunchKernel`` with one parameter array built here:
+    each argument of ``kargs`` held in a ctypes value of the type cuda.core's ``ParamHolder`` gives it (a Python int,
+    bool included, an ``intptr_t``; a float a double; a ctypes scalar its own type; a NumPy scalar its dtype's), and
+    ``go`` sets the values of the scalar ``slots`` (``(position in args, index in kargs, ...)``) from ``args`` before
+    each launch. ``dims``: (grid, block, cooperative), the grid and block as 3-tuples. The same kernel, arguments
+    and stream: the same launch, without cuda.core's conversion of every argument (module docstring). Where this
+    cannot be done the same way, a string that says why instead (a cooperative kernel, an argument of another type,
+    no driver library or handle). ``go`` raises RuntimeError naming the driver's error code where a launch fails."""
+    import ctypes
+
+    import numpy as np
+
+    grid, block, cooperative = dims
+    if cooperative:
+        return "a cooperative kernel"
+    fn = _launch_kernel_function()
+    if fn is None:
+        return "no driver library libcuda.so.1 with cuLaunchKernel"
+    holders = []
+    for a in kargs:
+        if isinstance(a, ctypes._SimpleCData):
+            holders.append(type(a)(a.value))
+        elif isinstance(a, int):                  # bool included: cuda.core tests int first
+            holders.append(ctypes.c_ssize_t(a))
+        elif isinstance(a, float):
+            holders.append(ctypes.c_double(a))
+        elif isinstance(a, np.generic) and a.dtype.kind in "biuf":
+            holders.append(np.ctypeslib.as_ctypes_type(a.dtype)(a.item()))
+        else:
+            return f"an argument of type {type(a).__name__}"
+    try:
+        func = int(kernel.handle)
+        hs = int(stream.handle)
+        grid = tuple(int(x) for x in grid)
+        block = tuple(int(x) for x in block)
+    except (AttributeError, TypeError, ValueError) as exc:
+        return f"{type(exc).__name__}: {exc}"
+    if len(grid) != 3 or len(block) != 3:
+        return f"grid {grid}, block {block}"
+    params = (ctypes.c_void_p * max(1, len(holders)))(*[ctypes.addressof(h) for h in holders])
+    refill = [(pos, holders[slot]) for pos, slot, _ in slots]
+    gx, gy, gz = grid
+    bx, by, bz = block
+
+    def go(args) -> None:
+        for pos, holder in refill:
+            holder.value = args[pos]
+        err = fn(func, gx, gy, gz, bx, by, bz, 0, hs, params, None)
+        if err == CUDA_ERROR_INVALID_CONTEXT:   # a thread without the context current: numba-cuda makes it so
+            from numba import cuda
+
+            cuda.current_context()
+            err = fn(func, gx, gy, gz, bx, by, bz, 0, hs, params, None)
+        if err:
+            raise RuntimeError(f"cuLaunchKernel: CUresult {err}")
+
+    go.keep = (holders, params)     # the parameter array points into the holders: both live as long as go
+    return go

@@ -92,7 +92,7 @@ def test_an_entry_whose_array_died_is_not_used_even_under_a_reused_identity():
     lc.launch("forces", k, (1, 32, None), (1, a))
     (key,) = lc.entries["forces"]
     (entry,) = lc.entries["forces"].values()
-    stale = entry[:7] + (((lambda: None),),)              # as if a had died: its reference answers None
+    stale = entry[:-1] + (((lambda: None),),)             # as if a had died: its reference answers None
     lc.entries["forces"][key] = stale
     lc.launch("forces", k, (1, 32, None), (2, a))         # same key, dead entry: through the dispatcher
     assert len(k.calls) == 2 and launched == [] and lc.hits == 0
@@ -166,3 +166,103 @@ def test_a_kernel_that_cannot_be_cached_is_launched_by_its_dispatcher_once_per_l
     for step in range(3):
         lc.launch("observe", k, (1, 32, None), (step, a))
     assert [c[1][0] for c in k.calls] == [0, 1, 2] and lc.hits == 0
+
+
+def test_a_direct_launch_holds_each_argument_as_cuda_core_reads_it_and_refills_the_scalars(monkeypatch):
+    """engine.numba_support.numba_internals.direct_launch with the driver call stood in for by a recorder that reads
+    the parameter array back: a Python int (bool too) is an intptr_t, a float a double, a ctypes scalar keeps its
+    type, a NumPy scalar takes its dtype's (as cuda.core's ParamHolder converts them); each launch refills the scalar
+    slots from its own arguments and passes the kernel, grid, block and stream handles through; a cooperative
+    kernel, an argument of another type and a driver error are refused."""
+    import ctypes
+    from types import SimpleNamespace
+
+    import numpy as np
+    import pytest
+
+    import engine.numba_support.numba_internals as ni
+
+    calls = []
+    status = [0]
+
+    def driver(func, gx, gy, gz, bx, by, bz, shmem, hs, params, extra):
+        values = [ctypes.cast(params[i], ctypes.POINTER(t)).contents.value for i, t in enumerate(types)]
+        calls.append(((func, (gx, gy, gz), (bx, by, bz), shmem, hs, extra), values))
+        return status[0]
+
+    monkeypatch.setattr(ni, "_launch_kernel_function", lambda: driver)
+    kargs = [0, 0, 1000, 8, 123456, 1000, 8, ctypes.c_int64(5), ctypes.c_double(0.5), True, np.float32(2.5),
+             ctypes.c_float(1.5)]
+    types = [ctypes.c_ssize_t] * 7 + [ctypes.c_int64, ctypes.c_double, ctypes.c_ssize_t, ctypes.c_float,
+                                      ctypes.c_float]
+    slots = [(0, 7, ctypes.c_int64), (3, 8, ctypes.c_double), (4, 9, None)]
+    kernel, stream = SimpleNamespace(handle=0xABC), SimpleNamespace(handle=0x10)
+    dims = ((4, 1, 1), (256, 1, 1), False)
+    go = ni.direct_launch(stream, dims, kernel, kargs, slots)
+    assert [type(h) for h in go.keep[0]] == types
+    go((9, "array", "array", 0.25, False))
+    go((10, "array", "array", -1.0, True))
+    head = (0xABC, (4, 1, 1), (256, 1, 1), 0, 0x10, None)
+    assert calls == [(head, [0, 0, 1000, 8, 123456, 1000, 8, 9, 0.25, 0, 2.5, 1.5]),
+                     (head, [0, 0, 1000, 8, 123456, 1000, 8, 10, -1.0, 1, 2.5, 1.5])]
+    assert ni.direct_launch(stream, ((4, 1, 1), (256, 1, 1), True), kernel, kargs, slots) == "a cooperative kernel"
+    assert ni.direct_launch(stream, dims, kernel, kargs + [object()], slots) == "an argument of type object"
+    assert "AttributeError" in ni.direct_launch(object(), dims, kernel, kargs, slots)
+    status[0] = 700
+    with pytest.raises(RuntimeError, match="cuLaunchKernel: CUresult 700"):
+        go((11, "array", "array", 0.0, False))
+    # a thread without the context current (CUDA_ERROR_INVALID_CONTEXT): numba-cuda makes it current, then the launch
+    from numba import cuda
+
+    answers, made_current = [ni.CUDA_ERROR_INVALID_CONTEXT, 0], []
+    status[0] = None
+    monkeypatch.setattr(ni, "_launch_kernel_function", lambda: lambda *a: answers.pop(0))
+    monkeypatch.setattr(cuda, "current_context", lambda: made_current.append(True))
+    retried = ni.direct_launch(stream, dims, kernel, kargs, slots)
+    retried((12, "array", "array", 0.0, False))
+    assert made_current == [True] and answers == []
+
+
+def test_a_cache_entry_with_a_direct_launch_launches_through_it(monkeypatch):
+    """Hits of an entry prepared with a direct launch (DIRECT) go through it with the launch's own arguments, not
+    through the entry's cuda.core launch; an entry prepared without one (DIRECT off, or the reason it could not be
+    made) launches through cuda.core, and the cache says why."""
+    import engine.loops.cuda_launch as launch
+
+    for direct in (True, False):
+        monkeypatch.setattr(launch, "DIRECT", direct)
+        core, driven = [], []
+
+        def prepare(dispatcher, config, args):
+            go = (lambda a: driven.append(a)) if launch.DIRECT else "not asked for"
+            return (lambda stream, cfg, kern, *ka: core.append(ka), None, None, None, list(args), [(0, 0, None)], go)
+
+        monkeypatch.setattr(LaunchCache, "_prepare", staticmethod(prepare))
+        k, a = _CompiledKernel(), _Array()
+        lc = LaunchCache(enabled=True)
+        for step in range(4):
+            lc.launch("forces", k, (1, 32, None), (step, a))
+        if direct:
+            assert driven == [(step, a) for step in range(4)] and core == [] and lc.direct == 4
+            assert lc.direct_off_reason is None
+        else:
+            assert [ka[0] for ka in core] == [0, 1, 2, 3] and driven == [] and lc.direct == 0
+            assert lc.direct_off_reason == "not asked for"
+
+
+def test_the_argument_key_tells_apart_what_each_arguments_identity_tells_apart():
+    """engine/loops/cuda_launch.py ``_args_key`` (the cache key's part of a launch's arguments, made with builtins
+    mapped over them) is equal for two launches exactly where the arguments' identities (``_ident``: a scalar by its
+    type, an array by its identity, a tuple element by element) are: over every combination of scalar values and
+    types, arrays and tuple contents below."""
+    import itertools
+
+    import numpy as np
+
+    from engine.loops.cuda_launch import _args_key, _ident
+
+    a, b, c = _Array(), _Array(), _Array()
+    launches = [(n, x, t, step) for n, x, t, step in itertools.product(
+        (100, np.int64(100), 7), (a, b), ((a, c), (b, c), (a,), c), (0, 1, 2.5, np.float32(1.0)))]
+    for u, v in itertools.product(launches, repeat=2):
+        assert (_args_key(u) == _args_key(v)) == (tuple(map(_ident, u)) == tuple(map(_ident, v))), (u, v)

@@ -230,3 +230,19 @@ def test_demq_run_refuses_in_one_line_with_exit_2(tmp_path, monkeypatch, capsys)
 
 if __name__ == "__main__":
     _child(sys.argv[1])
+
+
+def test_the_loop_kind_by_size_from_2_to_the_19():
+    """From 2^19 particles on a scene runs the per-phase loop (engine.loops.system.MULTISTEP_MAX_PARTICLES; measured
+    x1.7-1.8 faster than the many-steps loop there, docs/performance.md "Packed ensembles"), below it the many-steps
+    loop, whose double buffers of positions, velocities and spins the device-memory account then holds."""
+    from engine.loops.cuda_memory import predict_sphere_device
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
+
+    accounts = {}
+    for n in ((1 << 19) - 1, 1 << 19):
+        spec = SimulationSpec(n_particles=n, volume_fraction=0.058, e_t=0.8, backend="cuda")
+        accounts[n] = predict_sphere_device(spec, derive(spec)).table
+    assert "_alt_spin" in accounts[(1 << 19) - 1] and "_alt[0]" in accounts[(1 << 19) - 1]
+    assert "_alt_spin" not in accounts[1 << 19] and "_alt[0]" not in accounts[1 << 19]

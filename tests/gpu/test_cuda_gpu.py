@@ -233,26 +233,30 @@ def test_ensemble_scenes_equal_single_runs_and_both_loops_agree():
 
 
 def test_cached_launches_give_the_same_trajectory(monkeypatch):
-    """The launch cache (engine/loops/cuda_launch.py) hands cuda.core the argument list numba-cuda built for the
-    first launch with the same arrays, scalars refilled: the trajectory is bit for bit the one of launches through
+    """The launch cache (engine/loops/cuda_launch.py) launches with the argument list numba-cuda built for the
+    first launch with the same arrays, scalars refilled, through the driver's cuLaunchKernel with a parameter array
+    of its own (``DIRECT``) or through cuda.core: the trajectory is bit for bit the one of launches through
     numba-cuda's dispatcher (the one-launch-per-phase loop, 150 steps in 3 calls with contacts and rebuilds)."""
     import engine.loops.cuda_launch as launch
     from engine.backends.cuda import CudaBackend
 
     system, c = _dense()
     states = {}
-    for cached in (True, False):
+    for cached, direct in ((True, True), (True, False), (False, False)):
         monkeypatch.setattr(launch, "ENABLED", cached)
+        monkeypatch.setattr(launch, "DIRECT", direct)
         gpu = CudaBackend(system, c)
         gpu.e.multistep = False
         for _ in range(3):
             gpu.advance(50)
         lc = gpu.e._lc
         assert (lc.hits > 100) == cached and (lc.off_reason is None) == cached, (cached, lc.hits, lc.off_reason)
+        assert (lc.direct > 100) == direct, (direct, lc.direct, lc.direct_off_reason)
         assert gpu.builds > 1
-        states[cached] = gpu.state()
+        states[cached, direct] = gpu.state()
     for key in ("position", "velocity", "angular_velocity", "orientation"):
-        assert np.array_equal(states[True][key], states[False][key]), key
+        assert np.array_equal(states[True, True][key], states[False, False][key]), key
+        assert np.array_equal(states[True, False][key], states[False, False][key]), key
 
 
 @pytest.mark.parametrize("multistep", [False, True])
@@ -316,12 +320,14 @@ def test_fused_step_gives_the_two_launch_trajectory(monkeypatch):
 
 
 def test_the_status_copy_through_the_driver_bindings_copies_and_records():
-    """engine.numba_support.numba_internals.async_copy_and_record: the device array's bytes arrive in the pinned buffer
-    once the event it records has completed."""
+    """engine.numba_support.numba_internals.async_copy_and_record and event_waiter: the device array's bytes arrive in
+    the pinned buffer once the wait for the event it records has returned, through the driver library's calls made
+    with ctypes (found by name on a GPU host)."""
     from numba import cuda
 
-    from engine.numba_support.numba_internals import async_copy_and_record
+    from engine.numba_support.numba_internals import _driver_call, async_copy_and_record, event_waiter
 
+    assert all(_driver_call(n) is not None for n in ("cuMemcpyDtoHAsync_v2", "cuEventRecord", "cuEventSynchronize"))
     stream = cuda.stream()
     src = np.arange(14, dtype=np.float64) * 1.5
     dev = cuda.to_device(src, stream=stream)
@@ -329,12 +335,13 @@ def test_the_status_copy_through_the_driver_bindings_copies_and_records():
     host[:] = -1.0
     event = cuda.event(timing=False)
     copy = async_copy_and_record(dev, host, stream, event)
+    wait = event_waiter(event)
     copy()
-    event.synchronize()
+    wait()
     assert np.array_equal(host, src)
     dev.copy_to_device(src + 1.0, stream=stream)
     copy()
-    event.synchronize()
+    wait()
     assert np.array_equal(host, src + 1.0)
 
 
