@@ -13,7 +13,9 @@ the default skin rule against others on the same gas),
 ``own_scratch`` (a rebuild's scratch in arrays of its own, not lent by the list and the force buffer:
 engine/loops/cuda_rebuild.py LEND_SCRATCH). For the cost of one piece of machinery inside the loop, without the
 fresh-process noise of bench/e2e.py. ``--rebuild-parts`` also times each list rebuild's parts and kernels with CUDA
-events (:class:`RebuildParts`) and prints their device ms per rebuild and the rebuilds' share of the loop.
+events (:class:`RebuildParts`) and prints their device ms per rebuild and the rebuilds' share of the loop;
+``--host-parts`` the host's microseconds a step in the loop's launches (by kernel), status copy, its wait, failed-scene
+check and rebuilds (:class:`HostParts`).
 
     python -m bench loop_ab --cases elastic-2M-f64 elastic-8M-f32 --variants launch_cache default multistep_on
     python -m bench loop_ab --cases rough-2M-f64 --variants default blocks=2 blocks=3
@@ -196,6 +198,80 @@ class RebuildParts:
         return out
 
 
+class HostParts:
+    """Host microseconds a step of a run's time loop in the pieces of the GPU loop's host work: each kernel launch by
+    name (engine/loops/cuda_launch.py ``LaunchCache.launch``: the cache's key and look-up and the launch call, ``go``
+    the direct driver call within them), the status copy (``_status_copy``), the wait for it (``_wait_status``: the
+    GPU's time where the host waits on it), the failed-scene check (``_collect``) and the list rebuilds
+    (``_rebuild``, their waits included), each summed over the whole run (its set-up's launches and first list
+    included) and divided by its steps. A diagnostic: each timed call costs the host about half a microsecond more."""
+
+    METHODS = ("_status_copy", "_wait_status", "_collect", "_rebuild")
+
+    def __init__(self):
+        self.seconds: dict = {}
+        self._saved: list = []
+
+    def _add(self, name: str, t0: float) -> None:
+        self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+    def _timed(self, label: str, fn):
+        timer = self
+
+        def timed(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                timer._add(label, t0)
+        return timed
+
+    def _patch(self, owner, name: str, fn) -> None:
+        self._saved.append((owner, name, owner.__dict__.get(name)))
+        setattr(owner, name, fn)
+
+    def __enter__(self):
+        import engine.loops.cuda_ensemble as ensemble
+        import engine.loops.cuda_launch as launch
+        import engine.numba_support.numba_internals as internals
+
+        base = ensemble.CudaEnsembleBase
+        for name in self.METHODS:
+            self._patch(base, name, self._timed(name, getattr(base, name)))
+        saved_launch = launch.LaunchCache.launch
+        timer = self
+
+        def timed_launch(cache, name, dispatcher, config, args):
+            t0 = time.perf_counter()
+            try:
+                return saved_launch(cache, name, dispatcher, config, args)
+            finally:
+                timer._add("launch:" + name.split("/")[0], t0)
+
+        self._patch(launch.LaunchCache, "launch", timed_launch)
+        saved_direct = internals.direct_launch
+
+        def timed_direct(*a, **k):
+            go = saved_direct(*a, **k)
+            return self._timed("go", go) if callable(go) else go
+
+        self._patch(internals, "direct_launch", timed_direct)
+        return self
+
+    def __exit__(self, *exc):
+        for owner, name, fn in reversed(self._saved):
+            if fn is None:
+                delattr(owner, name)
+            else:
+                setattr(owner, name, fn)
+        self._saved = []
+        return False
+
+    def summary(self, steps: int) -> dict:
+        """{piece: host µs a step} over ``steps`` steps, the largest first."""
+        return {k: round(1e6 * v / max(1, steps), 2) for k, v in sorted(self.seconds.items(), key=lambda kv: -kv[1])}
+
+
 #: the JAX-MD scene's cases (bench/vs_jaxmd.py's gas at phi = 0.058, its start left to the engine unless --start):
 #: name -> (N, precision, steps, contact)
 JAXMD_CASES = {"elastic-2M-f64": (2_097_152, "float64", 2000, "elastic"),
@@ -286,6 +362,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rebuild-parts", action="store_true",
                     help="time each GPU list rebuild's parts with CUDA events (RebuildParts) and print device ms per "
                          "rebuild and the rebuilds' share of the loop")
+    ap.add_argument("--host-parts", action="store_true",
+                    help="time the host's work a step of the GPU loop (HostParts: launches by kernel, status copy, "
+                         "its wait, the failed-scene check, rebuilds) and print host µs a step")
     args = ap.parse_args(argv)
     import h5py
 
@@ -325,7 +404,8 @@ def main(argv=None) -> int:
                     apply(v, default_blocks)
                     specs = specs_of(case, steps, v)
                     timer = RebuildParts() if args.rebuild_parts else contextlib.nullcontext()
-                    with timer:
+                    host = HostParts() if args.host_parts else contextlib.nullcontext()
+                    with timer, host:
                         summaries, wall = run_case(specs, tmp)
                     n = sum(sp.n_particles for sp in specs)
                     loop_s = max(s.loop_s for s in summaries)
@@ -338,6 +418,8 @@ def main(argv=None) -> int:
                         parts = timer.summary()
                         extra = {"rebuild_ms": parts, "rebuild_share": round(
                             parts.get("rebuild", 0.0) * parts["rebuilds"] / (1e3 * loop_s), 4)}
+                    if args.host_parts:
+                        extra["host_us_per_step"] = host.summary(steps_done)
                     print(json.dumps({"case": case, "phi": specs[0].volume_fraction, "variant": v, "rep": rep,
                                       "device": summaries[0].device,
                                       "scenes": len(specs), "n": n, "start": start_protocol(specs[0]),

@@ -227,6 +227,7 @@ class StartMemo:
         import engine.setup.scene as scene
 
         self.scene, self.draw = scene, scene.initial_spheres
+        self._replaced = scene.initial_spheres      # what close() puts back, whatever ``draw`` is by then
         self.starts, self.draw_s, self.ready = {}, {}, {}
         scene.initial_spheres = self
 
@@ -257,7 +258,7 @@ class StartMemo:
                                               if isinstance(v := getattr(system, f.name), np.ndarray)})
 
     def close(self):
-        self.scene.initial_spheres = self.draw
+        self.scene.initial_spheres = self._replaced
 
 
 def run_demq(job: dict) -> dict:

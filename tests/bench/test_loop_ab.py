@@ -131,3 +131,29 @@ def test_rebuild_parts_leave_out_the_first_build_and_give_the_rest_of_a_rebuild_
     assert out["rebuild"] == 8.0 and out["build"] == 4.5 and out["host_ms"] == 10.0
     assert out["kernels"] == {"gather_rows": 1.0}
     assert loop_ab.RebuildParts().summary() == {"rebuilds": 0}
+
+
+def test_host_parts_time_the_loops_host_pieces_and_put_every_method_back():
+    """HostParts (``--host-parts``): inside it the GPU loop's host pieces, the launches by kernel name and the direct
+    driver calls are timed (each call once, its result passed through, a launch's "/..." suffix dropped); the summary
+    is µs a step over the run's steps, the largest first; on leaving, every patched attribute is the object it was
+    (an inherited method is inherited again)."""
+    import engine.loops.cuda_ensemble as ensemble
+    import engine.loops.cuda_launch as launch
+    import engine.numba_support.numba_internals as internals
+
+    base = ensemble.CudaEnsembleBase
+    before = {name: base.__dict__.get(name) for name in loop_ab.HostParts.METHODS}
+    launch_before, direct_before = launch.LaunchCache.__dict__["launch"], internals.direct_launch
+    calls = []
+    with loop_ab.HostParts() as host:
+        assert all(base.__dict__.get(name) is not None for name in loop_ab.HostParts.METHODS)
+        cache = launch.LaunchCache(enabled=False)
+        cache.launch("gather_rows/pos/0", {(1, 32, None): lambda *a: calls.append("launched")}, (1, 32, None), ())
+        host._timed("_collect", lambda x: calls.append(x) or x)(7)
+        assert internals.direct_launch(None, ((1, 1, 1), (1, 1, 1), True), None, [], []) == "a cooperative kernel"
+    assert calls == ["launched", 7] and set(host.seconds) == {"launch:gather_rows", "_collect"}
+    assert {name: base.__dict__.get(name) for name in loop_ab.HostParts.METHODS} == before
+    assert launch.LaunchCache.__dict__["launch"] is launch_before and internals.direct_launch is direct_before
+    host.seconds = {"a": 1e-3, "b": 4e-3}
+    assert list(host.summary(100).items()) == [("b", 40.0), ("a", 10.0)]

@@ -160,3 +160,7 @@ def test_start_memo_hands_out_copies_made_before_the_clock():
         assert len({id(s.position) for s in (first, second, third, memo.starts[memo.key(spec)])}) == 4
     finally:
         memo.close()
+    # close() puts back the function the memo replaced, not the stand-in this test gave it as its draw
+    import engine.setup.scene as scene
+
+    assert scene.initial_spheres is draw
