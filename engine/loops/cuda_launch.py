@@ -182,10 +182,9 @@ class LaunchCache:
             del per[old]
         try:
             if entry is not None:
-                go = entry[6] if len(entry) > 6 else "not prepared"
-                if not callable(go):
-                    self.direct_off_reason = go
-                entry = entry[:6] + (go, dispatcher, _weak_arrays(args))  # (holds the dispatcher's id)
+                if not callable(entry[6]):
+                    self.direct_off_reason = entry[6]
+                entry = entry[:7] + (dispatcher, _weak_arrays(args))  # (holds the dispatcher's id)
         except TypeError:   # an argument that takes no weak reference: not cached
             entry = None
         if entry is not None:

@@ -132,6 +132,6 @@ def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
 #: on an H100 (bench/loop_ab.py --variants default multistep, docs/performance.md "Packed ensembles": one scene x1.4
 #: rough, x1.75 elastic, x1.3 rough spheroids; 256 packed scenes x1.7 rough, x2.2 elastic), and at 2^19 on an H200
 #: (2026-11-30, one scene, float64, phi = 0.058: x1.7 elastic, x1.8 rough; bench/loop_ab.py --cases elastic-2M-f64
-#: rough-2M-f64 --n 524288 --variants default multistep): a grid of co-resident blocks loops over many particles per
-#: thread. Below 2^19 not measured since the per-phase loop's host work got cheaper (engine/loops/cuda_launch.py).
+#: rough-2M-f64 --n 524288 --variants multistep_on default): a grid of co-resident blocks loops over many particles
+#: per thread. Below 2^19 not measured since the per-phase loop's host work got cheaper (engine/loops/cuda_launch.py).
 MULTISTEP_MAX_PARTICLES = (1 << 19) - 1

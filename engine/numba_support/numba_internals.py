@@ -351,11 +351,6 @@ def prepare_launch(dispatcher, config: tuple, args: tuple, scalar_types: tuple, 
 CUDA_ERROR_INVALID_CONTEXT = 201
 
 
-def _launch_kernel_function():
-    """The driver's ``cuLaunchKernel`` through ctypes, or None where the driver library is not found."""
-    return _driver_call("cuLaunchKernel")
-
-
 def direct_launch(stream, dims: tuple, kernel, kargs: list, slots: list):
     """A function ``go(args)`` that launches what ``launch(stream, launch_config, kernel, *kargs)`` of
     :func:`prepare_launch` launches, through the driver's ``cuLaunchKernel`` with one parameter array built here:
@@ -373,7 +368,7 @@ def direct_launch(stream, dims: tuple, kernel, kargs: list, slots: list):
     grid, block, cooperative = dims
     if cooperative:
         return "a cooperative kernel"
-    fn = _launch_kernel_function()
+    fn = _driver_call("cuLaunchKernel")
     if fn is None:
         return "no driver library libcuda.so.1 with cuLaunchKernel"
     holders = []

@@ -53,7 +53,7 @@ def test_hits_replace_scalars_and_stale_arrays_are_let_go():
     def prepare(dispatcher, config, args):
         kargs = [a if isinstance(a, int) else id(a) for a in args]
         slots = [(i, i, None) for i, a in enumerate(args) if isinstance(a, int)]
-        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, kargs, slots)
+        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, kargs, slots, "no driver")
 
     k, a, f0, f1 = _Kernel(), _Array(), _Array(), _Array()
     lc = LaunchCache(enabled=True)
@@ -84,7 +84,8 @@ def test_an_entry_whose_array_died_is_not_used_even_under_a_reused_identity():
     launched = []
 
     def prepare(dispatcher, config, args):
-        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, [args[0]], [(0, 0, None)])
+        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, [args[0]], [(0, 0, None)],
+                "no driver")
 
     k, a = _Kernel(), _Array()
     lc = LaunchCache(enabled=True)
@@ -116,7 +117,7 @@ def test_another_dispatcher_under_the_same_name_and_arrays_is_launched_itself():
 
     def prepare(dispatcher, config, args):
         return (lambda stream, cfg, kern, *ka: launched.append((kern, ka)), None, None, dispatcher, [args[0]],
-                [(0, 0, None)])
+                [(0, 0, None)], "no driver")
 
     old, new, a = _Kernel(), _Kernel(), _Array()
     lc = LaunchCache(enabled=True)
@@ -142,7 +143,8 @@ def test_a_kernel_launched_before_is_launched_through_its_new_entry_alone():
     launched = []
 
     def prepare(dispatcher, config, args):
-        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, list(args), [(0, 0, None)])
+        return (lambda stream, cfg, kern, *ka: launched.append(ka), None, None, None, list(args), [(0, 0, None)],
+                "no driver")
 
     seen, fresh, a, b = _CompiledKernel(), _Kernel(), _Array(), _Array()
     lc = LaunchCache(enabled=True)
@@ -190,7 +192,7 @@ def test_a_direct_launch_holds_each_argument_as_cuda_core_reads_it_and_refills_t
         calls.append(((func, (gx, gy, gz), (bx, by, bz), shmem, hs, extra), values))
         return status[0]
 
-    monkeypatch.setattr(ni, "_launch_kernel_function", lambda: driver)
+    monkeypatch.setattr(ni, "_driver_call", lambda name: driver if name == "cuLaunchKernel" else None)
     kargs = [0, 0, 1000, 8, 123456, 1000, 8, ctypes.c_int64(5), ctypes.c_double(0.5), True, np.float32(2.5),
              ctypes.c_float(1.5)]
     types = [ctypes.c_ssize_t] * 7 + [ctypes.c_int64, ctypes.c_double, ctypes.c_ssize_t, ctypes.c_float,
@@ -216,7 +218,7 @@ def test_a_direct_launch_holds_each_argument_as_cuda_core_reads_it_and_refills_t
 
     answers, made_current = [ni.CUDA_ERROR_INVALID_CONTEXT, 0], []
     status[0] = None
-    monkeypatch.setattr(ni, "_launch_kernel_function", lambda: lambda *a: answers.pop(0))
+    monkeypatch.setattr(ni, "_driver_call", lambda name: lambda *a: answers.pop(0))
     monkeypatch.setattr(cuda, "current_context", lambda: made_current.append(True))
     retried = ni.direct_launch(stream, dims, kernel, kargs, slots)
     retried((12, "array", "array", 0.0, False))
