@@ -27,8 +27,9 @@ and two grid syncs a step in the many-steps kernel instead of one, engine/loops/
 ``observe_in_forces`` (a lone smooth-sphere scene's records by the closing half kick and the observe kernel instead of
 the last force pass of each advance call, engine/loops/cuda_stepping.py), ``direct_launch`` (the launch cache hands its
 argument lists to cuda.core's launch instead of calling the driver's cuLaunchKernel itself,
-engine/loops/cuda_launch.py). Not for the
-worker cases, whose jobs run in processes of the service.
+engine/loops/cuda_launch.py), ``sort_interval`` (every list rebuild permutes the particles into cell order,
+engine/loops/cuda_rebuild.py ``SORT_DRIFT_CELLS``). Not for the worker cases, whose jobs run in processes of the
+service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
 that the step count is exact):
@@ -94,6 +95,7 @@ SWITCHES = {
     "observe_in_forces": ("engine.loops.cuda_stepping", "OBSERVE_IN_FORCES", False),
     "skip_cold": ("engine.loops.cuda_loop", "SKIP_COLD", False),
     "direct_launch": ("engine.loops.cuda_launch", "DIRECT", False),
+    "sort_interval": ("engine.loops.cuda_rebuild", "SORT_DRIFT_CELLS", 0.0),
 }
 
 

@@ -42,6 +42,10 @@ if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+#: (module, setting) -> the engine's value of every bench.e2e switch, as this process first found it
+_DEFAULTS: dict = {}
+
+
 def apply(variant: str, default_blocks) -> None:
     """Put every switch back on and the kernels' launch bounds to the engine's ``default_blocks`` (the force,
     observing and kick-drift tables), then turn off those the variant names (bench.e2e.SWITCHES) and set its
@@ -56,7 +60,7 @@ def apply(variant: str, default_blocks) -> None:
 
     for module, setting, _ in SWITCHES.values():
         mod = importlib.import_module(module)
-        setattr(mod, setting, None if (module, setting) == ("engine.loops.cuda_ensemble", "MULTISTEP") else True)
+        setattr(mod, setting, _DEFAULTS.setdefault((module, setting), getattr(mod, setting)))
     loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = default_blocks
     rebuild.LEND_SCRATCH = True
     gc.enable()

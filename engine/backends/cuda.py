@@ -7,8 +7,9 @@ module names no shape package: the layer rule of tests/test_imports.py). New cod
 """
 
 from engine.loops.cuda_cache import SIM
-from engine.loops.cuda_ensemble import MULTISTEP_MAX_PARTICLES, CudaEnsembleBase, CudaSceneBackend
+from engine.loops.cuda_ensemble import CudaEnsembleBase, CudaSceneBackend
 from engine.loops.cuda_frames import PIN_AFTER_FRAMES, PINNED_SLOT_BYTES, _page_locked, _touched_empty
+from engine.loops.system import MULTISTEP_MAX_PARTICLES
 from engine.shapes import host
 
 #: the sphere's packed ensemble and its one-scene backend (engine/shapes/sphere/cuda_backend.py)

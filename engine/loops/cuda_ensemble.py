@@ -49,12 +49,12 @@ from engine.loops.cuda_memory import device_zeros, xref_dtype, xref_margin
 from engine.loops.cuda_records import ObserveSums
 from engine.loops.cuda_rebuild import ListBuilds
 from engine.loops.cuda_stepping import TimeLoop
-from engine.loops.system import MULTISTEP_MAX_PARTICLES, ContactParams, cell_grid
+from engine.loops.system import ContactParams, cell_grid, ensemble_many_steps_loop
 from engine.numba_support.numba_internals import device_memset
 from engine.setup.precision import check_shape, position_dtype, state_dtype
 
-#: None: the loop by size (MULTISTEP_MAX_PARTICLES); True / False forces the many-steps or the per-phase loop (tests
-#: and bench set it, for comparisons)
+#: None: the loop by size and density (engine.loops.system.many_steps_loop); True / False forces the many-steps or
+#: the per-phase loop (tests and bench set it, for comparisons)
 MULTISTEP = None
 
 #: threads per block of the ensemble's launches
@@ -129,7 +129,7 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.tpb = TPB
         self.sm_count = 1 if SIM else cuda.get_current_device().MULTIPROCESSOR_COUNT
         self.max_blocks = 2 if SIM else self.sm_count * 16
-        self.multistep = n <= MULTISTEP_MAX_PARTICLES if MULTISTEP is None else MULTISTEP
+        self.multistep = ensemble_many_steps_loop(systems) if MULTISTEP is None else MULTISTEP
         self._exit_thr = 1.0  # run_steps exits when (displacement / (L_v/2))^2 exceeds it
         self._horizon: Optional[int] = None     # the driver's plan: the run ends about here (plan())
         self._call_end: Optional[int] = None    # the current advance call ends here
@@ -147,6 +147,8 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self.stream = cuda.stream()
         self.steps_done = 0
         self.builds = 0
+        self.sorts = 0                          # the rebuilds that permuted the particles (cuda_rebuild)
+        self._builds_since_sort = None
         self.late_rebuilds = 0
         self.launches = 0
         self._prof_events = []

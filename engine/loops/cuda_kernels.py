@@ -352,11 +352,13 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                         c += 1
 
     @cuda.jit
-    def build(n, pos, radius, cell_start, nbr, nn, counts, x_ref, sc, spd, spf, spi, fill):
-        """Full Verlet list in the sorted order, in two passes over the same cells: ``fill`` 0 counts each row into
-        counts[i] (the host then hands out the rows, an exclusive scan of the counts into nn, and makes room for
-        them); ``fill`` 1 writes the neighbours into the rows nbr[nn[i] + k]. The rows' history follows
-        (:func:`fill_history`)."""
+    def build(n, pos, radius, cell_start, order, permuted, nbr, nn, counts, x_ref, sc, spd, spf, spi, fill):
+        """Full Verlet list, in two passes over the same cells: ``fill`` 0 counts each row into counts[i] (the host
+        then hands out the rows, an exclusive scan of the counts into nn, and makes room for them); ``fill`` 1
+        writes the neighbours into the rows nbr[nn[i] + k]. A cell's particles are the slots cell_start[c] ...
+        cell_start[c + 1] - 1 of the cell order: the particles themselves where they were ``permuted`` into it,
+        else order[slot] (the sort's (cell, id) order, the particles left where they are). Either way a row lists
+        the same particles in the same order. The rows' history follows (:func:`fill_history`)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, sc, spd, spi)
             if s < 0:
@@ -377,11 +379,13 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             for ox in range(span):
                 for oy in range(span):
                     row = coff + neighbour_row(cx, cy, ox, oy, nc)
-                    for j in range(cell_start[row + z0], cell_start[row + z1]):
+                    for slot in range(cell_start[row + z0], cell_start[row + z1]):
+                        j = slot if permuted != 0 else order[slot]
                         rj = r0 if UNIFORM else radius[j]
                         cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr,
                                                base)
-                    for j in range(cell_start[row + z2], cell_start[row + z3]):
+                    for slot in range(cell_start[row + z2], cell_start[row + z3]):
+                        j = slot if permuted != 0 else order[slot]
                         rj = r0 if UNIFORM else radius[j]
                         cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr,
                                                base)
@@ -400,12 +404,14 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             status[S_SLOTS] = f64(total)
 
     @cuda.jit
-    def fill_history(n, pos, radius, c_off, c_cnt, cj, chist, order, inv_old, nbr, nn, hist, sc, spd, spi):
+    def fill_history(n, pos, radius, c_off, c_cnt, cj, chist, order, inv_old, permuted, nbr, nn, hist, sc, spd,
+                     spi):
         """The history of every slot of a new list (built on the GPU, single grid or multigrid, or on the host), in
         its row's slots hist[:, nn[i] + k]: the kept history from the compact store, indexed by the previous
-        order (old slot of new i: order[i]; old neighbour index o: new index inv_old[o]; both the identity for a
-        host-built list, which permutes nothing), else a fresh slot whose previous overlap is the gap
-        R_i + R_j - |r_ij| from the candidate test's own squared distance (cells.distance2)."""
+        order where the particles were ``permuted`` (old slot of new i: order[i]; old neighbour index o: new index
+        inv_old[o]; both the identity for a host-built list, which permutes nothing), else by the particles' own
+        slots; a slot without kept history is fresh, its previous overlap the gap R_i + R_j - |r_ij| from the
+        candidate test's own squared distance (cells.distance2)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             s = scene_of(i, sc, spi)
             if spi[s, I_ACTIVE] == 0:
@@ -421,14 +427,14 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
             xi = pos[0, i]
             yi = pos[1, i]
             zi = pos[2, i]
-            oi = order[i]
+            oi = order[i] if permuted != 0 else i
             k0 = c_off[oi]
             k1 = k0 + c_cnt[oi]
             for q in range(h0, h0 + cnt):
                 j = nbr[q]
                 rj = r0 if UNIFORM else radius[j]
                 d2 = distance2(xi, yi, zi, pos[0, j], pos[1, j], pos[2, j], box, inv_box, HALF)
-                init_slot(q, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, hist)
+                init_slot(q, j, ri + rj - math.sqrt(d2), k0, k1, cj, chist, inv_old, permuted, hist)
 
     return dict(fill_i32=fill_i32, set_word=set_word, slot_total=slot_total, fill_history=fill_history,
                 count_cells=count_cells, tile_scan=tile_scan, add_offsets=add_offsets, scatter=scatter,
@@ -537,12 +543,13 @@ def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, 
 
 
 @cuda.jit(device=True)
-def init_slot(q, j, gap, k0, k1, cj, chist, inv_old, hist):
+def init_slot(q, j, gap, k0, k1, cj, chist, inv_old, permuted, hist):
     """History slot q (neighbour j) after a rebuild: the kept history from the compact store entries k0..k1 of its
-    particle (old indices o map to new ones by inv_old[o]), else a fresh slot (zero spring, zero dashpot force,
-    previous overlap = the current gap, m)."""
+    particle (old indices o map to new ones by inv_old[o] where the rebuild ``permuted`` the particles, else they
+    are the same), else a fresh slot (zero spring, zero dashpot force, previous overlap = the current gap, m)."""
     for c in range(k0, k1):
-        if inv_old[cj[c]] == j:
+        o = cj[c]
+        if (inv_old[o] if permuted != 0 else o) == j:
             for w in range(hist.shape[0]):
                 hist[w, q] = chist[w, c]
             return

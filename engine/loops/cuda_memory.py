@@ -266,7 +266,7 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
     """The device memory of a sphere spec run as one scene on the GPU (:func:`sphere_account` with the list slots
     an equilibrium gas needs, :func:`mean_list_neighbours`), from the spec and its derived parameters ``p``
     (engine.setup.params.derive, with the run's skin). ``reads_state``: snapshots or checkpoints copy the state out."""
-    from engine.loops.system import MULTISTEP_MAX_PARTICLES, cell_grid
+    from engine.loops.system import cell_grid, many_steps_loop
     from engine.setup.precision import position_dtype, state_dtype
     from engine.setup.start_kind import RANDOM, device_start, start_protocol
 
@@ -281,7 +281,8 @@ def predict_sphere_device(spec, p, *, reads_state: bool = False, tpb: int = 256)
     layout = SphereLayout(
         n=n, word=word, pos_word=pos_word, rough=not spec.smooth, uniform=uniform, hist_slots=slots,
         store_cap=max(1024, n // 8), ncell=cell_grid(spec.box_length, n, p.radius_max, p.skin) ** 3, tpb=tpb,
-        multistep=n <= MULTISTEP_MAX_PARTICLES, reads_state=reads_state,
+        multistep=many_steps_loop(n, spec.volume_fraction if spec.shape == "sphere" else None),
+        reads_state=reads_state,
         orientations=spec.orientations and (reads_state or spec.snapshots > 0),
         xref_word=xref_dtype(position_dtype(spec.precision), [spec.box_length], [p.skin]).itemsize)
     table = sphere_account(layout)

@@ -2,9 +2,10 @@
 :class:`engine.loops.cuda_ensemble.CudaEnsembleBase`.
 
 A rebuild keeps the contact history that must survive in a compact store, counts particles per cell (scene-major
-cell ids), scans, scatters, sorts each cell by id, permutes the particle arrays into that order and builds the full
-Verlet list in two passes (count the rows, hand them out, fill them: the list holds only the slots in use, packed),
-taking the kept history back; the list's slots grow when a build hands out more. Scenes whose size
+cell ids), scans, scatters, sorts each cell by id, permutes the particle arrays into that order (only once the
+particles may have drifted :data:`SORT_DRIFT_CELLS` of a cell since the last time) and builds the full Verlet list in
+two passes (count the rows, hand them out, fill them: the list holds only the slots in use, packed), taking the kept
+history back; the list's slots grow when a build hands out more. Scenes whose size
 spread needs more than one grid level use the multigrid cells (Skorych & Dosta 2022, Algorithm 1); one scene may have
 its list built on the host instead (engine/loops/cuda_listmodes.py, Skorych & Dosta 2022, §3).
 """
@@ -26,6 +27,14 @@ from engine.loops.system import SphereSystem
 #: False: one grid of cell >= 2 R_max + L_v even for a spread of sizes (the one-off study bench/list_modes.py, in git
 #: history, set it for the cost comparison with the multigrid build)
 MULTIGRID = True
+#: A rebuild permutes the particle arrays into cell order only where the particles may have moved this many cell
+#: edges since they were last permuted (each rebuild comes after at most about L_v/2 of flight: the L_v/2 rule); the
+#: others read the cells' particles through the sort's order (cuda_kernels.build) and leave them where they are.
+#: The order is for memory locality alone (the list's rows are the same particles in the same order either way, so
+#: the trajectory is the same bits); between sorts the particles stay near the cell slots they were sorted into.
+#: A thin skin rebuilds often (0.03 a: every ~75 steps at phi = 0.2) and each permutation moved every particle
+#: array twice (gather, copy back). 0: permute at every rebuild.
+SORT_DRIFT_CELLS = 0.5
 #: True: a rebuild's scratch lies in memory that holds nothing needed while it is used (:meth:`ListBuilds._lent`,
 #: :meth:`ListBuilds._store_index`); False: arrays of its own (tests compare the two)
 LEND_SCRATCH = True
@@ -124,9 +133,31 @@ class ListBuilds:
             self.kl = list_kernels(self.dtype, self.tpb)
         self.lists = HostLists(self, mode)
 
-    def _sort_and_permute(self) -> None:
+    def _sort_interval(self) -> int:
+        """Rebuilds from one permutation into cell order to the next (:data:`SORT_DRIFT_CELLS`): the fewest, over
+        the scenes, that may move a scene's particles that many of its cell edges at L_v/2 a rebuild; 1 for a
+        multigrid ensemble (its levels' bins follow the permuted order) or a scene without a skin."""
+        if SORT_DRIFT_CELLS <= 0 or self.multigrid:
+            return 1
+        half_skin = np.array([0.5 * float(c.skin) for c in self.contact])
+        if not (half_skin > 0).all():
+            return 1
+        cell = self.box / self.spi_h[:, K.I_NC]
+        return max(1, int(np.floor(SORT_DRIFT_CELLS * cell / half_skin).min()))
+
+    def _sort_due(self) -> bool:
+        """Whether this rebuild permutes the particles (:meth:`_sort_interval`); the first one always does."""
+        if self._builds_since_sort is None or self._builds_since_sort + 1 >= self._sort_interval():
+            self._builds_since_sort = 0
+            self.sorts += 1
+            return True
+        self._builds_since_sort += 1
+        return False
+
+    def _sort_and_permute(self, permute: bool = True) -> None:
         """Particles into cell order (sorted by id within a cell), between the compaction of the kept history and
-        the new list's build: the list's history is the scratch here (:meth:`_lent`)."""
+        the new list's build: the list's history is the scratch here (:meth:`_lent`). Not ``permute``: the order
+        only (the sort's order, which the build reads the cells' particles through), the particles left in place."""
         k, n, s, lc = self.k, self.n, self.stream, self._lc
         count = self._cell_counts()
         cell_start = self._cell_starts()
@@ -141,6 +172,9 @@ class ListBuilds:
                                                             cell_start, count, order))
         lc.launch("sort_cells", k["sort_cells"], self._grid(self.ncell), (self.ncell, cell_start, order,
                                                                            self.ids))
+        if not permute:
+            self._forces_unknown()      # (the next force buffer lent the cells' starts and the store's index)
+            return
         lc.launch("inverse_perm", k["inverse_perm"], self._grid(n), (n, order, inv_old))
         # permute the particle arrays into cell order (forces too: the next force step reads them), each through
         # its own launch-cache name (an array and its scratch rows are the same objects at every rebuild)
@@ -305,11 +339,13 @@ class ListBuilds:
     def _gpu_rebuild(self) -> None:
         """Keep history, sort, permute and build: count the rows, hand them out (an exclusive scan of the counts,
         rows in particle order), make room for them, fill them, and give each slot its history."""
+        permute = self._sort_due()
         self._compact()
-        self._sort_and_permute()
+        self._sort_and_permute(permute)
         if self.multigrid:
             self._bin_levels()
         cell_start = self._cell_starts()
+        order = self._perm_rows()[0]
         for fill in (0, 1):
             # the counts lie in the history, which the room may replace: the filling pass neither reads nor writes
             counts = self._row_counts()
@@ -319,22 +355,23 @@ class ListBuilds:
                     self.nbr, self.nn, counts, self.x_ref, self.sc, self.spd, self.spi, fill))
             else:
                 self._lc.launch("build", self.k["build"], self._grid(self.n), (
-                    self.n, self.pos, self.radius1, cell_start, self.nbr, self.nn, counts, self.x_ref, self.sc,
-                    self.spd, self.spf, self.spi, fill))
+                    self.n, self.pos, self.radius1, cell_start, order, int(permute), self.nbr, self.nn, counts,
+                    self.x_ref, self.sc, self.spd, self.spf, self.spi, fill))
             if fill == 0:
                 self._exclusive_scan(counts, self._nn_rows, self._scan_rows)
                 self._lc.launch("slot_total", self.k["slot_total"], (1, 32, self.stream),
                                 (self.n, self.nn, counts, self.status))
                 self._list_room(int(self._read_status_now()[K.S_SLOTS]))
-        self._fill_history()
+        self._fill_history(permute)
         self.builds += 1
 
-    def _fill_history(self) -> None:
-        """The new list's history (cuda_kernels.fill_history) once its rows and neighbours are in place."""
+    def _fill_history(self, permuted: bool = True) -> None:
+        """The new list's history (cuda_kernels.fill_history) once its rows and neighbours are in place; ``permuted``:
+        the rebuild moved the particles (a host-built list's rows: the identity permutation)."""
         order, inv_old = self._perm_rows()
         self._lc.launch("fill_history", self.k["fill_history"], self._grid(self.n), (
             self.n, self.pos, self.radius1, self.c_off, self.c_cnt, self.cj, self.chist, order, inv_old,
-            self.nbr, self.nn, self.hist, self.sc, self.spd, self.spi))
+            int(permuted), self.nbr, self.nn, self.hist, self.sc, self.spd, self.spi))
 
     def _setup_multigrid(self, systems, contacts) -> None:
         """Grid levels per scene (Skorych & Dosta 2022, Algorithm 1, :mod:`engine.neighbours.multigrid`) when some

@@ -7,6 +7,7 @@ backends all import it; engine.backends.base re-exports these names.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import ClassVar, Optional
 
@@ -133,5 +134,50 @@ def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
 #: rough, x1.75 elastic, x1.3 rough spheroids; 256 packed scenes x1.7 rough, x2.2 elastic), and at 2^19 on an H200
 #: (2026-11-30, one scene, float64, phi = 0.058: x1.7 elastic, x1.8 rough; bench/loop_ab.py --cases elastic-2M-f64
 #: rough-2M-f64 --n 524288 --variants multistep_on default): a grid of co-resident blocks loops over many particles
-#: per thread. Below 2^19 not measured since the per-phase loop's host work got cheaper (engine/loops/cuda_launch.py).
+#: per thread. Below 2^19 see the next two.
 MULTISTEP_MAX_PARTICLES = (1 << 19) - 1
+#: ... and from this many particles the per-phase loop where spheres fill at least PER_PHASE_DENSE_PHI of the volume:
+#: the more neighbours a particle has, the longer each phase keeps the GPU busy against the per-phase loop's fixed host
+#: work a step, while the many-steps loop runs its phases on the co-resident blocks alone. H200, 2026-11-30, 2^18
+#: spheres, float64 unless named, two runs each, per phase against many steps (bench/loop_ab.py --n 262144 --phi PHI
+#: --variants default multistep): phi = 0.2 elastic x1.25, x1.37, rough x1.01, x1.25, float32 elastic x1.47, x0.95,
+#: rough x1.15, x1.00; phi = 0.15 elastic x1.43, x1.00, rough x1.23, x1.36; phi = 0.1 elastic x0.99, x1.14, rough
+#: x0.84, x0.79; phi = 0.058 elastic x0.96, x0.96, rough x0.67, x0.78. At 2^17 and phi = 0.2 the many-steps loop still
+#: wins (elastic x0.88, x0.84, rough x0.60, x0.88).
+PER_PHASE_DENSE_PARTICLES = 1 << 18
+PER_PHASE_DENSE_PHI = 0.15
+
+
+def many_steps_loop(n: int, volume_fraction: Optional[float] = None) -> bool:
+    """Whether a CUDA ensemble of ``n`` particles (all its scenes) runs the cooperative many-steps loop rather than
+    the per-phase loop: up to MULTISTEP_MAX_PARTICLES, except from PER_PHASE_DENSE_PARTICLES on for spheres at a
+    ``volume_fraction`` (over the ensemble; None: not known, or not spheres) of at least PER_PHASE_DENSE_PHI."""
+    if n > MULTISTEP_MAX_PARTICLES:
+        return False
+    dense = volume_fraction is not None and volume_fraction >= PER_PHASE_DENSE_PHI
+    return not (dense and n >= PER_PHASE_DENSE_PARTICLES)
+
+
+def ensemble_many_steps_loop(systems) -> bool:
+    """:func:`many_steps_loop` of the scenes ``systems`` packed into one CUDA ensemble (their volume fraction is
+    summed only where it decides: a mixture's radii are summed one by one)."""
+    n = sum(s.n for s in systems)
+    near = PER_PHASE_DENSE_PARTICLES <= n <= MULTISTEP_MAX_PARTICLES
+    return many_steps_loop(n, sphere_volume_fraction(systems) if near else None)
+
+
+def sphere_volume_fraction(systems) -> Optional[float]:
+    """The volume fraction of an ensemble's sphere scenes together (their spheres' volume over their boxes'), None
+    where a scene is not of spheres or its radii are not known."""
+    volume = boxes = 0.0
+    for s in systems:
+        radius = getattr(s, "radius", None)
+        if s.shape != "sphere" or radius is None:
+            return None
+        r = np.asarray(radius, np.float64)
+        if not len(r):
+            continue
+        cubes = len(r) * float(r[0]) ** 3 if rows_equal(r) else float(np.sum(r ** 3))
+        volume += 4.0 / 3.0 * math.pi * cubes
+        boxes += float(s.box_length) ** 3
+    return volume / boxes if boxes > 0 else None

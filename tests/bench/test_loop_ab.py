@@ -71,6 +71,25 @@ def test_the_own_scratch_variant_gives_the_rebuild_its_own_scratch_and_default_l
         loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = blocks
 
 
+def test_default_puts_back_each_switch_as_the_engine_had_it():
+    """A switch's "on" is the engine's own value, not True: the sort interval's drift is a number of cells."""
+    import engine.loops.cuda_ensemble as ensemble
+    import engine.loops.cuda_loop as loop
+    import engine.loops.cuda_rebuild as rebuild
+
+    blocks = loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM
+    drift, multistep = rebuild.SORT_DRIFT_CELLS, ensemble.MULTISTEP
+    assert 0 < drift < 1
+    try:
+        loop_ab.apply("sort_interval+multistep", blocks)
+        assert rebuild.SORT_DRIFT_CELLS == 0 and ensemble.MULTISTEP is False
+        loop_ab.apply("default", blocks)
+        assert rebuild.SORT_DRIFT_CELLS == drift and ensemble.MULTISTEP is multistep
+    finally:
+        rebuild.SORT_DRIFT_CELLS, ensemble.MULTISTEP = drift, multistep
+        loop.FORCES_BLOCKS_PER_SM, loop.OBSERVE_BLOCKS_PER_SM, loop.KICK_DRIFT_BLOCKS_PER_SM = blocks
+
+
 def test_the_skin_variant_is_a_spec_field_not_a_switch():
     """``skin=L`` sets every scene's verlet_skin (and turns no switch off); the other variants leave the default."""
     import engine.loops.cuda_loop as loop

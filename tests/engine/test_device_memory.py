@@ -246,3 +246,64 @@ def test_the_loop_kind_by_size_from_2_to_the_19():
         accounts[n] = predict_sphere_device(spec, derive(spec)).table
     assert "_alt_spin" in accounts[(1 << 19) - 1] and "_alt[0]" in accounts[(1 << 19) - 1]
     assert "_alt_spin" not in accounts[1 << 19] and "_alt[0]" not in accounts[1 << 19]
+
+
+def test_dense_sphere_scenes_run_the_per_phase_loop_from_2_to_the_18():
+    """From 2^18 spheres at a volume fraction of at least 0.15 the per-phase loop (engine.loops.system
+    PER_PHASE_DENSE_PARTICLES, PER_PHASE_DENSE_PHI: measured faster there), and the device-memory account follows."""
+    from engine.loops.cuda_memory import predict_sphere_device
+    from engine.loops.system import many_steps_loop
+    from engine.setup.params import derive
+    from engine.setup.spec import SimulationSpec
+
+    assert many_steps_loop((1 << 18) - 1, 0.3) and many_steps_loop(1 << 18, 0.1) and many_steps_loop(1 << 18, None)
+    assert not many_steps_loop(1 << 18, 0.15) and not many_steps_loop(1 << 19, 0.01)
+    multistep = {}
+    for n, phi in (((1 << 18) - 1, 0.2), (1 << 18, 0.2), (1 << 18, 0.1)):
+        spec = SimulationSpec(n_particles=n, volume_fraction=phi, e_t=0.8, backend="cuda")
+        multistep[n, phi] = "_alt_spin" in predict_sphere_device(spec, derive(spec)).table
+    assert multistep == {((1 << 18) - 1, 0.2): True, (1 << 18, 0.2): False, (1 << 18, 0.1): True}
+
+
+def test_sphere_volume_fraction_of_an_ensemble():
+    """The spheres' volume over the boxes', one-size (a broadcast radius) and mixed; None for other shapes."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from engine.loops.system import sphere_volume_fraction
+
+    one = SimpleNamespace(shape="sphere", box_length=2.0, radius=np.broadcast_to(np.float64(0.5), (3,)))
+    mixed = SimpleNamespace(shape="sphere", box_length=1.0, radius=np.array([0.1, 0.2]))
+    vol = 4.0 / 3.0 * np.pi
+    assert sphere_volume_fraction([one]) == pytest.approx(3 * vol * 0.125 / 8.0)
+    assert sphere_volume_fraction([one, mixed]) == pytest.approx((3 * vol * 0.125 + vol * 0.009) / 9.0)
+    assert sphere_volume_fraction([one, SimpleNamespace(shape="ellipsoid", box_length=1.0, radius=None)]) is None
+
+
+LOOP_KIND = r'''
+from tests.cudasim import fast_block_polling
+fast_block_polling()
+import engine.loops.system as system
+from engine.backends.cuda import CudaBackend
+from engine.driver.simulate import contact_params
+from engine.setup.params import derive
+from engine.setup.scene import initial_spheres
+from engine.setup.spec import SimulationSpec
+
+system.PER_PHASE_DENSE_PARTICLES = 64      # the rule at a size the simulator builds at once
+got = []
+for phi in (0.2, 0.1):
+    spec = SimulationSpec(n_particles=64, volume_fraction=phi, e_t=0.8, backend="cuda", seed=2)
+    p = derive(spec)
+    gpu = CudaBackend(initial_spheres(spec, p), contact_params(spec, p, thermalization=False))
+    got.append(gpu.e.multistep)
+print("LOOP-KIND", got)
+'''
+
+
+def test_a_dense_ensemble_takes_the_per_phase_loop():
+    """The CUDA ensemble asks engine.loops.system.ensemble_many_steps_loop with its scenes' volume fraction: with the
+    dense rule's size lowered to 64 spheres, at phi = 0.2 the per-phase loop, at 0.1 the many-steps loop."""
+    (rc, out, err), = run_children({"kind": ["-c", LOOP_KIND]}, timeout=600).values()
+    assert rc == 0 and "LOOP-KIND [False, True]" in out, out[-2000:] + err[-3000:]

@@ -33,6 +33,7 @@ from engine.loops.cuda_memory import device_allocations
 from engine.setup.spec import SimulationSpec
 
 ens.MULTISTEP = False
+rb.SORT_DRIFT_CELLS = 0     # every rebuild permutes: the scratch of its gathers is in use (and held at the end)
 case = sys.argv[1]
 if case in ("dense-grows", "mixed-thin-history"):
     rb.HIST_MARGIN = 0     # the first list holds N slots: the dense gas's rows outgrow them at the first build; in
