@@ -132,3 +132,20 @@ def run_children(commands: dict, timeout: float) -> dict:
                 p.wait()
             out.close()
             err.close()
+
+
+def kept_ensembles() -> list:
+    """The CUDA ensembles made in this process from now on, in the list returned (engine.loops.cuda_ensemble
+    ``CudaEnsembleBase.__init__`` patched to append each), for a test that reads an ensemble's counters or arrays
+    after ``engine.run`` made and dropped it."""
+    from engine.loops import cuda_ensemble
+
+    kept = []
+    init = cuda_ensemble.CudaEnsembleBase.__init__
+
+    def keep(self, *a, **k):
+        kept.append(self)
+        init(self, *a, **k)
+
+    cuda_ensemble.CudaEnsembleBase.__init__ = keep
+    return kept

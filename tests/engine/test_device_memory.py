@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from tests.cudasim import run_children
+from tests.cudasim import kept_ensembles, run_children
 
 CASES = {
     # name: spec fields (n = 216: the many-steps loop; the account's flags are read off the ensemble)
@@ -27,21 +27,13 @@ def _child(case: str) -> None:
 
     fast_block_polling()
     import engine
-    from engine.loops import cuda_ensemble
     from engine.loops import cuda_kernels as K
     from engine.loops.cuda_memory import SphereLayout, device_allocations, sphere_account
     from engine.setup.params import derive
     from engine.setup.precision import position_dtype, state_dtype
     from engine.setup.spec import SimulationSpec
 
-    kept = []
-    init = cuda_ensemble.CudaEnsembleBase.__init__
-
-    def keep(self, *a, **k):
-        kept.append(self)
-        init(self, *a, **k)
-
-    cuda_ensemble.CudaEnsembleBase.__init__ = keep
+    kept = kept_ensembles()
     spec = SimulationSpec(n_particles=216, volume_fraction=0.058, e_n=0.8, backend="cuda", thermalization=0,
                           **CASES[case])
     spec = spec.model_copy(update={"t_end": 40 * derive(spec).dt})

@@ -19,7 +19,7 @@ from tests.cudasim import run_children
 
 SCRIPT = r'''
 import sys
-from tests.cudasim import fast_block_polling
+from tests.cudasim import fast_block_polling, kept_ensembles
 fast_block_polling()
 import tempfile
 from pathlib import Path
@@ -35,21 +35,16 @@ if case == "dense-grows":
     rb.HIST_MARGIN = 0     # the first list holds N slots: the dense gas's rows outgrow them at the first build
     rb.SORT_DRIFT_CELLS = 0.15  # its cells of 3 radii, its skin of 0.4: a permutation every second rebuild
 default = rb.SORT_DRIFT_CELLS
-kept = []
-init = ens.CudaEnsembleBase.__init__
-def keep(self, *a, **k):
-    kept.append(self)
-    init(self, *a, **k)
-ens.CudaEnsembleBase.__init__ = keep
+kept = kept_ensembles()
 
+# 40 spheres at phi = 0.15 with a skin of 0.1 radii unless the case says otherwise
 base = dict(n_particles=40, volume_fraction=0.15, e_n=0.8, thermalization=0.0, snapshots=2, backend="cuda",
-            t_end=1.6e-3, output_interval=4e-4, velocity_rms=12.0, verlet_skin=0.1, seed=4)
+            t_end=1.6e-3, output_interval=4e-4, velocity_rms=12.0, verlet_skin=0.1, seed=4, precision="float64")
 kw = {"rough-f32-coulomb": dict(precision="float32", e_t=0.8, friction=0.3),
-      "dense-grows": dict(precision="float64", e_t=0.8, volume_fraction=0.35, verlet_skin=0.4, n_particles=64,
-                          velocity_rms=6.0, t_end=1e-2),
-      "spheroids": dict(precision="float64", e_t=0.8, shape="ellipsoid", elongation=1.5, volume_fraction=0.1,
-                        velocity_rms=10.0, verlet_skin=0.2),
-      "packed-smooth": dict(precision="float64", e_t=-1.0)}[case]
+      "dense-grows": dict(e_t=0.8, volume_fraction=0.35, verlet_skin=0.4, n_particles=64, velocity_rms=6.0, t_end=1e-2),
+      "spheroids": dict(e_t=0.8, shape="ellipsoid", elongation=1.5, volume_fraction=0.1, velocity_rms=10.0,
+                        verlet_skin=0.2),
+      "packed-smooth": dict(e_t=-1.0)}[case]
 DATA = ("position", "velocity", "angular_velocity")
 out = {}
 for drift in (default, 0.0):
