@@ -21,8 +21,8 @@ check and rebuilds (:class:`HostParts`).
     python -m bench loop_ab --cases rough-2M-f64 --variants default blocks=2 blocks=3
     python -m bench loop_ab --cases elastic-1M-f64 packed-256x4096-f64 --variants default gc_off --start random
 
-Cases: :data:`JAXMD_CASES` (bench/vs_jaxmd.py's gas at phi = 0.058) and :data:`EXTRA` (one 1M-sphere scene and 256
-packed scenes of 4096 at the same sphere size; 1M rough spheroids). For several scenes the loop figure is N x steps
+Cases: :data:`JAXMD_CASES` (bench/vs_jaxmd.py's gas at phi = 0.058, or ``--phi``) and :data:`EXTRA` (one 1M-sphere
+scene, 256 or 64 packed scenes of 4096 at the same sphere size and ``--phi``; 1M rough spheroids). For several scenes the loop figure is N x steps
 over the ensemble's loop seconds. Compare one scene with packed scenes at the same ``--start`` (by default both start
 random: a sphere scene of 2^20 or more from the random start placed in parallel; spheroids on the lattice, whose list
 stays nearly empty over a short run).
@@ -294,19 +294,22 @@ EXTRA = {
     "rough-1M-f64": (1, 1 << 20, "float64", 20_000, "rough"),
     "packed-256x4096-f64": (256, 4096, "float64", 20_000, "elastic"),
     "packed-rough-256x4096-f64": (256, 4096, "float64", 20_000, "rough"),
+    "packed-64x4096-f64": (64, 4096, "float64", 20_000, "elastic"),
+    "packed-rough-64x4096-f64": (64, 4096, "float64", 20_000, "rough"),
     "spheroids-rough-1M-f64": (1, 1 << 20, "float64", 2000, "spheroid"),
 }
 
 
-def extra_specs(case: str, steps: int, backend: str, start=None) -> list:
+def extra_specs(case: str, steps: int, backend: str, start=None, phi: float = 0.058) -> list:
     """The specs of an EXTRA case (one per scene, own seeds), t_end = steps x dt exactly; ``start``: the spec's start
-    protocol (None: the engine's choice by size, which differs between one 1M scene and 4096-sphere scenes)."""
+    protocol (None: the engine's choice by size, which differs between one 1M scene and 4096-sphere scenes); ``phi``:
+    the sphere cases' volume fraction (in the same box: larger spheres)."""
     from bench.vs_jaxmd import SCENE
     from engine.setup.params import derive
     from engine.setup.spec import SimulationSpec
 
     k, n, precision, _, contact = EXTRA[case]
-    base = dict(SCENE, volume_fraction=0.058, n_particles=n, precision=precision,
+    base = dict(SCENE, volume_fraction=phi, n_particles=n, precision=precision,
                 thermalization=0.0, snapshots=0, backend=backend,
                 box_length=SCENE["box_length"] * (n / 2**21) ** (1 / 3), start=start)
     if contact == "elastic":
@@ -332,7 +335,7 @@ def case_specs(case: str, steps: int, backend: str = "cuda", phi: float = 0.058,
     from bench.vs_jaxmd import Case, case_spec
 
     if case in EXTRA:
-        specs = extra_specs(case, steps, backend, start)
+        specs = extra_specs(case, steps, backend, start, phi)
     else:
         n0, precision, _, contact = JAXMD_CASES[case]
         specs = [case_spec(Case(n0, precision, steps, contact, phi), backend)]
@@ -354,7 +357,7 @@ def main(argv=None) -> int:
     ap.add_argument("--reps", type=int, default=1)
     ap.add_argument("--backend", choices=("cuda", "cpu"), default="cuda")
     ap.add_argument("--steps-scale", type=float, default=1.0)
-    ap.add_argument("--phi", type=float, default=0.058, help="volume fraction of the JAX-MD cases (default 0.058)")
+    ap.add_argument("--phi", type=float, default=0.058, help="volume fraction of the sphere cases (default 0.058)")
     ap.add_argument("--n", type=int, default=None,
                     help="particles of the JAX-MD cases instead of theirs, at the same sphere size (the box scaled as "
                          "N^(1/3)): the same gas at another N")

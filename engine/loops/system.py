@@ -136,22 +136,24 @@ def cell_grid(box: float, n: int, rmax: float, skin: float) -> int:
 #: rough-2M-f64 --n 524288 --variants multistep_on default): a grid of co-resident blocks loops over many particles
 #: per thread. Below 2^19 see the next two.
 MULTISTEP_MAX_PARTICLES = (1 << 19) - 1
-#: ... and from this many particles the per-phase loop where spheres fill at least PER_PHASE_DENSE_PHI of the volume:
-#: the more neighbours a particle has, the longer each phase keeps the GPU busy against the per-phase loop's fixed host
-#: work a step, while the many-steps loop runs its phases on the co-resident blocks alone. H200, 2026-11-30, 2^18
-#: spheres, float64 unless named, two runs each, per phase against many steps (bench/loop_ab.py --n 262144 --phi PHI
-#: --variants default multistep): phi = 0.2 elastic x1.25, x1.37, rough x1.01, x1.25, float32 elastic x1.47, x0.95,
-#: rough x1.15, x1.00; phi = 0.15 elastic x1.43, x1.00, rough x1.23, x1.36; phi = 0.1 elastic x0.99, x1.14, rough
-#: x0.84, x0.79; phi = 0.058 elastic x0.96, x0.96, rough x0.67, x0.78. At 2^17 and phi = 0.2 the many-steps loop still
-#: wins (elastic x0.88, x0.84, rough x0.60, x0.88).
+#: ... and from this many particles the per-phase loop for one scene of spheres filling at least PER_PHASE_DENSE_PHI of
+#: the volume: the more neighbours a particle has, the longer each phase keeps the GPU busy against the per-phase loop's
+#: fixed host work a step, while the many-steps loop runs its phases on the co-resident blocks alone. H200, 2026-11-30,
+#: 2^18 spheres, float64 unless named, two runs each, per phase against many steps (bench/loop_ab.py --n 262144 --phi
+#: PHI --variants default multistep): phi = 0.2 elastic x1.25, x1.37, rough x1.01, x1.25, float32 elastic x1.47, x0.95,
+#: rough x1.15, x1.00; phi = 0.15 elastic x1.43, x1.00, rough x1.23, x1.36; phi = 0.1 elastic x0.99, x1.14, rough x0.84,
+#: x0.79; phi = 0.058 elastic x0.96, x0.96, rough x0.67, x0.78. At 2^17 and phi = 0.2 the many-steps loop still wins
+#: (elastic x0.88, x0.84, rough x0.60, x0.88); so it does for 64 packed rough scenes of 4096 at phi = 0.2 (x0.71, x0.81
+#: per phase; elastic x1.27, x1.19): packs keep the size rule.
 PER_PHASE_DENSE_PARTICLES = 1 << 18
 PER_PHASE_DENSE_PHI = 0.15
 
 
 def many_steps_loop(n: int, volume_fraction: Optional[float] = None) -> bool:
     """Whether a CUDA ensemble of ``n`` particles (all its scenes) runs the cooperative many-steps loop rather than
-    the per-phase loop: up to MULTISTEP_MAX_PARTICLES, except from PER_PHASE_DENSE_PARTICLES on for spheres at a
-    ``volume_fraction`` (over the ensemble; None: not known, or not spheres) of at least PER_PHASE_DENSE_PHI."""
+    the per-phase loop: up to MULTISTEP_MAX_PARTICLES, except from PER_PHASE_DENSE_PARTICLES on for one scene of
+    spheres at a ``volume_fraction`` (None: not known, several scenes, or not spheres) of at least
+    PER_PHASE_DENSE_PHI."""
     if n > MULTISTEP_MAX_PARTICLES:
         return False
     dense = volume_fraction is not None and volume_fraction >= PER_PHASE_DENSE_PHI
@@ -159,10 +161,11 @@ def many_steps_loop(n: int, volume_fraction: Optional[float] = None) -> bool:
 
 
 def ensemble_many_steps_loop(systems) -> bool:
-    """:func:`many_steps_loop` of the scenes ``systems`` packed into one CUDA ensemble (their volume fraction is
-    summed only where it decides: a mixture's radii are summed one by one)."""
+    """:func:`many_steps_loop` of the scenes ``systems`` packed into one CUDA ensemble: the volume fraction counts for
+    one scene only (packed rough scenes ran slower per phase), and is summed only where it decides (a mixture's radii
+    are summed one by one)."""
     n = sum(s.n for s in systems)
-    near = PER_PHASE_DENSE_PARTICLES <= n <= MULTISTEP_MAX_PARTICLES
+    near = len(systems) == 1 and PER_PHASE_DENSE_PARTICLES <= n <= MULTISTEP_MAX_PARTICLES
     return many_steps_loop(n, sphere_volume_fraction(systems) if near else None)
 
 

@@ -24,6 +24,11 @@ def test_one_large_scene_and_packed_small_scenes_both_start_random_by_default_an
         assert all(s.thermalization == 0.0 and s.snapshots == 0 for s in specs)
     # the same sphere size and density: the box scales with N
     assert packed[0].box_length ** 3 * 256 == pytest.approx(one[0].box_length ** 3)
+    # --phi reaches the sphere packs (in the same boxes), not the spheroids
+    dense = loop_ab.case_specs("packed-64x4096-f64", 100, "cpu", phi=0.2)
+    assert len(dense) == 64 and {s.volume_fraction for s in dense} == {0.2}
+    assert dense[0].box_length == pytest.approx(packed[0].box_length)
+    assert loop_ab.case_specs("spheroids-rough-1M-f64", 100, "cpu", phi=0.2)[0].volume_fraction == 0.05
 
 
 def test_the_gc_off_variant_turns_the_collector_off_and_default_turns_it_back_on():

@@ -257,6 +257,23 @@ def test_dense_sphere_scenes_run_the_per_phase_loop_from_2_to_the_18():
     assert multistep == {((1 << 18) - 1, 0.2): True, (1 << 18, 0.2): False, (1 << 18, 0.1): True}
 
 
+def test_packed_scenes_keep_the_size_rule():
+    """The dense rule is one scene's (packed rough scenes ran slower per phase at 2^18, phi = 0.2)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from engine.loops.system import ensemble_many_steps_loop
+
+    def scene(n):       # phi = 0.2: n spheres of radius r in a box of 1
+        r = (0.2 / (n * 4.0 / 3.0 * np.pi)) ** (1.0 / 3.0)
+        return SimpleNamespace(shape="sphere", n=n, box_length=1.0, radius=np.broadcast_to(np.float64(r), (n,)))
+
+    assert ensemble_many_steps_loop([scene(1 << 18)]) is False
+    assert ensemble_many_steps_loop([scene(1 << 17), scene(1 << 17)]) is True
+    assert ensemble_many_steps_loop([scene((1 << 18) - 1)]) is True
+
+
 def test_sphere_volume_fraction_of_an_ensemble():
     """The spheres' volume over the boxes', one-size (a broadcast radius) and mixed; None for other shapes."""
     from types import SimpleNamespace
