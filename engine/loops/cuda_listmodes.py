@@ -31,7 +31,7 @@ Three ways to get the GPU its neighbour list (``list_mode``):
                      ensemble's: the driver's horizon (``CudaEnsemble.plan``) or the current
                      ``advance`` call's end, whichever is later.
 
-The CPU modes keep the particle order of the device fixed (the GPU mode re-sorts at every rebuild), so
+The CPU modes keep the particle order of the device fixed (the GPU mode re-sorts at its rebuilds), so
 a list built from a position snapshot stays valid for the slots it names. History carry-over is the GPU
 path's: the slots that must keep history go to the compact store before the new list arrives and are
 matched by the GPU builds' ``fill_history`` kernel (:mod:`engine.loops.cuda_kernels`).
@@ -106,11 +106,8 @@ class HostLists:
     # ---- buffers ------------------------------------------------------------------------------------
 
     def _enter_cpu_mode(self) -> None:
-        """Fix the slot order (no permutation from now on) and set the builder up for it."""
-        ens = self.ens
-        ids = np.arange(ens.n, dtype=np.int32)
-        for rows in ens._own_perm_rows():
-            rows.copy_to_device(ids, stream=ens.stream)
+        """Fix the slot order (no permutation from now on: the attached lists' history is filled unpermuted,
+        ``_fill_history(False)``) and set the builder up for it."""
         self._prepare()
 
     def _prepare(self) -> None:
@@ -186,7 +183,7 @@ class HostLists:
         ens.nn.copy_to_device(rows, stream=st)
         st.synchronize()
         t_up = time.perf_counter() - t0
-        ens._fill_history()
+        ens._fill_history(False)
         if ens.x_ref.dtype == snapshot_dev.dtype:
             _copy(ens.x_ref, snapshot_dev, st)
         else:       # a float32 x_ref beside float64 positions (cuda_memory.xref_dtype)

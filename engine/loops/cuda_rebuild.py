@@ -154,7 +154,7 @@ class ListBuilds:
         self._builds_since_sort += 1
         return False
 
-    def _sort_and_permute(self, permute: bool = True) -> None:
+    def _sort_and_permute(self, permute: bool) -> None:
         """Particles into cell order (sorted by id within a cell), between the compaction of the kept history and
         the new list's build: the list's history is the scratch here (:meth:`_lent`). Not ``permute``: the order
         only (the sort's order, which the build reads the cells' particles through), the particles left in place."""
@@ -267,18 +267,13 @@ class ListBuilds:
         """(order, inv_old) of a rebuild's permutation (int32 N each: the old slot of each new one, the new slot of
         each old one), written by the sort and read until the new list's history is filled. Two rows of the torque
         where the next force pass rewrites it for every particle (:meth:`_torque_rewritten`; the torque's content
-        is not kept across a rebuild anyway: it is not permuted), else arrays of their own (:meth:`_own_perm_rows`)."""
+        is not kept across a rebuild anyway: it is not permuted), else arrays of their own, made at the first call."""
         if self._perm_own is None and LEND_SCRATCH and self._torque_rewritten():
             got = self._perm_views.get(id(self.torque))
             if got is None:
                 flat = self.torque.reshape(self.torque.size).view(np.int32)
                 got = self._perm_views[id(self.torque)] = (self.torque, flat[:self.n], flat[self.n:2 * self.n])
             return got[1], got[2]
-        return self._own_perm_rows()
-
-    def _own_perm_rows(self) -> tuple:
-        """(order, inv_old) in arrays of their own, made at the first call and used from then on (a list built on
-        the host keeps them the identity across rebuilds)."""
         if self._perm_own is None:
             self._perm_own = tuple(cuda.device_array(self.n, np.int32, stream=self.stream) for _ in range(2))
         return self._perm_own
@@ -365,9 +360,9 @@ class ListBuilds:
         self._fill_history(permute)
         self.builds += 1
 
-    def _fill_history(self, permuted: bool = True) -> None:
+    def _fill_history(self, permuted: bool) -> None:
         """The new list's history (cuda_kernels.fill_history) once its rows and neighbours are in place; ``permuted``:
-        the rebuild moved the particles (a host-built list's rows: the identity permutation)."""
+        the rebuild moved the particles (never for a list built on the host)."""
         order, inv_old = self._perm_rows()
         self._lc.launch("fill_history", self.k["fill_history"], self._grid(self.n), (
             self.n, self.pos, self.radius1, self.c_off, self.c_cnt, self.cj, self.chist, order, inv_old,

@@ -166,21 +166,13 @@ def ensemble_many_steps_loop(systems) -> bool:
     are summed one by one)."""
     n = sum(s.n for s in systems)
     near = len(systems) == 1 and PER_PHASE_DENSE_PARTICLES <= n <= MULTISTEP_MAX_PARTICLES
-    return many_steps_loop(n, sphere_volume_fraction(systems) if near else None)
+    return many_steps_loop(n, sphere_volume_fraction(systems[0]) if near else None)
 
 
-def sphere_volume_fraction(systems) -> Optional[float]:
-    """The volume fraction of an ensemble's sphere scenes together (their spheres' volume over their boxes'), None
-    where a scene is not of spheres or its radii are not known."""
-    volume = boxes = 0.0
-    for s in systems:
-        radius = getattr(s, "radius", None)
-        if s.shape != "sphere" or radius is None:
-            return None
-        r = np.asarray(radius, np.float64)
-        if not len(r):
-            continue
-        cubes = len(r) * float(r[0]) ** 3 if rows_equal(r) else float(np.sum(r ** 3))
-        volume += 4.0 / 3.0 * math.pi * cubes
-        boxes += float(s.box_length) ** 3
-    return volume / boxes if boxes > 0 else None
+def sphere_volume_fraction(system) -> Optional[float]:
+    """The volume fraction of a scene of spheres (its spheres' volume over its box's), None for another shape."""
+    if system.shape != "sphere":
+        return None
+    r = np.asarray(system.radius, np.float64)
+    cubes = len(r) * float(r[0]) ** 3 if len(r) and rows_equal(r) else float(np.sum(r ** 3))
+    return 4.0 / 3.0 * math.pi * cubes / float(system.box_length) ** 3

@@ -274,8 +274,8 @@ def test_packed_scenes_keep_the_size_rule():
     assert ensemble_many_steps_loop([scene((1 << 18) - 1)]) is True
 
 
-def test_sphere_volume_fraction_of_an_ensemble():
-    """The spheres' volume over the boxes', one-size (a broadcast radius) and mixed; None for other shapes."""
+def test_sphere_volume_fraction_of_a_scene():
+    """The spheres' volume over the box's, one-size (a broadcast radius) and mixed; None for other shapes."""
     from types import SimpleNamespace
 
     import numpy as np
@@ -285,9 +285,9 @@ def test_sphere_volume_fraction_of_an_ensemble():
     one = SimpleNamespace(shape="sphere", box_length=2.0, radius=np.broadcast_to(np.float64(0.5), (3,)))
     mixed = SimpleNamespace(shape="sphere", box_length=1.0, radius=np.array([0.1, 0.2]))
     vol = 4.0 / 3.0 * np.pi
-    assert sphere_volume_fraction([one]) == pytest.approx(3 * vol * 0.125 / 8.0)
-    assert sphere_volume_fraction([one, mixed]) == pytest.approx((3 * vol * 0.125 + vol * 0.009) / 9.0)
-    assert sphere_volume_fraction([one, SimpleNamespace(shape="ellipsoid", box_length=1.0, radius=None)]) is None
+    assert sphere_volume_fraction(one) == pytest.approx(3 * vol * 0.125 / 8.0)
+    assert sphere_volume_fraction(mixed) == pytest.approx(vol * 0.009)
+    assert sphere_volume_fraction(SimpleNamespace(shape="ellipsoid", box_length=1.0)) is None
 
 
 LOOP_KIND = r'''
