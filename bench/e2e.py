@@ -28,7 +28,8 @@ and two grid syncs a step in the many-steps kernel instead of one, engine/loops/
 the last force pass of each advance call, engine/loops/cuda_stepping.py), ``direct_launch`` (the launch cache hands its
 argument lists to cuda.core's launch instead of calling the driver's cuLaunchKernel itself,
 engine/loops/cuda_launch.py), ``sort_interval`` (every list rebuild permutes the particles into cell order,
-engine/loops/cuda_rebuild.py ``SORT_DRIFT_CELLS``). Not for the worker cases, whose jobs run in processes of the
+engine/loops/cuda_rebuild.py ``SORT_DRIFT_CELLS``), ``build_kept`` (a list build's filling pass searches every row's
+cells again instead of copying the rows its counting pass kept, engine/loops/cuda_rebuild.py ``BUILD_KEPT``). Not for the worker cases, whose jobs run in processes of the
 service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
@@ -96,6 +97,7 @@ SWITCHES = {
     "skip_cold": ("engine.loops.cuda_loop", "SKIP_COLD", False),
     "direct_launch": ("engine.loops.cuda_launch", "DIRECT", False),
     "sort_interval": ("engine.loops.cuda_rebuild", "SORT_DRIFT_CELLS", 0.0),
+    "build_kept": ("engine.loops.cuda_rebuild", "BUILD_KEPT", 0),
 }
 
 

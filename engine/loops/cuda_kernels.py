@@ -352,14 +352,25 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                         c += 1
 
     @cuda.jit
-    def build(n, pos, radius, cell_start, order, permuted, nbr, nn, counts, x_ref, sc, spd, spf, spi, fill):
-        """Full Verlet list, in two passes over the same cells: ``fill`` 0 counts each row into counts[i] (the host
-        then hands out the rows, an exclusive scan of the counts into nn, and makes room for them); ``fill`` 1
-        writes the neighbours into the rows nbr[nn[i] + k]. A cell's particles are the slots cell_start[c] ...
-        cell_start[c + 1] - 1 of the cell order: the particles themselves where they were ``permuted`` into it,
-        else order[slot] (the sort's (cell, id) order, the particles left where they are). Either way a row lists
-        the same particles in the same order. The rows' history follows (:func:`fill_history`)."""
+    def build(n, pos, radius, cell_start, order, permuted, nbr, nn, counts, x_ref, sc, spd, spf, spi, fill, kept,
+              keep):
+        """Full Verlet list, in two passes: ``fill`` 0 searches the cells, counts each row into counts[i] and keeps
+        its first ``keep`` neighbours in kept[k, i] (the host then hands out the rows, an exclusive scan of the
+        counts into nn, and makes room for them); ``fill`` 1 writes the neighbours into the rows nbr[nn[i] + k]:
+        copied from ``kept`` for a row of at most ``keep`` (most rows of a thin skin: a search costs the same for
+        an empty row as for a full one), found by the same search again for a longer one (``keep`` 0: every row).
+        A cell's particles are the slots cell_start[c] ... cell_start[c + 1] - 1 of the cell order: the particles
+        themselves where they were ``permuted`` into it, else order[slot] (the sort's (cell, id) order, the
+        particles left where they are). Either way a row lists the same particles in the same order. The rows'
+        history follows (:func:`fill_history`)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
+            if fill != 0 and keep > 0:
+                h0 = nn[i]
+                m = nn[i + 1] - h0
+                if m <= keep:
+                    for k in range(m):
+                        nbr[h0 + k] = kept[k, i]
+                    continue
             xi, yi, zi, s, box, inv_box, skin = list_origin(i, pos, x_ref, sc, spd, spi)
             if s < 0:
                 if fill == 0:
@@ -382,13 +393,13 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
                     for slot in range(cell_start[row + z0], cell_start[row + z1]):
                         j = slot if permuted != 0 else order[slot]
                         rj = r0 if UNIFORM else radius[j]
-                        cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr,
-                                               base)
+                        cnt = keep_candidate(i, j, cnt, add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos,
+                                                                      box, inv_box, HALF, nbr, base)[0], kept, keep)
                     for slot in range(cell_start[row + z2], cell_start[row + z3]):
                         j = slot if permuted != 0 else order[slot]
                         rj = r0 if UNIFORM else radius[j]
-                        cnt, _ = add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, HALF, nbr,
-                                               base)
+                        cnt = keep_candidate(i, j, cnt, add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos,
+                                                                      box, inv_box, HALF, nbr, base)[0], kept, keep)
             if fill == 0:
                 counts[i] = cnt
 
@@ -539,6 +550,15 @@ def add_candidate(i, j, cnt, xi, yi, zi, ri, rj, skin, pos, box, inv_box, half, 
             nbr[base + cnt] = j
         return cnt + 1, d2
     return cnt, d2
+
+
+@cuda.jit(device=True)
+def keep_candidate(i, j, cnt, new, kept, keep):
+    """A counting pass's row after the candidate test (count ``cnt`` before it, ``new`` after): a neighbour found
+    (j) among the row's first ``keep`` is kept at kept[cnt, i] for the filling pass. Returns the new count."""
+    if new != cnt and cnt < keep:
+        kept[cnt, i] = j
+    return new
 
 
 @cuda.jit(device=True)

@@ -4,8 +4,9 @@
 A rebuild keeps the contact history that must survive in a compact store, counts particles per cell (scene-major
 cell ids), scans, scatters, sorts each cell by id, permutes the particle arrays into that order (only once the
 particles may have drifted :data:`SORT_DRIFT_CELLS` of a cell since the last time) and builds the full Verlet list in
-two passes (count the rows, hand them out, fill them: the list holds only the slots in use, packed), taking the kept
-history back; the list's slots grow when a build hands out more. Scenes whose size
+two passes (search the cells and count the rows, keeping the first :data:`BUILD_KEPT` neighbours of each; hand the
+rows out; fill them, copying the kept rows and searching again only for longer ones: the list holds only the slots in
+use, packed), taking the kept history back; the list's slots grow when a build hands out more. Scenes whose size
 spread needs more than one grid level use the multigrid cells (Skorych & Dosta 2022, Algorithm 1); one scene may have
 its list built on the host instead (engine/loops/cuda_listmodes.py, Skorych & Dosta 2022, §3).
 """
@@ -35,6 +36,11 @@ MULTIGRID = True
 #: A thin skin rebuilds often (0.03 a: every ~75 steps at phi = 0.2) and each permutation moved every particle
 #: array twice (gather, copy back). 0: permute at every rebuild.
 SORT_DRIFT_CELLS = 0.5
+#: Neighbours per particle that a GPU list build's counting pass keeps for its filling pass (cuda_kernels.build), in
+#: the list's history after the row counts, as many as it has room for: a row of at most this many is copied, not
+#: found by a second search of its 27 cells (with a thin skin almost every row: the search, not the row's length,
+#: is a build's cost). 0: the filling pass searches every row again.
+BUILD_KEPT = 4
 #: True: a rebuild's scratch lies in memory that holds nothing needed while it is used (:meth:`ListBuilds._lent`,
 #: :meth:`ListBuilds._store_index`); False: arrays of its own (tests compare the two)
 LEND_SCRATCH = True
@@ -239,6 +245,29 @@ class ListBuilds:
             return self._counts_own
         return self._lent(np.int32, (max(1, self.n),))
 
+    def _kept_rows(self, most: int | None = None) -> tuple:
+        """(kept, keep) of a build (cuda_kernels.build): the neighbours its counting pass keeps for its filling pass,
+        kept[k, i] for k < keep (int32), ``keep`` = :data:`BUILD_KEPT` (or ``most``) or fewer, as many as the list's
+        history holds after the row counts (:meth:`_row_counts`; 4 in float32: 5 words a slot, N slots at least), or
+        an array of its own where ``LEND_SCRATCH`` is off; keep 0: a one-word stand-in. Made once per history."""
+        keep = BUILD_KEPT if most is None else min(most, BUILD_KEPT)
+        n = max(1, self.n)
+        if keep > 0 and LEND_SCRATCH:
+            keep = min(keep, self.hist.nbytes // (4 * n) - 1)
+        if keep <= 0:
+            if self._kept_none is None:
+                self._kept_none = cuda.device_array((1, 1), np.int32, stream=self.stream)
+            return self._kept_none, 0
+        got = self._kept_views.get(keep)
+        if got is None or got[0] is not self.hist:
+            if LEND_SCRATCH:
+                flat = self.hist.reshape(self.hist.size).view(np.uint8)
+                view = flat[4 * n:4 * n * (keep + 1)].view(np.int32).reshape(keep, n)
+            else:
+                view = cuda.device_array((keep, n), np.int32, stream=self.stream)
+            got = self._kept_views[keep] = (self.hist, view)
+        return got[1], keep
+
     def _lent(self, dtype, shape: tuple):
         """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's history (``hist``),
         made once per allocation (the launch cache knows its arrays by identity). Valid only between the compaction
@@ -341,9 +370,14 @@ class ListBuilds:
             self._bin_levels()
         cell_start = self._cell_starts()
         order = self._perm_rows()[0]
+        kept, keep = self._kept_rows()
+        searched = self.hist
         for fill in (0, 1):
-            # the counts lie in the history, which the room may replace: the filling pass neither reads nor writes
+            # the counts and the kept rows lie in the history, which the room may replace: the filling pass then
+            # neither reads nor writes them, and searches every row again
             counts = self._row_counts()
+            if self.hist is not searched:
+                kept, keep = self._kept_rows(0)
             if self.multigrid:
                 self._lc.launch("mg_build", self.kl["mg_build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
@@ -351,7 +385,7 @@ class ListBuilds:
             else:
                 self._lc.launch("build", self.k["build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, cell_start, order, int(permute), self.nbr, self.nn, counts,
-                    self.x_ref, self.sc, self.spd, self.spf, self.spi, fill))
+                    self.x_ref, self.sc, self.spd, self.spf, self.spi, fill, kept, keep))
             if fill == 0:
                 self._exclusive_scan(counts, self._nn_rows, self._scan_rows)
                 self._lc.launch("slot_total", self.k["slot_total"], (1, 32, self.stream),
