@@ -32,7 +32,11 @@ it). LAMMPS runs ``lmp -in`` (``--threads 2``: ``mpirun -np 2``); "loop" is its 
 
 Each N runs ``--pairs`` side-by-side pairs (default 3: demq, then LAMMPS, on the same start). A row reports the
 median over the pairs of each code's loop Cundall number and of the pair ratio demq / LAMMPS, and the spread of
-each code's runs, max / min - 1 (identical runs: only the machine makes them differ).
+each code's runs, max / min - 1 (identical runs: only the machine makes them differ). Each run also records what
+the machine did meanwhile: its CPU seconds (``cpu_s``: the demq process's, or the LAMMPS child's) against its wall
+seconds, and the seconds the hypervisor gave the host's CPUs to other guests (``steal_s``, the "steal" column of
+/proc/stat over all CPUs; None where there is none): a run slow in wall time but not in CPU time was descheduled; one
+slow in CPU time too ran on a slower or busier CPU.
 Without ``lmp`` on PATH the bench says so and runs demq alone.
 """
 
@@ -44,6 +48,7 @@ import math
 import os
 import platform
 import re
+import resource
 import shutil
 import statistics
 import subprocess
@@ -163,6 +168,21 @@ def lammps_command(threads: int) -> list:
     return [mpirun, *extra, "-np", str(threads), lmp]
 
 
+def host_steal_s() -> float | None:
+    """Seconds the hypervisor has given this host's CPUs to other guests since boot, summed over the CPUs (the
+    "steal" field of /proc/stat's first line, in clock ticks), or None where /proc/stat has no such field."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _steal_since(start: float | None) -> float | None:
+    now = host_steal_s()
+    return None if start is None or now is None else round(now - start, 3)
+
+
 def run_lammps(workdir: Path, threads: int, n: int, steps: int) -> dict:
     """Run ``in.lammps`` in ``workdir``; loop and end-to-end Cundall numbers, version, final energies."""
     cmd = lammps_command(threads)
@@ -170,10 +190,15 @@ def run_lammps(workdir: Path, threads: int, n: int, steps: int) -> dict:
         return {"available": False, "reason": "lmp not on PATH" if shutil.which("lmp") is None
                 else "mpirun not on PATH (needed for --threads > 1)"}
     env = dict(os.environ, OMP_NUM_THREADS="1")
+    steal0 = host_steal_s()
+    child0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run([*cmd, "-in", "in.lammps", "-log", "log.lammps", "-screen", "none"], cwd=workdir,
                           env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    child1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (child1.ru_utime + child1.ru_stime) - (child0.ru_utime + child0.ru_stime)
+    steal = _steal_since(steal0)
     log = (workdir / "log.lammps").read_text() if (workdir / "log.lammps").exists() else ""
     m = LOOP_RE.search(log)
     if proc.returncode != 0 or m is None:
@@ -186,8 +211,8 @@ def run_lammps(workdir: Path, threads: int, n: int, steps: int) -> dict:
     thermo = [ln.split() for ln in log.splitlines() if re.match(rf"\s*{steps}\s+\S+\s+\S+\s*$", ln)]
     return {"available": True, "command": " ".join([*cmd, "-in", "in.lammps"]), "procs": procs,
             "version": version.group(1) if version else "?", "loop_s": loop, "wall_s": wall,
-            "cundall_loop": n * steps / loop, "cundall_end_to_end": n * steps / wall,
-            "ke_translational_end": float(thermo[-1][1]) if thermo else None,
+            "cundall_loop": n * steps / loop, "cundall_end_to_end": n * steps / wall, "cpu_s": round(cpu, 3),
+            "steal_s": steal, "ke_translational_end": float(thermo[-1][1]) if thermo else None,
             "ke_rotational_end": float(thermo[-1][2]) if thermo else None}
 
 
@@ -203,9 +228,13 @@ def run_demq(spec: SimulationSpec, threads: int, workdir: Path) -> dict:
                          "set NUMBA_NUM_THREADS before starting the bench")
     numba.set_num_threads(threads)
     out = workdir / "demq.h5"
+    steal0 = host_steal_s()
+    cpu0 = time.process_time()
     t0 = time.perf_counter()
     s = run(spec, out, backend="cpu")
     wall = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
+    steal = _steal_since(steal0)
     with h5py.File(out, "r") as f:
         ket = float(f["observables/kinetic_energy_translational/value"][-1])
         ker = float(f["observables/kinetic_energy_rotational/value"][-1])
@@ -214,8 +243,15 @@ def run_demq(spec: SimulationSpec, threads: int, workdir: Path) -> dict:
     n = spec.n_particles
     return {"threads": numba.get_num_threads(), "steps": s.steps, "loop_s": s.loop_s, "wall_s": wall,
             "cundall_loop": s.cundall, "cundall_end_to_end": n * s.steps / wall,
-            "builds": builds, "timings": s.extra.get("timings"), "skin_m": derive(spec).skin,
+            "builds": builds, "cpu_s": round(cpu, 3), "steal_s": steal, "timings": s.extra.get("timings"),
+            "skin_m": derive(spec).skin,
             "ke_translational_end": ket, "ke_rotational_end": ker}
+
+
+def _machine_txt(r: dict) -> str:
+    """A run's wall and CPU seconds and the host's steal over it, for the pair lines."""
+    steal = "" if r["steal_s"] is None else f", host steal {r['steal_s']:.2f} s"
+    return f"wall {r['wall_s']:.2f} s, CPU {r['cpu_s']:.2f} s{steal}"
 
 
 def spread(values) -> float:
@@ -246,8 +282,9 @@ def compare(n: int, phi: float, steps: int, threads: int, skin_radii: float, out
             lammps_runs.append(lmp)
             ratio = f", ratio x{demq['cundall_loop'] / lmp['cundall_loop']:.2f}" if lmp.get("available") else ""
             lm_txt = f", LAMMPS loop {lmp['cundall_loop']:.3g}" if lmp.get("available") else ""
-            print(f"  N={n} pair {k + 1}/{pairs}: demq loop {demq['cundall_loop']:.3g} ({demq['builds']} builds)"
-                  f"{lm_txt}{ratio}", flush=True)
+            print(f"  N={n} pair {k + 1}/{pairs}: demq loop {demq['cundall_loop']:.3g} ({demq['builds']} builds; "
+                  f"{_machine_txt(demq)}){lm_txt}{ratio}"
+                  + (f" (LAMMPS {_machine_txt(lmp)})" if lmp.get("available") else ""), flush=True)
         if out_dir is not None:
             tag = f"n{n}_t{threads}"
             shutil.copy(work / "in.lammps", Path(out_dir) / f"in.{tag}.lammps")

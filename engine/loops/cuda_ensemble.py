@@ -176,8 +176,6 @@ class CudaEnsembleBase(TimeLoop, ListBuilds, ObserveSums, StateFrames, Ensemble)
         self._rebuilt_bound = 0.0
         self._perm_own = None
         self._perm_views = {}
-        self._kept_none = None
-        self._kept_views = {}
         self._init_store_index()
         # which particles' force buffers may hold something other than zero (cuda_loop SKIP_COLD)
         self.hot = cuda.device_array(n, np.uint8, stream=self.stream)

@@ -249,24 +249,25 @@ class ListBuilds:
         """(kept, keep) of a build (cuda_kernels.build): the neighbours its counting pass keeps for its filling pass,
         kept[k, i] for k < keep (int32), ``keep`` = :data:`BUILD_KEPT` (or ``most``) or fewer, as many as the list's
         history holds after the row counts (:meth:`_row_counts`; 4 in float32: 5 words a slot, N slots at least), or
-        an array of its own where ``LEND_SCRATCH`` is off; keep 0: a one-word stand-in. Made once per history."""
+        an array of its own where ``LEND_SCRATCH`` is off; keep 0: a one-word view of the neighbour indices, never
+        written. Made once per list allocation, among the history's views (:meth:`_lent`)."""
         keep = BUILD_KEPT if most is None else min(most, BUILD_KEPT)
         n = max(1, self.n)
         if keep > 0 and LEND_SCRATCH:
             keep = min(keep, self.hist.nbytes // (4 * n) - 1)
-        if keep <= 0:
-            if self._kept_none is None:
-                self._kept_none = cuda.device_array((1, 1), np.int32, stream=self.stream)
-            return self._kept_none, 0
-        got = self._kept_views.get(keep)
-        if got is None or got[0] is not self.hist:
-            if LEND_SCRATCH:
+        keep = max(keep, 0)
+        key = ("kept", keep)
+        view = self._list_views.get(key)
+        if view is None:
+            if keep == 0:
+                view = self.nbr[:1].reshape(1, 1)
+            elif LEND_SCRATCH:
                 flat = self.hist.reshape(self.hist.size).view(np.uint8)
                 view = flat[4 * n:4 * n * (keep + 1)].view(np.int32).reshape(keep, n)
             else:
                 view = cuda.device_array((keep, n), np.int32, stream=self.stream)
-            got = self._kept_views[keep] = (self.hist, view)
-        return got[1], keep
+            self._list_views[key] = view
+        return view, keep
 
     def _lent(self, dtype, shape: tuple):
         """A C-contiguous device array of ``dtype`` and ``shape`` in the memory of the list's history (``hist``),

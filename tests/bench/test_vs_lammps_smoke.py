@@ -87,3 +87,18 @@ def test_tiny_side_by_side(tmp_path):
         assert d[key] == pytest.approx(m[key], rel=0.02)
     assert d["ke_translational_end"] < 0.999 * e0            # the gas did collide and dissipate
     assert "| 400 |" in vs_lammps.table([row])
+    # what the machine did meanwhile: each run's CPU seconds (the child's, for LAMMPS) and the host's steal
+    for r in row["demq_runs"] + row["lammps_runs"]:
+        assert 0 < r["cpu_s"] < 4 * r["wall_s"] and (r["steal_s"] is None or r["steal_s"] >= 0), r
+
+
+def test_host_steal_reads_proc_stat(tmp_path, monkeypatch):
+    """The steal field is the eighth number of /proc/stat's first line (after user, nice, system, idle, iowait, irq,
+    softirq), in clock ticks; no such field gives None."""
+    stat = tmp_path / "stat"
+    stat.write_text("cpu  10 0 20 30000 5 0 1 250 0 0\ncpu0 5 0 10 15000 2 0 0 125 0 0\n")
+    real_path = vs_lammps.Path
+    monkeypatch.setattr(vs_lammps, "Path", lambda p: stat if p == "/proc/stat" else real_path(p))
+    assert vs_lammps.host_steal_s() == pytest.approx(250 / vs_lammps.os.sysconf("SC_CLK_TCK"))
+    stat.write_text("cpu  10 0 20 30000\n")
+    assert vs_lammps.host_steal_s() is None
