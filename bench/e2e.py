@@ -29,8 +29,8 @@ the last force pass of each advance call, engine/loops/cuda_stepping.py), ``dire
 argument lists to cuda.core's launch instead of calling the driver's cuLaunchKernel itself,
 engine/loops/cuda_launch.py), ``sort_interval`` (every list rebuild permutes the particles into cell order,
 engine/loops/cuda_rebuild.py ``SORT_DRIFT_CELLS``), ``build_kept`` (a list build's filling pass searches every row's
-cells again instead of copying the rows its counting pass kept, engine/loops/cuda_rebuild.py ``BUILD_KEPT``). Not for the worker cases, whose jobs run in processes of the
-service.
+cells again instead of copying the rows its counting pass kept, engine/loops/cuda_rebuild.py ``BUILD_KEPT``). Not for
+the worker cases, whose jobs run in processes of the service.
 
 Cases (``--cases``; N x steps, phi = 0.058 unless said, default records = t_end/200, no thermalisation so
 that the step count is exact):
