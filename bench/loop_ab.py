@@ -23,9 +23,9 @@ check and rebuilds (:class:`HostParts`).
 
 Cases: :data:`JAXMD_CASES` (bench/vs_jaxmd.py's gas at phi = 0.058, or ``--phi``) and :data:`EXTRA` (one 1M-sphere
 scene, 256 or 64 packed scenes of 4096 at the same sphere size and ``--phi``; 1M rough spheroids). For several scenes
-the loop figure is N x steps over the ensemble's loop seconds. Compare one scene with packed scenes at the same ``--start`` (by default both start
-random: a sphere scene of 2^20 or more from the random start placed in parallel; spheroids on the lattice, whose list
-stays nearly empty over a short run).
+the loop figure is N x steps over the ensemble's loop seconds. Compare one scene with packed scenes at the same
+``--start`` (by default both start random: a sphere scene of 2^20 or more from the random start placed in parallel;
+spheroids on the lattice, whose list stays nearly empty over a short run).
 """
 
 from __future__ import annotations

@@ -420,8 +420,9 @@ def _make(DT, UNIFORM, TPB):  # noqa: C901  (one closure per specialisation)
         """The history of every slot of a new list (built on the GPU, single grid or multigrid, or on the host), in
         its row's slots hist[:, nn[i] + k]: the kept history from the compact store, indexed by the previous
         order where the particles were ``permuted`` (old slot of new i: order[i]; old neighbour index o: new index
-        inv_old[o]), else by the particles' own slots (a host-built list permutes nothing); a slot without kept history is fresh, its previous overlap the gap R_i + R_j - |r_ij| from the
-        candidate test's own squared distance (cells.distance2)."""
+        inv_old[o]), else by the particles' own slots (a host-built list permutes nothing); a slot without kept
+        history is fresh, its previous overlap the gap R_i + R_j - |r_ij| from the candidate test's own squared
+        distance (cells.distance2)."""
         for i in range(cuda.grid(1), n, cuda.gridsize(1)):
             s = scene_of(i, sc, spi)
             if spi[s, I_ACTIVE] == 0:

@@ -245,13 +245,14 @@ class ListBuilds:
             return self._counts_own
         return self._lent(np.int32, (max(1, self.n),))
 
-    def _kept_rows(self, most: int | None = None) -> tuple:
+    def _kept_rows(self, none: bool = False) -> tuple:
         """(kept, keep) of a build (cuda_kernels.build): the neighbours its counting pass keeps for its filling pass,
-        kept[k, i] for k < keep (int32), ``keep`` = :data:`BUILD_KEPT` (or ``most``) or fewer, as many as the list's
-        history holds after the row counts (:meth:`_row_counts`; 4 in float32: 5 words a slot, N slots at least), or
-        an array of its own where ``LEND_SCRATCH`` is off; keep 0: a one-word view of the neighbour indices, never
-        written. Made once per list allocation, among the history's views (:meth:`_lent`)."""
-        keep = BUILD_KEPT if most is None else min(most, BUILD_KEPT)
+        kept[k, i] for k < keep (int32), ``keep`` = :data:`BUILD_KEPT` or fewer, as many as the list's history holds
+        after the row counts (:meth:`_row_counts`; 4 in float32: 5 words a slot, N slots at least), or an array of
+        its own where ``LEND_SCRATCH`` is off; keep 0 (``none``: the filling pass searches every row): a one-word
+        view of the neighbour indices, never written. Made once per list allocation, among the history's views
+        (:meth:`_lent`)."""
+        keep = 0 if none else BUILD_KEPT
         n = max(1, self.n)
         if keep > 0 and LEND_SCRATCH:
             keep = min(keep, self.hist.nbytes // (4 * n) - 1)
@@ -378,7 +379,7 @@ class ListBuilds:
             # neither reads nor writes them, and searches every row again
             counts = self._row_counts()
             if self.hist is not searched:
-                kept, keep = self._kept_rows(0)
+                kept, keep = self._kept_rows(none=True)
             if self.multigrid:
                 self._lc.launch("mg_build", self.kl["mg_build"], self._grid(self.n), (
                     self.n, self.pos, self.radius1, self.lvl, self.mgi, self.mgf, self.mg_start, self.mg_items,
