@@ -54,6 +54,10 @@ that the step count is exact):
 thread (the GPU start-up thread's driver start, kernel loads, stand-in and device-start loads beside the job's
 own set-up, build, device draw and first list; the file's writes and close): where the time outside the loop goes.
 
+``--public`` calls ``engine.run`` / ``engine.run_ensemble`` with nothing of engine.driver imported before the clock
+starts: the call's wall time then includes the runner's import (numba, h5py, the kernels' modules), as a user's first
+call in a fresh process does, and the CUDA driver's start (engine/driver/startup.py) runs beside that import.
+
 ``--quick`` shrinks every case (for the smoke test). ``--reps`` runs each case several times (median of the
 end-to-end wall time). Writes ``--out``/e2e.json and e2e.md.
 """
@@ -234,28 +238,38 @@ def trace_steps(log: list, origin: list) -> None:
         setattr(owner, attr, functools.wraps(f)(timed))
 
 
-def run_case(case: str, quick: bool, workdir: Path, off=(), start=None, trace: bool = False) -> dict:
+def run_case(case: str, quick: bool, workdir: Path, off=(), start=None, trace: bool = False,
+             public: bool = False) -> dict:
     """Time one case in this process (the caller gives it a fresh one), with the SWITCHES ``off`` turned off and,
-    when ``start`` is given, every scene started that way (the spec's ``start``: "lattice" or "random")."""
+    when ``start`` is given, every scene started that way (the spec's ``start``: "lattice" or "random"). ``public``:
+    the call is ``engine.run`` / ``engine.run_ensemble`` with nothing of engine.driver imported before it (the
+    call's clock then includes the runner's import, as a user's first call in a fresh process does)."""
     info = case_specs(case, quick)
     path, raw = info["path"], info["specs"]
     if start is not None:
         raw = [dict(d, start=start) for d in raw]
     if off and path == "worker":
         raise ValueError(f"--off does not reach the jobs of case {case} (they run in the service's processes)")
+    if public and (off or trace or path not in ("run", "ensemble")):
+        raise ValueError(f"--public: case {case} with --off or --trace, or a case that is not one engine.run or "
+                         "run_ensemble call (their imports would come before the call)")
     switch_off(off)
     if path == "worker":
         return _run_worker(case, raw, workdir)
     if path == "cpu-ratio":
         return _run_cpu_ratio(case, raw, workdir)
-    from engine.driver.ensemble import run_ensemble
-    from engine.driver.simulate import run
+    if public:
+        from engine import run, run_ensemble
+    else:
+        from engine.driver.ensemble import run_ensemble
+        from engine.driver.simulate import run
 
     specs = [to_spec(d) for d in raw]   # the bench's own step arithmetic: not the user's time
     log: list = []
     origin = [0.0]
     if trace and path == "run":
         trace_steps(log, origin)
+    runner_imported = "engine.driver.simulate" in sys.modules     # before the clock (False with --public)
     t0 = origin[0] = time.perf_counter()    # the trace's times count from the call's start
     if path == "run":
         summary = run(specs[0], workdir / "out.h5")
@@ -267,7 +281,7 @@ def run_case(case: str, quick: bool, workdir: Path, off=(), start=None, trace: b
                     "precision": specs[0].precision, "shape": specs[0].shape,
                     "list_mode": summary.extra.get("list_mode"),
                     # engine/driver/startup.py's thread (None: off, --off startup, or no GPU)
-                    "gpu_startup": summary.extra.get("gpu_startup")})
+                    "gpu_startup": summary.extra.get("gpu_startup"), "runner_imported": runner_imported})
         if trace:
             row["trace"] = sorted(log)
         return row
@@ -283,7 +297,7 @@ def run_case(case: str, quick: bool, workdir: Path, off=(), start=None, trace: b
     records = int(round(specs[0].t_end / specs[0].output_interval)) + 1 if specs[0].output_interval else 201
     row = _row(case, n_total, steps, wall, tm["loop"], tm,
                {"backend": results[0].backend, "device": results[0].device, "scenes": len(specs),
-                "precision": specs[0].precision, "shape": specs[0].shape})
+                "precision": specs[0].precision, "shape": specs[0].shape, "runner_imported": runner_imported})
     row["records_per_scene"] = records
     row["record_host_ms_per_scene"] = 1e3 * tm["records"] / (len(specs) * records)
     return row
@@ -383,12 +397,12 @@ def _run_worker(case: str, raw: list, workdir: Path) -> dict:
                 f.write(f"==== {case} in {workdir}\n" + (workdir / "server.log").read_text())
 
 
-def fresh_process(case: str, quick: bool, off=(), start=None, trace: bool = False) -> dict:
+def fresh_process(case: str, quick: bool, off=(), start=None, trace: bool = False, public: bool = False) -> dict:
     """run_case in a new Python process (compilation / cache load counted, as for a user's first call)."""
     with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
         code = ("import json,sys; sys.path.insert(0, %r); from bench.e2e import run_case; from pathlib import Path; "
-                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r, %r, %r)))"
-                % (str(ROOT), case, quick, d, tuple(off), start, trace))
+                "print('E2E-ROW ' + json.dumps(run_case(%r, %r, Path(%r), %r, %r, %r, %r)))"
+                % (str(ROOT), case, quick, d, tuple(off), start, trace, public))
         t0 = time.perf_counter()
         p = subprocess.run([sys.executable, "-c", code], cwd=str(ROOT), capture_output=True, text=True)
         process_s = time.perf_counter() - t0
@@ -427,6 +441,9 @@ def main(argv=None, out_dir=None) -> int:
     ap.add_argument("--same-process", action="store_true", help="run the cases in this process (warm caches)")
     ap.add_argument("--trace", action="store_true", help="print when each set-up and build step of a one-job case "
                     "ran, and on which thread (module docstring)")
+    ap.add_argument("--public", action="store_true", help="call engine.run / engine.run_ensemble with nothing of "
+                    "engine.driver imported first: the call's figures include the runner's import (a user's first "
+                    "call); the process's seconds compare with the default's")
     ap.add_argument("--prime", action="store_true", help="run each case once first, untimed (fills the kernel "
                     "disk cache; its wall time is reported as the first run)")
     args = ap.parse_args(argv)
@@ -439,8 +456,8 @@ def main(argv=None, out_dir=None) -> int:
     def once(case):
         if args.same_process:
             with tempfile.TemporaryDirectory(prefix="demq-e2e-") as d:
-                return run_case(case, args.quick, Path(d), args.off, args.start, args.trace)
-        return fresh_process(case, args.quick, args.off, args.start, args.trace)
+                return run_case(case, args.quick, Path(d), args.off, args.start, args.trace, args.public)
+        return fresh_process(case, args.quick, args.off, args.start, args.trace, args.public)
 
     for case in args.cases:
         first = once(case) if args.prime else None
@@ -448,6 +465,7 @@ def main(argv=None, out_dir=None) -> int:
         row = sorted(reps, key=lambda r: r["wall_s"])[(len(reps) - 1) // 2]   # median (lower for even)
         row["walls"] = [r["wall_s"] for r in reps]
         row["off"] = list(args.off)
+        row["public"] = args.public
         row["runs"] = [{"wall_s": r["wall_s"], "loop_s": r["loop_s"], "process_s": r.get("process_s"),
                         "timings": r["timings"], "gpu_startup": r.get("gpu_startup")} for r in reps]
         if first is not None:

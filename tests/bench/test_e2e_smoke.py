@@ -45,6 +45,16 @@ def test_a_fresh_process_case_reports_the_process_seconds():
     """The fresh-process path also times the whole process (interpreter start to exit), which holds the call."""
     row = e2e.fresh_process("quickstart", quick=True)
     assert 0 < row["wall_s"] < row["process_s"]
+    assert row["runner_imported"] is True       # the default: the runner is imported before the clock
+
+
+def test_public_calls_import_the_runner_inside_the_call():
+    """--public: engine.run is called with nothing of engine.driver imported before the clock, so that the call's
+    wall time holds the runner's import; a case the flag cannot time that way is refused."""
+    row = e2e.fresh_process("quickstart", quick=True, public=True)
+    assert row["runner_imported"] is False and 0 < row["wall_s"] < row["process_s"]
+    with pytest.raises(RuntimeError, match="--public"):
+        e2e.fresh_process("quickstart", quick=True, trace=True, public=True)
 
 
 def test_the_trace_times_every_step_it_names_in_a_fresh_process():
