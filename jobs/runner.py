@@ -20,9 +20,10 @@ message names the job by its index k in the claim::
     ("error", k, readable message)
     ("error", None, readable message)     the pack as a whole failed (no job is singled out)
 
-A standby process says first, before its claim: ("compiling", None, None) once if its start-up compiles kernels
-(an empty or partial kernel cache), then ("ready", None, None) when its start-up is done; and ("ready", None, None)
-again after each claim, once everything of that claim has been said and it reads the next one.
+A standby process says first, before its claim: ("warming", None, None) when it begins to warm up its spec's kernels
+(no claim came during its imports), ("compiling", None, None) once if that warm-up compiles kernels (an empty or
+partial kernel cache), then ("ready", None, None) when its start-up is done; and ("ready", None, None) again after
+each claim, once everything of that claim has been said and it reads the next one.
 
 A sequence's or a pack's jobs report done / cancelled / error one by one, as their runs end. Each job has its own
 cancel flag (a shared byte array), so one job stops without disturbing the others; a sequence's job whose flag is
@@ -140,6 +141,7 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
             # first: with an empty kernel cache the default spec's would cost a first job of another
             # specialisation a whole compile
             if not claims.poll(0):
+                conn.send(("warming", None, None))
                 with _tell_when_compiling(conn):
                     warm_process(SimulationSpec.model_validate_json(warm_spec_json))
         except BrokenPipeError:

@@ -404,10 +404,12 @@ class Worker:
         # many small claims, a process start-up per claim had cost a lane more than its jobs' runs); a GPU claim's
         # process ends with it, its device memory going back with its context
         keep = self._keep_standby and self._packer.backend(jobs[0]) != "cuda"
-        sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
+        # a GPU pack runs the packed kernels, which a standby warming one job of its spec does not compile
+        packed = mode == ENSEMBLE and self._packer.backend(jobs[0]) == "cuda"
+        sim = self._hand_to_standby(claim, len(slots), jobs[0].id, packed)
         if sim is None and keep:   # the lane's process, started with its first claim (or after one that died)
             self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)
-            sim = self._hand_to_standby(claim, len(slots), jobs[0].id)
+            sim = self._hand_to_standby(claim, len(slots), jobs[0].id, packed)
         if sim is None:
             ctx = multiprocessing.get_context("spawn")
             receiver, sender = ctx.Pipe(duplex=False)
@@ -427,7 +429,7 @@ class Worker:
             self._conclude_rest(slots, None, pack_error, mode)
             if keep and pack_error is None and not self._stop.is_set() and self._standby is None:
                 sim.claims_run += 1
-                sim.ready = sim.compiling = False
+                sim.ready = sim.warming = sim.compiling = False
                 self._standby = sim
             else:
                 sim.retire()
@@ -475,12 +477,16 @@ class Worker:
         claims_in.close()
         return _SimProcess(proc, receiver, flags, claims_out, warm_key=_specialisation(warm_spec_json))
 
-    def _hand_to_standby(self, claim: tuple, n_jobs: int, job_id: str) -> Optional["_SimProcess"]:
+    def _hand_to_standby(self, claim: tuple, n_jobs: int, job_id: str,
+                         packed: bool = False) -> Optional["_SimProcess"]:
         """Give ``claim`` to the standby process (started ahead, or the lane's process after its previous claim);
         None if there is none fit to take it. A standby still compiling the kernels of another specialisation than
         the claim's (an empty kernel cache) is not waited for: it is ended (what it compiled stays in the cache) and
-        the claim gets a process of its own, which compiles or loads only what the claim needs. A process that ran a
-        claim takes the next one once it has said that it reads it (REUSE_READY_S)."""
+        the claim gets a process of its own, which compiles or loads only what the claim needs. ``packed``: the claim
+        is a GPU pack, whose packed kernels are not those of the one job a standby warms, so a standby that has begun
+        its warm-up is not waited for either (a pack of 256 jobs had waited 23 s for one job's kernels and host start
+        functions; a standby still importing skips its warm-up for the claim it finds).
+        A process that ran a claim takes the next one once it has said that it reads it (REUSE_READY_S)."""
         sim, self._standby = self._standby, None
         if sim is None:
             return None
@@ -495,6 +501,11 @@ class Worker:
             sim.read_start_up()
         if not sim.proc.is_alive() or len(sim.flags) < n_jobs:
             sim.close()
+            return None
+        if packed and sim.warming and not sim.ready:
+            log.info("job %s: the standby process is warming up one job's kernels, not a GPU pack's; the claim gets a "
+                     "process of its own", job_id)
+            sim.close(grace_s=0.0)
             return None
         if sim.compiling and not sim.ready and sim.warm_key != _specialisation(claim[1][0]):
             log.info("job %s: the standby process is still compiling another specialisation's kernels; the claim "
@@ -537,7 +548,7 @@ class Worker:
                     if kind == "progress_many":
                         for j, progress in payload.items():
                             self._progress(slots, j, progress, sequence)
-                    elif kind in ("compiling", "ready"):
+                    elif kind in ("warming", "compiling", "ready"):
                         pass   # a standby's start-up, said before it took this claim
                     elif k is None:
                         pack_error = payload
@@ -788,12 +799,13 @@ class _SimProcess:
     flags: object                      # per-job cancel bytes (shared memory)
     claims: Optional[object] = None    # a standby's claim pipe, while it may get a claim
     warm_key: Optional[tuple] = None   # a standby's: the specialisation it starts up for (_specialisation)
+    warming: bool = False              # a standby's start-up has begun to warm its spec's kernels (said "warming")
     compiling: bool = False            # a standby's start-up has compiled kernels (said "compiling")
     ready: bool = False                # a standby's start-up is done, or its last claim over (said "ready")
     claims_run: int = 0                # claims it has run to their end (a lane's process, kept for the next)
 
     def read_start_up(self) -> None:
-        """Read what a standby has said of its start-up so far ("compiling", "ready"), without waiting."""
+        """Read what a standby has said of its start-up so far ("warming", "compiling", "ready"), without waiting."""
         self.wait_ready(0.0)
 
     def wait_ready(self, timeout: float) -> None:
@@ -803,6 +815,7 @@ class _SimProcess:
         try:
             while not self.ready and self.receiver.poll(max(0.0, deadline - time.monotonic())):
                 kind = self.receiver.recv()[0]
+                self.warming |= kind in ("warming", "compiling")
                 self.compiling |= kind == "compiling"
                 self.ready |= kind == "ready"
         except (EOFError, OSError):   # it died: the caller sees that it is not alive

@@ -809,23 +809,23 @@ def _build(scenes, live, results, build, build_one):
 
 def warm_process(spec=None) -> None:
     """Pay this process's one-off start-up ahead of its first job (the worker's standby process, jobs/runner.py):
-    numba's CPU target with the functions of a large start of ``spec``'s shape and contact law and of a large
-    sphere start (each drawn for a few particles: engine.setup.scene.load_parallel_start), and on a GPU the driver, the
-    context and the kernels of ``spec``'s specialisation (default: the default spec; engine/driver/startup.py). A GPU
-    job of ``spec`` that draws its start on the device (engine.setup.start_kind.device_start) calls none of the host's
-    start functions: they are then not loaded (on an empty cache compiling them took the standby longer than the
-    claim beside it took for all of its own kernels, and held the next claim back). Later jobs' results are unchanged:
-    nothing of this is kept but loaded code."""
+    on a GPU the driver, the context and the kernels of ``spec``'s specialisation (default: the default spec;
+    engine/driver/startup.py), and the host's compiled start functions where a job of ``spec`` calls them itself
+    (engine.setup.scene.load_parallel_start, each drawn for a few particles: a large start drawn on the host; a
+    spheroid start, whose cell rounds a small random one runs on one thread). A job whose start NumPy draws (spheres
+    below the parallel start's size, species) or the device draws (engine.setup.start_kind.device_start) calls none
+    of them, and nothing is loaded for other specs' starts: on an empty cache their compile held numba's compiler lock while the claim handed to
+    this process waited (a GPU pack of 256 default-size jobs 23 s; the worker's warm-up process loads them beside
+    the claims instead, jobs/warm.py). Later jobs' results are unchanged: nothing of this is kept but loaded code."""
     from engine.setup.scene import load_parallel_start
-    from engine.setup.start_kind import device_start
+    from engine.setup.start_kind import SEQUENTIAL_GENERATOR, device_start, start_generator
 
     spec = spec if spec is not None else SimulationSpec()
     p = derive(spec)
     started = begin_gpu_startup(spec, spec.backend, run_contacts(spec, p), p)
-    if started is None or not device_start(spec):
-        if not load_parallel_start(spec, p) or spec.shape != "sphere":
-            sphere = SimulationSpec()
-            load_parallel_start(sphere, derive(sphere))
+    on_device = started is not None and device_start(spec)
+    if not on_device and (spec.shape != "sphere" or start_generator(spec) != SEQUENTIAL_GENERATOR):
+        load_parallel_start(spec, p)
     if started is not None:
         started.wait()
 

@@ -153,7 +153,10 @@ def test_loading_a_start_kind_covers_every_compiled_call_of_its_large_starts(mon
     assert not sc.load_parallel_start(_big(species=species, start=None), p)      # species starts are NumPy's
 
 
-def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypatch):
+def test_warm_process_loads_only_the_start_functions_its_specs_job_calls(monkeypatch):
+    """The standby's warm-up loads the host's start functions a job of its spec calls (a large start drawn on the
+    host, a spheroid's start), and none for a start NumPy or the device draws: on an empty cache their compile held
+    the claim handed to the standby behind numba's compiler lock."""
     import engine.setup.scene as sc
     from engine.driver import simulate
 
@@ -161,24 +164,25 @@ def test_warm_process_loads_the_large_start_of_its_spec_and_of_spheres(monkeypat
     loaded = []
     load = sc.load_parallel_start
     monkeypatch.setattr(sc, "load_parallel_start",
-                        lambda spec, p: loaded.append((spec.shape, spec.smooth)) or load(spec, p))
+                        lambda spec, p: loaded.append((spec.shape, spec.n_particles)) or load(spec, p))
     simulate.warm_process(SimulationSpec(shape="ellipsoid", elongation=2.0))
-    assert loaded == [("ellipsoid", False), ("sphere", False)]
+    assert loaded == [("ellipsoid", 4096)]
     loaded.clear()
-    simulate.warm_process()
-    assert loaded == [("sphere", False)]
-    loaded.clear()
+    simulate.warm_process()                                   # the default job: a NumPy start
     species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
     simulate.warm_process(SimulationSpec(species=species, volume_fraction=0.1))
-    assert [s for s, _ in loaded] == ["sphere", "sphere"]     # a species start is NumPy's: one-size spheres then
-    # on a GPU (its start-up begun) a spec whose start the device draws loads no host start; a small one still does
+    assert loaded == []
+    simulate.warm_process(_big())                            # a large start drawn on the host (no GPU)
+    assert loaded == [("sphere", PARALLEL_START_MIN)]
+    # on a GPU (its start-up begun) a spec whose start the device draws loads no host start; a small spheroid does
     monkeypatch.setattr(simulate, "begin_gpu_startup", lambda *a: types.SimpleNamespace(wait=lambda: None))
     loaded.clear()
     for shape, kw in (("sphere", {}), ("ellipsoid", dict(elongation=2.0))):
         simulate.warm_process(SimulationSpec(shape=shape, n_particles=1 << 21, **kw))
-    assert loaded == []
     simulate.warm_process()
-    assert loaded == [("sphere", False)]
+    assert loaded == []
+    simulate.warm_process(SimulationSpec(shape="ellipsoid", elongation=2.0))
+    assert loaded == [("ellipsoid", 4096)]
 
 
 _DRAWS_ON_TWO_THREADS = """

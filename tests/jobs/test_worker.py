@@ -432,6 +432,33 @@ def test_a_claim_of_another_specialisation_does_not_wait_for_a_compiling_standby
     store.close()
 
 
+def test_a_gpu_pack_does_not_wait_for_a_standby_warming_one_job_of_its_spec(tmp_path, caplog, monkeypatch):
+    """A GPU pack runs the packed kernels, which a standby warming one job of the same spec does not compile: a
+    standby that said it began its warm-up is ended and the pack gets a process of its own (a pack of 256 jobs of
+    the default size had waited 23 s for such a standby's compile)."""
+    import logging
+
+    from jobs.worker import _specialisation
+    from tests.jobs.fake_engine import ENSEMBLE_TARGET
+
+    settings, store, worker = _standby_worker(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET, cpu_packs="ensemble")
+    worker._keep_standby = True
+    monkeypatch.setattr(worker._packer, "backend", lambda job: "cuda")    # a GPU host's packs (the fake engine runs)
+    standby = worker._spawn_standby(None)
+    standby.warm_key, standby.warming = _specialisation('{"n_particles": 4096}'), True
+    standby.read_start_up = lambda: None     # it had not said "compiling" or "ready" yet
+    worker._standby = standby
+    jobs = [_enqueue(store, n_particles=4096, box_length=2.0, seed=s) for s in (1, 2)]
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        assert worker.execute_pack(worker._next(None)) == {j.id: DONE for j in jobs}
+    assert "warming up one job's kernels, not a GPU pack's" in caplog.text
+    assert "handed to the standby" not in caplog.text and not standby.proc.is_alive()
+    worker._keep_standby = False
+    worker._standby.close()
+    worker._reap(wait=True)
+    store.close()
+
+
 @pytest.mark.parametrize("claim_waiting", [True, False])
 def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monkeypatch, claim_waiting):
     """A claim handed to a standby while it still imported is run at once: the standby does not first compile (or
@@ -462,4 +489,5 @@ def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monk
     runner.standby_main(claims_in, sender, None, 0, '{"n_particles": 4096}')
     assert warmed == ([] if claim_waiting else [4096])
     assert ran == [("engine.driver.simulate:run", ['{"n_particles": 512}'])]
-    assert [receiver.recv()[0] for _ in range(2)] == ["ready", "ready"]   # started up; the claim over
+    said = ["ready", "ready"] if claim_waiting else ["warming", "ready", "ready"]     # warming; started up; claim over
+    assert [receiver.recv()[0] for _ in range(len(said))] == said
