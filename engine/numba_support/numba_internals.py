@@ -17,6 +17,15 @@ numba (the CPU kernels, engine/numba_support/jitcache.py):
   ``codegen.magic_tuple()``, the source file's time stamp and size). :class:`StableKeyCache` replaces the stamp by
   a key the caller gives (numba keys a cached closure by a pickle of its cells, which changes in every process).
 - a dispatcher's private ``_cache`` attribute, where it keeps its cache object (:func:`set_cache`).
+- a cache's private ``_cache_file`` (numba's ``IndexDataCacheFile``; numba-cuda has its own copy of the class) with
+  ``_index_path``, ``_load_index()``, ``_save_index(overloads)``, ``_save_data(name, data)`` and
+  ``_data_name(number)``: :func:`lock_saves` gives it a ``save`` that holds a lock file across processes (or leaves
+  the overload uncached after :data:`SAVE_LOCK_WAIT_S`) and writes an overload's data before the index entry that
+  names it. numba's own reads the index, picks the first data file name
+  the index does not use, writes the index and then the data, with nothing held between: two processes saving new
+  overloads of one function at once (the warm-up compiles in up to 8 processes, jobs/warm.py) could each keep only
+  its own entry, or leave one's entry naming a file the other wrote last, and a later load would take that file's
+  machine code for the entry's signature.
 
 numba-cuda (the CUDA kernels, engine/loops/):
 
@@ -49,6 +58,9 @@ The CUDA parts import numba.cuda only when called (a CPU job never imports it).
 
 from __future__ import annotations
 
+import contextlib
+import time
+
 from engine.numba_support.numba_import import coverage_hidden
 
 #: what the engine was written against (the test reports these beside the installed versions)
@@ -61,7 +73,12 @@ try:
         from numba.core.runtime import rtsys as _rtsys
 
     class FastLoadCache(FunctionCache):
-        """numba's FunctionCache, whose loads skip the target refresh (module docstring)."""
+        """numba's FunctionCache, whose loads skip the target refresh and whose saves are locked (module
+        docstring)."""
+
+        def __init__(self, py_func):
+            super().__init__(py_func)
+            lock_saves(self)
 
         def load_overload(self, sig, target_context):
             _rtsys.initialize(target_context)      # the parts of the refresh a load needs
@@ -100,7 +117,81 @@ def make_fast_loading(dispatcher) -> bool:
     if FastLoadCache is None or type(cache) is not FunctionCache:
         return False
     cache.__class__ = FastLoadCache
+    lock_saves(cache)
     return True
+
+
+#: Seconds a cache save waits for its index's lock before it leaves its overload out of the cache (a later process
+#: compiles it again): the holder may be the worker's warm-up process, which the worker stops (SIGSTOP) while a
+#: claim runs (jobs/warm.py), and a claim must not wait for it.
+SAVE_LOCK_WAIT_S = 5.0
+
+
+@contextlib.contextmanager
+def _held(lock_path: str, wait_s: float):
+    """An exclusive lock on the file ``lock_path`` (made if missing) across processes, held for the block, which gets
+    True; False if another holder kept it ``wait_s`` seconds. True and no lock where the platform has no ``fcntl``
+    (not Linux or macOS)."""
+    try:
+        import fcntl
+    except ImportError:
+        yield True
+        return
+    with open(lock_path, "ab") as f:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    yield False
+                    return
+                time.sleep(0.005)
+        try:
+            yield True
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _locked_save(self, key, data) -> None:
+    """``IndexDataCacheFile.save`` under the index's lock file, the data written before the index that names it
+    (module docstring): a reader that finds the entry finds its file complete, and no saver picks a name another one
+    is about to write. Left out of the cache if the lock stays held :data:`SAVE_LOCK_WAIT_S` seconds."""
+    with _held(self._index_path + ".lock", SAVE_LOCK_WAIT_S) as locked:
+        if not locked:
+            return
+        overloads = self._load_index()
+        name = overloads.get(key)
+        if name is None:
+            used = set(overloads.values())
+            number = 1
+            while self._data_name(number) in used:
+                number += 1
+            name = self._data_name(number)
+            self._save_data(name, data)
+            overloads[key] = name
+            self._save_index(overloads)
+        else:
+            self._save_data(name, data)
+
+
+_locked_file_classes: dict = {}
+
+
+def lock_saves(cache) -> None:
+    """Give ``cache``'s index-and-data file (numba's or numba-cuda's ``IndexDataCacheFile``) :func:`_locked_save` as
+    its ``save``; nothing where the cache has no such file."""
+    cache_file = getattr(cache, "_cache_file", None)
+    if cache_file is None:
+        return
+    cls = type(cache_file)
+    if cls.save is _locked_save:
+        return
+    locked = _locked_file_classes.get(cls)
+    if locked is None:
+        locked = _locked_file_classes[cls] = type("Locked" + cls.__name__, (cls,), {"save": _locked_save})
+    cache_file.__class__ = locked
 
 
 def stable_key_cache(dispatcher, stable: tuple) -> bool:
@@ -137,6 +228,7 @@ def cuda_stable_key_cache_class():
         def __init__(self, py_func, stable: tuple):
             self._stable = stable
             super().__init__(py_func)
+            lock_saves(self)
 
         def _index_key(self, sig, codegen):
             k = (sig, codegen.magic_tuple(), numba_cuda.__version__, self._stable)

@@ -127,6 +127,82 @@ def test_a_stable_key_cache_serves_a_closure_rebuilt_with_new_cells(tmp_path, mo
            f"the rebuilt closure did not load (hits {dict(b.stats.cache_hits)}, misses {dict(b.stats.cache_misses)})")
 
 
+def _index_data_file_internals(cls) -> None:
+    for name, params in (("save", ["self", "key", "data"]), ("load", ["self", "key"]), ("_load_index", ["self"]),
+                         ("_save_index", ["self", "overloads"]), ("_save_data", ["self", "name", "data"]),
+                         ("_data_name", ["self", "number"])):
+        _check(hasattr(cls, name), f"{cls.__module__}.IndexDataCacheFile.{name}", "missing")
+        _check(_params(getattr(cls, name)) == params, f"{cls.__module__}.IndexDataCacheFile.{name}",
+               f"parameters {_params(getattr(cls, name))}, expected {params}")
+
+
+def test_cache_saves_are_locked_and_write_the_data_before_its_index_entry(tmp_path, monkeypatch):
+    """Two saves of new overloads of one function at once: each holds the index's lock file from its read of the
+    index to its writes, so neither loses the other's entry or names the other's data file, and an overload's data
+    is written before the index entry that names it. Two threads stand in for two processes (flock locks an open
+    file, so two opens in one process exclude each other as two processes do); a pause after each read of the index
+    makes the saves overlap, and numba's own save then keeps one entry of the two."""
+    import threading
+    import time
+    import types
+
+    from numba.core.caching import IndexDataCacheFile
+
+    _index_data_file_internals(IndexDataCacheFile)
+    for locked in (True, False):
+        folder = tmp_path / f"locked-{locked}"
+        folder.mkdir()
+        cache_file = IndexDataCacheFile(cache_path=str(folder), filename_base="f", source_stamp=(1.0, 2))
+        if locked:
+            ni.lock_saves(types.SimpleNamespace(_cache_file=cache_file))
+        read = cache_file._load_index
+        cache_file._load_index = lambda: (read(), time.sleep(0.5))[0]
+        writes = []
+        for name in ("_save_data", "_save_index"):
+            write = getattr(cache_file, name)
+            setattr(cache_file, name, lambda *a, _w=write, _n=name: (writes.append(_n), _w(*a))[1])
+        saves = [threading.Thread(target=cache_file.save, args=(("sig", k), ("code", k))) for k in (1, 2)]
+        for t in saves:
+            t.start()
+        for t in saves:
+            t.join()
+        index = read()
+        if not locked:      # the race the lock closes: both saves read an empty index and took the same name
+            assert len(index) == 1, index
+            continue
+        _check(sorted(index) == [("sig", 1), ("sig", 2)] and len(set(index.values())) == 2, "IndexDataCacheFile.save",
+               f"locked saves left the index {index}")
+        _check([cache_file.load(("sig", k)) for k in (1, 2)] == [("code", 1), ("code", 2)], "IndexDataCacheFile.load",
+               "an entry loads another overload's data")
+        _check(writes == ["_save_data", "_save_index"] * 2, "IndexDataCacheFile.save", f"writes in order {writes}")
+    # a save whose lock another holder keeps (a warm-up process stopped while a claim runs) gives up and caches nothing
+    import fcntl
+
+    monkeypatch.setattr(ni, "SAVE_LOCK_WAIT_S", 0.2)
+    folder = tmp_path / "held"
+    folder.mkdir()
+    cache_file = IndexDataCacheFile(cache_path=str(folder), filename_base="f", source_stamp=(1.0, 2))
+    ni.lock_saves(types.SimpleNamespace(_cache_file=cache_file))
+    with open(cache_file._index_path + ".lock", "ab") as holder:
+        fcntl.flock(holder, fcntl.LOCK_EX)
+        t0 = time.monotonic()
+        cache_file.save(("sig", 3), ("code", 3))
+        waited = time.monotonic() - t0
+        fcntl.flock(holder, fcntl.LOCK_UN)
+    _check(cache_file._load_index() == {} and 0.2 <= waited < 5.0, "IndexDataCacheFile.save",
+           f"a save under a held lock waited {waited:.2f} s and left {cache_file._load_index()}")
+    # the engine's caches get the locked save: numba's (fast loading, stable key) here, numba-cuda's in its test below
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
+    mod = _module(tmp_path, "ni_locked", "from numba import njit\n\n@njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
+    _check(ni.make_fast_loading(mod.twice), "Dispatcher._cache", "make_fast_loading found no FunctionCache")
+    _check(type(ni.get_cache(mod.twice)._cache_file).save is ni._locked_save, "FunctionCache._cache_file",
+           "the fast-loading cache's file has numba's save")
+    _check(ni.stable_key_cache(mod.twice, ("test", 2)), "StableKeyCache", "could not be attached")
+    _check(type(ni.get_cache(mod.twice)._cache_file).save is ni._locked_save, "FunctionCache._cache_file",
+           "the stable-key cache's file has numba's save")
+    _check(mod.twice(4) == 8, "StableKeyCache", "the locked cache's function computes something else")
+
+
 # ---- numba-cuda ------------------------------------------------------------------------------------------------
 
 cuda_only = pytest.mark.skipif(SIM, reason="the CUDA simulator replaces numba.cuda; the engine caches nothing there")
@@ -182,6 +258,9 @@ def test_a_kernel_gets_the_stable_key_cache_and_its_key_keeps_numba_cudas_layout
            "missing or not None on a new cache")
     with cache._guard_against_spurious_io_errors():
         pass
+    _index_data_file_internals(type(cache._cache_file).__mro__[1])
+    _check(type(cache._cache_file).save is ni._locked_save, "CUDACache._cache_file", "the kernel's cache file has "
+           "numba-cuda's save")
     # numba-cuda's key: (sig, codegen magic, numba-cuda version, source hashes) [+ launch configuration]; the
     # engine's replaces only the hashes (a codegen stands in that needs no driver: only its magic_tuple is read)
     codegen = cpu_target.target_context.codegen()
