@@ -142,8 +142,10 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
             # specialisation a whole compile
             if not claims.poll(0):
                 conn.send(("warming", None, None))
-                with _tell_when_compiling(conn):
-                    warm_process(SimulationSpec.model_validate_json(warm_spec_json))
+                # a claim the worker sent before it read "warming" (jobs/worker.py _hand_to_standby) is run at once too
+                if not claims.poll(0):
+                    with _tell_when_compiling(conn):
+                        warm_process(SimulationSpec.model_validate_json(warm_spec_json))
         except BrokenPipeError:
             pass
         except Exception:  # noqa: BLE001  (a start-up that fails here is paid again, and reported, by the job)

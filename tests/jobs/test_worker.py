@@ -459,7 +459,7 @@ def test_a_gpu_pack_does_not_wait_for_a_standby_warming_one_job_of_its_spec(tmp_
     store.close()
 
 
-@pytest.mark.parametrize("claim_waiting", [True, False])
+@pytest.mark.parametrize("claim_waiting", [True, "after warming", False])
 def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monkeypatch, claim_waiting):
     """A claim handed to a standby while it still imported is run at once: the standby does not first compile (or
     load) the warm spec's kernels, which with an empty cache would cost a first job of another specialisation a whole
@@ -483,11 +483,24 @@ def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monk
     monkeypatch.setattr(runner, "run_claim", lambda *args: ran.append(args[:2]))
     monkeypatch.setattr(runner, "_die_with_parent", lambda: None)
     monkeypatch.setattr(runner.signal, "signal", lambda *a: None)
-    if claim_waiting:
+    conn = sender
+    if claim_waiting is True:
         claims_out.send(claim)
         claims_out.send(None)
-    runner.standby_main(claims_in, sender, None, 0, '{"n_particles": 4096}')
+    elif claim_waiting:      # the claim comes as the standby says "warming" (the worker had not read it yet)
+        class Conn:
+            def send(self, message):
+                sender.send(message)
+                if message[0] == "warming":
+                    claims_out.send(claim)
+                    claims_out.send(None)
+
+            def close(self):
+                sender.close()
+
+        conn = Conn()
+    runner.standby_main(claims_in, conn, None, 0, '{"n_particles": 4096}')
     assert warmed == ([] if claim_waiting else [4096])
     assert ran == [("engine.driver.simulate:run", ['{"n_particles": 512}'])]
-    said = ["ready", "ready"] if claim_waiting else ["warming", "ready", "ready"]     # warming; started up; claim over
+    said = (["ready", "ready"] if claim_waiting is True else ["warming", "ready", "ready"])  # (warming;) ready; claim over
     assert [receiver.recv()[0] for _ in range(len(said))] == said
