@@ -131,13 +131,16 @@ SAVE_LOCK_WAIT_S = 5.0
 def _held(lock_path: str, wait_s: float):
     """An exclusive lock on the file ``lock_path`` (made if missing) across processes, held for the block, which gets
     True; False if another holder kept it ``wait_s`` seconds. True and no lock where the platform has no ``fcntl``
-    (not Linux or macOS)."""
+    (not Linux or macOS) or the file system refuses the lock file or the lock (numba's unlocked save then, as
+    before)."""
     try:
         import fcntl
-    except ImportError:
+
+        f = open(lock_path, "ab")
+    except (ImportError, OSError):
         yield True
         return
-    with open(lock_path, "ab") as f:
+    with f:
         deadline = time.monotonic() + wait_s
         while True:
             try:
@@ -148,6 +151,9 @@ def _held(lock_path: str, wait_s: float):
                     yield False
                     return
                 time.sleep(0.005)
+            except OSError:       # no locks on this file system (an old NFS mount)
+                yield True
+                return
         try:
             yield True
         finally:

@@ -191,6 +191,14 @@ def test_cache_saves_are_locked_and_write_the_data_before_its_index_entry(tmp_pa
         fcntl.flock(holder, fcntl.LOCK_UN)
     _check(cache_file._load_index() == {} and 0.2 <= waited < 5.0, "IndexDataCacheFile.save",
            f"a save under a held lock waited {waited:.2f} s and left {cache_file._load_index()}")
+    # a file system that refuses the lock: the save goes on unlocked (numba's, data first), as it did before
+    def refuse(*a):
+        raise OSError(37, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", refuse)
+    cache_file.save(("sig", 4), ("code", 4))
+    _check(cache_file.load(("sig", 4)) == ("code", 4), "IndexDataCacheFile.save", "a refused lock lost the save")
+    monkeypatch.undo()
     # the engine's caches get the locked save: numba's (fast loading, stable key) here, numba-cuda's in its test below
     monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
     mod = _module(tmp_path, "ni_locked", "from numba import njit\n\n@njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
