@@ -128,8 +128,8 @@ def warm(backends: Optional[Sequence[str]] = None, shapes: Optional[Sequence[str
     spawned processes, one (backend, precision) group at a time each (a group's specialisations share most of their
     kernels), then all of them run once more in this process, which loads them from the disk cache and compiles
     whatever the parallel pass left out (a save that found its index's lock held for
-    engine.numba_support.numba_internals.SAVE_LOCK_WAIT_S caches nothing). The report's ``compiled`` counts the compilations of all the processes,
-    its ``failed`` those of the last pass."""
+    engine.numba_support.numba_internals.SAVE_LOCK_WAIT_S caches nothing). The report's ``compiled`` counts the
+    compilations of all the processes, its ``failed`` those of the last pass."""
     todo = specialisations(backends or local_backends(), shapes, precisions)
     n = warm_processes(len(todo)) if processes is None else processes
     t0 = time.perf_counter()

@@ -814,9 +814,10 @@ def warm_process(spec=None) -> None:
     (engine.setup.scene.load_parallel_start, each drawn for a few particles: a large start drawn on the host; a
     spheroid start, whose cell rounds a small random one runs on one thread). A job whose start NumPy draws (spheres
     below the parallel start's size, species) or the device draws (engine.setup.start_kind.device_start) calls none
-    of them, and nothing is loaded for other specs' starts: on an empty cache their compile held numba's compiler lock while the claim handed to
-    this process waited (a GPU pack of 256 default-size jobs 23 s; the worker's warm-up process loads them beside
-    the claims instead, jobs/warm.py). Later jobs' results are unchanged: nothing of this is kept but loaded code."""
+    of them, and nothing is loaded for other specs' starts: on an empty cache their compile held numba's compiler
+    lock while the claim handed to this process waited (a GPU pack of 256 default-size jobs 23 s; the worker's
+    warm-up process loads them beside the claims instead, jobs/warm.py). Later jobs' results are unchanged: nothing
+    of this is kept but loaded code."""
     from engine.setup.scene import load_parallel_start
     from engine.setup.start_kind import SEQUENTIAL_GENERATOR, device_start, start_generator
 

@@ -21,11 +21,11 @@ numba (the CPU kernels, engine/numba_support/jitcache.py):
   ``_index_path``, ``_load_index()``, ``_save_index(overloads)``, ``_save_data(name, data)`` and
   ``_data_name(number)``: :func:`lock_saves` gives it a ``save`` that holds a lock file across processes (or leaves
   the overload uncached after :data:`SAVE_LOCK_WAIT_S`) and writes an overload's data before the index entry that
-  names it. numba's own reads the index, picks the first data file name
-  the index does not use, writes the index and then the data, with nothing held between: two processes saving new
-  overloads of one function at once (the warm-up compiles in up to 8 processes, jobs/warm.py) could each keep only
-  its own entry, or leave one's entry naming a file the other wrote last, and a later load would take that file's
-  machine code for the entry's signature.
+  names it. numba's own reads the index, picks the first data file name the index does not use, writes the index
+  and then the data, with nothing held between: two processes saving new overloads of one function at once (the
+  warm-up compiles in up to 8 processes, jobs/warm.py) could each keep only its own entry, or leave one's entry
+  naming a file the other wrote last, and a later load would take that file's machine code for the entry's
+  signature.
 
 numba-cuda (the CUDA kernels, engine/loops/):
 

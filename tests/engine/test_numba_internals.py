@@ -201,7 +201,8 @@ def test_cache_saves_are_locked_and_write_the_data_before_its_index_entry(tmp_pa
     monkeypatch.undo()
     # the engine's caches get the locked save: numba's (fast loading, stable key) here, numba-cuda's in its test below
     monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "cache"))
-    mod = _module(tmp_path, "ni_locked", "from numba import njit\n\n@njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
+    mod = _module(tmp_path, "ni_locked",
+                  "from numba import njit\n\n@njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
     _check(ni.make_fast_loading(mod.twice), "Dispatcher._cache", "make_fast_loading found no FunctionCache")
     _check(type(ni.get_cache(mod.twice)._cache_file).save is ni._locked_save, "FunctionCache._cache_file",
            "the fast-loading cache's file has numba's save")

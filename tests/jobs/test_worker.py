@@ -502,5 +502,6 @@ def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monk
     runner.standby_main(claims_in, conn, None, 0, '{"n_particles": 4096}')
     assert warmed == ([] if claim_waiting else [4096])
     assert ran == [("engine.driver.simulate:run", ['{"n_particles": 512}'])]
-    said = (["ready", "ready"] if claim_waiting is True else ["warming", "ready", "ready"])  # (warming;) ready; claim over
+    # (warming;) started up; the claim over
+    said = ["ready", "ready"] if claim_waiting is True else ["warming", "ready", "ready"]
     assert [receiver.recv()[0] for _ in range(len(said))] == said
