@@ -403,9 +403,10 @@ class Worker:
         # a CPU claim's process stays for the lane's next claims (its imports and loaded code serve them all: with
         # many small claims, a process start-up per claim had cost a lane more than its jobs' runs); a GPU claim's
         # process ends with it, its device memory going back with its context
-        keep = self._keep_standby and self._packer.backend(jobs[0]) != "cuda"
+        on_gpu = self._packer.backend(jobs[0]) == "cuda"
+        keep = self._keep_standby and not on_gpu
         # a GPU pack runs the packed kernels, which a standby warming one job of its spec does not compile
-        packed = mode == ENSEMBLE and self._packer.backend(jobs[0]) == "cuda"
+        packed = mode == ENSEMBLE and on_gpu
         sim = self._hand_to_standby(claim, len(slots), jobs[0].id, packed)
         if sim is None and keep:   # the lane's process, started with its first claim (or after one that died)
             self._standby = self._spawn_standby(claim[1][0] if s.engine_run == DEFAULT_ENGINE_RUN else None)

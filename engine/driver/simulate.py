@@ -811,21 +811,21 @@ def warm_process(spec=None) -> None:
     """Pay this process's one-off start-up ahead of its first job (the worker's standby process, jobs/runner.py):
     on a GPU the driver, the context and the kernels of ``spec``'s specialisation (default: the default spec;
     engine/driver/startup.py), and the host's compiled start functions where a job of ``spec`` calls them itself
-    (engine.setup.scene.load_parallel_start, each drawn for a few particles: a large start drawn on the host; a
-    spheroid start, whose cell rounds a small random one runs on one thread). A job whose start NumPy draws (spheres
-    below the parallel start's size, species) or the device draws (engine.setup.start_kind.device_start) calls none
-    of them, and nothing is loaded for other specs' starts: on an empty cache their compile held numba's compiler
-    lock while the claim handed to this process waited (a GPU pack of 256 default-size jobs 23 s; the worker's
-    warm-up process loads them beside the claims instead, jobs/warm.py). Later jobs' results are unchanged: nothing
-    of this is kept but loaded code."""
-    from engine.setup.scene import load_parallel_start
-    from engine.setup.start_kind import SEQUENTIAL_GENERATOR, device_start, start_generator
+    (engine.setup.scene.load_parallel_start, each drawn for a few particles, where calls_compiled_start says so:
+    a large start drawn on the host; a random spheroid start, whose cell rounds a small one runs on one thread). A
+    job whose start NumPy or the device draws (engine.setup.start_kind.device_start) calls none of them, and nothing
+    is loaded for other specs' starts: on an empty cache their compile held numba's compiler lock while the claim
+    handed to this process waited (a GPU pack of 256 default-size jobs 23 s; the worker's warm-up process loads them
+    beside the claims instead, jobs/warm.py). Later jobs' results are unchanged: nothing of this is kept but loaded
+    code."""
+    from engine.setup.scene import calls_compiled_start, load_parallel_start
+    from engine.setup.start_kind import device_start
 
     spec = spec if spec is not None else SimulationSpec()
     p = derive(spec)
     started = begin_gpu_startup(spec, spec.backend, run_contacts(spec, p), p)
     on_device = started is not None and device_start(spec)
-    if not on_device and (spec.shape != "sphere" or start_generator(spec) != SEQUENTIAL_GENERATOR):
+    if not on_device and calls_compiled_start(spec):
         load_parallel_start(spec, p)
     if started is not None:
         started.wait()

@@ -393,6 +393,15 @@ def _space_spins_parallel(quat, w_b, w_a, rough, out):
                                                       w_b[i, 1], w_a[i, 0], rough)
 
 
+def calls_compiled_start(spec) -> bool:
+    """Whether a start of ``spec`` drawn on the host calls the compiled functions :func:`load_parallel_start` loads:
+    a large one-size start (the parallel generators), or a random spheroid start at any size (its cell rounds,
+    :func:`initial_ellipsoids`); a start NumPy draws (spheres below the parallel size, species, a small lattice) calls
+    none."""
+    return start_generator(spec) != SEQUENTIAL_GENERATOR or (
+        spec.shape == "ellipsoid" and start_protocol(spec) == RANDOM)
+
+
 def load_parallel_start(spec, p: Derived) -> bool:
     """Load every compiled function a large start of ``spec``'s kind calls (spec's shape and contact law; its
     n_particles is not read), for the argument types it calls them with, from numba's disk cache (or compile them):

@@ -171,6 +171,7 @@ def test_warm_process_loads_only_the_start_functions_its_specs_job_calls(monkeyp
     simulate.warm_process()                                   # the default job: a NumPy start
     species = [{"radius_ratio": 1.0, "number_fraction": 0.5}, {"radius_ratio": 0.5, "number_fraction": 0.5}]
     simulate.warm_process(SimulationSpec(species=species, volume_fraction=0.1))
+    simulate.warm_process(SimulationSpec(shape="ellipsoid", elongation=2.0, start="lattice"))   # NumPy's too
     assert loaded == []
     simulate.warm_process(_big())                            # a large start drawn on the host (no GPU)
     assert loaded == [("sphere", PARALLEL_START_MIN)]
