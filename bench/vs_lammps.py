@@ -37,12 +37,18 @@ the machine did meanwhile: its CPU seconds (``cpu_s``: the demq process's, or th
 seconds, and the seconds the hypervisor gave the host's CPUs to other guests (``steal_s``, the "steal" column of
 /proc/stat over all CPUs; None where there is none): a run slow in wall time but not in CPU time was descheduled; one
 slow in CPU time too ran on a slower or busier CPU.
+
+``--co-runner MB`` asks how much a busy neighbour costs each code: the bench pins itself (and so LAMMPS, its child)
+to one CPU and starts a process on the other CPUs that streams over MB megabytes without pause (NumPy ``a += 1``:
+each pass reads and writes the whole array, taking the shared last-level cache and memory bandwidth), for the whole
+comparison; ``co_runner_mb`` in each row says it ran.
 Without ``lmp`` on PATH the bench says so and runs demq alone.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -248,6 +254,29 @@ def run_demq(spec: SimulationSpec, threads: int, workdir: Path) -> dict:
             "ke_translational_end": ket, "ke_rotational_end": ker}
 
 
+#: the co-runner's loop: one array of argv[1] MB, read and written in whole passes until the process is killed
+CO_RUNNER_CODE = "import sys, numpy as np\na = np.ones(int(sys.argv[1]) << 17)\nwhile True:\n    a += 1.0\n"
+
+
+@contextlib.contextmanager
+def co_runner(megabytes: int):
+    """Pin this process to its first allowed CPU and stream over ``megabytes`` MB on the others meanwhile
+    (:data:`CO_RUNNER_CODE`); yields the co-runner's process. Needs two CPUs."""
+    allowed = sorted(os.sched_getaffinity(0))
+    if len(allowed) < 2:
+        raise SystemExit(f"--co-runner needs two CPUs; this process may use {len(allowed)}")
+    own, others = {allowed[0]}, set(allowed[1:])
+    proc = subprocess.Popen([sys.executable, "-c", CO_RUNNER_CODE, str(int(megabytes))])
+    try:
+        os.sched_setaffinity(proc.pid, others)
+        os.sched_setaffinity(0, own)
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+        os.sched_setaffinity(0, set(allowed))
+
+
 def _machine_txt(r: dict) -> str:
     """A run's wall and CPU seconds and the host's steal over it, for the pair lines."""
     steal = "" if r["steal_s"] is None else f", host steal {r['steal_s']:.2f} s"
@@ -353,6 +382,8 @@ def main(argv=None):
     ap.add_argument("--start", choices=("random", "lattice"), default=None,
                     help="demq's placement (default: the spec's default, the random gas at these sizes)")
     ap.add_argument("--no-warmup", action="store_true", help="skip the tiny run that fills the Numba cache")
+    ap.add_argument("--co-runner", type=int, default=0, metavar="MB",
+                    help="stream over MB megabytes on the other CPUs meanwhile, this bench pinned to one (0: none)")
     ap.add_argument("--out", default=None, help="folder for LAMMPS inputs and logs, results.json, results.md")
     a = ap.parse_args(argv)
     if a.out:
@@ -365,14 +396,19 @@ def main(argv=None):
     if len(a.steps) not in (1, len(a.n)):
         ap.error(f"--steps: give one value or one per --n ({len(a.n)}), got {len(a.steps)}")
     steps = a.steps * len(a.n) if len(a.steps) == 1 else a.steps
+    if a.co_runner and a.threads != 1:
+        ap.error("--co-runner pins the bench to one CPU: use it with --threads 1")
     rows = []
     for n, k in zip(a.n, steps):
         phi = a.phi if a.phi is not None else default_phi(n)
-        r = compare(n, phi, k, a.threads, a.lammps_skin, a.out, a.seed, a.demq_skin, a.pairs, a.start)
+        with co_runner(a.co_runner) if a.co_runner else contextlib.nullcontext():
+            r = compare(n, phi, k, a.threads, a.lammps_skin, a.out, a.seed, a.demq_skin, a.pairs, a.start)
+        r["co_runner_mb"] = a.co_runner
         rows.append(r)
         lmp_txt = (f"LAMMPS loop {r['lammps_loop_median']:.3g}, demq/LAMMPS x{r['ratio_loop']:.2f}"
                    if r["lammps"]["available"] else f"LAMMPS not run ({r['lammps']['reason']})")
-        print(f"N={n} phi={phi:g} start={r['start']} steps={k}, median of {a.pairs}: demq loop "
+        beside = f" beside a {a.co_runner} MB co-runner" if a.co_runner else ""
+        print(f"N={n} phi={phi:g} start={r['start']} steps={k}{beside}, median of {a.pairs}: demq loop "
               f"{r['demq_loop_median']:.3g} (spread {100 * r['demq_spread']:.1f} %, end-to-end "
               f"{r['demq_end_to_end_median']:.3g}), {lmp_txt}", flush=True)
     md = table(rows)

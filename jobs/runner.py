@@ -21,7 +21,7 @@ message names the job by its index k in the claim::
     ("error", None, readable message)     the pack as a whole failed (no job is singled out)
 
 A standby process says first, before its claim: ("warming", None, None) when it begins to warm up its spec's kernels
-(no claim came during its imports), ("compiling", None, None) once if that warm-up compiles kernels (an empty or
+(no claim came or was promised during its imports), ("compiling", None, None) once if that warm-up compiles kernels (an empty or
 partial kernel cache), then ("ready", None, None) when its start-up is done; and ("ready", None, None) again after
 each claim, once everything of that claim has been said and it reads the next one.
 
@@ -37,6 +37,7 @@ and the cancel check also stops the run when the worker is gone.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import importlib
 import os
@@ -113,7 +114,7 @@ def run_claim(engine_target: str, spec_jsons: list, outputs: list, checkpoint_di
 
 
 def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Optional[str] = None,
-                 threads: Optional[int] = None, engine_targets: tuple = ()) -> None:
+                 threads: Optional[int] = None, engine_targets: tuple = (), claim_promised=None) -> None:
     """Entry point of a standby simulation process: started by the worker before its claim, it pays the
     process's one-off start-up (the engine's imports, numba's targets, on a GPU the driver, the context and
     the kernels of ``warm_spec_json``'s specialisation: engine.driver.simulate.warm_process) while the worker waits
@@ -121,7 +122,9 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
     :func:`child_main` would, saying ("ready", None, None) after each. ``None`` instead of a claim (or a closed
     pipe): exit. ``engine_targets``: the ``module:function`` entry points its claims call, imported first (a
     non-default engine's too). ``warm_spec_json`` None: nothing is warmed (a non-default engine). ``threads``: as for
-    :func:`child_main`."""
+    :func:`child_main`. ``claim_promised``: a shared byte with its lock (``multiprocessing.Value``), set by the worker
+    when it has decided to send a claim (jobs/worker.py ``_hand_to_standby``): under that lock the standby either sees
+    a claim sent or promised and skips the warm-up, or says "warming" before the worker reads what it said."""
     _use_threads(threads)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -137,15 +140,16 @@ def standby_main(claims, conn, cancel_flags, parent_pid: int, warm_spec_json: Op
             from engine.driver.simulate import warm_process
             from engine.setup.spec import SimulationSpec
 
-            # a claim already waiting gets its own kernels compiled (or loaded) by its run, not the warm spec's
-            # first: with an empty kernel cache the default spec's would cost a first job of another
-            # specialisation a whole compile
-            if not claims.poll(0):
-                conn.send(("warming", None, None))
-                # a claim the worker sent before it read "warming" (jobs/worker.py _hand_to_standby) is run at once too
-                if not claims.poll(0):
-                    with _tell_when_compiling(conn):
-                        warm_process(SimulationSpec.model_validate_json(warm_spec_json))
+            # a claim already waiting, or promised, gets its own kernels compiled (or loaded) by its run, not the
+            # warm spec's first: with an empty kernel cache the default spec's would cost a first job of another
+            # specialisation a whole compile, and a GPU pack waits for no warm-up
+            with claim_promised.get_lock() if claim_promised is not None else contextlib.nullcontext():
+                warm = not claims.poll(0) and not (claim_promised is not None and claim_promised.value)
+                if warm:
+                    conn.send(("warming", None, None))
+            if warm:
+                with _tell_when_compiling(conn):
+                    warm_process(SimulationSpec.model_validate_json(warm_spec_json))
         except BrokenPipeError:
             pass
         except Exception:  # noqa: BLE001  (a start-up that fails here is paid again, and reported, by the job)

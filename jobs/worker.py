@@ -85,6 +85,10 @@ STANDBY_CLOSE_S = 0.5
 #: (it does at once; a process that does not is ended and the claim gets a fresh one).
 REUSE_READY_S = 2.0
 
+#: Seconds the worker waits for a standby's hand-over lock (the standby holds it only to check its claim pipe and
+#: say "warming"; one that holds it longer has died there, and the claim gets a process of its own).
+HAND_OVER_LOCK_S = 2.0
+
 #: What a standby process warms when the worker has run no claim yet: the default spec (the service's form and
 #: `demq submit`'s default job).
 DEFAULT_WARM_SPEC = "{}"
@@ -467,16 +471,19 @@ class Worker:
             receiver, sender = ctx.Pipe(duplex=False)
             claims_in, claims_out = ctx.Pipe(duplex=False)
             flags = ctx.RawArray("b", s.ensemble_max_jobs if s.packing else 1)
+            claim_promised = ctx.Value("b", 0)   # set, under its lock, once a claim is to be sent (_hand_to_standby)
             targets = tuple(t for t in (s.engine_run, s.engine_run_ensemble) if t)
             proc = ctx.Process(target=standby_main, name="demq-standby",
-                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json, self.threads, targets))
+                               args=(claims_in, sender, flags, os.getpid(), warm_spec_json, self.threads, targets,
+                                     claim_promised))
             proc.start()
         except Exception as exc:  # noqa: BLE001  (out of processes or memory: claims spawn their own)
             log.error("cannot start a standby simulation process: %s", exc)
             return None
         sender.close()
         claims_in.close()
-        return _SimProcess(proc, receiver, flags, claims_out, warm_key=_specialisation(warm_spec_json))
+        return _SimProcess(proc, receiver, flags, claims_out, warm_key=_specialisation(warm_spec_json),
+                           claim_promised=claim_promised)
 
     def _hand_to_standby(self, claim: tuple, n_jobs: int, job_id: str,
                          packed: bool = False) -> Optional["_SimProcess"]:
@@ -487,6 +494,9 @@ class Worker:
         is a GPU pack, whose packed kernels are not those of the one job a standby warms, so a standby that has begun
         its warm-up is not waited for either (a pack of 256 jobs had waited 23 s for one job's kernels and host start
         functions; a standby still importing skips its warm-up for the claim it finds).
+        What the standby has said is read, and the claim promised to it, under the lock of its ``claim_promised``
+        byte, under which the standby decides whether to warm up: a claim decided on is never sent to a standby that
+        began its warm-up unseen (the send itself waits outside the lock: a pack's claim can fill the pipe).
         A process that ran a claim takes the next one once it has said that it reads it (REUSE_READY_S)."""
         sim, self._standby = self._standby, None
         if sim is None:
@@ -498,20 +508,25 @@ class Worker:
                             "the claim gets a fresh one", job_id, sim.proc.pid)
                 sim.close()
                 return None
+            refusal = self._standby_refusal(sim, claim, n_jobs, packed)
         else:
-            sim.read_start_up()
-        if not sim.proc.is_alive() or len(sim.flags) < n_jobs:
-            sim.close()
-            return None
-        if packed and sim.warming and not sim.ready:
-            log.info("job %s: the standby process is warming up one job's kernels, not a GPU pack's; the claim gets a "
-                     "process of its own", job_id)
-            sim.close(grace_s=0.0)
-            return None
-        if sim.compiling and not sim.ready and sim.warm_key != _specialisation(claim[1][0]):
-            log.info("job %s: the standby process is still compiling another specialisation's kernels; the claim "
-                     "gets a process of its own", job_id)
-            sim.close(grace_s=0.0)
+            lock = sim.claim_promised.get_lock() if sim.claim_promised is not None else None
+            if lock is not None and not lock.acquire(timeout=HAND_OVER_LOCK_S):
+                refusal = (STANDBY_CLOSE_S, "the standby process holds its hand-over lock")
+            else:
+                try:
+                    sim.read_start_up()
+                    refusal = self._standby_refusal(sim, claim, n_jobs, packed)
+                    if refusal is None and sim.claim_promised is not None:
+                        sim.claim_promised.value = 1
+                finally:
+                    if lock is not None:
+                        lock.release()
+        if refusal is not None:
+            grace_s, why = refusal
+            if why:
+                log.info("job %s: %s; the claim gets a process of its own", job_id, why)
+            sim.close(grace_s=grace_s)
             return None
         sim.flags[:] = bytes(len(sim.flags))   # the previous claim's cancel flags, cleared (the process waits)
         try:
@@ -523,6 +538,18 @@ class Worker:
         log.info("job %s: handed to the standby simulation process (pid %s, its claim %d)", job_id, sim.proc.pid,
                  sim.claims_run + 1)
         return sim
+
+    @staticmethod
+    def _standby_refusal(sim: "_SimProcess", claim: tuple, n_jobs: int, packed: bool) -> Optional[tuple]:
+        """Why ``sim`` must not take ``claim``, from what it has said: (grace seconds to end it, reason to log or
+        ""), or None when it may."""
+        if not sim.proc.is_alive() or len(sim.flags) < n_jobs:
+            return STANDBY_CLOSE_S, ""
+        if packed and sim.warming and not sim.ready:
+            return 0.0, "the standby process is warming up one job's kernels, not a GPU pack's"
+        if sim.compiling and not sim.ready and sim.warm_key != _specialisation(claim[1][0]):
+            return 0.0, "the standby process is still compiling another specialisation's kernels"
+        return None
 
     def _supervise(self, slots: list["_Slot"], proc, receiver, flags, mode: str = ONE) -> Optional[str]:
         """Relay progress and heartbeats (per job) until the process ends or every job has ended done,
@@ -800,6 +827,7 @@ class _SimProcess:
     flags: object                      # per-job cancel bytes (shared memory)
     claims: Optional[object] = None    # a standby's claim pipe, while it may get a claim
     warm_key: Optional[tuple] = None   # a standby's: the specialisation it starts up for (_specialisation)
+    claim_promised: Optional[object] = None  # a standby's: shared byte + lock, set when a claim is to come to it
     warming: bool = False              # a standby's start-up has begun to warm its spec's kernels (said "warming")
     compiling: bool = False            # a standby's start-up has compiled kernels (said "compiling")
     ready: bool = False                # a standby's start-up is done, or its last claim over (said "ready")

@@ -2,6 +2,7 @@
 is installed) a tiny side-by-side run completes with both codes integrating the same gas."""
 
 import math
+import os
 import shutil
 
 import numpy as np
@@ -102,3 +103,13 @@ def test_host_steal_reads_proc_stat(tmp_path, monkeypatch):
     assert vs_lammps.host_steal_s() == pytest.approx(250 / vs_lammps.os.sysconf("SC_CLK_TCK"))
     stat.write_text("cpu  10 0 20 30000\n")
     assert vs_lammps.host_steal_s() is None
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the co-runner needs two CPUs")
+def test_co_runner_streams_on_the_other_cpus_and_ends_with_the_comparison():
+    allowed = os.sched_getaffinity(0)
+    with vs_lammps.co_runner(8) as proc:
+        assert proc.poll() is None                                      # streaming meanwhile
+        ours, theirs = os.sched_getaffinity(0), os.sched_getaffinity(proc.pid)
+        assert len(ours) == 1 and ours | theirs == allowed and not ours & theirs
+    assert proc.poll() is not None and os.sched_getaffinity(0) == allowed

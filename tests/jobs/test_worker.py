@@ -459,12 +459,66 @@ def test_a_gpu_pack_does_not_wait_for_a_standby_warming_one_job_of_its_spec(tmp_
     store.close()
 
 
-@pytest.mark.parametrize("claim_waiting", [True, "after warming", False])
+def test_a_gpu_pack_is_promised_to_a_standby_under_its_hand_over_lock(tmp_path, caplog, monkeypatch):
+    """The worker reads what a standby has said, and promises it the claim, under the lock under which the standby
+    decides whether to warm up (jobs/runner.py standby_main): a standby that says "warming" while the worker is about
+    to hand over a GPU pack does not get it (the pack had been sent, and waited for the warm-up, when "warming" came
+    between the worker's read and its send); a standby that has said nothing is promised the pack, then sent it."""
+    import logging
+    import threading
+    import time
+
+    from tests.jobs.fake_engine import ENSEMBLE_TARGET
+
+    settings, store, worker = _standby_worker(tmp_path, engine_run_ensemble=ENSEMBLE_TARGET, cpu_packs="ensemble")
+    worker._keep_standby = True
+    monkeypatch.setattr(worker._packer, "backend", lambda job: "cuda")    # a GPU host's packs (the fake engine runs)
+    standby = worker._spawn_standby(None)
+    said, promised_when_deciding = [], []
+    standby.read_start_up = lambda: setattr(standby, "warming", "warming" in said)
+    deciding = threading.Event()
+
+    def standby_decides():   # as standby_main: under the lock it finds no claim promised, so it says "warming"
+        with standby.claim_promised.get_lock():
+            deciding.set()
+            time.sleep(0.3)
+            promised_when_deciding.append(standby.claim_promised.value)
+            said.append("warming")
+
+    decider = threading.Thread(target=standby_decides)
+    decider.start()
+    assert deciding.wait(timeout=10)
+    worker._standby = standby
+    jobs = [_enqueue(store, n_particles=4096, box_length=2.0, seed=s) for s in (1, 2)]
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        assert worker.execute_pack(worker._next(None)) == {j.id: DONE for j in jobs}
+    decider.join()
+    assert promised_when_deciding == [0]
+    assert "warming up one job's kernels, not a GPU pack's" in caplog.text
+    assert "handed to the standby" not in caplog.text and not standby.proc.is_alive()
+    worker._standby.close()
+    quiet = worker._spawn_standby(None)
+    quiet.read_start_up = lambda: None       # it has said nothing yet
+    worker._standby = quiet
+    jobs = [_enqueue(store, n_particles=4096, box_length=2.0, seed=s) for s in (3, 4)]
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="demq.worker"):
+        assert worker.execute_pack(worker._next(None)) == {j.id: DONE for j in jobs}
+    assert "handed to the standby" in caplog.text and quiet.claim_promised.value == 1
+    worker._keep_standby = False
+    worker._standby.close()
+    worker._reap(wait=True)
+    store.close()
+
+
+@pytest.mark.parametrize("claim_waiting", [True, "promised", False])
 def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monkeypatch, claim_waiting):
-    """A claim handed to a standby while it still imported is run at once: the standby does not first compile (or
-    load) the warm spec's kernels, which with an empty cache would cost a first job of another specialisation a whole
-    compile; without a waiting claim it warms up as before and then runs the claim that comes."""
+    """A claim handed to a standby while it still imported, or promised to it (the worker has decided to send it), is
+    run at once: the standby does not first compile (or load) the warm spec's kernels, which with an empty cache would
+    cost a first job of another specialisation a whole compile and a GPU pack a wait; without a waiting or promised
+    claim it warms up as before and then runs the claim that comes."""
     import multiprocessing
+    import threading
 
     import engine.driver.simulate
     from jobs import runner
@@ -483,25 +537,21 @@ def test_a_standby_that_finds_a_claim_after_its_imports_skips_the_warm_spec(monk
     monkeypatch.setattr(runner, "run_claim", lambda *args: ran.append(args[:2]))
     monkeypatch.setattr(runner, "_die_with_parent", lambda: None)
     monkeypatch.setattr(runner.signal, "signal", lambda *a: None)
-    conn = sender
+    claim_promised = multiprocessing.Value("b", 0)
     if claim_waiting is True:
         claims_out.send(claim)
         claims_out.send(None)
-    elif claim_waiting:      # the claim comes as the standby says "warming" (the worker had not read it yet)
-        class Conn:
-            def send(self, message):
-                sender.send(message)
-                if message[0] == "warming":
-                    claims_out.send(claim)
-                    claims_out.send(None)
+    elif claim_waiting:      # promised before the standby looks, sent a little later (after the worker's lock)
+        claim_promised.value = 1
 
-            def close(self):
-                sender.close()
+        def send_late():
+            claims_out.send(claim)
+            claims_out.send(None)
 
-        conn = Conn()
-    runner.standby_main(claims_in, conn, None, 0, '{"n_particles": 4096}')
+        threading.Timer(0.3, send_late).start()
+    runner.standby_main(claims_in, sender, None, 0, '{"n_particles": 4096}', claim_promised=claim_promised)
     assert warmed == ([] if claim_waiting else [4096])
     assert ran == [("engine.driver.simulate:run", ['{"n_particles": 512}'])]
     # (warming;) started up; the claim over
-    said = ["ready", "ready"] if claim_waiting is True else ["warming", "ready", "ready"]
+    said = ["ready", "ready"] if claim_waiting else ["warming", "ready", "ready"]
     assert [receiver.recv()[0] for _ in range(len(said))] == said
