@@ -22,8 +22,8 @@ message names the job by its index k in the claim::
 
 A standby process says first, before its claim: ("warming", None, None) when it begins to warm up its spec's kernels
 (no claim came or was promised during its imports), ("compiling", None, None) once if that warm-up compiles kernels
-(an empty or partial kernel cache), then ("ready", None, None) when its start-up is done; and ("ready", None, None) again after
-each claim, once everything of that claim has been said and it reads the next one.
+(an empty or partial kernel cache), then ("ready", None, None) when its start-up is done; and ("ready", None, None)
+again after each claim, once everything of that claim has been said and it reads the next one.
 
 A sequence's or a pack's jobs report done / cancelled / error one by one, as their runs end. Each job has its own
 cancel flag (a shared byte array), so one job stops without disturbing the others; a sequence's job whose flag is
