@@ -99,6 +99,7 @@ SWITCHES = {
     "multistep_fused": ("engine.loops.cuda_stepping", "MULTISTEP_FUSED", False),
     "observe_in_forces": ("engine.loops.cuda_stepping", "OBSERVE_IN_FORCES", False),
     "skip_cold": ("engine.loops.cuda_loop", "SKIP_COLD", False),
+    "keep_velocity": ("engine.loops.cuda_loop", "KEEP_VELOCITY", False),
     "direct_launch": ("engine.loops.cuda_launch", "DIRECT", False),
     "sort_interval": ("engine.loops.cuda_rebuild", "SORT_DRIFT_CELLS", 0.0),
     "build_kept": ("engine.loops.cuda_rebuild", "BUILD_KEPT", 0),

@@ -35,9 +35,9 @@ Kernel arguments (device arrays, particle index fastest), the same for every sha
 ``rad`` the list radius, ``ext`` a tuple of the shape's own arrays; f_old/f_new (f0/f1) are the double buffer
 of the forces (a shape that does not read other particles' old forces gets the same array twice). ``hot`` (uint8,
 N) says which particles' force buffers hold something other than zero (``SKIP_COLD``, below): bit 0, the force or
-torque of the last force pass was not zero; bit 1, that of the pass before; 0xFF (any bit 2-7 set) when the buffers
-were written outside the force passes (allocation, a rebuild's permutation): every pass writes them, every kick
-reads them.
+torque of the last force pass was not zero; bit 1, that of the pass before; bit 2, the velocity may differ from the
+other half of the fused step's double buffer (``KEEP_VELOCITY``, below); 0xFF when the buffers were written outside
+the force passes (allocation, a rebuild's permutation): every pass writes them, every kick reads them.
 ``exact`` = 0: kick_drift does not read x_ref and reports no displacement, only the speeds (the host bounds the
 displacements by the sum of max |v| dt, engine/loops/cuda_stepping.py). With one scene (``spi`` of one row) no
 kernel reads ``sc``: every particle is in scene 0.
@@ -67,6 +67,17 @@ _cache: dict = {}
 #: as with every store made (a force summed from +0.0 is never -0.0), so the trajectory is the same bits.
 #: False: every pass stores, every kick reads (bench/e2e.py --off skip_cold, the tests' reference).
 SKIP_COLD = True
+
+#: True (with SKIP_COLD): the fused force-and-kick-drift pass stores a velocity component into the other half of the
+#: double buffer only where that half may not hold the same number already (``hot`` bit 2) or the component is kicked
+#: by a force that is not zero. Bit 2 is kept so: a fused pass sets it where its force is not zero (the halves then
+#: differ by the kick) and clears it elsewhere (they hold the same velocity); any other force pass sets it where its
+#: force is not zero and leaves it set where it was (the in-place kicks after such a pass, the next call's first
+#: kick-drift and the closing half kick, change a velocity only where that force is not zero); 0xFF sets it. In a
+#: dilute gas 12 bytes (float32) of the fused pass's 54 a particle-step are saved. A kick by a zero force, v = u + 0,
+#: is the number u, so the trajectory is the same bits (a velocity of -0.0 may be kept where the store would make it
+#: +0.0; a position never differs). False: every velocity stored (bench/e2e.py --off keep_velocity).
+KEEP_VELOCITY = True
 
 #: blocks of the force kernel (and of the fused force-and-kick-drift kernel) each SM must hold, by (shape,
 #: precision, shape flags) or "*" (its launch bounds: the compiler keeps the registers to 65536 / (TPB x blocks)
@@ -139,12 +150,13 @@ def kernels(shape: str, dtype, flags: tuple, uniform: bool, tpb: int, device) ->
     ``make_cuda``), which the caller passes in: this module names no shape and no shape registry."""
     flags = tuple(bool(f) for f in flags)
     key = (shape, np.dtype(dtype).str, flags, uniform, tpb, force_blocks(shape, dtype, flags),
-           observe_blocks(shape, dtype, flags), bool(SKIP_COLD), kick_drift_blocks(shape, dtype, flags))
+           observe_blocks(shape, dtype, flags), bool(SKIP_COLD), kick_drift_blocks(shape, dtype, flags),
+           bool(SKIP_COLD and KEEP_VELOCITY))
     if key not in _cache:
         dt = np.dtype(dtype).type
         parts = device.make_cuda(L, dt, uniform, tpb, *key[2])
         k = dict(L.grid_kernels(dtype, uniform, tpb))
-        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6], key[7], key[8]),
+        k.update(cache_kernels(_make(parts, dt, uniform, tpb, key[5], key[6], key[7], key[8], key[9]),
                                ("loop",) + key[:2] + tuple(map(str, key[2:]))))
         k.update(cache_kernels(dict(parts.kernels), ("own",) + key[:2] + tuple(map(str, key[2:]))))
         _cache[key] = k
@@ -175,7 +187,7 @@ def _blocks(table: dict | None, shape: str, dtype, flags: tuple):
 
 
 def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: C901  (a closure per specialisation)
-          SKIP=True, KICK_BLOCKS=None):
+          SKIP=True, KICK_BLOCKS=None, KEEP=True):
     ZERO = DT(0)
     HALF = DT(0.5)
     WIDEN_REF = DT == np.float64    # x_ref may be float32 beside float64 positions (cuda_memory.xref_dtype)
@@ -195,13 +207,14 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
     # ---- step phases (device functions shared by the one-step kernels and the multi-step kernel) ------
 
     @cuda.jit(device=True)
-    def translate(k, i, x_old, u, f, xr, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, in_place, ext):
+    def translate(k, i, x_old, u, f, xr, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out, kept, ext):
         """Component k of particle i's translation: v = u + f im hk, x = x_old + v dt wrapped (stored), the
         shape's ``translated`` hook; returns the squared displacement from xr (0 unless ``exact``) and v^2.
-        ``in_place`` (vel_out is the array u was read from): a kick by f = 0 stores nothing (v = u + 0 is u: the same
-        number, a -0.0 kept), the store of a particle under no force (most of a dilute gas) is saved."""
+        ``kept`` (vel_out holds u already: it is the array u was read from, or the fused pass's other half where
+        ``hot`` bit 2 is clear): a kick by f = 0 stores nothing (v = u + 0 is u: the same number, a -0.0 kept), the
+        store of a particle under no force (most of a dilute gas) is saved."""
         v = kick(u, f, im, hk)
-        if not in_place or f != ZERO:
+        if not kept or f != ZERO:
             vel_out[k, i] = v
         translated(k, i, x_old, v, f, im, hp, ext)
         x = drift_wrap(x_old, v, dt, box, inv_box)
@@ -210,14 +223,14 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         return d * d, v * v
 
     @cuda.jit(device=True)
-    def kick_drift_one(i, first, exact, in_place, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, torqued,
+    def kick_drift_one(i, first, exact, kept, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque, torqued,
                        inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step, ext):
         """v += F/m hk (hk = dt/2 on the first step of a call, else dt; F = (fx, fy, fz)), x += v dt wrapped,
         then the shape's rotation step (``torqued`` False: the torque is zero, not read); returns the normalised
         squared displacement since the build (0 unless ``exact``) and speed (0, 0 for a skipped scene). Reads pos
-        and vel, writes pos_out and vel_out (the same arrays, ``in_place`` True: a velocity under no force is not
-        stored again; or the other half of the fused kernel's double buffer; a skipped scene's particles are copied
-        across). Every read is issued before the first write: one memory latency, not one per component (the
+        and vel, writes pos_out and vel_out (the same arrays, or the other half of the fused kernel's double buffer;
+        ``kept``: vel_out holds vel's numbers already, a velocity component under no force is not stored again; a
+        skipped scene's particles are copied across). Every read is issued before the first write: one memory latency, not one per component (the
         compiler may not move a read past a write that could alias it)."""
         s = scene_of(i, sc, spi)
         x0 = pos[0, i]
@@ -253,11 +266,11 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         inv_box = spd[s, D_INVBOX]
         im = spd[s, D_IM0] if UNIFORM else inv_m[i]
         d0, w0 = translate(0, i, x0, u0, fx, r0, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out,
-                           in_place, ext)
+                           kept, ext)
         d1, w1 = translate(1, i, x1, u1, fy, r1, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out,
-                           in_place, ext)
+                           kept, ext)
         d2, w2 = translate(2, i, x2, u2, fz, r2, exact, im, hk, hp, dt, box, inv_box, pos_out, vel_out,
-                           in_place, ext)
+                           kept, ext)
         dsp = ZERO + d0 + d1 + d2
         v2 = ZERO + w0 + w1 + w2
         ok = rotate(i, s, spin, quat, torque, torqued, spin_inv, ext, spd, spi, hk, hp, dt, step)
@@ -268,22 +281,25 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
 
     @cuda.jit(device=True)
     def forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd,
-                   spf, spi, status, step, ext):
+                   spf, spi, status, step, ext, fused):
         """Contact forces and torque on particle i from its list (the shape's pair evaluator per slot, summed
         in list order; slots q = nn[i] .. nn[i + 1] - 1 hold the neighbour nbr[q] and its history
         hist[:, q]); per-slot history advanced in place; a scene whose overlap exceeds its limit stops.
-        Returns the force (stored in f_new too; zero for a skipped scene) and whether force or torque is not zero
-        (``hot`` bit 0). The stores are skipped where both are zero and were at the two passes before (``SKIP``:
-        f_new, the buffer written two passes ago, and the torque, written one pass ago, hold zeros already)."""
+        Returns the force (stored in f_new too; zero for a skipped scene), whether force or torque is not zero
+        (``hot`` bit 0) and whether the other half of the fused step's velocity buffer held this one's numbers
+        before the pass (bit 2 clear, ``KEEP``). The stores are skipped where both are zero and were at the two
+        passes before (``SKIP``: f_new, the buffer written two passes ago, and the torque, written one pass ago,
+        hold zeros already). ``fused``: the pass kicks with this force into the other half (bit 2 becomes whether
+        the force is not zero), else an in-place kick may follow (bit 2 is set where it is not zero)."""
         s = scene_of(i, sc, spi)
         # the particle's own reads are issued before the scene's active flag is known (harmless for a stopped
         # scene, whose slots are then left alone): one memory latency less per particle in a latency-bound kernel
         p = particle(i, s, pos, rad, inv_m, ids, spd)
         h0 = nn[i]          # the row's first history slot, and its count from the next row's (cuda_kernels: the
         m = nn[i + 1] - h0  # list's layout; the two loads share a cache line across the warp)
-        was = hot[i] if SKIP else 3
+        was = hot[i] if SKIP else 7
         if spi[s, I_ACTIVE] == 0:
-            return ZERO, ZERO, ZERO, False
+            return ZERO, ZERO, ZERO, False, False
         acc = (ZERO, ZERO, ZERO, ZERO, ZERO, ZERO, ZERO)
         for q in range(h0, h0 + m):
             acc = pair(i, q, nbr[q], s, p, acc, pos, vel, spin, quat, rad, inv_m, f_old, hist, ids, ext, spd)
@@ -300,7 +316,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
                 torque[1, i] = ty
                 torque[2, i] = tz
         if SKIP:
-            flags = (1 if now else 0) | ((was & 1) << 1)
+            moved = now if fused else (now or (was & 4) != 0)
+            flags = (1 if now else 0) | ((was & 1) << 1) | (4 if (moved or not KEEP) else 0)
             if flags != was:
                 hot[i] = flags
         w64 = f64(worst)
@@ -308,7 +325,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
             b = SS0 + NSS * s
             cuda.atomic.max(status, b + SS_OVL, w64)
             fail(status, spi, s, SS_OVL_ID, ids[i], step)
-        return fx, fy, fz, now
+        return fx, fy, fz, now, KEEP and (was & 4) == 0
 
     # ---- one-step kernels (large scenes: launch overhead is negligible) ---------------------------------
 
@@ -372,7 +389,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         clear_maxima(i0, status)
         for i in range(i0, n, cuda.gridsize(1)):
             forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn, hist, ids, sc, spd,
-                       spf, spi, status, step, ext)
+                       spf, spi, status, step, ext, False)
 
     @(cuda.jit(launch_bounds=(TPB, FORCE_BLOCKS)) if FORCE_BLOCKS else cuda.jit)
     def forces_kick_drift(n, par, exact, pos, pos_out, vel, vel_out, spin, quat, rad, inv_m, f_old, f_new, torque,
@@ -390,9 +407,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         md = 0.0
         mv = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
-            fx, fy, fz, pushed = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn,
-                                            hist, ids, sc, spd, spf, spi, status, step, ext)
-            d2, v2 = kick_drift_one(i, 0, exact, False, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
+            fx, fy, fz, pushed, kept = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot,
+                                                  nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext, True)
+            d2, v2 = kick_drift_one(i, 0, exact, kept, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
                                     pushed, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)
@@ -478,7 +495,7 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
                     break
             for i in range(i0, n, stride):
                 forces_one(i, pos, vel, spin, quat, rad, inv_m, fa, fb, torque, hot, nbr, nn, hist, ids, sc, spd,
-                           spf, spi, status, step, ext)
+                           spf, spi, status, step, ext, False)
             done += 1
             g.sync()
         if i0 == 0:
@@ -536,8 +553,9 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
                     status[drift_slot(st + 2)] = 0.0
                 md = 0.0
                 for i in range(i0, n, stride):
-                    fx, fy, fz, pushed = forces_one(i, p_in, v_in, w_in, quat, rad, inv_m, fa, fb, torque, hot, nbr,
-                                                    nn, hist, ids, sc, spd, spf, spi, status, step, ext)
+                    # (not ``fused``: this kernel stores every velocity and never runs beside forces_kick_drift)
+                    fx, fy, fz, pushed, _ = forces_one(i, p_in, v_in, w_in, quat, rad, inv_m, fa, fb, torque, hot,
+                                                       nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext, False)
                     if more:
                         for k in range(3):
                             w_out[k, i] = w_in[k, i]
@@ -611,8 +629,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         clear_maxima(i0, status)
         if spi[0, I_ACTIVE] != 0:
             for i in range(i0, n, cuda.gridsize(1)):
-                fx, fy, fz, _ = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn,
-                                           hist, ids, sc, spd, spf, spi, status, step, ext)
+                fx, fy, fz, _, _ = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr,
+                                              nn, hist, ids, sc, spd, spf, spi, status, step, ext, False)
                 observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
                                hist, spd, spf, ext, torque, spin_inv)
         block_accumulate(sh, vals, acc, row)
@@ -633,12 +651,12 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         md = 0.0
         mv = 0.0
         for i in range(i0, n, cuda.gridsize(1)):
-            fx, fy, fz, pushed = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot, nbr, nn,
-                                            hist, ids, sc, spd, spf, spi, status, step, ext)
+            fx, fy, fz, pushed, kept = forces_one(i, pos, vel, spin, quat, rad, inv_m, f_old, f_new, torque, hot,
+                                                  nbr, nn, hist, ids, sc, spd, spf, spi, status, step, ext, True)
             if spi[0, I_ACTIVE] != 0:
                 observe_synced(i, vals, fx, fy, fz, pos, vel, spin, quat, inv_m, obs_rad, mass, inertia, nbr, nn,
                                hist, spd, spf, ext, torque, spin_inv)
-            d2, v2 = kick_drift_one(i, 0, exact, False, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
+            d2, v2 = kick_drift_one(i, 0, exact, kept, pos, pos_out, vel, vel_out, spin, quat, fx, fy, fz, torque,
                                     pushed, inv_m, spin_inv, x_ref, ids, sc, spd, spf, spi, status, step + 1, ext)
             md = max(md, d2)
             mv = max(mv, v2)

@@ -5,7 +5,9 @@ the trajectory is the one with every store and load made, bit for bit (rough sph
 two-launch step, smooth spheres through the fused step, records and rebuilds on the way); before every kick-drift
 a particle whose flags say zero holds zeros in both force buffers and the torque, and some particles are cold (no
 particle ever is without the flags); the kick-drift does not read a cold particle's force and torque (NaN written
-there before it changes nothing)."""
+there before it changes nothing); before every fused force-and-kick-drift pass a particle whose ``hot`` bit 2 is
+clear holds the same velocity in both halves of the double buffer (``KEEP_VELOCITY``: that pass then stores no
+velocity component its force does not kick), and some particles are so."""
 
 from __future__ import annotations
 
@@ -55,6 +57,31 @@ def spy(self, first, step, n=None, grid=None, exact=1):
     self.torque.copy_to_device(torque)
 st.TimeLoop._kick_drift = spy
 
+import engine.loops.cuda_records as rec
+checked["fused"] = checked["kept"] = 0
+def same_halves(self):
+    """Before a fused pass: where bit 2 is clear the other half of the velocity buffer holds this one's numbers."""
+    if not (loop.SKIP_COLD and loop.KEEP_VELOCITY):
+        return
+    hot = self.hot.copy_to_host()
+    kept = (hot & 4) == 0
+    vel, other = self.vel.copy_to_host(), self._fused_out()[1].copy_to_host()
+    assert np.array_equal(vel[:, kept], other[:, kept]), self.steps_done
+    checked["fused"] += 1
+    checked["kept"] += int(kept.sum())
+orig_fused = st.TimeLoop._forces_kick_drift
+def spy_fused(self, step, par, exact, n=None, grid=None):
+    if n is None:
+        same_halves(self)
+    return orig_fused(self, step, par, exact, n=n, grid=grid)
+st.TimeLoop._forces_kick_drift = spy_fused
+orig_observe = rec.ObserveSums._observe_in_forces
+def spy_observe(self, step, row, fused, par=0, exact=1, n=None, grid=None):
+    if fused and n is None:
+        same_halves(self)
+    return orig_observe(self, step, row, fused, par=par, exact=exact, n=n, grid=grid)
+rec.ObserveSums._observe_in_forces = spy_observe
+
 DATA = ("position", "velocity", "angular_velocity")
 out = {}
 for name, kw in (("rough", dict(e_t=0.8, friction=0.3)), ("smooth", dict(e_t=-1.0))):
@@ -73,6 +100,7 @@ for name, kw in (("rough", dict(e_t=0.8, friction=0.3)), ("smooth", dict(e_t=-1.
     for d, x, y in zip(DATA, a, b):
         assert np.array_equal(x, y), (name, d)
 assert checked["kicks"] > 20 and checked["cold"] > 0, checked
+assert checked["fused"] > 20 and checked["kept"] > 0, checked
 print("SKIP-OK", checked)
 '''
 

@@ -1,6 +1,7 @@
-"""Real-GPU check of the skipped stores and loads of zero forces (engine/loops/cuda_loop.py ``SKIP_COLD``): rough
-spheres (float64; float32 with a Coulomb cap at phi = 0.2) and rough spheroids through the per-phase loop write the
-same positions, velocities, spins and orientations, bit for bit, with the flags and with every store and load made.
+"""Real-GPU check of the skipped stores and loads of zero forces (engine/loops/cuda_loop.py ``SKIP_COLD``, and
+``KEEP_VELOCITY`` with it): rough spheres (float64; float32 with a Coulomb cap at phi = 0.2), rough spheroids and
+smooth elastic float32 spheres (the fused step) through the per-phase loop write the same positions, velocities, spins
+and orientations, bit for bit, with the flags and with every store and load made.
 (The observables are left out: their block sums end in float atomics, whose order varies from run to run.) Skipped
 without a GPU."""
 
@@ -30,7 +31,8 @@ print("DONE " + json.dumps(s.steps))
 @pytest.mark.parametrize("kw", [
     dict(n_particles=65536, volume_fraction=0.058, e_t=0.8, precision="float64"),
     dict(n_particles=65536, volume_fraction=0.2, e_t=0.8, friction=0.2, precision="float32"),
-    dict(shape="ellipsoid", elongation=2.0, n_particles=16384, volume_fraction=0.05, e_t=0.8, precision="float64")])
+    dict(shape="ellipsoid", elongation=2.0, n_particles=16384, volume_fraction=0.05, e_t=0.8, precision="float64"),
+    dict(n_particles=65536, volume_fraction=0.058, e_n=1.0, e_t=-1.0, precision="float32")])
 def test_the_flags_keep_the_trajectory_bit_for_bit(tmp_path, kw):
     kw = dict(kw, t_end=0.01, snapshots=2, seed=1, thermalization=0)
     files = {}
