@@ -73,10 +73,10 @@ SKIP_COLD = True
 #: by a force that is not zero. Bit 2 is kept so: a fused pass sets it where its force is not zero (the halves then
 #: differ by the kick) and clears it elsewhere (they hold the same velocity); any other force pass sets it where its
 #: force is not zero and leaves it set where it was (the in-place kicks after such a pass, the next call's first
-#: kick-drift and the closing half kick, change a velocity only where that force is not zero); 0xFF sets it. In a
-#: dilute gas 12 bytes (float32) of the fused pass's 54 a particle-step are saved. A kick by a zero force, v = u + 0,
-#: is the number u, so the trajectory is the same bits (a velocity of -0.0 may be kept where the store would make it
-#: +0.0; a position never differs). False: every velocity stored (bench/e2e.py --off keep_velocity).
+#: kick-drift and the closing half kick, change a velocity only where that force is not zero); 0xFF sets it. Most of
+#: a dilute gas is under no force: up to 12 bytes (float32) a particle-step are saved. A kick by a zero force,
+#: v = u + 0, is the number u, so the trajectory is the same bits (a velocity of -0.0 may be kept where the store would
+#: make it +0.0; a position never differs). False: every velocity stored (bench/e2e.py --off keep_velocity).
 KEEP_VELOCITY = True
 
 #: blocks of the force kernel (and of the fused force-and-kick-drift kernel) each SM must hold, by (shape,
@@ -230,8 +230,8 @@ def _make(P, DT, UNIFORM, TPB, FORCE_BLOCKS=None, OBSERVE_BLOCKS=None,  # noqa: 
         squared displacement since the build (0 unless ``exact``) and speed (0, 0 for a skipped scene). Reads pos
         and vel, writes pos_out and vel_out (the same arrays, or the other half of the fused kernel's double buffer;
         ``kept``: vel_out holds vel's numbers already, a velocity component under no force is not stored again; a
-        skipped scene's particles are copied across). Every read is issued before the first write: one memory latency, not one per component (the
-        compiler may not move a read past a write that could alias it)."""
+        skipped scene's particles are copied across). Every read is issued before the first write: one memory
+        latency, not one per component (the compiler may not move a read past a write that could alias it)."""
         s = scene_of(i, sc, spi)
         x0 = pos[0, i]
         x1 = pos[1, i]
